@@ -1,0 +1,31 @@
+# make demo   build everything and run the main job on built-in synthetic data
+# make test   build everything and run the test suite
+#
+# Uses the python3 that already has torch (the GPU machine: torch + nvcc preinstalled, offline);
+# otherwise creates .venv and installs the CPU torch wheel there.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(shell if $(PYTHON) -c "import torch" >/dev/null 2>&1; then command -v $(PYTHON); else echo $(abspath $(VENV))/bin/python; fi)
+PYTEST_ARGS ?= -q
+
+.PHONY: env build test demo bench clean
+
+env:
+	@if [ ! -x "$(PY)" ]; then echo "[make] creating $(VENV)"; $(PYTHON) -m venv $(VENV); fi
+	@$(PY) tools/ensure_env.py
+
+build: env
+	$(PY) setup.py -q build_ext --inplace
+
+test: build
+	$(PY) -m pytest $(PYTEST_ARGS) tests
+
+demo: build
+	$(PY) -m lidarops tour
+
+bench: build
+	$(PY) benchmarks/bm_neighbors.py
+
+clean:
+	rm -rf build lidarops/_C*.so lidarops/_build_info.json

@@ -1,0 +1,39 @@
+"""lidarops: fast, tested PyTorch C++/CUDA ops for LiDAR point clouds.
+
+Core ops (registered as ``torch.ops.lidarops.*``; these are their validated wrappers)::
+
+    lidarops.fps(points, k)               farthest point sampling       -> idx (B, k)
+    lidarops.knn(query, points, k)        k nearest neighbours          -> dist2, idx (B, M, k)
+    lidarops.ball_query(q, p, radius, k)  first k points within radius  -> dist2, idx (B, M, k)
+    lidarops.gather(x, idx)               grouping (PointNet++)         -> (B, *idx.shape[1:], C)
+
+The compiled library is loaded on first use, so ``import lidarops.data`` works without it.
+"""
+from __future__ import annotations
+
+import importlib
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "fps": "lidarops.ops.neighbors",
+    "knn": "lidarops.ops.neighbors",
+    "ball_query": "lidarops.ops.neighbors",
+    "gather": "lidarops.ops.neighbors",
+    "validation": "lidarops.ops.validation",
+}
+
+__all__ = sorted(_LAZY) + ["__version__"]
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'lidarops' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

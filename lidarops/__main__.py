@@ -1,0 +1,5 @@
+import sys
+
+from lidarops.cli import main
+
+sys.exit(main())

@@ -1,0 +1,99 @@
+"""Argument validation shared by the op wrappers.
+
+Shape, dtype and device checks are free. Checks that read tensor values (NaN coordinates, lengths
+and indices in range) cost one small device-to-host copy per call on CUDA; they are on by default
+and skipped while ``torch.compile`` traces. Turn them off in a hot loop you have already validated::
+
+    with lidarops.validation(False):
+        ...
+"""
+from __future__ import annotations
+
+import contextlib
+from typing import Iterator, Sequence
+
+import torch
+
+_enabled = True
+
+
+@contextlib.contextmanager
+def validation(enabled: bool = True) -> Iterator[None]:
+    """Context manager that enables or disables the value checks of the lidarops wrappers."""
+    global _enabled
+    old, _enabled = _enabled, bool(enabled)
+    try:
+        yield
+    finally:
+        _enabled = old
+
+
+def value_checks_enabled() -> bool:
+    if not _enabled:
+        return False
+    return not torch.compiler.is_compiling()
+
+
+def describe(t) -> str:
+    if not isinstance(t, torch.Tensor):
+        return f"{type(t).__name__}"
+    return f"shape {tuple(t.shape)}, dtype {t.dtype}, device {t.device}"
+
+
+def check_tensor(t, name: str) -> None:
+    if not isinstance(t, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+
+
+def check_cloud(t, name: str, batch: int | None = None) -> None:
+    """A (B, N, 3) floating tensor."""
+    check_tensor(t, name)
+    if t.dim() != 3 or t.shape[-1] != 3:
+        raise ValueError(f"{name} must be (B, N, 3), got {describe(t)}")
+    if not t.is_floating_point():
+        raise ValueError(f"{name} must be floating point (float32, float64, float16, bfloat16), got {describe(t)}")
+    if batch is not None and t.shape[0] != batch:
+        raise ValueError(f"{name} must have batch size {batch}, got {describe(t)}")
+
+
+def check_same_device(tensors: Sequence[tuple[str, torch.Tensor]]) -> None:
+    (n0, t0), *rest = tensors
+    for n, t in rest:
+        if t.device != t0.device:
+            raise ValueError(f"{n} is on {t.device} but {n0} is on {t0.device}; move them to one device")
+
+
+def check_positive_int(v, name: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) and not (isinstance(v, torch.Tensor) and v.numel() == 1):
+        raise ValueError(f"{name} must be a positive int, got {v!r}")
+    v = int(v)
+    if v <= 0:
+        raise ValueError(f"{name} must be a positive int, got {v}")
+    return v
+
+
+def lengths_or_full(lengths, like: torch.Tensor, name: str) -> torch.Tensor:
+    """``lengths`` as an int64 (B,) tensor on ``like``'s device; None means every row is full."""
+    B, N = like.shape[0], like.shape[1]
+    if lengths is None:
+        return torch.full((B,), N, dtype=torch.int64, device=like.device)
+    if not isinstance(lengths, torch.Tensor):
+        lengths = torch.as_tensor(lengths)
+    if lengths.dim() != 1 or lengths.shape[0] != B:
+        raise ValueError(f"{name} must be (B,) with B = {B}, got {describe(lengths)}")
+    if lengths.is_floating_point() or lengths.is_complex() or lengths.dtype == torch.bool:
+        raise ValueError(f"{name} must be an integer tensor, got {describe(lengths)}")
+    if lengths.device != like.device:
+        raise ValueError(f"{name} is on {lengths.device} but the points are on {like.device}")
+    return lengths.to(torch.int64)
+
+
+def run_value_checks(checks: Sequence[tuple[torch.Tensor, object]]) -> None:
+    """Evaluate boolean 0-d tensors (True = bad) with one host sync and raise ValueError for the first
+    failure; a message may be a callable, evaluated only then (it may read tensors to say more)."""
+    if not checks:
+        return
+    flags = torch.stack([c.reshape(()).to(torch.bool) for c, _ in checks]).tolist()
+    for bad, (_, message) in zip(flags, checks):
+        if bad:
+            raise ValueError(message() if callable(message) else message)

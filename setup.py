@@ -1,0 +1,95 @@
+"""Build lidarops: one extension, ``lidarops._C``, with C++ CPU kernels always and CUDA kernels when
+a CUDA toolkit and a CUDA build of torch are present (or ``FORCE_CUDA=1``).
+
+Environment:
+    FORCE_CUDA=1           build the CUDA kernels even if torch cannot see a GPU (needs nvcc + CUDA torch)
+    LIDAROPS_NO_CUDA=1     never build CUDA kernels
+    TORCH_CUDA_ARCH_LIST   e.g. "9.0" (honoured by torch.utils.cpp_extension)
+    MAX_JOBS               parallel compile jobs (ninja)
+    LIDAROPS_DEBUG=1       -O0 -g
+"""
+import glob
+import json
+import os
+import sys
+
+import torch
+from setuptools import setup
+from torch.utils.cpp_extension import CUDA_HOME, BuildExtension, CppExtension, CUDAExtension
+
+ROOT = os.path.dirname(os.path.abspath(__file__))
+CSRC = os.path.join("csrc")
+
+
+def _flag(name: str) -> bool:
+    return os.environ.get(name, "0").lower() in ("1", "true", "yes", "on")
+
+
+def want_cuda() -> tuple[bool, str]:
+    if _flag("LIDAROPS_NO_CUDA"):
+        return False, "LIDAROPS_NO_CUDA=1"
+    if torch.version.cuda is None:
+        return False, f"torch {torch.__version__} is a CPU build"
+    if CUDA_HOME is None:
+        return False, "no CUDA toolkit found (CUDA_HOME / nvcc)"
+    if _flag("FORCE_CUDA"):
+        return True, "FORCE_CUDA=1"
+    if torch.cuda.is_available():
+        return True, "CUDA toolkit and a visible GPU"
+    if os.environ.get("TORCH_CUDA_ARCH_LIST"):
+        return True, "CUDA toolkit and TORCH_CUDA_ARCH_LIST set"
+    return False, "no GPU visible (set FORCE_CUDA=1 to build anyway)"
+
+
+def sources(with_cuda: bool) -> list[str]:
+    srcs = sorted(glob.glob(os.path.join(CSRC, "*.cpp")))
+    srcs += sorted(glob.glob(os.path.join(CSRC, "ops", "*.cpp")))
+    srcs += sorted(glob.glob(os.path.join(CSRC, "cpu", "*.cpp")))
+    if with_cuda:
+        srcs += sorted(glob.glob(os.path.join(CSRC, "cuda", "*.cu")))
+    return srcs
+
+
+def make_extension():
+    with_cuda, why = want_cuda()
+    debug = _flag("LIDAROPS_DEBUG")
+    opt = ["-O0", "-g"] if debug else ["-O3"]
+    cxx = opt + ["-fopenmp", "-Wno-unused-parameter"]
+    define_macros = []
+    extra = {"cxx": cxx}
+    if with_cuda:
+        define_macros.append(("WITH_CUDA", None))
+        extra["nvcc"] = opt + ["--expt-relaxed-constexpr", "-lineinfo",
+                               "-Xptxas=-warn-spills"]
+        ext_cls = CUDAExtension
+    else:
+        ext_cls = CppExtension
+    srcs = sources(with_cuda)
+    arch = os.environ.get("TORCH_CUDA_ARCH_LIST", "(torch default)") if with_cuda else "-"
+    print(f"[lidarops] torch {torch.__version__}  python {sys.version.split()[0]}", flush=True)
+    print(f"[lidarops] CUDA kernels: {'yes' if with_cuda else 'no'} ({why}); arch list: {arch}", flush=True)
+    print(f"[lidarops] {len(srcs)} sources: " + ", ".join(os.path.relpath(s, CSRC) for s in srcs), flush=True)
+    info = {
+        "torch_version": torch.__version__,
+        "torch_cuda": torch.version.cuda,
+        "with_cuda": with_cuda,
+        "cuda_reason": why,
+        "arch_list": arch,
+    }
+    with open(os.path.join(ROOT, "lidarops", "_build_info.json"), "w") as f:
+        json.dump(info, f, indent=1)
+    return ext_cls(
+        name="lidarops._C",
+        sources=srcs,
+        include_dirs=[os.path.join(ROOT, CSRC, "include")],
+        define_macros=define_macros,
+        extra_compile_args=extra,
+        extra_link_args=["-fopenmp"],
+    )
+
+
+setup(
+    ext_modules=[make_extension()],
+    cmdclass={"build_ext": BuildExtension.with_options(use_ninja=True)},
+    package_data={"lidarops": ["_build_info.json"]},
+)

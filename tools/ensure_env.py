@@ -1,0 +1,50 @@
+"""Install what lidarops needs into the running interpreter, only what is missing.
+
+Run by `make` with the interpreter it chose. Offline (the GPU machine) nothing is downloaded when
+everything required is already there; optional packages that cannot be installed are reported and
+the tests that need them skip.
+"""
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+
+TORCH = "torch==2.13.0"  # the CPU wheel on the development machines; never pulled when torch exists
+REQUIRED = {"numpy": "numpy", "pytest": "pytest", "ninja": "ninja", "pybind11": "pybind11",
+            "setuptools": "setuptools>=64", "wheel": "wheel"}
+OPTIONAL = {"scipy": "scipy", "hypothesis": "hypothesis", "tqdm": "tqdm", "matplotlib": "matplotlib",
+            "h5py": "h5py", "pandas": "pandas", "fpsample": "fpsample"}
+
+
+def missing(mods: dict) -> list[str]:
+    return [spec for mod, spec in mods.items() if importlib.util.find_spec(mod) is None]
+
+
+def pip(*specs: str) -> bool:
+    if not specs:
+        return True
+    print(f"[ensure_env] pip install {' '.join(specs)}", flush=True)
+    return subprocess.call([sys.executable, "-m", "pip", "install", "-q", *specs]) == 0
+
+
+def main() -> int:
+    if importlib.util.find_spec("torch") is None and not pip(TORCH):
+        print(f"[ensure_env] could not install {TORCH}", file=sys.stderr)
+        return 1
+    if not pip(*missing(REQUIRED)):
+        print("[ensure_env] could not install required packages: " + ", ".join(missing(REQUIRED)), file=sys.stderr)
+        return 1
+    opt = missing(OPTIONAL)
+    if opt and not pip(*opt):
+        still = missing(OPTIONAL)
+        if still:
+            print("[ensure_env] optional packages unavailable (their tests skip): " + ", ".join(still))
+    import torch
+    print(f"[ensure_env] python {sys.version.split()[0]}, torch {torch.__version__}, "
+          f"CUDA {'available' if torch.cuda.is_available() else 'not available'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
