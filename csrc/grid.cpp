@@ -46,8 +46,10 @@ Grid build_grid(const at::Tensor& points, const at::Tensor& lengths, const at::T
   auto key = (c.select(2, 2) * dy + c.select(2, 1)) * dx + c.select(2, 0);
   key = at::where(valid, key, std::numeric_limits<int64_t>::max());
   auto [sorted, order] = key.sort(/*stable=*/true, /*dim=*/1, /*descending=*/false);
-  (void)N;
-  return Grid{lo.contiguous(), cell.contiguous(), dims.contiguous(), sorted.contiguous(), order.contiguous()};
+  const auto ct = points.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  auto sorted_points = points.to(ct).gather(1, order.unsqueeze(-1).expand({points.size(0), N, 3})).contiguous();
+  return Grid{lo.contiguous(), cell.contiguous(), dims.contiguous(), sorted.contiguous(), order.contiguous(),
+              at::Tensor(), sorted_points};
 }
 
 }  // namespace lidarops

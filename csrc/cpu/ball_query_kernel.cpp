@@ -38,7 +38,7 @@ std::tuple<at::Tensor, at::Tensor> ball_query_cpu(const at::Tensor& query_in, co
   Grid g;
   GridView gv{};
   if (grid) {
-    g = build_grid(points, plen, at::full({B}, radius, points.options().dtype(at::kDouble)));
+    g = build_ball_grid_cpu(points, plen, radius);
     gv = grid_view(g);
   }
   const int64_t* ql = qlen.data_ptr<int64_t>();

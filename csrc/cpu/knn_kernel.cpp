@@ -36,7 +36,7 @@ std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at:
   Grid g;
   GridView gv{};
   if (grid) {
-    g = build_grid(points, plen, knn_cell_size(points, plen, k));
+    g = build_knn_grid_cpu(points, plen, k);
     gv = grid_view(g);
   }
   const int64_t* ql = qlen.data_ptr<int64_t>();

@@ -24,6 +24,12 @@ struct Grid {
   at::Tensor dims;         // (B, 3) int64: cells along x, y, z
   at::Tensor sorted_keys;  // (B, N) int64: cell keys of the valid points, ascending, then INT64_MAX
   at::Tensor order;        // (B, N) int64: point index of each sorted key
+  // Optional (B, C + 1) int64 table, C >= every cloud's cell count: the points of cell key c of
+  // cloud b are order[b, offsets[b, c] : offsets[b, c + 1]]. Undefined: use binary search.
+  at::Tensor offsets;
+  // Optional (B, N, 3) coordinates in sorted order, in the computation dtype (float, or double for
+  // double input): the searches then read points sequentially instead of through `order`.
+  at::Tensor sorted_points;
 };
 
 // cell_size: (B,) double tensor, wanted cell edge per cloud (clamped so each axis has <= 2^20 cells).
@@ -31,6 +37,11 @@ Grid build_grid(const at::Tensor& points, const at::Tensor& lengths, const at::T
 
 // Cell edge for kNN: about k/2 points per cell at the cloud's mean density over its bounding box.
 at::Tensor knn_cell_size(const at::Tensor& points, const at::Tensor& lengths, int64_t k);
+
+// CPU builders (csrc/cpu/grid_cpu.cpp): same cells as build_grid, built in O(N) by counting sort,
+// with the dense offsets table when the grid has at most about 4 cells per point.
+Grid build_knn_grid_cpu(const at::Tensor& points, const at::Tensor& lengths, int64_t k);
+Grid build_ball_grid_cpu(const at::Tensor& points, const at::Tensor& lengths, double radius);
 
 // Raw view of a Grid for kernels.
 struct GridView {
@@ -40,11 +51,17 @@ struct GridView {
   const int64_t* keys;
   const int64_t* order;
   int64_t N;
+  const int64_t* offsets;  // nullptr: binary search in keys
+  int64_t offsets_stride;
+  const void* sorted_points;  // nullptr: read the caller's points through `order`
 };
 
 inline GridView grid_view(const Grid& g) {
+  const bool dense = g.offsets.defined();
   return GridView{g.origin.data_ptr<double>(), g.cell.data_ptr<double>(), g.dims.data_ptr<int64_t>(),
-                  g.sorted_keys.data_ptr<int64_t>(), g.order.data_ptr<int64_t>(), g.sorted_keys.size(1)};
+                  g.sorted_keys.data_ptr<int64_t>(), g.order.data_ptr<int64_t>(), g.sorted_keys.size(1),
+                  dense ? g.offsets.data_ptr<int64_t>() : nullptr, dense ? g.offsets.size(1) : 0,
+                  g.sorted_points.defined() ? g.sorted_points.data_ptr() : nullptr};
 }
 
 LIDAROPS_HD int64_t lower_bound_i64(const int64_t* a, int64_t n, int64_t key) {
@@ -71,16 +88,41 @@ LIDAROPS_HD double grid_margin(double origin, double cell, int64_t dim, double q
   return 1e-9 * (fabs(origin) + cell * static_cast<double>(dim) + fabs(q)) + 1e-12;
 }
 
-// Visit the points of cells [x0, x1] in row (cz, cy) of cloud b: calls visit(point_index).
+// Visit the points of cells [x0, x1] in row (cz, cy) of cloud b: calls visit(sorted_position,
+// point_index), sorted_position counting within cloud b.
 template <typename Visit>
-LIDAROPS_HD void grid_visit_row(const GridView& g, int64_t b, int64_t cz, int64_t cy, int64_t x0, int64_t x1,
-                                Visit& visit) {
+LIDAROPS_HD void grid_visit_row_pos(const GridView& g, int64_t b, int64_t cz, int64_t cy, int64_t x0, int64_t x1,
+                                    Visit& visit) {
   const int64_t* dims = g.dims + 3 * b;
   const int64_t* keys = g.keys + b * g.N;
   const int64_t* order = g.order + b * g.N;
   const int64_t row = (cz * dims[1] + cy) * dims[0];
   const int64_t k0 = row + x0, k1 = row + x1;
-  for (int64_t i = lower_bound_i64(keys, g.N, k0); i < g.N && keys[i] <= k1; ++i) visit(order[i]);
+  if (g.offsets != nullptr) {
+    const int64_t* off = g.offsets + b * g.offsets_stride;
+    for (int64_t i = off[k0], e = off[k1 + 1]; i < e; ++i) visit(i, order[i]);
+    return;
+  }
+  for (int64_t i = lower_bound_i64(keys, g.N, k0); i < g.N && keys[i] <= k1; ++i) visit(i, order[i]);
+}
+
+// Same, calling visit(point_index).
+template <typename Visit>
+LIDAROPS_HD void grid_visit_row(const GridView& g, int64_t b, int64_t cz, int64_t cy, int64_t x0, int64_t x1,
+                                Visit& visit) {
+  auto by_index = [&](int64_t, int64_t j) { visit(j); };
+  grid_visit_row_pos(g, b, cz, cy, x0, x1, by_index);
+}
+
+// Squared distance from (qx, qy, qz) to the point at sorted position i / index j of cloud b.
+template <typename T, typename S>
+LIDAROPS_HD T grid_point_sqdist(const GridView& g, int64_t b, const S* pts, int64_t i, int64_t j, T qx, T qy, T qz) {
+  if (g.sorted_points != nullptr) {
+    const T* p = static_cast<const T*>(g.sorted_points) + (b * g.N + i) * 3;
+    return sqdist3<T>(p[0], p[1], p[2], qx, qy, qz);
+  }
+  return sqdist3<T>(static_cast<T>(pts[3 * j]), static_cast<T>(pts[3 * j + 1]), static_cast<T>(pts[3 * j + 2]), qx,
+                    qy, qz);
 }
 
 }  // namespace lidarops

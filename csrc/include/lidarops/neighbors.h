@@ -82,7 +82,7 @@ LIDAROPS_HD void knn_grid_search(const GridView& g, int64_t b, const S* pts, T q
   const double slack = 1.0 - bound_slack<T>();
   int64_t c0[3];
   for (int a = 0; a < 3; ++a) c0[a] = cell_of(q[a], o[a], h, dims[a]);
-  auto visit = [&](int64_t j) { list.push(point_sqdist<T>(pts, j, qx, qy, qz), j); };
+  auto visit = [&](int64_t i, int64_t j) { list.push(grid_point_sqdist<T>(g, b, pts, i, j, qx, qy, qz), j); };
   for (int64_t r = 0;; ++r) {
     int64_t lo[3], hi[3];
     for (int a = 0; a < 3; ++a) {
@@ -107,11 +107,11 @@ LIDAROPS_HD void knn_grid_search(const GridView& g, int64_t b, const S* pts, T q
           x1 = x1 < a1 ? x1 : a1;
         }
         if (zs || ys) {
-          if (x0 <= x1) grid_visit_row(g, b, cz, cy, x0, x1, visit);
+          if (x0 <= x1) grid_visit_row_pos(g, b, cz, cy, x0, x1, visit);
         } else {
           const int64_t xl = c0[0] - r, xh = c0[0] + r;
-          if (xl >= x0 && xl <= x1) grid_visit_row(g, b, cz, cy, xl, xl, visit);
-          if (r > 0 && xh >= x0 && xh <= x1) grid_visit_row(g, b, cz, cy, xh, xh, visit);
+          if (xl >= x0 && xl <= x1) grid_visit_row_pos(g, b, cz, cy, xl, xl, visit);
+          if (r > 0 && xh >= x0 && xh <= x1) grid_visit_row_pos(g, b, cz, cy, xh, xh, visit);
         }
       }
     }
@@ -155,12 +155,12 @@ LIDAROPS_HD void ball_grid_search(const GridView& g, int64_t b, const S* pts, T 
     lo[a] = cell_of(q[a] - reach, o[a], h, dims[a]);
     hi[a] = cell_of(q[a] + reach, o[a], h, dims[a]);
   }
-  auto visit = [&](int64_t j) {
-    const T d = point_sqdist<T>(pts, j, qx, qy, qz);
+  auto visit = [&](int64_t i, int64_t j) {
+    const T d = grid_point_sqdist<T>(g, b, pts, i, j, qx, qy, qz);
     if (d < r2) list.push(d, j);
   };
   for (int64_t cz = lo[2]; cz <= hi[2]; ++cz)
-    for (int64_t cy = lo[1]; cy <= hi[1]; ++cy) grid_visit_row(g, b, cz, cy, lo[0], hi[0], visit);
+    for (int64_t cy = lo[1]; cy <= hi[1]; ++cy) grid_visit_row_pos(g, b, cz, cy, lo[0], hi[0], visit);
 }
 
 template <typename T, typename S, typename List>
