@@ -155,7 +155,7 @@ at::Tensor fps_cpu(const at::Tensor& points_in, const at::Tensor& lengths_in, co
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, points.scalar_type(), "lidarops_fps_cpu", [&] {
     const scalar_t* p = points.data_ptr<scalar_t>();
     int64_t* o = out.data_ptr<int64_t>();
-    at::parallel_for(0, B, 1, [&](int64_t b0, int64_t b1) {
+    at::parallel_for(0, B, std::max<int64_t>(1, 262144 / std::max<int64_t>(N * k, 1)), [&](int64_t b0, int64_t b1) {
       for (int64_t b = b0; b < b1; ++b) fps_cloud(p + b * N * 3, len[b], k, st[b], o + b * k, leaves);
     });
   });

@@ -71,7 +71,7 @@ at::Tensor gather_backward_cpu(const at::Tensor& grad_in, const at::Tensor& idx_
     using T = acc_t<scalar_t>;
     const scalar_t* gp = grad.data_ptr<scalar_t>();
     T* ap = acc.data_ptr<T>();
-    at::parallel_for(0, B * nblk, 1, [&](int64_t s, int64_t e) {
+    at::parallel_for(0, B * nblk, std::max<int64_t>(1, 32768 / std::max<int64_t>(L * kCB, 1)), [&](int64_t s, int64_t e) {
       for (int64_t task = s; task < e; ++task) {
         const int64_t b = task / nblk, c0 = (task % nblk) * kCB, c1 = std::min(C, c0 + kCB);
         for (int64_t l = 0; l < L; ++l) {

@@ -50,7 +50,7 @@ Grid build_cpu(const at::Tensor& points_in, const at::Tensor& lengths_in, CellFo
   std::vector<int64_t> keys(B * N);
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, points.scalar_type(), "lidarops_grid_cpu", [&] {
     const scalar_t* pp = points.data_ptr<scalar_t>();
-    at::parallel_for(0, B, 1, [&](int64_t b0, int64_t b1) {
+    at::parallel_for(0, B, std::max<int64_t>(1, 32768 / std::max<int64_t>(N, 1)), [&](int64_t b0, int64_t b1) {
       for (int64_t b = b0; b < b1; ++b) {
         const int64_t n = len[b];
         const scalar_t* p = pp + b * N * 3;
@@ -92,7 +92,7 @@ Grid build_cpu(const at::Tensor& points_in, const at::Tensor& lengths_in, CellFo
   g.sorted_points = at::zeros({B, N, 3}, points.options().dtype(ct));
   int64_t* sk = g.sorted_keys.data_ptr<int64_t>();
   int64_t* order = g.order.data_ptr<int64_t>();
-  at::parallel_for(0, B, 1, [&](int64_t b0, int64_t b1) {
+  at::parallel_for(0, B, std::max<int64_t>(1, 32768 / std::max<int64_t>(N, 1)), [&](int64_t b0, int64_t b1) {
     for (int64_t b = b0; b < b1; ++b) {
       const int64_t n = len[b];
       const int64_t* kb = keys.data() + b * N;
@@ -122,7 +122,7 @@ Grid build_cpu(const at::Tensor& points_in, const at::Tensor& lengths_in, CellFo
     using T = acc_t<scalar_t>;
     const scalar_t* pp = points.data_ptr<scalar_t>();
     T* sp = g.sorted_points.data_ptr<T>();
-    at::parallel_for(0, B * N, 4096, [&](int64_t s0, int64_t s1) {
+    at::parallel_for(0, B * N, 32768, [&](int64_t s0, int64_t s1) {
       for (int64_t t = s0; t < s1; ++t) {
         const int64_t b = t / N, i = t % N;
         if (i >= len[b]) continue;

@@ -47,7 +47,9 @@ std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at:
     const scalar_t* pp = points.data_ptr<scalar_t>();
     T* dp = dist.data_ptr<T>();
     int64_t* ip = idx.data_ptr<int64_t>();
-    at::parallel_for(0, B * M, 16, [&](int64_t begin, int64_t end) {
+    // Grain: enough distance evaluations per task that small inputs stay on the calling thread.
+    const int64_t work = grid ? 16 * k : std::max<int64_t>(N, 1);
+    at::parallel_for(0, B * M, std::max<int64_t>(1, 32768 / work), [&](int64_t begin, int64_t end) {
       for (int64_t t = begin; t < end; ++t) {
         const int64_t b = t / M, m = t % M;
         if (m >= ql[b] || pl[b] == 0) continue;
