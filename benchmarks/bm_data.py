@@ -1,0 +1,82 @@
+"""Speed of the LiDAR simulator (lidarops.data.synthetic): rays per second and time per sweep.
+
+Usage::
+
+    python benchmarks/bm_data.py               # all scenarios, 5 sweeps each
+    python benchmarks/bm_data.py --repeat 10 --scenarios driving_city
+    python -m benchmarks.bm_data
+
+For every scenario it reports the first sweep of a fresh simulator (scene generation included) and
+the median of later sweeps (cache cleared, so every ray is cast again), in wall-clock and CPU
+seconds, and the ray-casting throughput (rays cast / CPU second).  Wall time includes whatever else
+the machine is doing; CPU time is the better number on a shared machine.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: import lidarops from this checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from lidarops.data.synthetic import SCENARIOS, Simulator  # noqa: E402
+
+
+def _timed(fn):
+    wall, cpu = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, time.perf_counter() - wall, time.process_time() - cpu
+
+
+def bench(scenario: str, repeat: int, seed: int = 0) -> dict:
+    (sim, frame0), wall0, cpu0 = _timed(lambda: (lambda s: (s, s.sweep(0)))(Simulator(scenario, seed=seed)))
+    walls, cpus, rays, points = [], [], [], []
+    for i in range(1, repeat + 1):
+        sim._cache.clear()  # cast every ray again
+        frame, wall, cpu = _timed(lambda: sim.sweep(i))
+        walls.append(wall)
+        cpus.append(cpu)
+        rays.append(frame.meta["rays"])
+        points.append(frame.num_points)
+    cpu_med = statistics.median(cpus)
+    return {
+        "scenario": scenario,
+        "sensor": sim.sensor.name,
+        "rays": int(statistics.median(rays)),
+        "points": int(statistics.median(points)),
+        "first_wall": wall0,
+        "first_cpu": cpu0,
+        "wall": statistics.median(walls),
+        "cpu": cpu_med,
+        "rays_per_s": statistics.median(rays) / cpu_med,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=5, help="sweeps per scenario after the first (default 5)")
+    parser.add_argument("--scenarios", nargs="*", default=sorted(SCENARIOS))
+    args = parser.parse_args()
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load average {load:.1f}")
+    header = f"{'scenario':16s} {'sensor':8s} {'rays':>7s} {'points':>7s} {'1st sweep (wall/cpu)':>21s} " \
+             f"{'sweep (wall/cpu)':>17s} {'rays/s (cpu)':>13s}"
+    print(header)
+    print("-" * len(header))
+    for scenario in args.scenarios:
+        r = bench(scenario, args.repeat)
+        print(f"{r['scenario']:16s} {r['sensor']:8s} {r['rays']:7d} {r['points']:7d} "
+              f"{r['first_wall']:9.3f}/{r['first_cpu']:.3f} s {r['wall']:8.3f}/{r['cpu']:.3f} s {r['rays_per_s']:13,.0f}")
+    sim = Simulator("drone_bridge", seed=0)
+    _, wall, cpu = _timed(lambda: list(sim.slices(0.0, 1.0, 0.01)))
+    print(f"\ndrone_bridge stream: 100 slices of 10 ms in {wall:.3f} s wall / {cpu:.3f} s cpu "
+          f"({1.0 / cpu:.1f}x real time)")
+
+
+if __name__ == "__main__":
+    main()

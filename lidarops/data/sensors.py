@@ -1,0 +1,313 @@
+"""LiDAR sensor models: where each ray points and when it fires (NumPy only).
+
+Two families, both described by a *firing* sequence: firing ``k`` happens at ``t = k / firing_rate``
+seconds and emits ``rays_per_firing`` rays at once.
+
+* :class:`SpinningLidar` -- a multi-beam rotating sensor (one firing = one column of all beams).
+  Presets :func:`hdl64` (KITTI's Velodyne HDL-64E) and :func:`pandar64` (PandaSet's Hesai Pandar64).
+  The head turns clockwise seen from above; a sweep starts and ends at the rear (azimuth +-180 deg) and
+  faces forward (+x) half way, like KITTI's scans.
+* :class:`RisleyLidar` -- a two-prism Risley scanner drawing a non-repetitive rosette.  Preset
+  :func:`avia` (Livox Avia: 70.4 x 77.2 deg, 240,000 points/s, 6 channels).  Each prism deflects the
+  beam by a fixed angle in a direction that turns with the prism; the sum of the two counter-rotating
+  deflections draws petals through the centre whose orientation drifts, so the covered part of the
+  field of view keeps growing with integration time.
+
+Sensor noise parameters (range noise, dropout, max range, intensity) live on the sensor; the simulator
+applies them.  Every preset function takes keyword overrides, e.g. ``hdl64(range_noise_std=0.0)``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from fractions import Fraction
+
+import numpy as np
+
+__all__ = [
+    "LidarSensor",
+    "SpinningLidar",
+    "RisleyLidar",
+    "hdl64",
+    "pandar64",
+    "avia",
+    "SENSOR_PRESETS",
+    "make_sensor",
+]
+
+
+@dataclass(frozen=True)
+class LidarSensor:
+    """Parameters shared by all sensors.
+
+    Attributes:
+        name (str): preset name.
+        max_range (float): range (m) at which a target of reflectivity ``reference_reflectivity`` seen
+            head-on is still detected; darker or grazing targets drop out earlier (``range ~ power^(1/4)``).
+        min_range (float): closer returns are discarded (m).
+        range_noise_std (float): Gaussian range noise (m), along the ray.
+        dropout (float): probability that a return is lost at random.
+        intensity_noise_std (float): Gaussian noise added to the [0, 1] intensity.
+        reference_reflectivity (float): reflectivity at which ``max_range`` is specified.
+        intensity_range_scale (float): intensity decays as ``exp(-range / scale)``.
+        frame_period (float): seconds per frame (one sweep, or one integration window).
+    """
+
+    name: str = "lidar"
+    max_range: float = 120.0
+    min_range: float = 0.9
+    range_noise_std: float = 0.02
+    dropout: float = 0.02
+    intensity_noise_std: float = 0.02
+    reference_reflectivity: float = 0.8
+    intensity_range_scale: float = 250.0
+    frame_period: float = 0.1
+
+    # -- firing schedule (implemented by subclasses) -----------------------------------------
+    @property
+    def firing_rate(self) -> float:
+        """Firings per second."""
+        raise NotImplementedError
+
+    @property
+    def rays_per_firing(self) -> int:
+        """Rays emitted per firing."""
+        raise NotImplementedError
+
+    @property
+    def firings_per_frame(self) -> int:
+        """Firings in one frame (an integer by construction)."""
+        return int(round(self.firing_rate * self.frame_period))
+
+    @property
+    def points_per_second(self) -> float:
+        """Rays per second."""
+        return self.firing_rate * self.rays_per_firing
+
+    def firing_rate_fraction(self) -> Fraction:
+        """``firing_rate`` as an exact fraction (for exact block boundaries)."""
+        return Fraction(repr(float(self.firing_rate))).limit_denominator(10**6)
+
+    def directions(self, firing_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ray directions of firings in the sensor frame.
+
+        Args:
+            firing_index (ndarray int64[K]): firing indices.
+
+        Returns:
+            dirs (ndarray float64[K, R, 3]): unit directions (x forward, y left, z up).
+            ring (ndarray int16[R]): beam / channel index of each of the R rays of a firing.
+        """
+        raise NotImplementedError
+
+    def in_field_of_view(self, dirs: np.ndarray) -> np.ndarray:
+        """Whether sensor-frame directions lie in the field of view (with a small tolerance).
+
+        Args:
+            dirs (ndarray[N, 3]): directions or points in the sensor frame.
+
+        Returns:
+            ndarray bool[N].
+        """
+        raise NotImplementedError
+
+    def replace(self, **changes) -> "LidarSensor":
+        """A copy with some fields changed (``dataclasses.replace``)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class SpinningLidar(LidarSensor):
+    """Multi-beam rotating LiDAR.
+
+    Attributes:
+        elevations_deg (tuple[float, ...]): beam elevation angles, degrees (beam ``i`` = ring ``i``).
+        columns_per_rev (int): firings (columns) per revolution.
+        rotation_hz (float): revolutions per second (= frames per second).
+    """
+
+    elevations_deg: tuple[float, ...] = field(default_factory=tuple)
+    columns_per_rev: int = 2083
+    rotation_hz: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not self.elevations_deg:
+            raise ValueError("SpinningLidar needs at least one beam elevation")
+        object.__setattr__(self, "frame_period", 1.0 / self.rotation_hz)
+        el = np.deg2rad(np.asarray(self.elevations_deg, dtype=np.float64))
+        object.__setattr__(self, "_cos_el", np.cos(el))
+        object.__setattr__(self, "_sin_el", np.sin(el))
+
+    @property
+    def firing_rate(self) -> float:
+        return float(self.columns_per_rev * self.rotation_hz)
+
+    @property
+    def rays_per_firing(self) -> int:
+        return len(self.elevations_deg)
+
+    @property
+    def firings_per_frame(self) -> int:
+        return int(self.columns_per_rev)
+
+    def azimuth(self, firing_index: np.ndarray) -> np.ndarray:
+        """Azimuth (rad, ``atan2(y, x)`` in the sensor frame) of firings: +pi at the start of a sweep,
+        decreasing (clockwise) to 0 (forward) half way.
+
+        Args:
+            firing_index (ndarray int64[K]).
+
+        Returns:
+            ndarray float64[K] in ``(-pi, pi]``.
+        """
+        column = np.mod(np.asarray(firing_index, dtype=np.int64), self.columns_per_rev)
+        return np.pi - 2.0 * np.pi * column / self.columns_per_rev
+
+    def directions(self, firing_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        az = self.azimuth(firing_index)
+        ca, sa = np.cos(az)[:, None], np.sin(az)[:, None]
+        dirs = np.empty((az.shape[0], self.rays_per_firing, 3))
+        dirs[..., 0] = ca * self._cos_el
+        dirs[..., 1] = sa * self._cos_el
+        dirs[..., 2] = self._sin_el
+        return dirs, np.arange(self.rays_per_firing, dtype=np.int16)
+
+    def in_field_of_view(self, dirs: np.ndarray) -> np.ndarray:
+        dirs = np.asarray(dirs, dtype=np.float64)
+        el = np.degrees(np.arctan2(dirs[:, 2], np.hypot(dirs[:, 0], dirs[:, 1])))
+        tol = 1e-3
+        return (el >= min(self.elevations_deg) - tol) & (el <= max(self.elevations_deg) + tol)
+
+
+@dataclass(frozen=True)
+class RisleyLidar(LidarSensor):
+    """Two-prism Risley scanner (non-repetitive rosette).
+
+    The deflection of channel ``c`` at time ``t`` is ``u = (e^{i theta1} + e^{i theta2}) / 2`` (|u| <= 1)
+    with ``theta_j = 2 pi f_j t + phase_j(c)``; the ray's azimuth is ``u_x * fov_h / 2`` and its
+    elevation ``u_y * fov_v / 2``.  With counter-rotating prisms (``f1 > 0 > f2``) and an irrational
+    speed ratio the pattern never repeats.
+
+    Attributes:
+        fov_h_deg (float): horizontal field of view, degrees.
+        fov_v_deg (float): vertical field of view, degrees.
+        points_per_s (float): rays per second, all channels together.
+        channels (int): lasers firing together.
+        prism_hz (tuple[float, float]): prism rotation rates, Hz (signed).
+    """
+
+    fov_h_deg: float = 70.4
+    fov_v_deg: float = 77.2
+    points_per_s: float = 240_000.0
+    channels: int = 6
+    prism_hz: tuple[float, float] = (121.57, -77.73)
+
+    @property
+    def firing_rate(self) -> float:
+        return float(self.points_per_s / self.channels)
+
+    @property
+    def rays_per_firing(self) -> int:
+        return int(self.channels)
+
+    def angles(self, firing_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Azimuth and elevation (rad) of every ray of some firings.
+
+        Args:
+            firing_index (ndarray int64[K]).
+
+        Returns:
+            azimuth, elevation (ndarray float64[K, channels]).
+        """
+        k = np.asarray(firing_index, dtype=np.int64)
+        rate = self.firing_rate
+        # reduce the phase exactly-ish: theta = 2 pi f k / rate, with k split to keep precision
+        c = np.arange(self.channels)
+        orient = np.pi * c / self.channels  # petals of different channels point different ways
+        petal = 2.0 * np.pi * 0.6180339887 * c / self.channels
+        turns1 = np.mod(self.prism_hz[0] * (k / rate), 1.0)
+        turns2 = np.mod(self.prism_hz[1] * (k / rate), 1.0)
+        th1 = 2.0 * np.pi * turns1[:, None] + orient + petal
+        th2 = 2.0 * np.pi * turns2[:, None] + orient - petal
+        ux = 0.5 * (np.cos(th1) + np.cos(th2))
+        uy = 0.5 * (np.sin(th1) + np.sin(th2))
+        return ux * np.deg2rad(self.fov_h_deg) / 2.0, uy * np.deg2rad(self.fov_v_deg) / 2.0
+
+    def directions(self, firing_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        az, el = self.angles(firing_index)
+        ce = np.cos(el)
+        dirs = np.stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)], axis=-1)
+        return dirs, np.arange(self.channels, dtype=np.int16)
+
+    def in_field_of_view(self, dirs: np.ndarray) -> np.ndarray:
+        dirs = np.asarray(dirs, dtype=np.float64)
+        az = np.arctan2(dirs[:, 1], dirs[:, 0])
+        el = np.arctan2(dirs[:, 2], np.hypot(dirs[:, 0], dirs[:, 1]))
+        tol = 1e-6
+        return (np.abs(az) <= np.deg2rad(self.fov_h_deg) / 2 + tol) & (
+            np.abs(el) <= np.deg2rad(self.fov_v_deg) / 2 + tol
+        )
+
+
+def _hdl64_elevations() -> tuple[float, ...]:
+    upper = np.linspace(2.0, -8.33, 32)  # upper block: ~1/3 deg spacing
+    lower = np.linspace(-8.83, -24.9, 32)  # lower block: ~1/2 deg spacing
+    return tuple(float(x) for x in np.concatenate([upper, lower]))
+
+
+def _pandar64_elevations() -> tuple[float, ...]:
+    top = [14.882, 11.032, 8.059, 5.057, 3.040, 2.028]
+    dense = list(2.028 - 0.167 * np.arange(1, 49))  # 0.167 deg spacing from ~1.86 to ~-6.0
+    low = [-7.0, -8.0, -9.0, -10.0, -11.0, -12.0, -13.0, -14.0, -19.0, -25.0]
+    return tuple(float(x) for x in top + dense + low)
+
+
+def hdl64(**overrides) -> SpinningLidar:
+    """Velodyne HDL-64E as in KITTI: 64 beams from +2 to -24.9 deg, 10 Hz, 2083 columns per turn
+    (about 133k rays, about 120k returns per sweep), 120 m range, 2 cm noise."""
+    params = dict(name="hdl64", elevations_deg=_hdl64_elevations(), columns_per_rev=2083, rotation_hz=10.0,
+                  max_range=120.0, min_range=0.9, range_noise_std=0.02, dropout=0.02)
+    params.update(overrides)
+    return SpinningLidar(**params)
+
+
+def pandar64(**overrides) -> SpinningLidar:
+    """Hesai Pandar64 as in PandaSet: 64 beams from +15 to -25 deg (dense near the horizon), 10 Hz,
+    1800 columns per turn (0.2 deg), 200 m range."""
+    params = dict(name="pandar64", elevations_deg=_pandar64_elevations(), columns_per_rev=1800, rotation_hz=10.0,
+                  max_range=200.0, min_range=0.3, range_noise_std=0.02, dropout=0.02)
+    params.update(overrides)
+    return SpinningLidar(**params)
+
+
+def avia(**overrides) -> RisleyLidar:
+    """Livox Avia (non-repetitive scan): 70.4 x 77.2 deg, 240,000 points/s, 6 channels, 100 ms frames,
+    320 m range for 80 % reflectivity (about 190 m at 10 %), 2 cm noise."""
+    params = dict(name="avia", fov_h_deg=70.4, fov_v_deg=77.2, points_per_s=240_000.0, channels=6,
+                  max_range=320.0, min_range=1.0, range_noise_std=0.02, dropout=0.01, frame_period=0.1)
+    params.update(overrides)
+    return RisleyLidar(**params)
+
+
+#: Sensor presets by name.
+SENSOR_PRESETS = {"hdl64": hdl64, "pandar64": pandar64, "avia": avia}
+
+
+def make_sensor(sensor: "str | LidarSensor") -> LidarSensor:
+    """A sensor from a preset name or an existing sensor object.
+
+    Args:
+        sensor (str or LidarSensor): ``"hdl64"``, ``"pandar64"``, ``"avia"`` or a sensor.
+
+    Returns:
+        LidarSensor.
+
+    Raises:
+        ValueError: for an unknown preset name.
+    """
+    if isinstance(sensor, LidarSensor):
+        return sensor
+    try:
+        return SENSOR_PRESETS[str(sensor)]()
+    except KeyError:
+        raise ValueError(f"unknown sensor {sensor!r}; presets are {sorted(SENSOR_PRESETS)}") from None

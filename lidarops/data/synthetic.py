@@ -1,0 +1,444 @@
+"""Synthetic LiDAR: a scene simulator with per-point timestamps (NumPy only).
+
+Example:
+    >>> from lidarops.data.synthetic import Simulator
+    >>> sim = Simulator("driving_city", seed=3, object_counts={"Car": 35})
+    >>> frame = sim.sweep(0)                 # one 100 ms sweep of the HDL-64
+    >>> points, t = sim.stream(0.0, 0.01)    # the first 10 ms, in time order
+
+How it works: the sensor's firings are grouped in fixed blocks of ``block_duration`` seconds (20 ms
+for spinning sensors, 50 ms for Risley sensors by default).  A block is a pure function of ``(scenario, seed, sensor, block index)``: its rays get the
+sensor pose and the object poses at their own timestamps (motion distortion), are cast against the
+scene (:mod:`lidarops.data._raycast`), and noise, dropout and intensity come from a generator seeded
+by the block index.  ``sweep`` and ``stream`` only cut and concatenate blocks, so any span gives the
+same points as the sweeps covering it, and ``stream(a, c)`` equals ``stream(a, b)`` followed by
+``stream(b, c)``.
+
+Points are returned in the sensor frame *at their own firing time* (as a real sensor reports them);
+boxes of a :class:`~lidarops.data.frame.Frame` are in the sensor frame at the frame's reference time
+(the middle of the sweep: the moment a spinning sensor faces forward).
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from fractions import Fraction
+from typing import Iterator
+
+import numpy as np
+
+from lidarops.data._raycast import cast_rays
+from lidarops.data.frame import CLASSES, Frame
+from lidarops.data.geometry import count_points_in_boxes, pose_matrix, wrap_angle
+from lidarops.data.scene import (
+    SCENARIOS,
+    SURFACE_KINDS,
+    BoxSet,
+    Scenario,
+    _rng,
+    build_scenario,
+)
+from lidarops.data.sensors import LidarSensor, RisleyLidar, SpinningLidar, avia, hdl64, make_sensor, pandar64
+
+__all__ = [
+    "Simulator",
+    "SyntheticFrames",
+    "Frame",
+    "CLASSES",
+    "SCENARIOS",
+    "SURFACE_KINDS",
+    "SpinningLidar",
+    "RisleyLidar",
+    "hdl64",
+    "pandar64",
+    "avia",
+    "crop_forward",
+]
+
+
+def crop_forward(frame: Frame, fov_deg: float = 90.0) -> Frame:
+    """KITTI-like forward crop of a frame (see :meth:`Frame.crop_forward`)."""
+    return frame.crop_forward(fov_deg)
+
+
+class Simulator:
+    """A LiDAR sensor moving through a procedurally generated scene.
+
+    Args:
+        scenario (str): ``"driving_city"``, ``"driving_highway"``, ``"drone_bridge"`` or ``"drone_lock"``.
+        seed (int): everything (scene, objects, noise) is a function of this seed.
+        sensor (str or LidarSensor or None): sensor preset name or object; ``None`` takes the scenario's
+            default (``hdl64`` for driving, ``avia`` for drones).
+        object_counts: objects per class: ``None`` (scenario defaults), ``"empty"``, ``"dense"``, a dict
+            ``{class: int | (low, high) | callable(rng) -> int}``, or a callable ``rng -> dict``; see
+            :func:`lidarops.data.scene.sample_object_counts`.
+        block_duration (float or None): time granularity of the deterministic generation (s); default
+            20 ms for spinning sensors and 50 ms for Risley sensors.  Results depend on it (it seeds the
+            noise), not on how spans are requested.
+        cache_blocks (int): how many generated blocks to keep in memory.
+        **scenario_options: passed to the scenario builder (``ego_speed=...`` for driving scenes).
+
+    Attributes:
+        scenario (Scenario): the scene.
+        sensor (LidarSensor): the sensor.
+    """
+
+    def __init__(self, scenario: str = "driving_city", seed: int = 0, sensor: "str | LidarSensor | None" = None,
+                 object_counts=None, block_duration: float | None = None, cache_blocks: int = 48,
+                 **scenario_options) -> None:
+        self._init_args = dict(scenario=scenario, seed=seed, sensor=sensor, object_counts=object_counts,
+                               block_duration=block_duration, cache_blocks=cache_blocks, **scenario_options)
+        self.seed = int(seed)
+        self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)
+        self.sensor: LidarSensor = make_sensor(sensor if sensor is not None else self.scenario.default_sensor)
+        if block_duration is None:  # batch sizes that run fastest: spinning 20 ms (72 deg of azimuth), Risley 50 ms
+            block_duration = 0.05 if isinstance(self.sensor, RisleyLidar) else 0.02
+        if block_duration <= 0:
+            raise ValueError("block_duration must be positive")
+        self.block_duration = float(block_duration)
+        self._rate = self.sensor.firing_rate_fraction()
+        self._rate_float = float(self.sensor.firing_rate)
+        per_block = self._rate * Fraction(repr(self.block_duration)).limit_denominator(10**6)
+        self._block_num, self._block_den = per_block.numerator, per_block.denominator
+        self._cache: OrderedDict[int, dict] = OrderedDict()
+        self._cache_blocks = int(cache_blocks)
+
+    def __getstate__(self) -> dict:
+        # the scene holds closures (tile and material functions): pickle the arguments, rebuild on load
+        return dict(self._init_args)
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(**state)
+
+    # ------------------------------------------------------------------ time <-> firing index
+    @property
+    def frame_period(self) -> float:
+        """Seconds per frame (sweep or integration window)."""
+        return self.sensor.frame_period
+
+    def firing_time(self, k: np.ndarray | int) -> np.ndarray | float:
+        """Time (s) of firing ``k``."""
+        return np.asarray(k, dtype=np.int64) / self._rate_float
+
+    def _first_firing_at_or_after(self, t: float) -> int:
+        k = int(np.ceil(t * self._rate_float))
+        while k > 0 and (k - 1) / self._rate_float >= t:
+            k -= 1
+        while k / self._rate_float < t:
+            k += 1
+        return k
+
+    def _block_start(self, b: int) -> int:
+        return -((-b * self._block_num) // self._block_den)
+
+    def _block_of(self, k: int) -> int:
+        return (k * self._block_den) // self._block_num
+
+    def frame_span(self, i: int) -> tuple[float, float]:
+        """Start and end time of frame ``i`` (end exclusive)."""
+        fpf = self.sensor.firings_per_frame
+        return float(self.firing_time(i * fpf)), float(self.firing_time((i + 1) * fpf))
+
+    # ------------------------------------------------------------------ poses and boxes
+    def sensor_pose(self, t: np.ndarray | float) -> np.ndarray:
+        """World-from-sensor transforms.
+
+        Args:
+            t (float or ndarray float64[K]): times (s).
+
+        Returns:
+            ndarray float64[4, 4] or [K, 4, 4].
+        """
+        rot, pos = self.scenario.ego.pose(np.asarray(t, dtype=np.float64))
+        return pose_matrix(rot, pos)
+
+    def points_to_world(self, points: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Moves points from the sensor frame at their own time to the world frame.
+
+        Args:
+            points (ndarray[N, >=3]): sensor-frame points.
+            t (ndarray float64[N]): their timestamps.
+
+        Returns:
+            ndarray float64[N, 3].
+        """
+        rot, pos = self.scenario.ego.pose(np.asarray(t, dtype=np.float64))
+        xyz = np.asarray(points, dtype=np.float64)[:, :3]
+        return np.einsum("nij,nj->ni", rot, xyz) + pos
+
+    def object_boxes_at(self, t: float, object_index: np.ndarray | None = None, frame: str = "world") -> np.ndarray:
+        """Boxes of the labelled objects at time ``t``.
+
+        Args:
+            t (float): time (s).
+            object_index (ndarray int[K] or None): which objects (default all).
+            frame (str): ``"world"`` or ``"sensor"`` (the sensor frame at ``t``).
+
+        Returns:
+            ndarray float64[K, 7].
+        """
+        boxes = self.scenario.objects.at(float(t))
+        if object_index is not None:
+            boxes = boxes[np.asarray(object_index, dtype=np.int64)]
+        if frame == "world":
+            return boxes
+        if frame != "sensor":
+            raise ValueError(f"frame must be 'world' or 'sensor', not {frame!r}")
+        pose = self.sensor_pose(float(t))
+        out = boxes.copy()
+        out[:, :3] = (boxes[:, :3] - pose[:3, 3]) @ pose[:3, :3]
+        out[:, 6] = wrap_angle(boxes[:, 6] - np.arctan2(pose[1, 0], pose[0, 0]))
+        return out
+
+    # ------------------------------------------------------------------ generation
+    def _block(self, b: int) -> dict:
+        cached = self._cache.get(b)
+        if cached is not None:
+            self._cache.move_to_end(b)
+            return cached
+        data = self._generate_block(b)
+        self._cache[b] = data
+        while len(self._cache) > self._cache_blocks:
+            self._cache.popitem(last=False)
+        return data
+
+    def _generate_block(self, b: int) -> dict:
+        sensor, scenario = self.sensor, self.scenario
+        k0, k1 = self._block_start(b), self._block_start(b + 1)
+        firing = np.arange(k0, k1, dtype=np.int64)
+        t_firing = firing / self._rate_float
+        dirs_sensor, ring = sensor.directions(firing)  # [K, R, 3]
+        rot, pos = scenario.ego.pose(t_firing)
+        n_per = dirs_sensor.shape[1]
+        if scenario.ego.has_jitter or scenario.ego.yaw_rate != 0.0:
+            dirs_world = np.einsum("kij,krj->kri", rot, dirs_sensor).reshape(-1, 3)
+            dirs_sensor = dirs_sensor.reshape(-1, 3)
+        else:  # constant attitude: one matrix product
+            dirs_sensor = dirs_sensor.reshape(-1, 3)
+            dirs_world = dirs_sensor @ rot[0].T
+        origins = np.repeat(pos, n_per, axis=0)
+        t = np.repeat(t_firing, n_per)
+        firing_of_ray = np.repeat(firing, n_per)
+        ring_of_ray = np.tile(ring, firing.shape[0])
+
+        max_range = sensor.max_range
+        static = scenario.static_in_x_range(float(pos[:, 0].min()) - max_range, float(pos[:, 0].max()) + max_range)
+        boxes = BoxSet.concat([static.boxes, scenario.objects]) if len(scenario.objects) else static.boxes
+        rng = _rng(self.seed, scenario.name, "block", sensor.name, b)
+        hits = cast_rays(origins, dirs_world, t, scenario.ground, boxes, static.cylinders, static.ellipsoids,
+                         max_range, rng, len(scenario.objects), origin_samples=pos)
+
+        n = t.shape[0]
+        u = rng.random(n, dtype=np.float32)
+        range_noise = rng.standard_normal(n, dtype=np.float32) * np.float32(sensor.range_noise_std)
+        intensity_noise = rng.standard_normal(n, dtype=np.float32) * np.float32(sensor.intensity_noise_std)
+        with np.errstate(invalid="ignore"):
+            # received power ~ reflectivity * (0.2 + 0.8 cos) / range^4-ish: detection range scales with its 4th root
+            effective = hits.reflectivity * (0.2 + 0.8 * hits.cos_incidence)
+            detect_range = max_range * np.sqrt(np.sqrt(np.clip(effective / sensor.reference_reflectivity, 1e-4, 1.0)))
+            rng_m = hits.distance + range_noise
+            p_drop = 1.0 - (1.0 - sensor.dropout) * (1.0 - hits.extra_dropout)
+            keep = (
+                (hits.distance <= detect_range)
+                & (rng_m >= sensor.min_range)
+                & (rng_m <= max_range)
+                & (u >= p_drop)
+            )
+        idx = np.flatnonzero(keep)
+        rng_k = rng_m[idx]
+        intensity = np.clip(
+            hits.reflectivity[idx] * (0.3 + 0.7 * hits.cos_incidence[idx])
+            * np.exp((rng_k * (-1.0 / sensor.intensity_range_scale)).astype(np.float32))
+            + intensity_noise[idx], 0.0, 1.0)
+        points = np.empty((idx.size, 4), dtype=np.float32)
+        points[:, :3] = np.take(dirs_sensor, idx, axis=0) * rng_k[:, None]
+        points[:, 3] = intensity
+        return {
+            "points": points,
+            "t": t[idx],
+            "firing": firing_of_ray[idx],
+            "ring": ring_of_ray[idx].astype(np.int16),
+            "surface": hits.surface[idx],
+            "object": hits.object_index[idx],
+            "object_rays": hits.object_rays,
+            "object_visible": hits.object_visible,
+            "rays": n,
+        }
+
+    def _span(self, k0: int, k1: int) -> dict:
+        """Concatenated block data for firings ``[k0, k1)``."""
+        if k1 <= k0:
+            z = np.zeros
+            n_obj = len(self.scenario.objects)
+            return {"points": z((0, 4), np.float32), "t": z(0), "firing": z(0, np.int64), "ring": z(0, np.int16),
+                    "surface": z(0, np.uint8), "object": z(0, np.int32), "object_rays": z(n_obj, np.int64),
+                    "object_visible": z(n_obj, np.int64), "rays": 0}
+        parts = [self._block(b) for b in range(self._block_of(k0), self._block_of(k1 - 1) + 1)]
+        out = {key: np.concatenate([p[key] for p in parts]) for key in ("points", "t", "firing", "ring", "surface", "object")}
+        sel = (out["firing"] >= k0) & (out["firing"] < k1)
+        if not sel.all():
+            out = {key: value[sel] for key, value in out.items()}
+        out["object_rays"] = np.sum([p["object_rays"] for p in parts], axis=0)
+        out["object_visible"] = np.sum([p["object_visible"] for p in parts], axis=0)
+        out["rays"] = sum(p["rays"] for p in parts)
+        return out
+
+    # ------------------------------------------------------------------ public API
+    def stream(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        """All points with timestamps in ``[t0, t1)``, in time order.
+
+        Args:
+            t0, t1 (float): span in seconds (``0 <= t0``).
+
+        Returns:
+            points (ndarray float32[n, 4]): ``x, y, z, intensity``, each in the sensor frame at its time.
+            t (ndarray float64[n]): timestamps (non-decreasing).
+        """
+        if t0 < 0 or t1 < t0:
+            raise ValueError(f"need 0 <= t0 <= t1, got t0={t0}, t1={t1}")
+        data = self._span(self._first_firing_at_or_after(t0), self._first_firing_at_or_after(t1))
+        return data["points"], data["t"]
+
+    def slices(self, t0: float, t1: float, dt: float = 0.01) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Consecutive ``stream`` slices ``[t0 + i dt, t0 + (i + 1) dt)`` up to ``t1``.
+
+        Yields:
+            (points float32[n, 4], t float64[n]) per slice.
+        """
+        if dt <= 0:
+            raise ValueError("dt must be positive")
+        n = int(np.ceil((t1 - t0) / dt - 1e-9))
+        for i in range(n):
+            yield self.stream(t0 + i * dt, min(t0 + (i + 1) * dt, t1))
+
+    def sweep(self, i: int) -> Frame:
+        """Frame ``i``: one full revolution (spinning) or one ``frame_period`` integration (Risley).
+
+        Args:
+            i (int): frame index (>= 0); frame ``i`` covers ``[i T, (i + 1) T)``.
+
+        Returns:
+            Frame with ``points``, ``t``, ``boxes`` (sensor frame at the middle of the sweep), ``labels``,
+            ``num_points_in_box``, ``object_ids``, ``velocities``, ``yaw_rates``, ``visibility``,
+            ``instance``, ``surface``, ``ring`` and ``sensor_pose``.
+        """
+        i = int(i)
+        if i < 0:
+            raise ValueError(f"frame index must be >= 0, got {i}")
+        fpf = self.sensor.firings_per_frame
+        k0, k1 = i * fpf, (i + 1) * fpf
+        data = self._span(k0, k1)
+        t_ref = 0.5 * (float(self.firing_time(k0)) + float(self.firing_time(k1)))
+        pose = self.sensor_pose(t_ref)
+        n_obj = len(self.scenario.objects)
+        boxes_s = self.object_boxes_at(t_ref, frame="sensor") if n_obj else np.zeros((0, 7))
+        keep = np.hypot(boxes_s[:, 0], boxes_s[:, 1]) <= self.scenario.label_range
+        if isinstance(self.sensor, RisleyLidar) and n_obj:
+            az = np.degrees(np.arctan2(boxes_s[:, 1], boxes_s[:, 0]))
+            el = np.degrees(np.arctan2(boxes_s[:, 2], np.hypot(boxes_s[:, 0], boxes_s[:, 1])))
+            keep &= (np.abs(az) <= self.sensor.fov_h_deg / 2 + 5) & (np.abs(el) <= self.sensor.fov_v_deg / 2 + 5)
+        kept = np.flatnonzero(keep)
+        boxes = boxes_s[kept].astype(np.float32)
+        frame_index_of_object = np.full(n_obj + 1, -1, dtype=np.int32)
+        frame_index_of_object[kept] = np.arange(kept.size, dtype=np.int32)
+        instance = frame_index_of_object[data["object"]]  # -1 stays -1 (last entry)
+        velocities = (self.scenario.objects.velocity[kept] @ pose[:3, :3]).astype(np.float32)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            visibility = np.where(data["object_rays"][kept] > 0,
+                                  data["object_visible"][kept] / np.maximum(data["object_rays"][kept], 1), np.nan)
+        return Frame(
+            points=data["points"],
+            t=data["t"],
+            boxes=boxes,
+            labels=self.scenario.object_labels[kept],
+            num_points_in_box=count_points_in_boxes(data["points"], boxes),
+            class_names=CLASSES,
+            frame_index=i,
+            timestamp=t_ref,
+            sensor_pose=pose,
+            object_ids=kept.astype(np.int64),
+            velocities=velocities,
+            yaw_rates=self.scenario.objects.yaw_rate[kept].astype(np.float32),
+            visibility=visibility.astype(np.float32),
+            instance=instance,
+            surface=data["surface"],
+            ring=data["ring"],
+            source=f"synthetic:{self.scenario.name}",
+            meta={"scenario": self.scenario.name, "seed": self.seed, "sensor": self.sensor.name,
+                  "object_counts": dict(self.scenario.object_counts), "rays": int(data["rays"])},
+        )
+
+    def frames(self, n: int, start: int = 0) -> Iterator[Frame]:
+        """Yields sweeps ``start, ..., start + n - 1``."""
+        for i in range(start, start + n):
+            yield self.sweep(i)
+
+    def __repr__(self) -> str:
+        return f"Simulator({self.scenario.name!r}, seed={self.seed}, sensor={self.sensor.name!r})"
+
+
+class SyntheticFrames:
+    """A frame source of simulated sweeps (a :class:`~lidarops.data.datasets.FrameSource`).
+
+    Frame ``i`` is sweep ``i % frames_per_scene`` of scene ``i // frames_per_scene``; each scene is a
+    :class:`Simulator` with its own seed derived from ``seed``, so ``frames_per_scene=1`` gives
+    independent KITTI-like frames and larger values give sequences.
+
+    Args:
+        scenario (str): scenario name.
+        num_frames (int): number of frames.
+        seed (int): base seed.
+        frames_per_scene (int): consecutive sweeps taken from each scene.
+        sensor (str or LidarSensor or None): sensor (default: the scenario's).
+        object_counts: see :class:`Simulator`.
+        fov_deg (float or None): apply :meth:`Frame.crop_forward` with this opening (e.g. 90 for KITTI-like
+            frames).
+        **scenario_options: passed to :class:`Simulator`.
+    """
+
+    def __init__(self, scenario: str = "driving_city", num_frames: int = 100, seed: int = 0, frames_per_scene: int = 1,
+                 sensor: "str | LidarSensor | None" = None, object_counts=None, fov_deg: float | None = None,
+                 **scenario_options) -> None:
+        if scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {scenario!r}; choose one of {sorted(SCENARIOS)}")
+        if num_frames < 0 or frames_per_scene < 1:
+            raise ValueError("need num_frames >= 0 and frames_per_scene >= 1")
+        self.scenario, self.num_frames, self.seed = scenario, int(num_frames), int(seed)
+        self.frames_per_scene, self.sensor, self.object_counts = int(frames_per_scene), sensor, object_counts
+        self.fov_deg, self.options = fov_deg, scenario_options
+        self._sim: Simulator | None = None
+        self._scene = -1
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_sim"], state["_scene"] = None, -1  # rebuilt on demand (e.g. in DataLoader workers)
+        return state
+
+    def scene_seed(self, scene: int) -> int:
+        """Seed of scene ``scene``."""
+        return self.seed * 1_000_003 + scene
+
+    def simulator(self, scene: int) -> Simulator:
+        """The simulator of scene ``scene`` (the last one is cached)."""
+        if scene != self._scene or self._sim is None:
+            self._sim = Simulator(self.scenario, seed=self.scene_seed(scene), sensor=self.sensor,
+                                  object_counts=self.object_counts, **self.options)
+            self._scene = scene
+        return self._sim
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    def __getitem__(self, i: int) -> Frame:
+        if not -self.num_frames <= i < self.num_frames:
+            raise IndexError(f"frame {i} out of range ({self.num_frames} frames)")
+        i %= self.num_frames
+        scene, sweep = divmod(i, self.frames_per_scene)
+        frame = self.simulator(scene).sweep(sweep)
+        if self.fov_deg is not None:
+            frame = frame.crop_forward(self.fov_deg)
+        frame.frame_index = i
+        frame.meta["scene"] = scene
+        return frame
+
+    def __repr__(self) -> str:
+        return f"SyntheticFrames({self.scenario!r}, {self.num_frames} frames, seed={self.seed})"
