@@ -1,0 +1,40 @@
+"""Drop-in faces of other libraries, built on the lidarops core ops.
+
+Each face reproduces the argument order, shapes, dtypes, padding values and tie rules of the library
+it imitates, so code written against that library can switch its import::
+
+    from lidarops.compat.pytorch3d import knn_points, ball_query, sample_farthest_points, knn_gather
+    from lidarops.compat.mmcv import furthest_point_sample, ball_query, knn, three_nn, \\
+        gather_points, grouping_operation
+    from lidarops.compat.torch_cluster import fps, knn, radius
+
+==================  ==========================================================================
+face                convention
+==================  ==========================================================================
+``pytorch3d``       padded ``(N, P, D)`` + lengths; knn pads idx 0 / dists 0; ball query pads -1 / 0
+``mmcv``            ``(B, N, 3)``, int32 indices padded with valid indices (0 or the first hit)
+``torch_cluster``   flat ``(N, F)`` + sorted batch vector; edge index ``(2, E)`` [row = y, col = x]
+==================  ==========================================================================
+
+The full table, with every known deviation, is ``docs/compat.md``. Importing this package is light:
+each face (and the compiled library) loads on first access.
+"""
+from __future__ import annotations
+
+import importlib
+
+_FACES = ("pytorch3d", "mmcv", "torch_cluster")
+
+__all__ = list(_FACES)
+
+
+def __getattr__(name: str):
+    if name in _FACES:
+        module = importlib.import_module(f"{__name__}.{name}")
+        globals()[name] = module
+        return module
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_FACES))
