@@ -295,6 +295,14 @@ def test_overflow_raise_on_lidar_sweep(device):
     assert res.num_dropped == res.info.num_in_range - int(res.num_points.sum())
 
 
+def test_generous_max_voxels_costs_nothing():
+    # the padded assignment is capped at N rows unless padded=True: 2^31 - 1 does not allocate 24 GB
+    pts = _random_cloud(500, 5)
+    res = lidarops.voxelize(pts, (0.5, 0.5, 0.5), (-4, -4, -2, 4, 4, 2), 500, 2**31 - 1)
+    ref = _voxelize_reference(pts, (0.5, 0.5, 0.5), (-4, -4, -2, 4, 4, 2), 500, 2**31 - 1)
+    _check(res, ref, pts, "max_voxels = 2^31 - 1")
+
+
 # ---- padded (static shapes) ----
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -203,8 +203,10 @@ def _assign(points: Tensor, voxel_size: list[float], point_range: list[float], g
     """Run lidarops::voxelize_assign; return (coords, num_points, point_voxel, point_slot, counts) where
     counts are Python ints (one host read) or, with ``padded``, 0-d tensors. Raises on overflow when
     asked. ``names`` = (what a voxel is called, the capacity arguments) for the messages."""
+    # Without padding, at most N voxels can exist: a generous max_voxels costs no memory.
+    rows = max_voxels if padded else max(1, min(max_voxels, points.shape[0]))
     coords, num_points, point_voxel, point_slot, stats = torch.ops.lidarops.voxelize_assign(
-        points, voxel_size, point_range, grid_size, max_points, max_voxels, method)
+        points, voxel_size, point_range, grid_size, max_points, rows, method)
     counts = stats.unbind(0) if padded else stats.tolist()
     if not padded and overflow == "raise":
         _raise_on_overflow(counts, max_points, max_voxels, names, caller)
