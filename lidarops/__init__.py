@@ -6,6 +6,8 @@ Core ops (registered as ``torch.ops.lidarops.*``; these are their validated wrap
     lidarops.knn(query, points, k)        k nearest neighbours          -> dist2, idx (B, M, k)
     lidarops.ball_query(q, p, radius, k)  first k points within radius  -> dist2, idx (B, M, k)
     lidarops.gather(x, idx)               grouping (PointNet++)         -> (B, *idx.shape[1:], C)
+    lidarops.voxelize(points, voxel_size, point_range, max_points_per_voxel, max_voxels)
+                                          hard voxelization             -> voxels, coords, num_points
 
 The compiled library is loaded on first use, so ``import lidarops.data`` works without it.
 """
@@ -20,6 +22,7 @@ _LAZY = {
     "knn": "lidarops.ops.neighbors",
     "ball_query": "lidarops.ops.neighbors",
     "gather": "lidarops.ops.neighbors",
+    "voxelize": "lidarops.ops.voxelize",
     "validation": "lidarops.ops.validation",
 }
 

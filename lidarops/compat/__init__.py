@@ -7,6 +7,7 @@ it imitates, so code written against that library can switch its import::
     from lidarops.compat.mmcv import furthest_point_sample, ball_query, knn, three_nn, \\
         gather_points, grouping_operation
     from lidarops.compat.torch_cluster import fps, knn, radius
+    from lidarops.compat.spconv_utils import PointToVoxel
 
 ==================  ==========================================================================
 face                convention
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import importlib
 
-_FACES = ("pytorch3d", "mmcv", "torch_cluster")
+_FACES = ("pytorch3d", "mmcv", "torch_cluster", "spconv_utils")
 
 __all__ = list(_FACES)
 
