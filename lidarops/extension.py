@@ -6,6 +6,7 @@ under ``torch.ops.lidarops``. The Python side then registers fake (meta) kernels
 """
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import threading
@@ -17,6 +18,12 @@ __all__ = ["load", "cuda_available", "check_device", "build_info", "LidaropsBuil
 _lock = threading.Lock()
 _lib = None
 _HERE = os.path.dirname(os.path.abspath(__file__))
+# Python-side kernels of every op family: fake (meta) kernels and autograd formulas.
+_REGISTRATION_MODULES = (
+    "lidarops._meta_registrations",
+    "lidarops._autograd_registrations",
+    "lidarops.ops._voxelize_registrations",
+)
 
 
 class LidaropsBuildError(RuntimeError):
@@ -60,7 +67,8 @@ def load():
                 f"from the repository root (torch {torch.__version__}).") from e
         if not hasattr(torch.ops.lidarops, "fps"):
             raise LidaropsBuildError("lidarops._C loaded but registered no ops; rebuild the extension")
-        from lidarops import _autograd_registrations, _meta_registrations  # noqa: F401
+        for module in _REGISTRATION_MODULES:
+            importlib.import_module(module)
         _lib = _C
         return _lib
 
