@@ -21,11 +21,13 @@ def missing(mods: dict) -> list[str]:
     return [spec for mod, spec in mods.items() if importlib.util.find_spec(mod) is None]
 
 
-def pip(*specs: str) -> bool:
+def pip(*specs: str, quick: bool = False) -> bool:
+    """pip install; ``quick`` gives up at once when no package index answers (offline machines)."""
     if not specs:
         return True
     print(f"[ensure_env] pip install {' '.join(specs)}", flush=True)
-    return subprocess.call([sys.executable, "-m", "pip", "install", "-q", *specs]) == 0
+    extra = ["--retries", "0", "--timeout", "5"] if quick else []
+    return subprocess.call([sys.executable, "-m", "pip", "install", "-q", *extra, *specs]) == 0
 
 
 def main() -> int:
@@ -36,7 +38,7 @@ def main() -> int:
         print("[ensure_env] could not install required packages: " + ", ".join(missing(REQUIRED)), file=sys.stderr)
         return 1
     opt = missing(OPTIONAL)
-    if opt and not pip(*opt):
+    if opt and not pip(*opt, quick=True):
         still = missing(OPTIONAL)
         if still:
             print("[ensure_env] optional packages unavailable (their tests skip): " + ", ".join(still))
