@@ -6,13 +6,15 @@ namespace {
 constexpr double kMaxCellsPerAxis = 1048576.0;  // 2^20: keys stay below 2^60
 
 // Per-cloud bounding box of the valid points; (0, 0) for empty clouds.
+// Box of the finite coordinates of the valid points; (0, 0) on axes with none (the wrappers reject
+// NaN/inf; with their value checks off, non-finite points land in clamped edge cells).
 std::pair<at::Tensor, at::Tensor> bounding_box(const at::Tensor& p, const at::Tensor& valid) {
   const double inf = std::numeric_limits<double>::infinity();
-  auto v = valid.unsqueeze(-1);
+  auto v = valid.unsqueeze(-1) & at::isfinite(p);
   auto lo = at::where(v, p, inf).amin(1);
   auto hi = at::where(v, p, -inf).amax(1);
-  auto nonempty = valid.any(1).unsqueeze(-1);
-  return {at::where(nonempty, lo, 0.0), at::where(nonempty, hi, 0.0)};
+  auto ok = lo <= hi;
+  return {at::where(ok, lo, 0.0), at::where(ok, hi, 0.0)};
 }
 
 at::Tensor valid_mask(const at::Tensor& points, const at::Tensor& lengths) {
@@ -40,8 +42,8 @@ Grid build_grid(const at::Tensor& points, const at::Tensor& lengths, const at::T
   auto ext = hi - lo;
   auto cell = at::maximum(cell_size.to(at::kDouble), ext.amax(1) / (kMaxCellsPerAxis - 1.0)).clamp_min(1e-9);
   auto dims = (at::floor(ext / cell.unsqueeze(1)) + 1.0).clamp(1.0, kMaxCellsPerAxis).to(at::kLong);
-  auto c = at::floor((p - lo.unsqueeze(1)) / cell.view({-1, 1, 1})).clamp_min(0.0).to(at::kLong);
-  c = at::minimum(c, (dims - 1).unsqueeze(1));
+  auto c = at::floor((p - lo.unsqueeze(1)) / cell.view({-1, 1, 1})).nan_to_num(0.0).clamp_min(0.0);
+  c = at::minimum(c, (dims - 1).unsqueeze(1).to(at::kDouble)).to(at::kLong);
   auto dx = dims.select(1, 0).unsqueeze(1), dy = dims.select(1, 1).unsqueeze(1);
   auto key = (c.select(2, 2) * dy + c.select(2, 1)) * dx + c.select(2, 0);
   key = at::where(valid, key, std::numeric_limits<int64_t>::max());

@@ -58,10 +58,10 @@ def load():
                 f"lidarops was built against torch {built_with} but torch {torch.__version__} is imported; "
                 "rebuild it: pip install --no-build-isolation -e . (or make build)")
         try:
-            from lidarops import _C  # noqa: F401  (runs the op registrations)
+            _C = importlib.import_module("lidarops._C")  # runs the op registrations
         except ImportError as e:
-            hint = ("lidarops' compiled ops are not built" if "No module named" in str(e)
-                    else f"lidarops._C failed to load ({e})")
+            not_built = isinstance(e, ModuleNotFoundError) and e.name == "lidarops._C"
+            hint = "lidarops' compiled ops are not built" if not_built else f"lidarops._C failed to load ({e})"
             raise LidaropsBuildError(
                 f"{hint}. Build them with `make build` or `pip install --no-build-isolation -e .` "
                 f"from the repository root (torch {torch.__version__}).") from e

@@ -129,6 +129,7 @@ void fps_cloud(const scalar_t* pts, int64_t n, int64_t k, int64_t start, int64_t
         besti = L.best;
       }
     }
+    if (besti < 0) break;  // only NaN distances left (value checks off): leave the rest -1
     sel = besti;
   }
 }

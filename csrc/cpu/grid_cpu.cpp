@@ -19,17 +19,24 @@ struct Box {
   double lo[3], hi[3];
 };
 
+// Bounding box of the finite coordinates (the wrappers reject NaN/inf; with their value checks off,
+// non-finite points land in clamped edge cells instead of corrupting the grid).
 template <typename scalar_t>
 Box box_of(const scalar_t* p, int64_t n) {
-  Box bx{{0, 0, 0}, {0, 0, 0}};
-  if (n == 0) return bx;
-  for (int a = 0; a < 3; ++a) bx.lo[a] = bx.hi[a] = static_cast<double>(p[a]);
-  for (int64_t i = 1; i < n; ++i)
+  Box bx;
+  for (int a = 0; a < 3; ++a) {
+    bx.lo[a] = std::numeric_limits<double>::infinity();
+    bx.hi[a] = -std::numeric_limits<double>::infinity();
+  }
+  for (int64_t i = 0; i < n; ++i)
     for (int a = 0; a < 3; ++a) {
       const double v = static_cast<double>(p[3 * i + a]);
+      if (!std::isfinite(v)) continue;
       bx.lo[a] = std::min(bx.lo[a], v);
       bx.hi[a] = std::max(bx.hi[a], v);
     }
+  for (int a = 0; a < 3; ++a)
+    if (!(bx.lo[a] <= bx.hi[a])) bx.lo[a] = bx.hi[a] = 0.0;
   return bx;
 }
 
@@ -72,8 +79,8 @@ Grid build_cpu(const at::Tensor& points_in, const at::Tensor& lengths_in, CellFo
           int64_t c[3];
           for (int a = 0; a < 3; ++a) {
             double f = std::floor((static_cast<double>(p[3 * i + a]) - bx.lo[a]) / h);
-            f = f > 0 ? f : 0;
-            c[a] = std::min(static_cast<int64_t>(f), d[a] - 1);
+            f = f > 0 ? f : 0;  // also NaN -> 0
+            c[a] = static_cast<int64_t>(std::min(f, static_cast<double>(d[a] - 1)));
           }
           kb[i] = (c[2] * d[1] + c[1]) * d[0] + c[0];
         }

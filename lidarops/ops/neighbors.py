@@ -11,6 +11,7 @@ float32 (a float16 squared distance overflows beyond 256 m). float64 stays float
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor
@@ -42,7 +43,8 @@ def _method(method: str, table: dict, name: str = "method") -> int:
 
 
 def _nan_check(t: Tensor, name: str):
-    return (torch.isnan(t).any(), f"{name} contains NaN coordinates ({describe(t)})")
+    # inf is rejected too: no point can be infinitely far, and the grid search needs finite bounds
+    return (~torch.isfinite(t).all(), f"{name} contains NaN or infinite coordinates ({describe(t)})")
 
 
 def _lengths_check(lengths: Tensor, n: int, name: str):
@@ -79,8 +81,8 @@ def fps(points: Tensor, k: int, lengths: Tensor | None = None, start_idx: Tensor
     lengths = lengths_or_full(lengths, points, "lengths")
     if start_idx is None:
         start = torch.zeros(B, dtype=torch.int64, device=points.device)
-    elif isinstance(start_idx, int) and not isinstance(start_idx, bool):
-        start = torch.full((B,), start_idx, dtype=torch.int64, device=points.device)
+    elif isinstance(start_idx, numbers.Integral) and not isinstance(start_idx, bool):
+        start = torch.full((B,), int(start_idx), dtype=torch.int64, device=points.device)
     else:
         check_tensor(start_idx, "start_idx")
         if start_idx.shape != (B,) or start_idx.is_floating_point():
@@ -160,7 +162,7 @@ def ball_query(query: Tensor, points: Tensor, radius: float, k: int, query_lengt
         dist2 (Tensor[B, M, k]): squared distances of the hits, +inf padding; differentiable.
         idx (Tensor[B, M, k] int64): indices of the hits in increasing order, -1 padding.
     """
-    if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not math.isfinite(radius) or radius < 0:
+    if isinstance(radius, bool) or not isinstance(radius, numbers.Real) or not math.isfinite(radius) or radius < 0:
         raise ValueError(f"radius must be a finite number >= 0, got {radius!r}")
     ql, pl, k = _pair_args(query, points, query_lengths, point_lengths, k)
     return torch.ops.lidarops.ball_query(query, points, ql, pl, k, float(radius), _method(method, _METHODS))
@@ -187,7 +189,7 @@ def gather(x: Tensor, idx: Tensor) -> Tensor:
         raise ValueError(f"idx must be an integer tensor, got {describe(idx)}")
     check_same_device([("x", x), ("idx", idx)])
     extension.check_device(x, "x")
-    flat = idx.reshape(idx.shape[0], -1).to(torch.int64)
+    flat = idx.reshape(idx.shape[0], math.prod(idx.shape[1:])).to(torch.int64)  # not -1: B may be 0
     if value_checks_enabled() and flat.numel():
         n = x.shape[1]
         run_value_checks([(((flat < -1) | (flat >= n)).any(),
@@ -274,7 +276,7 @@ def _ball_query_reference(query: Tensor, points: Tensor, radius: float, k: int, 
 
 def _gather_reference(x: Tensor, idx: Tensor) -> Tensor:
     B = x.shape[0]
-    flat = idx.reshape(B, -1)
+    flat = idx.reshape(B, math.prod(idx.shape[1:]))
     safe = flat.clamp_min(0)
     out = torch.stack([x[b, safe[b]] for b in range(B)]) if B else x.new_zeros(0, flat.shape[1], x.shape[2])
     out = out * (flat >= 0).unsqueeze(-1).to(out.dtype)

@@ -10,6 +10,7 @@ and skipped while ``torch.compile`` traces. Turn them off in a hot loop you have
 from __future__ import annotations
 
 import contextlib
+import operator
 from typing import Iterator, Sequence
 
 import torch
@@ -64,9 +65,17 @@ def check_same_device(tensors: Sequence[tuple[str, torch.Tensor]]) -> None:
 
 
 def check_positive_int(v, name: str) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) and not (isinstance(v, torch.Tensor) and v.numel() == 1):
+    if isinstance(v, torch.Tensor):
+        if v.numel() != 1 or v.is_floating_point() or v.is_complex() or v.dtype == torch.bool:
+            raise ValueError(f"{name} must be a positive int, got {describe(v)}")
+        v = int(v)
+    elif isinstance(v, bool):
         raise ValueError(f"{name} must be a positive int, got {v!r}")
-    v = int(v)
+    else:
+        try:  # int, NumPy integers, anything with __index__ (not floats)
+            v = operator.index(v)
+        except TypeError:
+            raise ValueError(f"{name} must be a positive int, got {v!r}") from None
     if v <= 0:
         raise ValueError(f"{name} must be a positive int, got {v}")
     return v
@@ -78,7 +87,7 @@ def lengths_or_full(lengths, like: torch.Tensor, name: str) -> torch.Tensor:
     if lengths is None:
         return torch.full((B,), N, dtype=torch.int64, device=like.device)
     if not isinstance(lengths, torch.Tensor):
-        lengths = torch.as_tensor(lengths)
+        lengths = torch.as_tensor(lengths, device=like.device)
     if lengths.dim() != 1 or lengths.shape[0] != B:
         raise ValueError(f"{name} must be (B,) with B = {B}, got {describe(lengths)}")
     if lengths.is_floating_point() or lengths.is_complex() or lengths.dtype == torch.bool:
@@ -91,7 +100,7 @@ def lengths_or_full(lengths, like: torch.Tensor, name: str) -> torch.Tensor:
 def run_value_checks(checks: Sequence[tuple[torch.Tensor, object]]) -> None:
     """Evaluate boolean 0-d tensors (True = bad) with one host sync and raise ValueError for the first
     failure; a message may be a callable, evaluated only then (it may read tensors to say more)."""
-    if not checks:
+    if not checks or checks[0][0].device.type == "meta":  # meta tensors carry no values to check
         return
     flags = torch.stack([c.reshape(()).to(torch.bool) for c, _ in checks]).tolist()
     for bad, (_, message) in zip(flags, checks):
