@@ -34,6 +34,7 @@
 
 #include <cooperative_groups.h>
 
+#include <cstdlib>
 #include <map>
 #include <mutex>
 #include <utility>
@@ -285,6 +286,210 @@ __global__ void __launch_bounds__(kGlobalThreads)
   }
 }
 
+
+// ---- float, sm_90: clusters exchanging candidates by one-sided pushes ----
+//
+// fps_push_kernel<P> replaces the cluster barrier of fps_reg_kernel by messages. In step s every
+// warp of every block sends its candidate (key, index, x, y, z) into slot [rank * 8 + warp] of
+// buffer s & 1 of every block of the cluster with st.async, whose completion counts bytes on that
+// block's mbarrier[s & 1]; a block waits on its own mbarrier until all 8 * csize candidates have
+// landed, then every warp reduces them from its local shared memory. No cluster barrier inside
+// the loop, and no block-level reduction before the exchange.
+//
+// Keys: a float distance d >= 0 maps to its bits + 1 (monotonic for non-negative floats, and NaN
+// never enters the distances), selected or absent points (d = -1) to 0; the argmax is max key, then
+// min index, computed with redux.sync. This is the order better() of the other paths.
+//
+// Why a slot is never overwritten before every block read it: block r sends step s + 2 into
+// buffer s & 1 only after its wait of step s + 1 completed, i.e. after every warp of every block
+// sent its step s + 1 candidate, which each warp does after reading its buffer s & 1 slots of step
+// s (program order; the complete-tx of st.async has release semantics at cluster scope and the wait
+// acquire semantics, so those reads happen before the overwrite). The same chain shows that the
+// complete-tx of step s + 2 reaches mbarrier[s & 1] only after its phase of step s completed, so
+// every phase counts exactly the 20 * 8 * csize bytes of one step; thread 0 adds the expected
+// bytes (and the phase's single arrival) at the start of the step, possibly after some bytes have
+// landed (the transaction count may go negative until then).
+constexpr int kPushSlots = kMaxCluster * kFpsWarps;  // slots per buffer
+
+__device__ __forceinline__ uint32_t fps_key(float d) { return d >= 0.f ? __float_as_uint(d) + 1u : 0u; }
+
+__device__ __forceinline__ uint32_t smem_addr(const void* p) {
+  return static_cast<uint32_t>(__cvta_generic_to_shared(p));
+}
+
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+__device__ __forceinline__ uint32_t cluster_addr(uint32_t local, uint32_t rank) {
+  uint32_t r;
+  asm volatile("mapa.shared::cluster.u32 %0, %1, %2;" : "=r"(r) : "r"(local), "r"(rank));
+  return r;
+}
+
+__device__ __forceinline__ void mbar_init(uint32_t bar, uint32_t count) {
+  asm volatile("mbarrier.init.shared::cta.b64 [%0], %1;" ::"r"(bar), "r"(count) : "memory");
+}
+
+__device__ __forceinline__ void mbar_arrive_expect_tx(uint32_t bar, uint32_t bytes) {
+  asm volatile(
+      "{\n\t.reg .b64 state;\n\t"
+      "mbarrier.arrive.expect_tx.release.cluster.shared::cta.b64 state, [%0], %1;\n\t}" ::"r"(bar),
+      "r"(bytes)
+      : "memory");
+}
+
+__device__ __forceinline__ bool mbar_try_wait(uint32_t bar, uint32_t parity) {
+  uint32_t ok;
+  asm volatile(
+      "{\n\t.reg .pred p;\n\t"
+      "mbarrier.try_wait.parity.acquire.cluster.shared::cta.b64 p, [%1], %2;\n\t"
+      "selp.u32 %0, 1, 0, p;\n\t}"
+      : "=r"(ok)
+      : "r"(bar), "r"(parity)
+      : "memory");
+  return ok != 0;
+}
+
+__device__ __forceinline__ void st_async_v4(uint32_t addr, uint32_t a, uint32_t b, uint32_t c, uint32_t d,
+                                            uint32_t bar) {
+  asm volatile("st.async.shared::cluster.mbarrier::complete_tx::bytes.v4.b32 [%0], {%1, %2, %3, %4}, [%5];" ::"r"(
+                   addr),
+               "r"(a), "r"(b), "r"(c), "r"(d), "r"(bar)
+               : "memory");
+}
+
+__device__ __forceinline__ void st_async_b32(uint32_t addr, uint32_t a, uint32_t bar) {
+  asm volatile("st.async.shared::cluster.mbarrier::complete_tx::bytes.b32 [%0], %1, [%2];" ::"r"(addr), "r"(a),
+               "r"(bar)
+               : "memory");
+}
+#endif
+
+// Grid: csize * B blocks in clusters of csize, 256 threads; dynamic shared memory: the block's
+// coordinates, 3 * 256 * P floats.
+template <int P>
+__global__ void __launch_bounds__(kFpsThreads, 1)
+    fps_push_kernel(const float* __restrict__ pts, const int64_t* __restrict__ lengths,
+                    const int64_t* __restrict__ start, int64_t N, int64_t K, int csize, int64_t* __restrict__ out) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  constexpr int chunk = kFpsThreads * P;
+  __shared__ alignas(16) uint32_t slots[2][kPushSlots][8];  // key, index, x, y, z (words 5-7 unused)
+  __shared__ alignas(8) uint64_t mbar[2];
+  extern __shared__ float coords[];  // x[chunk], y[chunk], z[chunk] of this block's points
+  const int rank = static_cast<int>(blockIdx.x % csize);
+  const int64_t b = blockIdx.x / csize;
+  const int tid = threadIdx.x, lane = tid & 31, warp = tid >> 5;
+  const int64_t n = clamp_len(lengths[b], N);
+  const int64_t steps = n < K ? n : K;
+  int64_t* o = out + b * K;
+  if (rank == 0)
+    for (int64_t s = steps + tid; s < K; s += kFpsThreads) o[s] = -1;
+  if (steps == 0) return;  // the same for every block of the cluster
+  const float* cloud = pts + b * N * 3;
+  const int first = rank * chunk;  // first point of this block
+  float x[P], y[P], z[P], dist[P];
+#pragma unroll
+  for (int p = 0; p < P; ++p) {
+    const int l = p * kFpsThreads + tid, i = first + l;
+    if (i < n) {
+      x[p] = cloud[3 * i];
+      y[p] = cloud[3 * i + 1];
+      z[p] = cloud[3 * i + 2];
+      dist[p] = gpu::inf_value<float>();
+    } else {
+      x[p] = y[p] = z[p] = 0.f;
+      dist[p] = -1.f;
+    }
+    coords[l] = x[p];
+    coords[chunk + l] = y[p];
+    coords[2 * chunk + l] = z[p];
+  }
+  const uint32_t bar0 = smem_addr(&mbar[0]);
+  if (tid == 0) {
+    mbar_init(bar0, 1);
+    mbar_init(bar0 + 8, 1);
+    asm volatile("fence.mbarrier_init.release.cluster;" ::: "memory");
+  }
+  // Every block's mbarriers are initialised (and its coordinates written) before any message.
+  cluster_barrier();
+  const int nslots = csize * kFpsWarps;
+  const uint32_t step_bytes = static_cast<uint32_t>(nslots) * 20u;
+  int64_t st = start[b];
+  st = st < 0 ? 0 : (st >= n ? n - 1 : st);
+  int sel = static_cast<int>(st);
+  float sx = cloud[3 * st], sy = cloud[3 * st + 1], sz = cloud[3 * st + 2];
+  for (int64_t s = 0;; ++s) {
+    if (rank == 0 && tid == 0) o[s] = sel;
+    if (s + 1 >= steps) break;
+    const int buf = static_cast<int>(s & 1);
+    const uint32_t bar = bar0 + 8u * buf;
+    if (tid == 0) mbar_arrive_expect_tx(bar, step_bytes);
+    // Mark the selected point (its owner only), then update; fminf == the CPU's strict-less
+    // update for every value that can occur (NaN never enters; -1 stays).
+    const int rel = sel - first;
+    if (rel >= 0 && rel < chunk && (rel & (kFpsThreads - 1)) == tid) {
+#pragma unroll
+      for (int p = 0; p < P; ++p)
+        if (p * kFpsThreads + tid == rel) dist[p] = -1.f;
+    }
+    uint32_t kk[P];
+    int pp[P];
+#pragma unroll
+    for (int p = 0; p < P; ++p) {
+      dist[p] = fminf(dist[p], sqdist3<float>(x[p], y[p], z[p], sx, sy, sz));
+      kk[p] = fps_key(dist[p]);
+      pp[p] = p;
+    }
+    // Tree argmax over the slots; on equal keys the left (lower slot, lower index) wins.
+#pragma unroll
+    for (int w = 1; w < P; w <<= 1)
+#pragma unroll
+      for (int p = 0; p + w < P; p += 2 * w)
+        if (kk[p + w] > kk[p]) {
+          kk[p] = kk[p + w];
+          pp[p] = pp[p + w];
+        }
+    const uint32_t my_i = static_cast<uint32_t>(first + pp[0] * kFpsThreads + tid);
+    const uint32_t wk = __reduce_max_sync(kFullMask, kk[0]);
+    const uint32_t wi = __reduce_min_sync(kFullMask, kk[0] == wk ? my_i : 0xffffffffu);
+    if (lane < csize) {  // lane r sends the warp's candidate to block r
+      const int l = static_cast<int>(wi) - first;  // in [0, chunk): a point of this block
+      const uint32_t dst = cluster_addr(smem_addr(&slots[buf][rank * kFpsWarps + warp][0]), lane);
+      const uint32_t rbar = cluster_addr(bar, lane);
+      st_async_v4(dst, wk, wi, __float_as_uint(coords[l]), __float_as_uint(coords[chunk + l]), rbar);
+      st_async_b32(dst + 16, __float_as_uint(coords[2 * chunk + l]), rbar);
+    }
+    while (!mbar_try_wait(bar, static_cast<uint32_t>((s >> 1) & 1))) {
+    }
+    // Every warp reduces the nslots candidates (lane l: slots l, l + 32, ...).
+    uint32_t ck = 0, ci = 0xffffffffu;
+    float cx = 0.f, cy = 0.f, cz = 0.f;
+#pragma unroll
+    for (int q = 0; q < kPushSlots / 32; ++q) {
+      const int j = lane + 32 * q;
+      if (j < nslots) {
+        const uint4 v = *reinterpret_cast<const uint4*>(&slots[buf][j][0]);
+        if (v.x > ck || (v.x == ck && v.y < ci)) {
+          ck = v.x;
+          ci = v.y;
+          cx = __uint_as_float(v.z);
+          cy = __uint_as_float(v.w);
+          cz = __uint_as_float(slots[buf][j][4]);
+        }
+      }
+    }
+    const uint32_t bk = __reduce_max_sync(kFullMask, ck);
+    const uint32_t bi = __reduce_min_sync(kFullMask, ck == bk ? ci : 0xffffffffu);
+    const int src = __ffs(__ballot_sync(kFullMask, ck == bk && ci == bi)) - 1;
+    sel = static_cast<int>(bi);
+    sx = __shfl_sync(kFullMask, cx, src);
+    sy = __shfl_sync(kFullMask, cy, src);
+    sz = __shfl_sync(kFullMask, cz, src);
+  }
+  cluster_barrier();  // every message has landed before any block exits
+#else
+  __trap();  // never launched: the host checks the compute capability
+#endif
+}
+
 // ---- host side ----
 
 template <typename T, int P, bool kCluster>
@@ -369,6 +574,66 @@ void dispatch_p(int p, F&& f) {
   TORCH_CHECK(false, "fps: internal error, ", p, " points per thread");
 }
 
+template <int P>
+constexpr size_t push_smem_bytes() {
+  return static_cast<size_t>(3) * kFpsThreads * P * sizeof(float);
+}
+
+inline cudaLaunchConfig_t cluster_config(int64_t B, int csize, size_t smem, cudaStream_t stream,
+                                         cudaLaunchAttribute* attr) {
+  cudaLaunchConfig_t cfg = {};
+  cfg.gridDim = dim3(static_cast<unsigned>(B * csize), 1, 1);
+  cfg.blockDim = dim3(kFpsThreads, 1, 1);
+  cfg.dynamicSmemBytes = smem;
+  cfg.stream = stream;
+  attr[0].id = cudaLaunchAttributeClusterDimension;
+  attr[0].val.clusterDim.x = static_cast<unsigned>(csize);
+  attr[0].val.clusterDim.y = 1;
+  attr[0].val.clusterDim.z = 1;
+  cfg.attrs = attr;
+  cfg.numAttrs = 1;
+  return cfg;
+}
+
+// Whether clusters of csize blocks of fps_push_kernel<P> can be scheduled on `device` (cached;
+// also sets the kernel's shared-memory and cluster-size attributes once).
+template <int P>
+bool push_fits(int csize, int device) {
+  static std::mutex mutex;
+  static std::map<std::pair<int, int>, bool> cache;
+  std::lock_guard<std::mutex> lock(mutex);
+  const auto key = std::make_pair(device, csize);
+  if (auto it = cache.find(key); it != cache.end()) return it->second;
+  auto kernel = fps_push_kernel<P>;
+  bool ok = cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                 static_cast<int>(push_smem_bytes<P>())) == cudaSuccess;
+  if (ok && csize > 8)
+    ok = cudaFuncSetAttribute(kernel, cudaFuncAttributeNonPortableClusterSizeAllowed, 1) == cudaSuccess;
+  if (ok) {
+    cudaLaunchAttribute attr[1];
+    const cudaLaunchConfig_t cfg = cluster_config(1, csize, push_smem_bytes<P>(), nullptr, attr);
+    int clusters = 0;
+    ok = cudaOccupancyMaxActiveClusters(&clusters, kernel, &cfg) == cudaSuccess && clusters > 0;
+  }
+  if (!ok) (void)cudaGetLastError();  // "not possible" is an answer, not an error
+  cache[key] = ok;
+  return ok;
+}
+
+template <int P>
+void launch_push(const float* pts, const int64_t* lengths, const int64_t* start, int64_t B, int64_t N, int64_t K,
+                 int csize, int64_t* out, cudaStream_t stream) {
+  cudaLaunchAttribute attr[1];
+  const cudaLaunchConfig_t cfg = cluster_config(B, csize, push_smem_bytes<P>(), stream, attr);
+  C10_CUDA_CHECK(cudaLaunchKernelEx(&cfg, fps_push_kernel<P>, pts, lengths, start, N, K, csize, out));
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+}
+
+int64_t env_int(const char* name, int64_t fallback) {
+  const char* v = std::getenv(name);
+  return v != nullptr && *v != '\0' ? std::atoll(v) : fallback;
+}
+
 template <typename T>
 void fps_launch(const at::Tensor& points, const at::Tensor& lengths, const at::Tensor& start, int64_t K,
                 int64_t method, at::Tensor& out, cudaStream_t stream) {
@@ -379,6 +644,7 @@ void fps_launch(const at::Tensor& points, const at::Tensor& lengths, const at::T
   int64_t* op = out.data_ptr<int64_t>();
   constexpr int64_t pmax = fps_pmax<T>();
   const int64_t block_cap = kFpsThreads * pmax;  // points one block holds in registers
+  const int device = points.device().index();
   const auto info = gpu::device_info(points.device().index());
 
   // Several blocks per cloud (thread-block clusters, sm_90+).
@@ -388,12 +654,22 @@ void fps_launch(const at::Tensor& points, const at::Tensor& lengths, const at::T
     const int64_t pref = gpu::pow2_ceil(gpu::ceil_div(N, kFpsThreads * 8));  // ~8 points per thread
     int64_t csize = std::max(need, std::min({fill, pref, static_cast<int64_t>(kMaxCluster)}));
     if (method == 2) csize = std::max<int64_t>(csize, 2);
+    const int64_t forced = env_int("LIDAROPS_FPS_CSIZE", 0);  // TEMPORARY tuning override
+    if (forced > 0) csize = std::max(need, forced);
+    const bool push = std::is_same_v<T, float> && env_int("LIDAROPS_FPS_PUSH", 1) != 0;
     for (; csize >= std::max<int64_t>(need, 2) && csize <= kMaxCluster; csize /= 2) {
       const int p = static_cast<int>(gpu::pow2_ceil(gpu::ceil_div(N, csize * kFpsThreads)));
       bool launched = false;
       dispatch_p<T>(p, [&](auto pc) {
         constexpr int P = decltype(pc)::value;
-        if (!cluster_fits<T, P>(static_cast<int>(csize), points.device().index())) return;
+        if constexpr (std::is_same_v<T, float>) {
+          if (push && push_fits<P>(static_cast<int>(csize), device)) {
+            launch_push<P>(pp, lp, sp, B, N, K, static_cast<int>(csize), op, stream);
+            launched = true;
+            return;
+          }
+        }
+        if (!cluster_fits<T, P>(static_cast<int>(csize), device)) return;
         launch_reg<T, P, true>(pp, lp, sp, B, N, K, static_cast<int>(csize), op, stream);
         launched = true;
       });
