@@ -93,20 +93,19 @@ __global__ void __launch_bounds__(kBruteThreads)
     }
 }
 
-// One thread per query, in the order of qorder (queries sorted by grid cell).
+// One thread per query, in the order of qorder (queries grouped by grid cell).
 template <typename T, int C>
-__global__ void __launch_bounds__(kGridThreads)
+__global__ void __launch_bounds__(kGridThreads, 1)
     ball_grid_kernel(const T* __restrict__ query, const T* __restrict__ points, const int64_t* __restrict__ qlen,
-                     const int64_t* __restrict__ qorder, int64_t B, int64_t M, const gpu::DGrid* __restrict__ grids,
-                     const int64_t* __restrict__ keys, const int32_t* __restrict__ table, const T* __restrict__ recs,
-                     int64_t N, int64_t cap, int64_t k, T r2, double radius, T* __restrict__ dist,
-                     int64_t* __restrict__ idx) {
+                     const int32_t* __restrict__ qorder, int64_t B, int64_t M, const gpu::DGrid* __restrict__ grids,
+                     const int32_t* __restrict__ table, const T* __restrict__ recs, int64_t N, int64_t cap,
+                     int64_t k, T r2, double radius, T* __restrict__ dist, int64_t* __restrict__ idx) {
   const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
   if (t >= B * M) return;
   const int64_t b = t / M;
   const int64_t m = qorder[t];  // a permutation of [0, M) per cloud
   const int64_t row = (b * M + m) * k;
-  const gpu::GridRef<T> G = gpu::grid_ref(grids, keys, table, recs, b, N, cap);
+  const gpu::GridRef<T> G = gpu::grid_ref(grids, table, recs, b, N, cap);
   if (m >= clamp_len(qlen[b], M) || G.g.n == 0) {
     for (int64_t r = 0; r < k; ++r) {
       dist[row + r] = gpu::inf_value<T>();
@@ -183,14 +182,14 @@ std::tuple<at::Tensor, at::Tensor> ball_query_cuda(const at::Tensor& query_in, c
     T* dp = dist.data_ptr<T>();
     int64_t* ip = idx.data_ptr<int64_t>();
     if (grid) {
-      const gpu::DeviceGrid g = gpu::build_device_grid<T>(points, plen, gpu::kGridBall, k, radius, stream);
-      const at::Tensor qorder = gpu::query_order<T>(query, qlen, g, stream);
+      const gpu::DeviceGrid g =
+          gpu::build_device_grid<T>(points, plen, query, qlen, gpu::kGridBall, k, radius, stream);
       const auto* grids = reinterpret_cast<const gpu::DGrid*>(g.params.data_ptr());
       const unsigned blocks = static_cast<unsigned>(gpu::ceil_div(B * M, kGridThreads));
       gpu::dispatch_capacity<8, 16, 32, 64, 128>(k, [&](auto cap_c) {
         constexpr int C = decltype(cap_c)::value;
         ball_grid_kernel<T, C><<<blocks, kGridThreads, 0, stream>>>(
-            qp, pp, qlen.data_ptr<int64_t>(), qorder.data_ptr<int64_t>(), B, M, grids, g.keys.data_ptr<int64_t>(),
+            qp, pp, qlen.data_ptr<int64_t>(), g.qorder.data_ptr<int32_t>(), B, M, grids,
             g.table.data_ptr<int32_t>(), g.recs.data_ptr<T>(), N, g.cap, k, r2, radius, dp, ip);
         C10_CUDA_KERNEL_LAUNCH_CHECK();
       });

@@ -79,20 +79,21 @@ at::Tensor gather_cuda(const at::Tensor& x_in, const at::Tensor& idx_in) {
   return out;
 }
 
-// Sort keys: the index where it lies in [0, n), else n (sorted last, ignored).
+// Sort keys: the index where it lies in [0, n), else n (sorted last, ignored); 32-bit keys halve
+// the radix sort's passes.
 __global__ void backward_keys_kernel(const int64_t* __restrict__ idx, int64_t total, int64_t n,
-                                     int64_t* __restrict__ keys) {
+                                     int32_t* __restrict__ keys) {
   for (int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; t < total;
        t += static_cast<int64_t>(gridDim.x) * blockDim.x) {
     const int64_t j = idx[t];
-    keys[t] = j >= 0 && j < n ? j : n;
+    keys[t] = static_cast<int32_t>(j >= 0 && j < n ? j : n);
   }
 }
 
 // Thread (b, p, c): if sorted position p of cloud b starts a run of index j < n, writes
 // acc[b, j, c] = sum over the run, in position order (= increasing l: the sort is stable).
 template <typename scalar_t, typename A>
-__global__ void backward_sum_kernel(const scalar_t* __restrict__ grad, const int64_t* __restrict__ skeys,
+__global__ void backward_sum_kernel(const scalar_t* __restrict__ grad, const int32_t* __restrict__ skeys,
                                     const int64_t* __restrict__ perm, int64_t B, int64_t L, int64_t C, int64_t n,
                                     A* __restrict__ acc) {
   const int64_t total = B * L * C;
@@ -115,6 +116,7 @@ at::Tensor gather_backward_cuda(const at::Tensor& grad_in, const at::Tensor& idx
   TORCH_CHECK(grad_in.size(1) == idx_in.size(1), "grad must be (B, L, C) with L = ", idx_in.size(1),
               ", got shape ", grad_in.sizes());
   TORCH_CHECK(n >= 0, "n must be >= 0, got ", n);
+  TORCH_CHECK(n < std::numeric_limits<int32_t>::max(), "n must be < 2^31 - 1 on CUDA, got ", n);
   TORCH_CHECK(at::isFloatingType(grad_in.scalar_type()), "grad must be floating, got ", grad_in.scalar_type());
   c10::cuda::CUDAGuard device_guard(grad_in.device());
   auto grad = grad_in.contiguous();
@@ -124,9 +126,9 @@ at::Tensor gather_backward_cuda(const at::Tensor& grad_in, const at::Tensor& idx
   auto acc = at::zeros({B, n, C}, grad.options().dtype(acc_dtype));
   if (acc.numel() == 0 || L == 0) return acc.to(grad.scalar_type());
   cudaStream_t stream = at::cuda::getCurrentCUDAStream();
-  auto keys = at::empty({B, L}, idx.options());
+  auto keys = at::empty({B, L}, idx.options().dtype(at::kInt));
   backward_keys_kernel<<<gpu::stride_blocks(B * L, kThreads), kThreads, 0, stream>>>(idx.data_ptr<int64_t>(), B * L,
-                                                                                      n, keys.data_ptr<int64_t>());
+                                                                                      n, keys.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   auto sorted = keys.sort(/*stable=*/true, /*dim=*/1, /*descending=*/false);
   auto skeys = std::get<0>(sorted).contiguous();
@@ -134,7 +136,7 @@ at::Tensor gather_backward_cuda(const at::Tensor& grad_in, const at::Tensor& idx
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, grad.scalar_type(), "lidarops_gather_backward_cuda", [&] {
     using T = acc_t<scalar_t>;
     backward_sum_kernel<scalar_t, T><<<gpu::stride_blocks(B * L * C, kThreads, 1 << 20), kThreads, 0, stream>>>(
-        grad.data_ptr<scalar_t>(), skeys.data_ptr<int64_t>(), perm.data_ptr<int64_t>(), B, L, C, n,
+        grad.data_ptr<scalar_t>(), skeys.data_ptr<int32_t>(), perm.data_ptr<int64_t>(), B, L, C, n,
         acc.data_ptr<T>());
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });

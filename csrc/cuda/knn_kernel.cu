@@ -12,7 +12,7 @@
 // the order of their grid cell (neighbouring threads search the same cells), a register list, and
 // the exact ring search of knn_grid_search() (neighbors.h).
 //
-// k > 64: the lists live in the output rows (KnnList), one thread per query.
+// k > 64 (k > 32 for double): the lists live in the output rows (KnnList), one thread per query.
 #include <ATen/Dispatch.h>
 
 #include "lidarops/cuda_utils.cuh"
@@ -48,7 +48,7 @@ __device__ __forceinline__ void brute_scan(const T* __restrict__ cloud, int64_t 
 
 // Grid: blockIdx.x = b * mblocks + (query block); 256 / S queries per block, S threads each.
 template <typename T, int C>
-__global__ void __launch_bounds__(kBruteThreads)
+__global__ void __launch_bounds__(kBruteThreads, 1)
     knn_brute_kernel(const T* __restrict__ query, const T* __restrict__ points, const int64_t* __restrict__ qlen,
                      const int64_t* __restrict__ plen, int64_t M, int64_t N, int64_t k, int S, int64_t mblocks,
                      T* __restrict__ dist, int64_t* __restrict__ idx) {
@@ -72,7 +72,7 @@ __global__ void __launch_bounds__(kBruteThreads)
     gpu::RegKnnList<T, C> list;
     list.init();
     brute_scan(cloud, n, active, s, S, qx, qy, qz, sx, sy, sz, list);
-    if (S == 1) {
+    if (S == 1 || C > 32) {  // C > 32: S == 1 (the host's choice; keeps the merge's registers out)
       if (m < M) {
 #pragma unroll
         for (int r = 0; r < C; ++r) {
@@ -82,7 +82,7 @@ __global__ void __launch_bounds__(kBruteThreads)
           }
         }
       }
-    } else {
+    } else if constexpr (C <= 32) {
       // Sub-warp merge; every lane of the warp takes part (the shuffles need the full mask).
       for (int64_t r = 0; r < k; ++r) {
         T md = list.d[0];
@@ -104,7 +104,7 @@ __global__ void __launch_bounds__(kBruteThreads)
       }
     }
   } else {
-    // k > 64, S == 1: the list is the output row itself.
+    // k > 64 (k > 32 for double), S == 1: the list is the output row itself.
     if (m < M)
       for (int64_t r = 0; r < k; ++r) {
         dist[row + r] = gpu::inf_value<T>();
@@ -115,19 +115,19 @@ __global__ void __launch_bounds__(kBruteThreads)
   }
 }
 
-// One thread per query, in the order of qorder (queries sorted by grid cell).
+// One thread per query, in the order of qorder (queries grouped by grid cell).
 template <typename T, int C>
-__global__ void __launch_bounds__(kGridThreads)
-    knn_grid_kernel(const T* __restrict__ query, const int64_t* __restrict__ qlen, const int64_t* __restrict__ qorder,
-                    int64_t B, int64_t M, const gpu::DGrid* __restrict__ grids, const int64_t* __restrict__ keys,
-                    const int32_t* __restrict__ table, const T* __restrict__ recs, int64_t N, int64_t cap, int64_t k,
-                    T* __restrict__ dist, int64_t* __restrict__ idx) {
+__global__ void __launch_bounds__(kGridThreads, 1)
+    knn_grid_kernel(const T* __restrict__ query, const int64_t* __restrict__ qlen, const int32_t* __restrict__ qorder,
+                    int64_t B, int64_t M, const gpu::DGrid* __restrict__ grids, const int32_t* __restrict__ table,
+                    const T* __restrict__ recs, int64_t N, int64_t cap, int64_t k, T* __restrict__ dist,
+                    int64_t* __restrict__ idx) {
   const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
   if (t >= B * M) return;
   const int64_t b = t / M;
   const int64_t m = qorder[t];  // a permutation of [0, M) per cloud
   const int64_t row = (b * M + m) * k;
-  const gpu::GridRef<T> G = gpu::grid_ref(grids, keys, table, recs, b, N, cap);
+  const gpu::GridRef<T> G = gpu::grid_ref(grids, table, recs, b, N, cap);
   if (m >= clamp_len(qlen[b], M) || G.g.n == 0) {
     for (int64_t r = 0; r < k; ++r) {
       dist[row + r] = gpu::inf_value<T>();
@@ -196,25 +196,31 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
     const T* pp = points.data_ptr<T>();
     T* dp = dist.data_ptr<T>();
     int64_t* ip = idx.data_ptr<int64_t>();
+    // Register lists up to 64 entries (32 for double, whose lists would spill), else output rows.
+    auto by_capacity = [&](auto&& launch) {
+      if constexpr (std::is_same_v<T, double>) gpu::dispatch_capacity<1, 2, 4, 8, 16, 32>(k, launch);
+      else gpu::dispatch_capacity<1, 2, 4, 8, 16, 32, 64>(k, launch);
+    };
     if (grid) {
-      const gpu::DeviceGrid g = gpu::build_device_grid<T>(points, plen, gpu::kGridKnn, k, 0.0, stream);
-      const at::Tensor qorder = gpu::query_order<T>(query, qlen, g, stream);
+      const gpu::DeviceGrid g =
+          gpu::build_device_grid<T>(points, plen, query, qlen, gpu::kGridKnn, k, 0.0, stream);
       const auto* grids = reinterpret_cast<const gpu::DGrid*>(g.params.data_ptr());
       const unsigned blocks = static_cast<unsigned>(gpu::ceil_div(B * M, kGridThreads));
-      gpu::dispatch_capacity<1, 2, 4, 8, 16, 32, 64>(k, [&](auto cap_c) {
+      by_capacity([&](auto cap_c) {
         constexpr int C = decltype(cap_c)::value;
         knn_grid_kernel<T, C><<<blocks, kGridThreads, 0, stream>>>(
-            qp, qlen.data_ptr<int64_t>(), qorder.data_ptr<int64_t>(), B, M, grids, g.keys.data_ptr<int64_t>(),
-            g.table.data_ptr<int32_t>(), g.recs.data_ptr<T>(), N, g.cap, k, dp, ip);
+            qp, qlen.data_ptr<int64_t>(), g.qorder.data_ptr<int32_t>(), B, M, grids, g.table.data_ptr<int32_t>(),
+            g.recs.data_ptr<T>(), N, g.cap, k, dp, ip);
         C10_CUDA_KERNEL_LAUNCH_CHECK();
       });
     } else {
-      gpu::dispatch_capacity<1, 2, 4, 8, 16, 32, 64>(k, [&](auto cap_c) {
+      by_capacity([&](auto cap_c) {
         constexpr int C = decltype(cap_c)::value;
-        // Threads per query: fill the GPU, but give each thread at least 64 points.
+        // Threads per query: fill the GPU, but give each thread at least 128 points; one thread
+        // per query for lists in the output rows (C = 0) and for C > 32 (no merge).
         int S = 1;
         const int64_t want = static_cast<int64_t>(info.sm_count) * 2048;
-        if (C > 0)
+        if (C > 0 && C <= 32)
           while (S < 32 && B * M * S < want && static_cast<int64_t>(S) * 128 <= N) S <<= 1;
         const int64_t mblocks = gpu::ceil_div(M, kBruteThreads / S);
         knn_brute_kernel<T, C><<<static_cast<unsigned>(B * mblocks), kBruteThreads, 0, stream>>>(

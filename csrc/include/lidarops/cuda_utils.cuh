@@ -3,12 +3,13 @@
 // device.
 //
 // The grid follows grid.h (same cell assignment cell_of(), same bounds slab_gap()/grid_margin(),
-// same keys (cz * dims_y + cy) * dims_x + cx, sorted per cloud), but is built by a few kernels
-// instead of ~30 ATen ops, holds the points in cell order next to their index (one 16- or
-// 32-byte load per point, no indirection), and, when the cloud has at most `cap` cells, a table of
-// the first sorted position of every cell (a row of cells costs two loads instead of two binary
-// searches). Clouds with more cells use a binary search on the sorted keys, exactly like the CPU.
-// The cell size does not change results: every search is exact (see grid.h / neighbors.h).
+// same keys (cz * dims_y + cy) * dims_x + cx), but is built on the device by a counting sort (a
+// setup kernel, an atomic count, one flat in-place cumsum and a scatter: no sort, no host
+// synchronisation), always has a dense table of the first position of every cell (a row of cells
+// costs two loads), and holds the points in cell order next to their index (one 16- or 32-byte
+// load per point). The queries are put in cell order by the same counting sort, so that
+// neighbouring threads search the same cells. The cell size does not change results: every search
+// is exact (see grid.h / neighbors.h), so the cells may be grown to bound the table.
 #pragma once
 
 #include <ATen/ATen.h>
@@ -31,7 +32,6 @@ namespace gpu {
 namespace {
 
 constexpr unsigned kFullMask = 0xffffffffu;
-constexpr int64_t kInt64Max = std::numeric_limits<int64_t>::max();
 
 // ---------------------------------------------------------------------------------------------
 // host helpers
@@ -190,17 +190,18 @@ struct alignas(16) DGrid {
   double o[3];    // lower corner of the bounding box of the valid points (0 for an empty cloud)
   double h;       // cell edge
   int64_t n;      // valid points: lengths[b] clamped to [0, N]
-  int64_t total;  // number of cells, dims[0] * dims[1] * dims[2]
+  int64_t total;  // number of cells, dims[0] * dims[1] * dims[2] <= cap
   int32_t dims[3];
-  int32_t table;  // 1: cell table present (total <= cap), 0: binary search on the sorted keys
+  int32_t pad;
 };
 static_assert(sizeof(DGrid) == 64, "DGrid layout");
 
 struct DeviceGrid {
   at::Tensor params;  // (B * 64,) uint8: one DGrid per cloud
-  at::Tensor keys;    // (B, N) int64: sorted cell keys; the first n are valid, then INT64_MAX
-  at::Tensor table;   // (B, cap + 1) int32: first sorted position of each cell (when table = 1)
-  at::Tensor recs;    // (B, N, 4) T: points in cell order: x, y, z, and the point index's bits
+  at::Tensor table;   // (2, B, cap + 1) int32, scanned flat: row[c] - row[0] = first position of cell c
+                      // in recs ([0]) or in qorder ([1])
+  at::Tensor recs;    // (B, N, 4) T: valid points in cell order: x, y, z, and the point index's bits
+  at::Tensor qorder;  // (B, M) int32: query indices, valid ones in cell order, then the invalid ones
   int64_t cap;
 };
 
@@ -246,34 +247,38 @@ __device__ __forceinline__ int64_t cell_key(const DGrid& g, double x, double y, 
   return (cz * g.dims[1] + cy) * g.dims[0] + cx;
 }
 
-// One block per cloud: bounding box (in double, exact), cell size, dims. Same formulas as
-// knn_cell_size() and build_grid() (grid.cpp); non-finite boxes fall back to a single cell,
-// which is exact too (every point is then visited).
-constexpr int kSetupThreads = 512;
+// One block per cloud: bounding box (min/max are exact in T), cell size, dims. The cell size
+// follows knn_cell_size() / build_grid() (grid.cpp), then grows until the grid has at most `cap`
+// cells, so that every cloud has a dense cell table. Non-finite boxes get a single cell, which is
+// exact too (every point is then visited).
+constexpr int kSetupThreads = 1024;
 
 template <typename T>
 __global__ void __launch_bounds__(kSetupThreads) grid_setup_kernel(const T* __restrict__ pts,
                                                                    const int64_t* __restrict__ lengths,
                                                                    int64_t N, int mode, int64_t k, double radius,
                                                                    int64_t cap, DGrid* __restrict__ grids) {
-  __shared__ double red[kSetupThreads / 32][6];
+  __shared__ T red[kSetupThreads / 32][6];
   const int64_t b = blockIdx.x;
   const int64_t n = clamp_len(lengths[b], N);
-  double v[6];  // lo x, y, z, then -hi x, y, z
+  T v[6];  // lo x, y, z, then -hi x, y, z
 #pragma unroll
-  for (int a = 0; a < 6; ++a) v[a] = inf_value<double>();
+  for (int a = 0; a < 6; ++a) v[a] = inf_value<T>();
   const T* cloud = pts + b * N * 3;
   for (int64_t i = threadIdx.x; i < n; i += blockDim.x) {
 #pragma unroll
     for (int a = 0; a < 3; ++a) {
-      const double c = static_cast<double>(cloud[3 * i + a]);
-      v[a] = fmin(v[a], c);
-      v[a + 3] = fmin(v[a + 3], -c);
+      const T c = cloud[3 * i + a];
+      v[a] = v[a] < c ? v[a] : c;  // NaN coordinates are skipped (rejected upstream anyway)
+      v[a + 3] = v[a + 3] < -c ? v[a + 3] : -c;
     }
   }
 #pragma unroll
   for (int a = 0; a < 6; ++a)
-    for (int off = 16; off > 0; off >>= 1) v[a] = fmin(v[a], __shfl_xor_sync(kFullMask, v[a], off));
+    for (int off = 16; off > 0; off >>= 1) {
+      const T o = __shfl_xor_sync(kFullMask, v[a], off);
+      v[a] = v[a] < o ? v[a] : o;
+    }
   const int warp = threadIdx.x >> 5, lane = threadIdx.x & 31;
   if (lane == 0)
 #pragma unroll
@@ -282,13 +287,13 @@ __global__ void __launch_bounds__(kSetupThreads) grid_setup_kernel(const T* __re
   if (threadIdx.x != 0) return;
   for (int w = 1; w < static_cast<int>(blockDim.x >> 5); ++w)
 #pragma unroll
-    for (int a = 0; a < 6; ++a) v[a] = fmin(v[a], red[w][a]);
+    for (int a = 0; a < 6; ++a) v[a] = v[a] < red[w][a] ? v[a] : red[w][a];
   constexpr double kMaxCells = 1048576.0;  // 2^20 per axis, as build_grid
   double lo[3], ext[3], emax = 0.0;
   bool finite = true;
   for (int a = 0; a < 3; ++a) {
-    lo[a] = n > 0 ? v[a] : 0.0;
-    const double hi = n > 0 ? -v[a + 3] : 0.0;
+    lo[a] = n > 0 ? static_cast<double>(v[a]) : 0.0;
+    const double hi = n > 0 ? -static_cast<double>(v[a + 3]) : 0.0;
     ext[a] = hi - lo[a];
     finite = finite && isfinite(lo[a]) && isfinite(hi) && isfinite(ext[a]);
     emax = fmax(emax, ext[a]);
@@ -304,134 +309,154 @@ __global__ void __launch_bounds__(kSetupThreads) grid_setup_kernel(const T* __re
     cell = radius;
   }
   cell = fmax(fmax(cell, emax / (kMaxCells - 1.0)), 1e-9);
-  DGrid g;
-  int64_t dims[3];
-  if (!finite || !isfinite(cell)) {
+  int64_t dims[3] = {1, 1, 1};
+  int64_t total = 1;
+  if (finite && isfinite(cell)) {
+    for (int it = 0; it < 200; ++it) {
+      for (int a = 0; a < 3; ++a)
+        dims[a] = static_cast<int64_t>(fmin(fmax(floor(ext[a] / cell) + 1.0, 1.0), kMaxCells));
+      total = dims[0] * dims[1] * dims[2];
+      if (total <= cap) break;
+      cell *= fmax(1.01, cbrt(static_cast<double>(total) / static_cast<double>(cap)));
+    }
+  }
+  if (!finite || !isfinite(cell) || total > cap) {
     for (int a = 0; a < 3; ++a) {
       lo[a] = 0.0;
       dims[a] = 1;
     }
     cell = 1.0;
-  } else {
-    for (int a = 0; a < 3; ++a) dims[a] = static_cast<int64_t>(fmin(fmax(floor(ext[a] / cell) + 1.0, 1.0), kMaxCells));
+    total = 1;
   }
+  DGrid g;
   for (int a = 0; a < 3; ++a) {
     g.o[a] = lo[a];
     g.dims[a] = static_cast<int32_t>(dims[a]);
   }
   g.h = cell;
   g.n = n;
-  g.total = dims[0] * dims[1] * dims[2];
-  g.table = g.total <= cap ? 1 : 0;
+  g.total = total;
+  g.pad = 0;
   grids[b] = g;
 }
 
-// Cell keys of the valid entries of a (B, L, 3) cloud in the grid of the points; INT64_MAX after.
+// Counting sort of the points and of the queries by cell, pass 1: each valid entry gets its cell
+// key and its rank among the entries of its cell (the atomic's return value), counted in slot
+// key + 1 of its table row. Items t < B * N are points, the others queries. The order inside a
+// cell depends on scheduling, which no result depends on: every search is exact and ordered by
+// (dist2, index) or by index.
 template <typename T>
-__global__ void grid_keys_kernel(const T* __restrict__ pts, const int64_t* __restrict__ lengths, int64_t B,
-                                 int64_t L, const DGrid* __restrict__ grids, int64_t* __restrict__ keys) {
-  const int64_t total = B * L;
+__global__ void grid_count_kernel(const T* __restrict__ pts, const int64_t* __restrict__ plen, int64_t N,
+                                  const T* __restrict__ qry, const int64_t* __restrict__ qlen, int64_t M, int64_t B,
+                                  const DGrid* __restrict__ grids, int64_t cap, int32_t* __restrict__ table,
+                                  int2* __restrict__ key_rank) {
+  const int64_t np = B * N, total = np + B * M;
   for (int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; t < total;
        t += static_cast<int64_t>(gridDim.x) * blockDim.x) {
-    const int64_t b = t / L, i = t - b * L;
-    if (i >= clamp_len(lengths[b], L)) {
-      keys[t] = kInt64Max;
-      continue;
-    }
-    const T* p = pts + 3 * t;
-    // Same value as build_grid's points.to(kDouble) and the searches' static_cast<double>(q).
-    keys[t] = cell_key(grids[b], static_cast<double>(p[0]), static_cast<double>(p[1]), static_cast<double>(p[2]));
+    const bool is_point = t < np;
+    const int64_t u = is_point ? t : t - np, L = is_point ? N : M;
+    const int64_t b = u / L, i = u - b * L;
+    if (i >= clamp_len(is_point ? plen[b] : qlen[b], L)) continue;
+    const T* p = (is_point ? pts : qry) + 3 * u;
+    // The same doubles as build_grid's points.to(kDouble) and the searches' static_cast<double>(q).
+    const int64_t key = cell_key(grids[b], static_cast<double>(p[0]), static_cast<double>(p[1]),
+                                 static_cast<double>(p[2]));  // in [0, total) with total <= cap
+    int32_t* row = table + ((is_point ? 0 : B) + b) * (cap + 1);
+    key_rank[t] = make_int2(static_cast<int>(key), atomicAdd(row + key + 1, 1));
   }
 }
 
-// Points in cell order (recs) and, for clouds with at most cap cells, the cell table.
+// Pass 2, after an inclusive scan of the whole table as one flat array: each row starts with a
+// zero count, so row[0] is the sum of the rows before it, and row[c] - row[0] = entries of cells
+// < c = first position of cell c. Points go to recs, query indices to qorder; an invalid query m
+// (m >= nq) goes to position m, which the nq valid ones leave free.
 template <typename T>
-__global__ void grid_fill_kernel(const T* __restrict__ pts, const int64_t* __restrict__ keys,
-                                 const int64_t* __restrict__ order, const DGrid* __restrict__ grids, int64_t B,
-                                 int64_t N, int64_t cap, int32_t* __restrict__ table, T* __restrict__ recs) {
-  const int64_t n_recs = B * N, n_table = B * (cap + 1);
-  const int64_t total = n_recs > n_table ? n_recs : n_table;
+__global__ void grid_scatter_kernel(const T* __restrict__ pts, const int64_t* __restrict__ plen, int64_t N,
+                                    const int64_t* __restrict__ qlen, int64_t M, int64_t B, int64_t cap,
+                                    const int32_t* __restrict__ table, const int2* __restrict__ key_rank,
+                                    T* __restrict__ recs, int32_t* __restrict__ qorder) {
+  const int64_t np = B * N, total = np + B * M;
   for (int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; t < total;
        t += static_cast<int64_t>(gridDim.x) * blockDim.x) {
-    if (t < n_recs) {
+    if (t < np) {
       const int64_t b = t / N, i = t - b * N;
-      if (i < grids[b].n) {
-        const int64_t j = order[t];  // in [0, n): the sort moved the INT64_MAX keys behind
-        const T* p = pts + (b * N + j) * 3;
-        T* r = recs + 4 * t;
-        r[0] = p[0];
-        r[1] = p[1];
-        r[2] = p[2];
-        r[3] = index_bits<T>(static_cast<int>(j));
+      if (i >= clamp_len(plen[b], N)) continue;
+      const int2 kr = key_rank[t];
+      const int32_t* row = table + b * (cap + 1);
+      const int64_t pos = row[kr.x] - row[0] + kr.y;
+      const T* p = pts + 3 * t;
+      T* r = recs + 4 * (b * N + pos);
+      r[0] = p[0];
+      r[1] = p[1];
+      r[2] = p[2];
+      r[3] = index_bits<T>(static_cast<int>(i));
+    } else {
+      const int64_t u = t - np, b = u / M, m = u - b * M;
+      int64_t pos = m;
+      if (m < clamp_len(qlen[b], M)) {
+        const int2 kr = key_rank[t];
+        const int32_t* row = table + (B + b) * (cap + 1);
+        pos = row[kr.x] - row[0] + kr.y;
       }
-    }
-    if (t < n_table) {
-      const int64_t b = t / (cap + 1), c = t - b * (cap + 1);
-      const DGrid& g = grids[b];
-      if (g.table && c <= g.total) table[t] = static_cast<int32_t>(lower_bound_i64(keys + b * N, g.n, c));
+      qorder[b * M + pos] = static_cast<int32_t>(m);
     }
   }
 }
 
-// Builds the grid of a (B, N, 3) cloud of compute type T (float or double, contiguous).
+// Builds the grid of the points (B, N, 3) and the cell order of the queries (B, M, 3), both of
+// compute type T (float or double, contiguous). No host synchronisation.
 template <typename T>
-DeviceGrid build_device_grid(const at::Tensor& pts, const at::Tensor& lengths, int mode, int64_t k, double radius,
-                             cudaStream_t stream) {
-  const int64_t B = pts.size(0), N = pts.size(1);
+DeviceGrid build_device_grid(const at::Tensor& pts, const at::Tensor& plen, const at::Tensor& qry,
+                             const at::Tensor& qlen, int mode, int64_t k, double radius, cudaStream_t stream) {
+  const int64_t B = pts.size(0), N = pts.size(1), M = qry.size(1);
+  TORCH_CHECK(B * (N + M) < std::numeric_limits<int32_t>::max(), "grid: at most 2^31 - 1 points and queries in a "
+              "batch, got B = ", B, ", N = ", N, ", M = ", M);
   DeviceGrid g;
-  g.cap = 4 * N + 64;
+  // Cells per cloud: kNN grids have about 2 n / k cells (at most ~1.2 n for k >= 2, flat and line
+  // clouds included); ball grids have cells of edge radius, grown when a sparse cloud would need
+  // more. The table costs 8 bytes per cell and cloud.
+  g.cap = (mode == kGridKnn ? 2 : 4) * N + 1024;
   g.params = at::empty({B * static_cast<int64_t>(sizeof(DGrid))}, pts.options().dtype(at::kByte));
   auto* grids = reinterpret_cast<DGrid*>(g.params.data_ptr());
   grid_setup_kernel<T><<<static_cast<unsigned>(B), kSetupThreads, 0, stream>>>(
-      pts.data_ptr<T>(), lengths.data_ptr<int64_t>(), N, mode, k, radius, g.cap, grids);
+      pts.data_ptr<T>(), plen.data_ptr<int64_t>(), N, mode, k, radius, g.cap, grids);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  auto keys = at::empty({B, N}, pts.options().dtype(at::kLong));
-  grid_keys_kernel<T><<<stride_blocks(B * N, 256), 256, 0, stream>>>(pts.data_ptr<T>(), lengths.data_ptr<int64_t>(),
-                                                                      B, N, grids, keys.data_ptr<int64_t>());
+  g.table = at::zeros({2, B, g.cap + 1}, pts.options().dtype(at::kInt));
+  auto key_rank = at::empty({B * (N + M), 2}, pts.options().dtype(at::kInt));
+  const int64_t items = B * (N + M);
+  grid_count_kernel<T><<<stride_blocks(items, 256, 1 << 20), 256, 0, stream>>>(
+      pts.data_ptr<T>(), plen.data_ptr<int64_t>(), N, qry.data_ptr<T>(), qlen.data_ptr<int64_t>(), M, B, grids,
+      g.cap, g.table.data_ptr<int32_t>(), reinterpret_cast<int2*>(key_rank.data_ptr<int32_t>()));
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  auto sorted = keys.sort(/*stable=*/true, /*dim=*/1, /*descending=*/false);
-  g.keys = std::get<0>(sorted).contiguous();
-  auto order = std::get<1>(sorted).contiguous();
-  g.table = at::empty({B, g.cap + 1}, pts.options().dtype(at::kInt));
+  // One flat scan (a single-pass device scan; a scan along the rows would be a slow per-row loop).
+  // The sum of all counts is at most B * (N + M) < 2^31 (checked by the callers).
+  g.table.view({-1}).cumsum_(0);
   g.recs = at::empty({B, N, 4}, pts.options());
-  const int64_t work = std::max(B * N, B * (g.cap + 1));
-  grid_fill_kernel<T><<<stride_blocks(work, 256), 256, 0, stream>>>(
-      pts.data_ptr<T>(), g.keys.data_ptr<int64_t>(), order.data_ptr<int64_t>(), grids, B, N, g.cap,
-      g.table.data_ptr<int32_t>(), g.recs.data_ptr<T>());
+  g.qorder = at::empty({B, M}, pts.options().dtype(at::kInt));
+  grid_scatter_kernel<T><<<stride_blocks(items, 256, 1 << 20), 256, 0, stream>>>(
+      pts.data_ptr<T>(), plen.data_ptr<int64_t>(), N, qlen.data_ptr<int64_t>(), M, B, g.cap,
+      g.table.data_ptr<int32_t>(), reinterpret_cast<const int2*>(key_rank.data_ptr<int32_t>()), g.recs.data_ptr<T>(),
+      g.qorder.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return g;
-}
-
-// Order in which to process the queries: sorted by the cell of the point grid they fall in, so
-// that neighbouring threads search the same cells (coherent loads, little divergence). Invalid
-// queries (m >= query_lengths[b]) come last. Returns (B, M) int64 query indices.
-template <typename T>
-at::Tensor query_order(const at::Tensor& query, const at::Tensor& qlen, const DeviceGrid& g, cudaStream_t stream) {
-  const int64_t B = query.size(0), M = query.size(1);
-  auto keys = at::empty({B, M}, query.options().dtype(at::kLong));
-  grid_keys_kernel<T><<<stride_blocks(B * M, 256), 256, 0, stream>>>(
-      query.data_ptr<T>(), qlen.data_ptr<int64_t>(), B, M, reinterpret_cast<const DGrid*>(g.params.data_ptr()),
-      keys.data_ptr<int64_t>());
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  return std::get<1>(keys.sort(/*stable=*/true, /*dim=*/1, /*descending=*/false)).contiguous();
 }
 
 // Pointers of one cloud's grid for the search routines.
 template <typename T>
 struct GridRef {
   DGrid g;
-  const int64_t* keys;   // sorted keys of the cloud
-  const int32_t* table;  // cell table of the cloud
-  const T* recs;         // points in cell order
+  const int32_t* table;  // scanned table row of the cloud: first position of cell c = table[c] - base
+  int32_t base;
+  const T* recs;  // points of the cloud in cell order
 };
 
 template <typename T>
-__device__ __forceinline__ GridRef<T> grid_ref(const DGrid* grids, const int64_t* keys, const int32_t* table,
-                                               const T* recs, int64_t b, int64_t N, int64_t cap) {
+__device__ __forceinline__ GridRef<T> grid_ref(const DGrid* grids, const int32_t* table, const T* recs, int64_t b,
+                                               int64_t N, int64_t cap) {
   GridRef<T> r;
   r.g = grids[b];
-  r.keys = keys + b * N;
   r.table = table + b * (cap + 1);
+  r.base = r.table[0];
   r.recs = recs + b * N * 4;
   return r;
 }
@@ -440,15 +465,8 @@ __device__ __forceinline__ GridRef<T> grid_ref(const DGrid* grids, const int64_t
 template <typename T, typename F>
 __device__ __forceinline__ void grid_row(const GridRef<T>& G, int64_t cz, int64_t cy, int64_t x0, int64_t x1, F& f) {
   const int64_t row = (cz * G.g.dims[1] + cy) * G.g.dims[0];
-  const int64_t k0 = row + x0, k1 = row + x1;  // k1 + 1 <= total: inside the table
-  int64_t s, e;
-  if (G.g.table) {
-    s = G.table[k0];
-    e = G.table[k1 + 1];
-  } else {
-    s = lower_bound_i64(G.keys, G.g.n, k0);
-    e = s + lower_bound_i64(G.keys + s, G.g.n - s, k1 + 1);
-  }
+  // row + x1 + 1 <= total <= cap; both ends carry the same row base.
+  const int64_t s = G.table[row + x0] - G.base, e = G.table[row + x1 + 1] - G.base;
   for (int64_t t = s; t < e; ++t) {
     T x, y, z;
     int j;
