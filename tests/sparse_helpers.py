@@ -100,3 +100,69 @@ def assert_same_sites_and_features(indices: torch.Tensor, features: torch.Tensor
         raise AssertionError(f"{what}: max |diff| {worst:.3e} > {tol:.1e} x {scale:.3g}; worst at row {w[0]} "
                              f"(site {got_i[w[0]].tolist()}), channel {w[1]}: got {got_f[w].item()!r}, "
                              f"expected {ref_f[w].item()!r}")
+
+
+# ---- a dense emulator of sparse networks (independent of the kernels, used by nn / compat tests) ----
+
+class _Geometry:
+    """What an inverse convolution needs to know about the convolution it inverts."""
+
+    def __init__(self, indices, spatial_shape, out_spatial_shape, stride, padding, dilation):
+        self.indices, self.spatial_shape, self.out_spatial_shape = indices, tuple(spatial_shape), tuple(out_spatial_shape)
+        self.stride, self.padding, self.dilation = stride, padding, dilation
+
+
+def emulate(module, x: SparseConvTensor, registry: dict | None = None):
+    """Run a network of lidarops.sparse.nn / compat.spconv modules with the dense references of
+    lidarops.sparse.functional (F.convNd on x.dense() per layer), returning a SparseConvTensor (sites in
+    reference order) or a dense tensor after ToDense. nn.Module children other than sparse ones act on
+    features, as in SparseSequential."""
+    from torch import nn as tnn
+
+    from lidarops.sparse import functional as Fs
+    from lidarops.sparse import nn as spnn
+
+    registry = {} if registry is None else registry
+    if isinstance(module, spnn.SparseSequential):
+        for m in module:
+            x = emulate(m, x, registry)
+        return x
+    if isinstance(module, spnn.ToDense):
+        return x.dense()
+    if isinstance(module, spnn.SparseConvolution):
+        w, b = module.weight, module.bias
+        if getattr(module, "conv1x1", False):  # compat face: spconv 2.3.8's kernel-size-1 product
+            f = x.features @ w.reshape(module.in_channels, module.out_channels)
+            y = SparseConvTensor(f + b if b is not None else f, x.indices, x.spatial_shape, x.batch_size)
+            y.spatial_shape = module._spconv_out_shape(x.spatial_shape)
+            return y
+        kind = module.kind
+        if kind == "inverse":
+            geo = registry[module.indice_key]
+            sites, feats = Fs._conv_reference(x, w, b, "inverse", inverse_of=geo)
+            return SparseConvTensor(feats, sites.int(), list(geo.spatial_shape), x.batch_size)
+        s, p, d = module.stride, module.padding, module.dilation
+        sites, feats = Fs._conv_reference(x, w, b, kind, s, p, d, module.output_padding)
+        if kind == "subm":
+            shape = x.spatial_shape
+        elif kind == "transposed":
+            out_shape = module._out_spatial_shape(x)
+            shape = list(out_shape) if out_shape is not None else list(
+                Fs.conv_transpose_output_shape(x.spatial_shape, module.kernel_size, s, p, d, module.output_padding))
+            keep = (sites[:, 1:] < torch.tensor(shape)).all(1)
+            sites, feats = sites[keep], feats[keep]
+        else:
+            shape = list(Fs.conv_output_shape(x.spatial_shape, module.kernel_size, s, p, d))
+        if module.indice_key is not None and kind != "subm" and module.indice_key not in registry:
+            registry[module.indice_key] = _Geometry(x.indices, x.spatial_shape, shape, s, p, d)
+        return SparseConvTensor(feats, sites.int(), shape, x.batch_size)
+    if isinstance(module, spnn.SparseMaxPool):
+        sites, feats = Fs._max_pool_reference(x, module.kernel_size, module.stride, module.padding, module.dilation)
+        shape = list(Fs.conv_output_shape(x.spatial_shape, module.kernel_size, module.stride, module.padding,
+                                          module.dilation))
+        return SparseConvTensor(feats, sites.int(), shape, x.batch_size)
+    if isinstance(x, SparseConvTensor):
+        if x.features.shape[0] == 0 and isinstance(module, tnn.modules.batchnorm._BatchNorm):
+            return x
+        return x.replace_feature(module(x.features))
+    return module(x)
