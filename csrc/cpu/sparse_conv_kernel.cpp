@@ -17,29 +17,6 @@ namespace lidarops {
 namespace sparse {
 namespace {
 
-void check_map(const at::Tensor& nbr, const at::Tensor& like, const char* like_name) {
-  TORCH_CHECK_VALUE(nbr.dim() == 2 && nbr.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
-                    nbr.sizes(), " and dtype ", nbr.scalar_type());
-  TORCH_CHECK_VALUE(nbr.device() == like.device(), "kernel_map is on ", nbr.device(), " but ", like_name, " is on ",
-                    like.device());
-}
-
-void check_conv_args(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr) {
-  TORCH_CHECK_VALUE(features.dim() == 2, "features must be (N_in, Cin), got shape ", features.sizes());
-  TORCH_CHECK_VALUE(weight.dim() == 3, "weight must be (Cout, K, Cin), got shape ", weight.sizes());
-  check_map(nbr, features, "features");
-  TORCH_CHECK_VALUE(at::isFloatingType(features.scalar_type()), "features must be floating point, got ",
-                    features.scalar_type());
-  TORCH_CHECK_VALUE(weight.scalar_type() == features.scalar_type(), "weight dtype ", weight.scalar_type(),
-                    " differs from features dtype ", features.scalar_type());
-  TORCH_CHECK_VALUE(weight.device() == features.device(), "weight is on ", weight.device(), " but features is on ",
-                    features.device());
-  TORCH_CHECK_VALUE(weight.size(1) == nbr.size(1), "weight has K = ", weight.size(1),
-                    " kernel offsets but kernel_map has ", nbr.size(1));
-  TORCH_CHECK_VALUE(weight.size(2) == features.size(1), "weight expects Cin = ", weight.size(2),
-                    " input channels but features has ", features.size(1));
-}
-
 at::ScalarType compute_type(at::ScalarType t) { return t == at::kDouble ? at::kDouble : at::kFloat; }
 
 // The pairs of each kernel offset: rows [start[k], start[k + 1]) of in_rows / out_rows.
@@ -156,17 +133,7 @@ at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weig
 
 at::Tensor sparse_conv_weight_grad_cpu(const at::Tensor& features_in, const at::Tensor& grad_in,
                                        const at::Tensor& nbr_in) {
-  TORCH_CHECK_VALUE(features_in.dim() == 2, "features must be (N_in, Cin), got shape ", features_in.sizes());
-  TORCH_CHECK_VALUE(grad_in.dim() == 2, "grad_out must be (N_out, Cout), got shape ", grad_in.sizes());
-  check_map(nbr_in, features_in, "features");
-  TORCH_CHECK_VALUE(grad_in.size(0) == nbr_in.size(0), "grad_out has ", grad_in.size(0), " rows but kernel_map has ",
-                    nbr_in.size(0));
-  TORCH_CHECK_VALUE(at::isFloatingType(features_in.scalar_type()), "features must be floating point, got ",
-                    features_in.scalar_type());
-  TORCH_CHECK_VALUE(grad_in.scalar_type() == features_in.scalar_type(), "grad_out dtype ", grad_in.scalar_type(),
-                    " differs from features dtype ", features_in.scalar_type());
-  TORCH_CHECK_VALUE(grad_in.device() == features_in.device(), "grad_out is on ", grad_in.device(),
-                    " but features is on ", features_in.device());
+  check_weight_grad_args(features_in, grad_in, nbr_in);
   const auto dtype = features_in.scalar_type();
   const auto ct = compute_type(dtype);
   const int64_t n_in = features_in.size(0), cin = features_in.size(1);

@@ -18,11 +18,7 @@ bool is_nan(T v) {
 }
 
 std::tuple<at::Tensor, at::Tensor> sparse_max_pool_cpu(const at::Tensor& features_in, const at::Tensor& nbr_in) {
-  TORCH_CHECK_VALUE(features_in.dim() == 2, "features must be (N_in, C), got shape ", features_in.sizes());
-  TORCH_CHECK_VALUE(nbr_in.dim() == 2 && nbr_in.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
-                    nbr_in.sizes(), " and dtype ", nbr_in.scalar_type());
-  TORCH_CHECK_VALUE(at::isFloatingType(features_in.scalar_type()), "features must be floating point, got ",
-                    features_in.scalar_type());
+  check_pool_args(features_in, nbr_in);
   auto x = features_in.contiguous();
   auto nbr = nbr_in.contiguous();
   const int64_t n_in = x.size(0), C = x.size(1), m = nbr.size(0), K = nbr.size(1);
@@ -59,14 +55,7 @@ std::tuple<at::Tensor, at::Tensor> sparse_max_pool_cpu(const at::Tensor& feature
 }
 
 at::Tensor sparse_max_pool_backward_cpu(const at::Tensor& grad_in, const at::Tensor& arg_in, const at::Tensor& nbr_t_in) {
-  TORCH_CHECK_VALUE(grad_in.dim() == 2, "grad must be (N_out, C), got shape ", grad_in.sizes());
-  TORCH_CHECK_VALUE(arg_in.sizes() == grad_in.sizes() && arg_in.scalar_type() == at::kLong,
-                    "argmax must be int64 with the shape of grad ", grad_in.sizes(), ", got shape ", arg_in.sizes(),
-                    " and dtype ", arg_in.scalar_type());
-  TORCH_CHECK_VALUE(nbr_t_in.dim() == 2 && nbr_t_in.scalar_type() == at::kInt,
-                    "kernel_map_t must be (N_in, K) int32, got shape ", nbr_t_in.sizes(), " and dtype ",
-                    nbr_t_in.scalar_type());
-  TORCH_CHECK_VALUE(at::isFloatingType(grad_in.scalar_type()), "grad must be floating point, got ", grad_in.scalar_type());
+  check_pool_backward_args(grad_in, arg_in, nbr_t_in);
   auto g = grad_in.contiguous();
   auto arg = arg_in.contiguous();
   auto nt = nbr_t_in.contiguous();

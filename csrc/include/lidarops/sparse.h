@@ -245,6 +245,65 @@ inline void raise_if_out_of_range(const at::Tensor& indices_cpu, const char* nam
                     describe_shape(shape, ndim), "; every coordinate must satisfy 0 <= c < spatial_shape");
 }
 
+// ---- argument checks of the convolution and pooling ops (shared by CPU and CUDA) ----
+
+inline void check_map(const at::Tensor& nbr, const at::Tensor& like, const char* like_name) {
+  TORCH_CHECK_VALUE(nbr.dim() == 2 && nbr.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
+                    nbr.sizes(), " and dtype ", nbr.scalar_type());
+  TORCH_CHECK_VALUE(nbr.device() == like.device(), "kernel_map is on ", nbr.device(), " but ", like_name, " is on ",
+                    like.device());
+}
+
+inline void check_conv_args(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr) {
+  TORCH_CHECK_VALUE(features.dim() == 2, "features must be (N_in, Cin), got shape ", features.sizes());
+  TORCH_CHECK_VALUE(weight.dim() == 3, "weight must be (Cout, K, Cin), got shape ", weight.sizes());
+  check_map(nbr, features, "features");
+  TORCH_CHECK_VALUE(at::isFloatingType(features.scalar_type()), "features must be floating point, got ",
+                    features.scalar_type());
+  TORCH_CHECK_VALUE(weight.scalar_type() == features.scalar_type(), "weight dtype ", weight.scalar_type(),
+                    " differs from features dtype ", features.scalar_type());
+  TORCH_CHECK_VALUE(weight.device() == features.device(), "weight is on ", weight.device(), " but features is on ",
+                    features.device());
+  TORCH_CHECK_VALUE(weight.size(1) == nbr.size(1), "weight has K = ", weight.size(1),
+                    " kernel offsets but kernel_map has ", nbr.size(1));
+  TORCH_CHECK_VALUE(weight.size(2) == features.size(1), "weight expects Cin = ", weight.size(2),
+                    " input channels but features has ", features.size(1));
+}
+
+inline void check_weight_grad_args(const at::Tensor& features, const at::Tensor& grad, const at::Tensor& nbr) {
+  TORCH_CHECK_VALUE(features.dim() == 2, "features must be (N_in, Cin), got shape ", features.sizes());
+  TORCH_CHECK_VALUE(grad.dim() == 2, "grad_out must be (N_out, Cout), got shape ", grad.sizes());
+  check_map(nbr, features, "features");
+  TORCH_CHECK_VALUE(grad.size(0) == nbr.size(0), "grad_out has ", grad.size(0), " rows but kernel_map has ",
+                    nbr.size(0));
+  TORCH_CHECK_VALUE(at::isFloatingType(features.scalar_type()), "features must be floating point, got ",
+                    features.scalar_type());
+  TORCH_CHECK_VALUE(grad.scalar_type() == features.scalar_type(), "grad_out dtype ", grad.scalar_type(),
+                    " differs from features dtype ", features.scalar_type());
+  TORCH_CHECK_VALUE(grad.device() == features.device(), "grad_out is on ", grad.device(), " but features is on ",
+                    features.device());
+}
+
+inline void check_pool_args(const at::Tensor& features, const at::Tensor& nbr) {
+  TORCH_CHECK_VALUE(features.dim() == 2, "features must be (N_in, C), got shape ", features.sizes());
+  check_map(nbr, features, "features");
+  TORCH_CHECK_VALUE(at::isFloatingType(features.scalar_type()), "features must be floating point, got ",
+                    features.scalar_type());
+}
+
+inline void check_pool_backward_args(const at::Tensor& grad, const at::Tensor& arg, const at::Tensor& nbr_t) {
+  TORCH_CHECK_VALUE(grad.dim() == 2, "grad must be (N_out, C), got shape ", grad.sizes());
+  TORCH_CHECK_VALUE(arg.sizes() == grad.sizes() && arg.scalar_type() == at::kLong,
+                    "argmax must be int64 with the shape of grad ", grad.sizes(), ", got shape ", arg.sizes(),
+                    " and dtype ", arg.scalar_type());
+  TORCH_CHECK_VALUE(nbr_t.dim() == 2 && nbr_t.scalar_type() == at::kInt, "kernel_map_t must be (N_in, K) int32, got shape ",
+                    nbr_t.sizes(), " and dtype ", nbr_t.scalar_type());
+  TORCH_CHECK_VALUE(at::isFloatingType(grad.scalar_type()), "grad must be floating point, got ", grad.scalar_type());
+  TORCH_CHECK_VALUE(arg.device() == grad.device() && nbr_t.device() == grad.device(),
+                    "argmax, kernel_map_t and grad must be on one device, got ", arg.device(), ", ", nbr_t.device(),
+                    " and ", grad.device());
+}
+
 // Throws ValueError naming the first pair of rows with equal coordinates (CPU tensor).
 void raise_if_duplicates(const at::Tensor& indices_cpu, const char* name, int64_t batch, const int64_t* shape, int ndim);
 
