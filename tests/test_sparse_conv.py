@@ -15,7 +15,7 @@ import torch
 
 from lidarops.sparse import SparseConvTensor
 from lidarops.sparse import functional as Fs
-from sparse_helpers import (DEVICES, TOL, assert_same_sites_and_features, linear_order, random_sites, random_tensor,
+from sparse_helpers import (CUDA_OK, DEVICES, TOL, assert_same_sites_and_features, linear_order, random_sites, random_tensor,
                             random_weight)
 
 ops = torch.ops.lidarops
@@ -106,6 +106,24 @@ def test_kernel_map_transpose_and_subset(device, D):
     rows = torch.tensor([0, 3, 5, km.out_indices.shape[0] - 1])
     sub = Fs.kernel_map(x.indices, km.out_indices[rows.to(device)].contiguous(), 1, shape, 3, 2, 1, 1)
     assert torch.equal(sub.cpu(), nbr[rows])
+
+
+def test_kernel_map_order_groups_rows_by_offset_mask(device):
+    x = random_tensor(2, SHAPES[2], 40, 3, seed=8, device=device)
+    km = Fs.build_kernel_map(x, "subm", 3)
+    order = ops.sparse_kernel_map_order(km.neighbors).cpu().long()
+    nbr = km.neighbors.cpu()
+    assert torch.equal(torch.sort(order).values, torch.arange(nbr.shape[0]))
+    masks = ((nbr >= 0).long() << torch.arange(9)).sum(1)
+    m = masks[order]
+    assert bool((m[1:] >= m[:-1]).all())  # ascending masks
+    same = m[1:] == m[:-1]
+    assert bool((order[1:][same] > order[:-1][same]).all())  # stable
+    # the order changes nothing but the speed
+    w = random_weight(4, (3, 3), 3, device=device)
+    a = ops.sparse_conv(x.features, w.reshape(4, 9, 3), km.neighbors)
+    b = ops.sparse_conv(x.features, w.reshape(4, 9, 3), km.neighbors, ops.sparse_kernel_map_order(km.neighbors))
+    torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
 
 
 # ================================================================================================
@@ -298,7 +316,9 @@ def test_opcheck_all_sparse_ops(device):
     checks = [
         (ops.sparse_kernel_map, (x.indices, km.out_indices, 2, shape, [3, 3], [2, 2], [1, 1], [1, 1], False, True, 0)),
         (ops.sparse_kernel_map_transpose, (km.neighbors, x.indices.shape[0])),
+        (ops.sparse_kernel_map_order, (km.neighbors,)),
         (ops.sparse_conv, (f, w, km.neighbors)),
+        (ops.sparse_conv, (f, w, km.neighbors, ops.sparse_kernel_map_order(km.neighbors))),
         (ops.sparse_conv_weight_grad, (f, g.requires_grad_(), km.neighbors)),
         (ops.sparse_max_pool, (f, km.neighbors)),
     ]
@@ -427,3 +447,60 @@ def test_indice_key_reuse_rules(device):
         Fs.conv(down, random_weight(3, (2, 2, 2), 3, device=device), None, "inverse", indice_key="down")
     with pytest.raises(ValueError, match="holds a subm kernel map"):
         Fs.conv(down, w, None, "inverse", indice_key="subm1")
+
+
+# ================================================================================================
+# CUDA: parity with CPU, TF32
+# ================================================================================================
+
+_cuda = pytest.mark.skipif(not CUDA_OK, reason="needs a GPU and lidarops built with CUDA kernels")
+
+
+@_cuda
+@pytest.mark.parametrize("D", [2, 3])
+@pytest.mark.parametrize("method", ["dense", "hash"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16],
+                         ids=["f64", "f32", "f16", "bf16"])
+def test_cpu_cuda_parity(D, method, dtype):
+    shape = SHAPES[D]
+    x = random_tensor(3, shape, PER_SAMPLE[D], 32, seed=12, dtype=dtype)
+    w = random_weight(48, (3,) * D, 32, seed=12, dtype=dtype) / 16
+    xc = SparseConvTensor(x.features.cuda(), x.indices.cuda(), shape, 3)
+    for kind in ("subm", "conv", "transposed"):
+        s = 1 if kind == "subm" else 2
+        a = Fs.conv(x, w, None, kind, stride=s, padding=1, method=method)
+        b = Fs.conv(xc, w.cuda(), None, kind, stride=s, padding=1, method=method)
+        assert torch.equal(a.indices, b.indices.cpu()), f"{kind}: output sites differ between CPU and CUDA"
+        km_a = Fs.build_kernel_map(x, kind, 3, s, 1, 1, method=method)
+        km_b = Fs.build_kernel_map(xc, kind, 3, s, 1, 1, method=method)
+        assert torch.equal(km_a.neighbors, km_b.neighbors.cpu()), f"{kind}: kernel maps differ"
+        scale = max(1.0, a.features.double().abs().max().item())
+        diff = (a.features.double() - b.features.double().cpu()).abs().max().item()
+        assert diff <= 2 * TOL[dtype] * scale, f"{kind} {dtype}: CPU/CUDA max |diff| {diff:.3e}"
+        pa, _ = ops.sparse_max_pool(x.features, km_a.neighbors)
+        pb, _ = ops.sparse_max_pool(xc.features, km_b.neighbors)
+        assert torch.equal(pa, pb.cpu())
+    g = torch.randn(a.features.shape, dtype=torch.float64).to(dtype)
+    wa = ops.sparse_conv_weight_grad(x.features, g, km_a.neighbors)
+    wb = ops.sparse_conv_weight_grad(xc.features, g.cuda(), km_b.neighbors)
+    scale = max(1.0, wa.double().abs().max().item())
+    assert (wa.double() - wb.double().cpu()).abs().max().item() <= 2 * TOL[dtype] * scale
+
+
+@_cuda
+def test_tf32_follows_torch_matmul_setting():
+    x = random_tensor(2, SHAPES[3], 60, 32, seed=3, dtype=torch.float32, device="cuda")
+    w = random_weight(32, (3, 3, 3), 32, seed=3, dtype=torch.float32, device="cuda") / 16
+    old = torch.backends.cuda.matmul.allow_tf32
+    try:
+        torch.backends.cuda.matmul.allow_tf32 = False
+        exact = Fs.conv(x, w, None, "subm")
+        torch.backends.cuda.matmul.allow_tf32 = True
+        fast = Fs.conv(x, w, None, "subm")
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = old
+    x64 = SparseConvTensor(x.features.double(), x.indices, x.spatial_shape, 2)
+    ref = Fs.conv(x64, w.double(), None, "subm").features.float()
+    scale = ref.abs().max().item()
+    assert (exact.features - ref).abs().max().item() <= 2e-5 * max(1.0, scale)
+    assert (fast.features - ref).abs().max().item() <= 5e-3 * max(1.0, scale)

@@ -96,8 +96,26 @@ void scatter_add_rows(const T* src, const int64_t* rows, int64_t count, int64_t 
   });
 }
 
-at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weight_in, const at::Tensor& nbr_in) {
+at::Tensor sparse_kernel_map_order_cpu(const at::Tensor& nbr_in) {
+  TORCH_CHECK_VALUE(nbr_in.dim() == 2 && nbr_in.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
+                    nbr_in.sizes(), " and dtype ", nbr_in.scalar_type());
+  auto nbr = nbr_in.contiguous();
+  const int64_t m = nbr.size(0), K = nbr.size(1);
+  auto masks = at::empty({m}, nbr.options().dtype(at::kLong));
+  const int32_t* np = nbr.data_ptr<int32_t>();
+  int64_t* mp = masks.data_ptr<int64_t>();
+  at::parallel_for(0, m, 16384, [&](int64_t s, int64_t e) {
+    for (int64_t o = s; o < e; ++o) mp[o] = row_mask(np + o * K, K);
+  });
+  return std::get<1>(masks.sort(/*stable=*/true, /*dim=*/0, /*descending=*/false)).to(at::kInt);
+}
+
+// The CPU kernel lists the pairs of each offset, so it never touches absent pairs; `order` (a GPU
+// tiling hint) is checked and ignored.
+at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weight_in, const at::Tensor& nbr_in,
+                           const c10::optional<at::Tensor>& order) {
   check_conv_args(features_in, weight_in, nbr_in);
+  check_order(order, nbr_in);
   const auto dtype = features_in.scalar_type();
   const auto ct = compute_type(dtype);
   const int64_t n_in = features_in.size(0), cin = features_in.size(1);
@@ -171,6 +189,7 @@ at::Tensor sparse_conv_weight_grad_cpu(const at::Tensor& features_in, const at::
 }  // namespace
 
 TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
+  m.impl("sparse_kernel_map_order", &sparse_kernel_map_order_cpu);
   m.impl("sparse_conv", &sparse_conv_cpu);
   m.impl("sparse_conv_weight_grad", &sparse_conv_weight_grad_cpu);
 }

@@ -6,11 +6,15 @@
 // gathering the input rows straight into shared memory; offsets with no input for any row of the
 // tile are skipped (a block-wide vote). One launch per layer, no atomics, no host synchronisation:
 // each output element is summed by one thread in a fixed order, so results are deterministic.
-//   - float16 / bfloat16 (sm_80+, Cin and Cout >= 16): tensor cores (WMMA 16x16x16, float accumulation).
+//   - float16 / bfloat16 (sm_80+, Cin and Cout >= 16): tensor cores (WMMA 16x16x16, float accumulation);
+//     float32 likewise with TF32 fragments when torch allows TF32 matmuls (off by default).
 //   - otherwise SIMT tiles in float (float64 in float64).
+// Rows are processed in the order given by sparse_kernel_map_order (grouped by their offset masks),
+// so the rows of a tile share their offsets and the skipping is effective on real data.
 // Backward: the features gradient is this kernel over the transposed map (autograd in Python); the
 // weight gradient is a split-K reduction over output rows into per-split partial sums (float), added
 // in a fixed order: deterministic too.
+#include <ATen/Context.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
@@ -20,6 +24,7 @@
 #include <mma.h>
 
 #include <cstdint>
+#include <type_traits>
 
 #include "lidarops/sparse.h"
 
@@ -29,6 +34,13 @@ namespace {
 
 LIDAROPS_HD int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
+// Output row processed at tile position t: order[t] (rows grouped by their offset masks) or t.
+__device__ __forceinline__ int64_t output_row(const int32_t* order, int64_t t, int64_t n_out) {
+  if (t >= n_out) return -1;
+  const int64_t o = order != nullptr ? static_cast<int64_t>(order[t]) : t;
+  return o >= 0 && o < n_out ? o : -1;
+}
+
 // ------------------------------------------------------------------------------------------------
 // forward, SIMT tiles: BM output rows x BN output channels per block, BK input channels per step,
 // each thread TM x TN outputs.
@@ -36,16 +48,20 @@ LIDAROPS_HD int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
 template <typename T, int BM, int BN, int BK, int TM, int TN>
 __global__ void __launch_bounds__((BM / TM) * (BN / TN))
     conv_fwd_simt_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
-                         T* __restrict__ out, int64_t n_out, int64_t cin, int64_t cout, int64_t K) {
+                         const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int64_t cin,
+                         int64_t cout, int64_t K) {
   using A = acc_t<T>;
   constexpr int kThreads = (BM / TM) * (BN / TN);
   __shared__ A As[BK][BM + 1];  // +1: conflict-free transposed stores
   __shared__ A Bs[BK][BN + 1];
   __shared__ int32_t rows[BM];
+  __shared__ int64_t orow[BM];  // output row of each tile row (through `order`), -1 past the end
   const int tid = threadIdx.x;
   const int tx = tid % (BN / TN), ty = tid / (BN / TN);
   const int64_t row0 = static_cast<int64_t>(blockIdx.x) * BM;
   const int64_t col0 = static_cast<int64_t>(blockIdx.y) * BN;
+  for (int m = tid; m < BM; m += kThreads) orow[m] = output_row(order, row0 + m, n_out);
+  __syncthreads();
   A acc[TM][TN];
 #pragma unroll
   for (int i = 0; i < TM; ++i)
@@ -55,8 +71,8 @@ __global__ void __launch_bounds__((BM / TM) * (BN / TN))
   for (int64_t k = 0; k < K; ++k) {
     int mine = 0;
     for (int m = tid; m < BM; m += kThreads) {
-      const int64_t o = row0 + m;
-      const int32_t r = o < n_out ? nbr[o * K + k] : -1;
+      const int64_t o = orow[m];
+      const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
       rows[m] = r;
       mine |= r >= 0;
     }
@@ -92,8 +108,8 @@ __global__ void __launch_bounds__((BM / TM) * (BN / TN))
   }
 #pragma unroll
   for (int i = 0; i < TM; ++i) {
-    const int64_t o = row0 + ty * TM + i;
-    if (o >= n_out) continue;
+    const int64_t o = orow[ty * TM + i];
+    if (o < 0) continue;
 #pragma unroll
     for (int j = 0; j < TN; ++j) {
       const int64_t co = col0 + tx * TN + j;
@@ -103,19 +119,31 @@ __global__ void __launch_bounds__((BM / TM) * (BN / TN))
 }
 
 // ------------------------------------------------------------------------------------------------
-// forward, tensor cores (float16 / bfloat16): 64 x 64 tile per block of 4 warps (2 x 2, each 32 x 32
-// = 2 x 2 WMMA fragments), 32 input channels per step. kVec: Cin % 8 == 0 and 16-byte aligned
-// tensors, so rows are loaded as 16-byte vectors.
+// forward, tensor cores: 64 x 64 tile per block of 4 warps (2 x 2, each 32 x 32 = 2 x 2 WMMA
+// fragments), 32 input channels per step, float accumulation. float16 / bfloat16: 16x16x16 fragments;
+// float32 when torch allows TF32 for matmuls (torch.backends.cuda.matmul.allow_tf32): 16x16x8 TF32
+// fragments. kVec: Cin a multiple of the 16-byte vector and 16-byte aligned tensors, so rows are
+// loaded as 16-byte vectors.
 // ------------------------------------------------------------------------------------------------
 template <typename T>
-struct WmmaType;
+struct MmaTraits;
 template <>
-struct WmmaType<c10::Half> {
-  using type = __half;
+struct MmaTraits<c10::Half> {
+  using S = __half;  // shared-memory element
+  using F = __half;  // fragment element
+  static constexpr int KS = 16, VEC = 8;
 };
 template <>
-struct WmmaType<c10::BFloat16> {
-  using type = __nv_bfloat16;
+struct MmaTraits<c10::BFloat16> {
+  using S = __nv_bfloat16;
+  using F = __nv_bfloat16;
+  static constexpr int KS = 16, VEC = 8;
+};
+template <>
+struct MmaTraits<float> {
+  using S = float;
+  using F = nvcuda::wmma::precision::tf32;
+  static constexpr int KS = 8, VEC = 4;
 };
 
 constexpr int kWmmaThreads = 128;
@@ -123,77 +151,100 @@ constexpr int kWmmaThreads = 128;
 template <typename T, bool kVec>
 __global__ void __launch_bounds__(kWmmaThreads)
     conv_fwd_wmma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
-                         T* __restrict__ out, int64_t n_out, int64_t cin, int64_t cout, int64_t K) {
+                         const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int64_t cin,
+                         int64_t cout, int64_t K) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using namespace nvcuda;
-  using WT = typename WmmaType<T>::type;
+  using S = typename MmaTraits<T>::S;
+  using FE = typename MmaTraits<T>::F;
+  constexpr int KS = MmaTraits<T>::KS, V = MmaTraits<T>::VEC;
   constexpr int BM = 64, BN = 64, BK = 32;
-  constexpr int LDA = BK + 8, LDB = BK + 8;  // in elements: multiples of 8 (16 bytes), as WMMA needs
+  constexpr int LDA = BK + V, LDB = BK + V;  // in elements: rows stay 16-byte aligned, as WMMA needs
   constexpr int LDC = BN + 4;                // floats: a multiple of 4
-  __shared__ __align__(32) WT As[BM * LDA];  // row-major A tile: As[m * LDA + kk]
-  __shared__ __align__(32) WT Bs[BN * LDB];  // column-major B tile (kk fastest): Bs[n * LDB + kk]
+  __shared__ __align__(32) S As[BM * LDA];   // row-major A tile: As[m * LDA + kk]
+  __shared__ __align__(32) S Bs[BN * LDB];   // column-major B tile (kk fastest): Bs[n * LDB + kk]
   __shared__ __align__(32) float Cs[BM * LDC];
   __shared__ int32_t rows[BM];
+  __shared__ int64_t orow[BM];
   const int tid = threadIdx.x, warp = tid / 32;
   const int wm = warp / 2, wn = warp % 2;
   const int64_t row0 = static_cast<int64_t>(blockIdx.x) * BM;
   const int64_t col0 = static_cast<int64_t>(blockIdx.y) * BN;
-  const WT zero = static_cast<WT>(0.0f);
+  const S zero = static_cast<S>(0.0f);
+  for (int m = tid; m < BM; m += kWmmaThreads) orow[m] = output_row(order, row0 + m, n_out);
+  __syncthreads();
 
-  wmma::fragment<wmma::accumulator, 16, 16, 16, float> c[2][2];
+  wmma::fragment<wmma::accumulator, 16, 16, KS, float> c[2][2];
 #pragma unroll
   for (int i = 0; i < 2; ++i)
 #pragma unroll
     for (int j = 0; j < 2; ++j) wmma::fill_fragment(c[i][j], 0.0f);
 
-  const WT* xw = reinterpret_cast<const WT*>(x);
-  const WT* ww = reinterpret_cast<const WT*>(w);
+  const S* xs = reinterpret_cast<const S*>(x);
+  const S* ws = reinterpret_cast<const S*>(w);
   for (int64_t k = 0; k < K; ++k) {
     int mine = 0;
     for (int m = tid; m < BM; m += kWmmaThreads) {
-      const int64_t o = row0 + m;
-      const int32_t r = o < n_out ? nbr[o * K + k] : -1;
+      const int64_t o = orow[m];
+      const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
       rows[m] = r;
       mine |= r >= 0;
     }
     if (!__syncthreads_or(mine)) continue;
     for (int64_t c0 = 0; c0 < cin; c0 += BK) {
-      // A: BM rows x BK channels, 8 channels (16 bytes) per item
-      for (int e = tid; e < BM * (BK / 8); e += kWmmaThreads) {
-        const int m = e / (BK / 8), v = e % (BK / 8);
+      // A: BM rows x BK channels, V channels (16 bytes) per item
+      for (int e = tid; e < BM * (BK / V); e += kWmmaThreads) {
+        const int m = e / (BK / V), v = e % (BK / V);
         const int32_t r = rows[m];
-        const int64_t ci = c0 + v * 8;
-        WT* dst = As + m * LDA + v * 8;
-        if (kVec && r >= 0 && ci + 8 <= cin) {
-          *reinterpret_cast<int4*>(dst) = __ldg(reinterpret_cast<const int4*>(xw + static_cast<int64_t>(r) * cin + ci));
+        const int64_t ci = c0 + v * V;
+        S* dst = As + m * LDA + v * V;
+        if (kVec && r >= 0 && ci + V <= cin) {
+          *reinterpret_cast<int4*>(dst) = __ldg(reinterpret_cast<const int4*>(xs + static_cast<int64_t>(r) * cin + ci));
         } else {
 #pragma unroll
-          for (int t = 0; t < 8; ++t)
-            dst[t] = (r >= 0 && ci + t < cin) ? xw[static_cast<int64_t>(r) * cin + ci + t] : zero;
+          for (int t = 0; t < V; ++t)
+            dst[t] = (r >= 0 && ci + t < cin) ? xs[static_cast<int64_t>(r) * cin + ci + t] : zero;
         }
       }
       // B: BN output channels x BK input channels of W[co, k, ci]
-      for (int e = tid; e < BN * (BK / 8); e += kWmmaThreads) {
-        const int n = e / (BK / 8), v = e % (BK / 8);
-        const int64_t co = col0 + n, ci = c0 + v * 8;
-        WT* dst = Bs + n * LDB + v * 8;
-        const WT* src = ww + (co * K + k) * cin + ci;
-        if (kVec && co < cout && ci + 8 <= cin) {
-          *reinterpret_cast<int4*>(dst) = __ldg(reinterpret_cast<const int4*>(src));
+      for (int e = tid; e < BN * (BK / V); e += kWmmaThreads) {
+        const int n = e / (BK / V), v = e % (BK / V);
+        const int64_t co = col0 + n, ci = c0 + v * V;
+        S* dst = Bs + n * LDB + v * V;
+        if (co < cout) {
+          const S* src = ws + (co * K + k) * cin + ci;
+          if (kVec && ci + V <= cin) {
+            *reinterpret_cast<int4*>(dst) = __ldg(reinterpret_cast<const int4*>(src));
+          } else {
+#pragma unroll
+            for (int t = 0; t < V; ++t) dst[t] = ci + t < cin ? src[t] : zero;
+          }
         } else {
 #pragma unroll
-          for (int t = 0; t < 8; ++t) dst[t] = (co < cout && ci + t < cin) ? src[t] : zero;
+          for (int t = 0; t < V; ++t) dst[t] = zero;
         }
       }
       __syncthreads();
 #pragma unroll
-      for (int ks = 0; ks < BK / 16; ++ks) {
-        wmma::fragment<wmma::matrix_a, 16, 16, 16, WT, wmma::row_major> a[2];
-        wmma::fragment<wmma::matrix_b, 16, 16, 16, WT, wmma::col_major> b[2];
+      for (int ks = 0; ks < BK / KS; ++ks) {
+        wmma::fragment<wmma::matrix_a, 16, 16, KS, FE, wmma::row_major> a[2];
+        wmma::fragment<wmma::matrix_b, 16, 16, KS, FE, wmma::col_major> b[2];
 #pragma unroll
-        for (int i = 0; i < 2; ++i) wmma::load_matrix_sync(a[i], As + (wm * 32 + i * 16) * LDA + ks * 16, LDA);
+        for (int i = 0; i < 2; ++i) {
+          wmma::load_matrix_sync(a[i], As + (wm * 32 + i * 16) * LDA + ks * KS, LDA);
+          if constexpr (std::is_same_v<T, float>) {
 #pragma unroll
-        for (int j = 0; j < 2; ++j) wmma::load_matrix_sync(b[j], Bs + (wn * 32 + j * 16) * LDB + ks * 16, LDB);
+            for (int t = 0; t < a[i].num_elements; ++t) a[i].x[t] = wmma::__float_to_tf32(a[i].x[t]);
+          }
+        }
+#pragma unroll
+        for (int j = 0; j < 2; ++j) {
+          wmma::load_matrix_sync(b[j], Bs + (wn * 32 + j * 16) * LDB + ks * KS, LDB);
+          if constexpr (std::is_same_v<T, float>) {
+#pragma unroll
+            for (int t = 0; t < b[j].num_elements; ++t) b[j].x[t] = wmma::__float_to_tf32(b[j].x[t]);
+          }
+        }
 #pragma unroll
         for (int i = 0; i < 2; ++i)
 #pragma unroll
@@ -210,8 +261,8 @@ __global__ void __launch_bounds__(kWmmaThreads)
   __syncthreads();
   for (int e = tid; e < BM * BN; e += kWmmaThreads) {
     const int m = e / BN, n = e % BN;
-    const int64_t o = row0 + m, co = col0 + n;
-    if (o < n_out && co < cout) out[o * cout + co] = static_cast<T>(Cs[m * LDC + n]);
+    const int64_t o = orow[m], co = col0 + n;
+    if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(Cs[m * LDC + n]);
   }
 #else
   __trap();  // launched only on sm_80+ (checked on the host)
@@ -299,20 +350,46 @@ int device_attribute(cudaDeviceAttr attr, c10::DeviceIndex dev) {
 bool aligned16(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 15) == 0; }
 
 template <typename T, int BM, int BN, int BK, int TM, int TN>
-void launch_simt(const at::Tensor& x, const at::Tensor& w, const at::Tensor& nbr, at::Tensor& out, cudaStream_t stream) {
+void launch_simt(const at::Tensor& x, const at::Tensor& w, const at::Tensor& nbr, const int32_t* order, at::Tensor& out,
+                 cudaStream_t stream) {
   const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
   const dim3 grid(static_cast<unsigned>(ceil_div(n_out, BM)), static_cast<unsigned>(ceil_div(cout, BN)));
   conv_fwd_simt_kernel<T, BM, BN, BK, TM, TN><<<grid, (BM / TM) * (BN / TN), 0, stream>>>(
-      x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), out.data_ptr<T>(), n_out, cin, cout, K);
+      x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<T>(), n_out, cin, cout, K);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
-at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr_in) {
+__global__ void row_mask_kernel(const int32_t* __restrict__ nbr, int64_t m, int64_t K, int64_t* __restrict__ masks) {
+  const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (t < m) masks[t] = row_mask(nbr + t * K, K);
+}
+
+at::Tensor sparse_kernel_map_order_cuda(const at::Tensor& nbr_in) {
+  TORCH_CHECK_VALUE(nbr_in.dim() == 2 && nbr_in.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
+                    nbr_in.sizes(), " and dtype ", nbr_in.scalar_type());
+  const c10::cuda::OptionalCUDAGuard guard(nbr_in.device());
+  auto nbr = nbr_in.contiguous();
+  const int64_t m = nbr.size(0), K = nbr.size(1);
+  auto masks = at::empty({m}, nbr.options().dtype(at::kLong));
+  if (m > 0) {
+    row_mask_kernel<<<static_cast<unsigned>(ceil_div(m, 256)), 256, 0, c10::cuda::getCurrentCUDAStream()>>>(
+        nbr.data_ptr<int32_t>(), m, K, masks.data_ptr<int64_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+  return std::get<1>(masks.sort(/*stable=*/true, /*dim=*/0, /*descending=*/false)).to(at::kInt);
+}
+
+at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr_in,
+                            const c10::optional<at::Tensor>& order_in) {
   check_conv_args(features, weight, nbr_in);
+  check_order(order_in, nbr_in);
   const c10::cuda::OptionalCUDAGuard guard(features.device());
   auto x = features.contiguous();
   auto w = weight.contiguous();
   auto nbr = nbr_in.contiguous();
+  at::Tensor order_t;
+  if (order_in.has_value() && order_in->defined()) order_t = order_in->contiguous();
+  const int32_t* order = order_t.defined() ? order_t.data_ptr<int32_t>() : nullptr;
   const int64_t n_in = x.size(0), cin = x.size(1), cout = w.size(0), K = w.size(1), n_out = nbr.size(0);
   TORCH_CHECK_VALUE(ceil_div(n_out, 64) < (int64_t(1) << 31) && ceil_div(cout, 16) < 65536,
                     "sparse_conv: too many output rows or channels for one launch (", n_out, " x ", cout, ")");
@@ -322,22 +399,29 @@ at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
   const auto dtype = x.scalar_type();
   const bool half_type = dtype == at::kHalf || dtype == at::kBFloat16;
-  if (half_type && cin >= 16 && cout >= 16 &&
+  // float32 follows torch.backends.cuda.matmul.allow_tf32 (off by default: exact float32)
+  const bool tf32 = dtype == at::kFloat && at::globalContext().allowTF32CuBLAS();
+  if ((half_type || tf32) && cin >= 16 && cout >= 16 &&
       device_attribute(cudaDevAttrComputeCapabilityMajor, x.get_device()) >= 8) {
-    const bool vec = cin % 8 == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
+    const int64_t vec = half_type ? 8 : 4;
+    const bool use_vec = cin % vec == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
     const dim3 grid(static_cast<unsigned>(ceil_div(n_out, 64)), static_cast<unsigned>(ceil_div(cout, 64)));
-    AT_DISPATCH_REDUCED_FLOATING_TYPES(dtype, "lidarops_sparse_conv_wmma", [&] {
-      auto kernel = vec ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
-      kernel<<<grid, kWmmaThreads, 0, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
-                                                nbr.data_ptr<int32_t>(), out.data_ptr<scalar_t>(), n_out, cin, cout, K);
+    auto launch = [&](auto tag) {
+      using scalar_t = decltype(tag);
+      auto kernel = use_vec ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
+      kernel<<<grid, kWmmaThreads, 0, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(),
+                                                order, out.data_ptr<scalar_t>(), n_out, cin, cout, K);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
-    });
+    };
+    if (dtype == at::kHalf) launch(c10::Half{});
+    else if (dtype == at::kBFloat16) launch(c10::BFloat16{});
+    else launch(float{});
     return out;
   }
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, dtype, "lidarops_sparse_conv_simt", [&] {
-    if (cout <= 16) launch_simt<scalar_t, 128, 16, 16, 4, 2>(x, w, nbr, out, stream);
-    else if (cout <= 32) launch_simt<scalar_t, 64, 32, 16, 4, 2>(x, w, nbr, out, stream);
-    else launch_simt<scalar_t, 64, 64, 16, 4, 4>(x, w, nbr, out, stream);
+    if (cout <= 16) launch_simt<scalar_t, 128, 16, 16, 4, 2>(x, w, nbr, order, out, stream);
+    else if (cout <= 32) launch_simt<scalar_t, 64, 32, 16, 4, 2>(x, w, nbr, order, out, stream);
+    else launch_simt<scalar_t, 64, 64, 16, 4, 4>(x, w, nbr, order, out, stream);
   });
   return out;
 }
@@ -377,6 +461,7 @@ at::Tensor sparse_conv_weight_grad_cuda(const at::Tensor& features, const at::Te
 }  // namespace
 
 TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
+  m.impl("sparse_kernel_map_order", &sparse_kernel_map_order_cuda);
   m.impl("sparse_conv", &sparse_conv_cuda);
   m.impl("sparse_conv_weight_grad", &sparse_conv_weight_grad_cuda);
 }

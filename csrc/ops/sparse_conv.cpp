@@ -22,10 +22,14 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // Transposed kernel map: (n_in, K) int32 with [i, k] = o wherever kernel_map[o, k] = i, else -1
   // (unique: for a fixed offset the pairing is one-to-one).
   m.def("sparse_kernel_map_transpose(Tensor kernel_map, int n_in) -> Tensor");
+  // Processing order of the output rows for the fused GPU kernel: a permutation (N_out,) int32 that
+  // sorts the rows by the bit mask of their present kernel offsets (stable), so that the rows of one
+  // tile share their offsets and absent offsets are skipped. Offsets beyond the 63rd do not count.
+  m.def("sparse_kernel_map_order(Tensor kernel_map) -> Tensor");
   // out[o] = sum_k weight[:, k, :] @ features[kernel_map[o, k]]: features (N_in, Cin),
   // weight (Cout, K, Cin), kernel_map (N_out, K) int32 -> (N_out, Cout). Accumulates in float32
-  // (float64 for float64).
-  m.def("sparse_conv(Tensor features, Tensor weight, Tensor kernel_map) -> Tensor");
+  // (float64 for float64). order (optional, from sparse_kernel_map_order) only changes the speed.
+  m.def("sparse_conv(Tensor features, Tensor weight, Tensor kernel_map, Tensor? order=None) -> Tensor");
   // Gradient of sparse_conv with respect to weight: (Cout, K, Cin), sum over o of
   // grad_out[o] (x) features[kernel_map[o, k]].
   m.def("sparse_conv_weight_grad(Tensor features, Tensor grad_out, Tensor kernel_map) -> Tensor");

@@ -35,8 +35,13 @@ def _kernel_map_transpose_fake(kernel_map, n_in):
     return kernel_map.new_empty((n_in, kernel_map.shape[1]))
 
 
+@torch.library.register_fake("lidarops::sparse_kernel_map_order")
+def _kernel_map_order_fake(kernel_map):
+    return kernel_map.new_empty((kernel_map.shape[0],))
+
+
 @torch.library.register_fake("lidarops::sparse_conv")
-def _conv_fake(features, weight, kernel_map):
+def _conv_fake(features, weight, kernel_map, order=None):
     torch._check(weight.shape[1] == kernel_map.shape[1], lambda: "weight and kernel_map disagree on K")
     torch._check(weight.shape[2] == features.shape[1], lambda: "weight and features disagree on Cin")
     return features.new_empty((kernel_map.shape[0], weight.shape[0]))
@@ -68,7 +73,7 @@ def _transpose_weight(w):
 
 
 def _conv_setup(ctx, inputs, output):
-    features, weight, kernel_map = inputs
+    features, weight, kernel_map = inputs[:3]
     ctx.save_for_backward(features, weight, kernel_map)
 
 
@@ -81,7 +86,7 @@ def _conv_backward(ctx, grad):
         grad_x = _ops.sparse_conv(grad, _transpose_weight(weight), kernel_map_t)
     if ctx.needs_input_grad[1]:
         grad_w = _ops.sparse_conv_weight_grad(features, grad, kernel_map)
-    return grad_x, grad_w, None
+    return grad_x, grad_w, None, None
 
 
 torch.library.register_autograd("lidarops::sparse_conv", _conv_backward, setup_context=_conv_setup)

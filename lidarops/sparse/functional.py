@@ -208,18 +208,23 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     extension.check_device(x.indices, "indices")
     neighbors = ops.sparse_kernel_map(x.indices, out_indices, x.batch_size, list(shape), list(k), list(s), list(p),
                                       list(d), transposed, True, m)
-    return KernelMap(kind=kind, indices=x.indices, out_indices=out_indices, spatial_shape=shape,
-                     out_spatial_shape=tuple(out_shape), kernel_size=k, stride=s, padding=p, dilation=d,
-                     neighbors=neighbors)
+    km = KernelMap(kind=kind, indices=x.indices, out_indices=out_indices, spatial_shape=shape,
+                   out_spatial_shape=tuple(out_shape), kernel_size=k, stride=s, padding=p, dilation=d,
+                   neighbors=neighbors)
+    km.order  # noqa: B018  (on CUDA: part of the construction, so that layers using the map do not pay it)
+    return km
 
 
-def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor) -> Tensor:
+def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Optional[Tensor] = None) -> Tensor:
     """Gather-GEMM-scatter convolution over a kernel map.
 
     Args:
         features (Tensor[N_in, Cin]): float32/float64/float16/bfloat16.
         weight (Tensor[Cout, *kernel, Cin] or Tensor[Cout, K, Cin]): same dtype and device.
         neighbors (Tensor[N_out, K] int32): a kernel map (:func:`kernel_map`), entries in [-1, N_in).
+        order (Tensor[N_out] int32, optional): processing order of the output rows for the CUDA kernel
+            (``torch.ops.lidarops.sparse_kernel_map_order(neighbors)``, cached as ``KernelMap.order``);
+            it changes only the speed.
 
     Returns:
         Tensor[N_out, Cout]: ``out[o] = sum_k weight[:, k, :] @ features[neighbors[o, k]]``,
@@ -249,7 +254,11 @@ def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor) -> Tensor:
         run_value_checks([(((neighbors < -1) | (neighbors >= n)).any(),
                            lambda: f"neighbors must lie in [-1, {n}), got values in "
                                    f"[{int(neighbors.min())}, {int(neighbors.max())}]")])
-    return torch.ops.lidarops.sparse_conv(features, w, neighbors)
+    if order is not None and (order.dtype != torch.int32 or order.shape != (neighbors.shape[0],)
+                              or order.device != neighbors.device):
+        raise ValueError(f"order must be an ({neighbors.shape[0]},) int32 permutation on {neighbors.device}, "
+                         f"got {describe(order)}")
+    return torch.ops.lidarops.sparse_conv(features, w, neighbors, order)
 
 
 # ---- layer-level functions on SparseConvTensor ----------------------------------------------------
@@ -348,7 +357,7 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
         return y
     km, cache = _kernel_map_for(x, kind, ksize, stride, padding, dilation, output_padding, indice_key,
                                 out_spatial_shape, method)
-    out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors)
+    out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order)
     if bias is not None:
         out = out + bias
     return SparseConvTensor(out, km.out_indices, list(km.out_spatial_shape), x.batch_size, indice_dict=cache)

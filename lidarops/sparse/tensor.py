@@ -43,6 +43,7 @@ class KernelMap:
     neighbors: Tensor
     _neighbors_t: Optional[Tensor] = field(default=None, repr=False)
     _inverse: Optional["KernelMap"] = field(default=None, repr=False)
+    _order: Optional[Tensor] = field(default=None, repr=False)
 
     @property
     def kernel_volume(self) -> int:
@@ -54,6 +55,17 @@ class KernelMap:
         if self._neighbors_t is None:
             self._neighbors_t = torch.ops.lidarops.sparse_kernel_map_transpose(self.neighbors, self.indices.shape[0])
         return self._neighbors_t
+
+    @property
+    def order(self) -> Optional[Tensor]:
+        """Tensor[N_out] int32 or None: the order in which the fused CUDA kernel processes the output
+        rows (grouped by which kernel offsets they have, so that a tile skips absent offsets); None on
+        CPU, whose kernel lists the pairs of each offset instead."""
+        if self.neighbors.device.type != "cuda":
+            return None
+        if self._order is None:
+            self._order = torch.ops.lidarops.sparse_kernel_map_order(self.neighbors)
+        return self._order
 
     def inverse(self) -> "KernelMap":
         """The map of the inverse convolution: from this map's output sites back to its input sites,

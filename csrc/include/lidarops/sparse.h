@@ -270,6 +270,25 @@ inline void check_conv_args(const at::Tensor& features, const at::Tensor& weight
                     " input channels but features has ", features.size(1));
 }
 
+// order: undefined, or an (N_out,) int32 permutation on the device of the map.
+inline void check_order(const c10::optional<at::Tensor>& order, const at::Tensor& nbr) {
+  if (!order.has_value() || !order->defined()) return;
+  TORCH_CHECK_VALUE(order->dim() == 1 && order->size(0) == nbr.size(0) && order->scalar_type() == at::kInt,
+                    "order must be an (N_out,) = (", nbr.size(0), ",) int32 permutation, got shape ", order->sizes(),
+                    " and dtype ", order->scalar_type());
+  TORCH_CHECK_VALUE(order->device() == nbr.device(), "order is on ", order->device(), " but kernel_map is on ",
+                    nbr.device());
+}
+
+// Sort key of a kernel-map row: bit k set when offset k (< 63) has an input.
+LIDAROPS_HD int64_t row_mask(const int32_t* row, int64_t K) {
+  int64_t mask = 0;
+  const int64_t n = K < 63 ? K : 63;
+  for (int64_t k = 0; k < n; ++k)
+    if (row[k] >= 0) mask |= int64_t(1) << k;
+  return mask;
+}
+
 inline void check_weight_grad_args(const at::Tensor& features, const at::Tensor& grad, const at::Tensor& nbr) {
   TORCH_CHECK_VALUE(features.dim() == 2, "features must be (N_in, Cin), got shape ", features.sizes());
   TORCH_CHECK_VALUE(grad.dim() == 2, "grad_out must be (N_out, Cout), got shape ", grad.sizes());
