@@ -1,11 +1,14 @@
-// Sparse convolution on CPU: gather - GEMM - scatter per kernel offset.
+// Sparse convolution on CPU: gather - GEMM - scatter.
 //
-// For each offset k the (output row, input row) pairs of the kernel map are listed; the input rows
-// are gathered into a contiguous buffer (in parallel), multiplied by W[:, k, :]^T with one BLAS call
-// (at::mm_out, itself multithreaded), and the product rows are added into the output (in parallel:
-// for a fixed offset every output row appears at most once, so there are no races). Offsets are
-// processed one after the other, so the summation order is fixed and results are deterministic.
-// half/bfloat16 are computed in float32, float64 in float64.
+// Forward: the output rows are split into a few blocks (about two per thread), each owned by one
+// task of a single parallel region. For each kernel offset a task lists the rows of its block that
+// have an input there, gathers those input rows into a contiguous buffer, multiplies them by
+// W[:, k, :]^T with one BLAS call, and adds the products into its own output rows: no races, and
+// every output row sums its offsets in the same order (deterministic for a given thread count).
+// The centre offset of a submanifold map (row o reads row o) skips the gather.
+// Weight gradient: one task per kernel offset, dW[:, k, :] = G_k^T X_k over the pairs of offset k.
+// half/bfloat16 are computed in float32, float64 in float64. One parallel region per call: on a
+// shared, oversubscribed CPU every region costs a thread rendezvous.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 
@@ -19,81 +22,12 @@ namespace {
 
 at::ScalarType compute_type(at::ScalarType t) { return t == at::kDouble ? at::kDouble : at::kFloat; }
 
-// The pairs of each kernel offset: rows [start[k], start[k + 1]) of in_rows / out_rows.
-struct PairLists {
-  std::vector<int64_t> start, in_rows, out_rows;
-  int64_t count(int64_t k) const { return start[k + 1] - start[k]; }
-  int64_t max_count() const {
-    int64_t m = 0;
-    for (size_t k = 0; k + 1 < start.size(); ++k) m = std::max(m, start[k + 1] - start[k]);
-    return m;
-  }
-  // Offset k maps every row to itself (the centre of a submanifold convolution).
-  bool identity(int64_t k, int64_t n_in, int64_t n_out) const {
-    if (n_in != n_out || count(k) != n_out) return false;
-    const int64_t* ir = in_rows.data() + start[k];
-    for (int64_t j = 0; j < n_out; ++j)
-      if (ir[j] != j) return false;
-    return true;
-  }
-};
-
-PairLists pair_lists(const at::Tensor& nbr, int64_t n_in) {
-  const int64_t m = nbr.size(0), K = nbr.size(1);
+void check_map_values(const at::Tensor& nbr, int64_t n_in) {
   const int32_t* np = nbr.data_ptr<int32_t>();
-  for (int64_t t = 0; t < m * K; ++t)
+  const int64_t total = nbr.numel(), K = nbr.size(1);
+  for (int64_t t = 0; t < total; ++t)
     TORCH_CHECK_VALUE(np[t] >= -1 && np[t] < n_in, "kernel_map entries must lie in [-1, N_in = ", n_in, "), got ",
                       np[t], " at row ", t / K, ", offset ", t % K);
-  PairLists p;
-  p.start.assign(static_cast<size_t>(K + 1), 0);
-  std::vector<int64_t> counts(static_cast<size_t>(K), 0);
-  // one task per offset, but small maps run inline: a parallel region costs more than it saves
-  const int64_t grain = m * K < (int64_t(1) << 16) ? K : 1;
-  at::parallel_for(0, K, grain, [&](int64_t s, int64_t e) {
-    for (int64_t k = s; k < e; ++k) {
-      int64_t c = 0;
-      for (int64_t o = 0; o < m; ++o) c += np[o * K + k] >= 0;
-      counts[k] = c;
-    }
-  });
-  for (int64_t k = 0; k < K; ++k) p.start[k + 1] = p.start[k] + counts[k];
-  p.in_rows.resize(static_cast<size_t>(p.start[K]));
-  p.out_rows.resize(static_cast<size_t>(p.start[K]));
-  at::parallel_for(0, K, grain, [&](int64_t s, int64_t e) {
-    for (int64_t k = s; k < e; ++k) {
-      int64_t j = p.start[k];
-      for (int64_t o = 0; o < m; ++o) {
-        const int32_t i = np[o * K + k];
-        if (i >= 0) {
-          p.in_rows[j] = i;
-          p.out_rows[j] = o;
-          ++j;
-        }
-      }
-    }
-  });
-  return p;
-}
-
-// dst[j, :] = src[rows[j], :] for j < count (rows of `cols` elements of type T).
-template <typename T>
-void gather_rows(const T* src, const int64_t* rows, int64_t count, int64_t cols, T* dst) {
-  const size_t bytes = static_cast<size_t>(cols) * sizeof(T);
-  at::parallel_for(0, count, std::max<int64_t>(1, 16384 / std::max<int64_t>(cols, 1)), [&](int64_t s, int64_t e) {
-    for (int64_t j = s; j < e; ++j) std::memcpy(dst + j * cols, src + rows[j] * cols, bytes);
-  });
-}
-
-// dst[rows[j], :] += src[j, :]; rows must be distinct.
-template <typename T>
-void scatter_add_rows(const T* src, const int64_t* rows, int64_t count, int64_t cols, T* dst) {
-  at::parallel_for(0, count, std::max<int64_t>(1, 16384 / std::max<int64_t>(cols, 1)), [&](int64_t s, int64_t e) {
-    for (int64_t j = s; j < e; ++j) {
-      T* d = dst + rows[j] * cols;
-      const T* a = src + j * cols;
-      for (int64_t c = 0; c < cols; ++c) d[c] += a[c];
-    }
-  });
 }
 
 at::Tensor sparse_kernel_map_order_cpu(const at::Tensor& nbr_in) {
@@ -123,28 +57,55 @@ at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weig
   auto acc = at::zeros({n_out, cout}, features_in.options().dtype(ct));
   if (n_out == 0 || cout == 0 || cin == 0 || n_in == 0 || K == 0) return acc.to(dtype);
   auto nbr = nbr_in.contiguous();
-  const PairLists pairs = pair_lists(nbr, n_in);
-  auto x = features_in.to(ct).contiguous();
-  auto w = weight_in.to(ct).contiguous();
-  const int64_t max_rows = pairs.max_count();
-  auto gbuf = at::empty({max_rows, cin}, x.options());
-  auto ybuf = at::empty({max_rows, cout}, x.options());
+  check_map_values(nbr, n_in);
+  // plain data inside the kernel (the out= BLAS calls refuse tensors that require grad)
+  auto x = features_in.detach().to(ct).contiguous();
+  auto w = weight_in.detach().to(ct).contiguous();
+  const int32_t* np = nbr.data_ptr<int32_t>();
+  // about two blocks per thread, at least 256 rows each (small maps: one block, no parallel region)
+  const int64_t threads = at::get_num_threads();
+  const int64_t block = std::max<int64_t>(256, (n_out + 2 * threads - 1) / (2 * threads));
+  const int64_t nblocks = (n_out + block - 1) / block;
   AT_DISPATCH_FLOATING_TYPES(ct, "lidarops_sparse_conv_cpu", [&] {
-    for (int64_t k = 0; k < K; ++k) {
-      const int64_t rows = pairs.count(k);
-      if (rows == 0) continue;
-      auto wk_t = w.select(1, k).t();  // (Cin, Cout) view
-      if (pairs.identity(k, n_in, n_out)) {
-        acc.addmm_(x, wk_t);
-        continue;
+    const scalar_t* xp = x.data_ptr<scalar_t>();
+    scalar_t* ap = acc.data_ptr<scalar_t>();
+    at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
+      std::vector<int64_t> in_rows(static_cast<size_t>(block)), out_rows(static_cast<size_t>(block));
+      auto gbuf = at::empty({block, cin}, x.options());
+      auto ybuf = at::empty({block, cout}, x.options());
+      scalar_t* gp = gbuf.data_ptr<scalar_t>();
+      const scalar_t* yp = ybuf.data_ptr<scalar_t>();
+      for (int64_t blk = b0; blk < b1; ++blk) {
+        const int64_t o0 = blk * block, o1 = std::min(n_out, o0 + block);
+        for (int64_t k = 0; k < K; ++k) {
+          int64_t cnt = 0;
+          bool same_rows = true;  // row o reads input row o, for every row of the block
+          for (int64_t o = o0; o < o1; ++o) {
+            const int32_t i = np[o * K + k];
+            if (i < 0) continue;
+            same_rows = same_rows && i == o;
+            in_rows[cnt] = i;
+            out_rows[cnt] = o;
+            ++cnt;
+          }
+          if (cnt == 0) continue;
+          auto wk_t = w.select(1, k).t();  // (Cin, Cout) view
+          auto y = ybuf.narrow(0, 0, cnt);
+          if (same_rows && cnt == o1 - o0 && o1 <= n_in) {
+            at::mm_out(y, x.narrow(0, o0, cnt), wk_t);
+          } else {
+            for (int64_t j = 0; j < cnt; ++j)
+              std::memcpy(gp + j * cin, xp + in_rows[j] * cin, static_cast<size_t>(cin) * sizeof(scalar_t));
+            at::mm_out(y, gbuf.narrow(0, 0, cnt), wk_t);
+          }
+          for (int64_t j = 0; j < cnt; ++j) {
+            scalar_t* d = ap + out_rows[j] * cout;
+            const scalar_t* a = yp + j * cout;
+            for (int64_t c = 0; c < cout; ++c) d[c] += a[c];
+          }
+        }
       }
-      auto g = gbuf.narrow(0, 0, rows);
-      auto y = ybuf.narrow(0, 0, rows);
-      gather_rows(x.data_ptr<scalar_t>(), pairs.in_rows.data() + pairs.start[k], rows, cin, g.data_ptr<scalar_t>());
-      at::mm_out(y, g, wk_t);
-      scatter_add_rows(y.data_ptr<scalar_t>(), pairs.out_rows.data() + pairs.start[k], rows, cout,
-                       acc.data_ptr<scalar_t>());
-    }
+    });
   });
   return acc.to(dtype);
 }
@@ -159,29 +120,41 @@ at::Tensor sparse_conv_weight_grad_cpu(const at::Tensor& features_in, const at::
   auto dw = at::zeros({cout, K, cin}, features_in.options().dtype(ct));
   if (n_out == 0 || cout == 0 || cin == 0 || n_in == 0 || K == 0) return dw.to(dtype);
   auto nbr = nbr_in.contiguous();
-  const PairLists pairs = pair_lists(nbr, n_in);
-  auto x = features_in.to(ct).contiguous();
-  auto gr = grad_in.to(ct).contiguous();
-  const int64_t max_rows = pairs.max_count();
-  auto xbuf = at::empty({max_rows, cin}, x.options());
-  auto gbuf = at::empty({max_rows, cout}, x.options());
-  auto dwk = at::empty({cout, cin}, x.options());
+  check_map_values(nbr, n_in);
+  auto x = features_in.detach().to(ct).contiguous();
+  auto gr = grad_in.detach().to(ct).contiguous();
+  const int32_t* np = nbr.data_ptr<int32_t>();
+  // one task per offset (small maps inline: a parallel region costs more than it saves)
+  const int64_t grain = n_out * K < (int64_t(1) << 16) ? K : 1;
   AT_DISPATCH_FLOATING_TYPES(ct, "lidarops_sparse_conv_weight_grad_cpu", [&] {
-    for (int64_t k = 0; k < K; ++k) {
-      const int64_t rows = pairs.count(k);
-      if (rows == 0) continue;
-      if (pairs.identity(k, n_in, n_out)) {
-        at::mm_out(dwk, gr.t(), x);
-      } else {
-        auto xs = xbuf.narrow(0, 0, rows);
-        auto gs = gbuf.narrow(0, 0, rows);
-        gather_rows(x.data_ptr<scalar_t>(), pairs.in_rows.data() + pairs.start[k], rows, cin, xs.data_ptr<scalar_t>());
-        gather_rows(gr.data_ptr<scalar_t>(), pairs.out_rows.data() + pairs.start[k], rows, cout,
-                    gs.data_ptr<scalar_t>());
-        at::mm_out(dwk, gs.t(), xs);
+    const scalar_t* xp = x.data_ptr<scalar_t>();
+    const scalar_t* gp = gr.data_ptr<scalar_t>();
+    at::parallel_for(0, K, grain, [&](int64_t k0, int64_t k1) {
+      int64_t rows = 0;  // buffers for the largest offset of this task
+      for (int64_t k = k0; k < k1; ++k) {
+        int64_t c = 0;
+        for (int64_t o = 0; o < n_out; ++o) c += np[o * K + k] >= 0;
+        rows = std::max(rows, c);
       }
-      dw.select(1, k).copy_(dwk);
-    }
+      auto xbuf = at::empty({rows, cin}, x.options());
+      auto gbuf = at::empty({rows, cout}, x.options());
+      auto dwk = at::empty({cout, cin}, x.options());
+      scalar_t* xs = xbuf.data_ptr<scalar_t>();
+      scalar_t* gs = gbuf.data_ptr<scalar_t>();
+      for (int64_t k = k0; k < k1; ++k) {
+        int64_t cnt = 0;
+        for (int64_t o = 0; o < n_out; ++o) {
+          const int32_t i = np[o * K + k];
+          if (i < 0) continue;
+          std::memcpy(xs + cnt * cin, xp + static_cast<int64_t>(i) * cin, static_cast<size_t>(cin) * sizeof(scalar_t));
+          std::memcpy(gs + cnt * cout, gp + o * cout, static_cast<size_t>(cout) * sizeof(scalar_t));
+          ++cnt;
+        }
+        if (cnt == 0) continue;
+        at::mm_out(dwk, gbuf.narrow(0, 0, cnt).t(), xbuf.narrow(0, 0, cnt));
+        dw.select(1, k).copy_(dwk);
+      }
+    });
   });
   return dw.to(dtype);
 }

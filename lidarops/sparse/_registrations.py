@@ -83,7 +83,9 @@ def _conv_backward(ctx, grad):
     grad_x = grad_w = None
     if ctx.needs_input_grad[0]:
         kernel_map_t = _ops.sparse_kernel_map_transpose(kernel_map, features.shape[0])
-        grad_x = _ops.sparse_conv(grad, _transpose_weight(weight), kernel_map_t)
+        # the fused CUDA kernel skips absent offsets per tile when rows are grouped by offset mask
+        order_t = _ops.sparse_kernel_map_order(kernel_map_t) if kernel_map_t.is_cuda else None
+        grad_x = _ops.sparse_conv(grad, _transpose_weight(weight), kernel_map_t, order_t)
     if ctx.needs_input_grad[1]:
         grad_w = _ops.sparse_conv_weight_grad(features, grad, kernel_map)
     return grad_x, grad_w, None, None

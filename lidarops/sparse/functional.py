@@ -183,6 +183,7 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     """
     if not isinstance(x, SparseConvTensor):
         raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
+    extension.check_device(x.indices, "indices")
     D = x.ndim
     k = _ntuple(kernel_size, D, "kernel_size", 1)
     d = _ntuple(dilation, D, "dilation", 1)
@@ -205,7 +206,6 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
                                                   list(s), list(p), list(d), transposed, m)
     else:
         raise ValueError(f"kind must be 'subm', 'conv', 'pool' or 'transposed', got {kind!r}")
-    extension.check_device(x.indices, "indices")
     neighbors = ops.sparse_kernel_map(x.indices, out_indices, x.batch_size, list(shape), list(k), list(s), list(p),
                                       list(d), transposed, True, m)
     km = KernelMap(kind=kind, indices=x.indices, out_indices=out_indices, spatial_shape=shape,
