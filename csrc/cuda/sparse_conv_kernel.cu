@@ -24,7 +24,9 @@
 #include <mma.h>
 
 #include <cstdint>
+#include <mutex>
 #include <type_traits>
+#include <unordered_map>
 
 #include "lidarops/sparse.h"
 
@@ -341,10 +343,22 @@ __global__ void __launch_bounds__((BCO / TCO) * (BCI / TCI))
   }
 }
 
-int device_attribute(cudaDeviceAttr attr, c10::DeviceIndex dev) {
-  int v = 0;
-  C10_CUDA_CHECK(cudaDeviceGetAttribute(&v, attr, dev));
-  return v;
+// Compute capability major and SM count of a device, queried once per device.
+struct DeviceProps {
+  int cc_major = 0, sms = 1;
+};
+
+DeviceProps device_props(c10::DeviceIndex dev) {
+  static std::mutex mutex;
+  static std::unordered_map<int, DeviceProps> cache;
+  std::lock_guard<std::mutex> lock(mutex);
+  auto it = cache.find(dev);
+  if (it != cache.end()) return it->second;
+  DeviceProps p;
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.cc_major, cudaDevAttrComputeCapabilityMajor, dev));
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.sms, cudaDevAttrMultiProcessorCount, dev));
+  cache[dev] = p;
+  return p;
 }
 
 bool aligned16(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 15) == 0; }
@@ -402,7 +416,7 @@ at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight
   // float32 follows torch.backends.cuda.matmul.allow_tf32 (off by default: exact float32)
   const bool tf32 = dtype == at::kFloat && at::globalContext().allowTF32CuBLAS();
   if ((half_type || tf32) && cin >= 16 && cout >= 16 &&
-      device_attribute(cudaDevAttrComputeCapabilityMajor, x.get_device()) >= 8) {
+      device_props(x.get_device()).cc_major >= 8) {
     const int64_t vec = half_type ? 8 : 4;
     const bool use_vec = cin % vec == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
     const dim3 grid(static_cast<unsigned>(ceil_div(n_out, 64)), static_cast<unsigned>(ceil_div(cout, 64)));
@@ -440,7 +454,7 @@ at::Tensor sparse_conv_weight_grad_cuda(const at::Tensor& features, const at::Te
   constexpr int BCO = 32, BCI = 32, BR = 32, TCO = 2, TCI = 2;
   const int64_t tiles = ceil_div(cout, BCO) * ceil_div(cin, BCI);
   TORCH_CHECK_VALUE(tiles < (int64_t(1) << 31) && K < 65536, "sparse_conv_weight_grad: too many channels or offsets");
-  const int64_t sms = device_attribute(cudaDevAttrMultiProcessorCount, x.get_device());
+  const int64_t sms = device_props(x.get_device()).sms;
   // enough row splits to fill the GPU about four times over, each of at least 256 rows
   const int64_t splits = std::max<int64_t>(
       1, std::min<int64_t>({ceil_div(4 * sms, tiles * K), ceil_div(n_out, 256), int64_t(65535)}));
