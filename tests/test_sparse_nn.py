@@ -43,6 +43,9 @@ def test_dense_from_dense_round_trip(device):
     z = SparseConvTensor.from_dense(x.dense(channels_first=False))
     assert torch.equal(z.indices, y.indices) and z.spatial_shape == [5, 6, 4] and z.batch_size == 3
     assert x.spatial_size == 120 and x.ndim == 3
+    import numpy as np
+    z = SparseConvTensor(x.features, x.indices, np.array([5, 6, 4]), np.int64(3))  # OpenPCDet passes numpy
+    assert z.spatial_shape == [5, 6, 4] and z.batch_size == 3 and isinstance(z.batch_size, int)
 
 
 def test_dense_is_differentiable_and_checks_sites(device):

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
@@ -127,8 +128,8 @@ class SparseConvTensor:
             raise ValueError(f"indices must be int32 (spconv's layout; use indices.int()), got {describe(indices)}")
         ndim = indices.shape[1] - 1
         self.spatial_shape = list(_spatial_shape(spatial_shape, ndim))
-        if isinstance(batch_size, bool) or not isinstance(batch_size, int):
-            if isinstance(batch_size, Tensor) and batch_size.numel() == 1:
+        if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral):
+            if isinstance(batch_size, Tensor) and batch_size.numel() == 1 and not batch_size.is_floating_point():
                 batch_size = int(batch_size)
             else:
                 raise ValueError(f"batch_size must be an int, got {batch_size!r}")
