@@ -70,36 +70,54 @@ at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weig
     const scalar_t* xp = x.data_ptr<scalar_t>();
     scalar_t* ap = acc.data_ptr<scalar_t>();
     at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
-      std::vector<int64_t> in_rows(static_cast<size_t>(block)), out_rows(static_cast<size_t>(block));
-      auto gbuf = at::empty({block, cin}, x.options());
-      auto ybuf = at::empty({block, cout}, x.options());
-      scalar_t* gp = gbuf.data_ptr<scalar_t>();
-      const scalar_t* yp = ybuf.data_ptr<scalar_t>();
+      // pairs of the block, grouped by offset: two row-major passes over the map rows (a scan of
+      // one offset's column would stride through memory)
+      std::vector<int64_t> start(static_cast<size_t>(K + 1)), fill(static_cast<size_t>(K));
+      std::vector<uint8_t> same_rows(static_cast<size_t>(K));
+      std::vector<int64_t> in_rows, out_rows;
+      at::Tensor gbuf, ybuf;
       for (int64_t blk = b0; blk < b1; ++blk) {
         const int64_t o0 = blk * block, o1 = std::min(n_out, o0 + block);
-        for (int64_t k = 0; k < K; ++k) {
-          int64_t cnt = 0;
-          bool same_rows = true;  // row o reads input row o, for every row of the block
-          for (int64_t o = o0; o < o1; ++o) {
+        std::fill(start.begin(), start.end(), 0);
+        for (int64_t o = o0; o < o1; ++o)
+          for (int64_t k = 0; k < K; ++k) start[k + 1] += np[o * K + k] >= 0;
+        for (int64_t k = 0; k < K; ++k) start[k + 1] += start[k];
+        in_rows.resize(static_cast<size_t>(start[K]));
+        out_rows.resize(static_cast<size_t>(start[K]));
+        std::copy(start.begin(), start.end() - 1, fill.begin());
+        std::fill(same_rows.begin(), same_rows.end(), uint8_t(1));
+        for (int64_t o = o0; o < o1; ++o)
+          for (int64_t k = 0; k < K; ++k) {
             const int32_t i = np[o * K + k];
             if (i < 0) continue;
-            same_rows = same_rows && i == o;
-            in_rows[cnt] = i;
-            out_rows[cnt] = o;
-            ++cnt;
+            same_rows[k] &= static_cast<uint8_t>(i == o);
+            in_rows[fill[k]] = i;
+            out_rows[fill[k]++] = o;
           }
+        int64_t most = 0;
+        for (int64_t k = 0; k < K; ++k) most = std::max(most, start[k + 1] - start[k]);
+        if (!gbuf.defined() || gbuf.size(0) < most) {
+          gbuf = at::empty({most, cin}, x.options());
+          ybuf = at::empty({most, cout}, x.options());
+        }
+        scalar_t* gp = gbuf.data_ptr<scalar_t>();
+        const scalar_t* yp = ybuf.data_ptr<scalar_t>();
+        for (int64_t k = 0; k < K; ++k) {
+          const int64_t cnt = start[k + 1] - start[k];
           if (cnt == 0) continue;
+          const int64_t* ir = in_rows.data() + start[k];
+          const int64_t* orr = out_rows.data() + start[k];
           auto wk_t = w.select(1, k).t();  // (Cin, Cout) view
           auto y = ybuf.narrow(0, 0, cnt);
-          if (same_rows && cnt == o1 - o0 && o1 <= n_in) {
+          if (same_rows[k] && cnt == o1 - o0 && o1 <= n_in) {
             at::mm_out(y, x.narrow(0, o0, cnt), wk_t);
           } else {
             for (int64_t j = 0; j < cnt; ++j)
-              std::memcpy(gp + j * cin, xp + in_rows[j] * cin, static_cast<size_t>(cin) * sizeof(scalar_t));
+              std::memcpy(gp + j * cin, xp + ir[j] * cin, static_cast<size_t>(cin) * sizeof(scalar_t));
             at::mm_out(y, gbuf.narrow(0, 0, cnt), wk_t);
           }
           for (int64_t j = 0; j < cnt; ++j) {
-            scalar_t* d = ap + out_rows[j] * cout;
+            scalar_t* d = ap + orr[j] * cout;
             const scalar_t* a = yp + j * cout;
             for (int64_t c = 0; c < cout; ++c) d[c] += a[c];
           }
@@ -124,33 +142,41 @@ at::Tensor sparse_conv_weight_grad_cpu(const at::Tensor& features_in, const at::
   auto x = features_in.detach().to(ct).contiguous();
   auto gr = grad_in.detach().to(ct).contiguous();
   const int32_t* np = nbr.data_ptr<int32_t>();
-  // one task per offset (small maps inline: a parallel region costs more than it saves)
-  const int64_t grain = n_out * K < (int64_t(1) << 16) ? K : 1;
+  // pairs grouped by offset (two row-major passes), then one task per offset
+  std::vector<int64_t> start(static_cast<size_t>(K + 1), 0), fill(static_cast<size_t>(K));
+  for (int64_t o = 0; o < n_out; ++o)
+    for (int64_t k = 0; k < K; ++k) start[k + 1] += np[o * K + k] >= 0;
+  for (int64_t k = 0; k < K; ++k) start[k + 1] += start[k];
+  std::vector<int64_t> in_rows(static_cast<size_t>(start[K])), out_rows(static_cast<size_t>(start[K]));
+  std::copy(start.begin(), start.end() - 1, fill.begin());
+  for (int64_t o = 0; o < n_out; ++o)
+    for (int64_t k = 0; k < K; ++k) {
+      const int32_t i = np[o * K + k];
+      if (i < 0) continue;
+      in_rows[fill[k]] = i;
+      out_rows[fill[k]++] = o;
+    }
+  // small maps inline: a parallel region costs more than it saves
+  const int64_t grain = start[K] * (cin + cout) < (int64_t(1) << 18) ? K : 1;
   AT_DISPATCH_FLOATING_TYPES(ct, "lidarops_sparse_conv_weight_grad_cpu", [&] {
     const scalar_t* xp = x.data_ptr<scalar_t>();
     const scalar_t* gp = gr.data_ptr<scalar_t>();
     at::parallel_for(0, K, grain, [&](int64_t k0, int64_t k1) {
-      int64_t rows = 0;  // buffers for the largest offset of this task
-      for (int64_t k = k0; k < k1; ++k) {
-        int64_t c = 0;
-        for (int64_t o = 0; o < n_out; ++o) c += np[o * K + k] >= 0;
-        rows = std::max(rows, c);
-      }
+      int64_t rows = 0;
+      for (int64_t k = k0; k < k1; ++k) rows = std::max(rows, start[k + 1] - start[k]);
       auto xbuf = at::empty({rows, cin}, x.options());
       auto gbuf = at::empty({rows, cout}, x.options());
       auto dwk = at::empty({cout, cin}, x.options());
       scalar_t* xs = xbuf.data_ptr<scalar_t>();
       scalar_t* gs = gbuf.data_ptr<scalar_t>();
       for (int64_t k = k0; k < k1; ++k) {
-        int64_t cnt = 0;
-        for (int64_t o = 0; o < n_out; ++o) {
-          const int32_t i = np[o * K + k];
-          if (i < 0) continue;
-          std::memcpy(xs + cnt * cin, xp + static_cast<int64_t>(i) * cin, static_cast<size_t>(cin) * sizeof(scalar_t));
-          std::memcpy(gs + cnt * cout, gp + o * cout, static_cast<size_t>(cout) * sizeof(scalar_t));
-          ++cnt;
-        }
+        const int64_t cnt = start[k + 1] - start[k];
         if (cnt == 0) continue;
+        for (int64_t j = 0; j < cnt; ++j) {
+          const int64_t p = start[k] + j;
+          std::memcpy(xs + j * cin, xp + in_rows[p] * cin, static_cast<size_t>(cin) * sizeof(scalar_t));
+          std::memcpy(gs + j * cout, gp + out_rows[p] * cout, static_cast<size_t>(cout) * sizeof(scalar_t));
+        }
         at::mm_out(dwk, gbuf.narrow(0, 0, cnt).t(), xbuf.narrow(0, 0, cnt));
         dw.select(1, k).copy_(dwk);
       }

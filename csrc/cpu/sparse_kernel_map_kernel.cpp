@@ -228,8 +228,20 @@ at::Tensor sparse_kernel_map_cpu(const at::Tensor& indices_in, const at::Tensor&
   const std::vector<int64_t> offs = offset_table(g);
   const int32_t* op = oidx.data_ptr<int32_t>();
   int32_t* np = nbr.data_ptr<int32_t>();
+  // Regular pairing: p = base + off * dil with base = q * stride - padding, so the key of p is the key
+  // of base plus a per-offset constant; only the bounds are checked per dimension.
+  std::vector<int64_t> step(static_cast<size_t>(K * nd)), delta(static_cast<size_t>(K), 0);
+  int64_t mult[kMaxDim];
+  mult[nd - 1] = 1;
+  for (int d = nd - 2; d >= 0; --d) mult[d] = mult[d + 1] * g.in_shape[d + 1];
+  for (int64_t k = 0; k < K; ++k)
+    for (int d = 0; d < nd; ++d) {
+      step[k * nd + d] = offs[k * nd + d] * g.dil[d];
+      delta[k] += step[k * nd + d] * mult[d];
+    }
+  const int64_t cells_per_sample = grid_cells(1, g.in_shape, nd);
   at::parallel_for(0, m, std::max<int64_t>(1, 4096 / K), [&](int64_t s, int64_t e) {
-    int64_t q[kMaxDim], p[kMaxDim];
+    int64_t q[kMaxDim], p[kMaxDim], base[kMaxDim];
     for (int64_t o = s; o < e; ++o) {
       const int32_t* r = op + o * (nd + 1);
       int32_t* row = np + o * K;
@@ -239,8 +251,25 @@ at::Tensor sparse_kernel_map_cpu(const at::Tensor& indices_in, const at::Tensor&
         continue;
       }
       for (int d = 0; d < nd; ++d) q[d] = r[d + 1];
-      for (int64_t k = 0; k < K; ++k)
-        row[k] = input_of_output(g, q, offs.data() + k * nd, p) ? tv.find(site_key(b, p, g.in_shape, nd)) : -1;
+      if (g.transposed) {
+        for (int64_t k = 0; k < K; ++k)
+          row[k] = input_of_output(g, q, offs.data() + k * nd, p) ? tv.find(site_key(b, p, g.in_shape, nd)) : -1;
+        continue;
+      }
+      int64_t base_key = b * cells_per_sample;
+      for (int d = 0; d < nd; ++d) {
+        base[d] = q[d] * g.stride[d] - g.pad[d];
+        base_key += base[d] * mult[d];
+      }
+      for (int64_t k = 0; k < K; ++k) {
+        const int64_t* st = step.data() + k * nd;
+        bool inside = true;
+        for (int d = 0; d < nd; ++d) {
+          const int64_t v = base[d] + st[d];
+          inside = inside && v >= 0 && v < g.in_shape[d];
+        }
+        row[k] = inside ? tv.find(base_key + delta[k]) : -1;
+      }
     }
   });
   return nbr;
