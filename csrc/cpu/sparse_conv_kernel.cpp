@@ -54,8 +54,9 @@ at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weig
   const auto ct = compute_type(dtype);
   const int64_t n_in = features_in.size(0), cin = features_in.size(1);
   const int64_t cout = weight_in.size(0), K = weight_in.size(1), n_out = nbr_in.size(0);
-  auto acc = at::zeros({n_out, cout}, features_in.options().dtype(ct));
-  if (n_out == 0 || cout == 0 || cin == 0 || n_in == 0 || K == 0) return acc.to(dtype);
+  if (n_out == 0 || cout == 0 || cin == 0 || n_in == 0 || K == 0)
+    return at::zeros({n_out, cout}, features_in.options());
+  auto acc = at::empty({n_out, cout}, features_in.options().dtype(ct));  // every block writes its rows
   auto nbr = nbr_in.contiguous();
   check_map_values(nbr, n_in);
   // plain data inside the kernel (the out= BLAS calls refuse tensors that require grad)
@@ -102,9 +103,20 @@ at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weig
         }
         scalar_t* gp = gbuf.data_ptr<scalar_t>();
         const scalar_t* yp = ybuf.data_ptr<scalar_t>();
+        // An offset where every row reads itself (the centre of a submanifold map) is written straight
+        // into the block's rows, first; otherwise the rows start from zero.
+        int64_t first = -1;
+        for (int64_t k = 0; k < K && first < 0; ++k)
+          if (same_rows[k] && start[k + 1] - start[k] == o1 - o0 && o1 <= n_in) first = k;
+        if (first >= 0) {
+          auto rows_out = acc.narrow(0, o0, o1 - o0);
+          at::mm_out(rows_out, x.narrow(0, o0, o1 - o0), w.select(1, first).t());
+        } else {
+          std::fill(ap + o0 * cout, ap + o1 * cout, scalar_t(0));
+        }
         for (int64_t k = 0; k < K; ++k) {
           const int64_t cnt = start[k + 1] - start[k];
-          if (cnt == 0) continue;
+          if (cnt == 0 || k == first) continue;
           const int64_t* ir = in_rows.data() + start[k];
           const int64_t* orr = out_rows.data() + start[k];
           auto wk_t = w.select(1, k).t();  // (Cin, Cout) view
