@@ -23,6 +23,7 @@ _REGISTRATION_MODULES = (
     "lidarops._meta_registrations",
     "lidarops._autograd_registrations",
     "lidarops.ops._voxelize_registrations",
+    "lidarops.sparse._registrations",
 )
 
 

@@ -13,12 +13,12 @@ fi
 [ -d /tmp/site/spconv ] && export PYTHONPATH=/tmp/site:${PYTHONPATH:-}
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv | tee "$OUT/gpu.txt"
 start=$(date +%s)
-make build 2>&1 | tee "$OUT/build.log" | grep -E "^\[lidarops\]|error|Error" | head -40
+[ -n "${LIDAROPS_SKIP_BUILD:-}" ] && ls lidarops/_C*.so >/dev/null 2>&1 || make build 2>&1 | tee "$OUT/build.log" | grep -E "^\[lidarops\]|error|Error" | head -40
 echo "[device_run] build: $(( $(date +%s) - start )) s"
 python3 -c "import lidarops.extension as e; e.load(); print('with_cuda', e.cuda_available())"
 if [ "$what" = tests ] || [ "$what" = all ]; then
   start=$(date +%s)
-  python3 -m pytest tests -q -rfE -p no:cacheprovider --junitxml="$OUT/junit.xml" 2>&1 | tee "$OUT/tests.log" | tail -40
+  LIDAROPS_TEST_REQUIRE_CUDA=1 timeout ${TEST_TIMEOUT:-420} python3 -m pytest tests -q -rfE -p no:cacheprovider --junitxml="$OUT/junit.xml" 2>&1 | tee "$OUT/tests.log" | tail -40
   echo "[device_run] tests: $(( $(date +%s) - start )) s"
   if command -v compute-sanitizer >/dev/null; then
     start=$(date +%s)
@@ -32,7 +32,9 @@ if [ "$what" = tests ] || [ "$what" = all ]; then
 fi
 if [ "$what" = bench ] || [ "$what" = all ]; then
   start=$(date +%s)
-  python3 benchmarks/bm_neighbors.py --device cuda --json 2>&1 | tee "$OUT/bench_neighbors.log" | tail -60
+  for bm in ${BENCHES:-bm_neighbors bm_voxelize bm_sparse}; do
+    timeout ${BENCH_TIMEOUT:-200} python3 benchmarks/$bm.py --device cuda --json 2>&1 | tee "$OUT/$bm.log" | tail -40
+  done
   cp benchmarks/results/*.json "$OUT/" 2>/dev/null
   echo "[device_run] bench: $(( $(date +%s) - start )) s"
 fi

@@ -7,18 +7,23 @@ the tests that need them skip.
 from __future__ import annotations
 
 import importlib.util
+import shutil
 import subprocess
 import sys
 
 TORCH = "torch==2.13.0"  # the CPU wheel on the development machines; never pulled when torch exists
-REQUIRED = {"numpy": "numpy", "pytest": "pytest", "ninja": "ninja", "pybind11": "pybind11",
-            "setuptools": "setuptools>=64", "wheel": "wheel"}
-OPTIONAL = {"scipy": "scipy", "hypothesis": "hypothesis", "tqdm": "tqdm", "matplotlib": "matplotlib",
+# torch ships the pybind11 headers the build needs; the pybind11 and wheel packages are for pip installs
+REQUIRED = {"numpy": "numpy", "pytest": "pytest", "setuptools": "setuptools>=64"}
+OPTIONAL = {"pybind11": "pybind11", "wheel": "wheel", "scipy": "scipy", "hypothesis": "hypothesis", "tqdm": "tqdm", "matplotlib": "matplotlib",
             "h5py": "h5py", "pandas": "pandas", "fpsample": "fpsample"}
 
 
 def missing(mods: dict) -> list[str]:
     return [spec for mod, spec in mods.items() if importlib.util.find_spec(mod) is None]
+
+
+def ninja_missing() -> bool:
+    return shutil.which("ninja") is None and importlib.util.find_spec("ninja") is None
 
 
 def pip(*specs: str, quick: bool = False) -> bool:
@@ -33,6 +38,9 @@ def pip(*specs: str, quick: bool = False) -> bool:
 def main() -> int:
     if importlib.util.find_spec("torch") is None and not pip(TORCH):
         print(f"[ensure_env] could not install {TORCH}", file=sys.stderr)
+        return 1
+    if ninja_missing() and not pip("ninja"):
+        print("[ensure_env] could not install ninja", file=sys.stderr)
         return 1
     if not pip(*missing(REQUIRED)):
         print("[ensure_env] could not install required packages: " + ", ".join(missing(REQUIRED)), file=sys.stderr)

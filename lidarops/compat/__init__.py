@@ -8,6 +8,7 @@ it imitates, so code written against that library can switch its import::
         gather_points, grouping_operation
     from lidarops.compat.torch_cluster import fps, knn, radius
     from lidarops.compat.spconv_utils import PointToVoxel
+    import lidarops.compat.spconv as spconv   # SparseConvTensor, SubMConv3d, ... (spconv 2.x)
 
 ==================  ==========================================================================
 face                convention
@@ -24,7 +25,7 @@ from __future__ import annotations
 
 import importlib
 
-_FACES = ("pytorch3d", "mmcv", "torch_cluster", "spconv_utils")
+_FACES = ("pytorch3d", "mmcv", "torch_cluster", "spconv", "spconv_utils")
 
 __all__ = list(_FACES)
 

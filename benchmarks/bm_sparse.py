@@ -1,0 +1,444 @@
+"""Benchmark of sparse convolution (lidarops.sparse) against dense cuDNN and spconv 2.x.
+
+    python benchmarks/bm_sparse.py                      # CUDA when available, and CPU
+    python benchmarks/bm_sparse.py --device cuda --json # write benchmarks/results/<device>.json
+    python benchmarks/bm_sparse.py --quick              # smoke test (small sizes, < 1 min on 2 CPU cores)
+    python benchmarks/bm_sparse.py --only layer,map     # sections: layer, map, pillars, voxel
+
+Sections (times are medians in ms; the JSON has IQRs and run counts):
+
+* ``layer``: one layer, Cin = Cout = C in {16, 32, 64, 128}, kernel 3x3, submanifold (``subm``) and
+  strided (``conv``, stride 2, padding 1), on BEV grids: ``drone`` 504 x 504 with ~2k active sites,
+  ``kitti`` 496 x 432 with ~15k, ``dense`` 504 x 504 with ~30k (range-weighted random sites: denser
+  near the sensor, as LiDAR pillars). lidarops is timed with its kernel map cached (the registered op
+  ``sparse_conv`` alone, as every layer after the first with the same ``indice_key``); spconv likewise
+  (its layer called on a tensor whose ``indice_dict`` already holds the pairs); dense cuDNN is
+  ``F.conv2d`` on the dense (1, C, H, W) map.
+* ``map``: kernel-map construction alone (output sites + map, with validation), per grid and kind.
+* ``pillars``: PointPillars' backbone made sparse (strided sparse conv at the start of each block,
+  then 3/5/5 submanifold convs, channels 64/128/256, transposed upsampling x1/x2/x4 to 128 channels,
+  dense concatenation), eval mode, on the KITTI grid: full forward (kernel maps built) and forward
+  with maps cached; against the dense PointPillars backbone (cuDNN) and spconv.
+* ``voxel``: SECOND's VoxelBackBone8x on a 41 x 1600 x 1408 grid with 40k and 120k voxels, full
+  forward, against spconv (the dense 3D grid does not fit: no cuDNN column).
+
+GPU precisions (``--precisions``): ``fp32`` (TF32 off everywhere), ``tf32`` (cuDNN / cuBLAS may use
+TF32; lidarops' float32 kernel stays exact float32), ``fp16``. Ratios are ``peer / lidarops``: above 1
+means lidarops is faster.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import statistics
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+try:
+    from benchmarks.common import env_meta, fmt_ms, fmt_ratio, print_table, time_call, write_results
+except ImportError:  # standalone fallback (the shared helpers live in benchmarks/common.py)
+    def time_call(fn, args, device, budget_s=0.3, **_):
+        cuda = torch.device(device).type == "cuda"
+        sync = torch.cuda.synchronize if cuda else (lambda: None)
+        fn(*args)
+        sync()
+        times = []
+        t_end = time.perf_counter() + budget_s
+        while len(times) < 3 or (time.perf_counter() < t_end and len(times) < 200):
+            t0 = time.perf_counter()
+            fn(*args)
+            sync()
+            times.append((time.perf_counter() - t0) * 1e3)
+
+        class _T:
+            median = statistics.median(times)
+            def as_dict(self):
+                return {"median_ms": self.median, "runs": len(times)}
+        return _T()
+
+    def env_meta(device):
+        return {"device": str(device), "torch": torch.__version__}
+
+    def fmt_ms(ms):
+        return "-" if ms is None else f"{ms:.3f}"
+
+    def fmt_ratio(r):
+        return "" if r is None else f"{r:.2f}x"
+
+    def print_table(title, headers, rows, right=()):
+        print(title)
+        print("  ".join(headers))
+        for r in rows:
+            print("  ".join(str(c) for c in r))
+        print()
+
+    write_results = None
+
+import lidarops.compat.spconv as lspconv
+from lidarops.sparse import SparseConvTensor
+from lidarops.sparse import functional as Fs
+
+ops = torch.ops.lidarops
+
+GRIDS = {"drone": ((504, 504), 2000), "kitti": ((496, 432), 15000), "dense": ((504, 504), 30000)}
+CHANNELS = (16, 32, 64, 128)
+
+
+def _spconv():
+    try:
+        import spconv.pytorch as sp  # noqa: F401
+        return sp
+    except Exception:  # noqa: BLE001
+        return None
+
+
+# ---------------------------------------------------------------- inputs
+
+def bev_sites(shape, n, batch=1, seed=0, sensor=None) -> torch.Tensor:
+    """(N, 3) int32 unique (batch, y, x) sites, density falling with the range from the sensor (like
+    LiDAR pillars), plus a few dense object clusters."""
+    H, W = shape
+    g = torch.Generator().manual_seed(seed)
+    sy, sx = sensor if sensor is not None else (H / 2, W / 2)
+    rows = []
+    for b in range(batch):
+        got = torch.empty(0, dtype=torch.int64)
+        while got.numel() < n:
+            m = 4 * n
+            r = torch.rand(m, generator=g).pow(1.6) * math.hypot(H, W) / 2
+            a = torch.rand(m, generator=g) * 2 * math.pi
+            y = (sy + r * torch.sin(a)).long()
+            x = (sx + r * torch.cos(a)).long()
+            keep = (y >= 0) & (y < H) & (x >= 0) & (x < W)
+            lin = (y * W + x)[keep]
+            got = torch.cat([got, lin])
+            _, first = torch.unique(got, return_inverse=True)
+            # keep first occurrences in generation order
+            order = torch.arange(got.numel())
+            uniq_pos = torch.full((int(first.max()) + 1,), got.numel(), dtype=torch.long).scatter_reduce(
+                0, first, order, reduce="amin")
+            got = got[torch.sort(uniq_pos).values]
+        lin = got[:n]
+        rows.append(torch.stack([torch.full_like(lin, b), lin // W, lin % W], 1))
+    return torch.cat(rows).to(torch.int32)
+
+
+def voxel_sites(n, shape=(41, 1600, 1408), batch=1, seed=0) -> torch.Tensor:
+    """(N, 4) int32 unique (batch, z, y, x) voxels: a ground layer thinning with range from the sensor
+    at (y, x) = (800, 0) (KITTI's front view), plus objects a few voxels tall."""
+    Z, H, W = shape
+    g = torch.Generator().manual_seed(seed)
+    rows = []
+    for b in range(batch):
+        got = torch.empty(0, dtype=torch.int64)
+        while got.numel() < n:
+            m = 2 * n
+            r = torch.rand(m, generator=g).pow(1.8) * W
+            a = (torch.rand(m, generator=g) - 0.5) * 1.4
+            y = (H / 2 + r * torch.sin(a)).long()
+            x = (r * torch.cos(a)).long()
+            obj = torch.rand(m, generator=g) < 0.3
+            z = torch.where(obj, 8 + (torch.rand(m, generator=g) * 12).long(), 6 + (torch.rand(m, generator=g) * 3).long())
+            keep = (y >= 0) & (y < H) & (x >= 0) & (x < W)
+            lin = ((z * H + y) * W + x)[keep]
+            got = torch.unique(torch.cat([got, lin]))
+        lin = got[torch.randperm(got.numel(), generator=g)[:n]]
+        rows.append(torch.stack([torch.full_like(lin, b), lin // (H * W), (lin // W) % H, lin % W], 1))
+    return torch.cat(rows).to(torch.int32)
+
+
+# ---------------------------------------------------------------- networks (any spconv-like namespace)
+
+def sparse_pointpillars(sp, in_channels=64, layer_nums=(3, 5, 5), layer_strides=(2, 2, 2),
+                        num_filters=(64, 128, 256), upsample_strides=(1, 2, 4), num_upsample_filters=(128, 128, 128)):
+    norm = partial(nn.BatchNorm1d, eps=1e-3, momentum=0.01)
+    blocks, deblocks = nn.ModuleList(), nn.ModuleList()
+    c_in = in_channels
+    for i, (n, s, f) in enumerate(zip(layer_nums, layer_strides, num_filters)):
+        layers = [sp.SparseConv2d(c_in, f, 3, stride=s, padding=1, bias=False, indice_key=f"down{i}"), norm(f),
+                  nn.ReLU()]
+        for _ in range(n):
+            layers += [sp.SubMConv2d(f, f, 3, padding=1, bias=False, indice_key=f"subm{i}"), norm(f), nn.ReLU()]
+        blocks.append(sp.SparseSequential(*layers))
+        u, uf = upsample_strides[i], num_upsample_filters[i]
+        deblocks.append(sp.SparseSequential(sp.SparseConvTranspose2d(f, uf, u, stride=u, bias=False,
+                                                                     indice_key=f"up{i}"), norm(uf), nn.ReLU()))
+        c_in = f
+
+    class Net(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.blocks, self.deblocks = blocks, deblocks
+
+        def forward(self, x):
+            ups = []
+            for block, deblock in zip(self.blocks, self.deblocks):
+                x = block(x)
+                ups.append(deblock(x))
+            self.last_dict = ups[-1].indice_dict
+            return torch.cat([u.dense() for u in ups], 1)
+
+    return Net()
+
+
+def dense_pointpillars(in_channels=64, layer_nums=(3, 5, 5), layer_strides=(2, 2, 2), num_filters=(64, 128, 256),
+                       upsample_strides=(1, 2, 4), num_upsample_filters=(128, 128, 128)):
+    norm = partial(nn.BatchNorm2d, eps=1e-3, momentum=0.01)
+    blocks, deblocks = nn.ModuleList(), nn.ModuleList()
+    c_in = in_channels
+    for n, s, f, u, uf in zip(layer_nums, layer_strides, num_filters, upsample_strides, num_upsample_filters):
+        layers = [nn.Conv2d(c_in, f, 3, stride=s, padding=1, bias=False), norm(f), nn.ReLU()]
+        for _ in range(n):
+            layers += [nn.Conv2d(f, f, 3, padding=1, bias=False), norm(f), nn.ReLU()]
+        blocks.append(nn.Sequential(*layers))
+        deblocks.append(nn.Sequential(nn.ConvTranspose2d(f, uf, u, stride=u, bias=False), norm(uf), nn.ReLU()))
+        c_in = f
+
+    class Net(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.blocks, self.deblocks = blocks, deblocks
+
+        def forward(self, x):
+            ups = []
+            for block, deblock in zip(self.blocks, self.deblocks):
+                x = block(x)
+                ups.append(deblock(x))
+            return torch.cat(ups, 1)
+
+    return Net()
+
+
+def voxel_backbone_8x(sp, input_channels=4):
+    norm = partial(nn.BatchNorm1d, eps=1e-3, momentum=0.01)
+
+    def block(cin, cout, k, indice_key, stride=1, padding=0, conv_type="subm"):
+        if conv_type == "subm":
+            conv = sp.SubMConv3d(cin, cout, k, bias=False, indice_key=indice_key)
+        else:
+            conv = sp.SparseConv3d(cin, cout, k, stride=stride, padding=padding, bias=False, indice_key=indice_key)
+        return sp.SparseSequential(conv, norm(cout), nn.ReLU())
+
+    return sp.SparseSequential(
+        sp.SubMConv3d(input_channels, 16, 3, padding=1, bias=False, indice_key="subm1"), norm(16), nn.ReLU(),
+        block(16, 16, 3, "subm1"),
+        block(16, 32, 3, "spconv2", 2, 1, "spconv"), block(32, 32, 3, "subm2"), block(32, 32, 3, "subm2"),
+        block(32, 64, 3, "spconv3", 2, 1, "spconv"), block(64, 64, 3, "subm3"), block(64, 64, 3, "subm3"),
+        block(64, 64, 3, "spconv4", 2, (0, 1, 1), "spconv"), block(64, 64, 3, "subm4"), block(64, 64, 3, "subm4"),
+        sp.SparseConv3d(64, 128, (3, 1, 1), stride=(2, 1, 1), padding=0, bias=False, indice_key="spconv_down2"),
+        norm(128), nn.ReLU(), sp.ToDense())
+
+
+# ---------------------------------------------------------------- precision modes
+
+@contextlib.contextmanager
+def precision(mode: str):
+    old = (torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32)
+    tf32 = mode == "tf32"
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    torch.backends.cudnn.allow_tf32 = tf32
+    try:
+        yield torch.float16 if mode == "fp16" else torch.float32
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+
+
+def _ms(t):
+    return None if t is None else t.median
+
+
+def _try(fn, args, device, **kw):
+    try:
+        return time_call(fn, args, device, **kw)
+    except torch.cuda.OutOfMemoryError:
+        torch.cuda.empty_cache()
+        return None
+    except RuntimeError as e:  # noqa: F841
+        return None
+
+
+# ---------------------------------------------------------------- sections
+
+def bench_layers(device, modes, quick, rows_out):
+    sp = _spconv() if torch.device(device).type == "cuda" else None
+    grids = {"drone": GRIDS["drone"]} if quick else GRIDS
+    chans = (16, 64) if quick else CHANNELS
+    table = []
+    for gname, (shape, n) in grids.items():
+        idx = bev_sites(shape, n).to(device)
+        for kind in ("subm", "conv"):
+            for mode in modes:
+                with precision(mode) as dtype:
+                    for C in chans:
+                        x = SparseConvTensor(torch.randn(idx.shape[0], C, device=device, dtype=dtype), idx,
+                                             list(shape), 1)
+                        w = torch.randn(C, 3, 3, C, device=device, dtype=dtype) / (3 * math.sqrt(C))
+                        km = Fs.build_kernel_map(x, kind, 3, 2 if kind == "conv" else 1, 1, 1)
+                        w3 = w.reshape(C, 9, C)
+                        t_ours = _try(ops.sparse_conv, (x.features, w3, km.neighbors), device)
+                        dense = x.dense()
+                        wd = w.permute(0, 3, 1, 2).contiguous()
+                        s = 2 if kind == "conv" else 1
+                        t_dense = _try(lambda d, ww: F.conv2d(d, ww, None, s, 1), (dense, wd), device)
+                        t_sp = None
+                        if sp is not None:
+                            t_sp = _spconv_layer_time(sp, kind, x, w, device)
+                        table.append([gname, idx.shape[0], kind, mode, C, fmt_ms(_ms(t_ours)), fmt_ms(_ms(t_dense)),
+                                      fmt_ratio(_ms(t_dense) / _ms(t_ours)) if t_dense and t_ours else "",
+                                      fmt_ms(_ms(t_sp)),
+                                      fmt_ratio(_ms(t_sp) / _ms(t_ours)) if t_sp and t_ours else ""])
+                        rows_out.append({"section": "layer", "op": f"layer/{gname}/{kind}/{mode}/C{C}", "grid": gname,
+                                         "sites": int(idx.shape[0]), "kind": kind, "precision": mode, "channels": C,
+                                         "lidarops": t_ours.as_dict() if t_ours else None,
+                                         "dense_cudnn": t_dense.as_dict() if t_dense else None,
+                                         "spconv": t_sp.as_dict() if t_sp else None})
+    print_table(f"single layers, 3x3, kernel map cached ({device})",
+                ["grid", "sites", "kind", "prec", "C", "lidarops", "dense", "dense/ours", "spconv", "spconv/ours"],
+                table, right=(1, 4, 5, 6, 7, 8, 9))
+
+
+def _spconv_layer_time(sp, kind, x, w, device):
+    C = w.shape[0]
+    try:
+        if kind == "subm":
+            layer = sp.SubMConv2d(C, C, 3, padding=1, bias=False, indice_key="k")
+        else:
+            layer = sp.SparseConv2d(C, C, 3, stride=2, padding=1, bias=False, indice_key="k")
+        layer = layer.to(device=device, dtype=w.dtype).eval()
+        with torch.no_grad():
+            layer.weight.copy_(w)
+            st = sp.SparseConvTensor(x.features, x.indices, x.spatial_shape, x.batch_size)
+            y = layer(st)
+            cached = sp.SparseConvTensor(x.features, x.indices, x.spatial_shape, x.batch_size,
+                                         indice_dict=y.indice_dict)
+
+            def run(f):
+                cached_in = cached.replace_feature(f)
+                return layer(cached_in)
+            return _try(run, (x.features,), device)
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def bench_maps(device, quick, rows_out):
+    grids = {"drone": GRIDS["drone"]} if quick else GRIDS
+    table = []
+    for gname, (shape, n) in grids.items():
+        idx = bev_sites(shape, n).to(device)
+        x = SparseConvTensor(torch.zeros(idx.shape[0], 1, device=device), idx, list(shape), 1)
+        for kind in ("subm", "conv", "transposed"):
+            for method in ("auto", "dense", "hash"):
+                s = 2 if kind != "subm" else 1
+                t = _try(lambda: Fs.build_kernel_map(x, kind, 3, s, 1, 1, method=method), (), device)
+                table.append([gname, idx.shape[0], kind, method, fmt_ms(_ms(t))])
+                rows_out.append({"section": "map", "op": f"map/{gname}/{kind}/{method}", "grid": gname,
+                                 "sites": int(idx.shape[0]), "kind": kind, "method": method,
+                                 "lidarops": t.as_dict() if t else None})
+    print_table(f"kernel-map construction, 3x3 (stride 2 for conv/transposed) ({device})",
+                ["grid", "sites", "kind", "table", "ms"], table, right=(1, 4))
+
+
+def bench_pillars(device, modes, quick, rows_out):
+    sp = _spconv() if torch.device(device).type == "cuda" else None
+    shape, n = ((128, 128), 1500) if quick else GRIDS["kitti"]
+    idx = bev_sites(shape, n, sensor=(shape[0] / 2, 0)).to(device)
+    table = []
+    for mode in modes:
+        with precision(mode) as dtype, torch.no_grad():
+            feats = torch.randn(idx.shape[0], 64, device=device, dtype=dtype)
+            net = sparse_pointpillars(lspconv).to(device=device, dtype=dtype).eval()
+            x = SparseConvTensor(feats, idx, list(shape), 1)
+            t_full = _try(net, (x,), device)
+            net(x)
+            cached = SparseConvTensor(feats, idx, list(shape), 1, indice_dict=net.last_dict)
+            t_cached = _try(lambda f: net(cached.replace_feature(f)), (feats,), device)
+            dnet = dense_pointpillars().to(device=device, dtype=dtype).eval()
+            t_dense = _try(dnet, (x.dense(),), device)
+            t_sp = None
+            if sp is not None:
+                try:
+                    snet = sparse_pointpillars(sp).to(device=device, dtype=dtype).eval()
+                    t_sp = _try(lambda f: snet(sp.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
+                except Exception:  # noqa: BLE001
+                    t_sp = None
+            ratio = lambda a, b: fmt_ratio(_ms(a) / _ms(b)) if a and b else ""  # noqa: E731
+            table.append([mode, idx.shape[0], fmt_ms(_ms(t_full)), fmt_ms(_ms(t_cached)), fmt_ms(_ms(t_dense)),
+                          ratio(t_dense, t_full), fmt_ms(_ms(t_sp)), ratio(t_sp, t_full)])
+            rows_out.append({"section": "pillars", "op": f"pillars/{mode}", "precision": mode,
+                             "sites": int(idx.shape[0]), "grid": list(shape),
+                             "lidarops_full": t_full.as_dict() if t_full else None,
+                             "lidarops_cached_maps": t_cached.as_dict() if t_cached else None,
+                             "dense_cudnn": t_dense.as_dict() if t_dense else None,
+                             "spconv": t_sp.as_dict() if t_sp else None})
+    print_table(f"Sparse-PointPillars backbone, grid {shape[0]} x {shape[1]} ({device})",
+                ["prec", "pillars", "lidarops", "maps cached", "dense", "dense/ours", "spconv", "spconv/ours"],
+                table, right=(1, 2, 3, 4, 5, 6, 7))
+
+
+def bench_voxels(device, modes, quick, rows_out):
+    sp = _spconv() if torch.device(device).type == "cuda" else None
+    shape = (41, 400, 352) if quick else (41, 1600, 1408)
+    counts = (5000,) if quick else ((40000, 120000) if torch.device(device).type == "cuda" else (40000,))
+    table = []
+    for n in counts:
+        idx = voxel_sites(n, shape).to(device)
+        for mode in modes:
+            with precision(mode) as dtype, torch.no_grad():
+                feats = torch.randn(idx.shape[0], 4, device=device, dtype=dtype)
+                net = voxel_backbone_8x(lspconv).to(device=device, dtype=dtype).eval()
+                t_ours = _try(lambda f: net(SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
+                t_sp = None
+                if sp is not None:
+                    try:
+                        snet = voxel_backbone_8x(sp).to(device=device, dtype=dtype).eval()
+                        t_sp = _try(lambda f: snet(sp.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
+                    except Exception:  # noqa: BLE001
+                        t_sp = None
+                table.append([n, mode, fmt_ms(_ms(t_ours)), fmt_ms(_ms(t_sp)),
+                              fmt_ratio(_ms(t_sp) / _ms(t_ours)) if t_sp and t_ours else ""])
+                rows_out.append({"section": "voxel", "op": f"voxel/{n}/{mode}", "voxels": n, "precision": mode,
+                                 "grid": list(shape), "lidarops": t_ours.as_dict() if t_ours else None,
+                                 "spconv": t_sp.as_dict() if t_sp else None})
+    print_table(f"VoxelBackBone8x, grid {shape} ({device})", ["voxels", "prec", "lidarops", "spconv", "spconv/ours"],
+                table, right=(0, 2, 3, 4))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", choices=["cpu", "cuda", "all"], default="all")
+    ap.add_argument("--only", default="layer,map,pillars,voxel")
+    ap.add_argument("--precisions", default="fp32,tf32,fp16")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
+    devices = [d for d in devices if d == "cpu" or torch.cuda.is_available()]
+    only = set(args.only.split(","))
+    for device in devices:
+        modes = args.precisions.split(",") if device == "cuda" else ["fp32"]
+        rows: list[dict] = []
+        if "layer" in only:
+            bench_layers(device, modes, args.quick, rows)
+        if "map" in only:
+            bench_maps(device, args.quick, rows)
+        if "pillars" in only:
+            bench_pillars(device, modes, args.quick, rows)
+        if "voxel" in only:
+            bench_voxels(device, modes, args.quick, rows)
+        if args.json and write_results is not None:
+            path = write_results("sparse", device, rows, env_meta(device))
+            print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,484 @@
+// Sparse convolution on CUDA: one fused implicit-GEMM kernel over all kernel offsets.
+//
+// Forward, output-stationary: out (N_out x Cout) = A (N_out x K*Cin) . W^T, where row o of A is the
+// concatenation over offsets k of features[kernel_map[o, k]] (zeros where the map is -1). A block
+// owns a tile of output rows x output channels and walks every offset and input-channel chunk,
+// gathering the input rows straight into shared memory; offsets with no input for any row of the
+// tile are skipped (a block-wide vote). One launch per layer, no atomics, no host synchronisation:
+// each output element is summed by one thread in a fixed order, so results are deterministic.
+//   - float16 / bfloat16 (sm_80+, Cin and Cout >= 16): tensor cores (WMMA 16x16x16, float accumulation);
+//     float32 likewise with TF32 fragments when torch allows TF32 matmuls (off by default).
+//   - otherwise SIMT tiles in float (float64 in float64).
+// Rows are processed in the order given by sparse_kernel_map_order (grouped by their offset masks),
+// so the rows of a tile share their offsets and the skipping is effective on real data.
+// Backward: the features gradient is this kernel over the transposed map (autograd in Python); the
+// weight gradient is a split-K reduction over output rows into per-split partial sums (float), added
+// in a fixed order: deterministic too.
+#include <ATen/Context.h>
+#include <ATen/Dispatch.h>
+#include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <cuda_bf16.h>
+#include <cuda_fp16.h>
+#include <mma.h>
+
+#include <cstdint>
+#include <mutex>
+#include <type_traits>
+#include <unordered_map>
+
+#include "lidarops/sparse.h"
+
+namespace lidarops {
+namespace sparse {
+namespace {
+
+LIDAROPS_HD int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
+
+// Output row processed at tile position t: order[t] (rows grouped by their offset masks) or t.
+__device__ __forceinline__ int64_t output_row(const int32_t* order, int64_t t, int64_t n_out) {
+  if (t >= n_out) return -1;
+  const int64_t o = order != nullptr ? static_cast<int64_t>(order[t]) : t;
+  return o >= 0 && o < n_out ? o : -1;
+}
+
+// ------------------------------------------------------------------------------------------------
+// forward, SIMT tiles: BM output rows x BN output channels per block, BK input channels per step,
+// each thread TM x TN outputs.
+// ------------------------------------------------------------------------------------------------
+template <typename T, int BM, int BN, int BK, int TM, int TN>
+__global__ void __launch_bounds__((BM / TM) * (BN / TN))
+    conv_fwd_simt_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
+                         const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int64_t cin,
+                         int64_t cout, int64_t K) {
+  using A = acc_t<T>;
+  constexpr int kThreads = (BM / TM) * (BN / TN);
+  __shared__ A As[BK][BM + 1];  // +1: conflict-free transposed stores
+  __shared__ A Bs[BK][BN + 1];
+  __shared__ int32_t rows[BM];
+  __shared__ int64_t orow[BM];  // output row of each tile row (through `order`), -1 past the end
+  const int tid = threadIdx.x;
+  const int tx = tid % (BN / TN), ty = tid / (BN / TN);
+  const int64_t row0 = static_cast<int64_t>(blockIdx.x) * BM;
+  const int64_t col0 = static_cast<int64_t>(blockIdx.y) * BN;
+  for (int m = tid; m < BM; m += kThreads) orow[m] = output_row(order, row0 + m, n_out);
+  __syncthreads();
+  A acc[TM][TN];
+#pragma unroll
+  for (int i = 0; i < TM; ++i)
+#pragma unroll
+    for (int j = 0; j < TN; ++j) acc[i][j] = A(0);
+
+  for (int64_t k = 0; k < K; ++k) {
+    int mine = 0;
+    for (int m = tid; m < BM; m += kThreads) {
+      const int64_t o = orow[m];
+      const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
+      rows[m] = r;
+      mine |= r >= 0;
+    }
+    if (!__syncthreads_or(mine)) continue;  // no row of this tile has an input at offset k
+    const T* wk = w + k * cin;  // W[co, k, ci] = wk[co * K * cin + ci]
+    for (int64_t c0 = 0; c0 < cin; c0 += BK) {
+      for (int e = tid; e < BM * BK; e += kThreads) {
+        const int m = e / BK, kk = e % BK;
+        const int32_t r = rows[m];
+        const int64_t ci = c0 + kk;
+        As[kk][m] = (r >= 0 && ci < cin) ? static_cast<A>(x[static_cast<int64_t>(r) * cin + ci]) : A(0);
+      }
+      for (int e = tid; e < BN * BK; e += kThreads) {
+        const int n = e / BK, kk = e % BK;
+        const int64_t co = col0 + n, ci = c0 + kk;
+        Bs[kk][n] = (co < cout && ci < cin) ? static_cast<A>(wk[co * K * cin + ci]) : A(0);
+      }
+      __syncthreads();
+#pragma unroll 4
+      for (int kk = 0; kk < BK; ++kk) {
+        A a[TM], b[TN];
+#pragma unroll
+        for (int i = 0; i < TM; ++i) a[i] = As[kk][ty * TM + i];
+#pragma unroll
+        for (int j = 0; j < TN; ++j) b[j] = Bs[kk][tx * TN + j];
+#pragma unroll
+        for (int i = 0; i < TM; ++i)
+#pragma unroll
+          for (int j = 0; j < TN; ++j) acc[i][j] += a[i] * b[j];
+      }
+      __syncthreads();
+    }
+  }
+#pragma unroll
+  for (int i = 0; i < TM; ++i) {
+    const int64_t o = orow[ty * TM + i];
+    if (o < 0) continue;
+#pragma unroll
+    for (int j = 0; j < TN; ++j) {
+      const int64_t co = col0 + tx * TN + j;
+      if (co < cout) out[o * cout + co] = static_cast<T>(acc[i][j]);
+    }
+  }
+}
+
+// ------------------------------------------------------------------------------------------------
+// forward, tensor cores: 64 x 64 tile per block of 4 warps (2 x 2, each 32 x 32 = 2 x 2 WMMA
+// fragments), 32 input channels per step, float accumulation. float16 / bfloat16: 16x16x16 fragments;
+// float32 when torch allows TF32 for matmuls (torch.backends.cuda.matmul.allow_tf32): 16x16x8 TF32
+// fragments. kVec: Cin a multiple of the 16-byte vector and 16-byte aligned tensors, so rows are
+// loaded as 16-byte vectors.
+// ------------------------------------------------------------------------------------------------
+template <typename T>
+struct MmaTraits;
+template <>
+struct MmaTraits<c10::Half> {
+  using S = __half;  // shared-memory element
+  using F = __half;  // fragment element
+  static constexpr int KS = 16, VEC = 8;
+};
+template <>
+struct MmaTraits<c10::BFloat16> {
+  using S = __nv_bfloat16;
+  using F = __nv_bfloat16;
+  static constexpr int KS = 16, VEC = 8;
+};
+template <>
+struct MmaTraits<float> {
+  using S = float;
+  using F = nvcuda::wmma::precision::tf32;
+  static constexpr int KS = 8, VEC = 4;
+};
+
+constexpr int kWmmaThreads = 128;
+
+template <typename T, bool kVec>
+__global__ void __launch_bounds__(kWmmaThreads)
+    conv_fwd_wmma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
+                         const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int64_t cin,
+                         int64_t cout, int64_t K) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  using namespace nvcuda;
+  using S = typename MmaTraits<T>::S;
+  using FE = typename MmaTraits<T>::F;
+  constexpr int KS = MmaTraits<T>::KS, V = MmaTraits<T>::VEC;
+  constexpr int BM = 64, BN = 64, BK = 32;
+  constexpr int LDA = BK + V, LDB = BK + V;  // in elements: rows stay 16-byte aligned, as WMMA needs
+  constexpr int LDC = BN + 4;                // floats: a multiple of 4
+  __shared__ __align__(32) S As[BM * LDA];   // row-major A tile: As[m * LDA + kk]
+  __shared__ __align__(32) S Bs[BN * LDB];   // column-major B tile (kk fastest): Bs[n * LDB + kk]
+  __shared__ __align__(32) float Cs[BM * LDC];
+  __shared__ int32_t rows[BM];
+  __shared__ int64_t orow[BM];
+  const int tid = threadIdx.x, warp = tid / 32;
+  const int wm = warp / 2, wn = warp % 2;
+  const int64_t row0 = static_cast<int64_t>(blockIdx.x) * BM;
+  const int64_t col0 = static_cast<int64_t>(blockIdx.y) * BN;
+  const S zero = static_cast<S>(0.0f);
+  for (int m = tid; m < BM; m += kWmmaThreads) orow[m] = output_row(order, row0 + m, n_out);
+  __syncthreads();
+
+  wmma::fragment<wmma::accumulator, 16, 16, KS, float> c[2][2];
+#pragma unroll
+  for (int i = 0; i < 2; ++i)
+#pragma unroll
+    for (int j = 0; j < 2; ++j) wmma::fill_fragment(c[i][j], 0.0f);
+
+  const S* xs = reinterpret_cast<const S*>(x);
+  const S* ws = reinterpret_cast<const S*>(w);
+  for (int64_t k = 0; k < K; ++k) {
+    int mine = 0;
+    for (int m = tid; m < BM; m += kWmmaThreads) {
+      const int64_t o = orow[m];
+      const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
+      rows[m] = r;
+      mine |= r >= 0;
+    }
+    if (!__syncthreads_or(mine)) continue;
+    for (int64_t c0 = 0; c0 < cin; c0 += BK) {
+      // A: BM rows x BK channels, V channels (16 bytes) per item
+      for (int e = tid; e < BM * (BK / V); e += kWmmaThreads) {
+        const int m = e / (BK / V), v = e % (BK / V);
+        const int32_t r = rows[m];
+        const int64_t ci = c0 + v * V;
+        S* dst = As + m * LDA + v * V;
+        if (kVec && r >= 0 && ci + V <= cin) {
+          *reinterpret_cast<int4*>(dst) = __ldg(reinterpret_cast<const int4*>(xs + static_cast<int64_t>(r) * cin + ci));
+        } else {
+#pragma unroll
+          for (int t = 0; t < V; ++t)
+            dst[t] = (r >= 0 && ci + t < cin) ? xs[static_cast<int64_t>(r) * cin + ci + t] : zero;
+        }
+      }
+      // B: BN output channels x BK input channels of W[co, k, ci]
+      for (int e = tid; e < BN * (BK / V); e += kWmmaThreads) {
+        const int n = e / (BK / V), v = e % (BK / V);
+        const int64_t co = col0 + n, ci = c0 + v * V;
+        S* dst = Bs + n * LDB + v * V;
+        if (co < cout) {
+          const S* src = ws + (co * K + k) * cin + ci;
+          if (kVec && ci + V <= cin) {
+            *reinterpret_cast<int4*>(dst) = __ldg(reinterpret_cast<const int4*>(src));
+          } else {
+#pragma unroll
+            for (int t = 0; t < V; ++t) dst[t] = ci + t < cin ? src[t] : zero;
+          }
+        } else {
+#pragma unroll
+          for (int t = 0; t < V; ++t) dst[t] = zero;
+        }
+      }
+      __syncthreads();
+#pragma unroll
+      for (int ks = 0; ks < BK / KS; ++ks) {
+        wmma::fragment<wmma::matrix_a, 16, 16, KS, FE, wmma::row_major> a[2];
+        wmma::fragment<wmma::matrix_b, 16, 16, KS, FE, wmma::col_major> b[2];
+#pragma unroll
+        for (int i = 0; i < 2; ++i) {
+          wmma::load_matrix_sync(a[i], As + (wm * 32 + i * 16) * LDA + ks * KS, LDA);
+          if constexpr (std::is_same_v<T, float>) {
+#pragma unroll
+            for (int t = 0; t < a[i].num_elements; ++t) a[i].x[t] = wmma::__float_to_tf32(a[i].x[t]);
+          }
+        }
+#pragma unroll
+        for (int j = 0; j < 2; ++j) {
+          wmma::load_matrix_sync(b[j], Bs + (wn * 32 + j * 16) * LDB + ks * KS, LDB);
+          if constexpr (std::is_same_v<T, float>) {
+#pragma unroll
+            for (int t = 0; t < b[j].num_elements; ++t) b[j].x[t] = wmma::__float_to_tf32(b[j].x[t]);
+          }
+        }
+#pragma unroll
+        for (int i = 0; i < 2; ++i)
+#pragma unroll
+          for (int j = 0; j < 2; ++j) wmma::mma_sync(c[i][j], a[i], b[j], c[i][j]);
+      }
+      __syncthreads();
+    }
+  }
+#pragma unroll
+  for (int i = 0; i < 2; ++i)
+#pragma unroll
+    for (int j = 0; j < 2; ++j)
+      wmma::store_matrix_sync(Cs + (wm * 32 + i * 16) * LDC + wn * 32 + j * 16, c[i][j], LDC, wmma::mem_row_major);
+  __syncthreads();
+  for (int e = tid; e < BM * BN; e += kWmmaThreads) {
+    const int m = e / BN, n = e % BN;
+    const int64_t o = orow[m], co = col0 + n;
+    if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(Cs[m * LDC + n]);
+  }
+#else
+  __trap();  // launched only on sm_80+ (checked on the host)
+#endif
+}
+
+// ------------------------------------------------------------------------------------------------
+// weight gradient: dW[co, k, ci] = sum_o g[o, co] x[map[o, k], ci]. Block: BCO x BCI tile of one
+// offset k over one split of the output rows; BR rows per step; partial sums per split.
+// ------------------------------------------------------------------------------------------------
+template <typename T, int BCO, int BCI, int BR, int TCO, int TCI>
+__global__ void __launch_bounds__((BCO / TCO) * (BCI / TCI))
+    conv_wgrad_kernel(const T* __restrict__ x, const T* __restrict__ g, const int32_t* __restrict__ nbr,
+                      acc_t<T>* __restrict__ partial, int64_t n_out, int64_t cin, int64_t cout, int64_t K,
+                      int64_t rows_per_split) {
+  using A = acc_t<T>;
+  constexpr int kThreads = (BCO / TCO) * (BCI / TCI);
+  __shared__ A Gs[BR][BCO + 1];
+  __shared__ A Xs[BR][BCI + 1];
+  __shared__ int32_t rows[BR];
+  const int tid = threadIdx.x;
+  const int tci = tid % (BCI / TCI), tco = tid / (BCI / TCI);
+  const int64_t tiles_ci = ceil_div(cin, BCI);
+  const int64_t ci0 = (blockIdx.x % tiles_ci) * BCI, co0 = (blockIdx.x / tiles_ci) * BCO;
+  const int64_t k = blockIdx.y, s = blockIdx.z;
+  const int64_t r_begin = s * rows_per_split;
+  const int64_t r_end = r_begin + rows_per_split < n_out ? r_begin + rows_per_split : n_out;
+  A acc[TCO][TCI];
+#pragma unroll
+  for (int i = 0; i < TCO; ++i)
+#pragma unroll
+    for (int j = 0; j < TCI; ++j) acc[i][j] = A(0);
+  for (int64_t r0 = r_begin; r0 < r_end; r0 += BR) {
+    int mine = 0;
+    for (int r = tid; r < BR; r += kThreads) {
+      const int32_t v = r0 + r < r_end ? nbr[(r0 + r) * K + k] : -1;
+      rows[r] = v;
+      mine |= v >= 0;
+    }
+    if (!__syncthreads_or(mine)) continue;
+    for (int e = tid; e < BR * BCO; e += kThreads) {
+      const int r = e / BCO, c = e % BCO;
+      const int64_t co = co0 + c;
+      Gs[r][c] = (rows[r] >= 0 && co < cout) ? static_cast<A>(g[(r0 + r) * cout + co]) : A(0);
+    }
+    for (int e = tid; e < BR * BCI; e += kThreads) {
+      const int r = e / BCI, c = e % BCI;
+      const int64_t ci = ci0 + c;
+      const int32_t row = rows[r];
+      Xs[r][c] = (row >= 0 && ci < cin) ? static_cast<A>(x[static_cast<int64_t>(row) * cin + ci]) : A(0);
+    }
+    __syncthreads();
+#pragma unroll 4
+    for (int r = 0; r < BR; ++r) {
+      A a[TCO], b[TCI];
+#pragma unroll
+      for (int i = 0; i < TCO; ++i) a[i] = Gs[r][tco * TCO + i];
+#pragma unroll
+      for (int j = 0; j < TCI; ++j) b[j] = Xs[r][tci * TCI + j];
+#pragma unroll
+      for (int i = 0; i < TCO; ++i)
+#pragma unroll
+        for (int j = 0; j < TCI; ++j) acc[i][j] += a[i] * b[j];
+    }
+    __syncthreads();
+  }
+#pragma unroll
+  for (int i = 0; i < TCO; ++i) {
+    const int64_t co = co0 + tco * TCO + i;
+    if (co >= cout) continue;
+#pragma unroll
+    for (int j = 0; j < TCI; ++j) {
+      const int64_t ci = ci0 + tci * TCI + j;
+      if (ci < cin) partial[((s * cout + co) * K + k) * cin + ci] = acc[i][j];
+    }
+  }
+}
+
+// Compute capability major and SM count of a device, queried once per device.
+struct DeviceProps {
+  int cc_major = 0, sms = 1;
+};
+
+DeviceProps device_props(c10::DeviceIndex dev) {
+  static std::mutex mutex;
+  static std::unordered_map<int, DeviceProps> cache;
+  std::lock_guard<std::mutex> lock(mutex);
+  auto it = cache.find(dev);
+  if (it != cache.end()) return it->second;
+  DeviceProps p;
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.cc_major, cudaDevAttrComputeCapabilityMajor, dev));
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.sms, cudaDevAttrMultiProcessorCount, dev));
+  cache[dev] = p;
+  return p;
+}
+
+bool aligned16(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 15) == 0; }
+
+template <typename T, int BM, int BN, int BK, int TM, int TN>
+void launch_simt(const at::Tensor& x, const at::Tensor& w, const at::Tensor& nbr, const int32_t* order, at::Tensor& out,
+                 cudaStream_t stream) {
+  const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
+  const dim3 grid(static_cast<unsigned>(ceil_div(n_out, BM)), static_cast<unsigned>(ceil_div(cout, BN)));
+  conv_fwd_simt_kernel<T, BM, BN, BK, TM, TN><<<grid, (BM / TM) * (BN / TN), 0, stream>>>(
+      x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<T>(), n_out, cin, cout, K);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+}
+
+__global__ void row_mask_kernel(const int32_t* __restrict__ nbr, int64_t m, int64_t K, int64_t* __restrict__ masks) {
+  const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (t < m) masks[t] = row_mask(nbr + t * K, K);
+}
+
+at::Tensor sparse_kernel_map_order_cuda(const at::Tensor& nbr_in) {
+  TORCH_CHECK_VALUE(nbr_in.dim() == 2 && nbr_in.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
+                    nbr_in.sizes(), " and dtype ", nbr_in.scalar_type());
+  const c10::cuda::OptionalCUDAGuard guard(nbr_in.device());
+  auto nbr = nbr_in.contiguous();
+  const int64_t m = nbr.size(0), K = nbr.size(1);
+  auto masks = at::empty({m}, nbr.options().dtype(at::kLong));
+  if (m > 0) {
+    row_mask_kernel<<<static_cast<unsigned>(ceil_div(m, 256)), 256, 0, c10::cuda::getCurrentCUDAStream()>>>(
+        nbr.data_ptr<int32_t>(), m, K, masks.data_ptr<int64_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+  return std::get<1>(masks.sort(/*stable=*/true, /*dim=*/0, /*descending=*/false)).to(at::kInt);
+}
+
+at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr_in,
+                            const c10::optional<at::Tensor>& order_in) {
+  check_conv_args(features, weight, nbr_in);
+  check_order(order_in, nbr_in);
+  const c10::cuda::OptionalCUDAGuard guard(features.device());
+  auto x = features.contiguous();
+  auto w = weight.contiguous();
+  auto nbr = nbr_in.contiguous();
+  at::Tensor order_t;
+  if (order_in.has_value() && order_in->defined()) order_t = order_in->contiguous();
+  const int32_t* order = order_t.defined() ? order_t.data_ptr<int32_t>() : nullptr;
+  const int64_t n_in = x.size(0), cin = x.size(1), cout = w.size(0), K = w.size(1), n_out = nbr.size(0);
+  TORCH_CHECK_VALUE(ceil_div(n_out, 64) < (int64_t(1) << 31) && ceil_div(cout, 16) < 65536,
+                    "sparse_conv: too many output rows or channels for one launch (", n_out, " x ", cout, ")");
+  auto out = at::empty({n_out, cout}, x.options());
+  if (n_out == 0 || cout == 0) return out;
+  if (n_in == 0 || cin == 0 || K == 0) return out.zero_();
+  cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
+  const auto dtype = x.scalar_type();
+  const bool half_type = dtype == at::kHalf || dtype == at::kBFloat16;
+  // float32 follows torch.backends.cuda.matmul.allow_tf32 (off by default: exact float32)
+  const bool tf32 = dtype == at::kFloat && at::globalContext().allowTF32CuBLAS();
+  if ((half_type || tf32) && cin >= 16 && cout >= 16 &&
+      device_props(x.get_device()).cc_major >= 8) {
+    const int64_t vec = half_type ? 8 : 4;
+    const bool use_vec = cin % vec == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
+    const dim3 grid(static_cast<unsigned>(ceil_div(n_out, 64)), static_cast<unsigned>(ceil_div(cout, 64)));
+    auto launch = [&](auto tag) {
+      using scalar_t = decltype(tag);
+      auto kernel = use_vec ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
+      kernel<<<grid, kWmmaThreads, 0, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(),
+                                                order, out.data_ptr<scalar_t>(), n_out, cin, cout, K);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    };
+    if (dtype == at::kHalf) launch(c10::Half{});
+    else if (dtype == at::kBFloat16) launch(c10::BFloat16{});
+    else launch(float{});
+    return out;
+  }
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, dtype, "lidarops_sparse_conv_simt", [&] {
+    if (cout <= 16) launch_simt<scalar_t, 128, 16, 16, 4, 2>(x, w, nbr, order, out, stream);
+    else if (cout <= 32) launch_simt<scalar_t, 64, 32, 16, 4, 2>(x, w, nbr, order, out, stream);
+    else launch_simt<scalar_t, 64, 64, 16, 4, 4>(x, w, nbr, order, out, stream);
+  });
+  return out;
+}
+
+at::Tensor sparse_conv_weight_grad_cuda(const at::Tensor& features, const at::Tensor& grad_in, const at::Tensor& nbr_in) {
+  check_weight_grad_args(features, grad_in, nbr_in);
+  const c10::cuda::OptionalCUDAGuard guard(features.device());
+  auto x = features.contiguous();
+  auto g = grad_in.contiguous();
+  auto nbr = nbr_in.contiguous();
+  const int64_t n_in = x.size(0), cin = x.size(1), cout = g.size(1), K = nbr.size(1), n_out = nbr.size(0);
+  const auto dtype = x.scalar_type();
+  const auto ct = dtype == at::kDouble ? at::kDouble : at::kFloat;
+  if (n_out == 0 || n_in == 0 || cin == 0 || cout == 0 || K == 0)
+    return at::zeros({cout, K, cin}, x.options());
+  constexpr int BCO = 32, BCI = 32, BR = 32, TCO = 2, TCI = 2;
+  const int64_t tiles = ceil_div(cout, BCO) * ceil_div(cin, BCI);
+  TORCH_CHECK_VALUE(tiles < (int64_t(1) << 31) && K < 65536, "sparse_conv_weight_grad: too many channels or offsets");
+  const int64_t sms = device_props(x.get_device()).sms;
+  // enough row splits to fill the GPU about four times over, each of at least 256 rows
+  const int64_t splits = std::max<int64_t>(
+      1, std::min<int64_t>({ceil_div(4 * sms, tiles * K), ceil_div(n_out, 256), int64_t(65535)}));
+  const int64_t rows_per_split = ceil_div(n_out, splits);
+  auto partial = at::empty({splits, cout, K, cin}, x.options().dtype(ct));
+  cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
+  const dim3 grid(static_cast<unsigned>(tiles), static_cast<unsigned>(K), static_cast<unsigned>(splits));
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, dtype, "lidarops_sparse_conv_wgrad", [&] {
+    conv_wgrad_kernel<scalar_t, BCO, BCI, BR, TCO, TCI><<<grid, (BCO / TCO) * (BCI / TCI), 0, stream>>>(
+        x.data_ptr<scalar_t>(), g.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(), partial.data_ptr<acc_t<scalar_t>>(),
+        n_out, cin, cout, K, rows_per_split);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  auto dw = splits == 1 ? partial.select(0, 0) : partial.sum(0);
+  return dw.to(dtype).contiguous();
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
+  m.impl("sparse_kernel_map_order", &sparse_kernel_map_order_cuda);
+  m.impl("sparse_conv", &sparse_conv_cuda);
+  m.impl("sparse_conv_weight_grad", &sparse_conv_weight_grad_cuda);
+}
+
+}  // namespace sparse
+}  // namespace lidarops

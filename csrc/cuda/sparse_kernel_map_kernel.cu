@@ -1,0 +1,301 @@
+// Kernel-map (rulebook) construction for sparse convolution on CUDA. Same results as the CPU kernels
+// (csrc/cpu/sparse_kernel_map_kernel.cpp):
+//   - output sites: marked in a dense byte grid and listed by at::nonzero (sorted), or inserted into a
+//     hash set (atomicCAS) and sorted; either way sorted by linear key, identical to the CPU order;
+//   - kernel map: input coordinates go into a dense index grid (atomicCAS on int32 slots) or an
+//     open-addressing hash table (atomicCAS on 64-bit keys, linear probing, capacity >= 2N); one
+//     thread per (output row, kernel offset) looks its input up.
+// Validation (coordinates outside the grid, duplicates) is flagged on the device and costs one host
+// sync per map; when a flag is set, the message is produced by the CPU checks on a host copy, so it
+// names the same rows as on CPU.
+#include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+
+#include "lidarops/sparse.h"
+
+namespace lidarops {
+namespace sparse {
+namespace {
+
+constexpr int kThreads = 256;
+
+inline int64_t blocks_for(int64_t n) { return std::max<int64_t>(1, (n + kThreads - 1) / kThreads); }
+
+__device__ __forceinline__ bool row_in_range(const int32_t* r, const ConvGeometry& g) {
+  if (r[0] < 0 || r[0] >= g.batch) return false;
+  for (int d = 0; d < g.ndim; ++d)
+    if (r[d + 1] < 0 || r[d + 1] >= g.in_shape[d]) return false;
+  return true;
+}
+
+__device__ __forceinline__ int64_t row_key(const int32_t* r, const int64_t* shape, int ndim) {
+  int64_t c[kMaxDim];
+  for (int d = 0; d < ndim; ++d) c[d] = r[d + 1];
+  return site_key(r[0], c, shape, ndim);
+}
+
+// flags[0]: smallest row outside the grid (INT64_MAX if none); flags[1]: 1 if a duplicate was seen.
+__global__ void check_range_kernel(const int32_t* __restrict__ idx, int64_t n, ConvGeometry g,
+                                   unsigned long long* flags) {
+  const int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (i >= n) return;
+  if (!row_in_range(idx + i * (g.ndim + 1), g)) atomicMin(flags, static_cast<unsigned long long>(i));
+}
+
+__global__ void insert_dense_kernel(const int32_t* __restrict__ idx, int64_t n, ConvGeometry g, int32_t* grid,
+                                    unsigned long long* flags) {
+  const int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (i >= n) return;
+  const int32_t* r = idx + i * (g.ndim + 1);
+  if (!row_in_range(r, g)) {
+    atomicMin(flags, static_cast<unsigned long long>(i));
+    return;
+  }
+  const int64_t key = row_key(r, g.in_shape, g.ndim);
+  const int32_t prev = atomicCAS(grid + key, -1, static_cast<int32_t>(i));
+  if (prev != -1) atomicExch(flags + 1, 1ULL);
+}
+
+__device__ __forceinline__ bool hash_insert(unsigned long long* keys, int32_t* vals, uint64_t mask, int64_t key,
+                                            int32_t val) {
+  uint64_t h = mix64(static_cast<uint64_t>(key)) & mask;
+  const unsigned long long empty = static_cast<unsigned long long>(kEmptyKey);
+  while (true) {
+    const unsigned long long prev = atomicCAS(keys + h, empty, static_cast<unsigned long long>(key));
+    if (prev == empty) {
+      if (vals != nullptr) vals[h] = val;
+      return true;
+    }
+    if (prev == static_cast<unsigned long long>(key)) return false;
+    h = (h + 1) & mask;
+  }
+}
+
+__global__ void insert_hash_kernel(const int32_t* __restrict__ idx, int64_t n, ConvGeometry g, unsigned long long* keys,
+                                   int32_t* vals, uint64_t mask, unsigned long long* flags) {
+  const int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (i >= n) return;
+  const int32_t* r = idx + i * (g.ndim + 1);
+  if (!row_in_range(r, g)) {
+    atomicMin(flags, static_cast<unsigned long long>(i));
+    return;
+  }
+  if (!hash_insert(keys, vals, mask, row_key(r, g.in_shape, g.ndim), static_cast<int32_t>(i)))
+    atomicExch(flags + 1, 1ULL);
+}
+
+// One thread per (input row, kernel offset): mark (dense byte grid) or insert (hash set) the output site.
+template <bool kDense>
+__global__ void mark_outputs_kernel(const int32_t* __restrict__ idx, int64_t n, ConvGeometry g, uint8_t* mark,
+                                    unsigned long long* keys, uint64_t mask) {
+  const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (t >= n * g.kvol) return;
+  const int64_t i = t / g.kvol, k = t % g.kvol;
+  const int32_t* r = idx + i * (g.ndim + 1);
+  int64_t p[kMaxDim], q[kMaxDim], off[kMaxDim];
+  for (int d = 0; d < g.ndim; ++d) p[d] = r[d + 1];
+  kernel_offsets(g, k, off);
+  if (!output_of_input(g, p, off, q)) return;
+  const int64_t key = site_key(r[0], q, g.out_shape, g.ndim);
+  if (kDense) mark[key] = 1;  // benign race: every writer stores the same byte
+  else hash_insert(keys, nullptr, mask, key, 0);
+}
+
+__global__ void decode_keys_kernel(const int64_t* __restrict__ keys, int64_t m, ConvGeometry g, int32_t* out) {
+  const int64_t j = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (j >= m) return;
+  int64_t b, c[kMaxDim];
+  decode_key(keys[j], g.out_shape, g.ndim, &b, c);
+  int32_t* r = out + j * (g.ndim + 1);
+  r[0] = static_cast<int32_t>(b);
+  for (int d = 0; d < g.ndim; ++d) r[d + 1] = static_cast<int32_t>(c[d]);
+}
+
+__global__ void lookup_kernel(const int32_t* __restrict__ out_idx, int64_t m, ConvGeometry g, TableView table,
+                              int32_t* __restrict__ nbr) {
+  const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (t >= m * g.kvol) return;
+  const int64_t o = t / g.kvol, k = t % g.kvol;
+  const int32_t* r = out_idx + o * (g.ndim + 1);
+  int32_t result = -1;
+  const int64_t b = r[0];
+  if (b >= 0 && b < g.batch) {
+    int64_t q[kMaxDim], p[kMaxDim], off[kMaxDim];
+    for (int d = 0; d < g.ndim; ++d) q[d] = r[d + 1];
+    kernel_offsets(g, k, off);
+    if (input_of_output(g, q, off, p)) result = table.find(site_key(b, p, g.in_shape, g.ndim));
+  }
+  nbr[t] = result;
+}
+
+__global__ void transpose_kernel(const int32_t* __restrict__ nbr, int64_t m, int64_t K, int64_t n_in,
+                                 int32_t* __restrict__ out) {
+  const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (t >= m * K) return;
+  const int32_t i = nbr[t];
+  if (i >= 0 && i < n_in) out[static_cast<int64_t>(i) * K + t % K] = static_cast<int32_t>(t / K);
+}
+
+// Raise the CPU's message for the rows flagged on the device (one host sync).
+void raise_flags(const at::Tensor& flags, const at::Tensor& idx, const ConvGeometry& g, bool check_dups) {
+  const auto host = flags.cpu();
+  const auto* f = reinterpret_cast<const unsigned long long*>(host.data_ptr<int64_t>());
+  const bool bad_range = f[0] != ~0ULL, dup = check_dups && f[1] != 0;
+  if (!bad_range && !dup) return;
+  const auto cpu = idx.cpu();
+  raise_if_out_of_range(cpu, "indices", g.batch, g.in_shape, g.ndim);
+  raise_if_duplicates(cpu, "indices", g.batch, g.in_shape, g.ndim);
+  TORCH_CHECK_VALUE(false, "indices hold duplicate coordinates; a sparse tensor needs unique coordinates");
+}
+
+at::Tensor new_flags(const at::Tensor& like) {
+  auto flags = at::zeros({2}, like.options().dtype(at::kLong));
+  flags.select(0, 0).fill_(-1);  // all bits set: "no bad row" for atomicMin on unsigned
+  return flags;
+}
+
+unsigned long long* flag_ptr(at::Tensor& flags) {
+  return reinterpret_cast<unsigned long long*>(flags.data_ptr<int64_t>());
+}
+
+struct DeviceTable {
+  at::Tensor dense, keys, vals;
+  int64_t mask = 0;
+  TableView view() const {
+    TableView v;
+    if (dense.defined()) {
+      v.dense = dense.data_ptr<int32_t>();
+    } else {
+      v.keys = keys.data_ptr<int64_t>();
+      v.vals = vals.data_ptr<int32_t>();
+      v.mask = mask;
+    }
+    return v;
+  }
+};
+
+DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64_t method, bool validate) {
+  const int64_t n = idx.size(0);
+  TORCH_CHECK_VALUE(n < INT32_MAX, "indices has ", n, " rows; at most 2^31 - 2 are supported");
+  auto stream = c10::cuda::getCurrentCUDAStream();
+  auto flags = new_flags(idx);
+  DeviceTable t;
+  const int64_t cells = grid_cells(g.batch, g.in_shape, g.ndim);
+  if (use_dense_table(cells, n, method)) {
+    t.dense = at::full({cells}, -1, idx.options().dtype(at::kInt));
+    insert_dense_kernel<<<blocks_for(n), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
+                                                                t.dense.data_ptr<int32_t>(), flag_ptr(flags));
+  } else {
+    const int64_t cap = hash_capacity(n);
+    t.mask = cap - 1;
+    t.keys = at::full({cap}, kEmptyKey, idx.options().dtype(at::kLong));
+    t.vals = at::full({cap}, -1, idx.options().dtype(at::kInt));
+    insert_hash_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
+        idx.data_ptr<int32_t>(), n, g, reinterpret_cast<unsigned long long*>(t.keys.data_ptr<int64_t>()),
+        t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), flag_ptr(flags));
+  }
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  if (validate) raise_flags(flags, idx, g, /*check_dups=*/true);
+  return t;
+}
+
+at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t batch_size, at::IntArrayRef spatial_shape,
+                                        at::IntArrayRef out_spatial_shape, at::IntArrayRef kernel_size,
+                                        at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
+                                        bool transposed, int64_t method) {
+  TORCH_CHECK_VALUE(!out_spatial_shape.empty(), "out_spatial_shape must be given");
+  const ConvGeometry g = make_geometry(batch_size, spatial_shape, out_spatial_shape, kernel_size, stride, padding,
+                                       dilation, transposed);
+  check_indices(indices_in, "indices", g.ndim);
+  TORCH_CHECK_VALUE(method >= 0 && method <= 2, "method must be 0 (auto), 1 (dense) or 2 (hash), got ", method);
+  const c10::cuda::OptionalCUDAGuard guard(indices_in.device());
+  auto idx = indices_in.contiguous();
+  const int64_t n = idx.size(0), K = g.kvol;
+  if (n == 0) return at::empty({0, g.ndim + 1}, idx.options());
+  auto stream = c10::cuda::getCurrentCUDAStream();
+  {  // out-of-range input rows would index outside the grids below: check first (one sync)
+    auto flags = new_flags(idx);
+    check_range_kernel<<<blocks_for(n), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g, flag_ptr(flags));
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    raise_flags(flags, idx, g, /*check_dups=*/false);
+  }
+  const int64_t cells = grid_cells(g.batch, g.out_shape, g.ndim);
+  at::Tensor keys;
+  if (use_dense_table(cells, n, method)) {
+    auto mark = at::zeros({cells}, idx.options().dtype(at::kByte));
+    mark_outputs_kernel<true><<<blocks_for(n * K), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
+                                                                          mark.data_ptr<uint8_t>(), nullptr, 0);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    keys = at::nonzero(mark).view({-1});  // sorted ascending
+  } else {
+    const int64_t cap = hash_capacity(n * K);
+    auto set = at::full({cap}, kEmptyKey, idx.options().dtype(at::kLong));
+    mark_outputs_kernel<false><<<blocks_for(n * K), kThreads, 0, stream>>>(
+        idx.data_ptr<int32_t>(), n, g, nullptr, reinterpret_cast<unsigned long long*>(set.data_ptr<int64_t>()),
+        static_cast<uint64_t>(cap - 1));
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    keys = std::get<0>(at::sort(set.masked_select(set != kEmptyKey)));
+  }
+  const int64_t m = keys.numel();
+  TORCH_CHECK_VALUE(m < INT32_MAX, "the convolution has ", m, " output sites; at most 2^31 - 2 are supported");
+  auto out = at::empty({m, g.ndim + 1}, idx.options());
+  if (m > 0) {
+    decode_keys_kernel<<<blocks_for(m), kThreads, 0, stream>>>(keys.contiguous().data_ptr<int64_t>(), m, g,
+                                                               out.data_ptr<int32_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+  return out;
+}
+
+at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_indices_in, int64_t batch_size,
+                                  at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
+                                  at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
+                                  int64_t method) {
+  const ConvGeometry g = make_geometry(batch_size, spatial_shape, {}, kernel_size, stride, padding, dilation, transposed);
+  check_indices(indices_in, "indices", g.ndim);
+  check_indices(out_indices_in, "out_indices", g.ndim);
+  TORCH_CHECK_VALUE(method >= 0 && method <= 2, "method must be 0 (auto), 1 (dense) or 2 (hash), got ", method);
+  TORCH_CHECK_VALUE(indices_in.device() == out_indices_in.device(), "out_indices is on ", out_indices_in.device(),
+                    " but indices is on ", indices_in.device());
+  const c10::cuda::OptionalCUDAGuard guard(indices_in.device());
+  auto idx = indices_in.contiguous();
+  auto oidx = out_indices_in.contiguous();
+  const int64_t m = oidx.size(0), K = g.kvol;
+  auto nbr = at::empty({m, K}, idx.options());
+  if (m == 0) return nbr;
+  if (idx.size(0) == 0) return nbr.fill_(-1);
+  const DeviceTable table = build_table_cuda(idx, g, method, validate);
+  auto stream = c10::cuda::getCurrentCUDAStream();
+  lookup_kernel<<<blocks_for(m * K), kThreads, 0, stream>>>(oidx.data_ptr<int32_t>(), m, g, table.view(),
+                                                            nbr.data_ptr<int32_t>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return nbr;
+}
+
+at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_in) {
+  TORCH_CHECK_VALUE(nbr_in.dim() == 2 && nbr_in.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
+                    nbr_in.sizes(), " and dtype ", nbr_in.scalar_type());
+  TORCH_CHECK_VALUE(n_in >= 0 && n_in < INT32_MAX, "n_in must lie in [0, 2^31 - 1), got ", n_in);
+  const c10::cuda::OptionalCUDAGuard guard(nbr_in.device());
+  auto nbr = nbr_in.contiguous();
+  const int64_t m = nbr.size(0), K = nbr.size(1);
+  auto out = at::full({n_in, K}, -1, nbr.options());
+  if (m == 0 || n_in == 0 || K == 0) return out;
+  // entries outside [-1, n_in) are skipped (no host sync to report them)
+  transpose_kernel<<<blocks_for(m * K), kThreads, 0, c10::cuda::getCurrentCUDAStream()>>>(
+      nbr.data_ptr<int32_t>(), m, K, n_in, out.data_ptr<int32_t>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return out;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
+  m.impl("sparse_conv_out_indices", &sparse_conv_out_indices_cuda);
+  m.impl("sparse_kernel_map", &sparse_kernel_map_cuda);
+  m.impl("sparse_kernel_map_transpose", &sparse_kernel_map_transpose_cuda);
+}
+
+}  // namespace sparse
+}  // namespace lidarops

@@ -1,0 +1,41 @@
+// Schemas of the sparse convolution ops. Kernels: csrc/cpu/sparse_*_kernel.cpp,
+// csrc/cuda/sparse_*_kernel.cu; fake kernels and autograd: lidarops/sparse/_registrations.py.
+// Conventions (indices layout, keys, kernel-offset order, transposed pairing): csrc/include/lidarops/sparse.h.
+#include <torch/library.h>
+
+TORCH_LIBRARY_FRAGMENT(lidarops, m) {
+  // Output sites of a regular (transposed=False) or transposed convolution: every site of the output
+  // grid that some input site feeds through some kernel offset. indices (N, 1 + D) int32 ->
+  // (M, 1 + D) int32, sorted by linear key (batch, then row-major coordinates). Data-dependent M.
+  // method: 0 auto, 1 dense grid, 2 hash table.
+  m.def(
+      "sparse_conv_out_indices(Tensor indices, int batch_size, int[] spatial_shape, int[] out_spatial_shape,"
+      " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False, int method=0)"
+      " -> Tensor");
+  // Kernel map: (N_out, K) int32, entry [o, k] = input row feeding out_indices[o] through offset k, or -1.
+  // validate: raise ValueError for input coordinates outside the grid or duplicated (costs one host
+  // sync on CUDA); without it such rows are ignored (never read out of bounds).
+  m.def(
+      "sparse_kernel_map(Tensor indices, Tensor out_indices, int batch_size, int[] spatial_shape,"
+      " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False,"
+      " bool validate=True, int method=0) -> Tensor");
+  // Transposed kernel map: (n_in, K) int32 with [i, k] = o wherever kernel_map[o, k] = i, else -1
+  // (unique: for a fixed offset the pairing is one-to-one).
+  m.def("sparse_kernel_map_transpose(Tensor kernel_map, int n_in) -> Tensor");
+  // Processing order of the output rows for the fused GPU kernel: a permutation (N_out,) int32 that
+  // sorts the rows by the bit mask of their present kernel offsets (stable), so that the rows of one
+  // tile share their offsets and absent offsets are skipped. Offsets beyond the 63rd do not count.
+  m.def("sparse_kernel_map_order(Tensor kernel_map) -> Tensor");
+  // out[o] = sum_k weight[:, k, :] @ features[kernel_map[o, k]]: features (N_in, Cin),
+  // weight (Cout, K, Cin), kernel_map (N_out, K) int32 -> (N_out, Cout). Accumulates in float32
+  // (float64 for float64). order (optional, from sparse_kernel_map_order) only changes the speed.
+  m.def("sparse_conv(Tensor features, Tensor weight, Tensor kernel_map, Tensor? order=None) -> Tensor");
+  // Gradient of sparse_conv with respect to weight: (Cout, K, Cin), sum over o of
+  // grad_out[o] (x) features[kernel_map[o, k]].
+  m.def("sparse_conv_weight_grad(Tensor features, Tensor grad_out, Tensor kernel_map) -> Tensor");
+  // Max over the kernel window: features (N_in, C), kernel_map (N_out, K) -> (out (N_out, C),
+  // argmax (N_out, C) int64 input row, -1 where no input). Ties to the first offset; NaN propagates.
+  m.def("sparse_max_pool(Tensor features, Tensor kernel_map) -> (Tensor, Tensor)");
+  // Adjoint of sparse_max_pool: grad (N_out, C), argmax (N_out, C), kernel_map_t (N_in, K) -> (N_in, C).
+  m.def("sparse_max_pool_backward(Tensor grad, Tensor argmax, Tensor kernel_map_t) -> Tensor");
+}

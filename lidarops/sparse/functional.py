@@ -1,0 +1,476 @@
+"""Sparse convolution: kernel maps, gather-GEMM-scatter convolution and max pooling.
+
+Semantics (checked by tests/test_sparse_*.py against dense PyTorch on ``x.dense()``):
+
+- ``"conv"`` (regular): ``conv(x, w).dense() == F.convNd(x.dense(), w')`` read at the output sites,
+  which are every site of the output grid whose receptive field holds an input site.
+- ``"subm"`` (submanifold): the dense convolution with ``padding = dilation * (k // 2)`` and stride 1,
+  read at the input sites; the output has exactly the input's sites.
+- ``"transposed"``: ``F.conv_transposeNd(x.dense(), w'')`` read at every site some input reaches.
+- ``"inverse"``: back to the input sites of the strided convolution registered under the same
+  ``indice_key``: ``F.conv_transposeNd`` with that convolution's stride/padding/dilation, no kernel
+  flip, and ``output_padding`` chosen to land exactly on its input grid.
+
+with ``w' = w.permute(0, D + 1, 1, ..., D)`` (``[Cout, Cin, *k]``) and ``w'' = w.permute(D + 1, 0, 1,
+..., D)`` (``[Cin, Cout, *k]``) for weights in spconv 2.x's layout ``w[Cout, *kernel, Cin]``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from lidarops import extension
+from lidarops.ops.validation import check_tensor, describe, run_value_checks, value_checks_enabled
+from lidarops.sparse.tensor import KernelMap, SparseConvTensor
+
+extension.load()
+from lidarops.sparse import _registrations  # noqa: E402,F401  (fake kernels and autograd)
+
+__all__ = [
+    "conv_output_shape", "conv_transpose_output_shape", "conv_out_indices", "kernel_map", "build_kernel_map",
+    "sparse_conv", "conv", "max_pool",
+]
+
+_METHODS = {"auto": 0, "dense": 1, "hash": 2}
+_KINDS = ("subm", "conv", "transposed", "inverse")
+
+
+def _ntuple(v, ndim: int, name: str, minimum: int) -> tuple:
+    if isinstance(v, bool):
+        raise ValueError(f"{name} must be an int or a sequence of {ndim} ints, got {v!r}")
+    if isinstance(v, int):
+        t = (v,) * ndim
+    else:
+        try:
+            t = tuple(int(e) for e in v)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be an int or a sequence of {ndim} ints, got {v!r}") from None
+        if any(isinstance(e, bool) or (isinstance(e, float) and not float(e).is_integer()) for e in v):
+            raise ValueError(f"{name} must hold ints, got {v!r}")
+    if len(t) != ndim:
+        raise ValueError(f"{name} must have {ndim} entries (one per spatial dimension), got {v!r}")
+    if any(e < minimum for e in t):
+        raise ValueError(f"{name} entries must be >= {minimum}, got {v!r}")
+    return t
+
+
+def _method(method: str) -> int:
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
+    return _METHODS[method]
+
+
+def conv_output_shape(spatial_shape: Sequence[int], kernel_size, stride=1, padding=0, dilation=1) -> tuple:
+    """Output grid of a regular convolution (PyTorch's and spconv's formula)."""
+    D = len(spatial_shape)
+    k, s = _ntuple(kernel_size, D, "kernel_size", 1), _ntuple(stride, D, "stride", 1)
+    p, d = _ntuple(padding, D, "padding", 0), _ntuple(dilation, D, "dilation", 1)
+    out = tuple((n + 2 * p[i] - d[i] * (k[i] - 1) - 1) // s[i] + 1 for i, n in enumerate(spatial_shape))
+    if any(o < 1 for o in out):
+        raise ValueError(f"the convolution (kernel {k}, stride {s}, padding {p}, dilation {d}) leaves no output "
+                         f"site on the grid {list(spatial_shape)}: output grid {list(out)}")
+    return out
+
+
+def conv_transpose_output_shape(spatial_shape: Sequence[int], kernel_size, stride=1, padding=0, dilation=1,
+                                output_padding=0) -> tuple:
+    """Output grid of a transposed convolution (PyTorch's formula, ``conv_transposeNd``)."""
+    D = len(spatial_shape)
+    k, s = _ntuple(kernel_size, D, "kernel_size", 1), _ntuple(stride, D, "stride", 1)
+    p, d = _ntuple(padding, D, "padding", 0), _ntuple(dilation, D, "dilation", 1)
+    op = _ntuple(output_padding, D, "output_padding", 0)
+    if any(op[i] >= max(s[i], d[i]) for i in range(D)):
+        raise ValueError(f"output_padding must be smaller than stride or dilation, got output_padding {op}, "
+                         f"stride {s}, dilation {d}")
+    out = tuple((n - 1) * s[i] - 2 * p[i] + d[i] * (k[i] - 1) + op[i] + 1 for i, n in enumerate(spatial_shape))
+    if any(o < 1 for o in out):
+        raise ValueError(f"the transposed convolution leaves an empty output grid {list(out)}")
+    return out
+
+
+def _check_indices(indices, name: str, ndim: Optional[int] = None) -> None:
+    check_tensor(indices, name)
+    if indices.dim() != 2 or indices.shape[1] < 2 or (ndim is not None and indices.shape[1] != ndim + 1):
+        want = "(N, 1 + D)" if ndim is None else f"(N, {ndim + 1})"
+        raise ValueError(f"{name} must be {want} int32 with the batch index in column 0, got {describe(indices)}")
+    if indices.dtype != torch.int32:
+        raise ValueError(f"{name} must be int32, got {describe(indices)}")
+    extension.check_device(indices, name)
+
+
+def conv_out_indices(indices: Tensor, batch_size: int, spatial_shape: Sequence[int], out_spatial_shape: Sequence[int],
+                     kernel_size, stride=1, padding=0, dilation=1, transposed: bool = False,
+                     method: str = "auto") -> Tensor:
+    """Output sites of a regular or transposed sparse convolution.
+
+    Args:
+        indices (Tensor[N, 1 + D] int32): input sites (batch, coordinates), inside the grid.
+        batch_size (int), spatial_shape (Sequence[int]): the input grid.
+        out_spatial_shape (Sequence[int]): the output grid (see :func:`conv_output_shape`).
+        kernel_size, stride, padding, dilation: ints or D-sequences.
+        transposed (bool): transposed convolution (input p reaches q = p * stride - padding + t * dilation).
+        method (str): ``"auto"``, ``"dense"`` (index grid) or ``"hash"``; same result.
+
+    Returns:
+        Tensor[M, 1 + D] int32: every output site reached by some input site, sorted by linear index
+        (batch, then row-major coordinates), so the order is the same on every device.
+    """
+    _check_indices(indices, "indices")
+    D = indices.shape[1] - 1
+    shape = _ntuple(spatial_shape, D, "spatial_shape", 1)
+    out_shape = _ntuple(out_spatial_shape, D, "out_spatial_shape", 1)
+    return torch.ops.lidarops.sparse_conv_out_indices(
+        indices, int(batch_size), list(shape), list(out_shape), list(_ntuple(kernel_size, D, "kernel_size", 1)),
+        list(_ntuple(stride, D, "stride", 1)), list(_ntuple(padding, D, "padding", 0)),
+        list(_ntuple(dilation, D, "dilation", 1)), bool(transposed), _method(method))
+
+
+def kernel_map(indices: Tensor, out_indices: Tensor, batch_size: int, spatial_shape: Sequence[int], kernel_size,
+               stride=1, padding=0, dilation=1, transposed: bool = False, validate: bool = True,
+               method: str = "auto") -> Tensor:
+    """Kernel map (rulebook) between input and output sites.
+
+    ``out_indices`` may be any set of output sites (e.g. only the sites that changed), so a map
+    restricted to a subset costs only that subset.
+
+    Args:
+        indices (Tensor[N_in, 1 + D] int32): input sites, unique and inside ``spatial_shape``.
+        out_indices (Tensor[N_out, 1 + D] int32): output sites.
+        batch_size, spatial_shape: the input grid.
+        kernel_size, stride, padding, dilation: geometry; for a submanifold convolution pass
+            ``out_indices = indices``, stride 1 and ``padding = dilation * (kernel_size // 2)``.
+        transposed (bool): pairing of a transposed convolution.
+        validate (bool): raise ValueError for input sites outside the grid or duplicated (one host
+            sync on CUDA); when False such rows are skipped.
+        method (str): coordinate table, ``"auto"``, ``"dense"`` or ``"hash"``; same result.
+
+    Returns:
+        Tensor[N_out, K] int32: ``[o, k]`` = input row feeding output row o through kernel offset k
+        (row-major over the kernel window), or -1.
+    """
+    _check_indices(indices, "indices")
+    D = indices.shape[1] - 1
+    _check_indices(out_indices, "out_indices", D)
+    if out_indices.device != indices.device:
+        raise ValueError(f"out_indices is on {out_indices.device} but indices is on {indices.device}")
+    return torch.ops.lidarops.sparse_kernel_map(
+        indices, out_indices, int(batch_size), list(_ntuple(spatial_shape, D, "spatial_shape", 1)),
+        list(_ntuple(kernel_size, D, "kernel_size", 1)), list(_ntuple(stride, D, "stride", 1)),
+        list(_ntuple(padding, D, "padding", 0)), list(_ntuple(dilation, D, "dilation", 1)), bool(transposed),
+        bool(validate), _method(method))
+
+
+def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padding=0, dilation=1,
+                     output_padding=0, out_spatial_shape: Optional[Sequence[int]] = None,
+                     method: str = "auto") -> KernelMap:
+    """Build the kernel map of one layer on the sites of ``x``.
+
+    Args:
+        x (SparseConvTensor): input sites.
+        kind (str): ``"subm"``, ``"conv"``, ``"pool"`` (as conv) or ``"transposed"``.
+        kernel_size, stride, padding, dilation, output_padding: geometry (a submanifold map ignores
+            stride and padding: stride 1, padding ``dilation * (k // 2)``).
+        out_spatial_shape (Sequence[int], optional): override the output grid (spconv's transposed
+            formula differs from PyTorch's when dilation > 1).
+        method (str): coordinate table, ``"auto"``, ``"dense"`` or ``"hash"``.
+
+    Returns:
+        KernelMap.
+    """
+    if not isinstance(x, SparseConvTensor):
+        raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
+    extension.check_device(x.indices, "indices")
+    D = x.ndim
+    k = _ntuple(kernel_size, D, "kernel_size", 1)
+    d = _ntuple(dilation, D, "dilation", 1)
+    shape = tuple(x.spatial_shape)
+    m = _method(method)
+    ops = torch.ops.lidarops
+    if kind == "subm":
+        s, p = (1,) * D, tuple(d[i] * (k[i] // 2) for i in range(D))
+        out_shape, out_indices, transposed = shape, x.indices, False
+    elif kind in ("conv", "pool", "transposed"):
+        s, p = _ntuple(stride, D, "stride", 1), _ntuple(padding, D, "padding", 0)
+        transposed = kind == "transposed"
+        if out_spatial_shape is not None:
+            out_shape = _ntuple(out_spatial_shape, D, "out_spatial_shape", 1)
+        elif transposed:
+            out_shape = conv_transpose_output_shape(shape, k, s, p, d, output_padding)
+        else:
+            out_shape = conv_output_shape(shape, k, s, p, d)
+        out_indices = ops.sparse_conv_out_indices(x.indices, x.batch_size, list(shape), list(out_shape), list(k),
+                                                  list(s), list(p), list(d), transposed, m)
+    else:
+        raise ValueError(f"kind must be 'subm', 'conv', 'pool' or 'transposed', got {kind!r}")
+    neighbors = ops.sparse_kernel_map(x.indices, out_indices, x.batch_size, list(shape), list(k), list(s), list(p),
+                                      list(d), transposed, True, m)
+    km = KernelMap(kind=kind, indices=x.indices, out_indices=out_indices, spatial_shape=shape,
+                   out_spatial_shape=tuple(out_shape), kernel_size=k, stride=s, padding=p, dilation=d,
+                   neighbors=neighbors)
+    km.order  # noqa: B018  (on CUDA: part of the construction, so that layers using the map do not pay it)
+    return km
+
+
+def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Optional[Tensor] = None) -> Tensor:
+    """Gather-GEMM-scatter convolution over a kernel map.
+
+    Args:
+        features (Tensor[N_in, Cin]): float32/float64/float16/bfloat16.
+        weight (Tensor[Cout, *kernel, Cin] or Tensor[Cout, K, Cin]): same dtype and device.
+        neighbors (Tensor[N_out, K] int32): a kernel map (:func:`kernel_map`), entries in [-1, N_in).
+        order (Tensor[N_out] int32, optional): processing order of the output rows for the CUDA kernel
+            (``torch.ops.lidarops.sparse_kernel_map_order(neighbors)``, cached as ``KernelMap.order``);
+            it changes only the speed.
+
+    Returns:
+        Tensor[N_out, Cout]: ``out[o] = sum_k weight[:, k, :] @ features[neighbors[o, k]]``,
+        accumulated in float32 (float64 for float64). Differentiable with respect to features and
+        weight (gradcheck-clean, twice differentiable).
+    """
+    check_tensor(features, "features")
+    check_tensor(weight, "weight")
+    check_tensor(neighbors, "neighbors")
+    if features.dim() != 2 or not features.is_floating_point():
+        raise ValueError(f"features must be a floating (N_in, Cin) tensor, got {describe(features)}")
+    if weight.dim() < 3 or weight.dtype != features.dtype:
+        raise ValueError(f"weight must be (Cout, *kernel, Cin) with the dtype of features ({features.dtype}), "
+                         f"got {describe(weight)}")
+    if neighbors.dim() != 2 or neighbors.dtype != torch.int32:
+        raise ValueError(f"neighbors must be an (N_out, K) int32 kernel map, got {describe(neighbors)}")
+    for name, t in (("weight", weight), ("neighbors", neighbors)):
+        if t.device != features.device:
+            raise ValueError(f"{name} is on {t.device} but features is on {features.device}")
+    extension.check_device(features, "features")
+    w = weight.reshape(weight.shape[0], -1, weight.shape[-1])
+    if w.shape[1] != neighbors.shape[1] or w.shape[2] != features.shape[1]:
+        raise ValueError(f"weight {tuple(weight.shape)} must be (Cout, K = {neighbors.shape[1]} offsets, "
+                         f"Cin = {features.shape[1]})")
+    if value_checks_enabled() and neighbors.numel():
+        n = features.shape[0]
+        run_value_checks([(((neighbors < -1) | (neighbors >= n)).any(),
+                           lambda: f"neighbors must lie in [-1, {n}), got values in "
+                                   f"[{int(neighbors.min())}, {int(neighbors.max())}]")])
+    if order is not None and (order.dtype != torch.int32 or order.shape != (neighbors.shape[0],)
+                              or order.device != neighbors.device):
+        raise ValueError(f"order must be an ({neighbors.shape[0]},) int32 permutation on {neighbors.device}, "
+                         f"got {describe(order)}")
+    return torch.ops.lidarops.sparse_conv(features, w, neighbors, order)
+
+
+# ---- layer-level functions on SparseConvTensor ----------------------------------------------------
+
+def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, padding, dilation, output_padding,
+                    indice_key, out_spatial_shape, method) -> tuple:
+    """(kernel map, indice_dict of the output) under spconv's reuse rules, with fit checks."""
+    cache = x.indice_dict
+    if kind == "inverse":
+        if indice_key is None:
+            raise ValueError("an inverse convolution needs the indice_key of the strided convolution it inverts")
+        km = cache.get(indice_key)
+        if km is None:
+            raise ValueError(f"indice_key {indice_key!r} is not in this tensor's indice_dict (keys: {sorted(cache)}); "
+                             "an inverse convolution must follow the convolution that registered it")
+        if km.kind not in ("conv", "pool", "transposed"):
+            raise ValueError(f"indice_key {indice_key!r} holds a {km.kind} kernel map; an inverse convolution "
+                             "inverts a regular (strided) convolution, a transposed convolution or a max pool")
+        if tuple(ksize) != km.kernel_size:
+            raise ValueError(f"the inverse convolution has kernel {tuple(ksize)} but the convolution registered "
+                             f"under {indice_key!r} has kernel {km.kernel_size}; they must be equal")
+        if x.indices.shape[0] != km.out_indices.shape[0] or tuple(x.spatial_shape) != km.out_spatial_shape:
+            raise ValueError(f"the inverse convolution's input ({x.indices.shape[0]} sites on grid {x.spatial_shape}) "
+                             f"is not the output of the convolution registered under {indice_key!r} "
+                             f"({km.out_indices.shape[0]} sites on grid {list(km.out_spatial_shape)})")
+        return km.inverse(), cache
+    D = x.ndim
+    if indice_key is not None and indice_key in cache:
+        km = cache[indice_key]
+        d = _ntuple(dilation, D, "dilation", 1)
+        fits = (km.kind == kind and km.kernel_size == tuple(ksize) and km.dilation == d
+                and km.indices.shape[0] == x.indices.shape[0] and km.spatial_shape == tuple(x.spatial_shape))
+        if fits and kind != "subm":
+            fits = (km.stride == _ntuple(stride, D, "stride", 1) and km.padding == _ntuple(padding, D, "padding", 0))
+        if not fits:
+            raise ValueError(
+                f"indice_key {indice_key!r} holds the kernel map of a {km.kind} layer (kernel {km.kernel_size}, "
+                f"stride {km.stride}, dilation {km.dilation}, {km.indices.shape[0]} input sites on grid "
+                f"{list(km.spatial_shape)}) that does not fit this {kind} layer (kernel {tuple(ksize)}, "
+                f"{x.indices.shape[0]} input sites on grid {x.spatial_shape}); give this layer its own indice_key")
+        return km, cache
+    km = build_kernel_map(x, kind, ksize, stride, padding, dilation, output_padding, out_spatial_shape, method)
+    if indice_key is not None:
+        cache = dict(cache)
+        cache[indice_key] = km
+    return km, cache
+
+
+def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kind: str = "conv", stride=1,
+         padding=0, dilation=1, output_padding=0, indice_key: Optional[str] = None,
+         out_spatial_shape: Optional[Sequence[int]] = None, method: str = "auto") -> SparseConvTensor:
+    """Sparse convolution of one layer.
+
+    Args:
+        x (SparseConvTensor): input, features (N, Cin).
+        weight (Tensor[Cout, *kernel, Cin]): spconv 2.x layout, dtype of ``x.features``.
+        bias (Tensor[Cout], optional).
+        kind (str): ``"subm"``, ``"conv"``, ``"transposed"`` or ``"inverse"`` (see the module docstring).
+        stride, padding, dilation, output_padding: geometry (ignored by ``"inverse"``, which takes the
+            registered convolution's; ``"subm"`` uses stride 1 and padding ``dilation * (k // 2)``).
+        indice_key (str, optional): kernel-map cache key. A layer whose key is in ``x.indice_dict``
+            reuses that map (it must fit: same kind, kernel, dilation, stride, padding and input
+            sites, else ValueError); otherwise the new map is registered in the output's dict.
+        out_spatial_shape (Sequence[int], optional): override the output grid of conv / transposed.
+        method (str): coordinate table for a new map: ``"auto"``, ``"dense"`` or ``"hash"``.
+
+    Returns:
+        SparseConvTensor with features (N_out, Cout): same sites as x for ``"subm"``, the registered
+        convolution's input sites for ``"inverse"``, else the reached output sites in linear order.
+    """
+    if not isinstance(x, SparseConvTensor):
+        raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
+    if kind not in _KINDS:
+        raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
+    D = x.ndim
+    check_tensor(weight, "weight")
+    cin = x.features.shape[1]
+    if weight.dim() != D + 2 or weight.shape[-1] != cin:
+        raise ValueError(f"weight must be (Cout, *kernel ({D} dims), Cin = {cin}) for this {D}D input, "
+                         f"got {describe(weight)}")
+    if weight.dtype != x.features.dtype or weight.device != x.features.device:
+        raise ValueError(f"weight ({weight.dtype}, {weight.device}) must match the features "
+                         f"({x.features.dtype}, {x.features.device})")
+    if not x.features.is_floating_point():
+        raise ValueError(f"features must be floating point, got {describe(x.features)}")
+    if bias is not None and (bias.shape != (weight.shape[0],) or bias.dtype != weight.dtype):
+        raise ValueError(f"bias must be ({weight.shape[0]},) of dtype {weight.dtype}, got {describe(bias)}")
+    extension.check_device(x.features, "features")
+    ksize = tuple(weight.shape[1:-1])
+    cout, K = weight.shape[0], math.prod(ksize)
+    w = weight.reshape(cout, K, cin)
+    if kind == "subm" and K == 1:
+        # every site is its own only neighbour: a matrix product, no kernel map needed
+        out = x.features.matmul(w[:, 0, :].t())
+        y = x.replace_feature(out + bias if bias is not None else out)
+        return y
+    km, cache = _kernel_map_for(x, kind, ksize, stride, padding, dilation, output_padding, indice_key,
+                                out_spatial_shape, method)
+    out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order)
+    if bias is not None:
+        out = out + bias
+    return SparseConvTensor(out, km.out_indices, list(km.out_spatial_shape), x.batch_size, indice_dict=cache)
+
+
+def max_pool(x: SparseConvTensor, kernel_size, stride=None, padding=0, dilation=1, subm: bool = False,
+             indice_key: Optional[str] = None, method: str = "auto") -> SparseConvTensor:
+    """Sparse max pooling: the maximum over the active sites of each output's window.
+
+    Output sites are those of a regular convolution with the same geometry (``subm=True``: the input
+    sites, window centred). Inactive sites do not take part (a window of negative features gives a
+    negative maximum, not zero). Ties go to the first kernel offset; NaN propagates.
+
+    Args:
+        x (SparseConvTensor): input.
+        kernel_size, stride (default ``kernel_size``), padding, dilation: ints or D-sequences.
+        subm (bool): submanifold pooling.
+        indice_key (str, optional): kernel-map cache key (an inverse convolution can invert a pool).
+        method (str): coordinate table for a new map.
+
+    Returns:
+        SparseConvTensor; features differentiable (the gradient goes to the selected input).
+    """
+    if not isinstance(x, SparseConvTensor):
+        raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
+    D = x.ndim
+    k = _ntuple(kernel_size, D, "kernel_size", 1)
+    s = k if stride is None else _ntuple(stride, D, "stride", 1)
+    if not x.features.is_floating_point():
+        raise ValueError(f"features must be floating point, got {describe(x.features)}")
+    extension.check_device(x.features, "features")
+    km, cache = _kernel_map_for(x, "subm" if subm else "pool", k, s, padding, dilation, 0, indice_key, None, method)
+    out, _ = torch.ops.lidarops.sparse_max_pool(x.features, km.neighbors)
+    return SparseConvTensor(out, km.out_indices, list(km.out_spatial_shape), x.batch_size, indice_dict=cache)
+
+
+# ---- dense references (used by the tests) -----------------------------------------------------------
+
+def _dense_conv_fn(D: int, transposed: bool):
+    table = {(1, False): F.conv1d, (2, False): F.conv2d, (3, False): F.conv3d,
+             (1, True): F.conv_transpose1d, (2, True): F.conv_transpose2d, (3, True): F.conv_transpose3d}
+    if (D, transposed) not in table:
+        raise ValueError(f"the dense reference supports D = 1, 2, 3, got {D}")
+    return table[(D, transposed)]
+
+
+def _sites_of(mask: Tensor) -> Tensor:
+    """(M, 1 + D) int64 sites where a (B, 1, *S) mask is > 0, in row-major order."""
+    return torch.nonzero(mask[:, 0] > 0.5)
+
+
+def _conv_reference(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kind: str = "conv",
+                    stride=1, padding=0, dilation=1, output_padding=0, inverse_of: Optional[KernelMap] = None):
+    """Dense PyTorch reference of :func:`conv`.
+
+    Returns:
+        (indices Tensor[M, 1 + D] int64 in row-major order, features Tensor[M, Cout]).
+    """
+    D = x.ndim
+    ksize = tuple(weight.shape[1:-1])
+    dense = x.dense()
+    mask = torch.zeros([x.batch_size, 1] + x.spatial_shape, dtype=dense.dtype, device=dense.device)
+    if x.indices.shape[0]:
+        mask[(x.indices[:, 0].long(), 0) + tuple(x.indices[:, 1:].long().unbind(1))] = 1.0
+    ones = torch.ones((1, 1) + ksize, dtype=dense.dtype, device=dense.device)
+    d = _ntuple(dilation, D, "dilation", 1)
+    if kind == "subm":
+        pad = tuple(d[i] * (ksize[i] // 2) for i in range(D))
+        y = _dense_conv_fn(D, False)(dense, weight.permute(0, D + 1, *range(1, D + 1)), bias, 1, pad, d)
+        sites = x.indices.long()
+    elif kind == "conv":
+        s, p = _ntuple(stride, D, "stride", 1), _ntuple(padding, D, "padding", 0)
+        fn = _dense_conv_fn(D, False)
+        y = fn(dense, weight.permute(0, D + 1, *range(1, D + 1)), bias, s, p, d)
+        sites = _sites_of(fn(mask, ones, None, s, p, d))
+    elif kind in ("transposed", "inverse"):
+        fn = _dense_conv_fn(D, True)
+        wt = weight.permute(D + 1, 0, *range(1, D + 1))
+        if kind == "inverse":
+            km = inverse_of
+            s, p, d = km.stride, km.padding, km.dilation
+            op = tuple(km.spatial_shape[i] - ((km.out_spatial_shape[i] - 1) * s[i] - 2 * p[i] + d[i] * (ksize[i] - 1) + 1)
+                       for i in range(D))
+            y = fn(dense, wt, bias, s, p, op, 1, d)
+            sites = km.indices.long()
+        else:
+            s, p = _ntuple(stride, D, "stride", 1), _ntuple(padding, D, "padding", 0)
+            op = _ntuple(output_padding, D, "output_padding", 0)
+            y = fn(dense, wt, bias, s, p, op, 1, d)
+            sites = _sites_of(fn(mask, ones, None, s, p, op, 1, d))
+    else:
+        raise ValueError(f"unknown kind {kind!r}")
+    feats = y.movedim(1, -1)[tuple(sites.unbind(1))] if sites.shape[0] else y.new_zeros(0, weight.shape[0])
+    return sites, feats
+
+
+def _max_pool_reference(x: SparseConvTensor, kernel_size, stride=None, padding=0, dilation=1):
+    """Dense reference of :func:`max_pool` (non-submanifold): -inf at inactive sites."""
+    D = x.ndim
+    k = _ntuple(kernel_size, D, "kernel_size", 1)
+    s = k if stride is None else _ntuple(stride, D, "stride", 1)
+    p, d = _ntuple(padding, D, "padding", 0), _ntuple(dilation, D, "dilation", 1)
+    C = x.features.shape[1]
+    dense = x.features.new_full([x.batch_size] + x.spatial_shape + [C], float("-inf"))
+    if x.indices.shape[0]:
+        dense[tuple(x.indices.long().unbind(1))] = x.features
+    dense = dense.movedim(-1, 1)
+    pool = {1: F.max_pool1d, 2: F.max_pool2d, 3: F.max_pool3d}[D]
+    y = pool(dense, k, s, p, d)
+    mask = torch.zeros([x.batch_size, 1] + x.spatial_shape, dtype=x.features.dtype, device=x.features.device)
+    if x.indices.shape[0]:
+        mask[(x.indices[:, 0].long(), 0) + tuple(x.indices[:, 1:].long().unbind(1))] = 1.0
+    ones = torch.ones((1, 1) + k, dtype=mask.dtype, device=mask.device)
+    sites = _sites_of(_dense_conv_fn(D, False)(mask, ones, None, s, p, d))
+    feats = y.movedim(1, -1)[tuple(sites.unbind(1))] if sites.shape[0] else y.new_zeros(0, C)
+    return sites, feats

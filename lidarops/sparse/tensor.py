@@ -1,0 +1,263 @@
+"""``SparseConvTensor`` (spconv's layout) and ``KernelMap``, the cached rulebook of one convolution."""
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from lidarops.ops.validation import describe, run_value_checks, value_checks_enabled
+
+__all__ = ["SparseConvTensor", "KernelMap"]
+
+
+@dataclass(eq=False)
+class KernelMap:
+    """The rulebook of one sparse convolution: which input row feeds which output row through which
+    kernel offset. Cached in ``SparseConvTensor.indice_dict`` under the layer's ``indice_key``.
+
+    Attributes:
+        kind (str): ``"subm"``, ``"conv"``, ``"transposed"``, ``"pool"`` (a max-pool map, like conv) or
+            ``"inverse"`` (the swapped map of a conv, from :meth:`inverse`).
+        indices (Tensor[N_in, 1 + D] int32): input sites.
+        out_indices (Tensor[N_out, 1 + D] int32): output sites (for strided and transposed
+            convolutions sorted by linear index: batch, then row-major coordinates).
+        spatial_shape, out_spatial_shape (tuple[int, ...]): grids of the input and the output.
+        kernel_size, stride, padding, dilation (tuple[int, ...]): geometry of the convolution.
+        neighbors (Tensor[N_out, K] int32): ``neighbors[o, k]`` is the input row that feeds output
+            row ``o`` through kernel offset ``k`` (row-major over the kernel window, the order of
+            ``weight[Cout, *kernel, Cin]``), or -1.
+    """
+
+    kind: str
+    indices: Tensor
+    out_indices: Tensor
+    spatial_shape: tuple
+    out_spatial_shape: tuple
+    kernel_size: tuple
+    stride: tuple
+    padding: tuple
+    dilation: tuple
+    neighbors: Tensor
+    _neighbors_t: Optional[Tensor] = field(default=None, repr=False)
+    _inverse: Optional["KernelMap"] = field(default=None, repr=False)
+    _order: Optional[Tensor] = field(default=None, repr=False)
+
+    @property
+    def kernel_volume(self) -> int:
+        return int(math.prod(self.kernel_size))
+
+    @property
+    def neighbors_t(self) -> Tensor:
+        """Tensor[N_in, K] int32: the transposed map, ``neighbors_t[i, k] = o`` where ``neighbors[o, k] = i``."""
+        if self._neighbors_t is None:
+            self._neighbors_t = torch.ops.lidarops.sparse_kernel_map_transpose(self.neighbors, self.indices.shape[0])
+        return self._neighbors_t
+
+    @property
+    def order(self) -> Optional[Tensor]:
+        """Tensor[N_out] int32 or None: the order in which the fused CUDA kernel processes the output
+        rows (grouped by which kernel offsets they have, so that a tile skips absent offsets); None on
+        CPU, whose kernel lists the pairs of each offset instead."""
+        if self.neighbors.device.type != "cuda":
+            return None
+        if self._order is None:
+            self._order = torch.ops.lidarops.sparse_kernel_map_order(self.neighbors)
+        return self._order
+
+    def inverse(self) -> "KernelMap":
+        """The map of the inverse convolution: from this map's output sites back to its input sites,
+        with the same kernel offsets (no flip)."""
+        if self._inverse is None:
+            self._inverse = KernelMap(
+                kind="inverse", indices=self.out_indices, out_indices=self.indices,
+                spatial_shape=self.out_spatial_shape, out_spatial_shape=self.spatial_shape,
+                kernel_size=self.kernel_size, stride=self.stride, padding=self.padding, dilation=self.dilation,
+                neighbors=self.neighbors_t, _neighbors_t=self.neighbors, _inverse=self)
+        return self._inverse
+
+    # spconv's IndiceData names, for code that inspects indice_dict
+    @property
+    def is_subm(self) -> bool:
+        return self.kind == "subm"
+
+    @property
+    def ksize(self) -> list:
+        return list(self.kernel_size)
+
+
+def _spatial_shape(spatial_shape, ndim: int) -> tuple:
+    try:
+        shape = tuple(int(v) for v in spatial_shape)
+    except TypeError:
+        raise ValueError(f"spatial_shape must be a sequence of {ndim} ints, got {spatial_shape!r}") from None
+    if len(shape) != ndim or any(v < 1 for v in shape):
+        raise ValueError(f"spatial_shape must hold {ndim} positive ints (one per coordinate column of indices), "
+                         f"got {list(spatial_shape)!r}")
+    return shape
+
+
+class SparseConvTensor:
+    """Sparse feature map in spconv's layout.
+
+    Args:
+        features (Tensor[N, C]): one feature row per active site.
+        indices (Tensor[N, 1 + D] int32): ``(batch, c_0, ..., c_{D-1})`` of each row, coordinates in
+            the order of ``spatial_shape`` (``(z, y, x)`` for voxels, ``(y, x)`` for pillars). Sites must
+            be unique and inside the grid; the kernel-map construction checks both.
+        spatial_shape (Sequence[int]): the grid, D entries.
+        batch_size (int): number of samples; samples may have no sites.
+        indice_dict (dict, optional): kernel-map cache shared with the tensors this one derives from.
+
+    Attributes:
+        indice_dict (dict[str, KernelMap]): kernel maps registered by the layers that produced this
+            tensor, keyed by ``indice_key``; layers with the same key reuse them (spconv's rule).
+    """
+
+    def __init__(self, features: Tensor, indices: Tensor, spatial_shape: Sequence[int], batch_size: int,
+                 grid: Optional[Tensor] = None, voxel_num: Optional[Tensor] = None,
+                 indice_dict: Optional[dict] = None, benchmark: bool = False, **unused):
+        if not isinstance(indices, Tensor):
+            raise ValueError(f"indices must be a torch.Tensor, got {type(indices).__name__}")
+        if indices.dim() != 2 or indices.shape[1] < 2:
+            raise ValueError(f"indices must be (N, 1 + D) int32 with the batch index in column 0, got {describe(indices)}")
+        if indices.dtype != torch.int32:
+            raise ValueError(f"indices must be int32 (spconv's layout; use indices.int()), got {describe(indices)}")
+        ndim = indices.shape[1] - 1
+        self.spatial_shape = list(_spatial_shape(spatial_shape, ndim))
+        if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral):
+            if isinstance(batch_size, Tensor) and batch_size.numel() == 1 and not batch_size.is_floating_point():
+                batch_size = int(batch_size)
+            else:
+                raise ValueError(f"batch_size must be an int, got {batch_size!r}")
+        if batch_size < 0:
+            raise ValueError(f"batch_size must be >= 0, got {batch_size}")
+        self.indices = indices
+        self.batch_size = int(batch_size)
+        self.features = features
+        self.indice_dict = {} if indice_dict is None else indice_dict
+        self.grid = grid
+        self.voxel_num = voxel_num
+        self.benchmark = benchmark
+        self.benchmark_record = {}
+        self.thrust_allocator = None
+
+    # features are checked on every assignment (replace_feature, or ``x.features = ...`` in old code)
+    @property
+    def features(self) -> Tensor:
+        return self._features
+
+    @features.setter
+    def features(self, value: Tensor) -> None:
+        if not isinstance(value, Tensor):
+            raise ValueError(f"features must be a torch.Tensor, got {type(value).__name__}")
+        if value.dim() != 2 or value.shape[0] != self.indices.shape[0]:
+            raise ValueError(f"features must be (N, C) with N = {self.indices.shape[0]} rows (one per row of indices), "
+                             f"got {describe(value)}")
+        if value.device != self.indices.device:
+            raise ValueError(f"features are on {value.device} but indices are on {self.indices.device}")
+        self._features = value
+
+    def __repr__(self) -> str:
+        return (f"SparseConvTensor(features={tuple(self.features.shape)}, dtype={self.features.dtype}, "
+                f"spatial_shape={self.spatial_shape}, batch_size={self.batch_size}, device={self.features.device})")
+
+    @property
+    def ndim(self) -> int:
+        """Number of spatial dimensions D."""
+        return len(self.spatial_shape)
+
+    @property
+    def device(self) -> torch.device:
+        return self.features.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.features.dtype
+
+    @property
+    def spatial_size(self) -> int:
+        """Number of sites of one sample's grid, ``prod(spatial_shape)``."""
+        return int(math.prod(self.spatial_shape))
+
+    def find_indice_pair(self, key) -> Optional[KernelMap]:
+        """The kernel map registered under ``key``, or None."""
+        if key is None:
+            return None
+        return self.indice_dict.get(key)
+
+    def replace_feature(self, features: Tensor) -> "SparseConvTensor":
+        """A tensor with the same sites (and kernel-map cache) and new features ``(N, C')``."""
+        out = SparseConvTensor(features, self.indices, self.spatial_shape, self.batch_size, self.grid,
+                               self.voxel_num, self.indice_dict, self.benchmark)
+        out.benchmark_record = self.benchmark_record
+        return out
+
+    def shadow_copy(self) -> "SparseConvTensor":
+        return self.replace_feature(self.features)
+
+    def minus(self) -> "SparseConvTensor":
+        return self.replace_feature(-self.features)
+
+    def _other_features(self, other) -> Tensor:
+        if isinstance(other, SparseConvTensor):
+            if other.indices is not self.indices and other.indices.shape != self.indices.shape:
+                raise ValueError(f"cannot add sparse tensors with different sites ({tuple(self.indices.shape)} and "
+                                 f"{tuple(other.indices.shape)} indices)")
+            return other.features
+        if isinstance(other, Tensor):
+            return other
+        raise TypeError(f"unsupported operand type {type(other).__name__}")
+
+    def __add__(self, other) -> "SparseConvTensor":
+        return self.replace_feature(self.features + self._other_features(other))
+
+    __radd__ = __add__
+
+    def __iadd__(self, other) -> "SparseConvTensor":
+        self.features = self.features + self._other_features(other)
+        return self
+
+    def dense(self, channels_first: bool = True) -> Tensor:
+        """Dense tensor with zeros at inactive sites.
+
+        Returns:
+            Tensor[B, C, *spatial_shape] (``channels_first=True``) or Tensor[B, *spatial_shape, C].
+            Differentiable with respect to ``features``.
+        """
+        C = self.features.shape[1]
+        idx = self.indices.long()
+        if value_checks_enabled() and idx.numel():
+            bound = torch.tensor([self.batch_size] + self.spatial_shape, device=idx.device)
+            run_value_checks([(((idx < 0) | (idx >= bound)).any(),
+                               lambda: f"indices lie outside batch_size {self.batch_size} / spatial_shape "
+                                       f"{self.spatial_shape}")])
+        out = self.features.new_zeros([self.batch_size] + self.spatial_shape + [C])
+        out = out.index_put(tuple(idx.unbind(1)), self.features)
+        if not channels_first:
+            return out
+        D = self.ndim
+        return out.permute(0, D + 1, *range(1, D + 1)).contiguous()
+
+    @classmethod
+    def from_dense(cls, x: Tensor, channels_first: bool = False) -> "SparseConvTensor":
+        """Sparse tensor of the sites of ``x`` whose feature vector is not all zero (spconv's rule).
+
+        Args:
+            x (Tensor[B, *spatial, C]): channels last, as spconv's ``from_dense``; or
+                Tensor[B, C, *spatial] with ``channels_first=True``.
+
+        Returns:
+            SparseConvTensor with sites in row-major order; features differentiable with respect to x.
+        """
+        if not isinstance(x, Tensor) or x.dim() < 3:
+            raise ValueError(f"x must be a (B, *spatial, C) tensor, got {describe(x)}")
+        if channels_first:
+            x = x.movedim(1, -1)
+        active = (x != 0).any(-1)
+        idx = torch.nonzero(active)
+        features = x[tuple(idx.unbind(1))]
+        return cls(features, idx.to(torch.int32), list(x.shape[1:-1]), x.shape[0])

@@ -1,0 +1,183 @@
+"""lidarops.sparse: SparseConvTensor, nn modules, SparseSequential, state_dicts.
+
+Networks are checked end to end against a dense emulator (tests/sparse_helpers.emulate: every layer
+by F.convNd / F.conv_transposeNd / F.max_poolNd on the dense tensor, read at the output sites).
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import pytest
+import torch
+from torch import nn
+
+from lidarops import sparse
+from lidarops.sparse import SparseConvTensor
+from lidarops.sparse import nn as spnn
+from sparse_helpers import DEVICES, assert_same_sites_and_features, emulate, linear_order, random_tensor
+
+
+@pytest.fixture(params=DEVICES)
+def device(request):
+    return request.param
+
+
+def _compare_tensors(y, ref, tol=1e-10, what="network"):
+    order = linear_order(ref.indices, ref.spatial_shape)
+    assert y.spatial_shape == list(ref.spatial_shape), f"{what}: grid {y.spatial_shape} vs {ref.spatial_shape}"
+    assert_same_sites_and_features(y.indices, y.features, ref.indices[order], ref.features[order], y.spatial_shape,
+                                   tol, what)
+
+
+def test_dense_from_dense_round_trip(device):
+    x = random_tensor(3, (5, 6, 4), 20, 3, seed=1, device=device)
+    d = x.dense()
+    assert d.shape == (3, 3, 5, 6, 4)
+    assert torch.equal(x.dense(channels_first=False).permute(0, 4, 1, 2, 3), d)
+    idx = x.indices.long()
+    torch.testing.assert_close(d.permute(0, 2, 3, 4, 1)[tuple(idx.unbind(1))], x.features)
+    assert d.abs().sum(1).gt(0).sum() == x.indices.shape[0]
+    y = SparseConvTensor.from_dense(d, channels_first=True)
+    order = linear_order(x.indices, x.spatial_shape)
+    assert torch.equal(y.indices, x.indices[order]) and torch.equal(y.features, x.features[order])
+    z = SparseConvTensor.from_dense(x.dense(channels_first=False))
+    assert torch.equal(z.indices, y.indices) and z.spatial_shape == [5, 6, 4] and z.batch_size == 3
+    assert x.spatial_size == 120 and x.ndim == 3
+    import numpy as np
+    z = SparseConvTensor(x.features, x.indices, np.array([5, 6, 4]), np.int64(3))  # OpenPCDet passes numpy
+    assert z.spatial_shape == [5, 6, 4] and z.batch_size == 3 and isinstance(z.batch_size, int)
+
+
+def test_dense_is_differentiable_and_checks_sites(device):
+    x = random_tensor(1, (4, 4), 5, 2, seed=0, device=device)
+    f = x.features.clone().requires_grad_()
+    x.replace_feature(f).dense().sum().backward()
+    assert torch.equal(f.grad, torch.ones_like(f))
+    bad = SparseConvTensor(x.features, x.indices + 10, [4, 4], 1)
+    with pytest.raises(ValueError, match=r"indices lie outside batch_size 1 / spatial_shape \[4, 4\]"):
+        bad.dense()
+
+
+def test_replace_feature_add_and_setter(device):
+    x = random_tensor(1, (4, 4), 5, 2, seed=0, device=device)
+    x.indice_dict["k"] = "cached"
+    y = x.replace_feature(x.features * 2)
+    assert y.indices is x.indices and y.indice_dict is x.indice_dict
+    torch.testing.assert_close((x + y).features, x.features * 3)
+    torch.testing.assert_close((x.features + y).features, x.features * 3)
+    torch.testing.assert_close(x.minus().features, -x.features)
+    y.features = torch.zeros_like(x.features)  # allowed (older spconv code assigns features)
+    with pytest.raises(ValueError, match=r"features must be \(N, C\) with N = 5"):
+        y.features = torch.zeros(4, 2, device=device)
+
+
+@pytest.mark.parametrize("D", [2, 3])
+def test_modules_match_dense_emulation(device, D):
+    shape = (12, 10) if D == 2 else (8, 9, 7)
+    x = random_tensor(3, shape, 30, 4, seed=D, device=device)
+    Sub = spnn.SubMConv2d if D == 2 else spnn.SubMConv3d
+    Conv = spnn.SparseConv2d if D == 2 else spnn.SparseConv3d
+    ConvT = spnn.SparseConvTranspose2d if D == 2 else spnn.SparseConvTranspose3d
+    Inv = spnn.SparseInverseConv2d if D == 2 else spnn.SparseInverseConv3d
+    Pool = spnn.SparseMaxPool2d if D == 2 else spnn.SparseMaxPool3d
+    net = spnn.SparseSequential(
+        Sub(4, 8, 3, indice_key="subm1"), nn.BatchNorm1d(8), nn.ReLU(),
+        Sub(8, 8, 3, indice_key="subm1"),
+        Conv(8, 16, 3, stride=2, padding=1, indice_key="down1"), nn.ReLU(),
+        Sub(16, 16, 3, dilation=2, indice_key="subm2"),
+        Inv(16, 8, 3, indice_key="down1"), nn.Linear(8, 6),
+        Pool(2, indice_key="pool1"),
+        ConvT(6, 5, 2, stride=2, indice_key="up1"),
+        Conv(5, 4, 1, bias=False),
+    ).double().to(device).eval()
+    y = net(x)
+    ref = emulate(net, x)
+    _compare_tensors(y, ref, what=f"{D}D module network")
+    # the submanifold layers with one key share one kernel map
+    assert y.indice_dict["subm1"].kind == "subm"
+    assert set(y.indice_dict) == {"subm1", "down1", "subm2", "pool1", "up1"}
+
+
+def test_sparse_sequential_feature_modules_and_empty_input(device):
+    net = spnn.SparseSequential(OrderedDict([
+        ("conv", spnn.SubMConv3d(3, 4, 3, indice_key="s")), ("bn", nn.BatchNorm1d(4)), ("relu", nn.ReLU()),
+        ("lin", nn.Linear(4, 2)), ("dense", spnn.ToDense()), ("pool", nn.AdaptiveMaxPool3d(1))])).to(device)
+    assert len(net) == 6 and isinstance(net[0], spnn.SubMConv3d) and isinstance(net[-1], nn.AdaptiveMaxPool3d)
+    x = random_tensor(2, (5, 5, 5), 10, 3, seed=0, dtype=torch.float32, device=device)
+    out = net(x)
+    assert out.shape == (2, 2, 1, 1, 1)
+    empty = SparseConvTensor(torch.zeros(0, 3, device=device), torch.zeros(0, 4, dtype=torch.int32, device=device),
+                             [5, 5, 5], 2)
+    net.train()
+    out = net(empty)  # BatchNorm is skipped on a tensor without sites; the Linear still maps 4 -> 2 channels
+    assert out.shape == (2, 2, 1, 1, 1)
+    seq = spnn.SparseSequential(a=nn.ReLU())
+    seq.add(nn.Identity())
+    assert list(seq._modules) == ["a", "1"]
+
+
+def test_module_arguments_are_checked():
+    with pytest.raises(ValueError, match="submanifold convolution has stride 1"):
+        spnn.SubMConv3d(3, 4, 3, stride=2)
+    with pytest.raises(ValueError, match="kernel_size must have 3 entries"):
+        spnn.SparseConv3d(3, 4, (3, 3))
+    with pytest.raises(ValueError, match="in_channels must be a positive int"):
+        spnn.SparseConv2d(0, 4, 3)
+    with pytest.raises(ValueError, match="needs the indice_key"):
+        spnn.SparseInverseConv3d(3, 4, 3, indice_key=None)
+    conv = spnn.SubMConv2d(3, 4, 3)
+    x = random_tensor(1, (4, 4), 3, 5, seed=0, dtype=torch.float32)
+    with pytest.raises(ValueError, match="expects 3 input channels"):
+        conv(x)
+    with pytest.raises(ValueError, match="takes a SparseConvTensor"):
+        conv(torch.zeros(3, 3))
+
+
+def test_weight_layout_and_state_dict_round_trip():
+    m = spnn.SparseConv3d(4, 8, (3, 2, 1), stride=2, bias=True)
+    assert m.weight.shape == (8, 3, 2, 1, 4)
+    m2 = spnn.SparseConv3d(4, 8, (3, 2, 1), stride=2, bias=True)
+    m2.load_state_dict(m.state_dict())
+    x = random_tensor(1, (6, 6, 6), 20, 4, seed=2, dtype=torch.float32)
+    torch.testing.assert_close(m(x).features, m2(x).features, rtol=0, atol=0)
+    # a spconv 2.x state_dict (weight [Cout, *k, Cin]) loads unchanged
+    sd = {"weight": torch.randn(8, 3, 2, 1, 4), "bias": torch.randn(8)}
+    m.load_state_dict(sd)
+    assert torch.equal(m.weight, sd["weight"])
+
+
+def test_kernel_size_one_uses_documented_layout(device):
+    x = random_tensor(2, (5, 5, 5), 10, 4, seed=3, device=device)
+    m = spnn.SubMConv3d(4, 6, 1, bias=False).double().to(device)
+    y = m(x)
+    torch.testing.assert_close(y.features, x.features @ m.weight.reshape(6, 4).t())
+    m2 = spnn.SparseConv3d(4, 6, 1, bias=False).double().to(device)
+    m2.weight.data.copy_(m.weight)
+    y2 = m2(x)
+    order = linear_order(x.indices, x.spatial_shape)
+    torch.testing.assert_close(y2.features, y.features[order])
+
+
+def test_training_step_reduces_loss(device):
+    torch.manual_seed(0)
+    net = spnn.SparseSequential(spnn.SubMConv2d(3, 8, 3, indice_key="a"), nn.BatchNorm1d(8), nn.ReLU(),
+                                spnn.SparseConv2d(8, 8, 3, stride=2, padding=1), nn.ReLU(),
+                                spnn.SparseConvTranspose2d(8, 3, 2, stride=2)).to(device)
+    x = random_tensor(2, (16, 16), 40, 3, seed=0, dtype=torch.float32, device=device)
+    opt = torch.optim.SGD(net.parameters(), lr=0.05)
+    losses = []
+    for _ in range(5):
+        opt.zero_grad()
+        loss = net(x).dense().pow(2).mean()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < losses[0]
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters())
+
+
+def test_public_namespace():
+    for name in ("SparseConvTensor", "SubMConv2d", "SubMConv3d", "SparseConv2d", "SparseConv3d",
+                 "SparseConvTranspose2d", "SparseConvTranspose3d", "SparseInverseConv2d", "SparseInverseConv3d",
+                 "SparseMaxPool2d", "SparseMaxPool3d", "SparseSequential", "ToDense", "build_kernel_map", "conv"):
+        assert hasattr(sparse, name), name
