@@ -15,7 +15,7 @@ import torch
 
 __all__ = ["load", "cuda_available", "check_device", "build_info", "LidaropsBuildError"]
 
-_lock = threading.Lock()
+_lock = threading.RLock()
 _lib = None
 _HERE = os.path.dirname(os.path.abspath(__file__))
 # Python-side kernels of every op family: fake (meta) kernels and autograd formulas.
@@ -68,9 +68,10 @@ def load():
                 f"from the repository root (torch {torch.__version__}).") from e
         if not hasattr(torch.ops.lidarops, "fps"):
             raise LidaropsBuildError("lidarops._C loaded but registered no ops; rebuild the extension")
+        # Set before the registration modules are imported: they import wrappers that call load().
+        _lib = _C
         for module in _REGISTRATION_MODULES:
             importlib.import_module(module)
-        _lib = _C
         return _lib
 
 

@@ -23,7 +23,7 @@ if [ "$what" = tests ] || [ "$what" = all ]; then
   if command -v compute-sanitizer >/dev/null; then
     start=$(date +%s)
     for tool in memcheck racecheck; do
-      timeout 240 compute-sanitizer --tool $tool --error-exitcode 9 python3 -m pytest -q -p no:cacheprovider \
+      timeout ${SANITIZER_TIMEOUT:-240} compute-sanitizer --tool $tool --error-exitcode 9 python3 -m pytest -q -p no:cacheprovider \
         tests/test_neighbors.py -k "${2:-cuda and not slow}" -x 2>&1 | tee "$OUT/sanitizer_$tool.log" | tail -5
       echo "[device_run] compute-sanitizer $tool exit ${PIPESTATUS[0]}"
     done

@@ -54,7 +54,7 @@ template <typename scalar_t>
 void fps_cloud(const scalar_t* pts, int64_t n, int64_t k, int64_t start, int64_t* out, bool use_leaves) {
   using T = acc_t<scalar_t>;
   std::fill(out, out + k, -1);
-  if (n == 0) return;
+  if (n == 0 || start < 0 || start >= n) return;  // fps_cpu rejects such starts; never index out of range
   const int64_t leaf_size = use_leaves ? kLeaf : n;
   std::vector<int64_t> perm(n);
   std::iota(perm.begin(), perm.end(), 0);

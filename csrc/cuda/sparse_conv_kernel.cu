@@ -172,7 +172,7 @@ __global__ void __launch_bounds__(kWmmaThreads)
   const int wm = warp / 2, wn = warp % 2;
   const int64_t row0 = static_cast<int64_t>(blockIdx.x) * BM;
   const int64_t col0 = static_cast<int64_t>(blockIdx.y) * BN;
-  const S zero = static_cast<S>(0.0f);
+  const S zero{};  // value-initialised: +0 (no float conversion under __CUDA_NO_HALF_CONVERSIONS__)
   for (int m = tid; m < BM; m += kWmmaThreads) orow[m] = output_row(order, row0 + m, n_out);
   __syncthreads();
 

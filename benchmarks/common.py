@@ -1,0 +1,431 @@
+"""Shared benchmark machinery: timers, device names, inputs, result files and tables.
+
+Timing rules (every ``bm_*.py`` uses them):
+
+* CUDA: warm-up calls, then one pair of CUDA events around each call, many calls; the median and
+  the interquartile range are reported. When one input set fits in the L2 cache, calls rotate over
+  enough copies of it (up to ``2 x L2`` bytes) that every call reads its inputs from memory, as a
+  call inside a network would.
+* CPU: ``time.perf_counter`` around each call after a warm-up call, median and IQR over as many
+  calls as fit in a time budget (at least 3). A call slower than ``slow_single_s`` is measured once.
+  The implementations of one case are timed with their calls interleaved
+  (:func:`time_cpu_interleaved`), so that load drifting on a shared machine hits them alike.
+
+Results go to ``benchmarks/results/<device-slug>.json``; each benchmark file owns one section of
+that file and :func:`write_results` keeps the other sections (and, within its section, the rows of
+ops that were not run this time).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import platform
+import re
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS_DIR = ROOT / "benchmarks" / "results"
+
+__all__ = [
+    "Timing", "Skip", "time_call", "time_cpu", "time_cpu_interleaved", "time_cuda", "device_name", "device_slug", "env_meta",
+    "available_memory", "write_results", "read_results", "print_table", "fmt_ms", "fmt_ratio", "short_status",
+    "uniform_clouds", "lidar_clouds", "lidar_generator_name",
+]
+
+
+# ---------------------------------------------------------------- timing
+
+@dataclass
+class Timing:
+    """Per-call times of one measurement, in milliseconds."""
+
+    times_ms: list[float] = field(default_factory=list)
+    n_sets: int = 1  # input sets rotated over (CUDA)
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.times_ms)
+
+    @property
+    def iqr(self) -> float:
+        if len(self.times_ms) < 4:
+            return max(self.times_ms) - min(self.times_ms)
+        q = statistics.quantiles(self.times_ms, n=4)
+        return q[2] - q[0]
+
+    @property
+    def runs(self) -> int:
+        return len(self.times_ms)
+
+    def as_dict(self) -> dict:
+        return {"median_ms": round(self.median, 6), "iqr_ms": round(self.iqr, 6), "runs": self.runs,
+                "input_sets": self.n_sets}
+
+
+class Skip(Exception):
+    """A measurement that is not taken; the message says why (memory, time, missing package)."""
+
+
+def _nbytes(obj: Any) -> int:
+    if isinstance(obj, torch.Tensor):
+        return obj.numel() * obj.element_size()
+    if isinstance(obj, (list, tuple)):
+        return sum(_nbytes(o) for o in obj)
+    if hasattr(obj, "nbytes"):  # numpy
+        return int(obj.nbytes)
+    return 0
+
+
+def _clone(obj: Any) -> Any:
+    if isinstance(obj, torch.Tensor):
+        return obj.clone()
+    if isinstance(obj, tuple):
+        return tuple(_clone(o) for o in obj)
+    if isinstance(obj, list):
+        return [_clone(o) for o in obj]
+    return obj
+
+
+def l2_cache_bytes(device: torch.device) -> int:
+    props = torch.cuda.get_device_properties(device)
+    return int(getattr(props, "L2_cache_size", 0) or 50 * 2**20)
+
+
+def time_cuda(fn: Callable[..., Any], args: Sequence[Any], *, warmup: int = 3, min_runs: int = 10,
+              max_runs: int = 200, budget_s: float = 0.3, slow_single_s: float = 2.0,
+              rotate: bool = True) -> Timing:
+    """Median of CUDA-event times of ``fn(*args)``; rotates over copies of ``args`` that fit in L2.
+
+    The first call is a timed warm-up: a call slower than ``slow_single_s`` counts alone, one
+    slower than 50 ms is measured ``max(3, budget_s / time)`` times, the others ``min_runs`` to
+    ``max_runs`` times within ``budget_s``.
+    """
+    dev = next((a.device for a in args if isinstance(a, torch.Tensor) and a.is_cuda), torch.device("cuda"))
+    torch.cuda.synchronize(dev)
+    t0 = time.perf_counter()
+    fn(*args)
+    torch.cuda.synchronize(dev)
+    first = time.perf_counter() - t0
+    if first >= slow_single_s:
+        return Timing([first * 1e3])
+    sets = [tuple(args)]
+    nbytes = _nbytes(args)
+    if rotate and nbytes > 0:
+        want = min(1024, math.ceil(2 * l2_cache_bytes(dev) / nbytes))
+        sets += [_clone(tuple(args)) for _ in range(want - 1)]
+    if first > 0.05:
+        runs = int(max(3, min(max_runs, budget_s / first)))
+    else:
+        t0 = time.perf_counter()
+        for i in range(warmup):
+            fn(*sets[i % len(sets)])
+        torch.cuda.synchronize(dev)
+        per_call = (time.perf_counter() - t0) / max(warmup, 1)
+        runs = int(max(min_runs, min(max_runs, budget_s / max(per_call, 1e-6))))
+    start = [torch.cuda.Event(enable_timing=True) for _ in range(runs)]
+    end = [torch.cuda.Event(enable_timing=True) for _ in range(runs)]
+    for i in range(runs):
+        a = sets[(i + warmup) % len(sets)]
+        start[i].record()
+        fn(*a)
+        end[i].record()
+    torch.cuda.synchronize(dev)
+    return Timing([s.elapsed_time(e) for s, e in zip(start, end)], n_sets=len(sets))
+
+
+def time_cpu(fn: Callable[..., Any], args: Sequence[Any], *, min_runs: int = 3, max_runs: int = 30,
+             budget_s: float = 1.0, slow_single_s: float = 2.0) -> Timing:
+    """Median wall time of ``fn(*args)`` after one warm-up call (which counts alone if slow)."""
+    t0 = time.perf_counter()
+    fn(*args)
+    first = time.perf_counter() - t0
+    if first >= slow_single_s:
+        return Timing([first * 1e3])
+    runs = int(max(min_runs, min(max_runs, budget_s / max(first, 1e-7))))
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn(*args)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return Timing(times)
+
+
+def time_cpu_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]]], *, min_runs: int = 3,
+                         max_runs: int = 30, budget_s: float = 1.0,
+                         slow_single_s: float = 2.0) -> list[Timing | BaseException]:
+    """:func:`time_cpu` for several implementations of one case, their calls interleaved.
+
+    On a shared machine the load drifts during a measurement; interleaving the calls (each
+    implementation's runs spread evenly over the whole window) makes the ratios between them far
+    less sensitive to that drift than timing one implementation after the other. Each gets one
+    timed warm-up call (a call slower than ``slow_single_s`` counts alone) and then
+    ``clamp(budget_s / warm-up time, min_runs, max_runs)`` runs. A call that raises gives its
+    exception in place of a Timing.
+    """
+    out: list[Timing | BaseException] = [Timing() for _ in calls]
+    want = [0] * len(calls)
+    for i, (fn, args) in enumerate(calls):
+        try:
+            t0 = time.perf_counter()
+            fn(*args)
+            first = time.perf_counter() - t0
+        except Exception as e:  # noqa: BLE001  (reported by the caller)
+            out[i] = e
+            continue
+        if first >= slow_single_s:
+            out[i].times_ms.append(first * 1e3)
+        else:
+            want[i] = int(max(min_runs, min(max_runs, budget_s / max(first, 1e-7))))
+    rounds = max(want, default=0)
+    for r in range(rounds):
+        for i, (fn, args) in enumerate(calls):
+            if want[i] and (r + 1) * want[i] // rounds > r * want[i] // rounds:  # spread evenly
+                t0 = time.perf_counter()
+                fn(*args)
+                out[i].times_ms.append((time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def time_call(fn: Callable[..., Any], args: Sequence[Any], device: torch.device, **kw) -> Timing:
+    """:func:`time_cuda` for CUDA, :func:`time_cpu` otherwise (keyword options passed through)."""
+    if torch.device(device).type == "cuda":
+        return time_cuda(fn, args, **{k: v for k, v in kw.items() if k in ("warmup", "min_runs", "max_runs",
+                                                                           "budget_s", "slow_single_s", "rotate")})
+    return time_cpu(fn, args, **{k: v for k, v in kw.items() if k in ("min_runs", "max_runs", "budget_s",
+                                                                      "slow_single_s")})
+
+
+# ---------------------------------------------------------------- devices and environment
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "CPU"
+
+
+def device_name(device: str | torch.device) -> str:
+    """``torch.cuda.get_device_name`` for CUDA; CPU model and core count for CPU."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"{_cpu_model()}, {os.cpu_count()} cores ({torch.get_num_threads()} torch threads)"
+
+
+def device_slug(device: str | torch.device) -> str:
+    """File-name form of the device, e.g. ``cuda-nvidia-h100-80gb-hbm3`` or ``cpu-amd-epyc-2c``."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        name = "cuda-" + torch.cuda.get_device_name(device)
+    else:
+        name = f"cpu-{_cpu_model()}-{os.cpu_count()}c"
+    name = re.sub(r"\((r|tm)\)|cpu @.*|processor", "", name, flags=re.I)
+    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
+
+
+def available_memory(device: str | torch.device) -> int:
+    """Bytes that can still be allocated on ``device`` (MemAvailable on CPU, free memory on CUDA)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return int(free)
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 8 * 2**30
+
+
+def _git(*args: str) -> str | None:
+    try:
+        out = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True, timeout=5)
+        return out.stdout.strip() if out.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _git_commit() -> str | None:
+    """Short commit id, with ``+dirty`` when tracked files differ from it."""
+    commit = _git("rev-parse", "--short", "HEAD")
+    if commit and _git("status", "--porcelain", "--untracked-files=no"):
+        commit += "+dirty"
+    return commit or None
+
+
+def env_meta(device: str | torch.device) -> dict:
+    """What a result depends on: device, versions, threads, commit, date."""
+    device = torch.device(device)
+    meta = {
+        "device": device_name(device),
+        "device_type": device.type,
+        "torch": torch.__version__,
+        "python": sys.version.split()[0],
+        "threads": torch.get_num_threads(),
+        "commit": _git_commit(),
+        "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "host": platform.node(),
+    }
+    if hasattr(os, "getloadavg"):  # other work on the machine skews CPU timings
+        meta["load_avg_1m"] = round(os.getloadavg()[0], 2)
+    if hasattr(os, "nice"):
+        meta["nice"] = os.nice(0)
+    omp = {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT") if k in os.environ}
+    if omp:
+        meta["omp_env"] = omp
+    try:
+        import lidarops
+        from lidarops import extension
+        meta["lidarops"] = lidarops.__version__
+        meta["lidarops_build"] = extension.build_info()
+    except Exception:  # noqa: BLE001
+        pass
+    if device.type == "cuda":
+        meta["cuda"] = torch.version.cuda
+        meta["l2_cache_bytes"] = l2_cache_bytes(device)
+    return meta
+
+
+# ---------------------------------------------------------------- result files
+
+def results_path(device: str | torch.device) -> Path:
+    return RESULTS_DIR / f"{device_slug(device)}.json"
+
+
+def read_results(path: str | Path) -> dict:
+    with open(path) as f:
+        return json.load(f)
+
+
+def write_results(section: str, device: str | torch.device, rows: list[dict], meta: dict,
+                  replace_by: str | None = "op") -> Path:
+    """Write ``rows`` as ``section`` of the device's result file and return its path.
+
+    Other sections are kept. Within the section, old rows are kept unless their ``replace_by``
+    value (e.g. the op) occurs among the new rows; ``replace_by=None`` replaces the whole section.
+    """
+    path = results_path(device)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data: dict = {}
+    if path.exists():
+        try:
+            data = read_results(path)
+        except (OSError, json.JSONDecodeError):
+            data = {}
+    data["device"] = meta.get("device", device_name(device))
+    data["device_type"] = torch.device(device).type
+    sections = data.setdefault("sections", {})
+    old = sections.get(section, {})
+    kept: list[dict] = []
+    if replace_by is not None and old.get("rows"):
+        new_keys = {r.get(replace_by) for r in rows}
+        kept = [r for r in old["rows"] if r.get(replace_by) not in new_keys]
+    sections[section] = {"meta": meta, "rows": kept + rows}
+    tmp = path.with_suffix(".json.tmp")
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1, sort_keys=False)
+        f.write("\n")
+    os.replace(tmp, path)
+    return path
+
+
+# ---------------------------------------------------------------- tables
+
+def fmt_ms(ms: float | None) -> str:
+    if ms is None or not math.isfinite(ms):
+        return "-"
+    if ms >= 1000:
+        return f"{ms:,.0f}"
+    if ms >= 100:
+        return f"{ms:.0f}"
+    if ms >= 10:
+        return f"{ms:.1f}"
+    if ms >= 1:
+        return f"{ms:.2f}"
+    return f"{ms:.3f}"
+
+
+def short_status(status: str) -> str:
+    """Table form of a status: "skipped (memory: needs ...)" -> "skipped (memory)", "error: ..." -> "error"."""
+    if status.startswith("skipped (") and ":" in status:
+        return status.split(":")[0] + ")"
+    if status.startswith("error"):
+        return "error"
+    return status
+
+
+def fmt_ratio(r: float | None) -> str:
+    if r is None or not math.isfinite(r):
+        return ""
+    if r >= 100:
+        return f"{r:,.0f}x"
+    if r >= 10:
+        return f"{r:.0f}x"
+    return f"{r:.1f}x" if r >= 1 else f"{r:.2f}x"
+
+
+def print_table(title: str, headers: Sequence[str], rows: Iterable[Sequence[Any]], right: Sequence[int] = (),
+                file=None) -> None:
+    """Print a plain-text table; columns whose index is in ``right`` are right-aligned."""
+    rows = [[("" if c is None else str(c)) for c in r] for r in rows]
+    headers = [str(h) for h in headers]
+    widths = [max([len(headers[i])] + [len(r[i]) for r in rows]) for i in range(len(headers))]
+
+    def line(cells):
+        return "  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+
+    out = file or sys.stdout
+    if title:
+        print(title, file=out)
+    print(line(headers).rstrip(), file=out)
+    print("  ".join("-" * w for w in widths), file=out)
+    for r in rows:
+        print(line(r).rstrip(), file=out)
+    print(file=out, flush=True)
+
+
+# ---------------------------------------------------------------- inputs
+
+def uniform_clouds(B: int, N: int, seed: int = 0, device: str | torch.device = "cpu",
+                   dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(B, N, 3) points uniform in the unit cube."""
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(B, N, 3, generator=g, dtype=dtype).to(device)
+
+
+
+def lidar_generator_name() -> str:
+    """Which generator :func:`lidar_clouds` uses in this checkout."""
+    try:
+        import lidarops.data.synthetic  # noqa: F401
+        return 'lidarops.data.synthetic.Simulator("driving_city") (sweeps, order-preserving subset)'
+    except ImportError:
+        return "lidarops.tour.lidar_like_cloud (ring ground + boxes + clutter)"
+
+
+def lidar_clouds(B: int, N: int, seed: int = 0, device: str | torch.device = "cpu",
+                 dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(B, N, 3) LiDAR-like clouds in metres, one sweep per batch row (seeds ``seed``..``seed+B-1``).
+
+    Uses the project's simulator when importable, else the built-in ring + boxes + clutter
+    generator (both through :func:`lidarops.tour.synthetic_sweep`).
+    """
+    from lidarops.tour import synthetic_sweep
+    clouds = [synthetic_sweep(N, seed + b)[0] for b in range(B)]
+    return torch.stack(clouds).to(device=device, dtype=dtype)

@@ -1,0 +1,194 @@
+"""Plots and markdown tables from ``benchmarks/results/*.json``.
+
+    python benchmarks/report.py                 # draw docs/img/neighbors_<op>.png
+    python benchmarks/report.py --markdown      # also print the tables used in docs/ops.md
+
+One figure per op: a row of panels per cloud kind, a column per device (each result file), grouped
+bars of median time per case (log scale), one bar per implementation; skipped peers are marked.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import RESULTS_DIR, ROOT, fmt_ms, fmt_ratio, short_status
+
+IMG_DIR = ROOT / "docs" / "img"
+OPS = ("fps", "knn", "ball_query", "gather")
+TITLES = {"fps": "farthest point sampling", "knn": "k nearest neighbours", "ball_query": "ball query",
+          "gather": "gather (grouping)"}
+# raw op and forced methods are left out of the plots (they are in the tables)
+PLOT_KINDS = ("lidarops", "peer")
+
+
+def load(results_dir: Path, section: str = "neighbors") -> list[tuple[str, dict, list[dict]]]:
+    out = []
+    for path in sorted(results_dir.glob("*.json")):
+        with open(path) as f:
+            data = json.load(f)
+        sec = data.get("sections", {}).get(section)
+        if sec and sec.get("rows"):
+            out.append((data.get("device", path.stem), sec.get("meta", {}), sec["rows"]))
+    # CPU first, then GPUs
+    out.sort(key=lambda d: (d[1].get("device_type") != "cpu", d[0]))
+    return out
+
+
+def _case_keys(op: str) -> tuple[str, ...]:
+    return {"fps": ("B", "N", "K"), "gather": ("B", "N", "M", "k")}.get(op, ("B", "N", "M", "k"))
+
+
+def _label(op: str, r: dict) -> str:
+    def n(v):
+        return f"{v // 1000}k" if v >= 1000 and v % 1000 == 0 else (f"{v / 1000:.0f}k" if v >= 1000 else str(v))
+    if op == "fps":
+        return f"B{r['B']} N{n(r['N'])}\nK{n(r['K'])}"
+    return f"B{r['B']} N{n(r['N'])}\nk{r['k']}"
+
+
+def plot(devices, op: str, out_path: Path) -> bool:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = []
+    for dev, meta, rows in devices:
+        op_rows = [r for r in rows if r["op"] == op and r.get("kind") in PLOT_KINDS]
+        if op in ("knn", "ball_query"):
+            op_rows = [r for r in op_rows if r.get("k") == 16]  # k=32 looks alike; it is in the tables
+        for cloud in dict.fromkeys(r["cloud"] for r in op_rows):
+            panels.append((dev, cloud, [r for r in op_rows if r["cloud"] == cloud]))
+    if not panels:
+        return False
+    clouds = list(dict.fromkeys(p[1] for p in panels))
+    devs = list(dict.fromkeys(p[0] for p in panels))
+    n_cases = max(len({tuple(r[k] for k in _case_keys(op)) for r in p[2]}) for p in panels)
+    width_in = max(7.5, 0.62 * n_cases)
+    fig, axes = plt.subplots(len(clouds), len(devs), figsize=(width_in * len(devs), 3.8 * len(clouds)),
+                             squeeze=False)
+    colors = {}
+    palette = ["#d62728", "#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#7f7f7f", "#17becf"]
+    for (dev, cloud, rows) in panels:
+        ax = axes[clouds.index(cloud)][devs.index(dev)]
+        cases = list(dict.fromkeys(tuple(r[k] for k in _case_keys(op)) for r in rows))
+        impls = list(dict.fromkeys(r["impl"] for r in rows))
+        for name in impls:
+            colors.setdefault(name, palette[len(colors) % len(palette)])
+        width = 0.8 / max(len(impls), 1)
+        ymin = min((r["median_ms"] for r in rows if r.get("median_ms")), default=1.0)
+        for j, name in enumerate(impls):
+            xs, ys, skipped = [], [], []
+            for i, c in enumerate(cases):
+                r = next((r for r in rows if r["impl"] == name and tuple(r[k] for k in _case_keys(op)) == c), None)
+                if r is None:
+                    continue
+                x = i - 0.4 + width * (j + 0.5)
+                if r.get("median_ms"):
+                    xs.append(x)
+                    ys.append(r["median_ms"])
+                else:
+                    skipped.append(x)
+            ax.bar(xs, ys, width, color=colors[name], label=name, edgecolor="black" if name == "lidarops" else None,
+                   linewidth=0.6)
+            for x in skipped:
+                ax.text(x, ymin * 0.7, "skip", rotation=90, fontsize=6, ha="center", va="top", color=colors[name])
+        ax.set_yscale("log")
+        ymax = max((r["median_ms"] for r in rows if r.get("median_ms")), default=10.0)
+        ax.set_ylim(ymin * 0.12, ymax * 8)  # room for the legend above the bars
+        ax.set_xticks(range(len(cases)))
+        first = {tuple(r[k] for k in _case_keys(op)): r for r in rows}
+        ax.set_xticklabels([_label(op, first[c]) for c in cases], fontsize=7)
+        ax.set_ylabel("median time (ms), log")
+        ax.set_title(f"{dev} - {cloud}" if op != "gather" else dev, fontsize=9)
+        ax.grid(axis="y", which="major", alpha=0.3)
+        ax.legend(fontsize=7, ncol=len(impls), loc="upper left")
+    extra = " (k = 16)" if op in ("knn", "ball_query") else ""
+    fig.suptitle(f"lidarops {TITLES[op]}{extra}: lower is better", fontsize=11)
+    fig.tight_layout()
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def markdown(devices, ops=OPS) -> str:
+    lines = []
+    for dev, meta, rows in devices:
+        lines.append(f"#### {dev}")
+        lines.append("")
+        env = ", ".join(f"{k}={v}" for k, v in (meta.get("omp_env") or {}).items())
+        load = meta.get("load_avg_1m_start")
+        lines.append(f"torch {meta.get('torch')}, {meta.get('threads')} threads, commit {meta.get('commit')}, "
+                     f"{meta.get('date')}; full sweep {meta.get('sweep_s')} s"
+                     + (f"; {env}" if env else "")
+                     + (f"; load average {load} at the start (other work on the machine)" if load and
+                        meta.get("device_type") == "cpu" and load > 0.5 * (meta.get("threads") or 1) else "")
+                     + f". LiDAR clouds: {meta.get('lidar_generator')}.")
+        lines.append("")
+        for op in ops:
+            op_rows = [r for r in rows if r["op"] == op]
+            if not op_rows:
+                continue
+            keys = {"fps": ("cloud", "B", "N", "K"), "gather": ("B", "N", "M", "k")}.get(
+                op, ("cloud", "B", "N", "M", "k") + (("radius", "mean_hits") if op == "ball_query" else ()))
+            impls = list(dict.fromkeys(r["impl"] for r in op_rows))
+            cases: dict = {}
+            for r in op_rows:
+                cases.setdefault(tuple(r.get(k) for k in keys), {})[r["impl"]] = r
+            hdr = [("hits" if k == "mean_hits" else k) for k in keys] + impls
+            lines.append(f"**{op}** (median ms; peer / lidarops in brackets)")
+            lines.append("")
+            lines.append("| " + " | ".join(hdr) + " |")
+            lines.append("|" + "|".join(["---"] * len(keys) + ["---:"] * len(impls)) + "|")
+            for ck, cr in cases.items():
+                cells = []
+                for name in impls:
+                    r = cr.get(name)
+                    if r is None:
+                        cells.append("")
+                    elif r.get("median_ms") is None:
+                        s = r.get("status", "skipped")
+                        cells.append(short_status(s))
+                    elif r.get("ratio"):
+                        cells.append(f"{fmt_ms(r['median_ms'])} ({fmt_ratio(r['ratio'])})")
+                    else:
+                        cells.append(f"**{fmt_ms(r['median_ms'])}**" if name == "lidarops" else fmt_ms(r["median_ms"]))
+                lines.append("| " + " | ".join(str(c) for c in ck) + " | " + " | ".join(cells) + " |")
+            lines.append("")
+        targets = meta.get("targets") or []
+        if targets:
+            lines.append("**targets**")
+            lines.append("")
+            for tg in targets:
+                lines.append(f"- {tg['status']}: {tg['target']}: {tg['detail']}")
+            lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--results", default=str(RESULTS_DIR), help="folder of result files")
+    ap.add_argument("--out", default=str(IMG_DIR), help="folder for the plots")
+    ap.add_argument("--markdown", action="store_true", help="print markdown tables for docs/ops.md")
+    a = ap.parse_args(argv)
+    devices = load(Path(a.results))
+    if not devices:
+        print(f"no neighbors results in {a.results}; run benchmarks/bm_neighbors.py --json first", file=sys.stderr)
+        return 1
+    for op in OPS:
+        path = Path(a.out) / f"neighbors_{op}.png"
+        if plot(devices, op, path):
+            print(f"wrote {path}")
+    if a.markdown:
+        print()
+        print(markdown(devices))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
