@@ -1,5 +1,5 @@
-// O(N) grid construction on CPU (counting sort by cell), parallel over clouds. Produces the same
-// cells as the ATen builder in csrc/grid.cpp (build_grid) plus the dense offsets table.
+// O(N) grid construction on CPU (counting sort by cell), parallel over clouds, with the dense offsets
+// table and the coordinates in cell order.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 

@@ -248,7 +248,7 @@ __device__ __forceinline__ int64_t cell_key(const DGrid& g, double x, double y, 
 }
 
 // One block per cloud: bounding box (min/max are exact in T), cell size, dims. The cell size
-// follows knn_cell_size() / build_grid() (grid.cpp), then grows until the grid has at most `cap`
+// follows the CPU builder (csrc/cpu/grid_cpu.cpp), then grows until the grid has at most `cap`
 // cells, so that every cloud has a dense cell table. Non-finite boxes get a single cell, which is
 // exact too (every point is then visited).
 constexpr int kSetupThreads = 1024;
@@ -288,7 +288,7 @@ __global__ void __launch_bounds__(kSetupThreads) grid_setup_kernel(const T* __re
   for (int w = 1; w < static_cast<int>(blockDim.x >> 5); ++w)
 #pragma unroll
     for (int a = 0; a < 6; ++a) v[a] = v[a] < red[w][a] ? v[a] : red[w][a];
-  constexpr double kMaxCells = 1048576.0;  // 2^20 per axis, as build_grid
+  constexpr double kMaxCells = 1048576.0;  // 2^20 per axis, as the CPU builder
   double lo[3], ext[3], emax = 0.0;
   bool finite = true;
   for (int a = 0; a < 3; ++a) {
@@ -300,7 +300,7 @@ __global__ void __launch_bounds__(kSetupThreads) grid_setup_kernel(const T* __re
   }
   double cell;
   if (mode == kGridKnn) {
-    // knn_cell_size(): about k/2 points per cell at the mean density of the (floored) box.
+    // as the CPU kNN grid: about k/2 points per cell at the mean density of the (floored) box.
     const double fl = emax * 1e-2 + 1e-6;
     const double vol = fmax(ext[0], fl) * fmax(ext[1], fl) * fmax(ext[2], fl);
     const double kk = static_cast<double>(k > 2 ? k : 2);
@@ -358,7 +358,7 @@ __global__ void grid_count_kernel(const T* __restrict__ pts, const int64_t* __re
     const int64_t b = u / L, i = u - b * L;
     if (i >= clamp_len(is_point ? plen[b] : qlen[b], L)) continue;
     const T* p = (is_point ? pts : qry) + 3 * u;
-    // The same doubles as build_grid's points.to(kDouble) and the searches' static_cast<double>(q).
+    // The same doubles as the CPU builder's static_cast<double>(p) and the searches' static_cast<double>(q).
     const int64_t key = cell_key(grids[b], static_cast<double>(p[0]), static_cast<double>(p[1]),
                                  static_cast<double>(p[2]));  // in [0, total) with total <= cap
     int32_t* row = table + ((is_point ? 0 : B) + b) * (cap + 1);

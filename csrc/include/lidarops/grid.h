@@ -1,8 +1,8 @@
 // Uniform grid (cell lists) over a batch of ragged point clouds, used by the kNN and ball-query
 // fast paths on CPU and CUDA.
 //
-// The grid is built with ATen ops (so one builder serves every device): each valid point gets the
-// key of its cell, (cz * dims_y + cy) * dims_x + cx, and the keys of each cloud are sorted. A query
+// Each valid point gets the key of its cell, (cz * dims_y + cy) * dims_x + cx, and the keys of each
+// cloud are sorted. A query
 // finds the points of a cell by binary search in its cloud's sorted keys; the points of one grid row
 // (fixed cz, cy, consecutive cx) are contiguous, so a row costs one search.
 //
@@ -32,14 +32,10 @@ struct Grid {
   at::Tensor sorted_points;
 };
 
-// cell_size: (B,) double tensor, wanted cell edge per cloud (clamped so each axis has <= 2^20 cells).
-Grid build_grid(const at::Tensor& points, const at::Tensor& lengths, const at::Tensor& cell_size);
-
-// Cell edge for kNN: about k/2 points per cell at the cloud's mean density over its bounding box.
-at::Tensor knn_cell_size(const at::Tensor& points, const at::Tensor& lengths, int64_t k);
-
-// CPU builders (csrc/cpu/grid_cpu.cpp): same cells as build_grid, built in O(N) by counting sort,
-// with the dense offsets table when the grid has at most about 4 cells per point.
+// CPU builders (csrc/cpu/grid_cpu.cpp), O(N) by counting sort, with the dense offsets table when the
+// grid has at most about 4 cells per point. kNN cells hold about k/2 points at the mean density of the
+// cloud's bounding box (extents floored at 1% of the largest); ball-query cells have edge = radius.
+// The CUDA kernels build the same cells on the device (cuda_utils.cuh).
 Grid build_knn_grid_cpu(const at::Tensor& points, const at::Tensor& lengths, int64_t k);
 Grid build_ball_grid_cpu(const at::Tensor& points, const at::Tensor& lengths, double radius);
 
