@@ -150,7 +150,7 @@ def emulate(module, x: SparseConvTensor, registry: dict | None = None):
             out_shape = module._out_spatial_shape(x)
             shape = list(out_shape) if out_shape is not None else list(
                 Fs.conv_transpose_output_shape(x.spatial_shape, module.kernel_size, s, p, d, module.output_padding))
-            keep = (sites[:, 1:] < torch.tensor(shape)).all(1)
+            keep = (sites[:, 1:] < torch.tensor(shape, device=sites.device)).all(1)
             sites, feats = sites[keep], feats[keep]
         else:
             shape = list(Fs.conv_output_shape(x.spatial_shape, module.kernel_size, s, p, d))

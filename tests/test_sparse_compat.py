@@ -285,3 +285,19 @@ def test_state_dict_compatible_with_lidarops_modules():
     ya, yb, yc = (n(feats, coords, 2)["spatial_features"] for n in (a, b, c))
     assert torch.equal(ya, yb)
     torch.testing.assert_close(ya, yc, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("D", [2, 3])
+def test_max_pool_starts_at_zero_like_spconv(device, D):
+    """spconv 2.3.8's max pool starts the running max at zero: signed features are clamped below at 0."""
+    from lidarops.sparse.functional import _max_pool_reference
+    shape = [12, 10] if D == 2 else [6, 8, 7]
+    sites = random_sites(2, shape, 40, seed=D).to(device)
+    feats = torch.randn(sites.shape[0], 5, dtype=torch.float64, device=device) - 0.5  # many all-negative windows
+    x = SparseConvTensor(feats, sites, shape, 2)
+    y = (spconv.SparseMaxPool2d if D == 2 else spconv.SparseMaxPool3d)(2, 2)(x)
+    ref_sites, ref_feats = _max_pool_reference(x, 2, 2)
+    assert (ref_feats < 0).any(), "the test needs windows whose max is negative"
+    assert_same_sites_and_features(y.indices, y.features, ref_sites, ref_feats.clamp_min(0), y.spatial_shape, 0.0,
+                                   f"compat max pool {D}D")

@@ -161,6 +161,14 @@ class SparseMaxPool(spnn.SparseMaxPool):
         super().__init__(ndim, kernel_size, stride, padding, dilation, subm, indice_key, name=name)
         self.algo = algo
 
+    def forward(self, x):
+        y = super().forward(x)
+        # spconv 2.3.8 starts each output's running max at zero, not at -inf (its pooled features are
+        # max(0, window max); seen on an H100 against our -inf start, and in spconv's indiceMaxPool,
+        # which fills the output with zeros). After a ReLU this changes nothing; on signed features
+        # it does, and checkpoints trained with spconv saw the clamped values.
+        return y.replace_feature(y.features.clamp_min(0))
+
 
 def _make_pool(cls_name: str, ndim: int):
     def __init__(self, kernel_size, stride=None, padding=0, dilation=1, indice_key=None, algo=None, name=None,
