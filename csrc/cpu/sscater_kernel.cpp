@@ -1,0 +1,103 @@
+// SSCATeR delta convolution on CPU. The scatter runs one GEMM for all taps, then adds the products
+// into the accumulator with threads split over output channels: no two threads write the same
+// element, so it needs no atomics and the result does not depend on the thread count.
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+
+#include "lidarops/sscater.h"
+
+namespace lidarops {
+namespace sscater {
+namespace {
+
+void scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in, const at::Tensor& weight_in,
+                 int64_t stride, int64_t padding, bool transposed) {
+  check_scatter_args(acc, sites_in, delta_in, weight_in, stride, padding);
+  const int64_t n = sites_in.size(0);
+  if (n == 0 || acc.numel() == 0) return;
+  auto sites = sites_in.contiguous();
+  auto prod = tap_products(delta_in, weight_in.contiguous());  // (n, K, Cout)
+  const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
+  const int64_t kh = weight_in.size(1), kw = weight_in.size(2), K = kh * kw;
+  const int32_t* sp = sites.data_ptr<int32_t>();
+  // (n * K) target rows, -1 where the tap falls outside the grid
+  std::vector<int64_t> target(n * K);
+  for (int64_t i = 0; i < n; ++i)
+    for (int64_t ky = 0; ky < kh; ++ky) {
+      const int64_t oy = reach(sp[2 * i], ky, stride, padding, Ho, transposed);
+      for (int64_t kx = 0; kx < kw; ++kx) {
+        const int64_t ox = oy < 0 ? -1 : reach(sp[2 * i + 1], kx, stride, padding, Wo, transposed);
+        target[i * K + ky * kw + kx] = ox < 0 ? -1 : oy * Wo + ox;
+      }
+    }
+  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_scatter_cpu", [&] {
+    scalar_t* a = acc.data_ptr<scalar_t>();
+    const scalar_t* p = prod.data_ptr<scalar_t>();
+    const int64_t rows = n * K;
+    const int64_t grain = std::max<int64_t>(1, 16384 / std::max<int64_t>(rows, 1));
+    at::parallel_for(0, C, grain, [&](int64_t c0, int64_t c1) {
+      for (int64_t r = 0; r < rows; ++r) {
+        const int64_t o = target[r];
+        if (o < 0) continue;
+        scalar_t* dst = a + o * C;
+        const scalar_t* src = p + r * C;
+        for (int64_t c = c0; c < c1; ++c) dst[c] += src[c];
+      }
+    });
+  });
+}
+
+std::tuple<at::Tensor, at::Tensor> finalize_cpu(const at::Tensor& acc, at::Tensor& out, const at::Tensor& active,
+                                                const at::Tensor& sites_in, const at::Tensor& scale_in,
+                                                const at::Tensor& shift_in) {
+  check_finalize_args(acc, out, active, sites_in, scale_in, shift_in);
+  const int64_t m = sites_in.size(0), Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
+  auto changed = at::zeros({m}, acc.options().dtype(at::kBool));
+  auto delta = at::empty({m, C}, acc.options());
+  if (m == 0) return {changed, delta};
+  auto sites = sites_in.contiguous();
+  auto scale = scale_in.contiguous(), shift = shift_in.contiguous();
+  const int32_t* sp = sites.data_ptr<int32_t>();
+  for (int64_t i = 0; i < m; ++i)
+    TORCH_CHECK(sp[2 * i] >= 0 && sp[2 * i] < Ho && sp[2 * i + 1] >= 0 && sp[2 * i + 1] < Wo, "sites[", i,
+                "] = (", sp[2 * i], ", ", sp[2 * i + 1], ") lies outside the (", Ho, ", ", Wo, ") grid");
+  const int64_t sy = out.stride(0), sx = out.stride(1), sc = out.stride(2);
+  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_finalize_cpu", [&] {
+    const scalar_t* a = acc.data_ptr<scalar_t>();
+    scalar_t* o = out.data_ptr<scalar_t>();
+    const bool* act = active.data_ptr<bool>();
+    const scalar_t* g = scale.data_ptr<scalar_t>();
+    const scalar_t* b = shift.data_ptr<scalar_t>();
+    bool* ch = changed.data_ptr<bool>();
+    scalar_t* d = delta.data_ptr<scalar_t>();
+    at::parallel_for(0, m, std::max<int64_t>(1, 2048 / std::max<int64_t>(C, 1)), [&](int64_t s, int64_t e) {
+      for (int64_t i = s; i < e; ++i) {
+        const int64_t y = sp[2 * i], x = sp[2 * i + 1];
+        const bool on = act[y * Wo + x];
+        const scalar_t* ai = a + (y * Wo + x) * C;
+        scalar_t* oi = o + y * sy + x * sx;
+        bool any = false;
+        for (int64_t c = 0; c < C; ++c) {
+          scalar_t v = on ? ai[c] * g[c] + b[c] : scalar_t(0);
+          v = v > scalar_t(0) ? v : scalar_t(0);
+          const scalar_t old = oi[c * sc];
+          d[i * C + c] = v - old;
+          any |= v != old;
+          oi[c * sc] = v;
+        }
+        ch[i] = any;
+      }
+    });
+  });
+  return {changed, delta};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
+  m.impl("sscater_scatter_", &scatter_cpu);
+  m.impl("sscater_finalize_", &finalize_cpu);
+}
+
+}  // namespace sscater
+}  // namespace lidarops

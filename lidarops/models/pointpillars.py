@@ -1,0 +1,235 @@
+"""PointPillars' pillar feature net and 2D backbone, dense and sparse (Lang et al., CVPR 2019).
+
+- :class:`PillarFeatureNet`: Linear (no bias) -> BatchNorm1d -> ReLU on the 9 decorated features of
+  each point, max over the points of a pillar (padding slots masked out). Pillars are independent in
+  eval mode, which is what lets SSCATeR recompute only the pillars whose points changed.
+- :class:`PointPillarsBackbone`: OpenPCDet's ``BaseBEVBackbone`` (three blocks of 3x3 convolutions, the
+  first of each block strided, transposed-convolution upsampling to a common grid, concatenated). The
+  module tree and parameter names are OpenPCDet's (``blocks.i.j``, ``deblocks.i.j``), so its PointPillars
+  checkpoints load; ``mode="sparse"`` runs the same parameters as the Sparse-PointPillars layout (a
+  strided sparse convolution at the start of each block, submanifold convolutions after it, sparse
+  transposed upsampling) and returns the same dense map shape.
+- :func:`scatter_to_bev`: the PointPillars scatter of pillar features into a dense pseudo-image.
+
+Sparse semantics: a site is active when the sparse network reaches it (pillars with points; a strided
+convolution's output where any active input lies under its kernel; a transposed convolution's children
+of active inputs; submanifold layers keep their input's sites). Inactive sites are zero in the returned
+map, so ``mode="sparse"`` and ``mode="dense"`` differ wherever BatchNorm's shift or a convolution of
+zeros would make an inactive site non-zero in the dense network.
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from lidarops.ops.validation import check_tensor, describe
+
+__all__ = ["PillarFeatureNet", "PointPillarsBackbone", "scatter_to_bev", "backbone_layers", "BackboneLayer"]
+
+
+class PillarFeatureNet(nn.Module):
+    """Pillar feature net: one PointNet layer over the points of each pillar.
+
+    Args:
+        in_channels (int): decorated features per point (9: x, y, z, intensity, offsets to the pillar's
+            mean, offsets x, y to the pillar centre).
+        out_channels (int): features per pillar.
+
+    Shape:
+        ``forward(pillars)`` takes anything with ``features (Tensor[P, N, in_channels])`` and
+        ``num_points (Tensor[P])`` (the ``Pillars`` of :func:`lidarops.stream.pillarize`) and returns
+        Tensor[P, out_channels], rows in the pillars' order. Slots at or beyond ``num_points[p]`` are
+        padding: they take no part in BatchNorm's batch statistics nor in the max.
+    """
+
+    def __init__(self, in_channels: int = 9, out_channels: int = 64):
+        super().__init__()
+        self.in_channels, self.out_channels = in_channels, out_channels
+        self.linear = nn.Linear(in_channels, out_channels, bias=False)
+        self.norm = nn.BatchNorm1d(out_channels, eps=1e-3, momentum=0.01)
+
+    def forward(self, pillars) -> Tensor:
+        features, num_points = pillars.features, pillars.num_points
+        check_tensor(features, "pillars.features")
+        if features.dim() != 3 or features.shape[2] != self.in_channels:
+            raise ValueError(f"pillars.features must be (P, N, {self.in_channels}), got {describe(features)}")
+        if num_points.dim() != 1 or num_points.shape[0] != features.shape[0]:
+            raise ValueError(f"pillars.num_points must be ({features.shape[0]},), got {describe(num_points)}")
+        P, N, _ = features.shape
+        mask = torch.arange(N, device=features.device) < num_points.to(features.device).long()[:, None]  # (P, N)
+        x = self.linear(features[mask])  # only the real points
+        x = torch.relu(self.norm(x)) if x.shape[0] else x
+        out = features.new_zeros(P, N, self.out_channels)
+        out[mask] = x
+        # post-ReLU values are >= 0, so zero padding never wins the max over a non-empty pillar
+        return out.amax(dim=1) if N else features.new_zeros(P, self.out_channels)
+
+
+def scatter_to_bev(pillar_features: Tensor, coords: Tensor, shape: Sequence[int], batch_size: int = 1) -> Tensor:
+    """Dense pseudo-image (B, C, H, W) from pillar features (P, C) at int coords (P, 3) = (batch, y, x)."""
+    H, W = int(shape[0]), int(shape[1])
+    C = pillar_features.shape[1]
+    out = pillar_features.new_zeros(batch_size, H, W, C)
+    if coords.shape[0]:
+        c = coords.long()
+        out[c[:, 0], c[:, 1], c[:, 2]] = pillar_features
+    return out.permute(0, 3, 1, 2).contiguous()
+
+
+class BackboneLayer:
+    """One convolution of the backbone in sparse terms (what SSCATeR and the sparse mode run).
+
+    Attributes:
+        kind (str): ``"down"`` (strided 3x3, padding 1: regular sparse convolution), ``"subm"`` (3x3,
+            submanifold) or ``"up"`` (transposed, kernel = stride: each input site feeds its stride^2
+            children).
+        conv (nn.Conv2d | nn.ConvTranspose2d), norm (nn.BatchNorm2d): the modules holding the parameters.
+        stride (int), block (int): index of the block (or of the upsampling branch for ``"up"``).
+    """
+
+    def __init__(self, kind: str, conv: nn.Module, norm: nn.BatchNorm2d, stride: int, block: int):
+        self.kind, self.conv, self.norm, self.stride, self.block = kind, conv, norm, stride, block
+
+    def sparse_weight(self) -> Tensor:
+        """Weight in lidarops.sparse's layout [Cout, kh, kw, Cin]."""
+        w = self.conv.weight
+        if self.kind == "up":  # ConvTranspose2d: [Cin, Cout, kh, kw]
+            return w.permute(1, 2, 3, 0).contiguous()
+        return w.permute(0, 2, 3, 1).contiguous()
+
+    def folded_norm(self) -> tuple[Tensor, Tensor]:
+        """Eval-mode BatchNorm as (scale, shift): y = x * scale + shift."""
+        n = self.norm
+        scale = n.weight / torch.sqrt(n.running_var + n.eps)
+        return scale, n.bias - n.running_mean * scale
+
+
+def backbone_layers(backbone: "PointPillarsBackbone") -> list[BackboneLayer]:
+    """The backbone's convolutions in execution order: each block's layers, then the upsampling ones."""
+    layers = []
+    for b, block in enumerate(backbone.blocks):
+        mods = list(block)
+        convs = [(i, m) for i, m in enumerate(mods) if isinstance(m, nn.Conv2d)]
+        for j, (i, conv) in enumerate(convs):
+            norm = mods[i + 1]
+            layers.append(BackboneLayer("down" if j == 0 else "subm", conv, norm, conv.stride[0], b))
+    for b, deblock in enumerate(backbone.deblocks):
+        conv, norm = deblock[0], deblock[1]
+        layers.append(BackboneLayer("up", conv, norm, conv.stride[0], b))
+    return layers
+
+
+class PointPillarsBackbone(nn.Module):
+    """PointPillars' 2D backbone (OpenPCDet ``BaseBEVBackbone``), dense or sparse.
+
+    Args:
+        in_channels (int): channels of the pillar pseudo-image.
+        layer_nums (Sequence[int]): 3x3 convolutions after the strided one, per block.
+        layer_strides (Sequence[int]): stride of each block's first convolution (2 in the sparse mode).
+        num_filters (Sequence[int]): channels of each block.
+        upsample_strides (Sequence[int]): stride (= kernel) of each block's transposed convolution.
+        num_upsample_filters (Sequence[int]): channels after upsampling, concatenated in the output.
+        mode (str): ``"dense"`` (the original network on a dense pseudo-image) or ``"sparse"``.
+
+    Shape:
+        dense: ``forward(Tensor[B, in_channels, H, W])`` (a ``SparseConvTensor`` is densified first);
+        sparse: ``forward(SparseConvTensor)`` with 2D indices (batch, y, x) and features
+        (P, in_channels). Both return Tensor[B, sum(num_upsample_filters), H / s0 * u0, W / s0 * u0]
+        ((B, 384, H/2, W/2) with the defaults).
+    """
+
+    def __init__(self, in_channels: int = 64, layer_nums: Sequence[int] = (3, 5, 5),
+                 layer_strides: Sequence[int] = (2, 2, 2), num_filters: Sequence[int] = (64, 128, 256),
+                 upsample_strides: Sequence[int] = (1, 2, 4), num_upsample_filters: Sequence[int] = (128, 128, 128),
+                 mode: str = "dense"):
+        super().__init__()
+        if not (len(layer_nums) == len(layer_strides) == len(num_filters) == len(upsample_strides)
+                == len(num_upsample_filters)):
+            raise ValueError("layer_nums, layer_strides, num_filters, upsample_strides and num_upsample_filters "
+                             "must have the same length")
+        self.mode = self._check_mode(mode)
+        self.in_channels = in_channels
+        self.layer_strides = tuple(int(s) for s in layer_strides)
+        self.upsample_strides = tuple(int(s) for s in upsample_strides)
+        self.blocks, self.deblocks = nn.ModuleList(), nn.ModuleList()
+        c_in = in_channels
+        for c, n, s, u, cu in zip(num_filters, layer_nums, layer_strides, upsample_strides, num_upsample_filters):
+            layers = [nn.ZeroPad2d(1), nn.Conv2d(c_in, c, 3, stride=s, padding=0, bias=False),
+                      nn.BatchNorm2d(c, eps=1e-3, momentum=0.01), nn.ReLU()]
+            for _ in range(n):
+                layers += [nn.Conv2d(c, c, 3, padding=1, bias=False), nn.BatchNorm2d(c, eps=1e-3, momentum=0.01),
+                           nn.ReLU()]
+            self.blocks.append(nn.Sequential(*layers))
+            if u < 1:
+                raise ValueError(f"upsample_strides must be >= 1, got {tuple(upsample_strides)}")
+            self.deblocks.append(nn.Sequential(nn.ConvTranspose2d(c, cu, u, stride=u, bias=False),
+                                               nn.BatchNorm2d(cu, eps=1e-3, momentum=0.01), nn.ReLU()))
+            c_in = c
+        self.out_channels = int(sum(num_upsample_filters))
+
+    @staticmethod
+    def _check_mode(mode: str) -> str:
+        if mode not in ("dense", "sparse"):
+            raise ValueError(f"mode must be 'dense' or 'sparse', got {mode!r}")
+        return mode
+
+    def output_shape(self, shape: Sequence[int]) -> tuple[int, int]:
+        """(H_out, W_out) of the returned map for an input grid (H, W)."""
+        H, W = int(shape[0]), int(shape[1])
+        for s in self.layer_strides[:1]:
+            H, W = (H + 2 - 3) // s + 1, (W + 2 - 3) // s + 1
+        return H * self.upsample_strides[0], W * self.upsample_strides[0]
+
+    def forward(self, x, mode: Optional[str] = None) -> Tensor:
+        mode = self.mode if mode is None else self._check_mode(mode)
+        from lidarops.sparse import SparseConvTensor  # lazy: the dense mode needs no extension
+        if mode == "dense":
+            if isinstance(x, SparseConvTensor):
+                x = x.dense(channels_first=True)
+            check_tensor(x, "x")
+            if x.dim() != 4 or x.shape[1] != self.in_channels:
+                raise ValueError(f"x must be (B, {self.in_channels}, H, W), got {describe(x)}")
+            ups = []
+            for block, deblock in zip(self.blocks, self.deblocks):
+                x = block(x)
+                ups.append(deblock(x))
+            return torch.cat(ups, dim=1)
+        if not isinstance(x, SparseConvTensor) or x.ndim != 2:
+            raise ValueError(f"mode='sparse' takes a 2D SparseConvTensor, got {type(x).__name__}"
+                             + (f" with {x.ndim} spatial dims" if isinstance(x, SparseConvTensor) else ""))
+        if x.features.shape[1] != self.in_channels:
+            raise ValueError(f"x.features must be (P, {self.in_channels}), got {describe(x.features)}")
+        return self._forward_sparse(x)
+
+    def _forward_sparse(self, x) -> Tensor:
+        from lidarops.sparse import functional as Fs
+        layers = backbone_layers(self)
+        block_out = {}
+        for layer in layers:
+            if layer.kind == "down":
+                x = Fs.conv(x, layer.sparse_weight(), None, "conv", stride=layer.stride, padding=1)
+            elif layer.kind == "subm":
+                x = Fs.conv(x, layer.sparse_weight(), None, "subm", indice_key=f"subm{layer.block}")
+            else:
+                break
+            x = _norm_relu(x, layer)
+            block_out[layer.block] = x
+        outs = []
+        for layer in layers:
+            if layer.kind == "up":
+                y = Fs.conv(block_out[layer.block], layer.sparse_weight(), None, "transposed", stride=layer.stride)
+                outs.append(_norm_relu(y, layer).dense(channels_first=True))
+        return torch.cat(outs, dim=1)
+
+
+def _norm_relu(x, layer: BackboneLayer):
+    """BatchNorm2d's parameters applied to the (N, C) features of the active sites, then ReLU."""
+    n = layer.norm
+    f = x.features
+    if f.shape[0] or not n.training:
+        f = F.batch_norm(f, n.running_mean, n.running_var, n.weight, n.bias,
+                         n.training and f.shape[0] > 1, n.momentum, n.eps)
+    return x.replace_feature(torch.relu(f))

@@ -1,0 +1,385 @@
+"""SSCATeR's recycling backbone: a PointPillars backbone whose every convolution keeps its output and
+updates it by ``acc += (I_curr - I_prev) (*) W`` on the changed sites only (Hunt et al., SSCATeR,
+equation 2), with change maps propagated through BatchNorm/ReLU, strided and transposed convolutions
+(Algorithm 1).
+
+State (all dense, channels last, on the backbone's device):
+
+- per node (the pillar map, each block's sites, each upsampling branch's sites): an ``active`` map,
+  which is the sparse network's site set (pillars with points; a strided convolution's outputs with an
+  active input under the kernel, tracked by a ``cover`` count; the children of active inputs after a
+  transposed convolution; submanifold layers keep their block's sites);
+- per convolution: ``acc`` (Ho, Wo, Cout), the convolution without bias of the layer's zero-filled
+  input at *every* site (linear in the input, so a delta at a few sites updates it exactly), and the
+  layer's post-activation output ``feats`` (zero at inactive sites), the next layer's input. The
+  upsampling layers write their outputs straight into the returned (1, 384, H/2, W/2) map.
+
+One step: the changed input sites carry ``delta = new - old``; each layer scatters ``delta (*) W`` into
+``acc`` (one GEMM and one scatter, :func:`torch.ops.lidarops.sscater_scatter_`), updates its active
+map from the sites that became active or inactive, and re-evaluates BatchNorm (folded) and ReLU only
+at the sites the scatter touched or whose status changed (:func:`torch.ops.lidarops.sscater_finalize_`).
+The changed sites it passes on are those whose post-ReLU value changed (a site that stays <= 0 is not
+passed on) plus those whose active status changed.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from lidarops.models.pointpillars import BackboneLayer, PointPillarsBackbone, backbone_layers
+
+__all__ = ["Change", "DeltaBackbone", "LayerStats"]
+
+
+@dataclass
+class Change:
+    """What changed at one node in one step.
+
+    Attributes:
+        sites (Tensor[n, 2] int32): (y, x) of the sites whose value changed.
+        delta (Tensor[n, C]): new value - old value at those sites.
+        added, removed (Tensor[a, 2] / [r, 2] int32): sites that became active / inactive.
+    """
+
+    sites: Tensor
+    delta: Tensor
+    added: Tensor
+    removed: Tensor
+
+
+@dataclass
+class LayerStats:
+    """Per-layer figures of the last step: ``active`` sites, ``changed`` sites passed on, ``touched``
+    sites re-evaluated, ``ms`` (wall time, synchronised on CUDA when profiling)."""
+
+    name: str
+    active: int = 0
+    changed: int = 0
+    touched: int = 0
+    ms: float = 0.0
+
+
+def _reach_1d(i: Tensor, k: Tensor, stride: int, padding: int, n_out: int, transposed: bool) -> Tensor:
+    """Torch twin of ``reach`` in csrc/include/lidarops/sscater.h: (n, K) output coordinates or -1."""
+    i, k = i[:, None], k[None, :]
+    if transposed:
+        o = i * stride - padding + k
+        ok = (o >= 0) & (o < n_out)
+    else:
+        t = i + padding - k
+        o = torch.div(t, stride, rounding_mode="floor")
+        ok = (t >= 0) & (t % stride == 0) & (o < n_out)
+    return torch.where(ok, o, torch.full_like(o, -1))
+
+
+class _Layer:
+    def __init__(self, spec: BackboneLayer, dtype, device, in_shape, out_shape, name: str):
+        self.kind, self.block, self.name = spec.kind, spec.block, name
+        self.stride = spec.stride if spec.kind != "subm" else 1
+        self.padding = 0 if spec.kind == "up" else 1
+        self.transposed = spec.kind == "up"
+        w = spec.sparse_weight().detach().to(device=device, dtype=dtype)
+        self.weight = w.contiguous()
+        self.kh, self.kw = w.shape[1], w.shape[2]
+        scale, shift = spec.folded_norm()
+        self.scale = scale.detach().to(device=device, dtype=dtype).contiguous()
+        self.shift = shift.detach().to(device=device, dtype=dtype).contiguous()
+        self.in_shape, self.out_shape = tuple(in_shape), tuple(out_shape)
+        self.cin, self.cout = w.shape[3], w.shape[0]
+        self.acc = torch.zeros(*out_shape, self.cout, dtype=dtype, device=device)
+        self.feats: Optional[Tensor] = None  # set by the owner (own buffer or a view of the output map)
+        self.active: Optional[Tensor] = None
+        self.stats = LayerStats(name)
+
+    def reach_keys(self, sites: Tensor) -> Tensor:
+        """Linear keys (y * Wo + x) of the output sites the kernel reaches from input sites (n, 2)."""
+        dev = sites.device
+        s = sites.long()
+        oy = _reach_1d(s[:, 0], torch.arange(self.kh, device=dev), self.stride, self.padding, self.out_shape[0],
+                       self.transposed)
+        ox = _reach_1d(s[:, 1], torch.arange(self.kw, device=dev), self.stride, self.padding, self.out_shape[1],
+                       self.transposed)
+        keys = oy[:, :, None] * self.out_shape[1] + ox[:, None, :]
+        ok = (oy[:, :, None] >= 0) & (ox[:, None, :] >= 0)
+        return keys[ok]
+
+
+def _keys(sites: Tensor, W: int) -> Tensor:
+    return sites[:, 0].long() * W + sites[:, 1].long()
+
+
+def _sites(keys: Tensor, W: int) -> Tensor:
+    return torch.stack([keys // W, keys % W], 1).int()
+
+
+class DeltaBackbone:
+    """Recycling state of a :class:`PointPillarsBackbone` on one (H, W) pillar grid (batch 1, eval mode).
+
+    Args:
+        backbone (PointPillarsBackbone): its parameters and BatchNorm running statistics are copied
+            (folded) at construction; call :meth:`reload` after changing them.
+        shape (tuple[int, int]): the pillar grid (H, W).
+        dtype (torch.dtype): float32 or float64 state.
+        device: where the state lives (default: the backbone's).
+
+    ``refresh(sites, features)`` sets the whole input (a full recomputation through the sparse ops);
+    ``update(change)`` applies one step's input change; both return the (1, C_out, H/2, W/2) map, which
+    is the state itself: it is overwritten by the next call (clone it to keep it).
+    """
+
+    def __init__(self, backbone: PointPillarsBackbone, shape, dtype: torch.dtype = torch.float32, device=None):
+        if dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        if backbone.training:
+            raise ValueError("the backbone must be in eval mode (SSCATeR folds BatchNorm's running statistics)")
+        self.backbone = backbone
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.dtype = dtype
+        self.device = torch.device(device) if device is not None else next(backbone.parameters()).device
+        self.reload()
+
+    # ---- construction ----------------------------------------------------------------------------
+
+    def reload(self) -> None:
+        """(Re)build the state from the backbone's current parameters; the state is cleared."""
+        dev, dt = self.device, self.dtype
+        specs = backbone_layers(self.backbone)
+        H, W = self.shape
+        self.in_channels = self.backbone.in_channels
+        self.in_feats = torch.zeros(H, W, self.in_channels, dtype=dt, device=dev)
+        self.in_active = torch.zeros(H, W, dtype=torch.bool, device=dev)
+        self.layers: list[_Layer] = []
+        block_shape, block_active, self.block_cover = {}, {}, {}
+        shape, prev = (H, W), None
+        ups = [s for s in specs if s.kind == "up"]
+        for spec in specs:
+            if spec.kind == "up":
+                continue
+            if spec.kind == "down":
+                s = spec.stride
+                out = ((shape[0] + 2 - 3) // s + 1, (shape[1] + 2 - 3) // s + 1)
+                block_active[spec.block] = torch.zeros(out, dtype=torch.bool, device=dev)
+                self.block_cover[spec.block] = torch.zeros(out, dtype=torch.int32, device=dev)
+                block_shape[spec.block] = out
+            else:
+                out = shape
+            name = f"block{spec.block}.{'down' if spec.kind == 'down' else 'subm'}{len(self.layers)}"
+            layer = _Layer(spec, dt, dev, shape, out, name)
+            layer.feats = torch.zeros(*out, layer.cout, dtype=dt, device=dev)
+            layer.active = block_active[spec.block]
+            self.layers.append(layer)
+            shape = out
+        self.block_last = {}
+        for i, layer in enumerate(self.layers):
+            self.block_last[layer.block] = i
+        up_shapes = [(block_shape[s.block][0] * s.stride, block_shape[s.block][1] * s.stride) for s in ups]
+        if len(set(up_shapes)) != 1:
+            raise ValueError(f"the upsampling branches reach different grids {up_shapes}")
+        Hu, Wu = up_shapes[0]
+        couts = [s.conv.weight.shape[1] for s in ups]
+        self.out = torch.zeros(1, sum(couts), Hu, Wu, dtype=dt, device=dev)
+        self.up_layers: list[_Layer] = []
+        c0 = 0
+        for spec, cu in zip(ups, couts):
+            layer = _Layer(spec, dt, dev, block_shape[spec.block], (Hu, Wu), f"up{spec.block}")
+            layer.feats = self.out[0, c0:c0 + cu].permute(1, 2, 0)  # (Hu, Wu, Cu) view, channels-first memory
+            layer.active = torch.zeros(Hu, Wu, dtype=torch.bool, device=dev)
+            self.up_layers.append(layer)
+            c0 += cu
+        self.stats: list[LayerStats] = [layer.stats for layer in self.layers + self.up_layers]
+        self.steps = 0
+
+    # ---- full recomputation ----------------------------------------------------------------------
+
+    def refresh(self, sites: Tensor, features: Tensor) -> Tensor:
+        """Set the input to ``features (Tensor[P, Cin])`` at ``sites (Tensor[P, 2] int, (y, x))`` and
+        recompute every layer's state from it with the sparse convolution ops (no recycling)."""
+        from lidarops.sparse import SparseConvTensor
+        from lidarops.sparse import functional as Fs
+        sites, features = self._check_input(sites, features)
+        H, W = self.shape
+        self.in_feats.zero_()
+        self.in_active.zero_()
+        keys = _keys(sites, W)
+        self.in_feats.view(H * W, -1)[keys] = features
+        self.in_active.view(-1)[keys] = True
+        x_sites, x_feats = sites, features
+        block_out = {}
+        for i, layer in enumerate(self.layers):
+            x = SparseConvTensor(x_feats, _batch0(x_sites), list(layer.in_shape), 1)
+            # acc everywhere = the regular convolution's outputs (the subm layer's padding keeps the grid)
+            y = Fs.conv(x, layer.weight, None, "conv", stride=layer.stride, padding=layer.padding)
+            layer.acc.zero_()
+            layer.acc.view(-1, layer.cout)[_keys(y.indices[:, 1:], layer.out_shape[1])] = y.features
+            if layer.kind == "down":
+                ones = torch.ones(1, 1, 3, 3, dtype=self.dtype, device=self.device)
+                act = torch.zeros(1, 1, *layer.in_shape, dtype=self.dtype, device=self.device)
+                act.view(-1)[_keys(x_sites, layer.in_shape[1])] = 1.0
+                cover = torch.nn.functional.conv2d(act, ones, stride=layer.stride, padding=1)[0, 0]
+                self.block_cover[layer.block].copy_(cover.round().to(torch.int32))
+                layer.active.copy_(self.block_cover[layer.block] > 0)
+            x_sites = torch.nonzero(layer.active).int()
+            x_feats = self._evaluate(layer, x_sites)
+            block_out[layer.block] = (x_sites, x_feats)
+        for layer in self.up_layers:
+            src_sites, src_feats = block_out[layer.block]
+            x = SparseConvTensor(src_feats, _batch0(src_sites), list(layer.in_shape), 1)
+            y = Fs.conv(x, layer.weight, None, "transposed", stride=layer.stride)
+            layer.acc.zero_()
+            layer.active.zero_()
+            if y.indices.shape[0]:
+                k = _keys(y.indices[:, 1:], layer.out_shape[1])
+                layer.acc.view(-1, layer.cout)[k] = y.features
+                layer.active.view(-1)[k] = True
+            self._evaluate(layer, torch.nonzero(layer.active).int())
+        for st, layer in zip(self.stats, self.layers + self.up_layers):
+            st.active = int(layer.active.sum())
+            st.changed = st.touched = st.active
+        self.steps = 0
+        return self.out
+
+    def _evaluate(self, layer: _Layer, sites: Tensor) -> Tensor:
+        """feats = relu(acc * scale + shift) on the active sites, zero elsewhere; returns the values."""
+        layer.feats.zero_()
+        if sites.shape[0] == 0:
+            return layer.acc.new_zeros(0, layer.cout)
+        k = _keys(sites, layer.out_shape[1])
+        v = torch.relu(layer.acc.view(-1, layer.cout)[k] * layer.scale + layer.shift)
+        layer.feats[sites[:, 0].long(), sites[:, 1].long()] = v
+        return v
+
+    # ---- recycling step --------------------------------------------------------------------------
+
+    def update(self, sites: Tensor, features: Tensor, removed: Tensor, profile: bool = False) -> Tensor:
+        """Apply one step's input change and return the output map.
+
+        Args:
+            sites (Tensor[n, 2] int): (y, x) of the pillars that changed (gained or lost points).
+            features (Tensor[n, Cin]): their new features (ignored where ``removed``).
+            removed (Tensor[n] bool): pillars that became empty (inactive).
+            profile (bool): time each layer (synchronises CUDA after each layer).
+        """
+        sites, features = self._check_input(sites, features)
+        if removed.shape != (sites.shape[0],) or removed.dtype != torch.bool:
+            raise ValueError(f"removed must be bool ({sites.shape[0]},), got {removed.dtype} {tuple(removed.shape)}")
+        removed = removed.to(self.device)
+        H, W = self.shape
+        keys = _keys(sites, W)
+        flat_f, flat_a = self.in_feats.view(H * W, -1), self.in_active.view(-1)
+        was = flat_a[keys]
+        new = torch.where(removed[:, None], torch.zeros_like(features), features)
+        delta = new - flat_f[keys]
+        flat_f[keys] = new
+        flat_a[keys] = ~removed
+        moved = delta.ne(0).any(1)
+        change = Change(sites[moved], delta[moved], sites[~was & ~removed], sites[was & removed])
+        block_change = {}
+        for layer in self.layers:
+            t0 = self._tick(profile)
+            change = self._layer_step(layer, change)
+            layer.stats.ms = self._tock(t0, profile)
+            block_change[layer.block] = change
+        for layer in self.up_layers:
+            t0 = self._tick(profile)
+            self._layer_step(layer, block_change[layer.block])
+            layer.stats.ms = self._tock(t0, profile)
+        self.steps += 1
+        return self.out
+
+    def _layer_step(self, layer: _Layer, change: Change) -> Change:
+        Ho, Wo = layer.out_shape
+        # 1. active status of the output sites
+        if layer.kind == "subm":
+            added, removed = change.added, change.removed  # the block's map was updated by its strided layer
+        elif layer.kind == "down":
+            added, removed = self._cover_update(layer, change)
+        else:
+            added, removed = self._children(layer, change.added), self._children(layer, change.removed)
+            if added.shape[0]:
+                layer.active.view(-1)[_keys(added, Wo)] = True
+            if removed.shape[0]:
+                layer.active.view(-1)[_keys(removed, Wo)] = False
+        # 2. acc += delta (*) W at every site the kernel reaches
+        if change.sites.shape[0]:
+            torch.ops.lidarops.sscater_scatter_(layer.acc, change.sites, change.delta, layer.weight, layer.stride,
+                                                layer.padding, layer.transposed)
+        # 3. re-evaluate BN + ReLU where the scatter reached or the status changed
+        cand = torch.cat([layer.reach_keys(change.sites), _keys(added, Wo), _keys(removed, Wo)])
+        cand = torch.unique(cand)
+        cand_sites = _sites(cand, Wo)
+        changed, delta = torch.ops.lidarops.sscater_finalize_(layer.acc, layer.feats, layer.active, cand_sites,
+                                                              layer.scale, layer.shift)
+        st = layer.stats
+        st.touched = int(cand.shape[0])
+        st.active = int(layer.active.sum()) if layer.kind != "subm" else self.layers[
+            self._block_first(layer.block)].stats.active
+        out = Change(cand_sites[changed], delta[changed], added, removed)
+        # change map = value changed or status changed
+        status = torch.zeros(cand.shape[0], dtype=torch.bool, device=cand.device)
+        if added.shape[0] + removed.shape[0]:
+            status = torch.isin(cand, torch.cat([_keys(added, Wo), _keys(removed, Wo)]))
+        st.changed = int((changed | status).sum())
+        return out
+
+    def _block_first(self, block: int) -> int:
+        for i, layer in enumerate(self.layers):
+            if layer.block == block:
+                return i
+        raise KeyError(block)
+
+    def _cover_update(self, layer: _Layer, change: Change) -> tuple[Tensor, Tensor]:
+        Wo = layer.out_shape[1]
+        cover = self.block_cover[layer.block].view(-1)
+        ka, kr = layer.reach_keys(change.added), layer.reach_keys(change.removed)
+        if ka.shape[0] + kr.shape[0] == 0:
+            empty = change.added.new_zeros(0, 2)
+            return empty, empty
+        allk = torch.cat([ka, kr])
+        uk = torch.unique(allk)
+        before = cover[uk]
+        vals = torch.cat([torch.ones_like(ka), -torch.ones_like(kr)]).to(torch.int32)
+        cover.index_add_(0, allk, vals)
+        after = cover[uk]
+        added, removed = uk[(before == 0) & (after > 0)], uk[(before > 0) & (after == 0)]
+        act = layer.active.view(-1)
+        act[added] = True
+        act[removed] = False
+        return _sites(added, Wo), _sites(removed, Wo)
+
+    def _children(self, layer: _Layer, sites: Tensor) -> Tensor:
+        return _sites(layer.reach_keys(sites), layer.out_shape[1])
+
+    # ---- helpers ---------------------------------------------------------------------------------
+
+    def _check_input(self, sites: Tensor, features: Tensor) -> tuple[Tensor, Tensor]:
+        if not isinstance(sites, Tensor) or sites.dim() != 2 or sites.shape[1] != 2 or sites.is_floating_point():
+            raise ValueError(f"sites must be an integer (n, 2) tensor of (y, x), got "
+                             f"{getattr(sites, 'dtype', type(sites))} {tuple(getattr(sites, 'shape', ()))}")
+        if not isinstance(features, Tensor) or features.shape != (sites.shape[0], self.in_channels):
+            raise ValueError(f"features must be ({sites.shape[0]}, {self.in_channels}), got "
+                             f"{tuple(getattr(features, 'shape', ()))}")
+        sites = sites.to(device=self.device, dtype=torch.int32)
+        if sites.shape[0]:
+            H, W = self.shape
+            bad = (sites[:, 0] < 0) | (sites[:, 0] >= H) | (sites[:, 1] < 0) | (sites[:, 1] >= W)
+            if bool(bad.any()):
+                raise ValueError(f"sites lie outside the ({H}, {W}) grid, e.g. {sites[bad][0].tolist()}")
+        return sites, features.to(device=self.device, dtype=self.dtype)
+
+    def _tick(self, profile: bool) -> float:
+        if profile and self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        return time.perf_counter()
+
+    def _tock(self, t0: float, profile: bool) -> float:
+        if profile and self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        return (time.perf_counter() - t0) * 1e3
+
+
+def _batch0(sites: Tensor) -> Tensor:
+    return torch.cat([sites.new_zeros(sites.shape[0], 1), sites], 1).int()
