@@ -177,11 +177,17 @@ class PointPillarsBackbone(nn.Module):
         return mode
 
     def output_shape(self, shape: Sequence[int]) -> tuple[int, int]:
-        """(H_out, W_out) of the returned map for an input grid (H, W)."""
+        """(H_out, W_out) of the returned map for an input grid (H, W); ValueError when the upsampling
+        branches would reach different grids (e.g. H or W not divisible by 8 with the defaults)."""
         H, W = int(shape[0]), int(shape[1])
-        for s in self.layer_strides[:1]:
+        outs = []
+        for s, u in zip(self.layer_strides, self.upsample_strides):
             H, W = (H + 2 - 3) // s + 1, (W + 2 - 3) // s + 1
-        return H * self.upsample_strides[0], W * self.upsample_strides[0]
+            outs.append((H * u, W * u))
+        if len(set(outs)) != 1:
+            raise ValueError(f"the grid {tuple(int(v) for v in shape)} gives upsampled maps of different sizes "
+                             f"{outs}: choose H and W divisible by the product of layer_strides")
+        return outs[0]
 
     def forward(self, x, mode: Optional[str] = None) -> Tensor:
         mode = self.mode if mode is None else self._check_mode(mode)
@@ -192,6 +198,7 @@ class PointPillarsBackbone(nn.Module):
             check_tensor(x, "x")
             if x.dim() != 4 or x.shape[1] != self.in_channels:
                 raise ValueError(f"x must be (B, {self.in_channels}, H, W), got {describe(x)}")
+            self.output_shape(x.shape[2:])
             ups = []
             for block, deblock in zip(self.blocks, self.deblocks):
                 x = block(x)
@@ -202,6 +209,7 @@ class PointPillarsBackbone(nn.Module):
                              + (f" with {x.ndim} spatial dims" if isinstance(x, SparseConvTensor) else ""))
         if x.features.shape[1] != self.in_channels:
             raise ValueError(f"x.features must be (P, {self.in_channels}), got {describe(x.features)}")
+        self.output_shape(x.spatial_shape)
         return self._forward_sparse(x)
 
     def _forward_sparse(self, x) -> Tensor:

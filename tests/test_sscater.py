@@ -1,0 +1,204 @@
+"""lidarops.sscater: the delta-convolution ops against dense references, and the recycling backbone
+against a full recomputation (``PointPillarsBackbone(mode="sparse")``) at every step of random
+streams of pillar maps: pillars appear, vanish, change, and some steps change nothing."""
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from lidarops import extension
+from lidarops.sparse import SparseConvTensor
+from lidarops.sscater.delta import DeltaBackbone
+from sparse_helpers import DEVICES
+from test_models_pointpillars import randomize_bn, small_backbone
+
+extension.load()
+_ops = torch.ops.lidarops
+
+
+def _dense_delta(H, W, sites, delta):
+    img = delta.new_zeros(1, delta.shape[1], H, W)
+    img[0, :, sites[:, 0].long(), sites[:, 1].long()] = delta.t()
+    return img
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("kind,k,s,p", [("conv", 3, 1, 1), ("conv", 3, 2, 1), ("transposed", 2, 2, 0),
+                                        ("transposed", 4, 4, 0), ("transposed", 1, 1, 0), ("conv", 3, 2, 0)])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_scatter_equals_dense_convolution_of_the_delta(device, kind, k, s, p, dtype):
+    g = torch.Generator().manual_seed(k * 10 + s)
+    H, W, cin, cout = 13, 11, 5, 7
+    keys = torch.randperm(H * W, generator=g)[:40]
+    sites = torch.stack([keys // W, keys % W], 1).int()
+    delta = torch.randn(40, cin, generator=g, dtype=torch.float64)
+    weight = torch.randn(cout, k, k, cin, generator=g, dtype=torch.float64)
+    img = _dense_delta(H, W, sites, delta)
+    if kind == "conv":
+        ref = F.conv2d(img, weight.permute(0, 3, 1, 2), None, s, p)[0].permute(1, 2, 0)
+    else:
+        ref = F.conv_transpose2d(img, weight.permute(3, 0, 1, 2), None, s, p)[0].permute(1, 2, 0)
+    start = torch.randn(*ref.shape, generator=g, dtype=torch.float64)
+    acc = start.to(device, dtype).clone()
+    _ops.sscater_scatter_(acc, sites.to(device), delta.to(device, dtype), weight.to(device, dtype), s, p,
+                          kind == "transposed")
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    assert (acc.double().cpu() - (start + ref)).abs().max() <= tol * (start + ref).abs().max()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("channels_first", [False, True])
+def test_finalize_applies_folded_bn_relu_on_active_sites(device, channels_first):
+    g = torch.Generator().manual_seed(3)
+    H, W, C = 6, 7, 5
+    acc = torch.randn(H, W, C, generator=g, dtype=torch.float64)
+    active = torch.rand(H, W, generator=g) > 0.4
+    scale, shift = torch.rand(C, generator=g, dtype=torch.float64) + 0.5, torch.randn(C, generator=g, dtype=torch.float64)
+    old = torch.relu(torch.randn(H, W, C, generator=g, dtype=torch.float64))
+    old[0, 0] = torch.relu(acc[0, 0] * scale + shift) if active[0, 0] else 0.0  # an unchanged site
+    sites = torch.tensor([[0, 0], [1, 2], [5, 6], [3, 3], [2, 0]], dtype=torch.int32)
+    if channels_first:
+        store = old.permute(2, 0, 1).contiguous().to(device)
+        out = store.permute(1, 2, 0)
+    else:
+        out = old.clone().to(device)
+    changed, delta = _ops.sscater_finalize_(acc.to(device), out, active.to(device), sites.to(device),
+                                            scale.to(device), shift.to(device))
+    ys, xs = sites[:, 0].long(), sites[:, 1].long()
+    new = torch.where(active[ys, xs][:, None], torch.relu(acc[ys, xs] * scale + shift), torch.zeros(1, dtype=acc.dtype))
+    assert torch.allclose(out.cpu()[ys, xs], new, rtol=0, atol=1e-14)
+    assert torch.allclose(delta.cpu(), new - old[ys, xs], rtol=0, atol=1e-14)
+    assert changed.cpu().tolist() == (new != old[ys, xs]).any(1).tolist()
+    assert not changed[0]
+    untouched = torch.ones(H, W, dtype=torch.bool)
+    untouched[ys, xs] = False
+    assert torch.equal(out.cpu()[untouched], old[untouched])
+
+
+def test_ops_reject_bad_arguments():
+    acc = torch.zeros(4, 4, 3)
+    sites = torch.zeros(2, 2, dtype=torch.int32)
+    with pytest.raises(RuntimeError, match="sites must be int32"):
+        _ops.sscater_scatter_(acc, sites.long(), torch.zeros(2, 2), torch.zeros(3, 3, 3, 2), 1, 1, False)
+    with pytest.raises(RuntimeError, match="weight must be"):
+        _ops.sscater_scatter_(acc, sites, torch.zeros(2, 2), torch.zeros(3, 3, 3, 5), 1, 1, False)
+    with pytest.raises(RuntimeError, match="acc must be float32 or float64"):
+        _ops.sscater_scatter_(acc.half(), sites, torch.zeros(2, 2).half(), torch.zeros(3, 3, 3, 2).half(), 1, 1, False)
+    with pytest.raises(RuntimeError, match="lies outside"):
+        _ops.sscater_finalize_(acc, acc.clone(), torch.ones(4, 4, dtype=torch.bool),
+                               torch.tensor([[4, 0]], dtype=torch.int32), torch.ones(3), torch.zeros(3))
+    with pytest.raises(RuntimeError, match="active must be a contiguous bool"):
+        _ops.sscater_finalize_(acc, acc.clone(), torch.ones(4, 4), sites, torch.ones(3), torch.zeros(3))
+
+
+def test_ops_opcheck():
+    g = torch.Generator().manual_seed(0)
+    acc = torch.randn(5, 6, 4, generator=g, dtype=torch.float64)
+    sites = torch.tensor([[0, 1], [4, 5], [2, 2]], dtype=torch.int32)
+    torch.library.opcheck(_ops.sscater_scatter_, (acc, sites, torch.randn(3, 2, dtype=torch.float64),
+                                                  torch.randn(4, 3, 3, 2, dtype=torch.float64), 1, 1, False))
+    torch.library.opcheck(_ops.sscater_finalize_, (acc, torch.zeros_like(acc), torch.ones(5, 6, dtype=torch.bool),
+                                                   sites, torch.ones(4, dtype=torch.float64),
+                                                   torch.zeros(4, dtype=torch.float64)))
+
+
+class PillarMapStream:
+    """A random stream of pillar maps: each step some pillars appear, vanish or change features."""
+
+    def __init__(self, H, W, C, seed, start=150, dtype=torch.float64):
+        self.H, self.W, self.C, self.dtype = H, W, C, dtype
+        self.g = torch.Generator().manual_seed(seed)
+        self.state: dict[int, torch.Tensor] = {}
+        for k in torch.randperm(H * W, generator=self.g)[:start].tolist():
+            self.state[k] = self._feat()
+
+    def _feat(self):
+        return torch.rand(self.C, generator=self.g, dtype=torch.float64).to(self.dtype)
+
+    def current(self):
+        ks = torch.tensor(sorted(self.state), dtype=torch.long)
+        feats = torch.stack([self.state[k] for k in ks.tolist()]) if len(ks) else torch.zeros(0, self.C, dtype=self.dtype)
+        return torch.stack([ks // self.W, ks % self.W], 1).int(), feats
+
+    def step(self, n_changes, p_remove=0.4, only_remove=False):
+        sites, feats, removed = [], [], []
+        for k in torch.randperm(self.H * self.W, generator=self.g)[:n_changes].tolist():
+            if k in self.state and (only_remove or torch.rand(1, generator=self.g).item() < p_remove):
+                del self.state[k]
+                removed.append(True)
+                feats.append(torch.zeros(self.C, dtype=self.dtype))
+            elif only_remove:
+                continue
+            else:
+                self.state[k] = self._feat()
+                removed.append(False)
+                feats.append(self.state[k])
+            sites.append([k // self.W, k % self.W])
+        if not sites:
+            return torch.zeros(0, 2, dtype=torch.int32), torch.zeros(0, self.C, dtype=self.dtype), torch.zeros(0, dtype=torch.bool)
+        return torch.tensor(sites, dtype=torch.int32), torch.stack(feats), torch.tensor(removed)
+
+
+def _full(bb, sites, feats, H, W, device):
+    c = torch.cat([torch.zeros(sites.shape[0], 1, dtype=torch.int32), sites], 1)
+    with torch.no_grad():
+        return bb(SparseConvTensor(feats.to(device), c.to(device), [H, W], 1), mode="sparse")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("negative_bias", [0.0, 0.8])
+def test_recycling_backbone_equals_full_recomputation_float64(device, negative_bias):
+    H, W = 40, 48
+    bb = small_backbone(seed=7, negative_bias=negative_bias).to(device)
+    stream = PillarMapStream(H, W, 8, seed=11)
+    db = DeltaBackbone(bb, (H, W), torch.float64, device)
+    sites, feats = stream.current()
+    out = db.refresh(sites, feats)
+    ref = _full(bb, sites, feats, H, W, device)
+    assert (out - ref).abs().max() <= 1e-12 * ref.abs().max()
+    plan = [25] * 10 + [0, 0] + [3] * 5 + [200] + [25] * 10  # quiet steps, tiny steps, a burst
+    zeros_seen = 0
+    for i, n in enumerate(plan):
+        s, f, r = stream.step(n)
+        out = db.update(s, f, r)
+        sites, feats = stream.current()
+        ref = _full(bb, sites, feats, H, W, device)
+        diff = (out - ref).abs().max().item()
+        assert diff <= 1e-12 * ref.abs().max().item(), f"step {i}: max |diff| {diff:.3e}"
+        zeros_seen += int((ref == 0).sum())
+        if n == 0:
+            assert all(st.changed == 0 for st in db.stats), "a step with no input change must change nothing"
+    if negative_bias:
+        assert zeros_seen > 0.5 * ref.numel() * len(plan), "the negative bias should zero most outputs"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_recycling_backbone_float32_and_emptying_the_grid(device):
+    H, W = 32, 40
+    bb = small_backbone(seed=2, dtype=torch.float32).to(device)
+    stream = PillarMapStream(H, W, 8, seed=5, start=60, dtype=torch.float32)
+    db = DeltaBackbone(bb, (H, W), torch.float32, device)
+    db.refresh(*stream.current())
+    for i in range(40):
+        s, f, r = stream.step(30, only_remove=i >= 30)  # the last steps only remove: the grid empties
+        out = db.update(s, f, r)
+        ref = _full(bb, *stream.current(), H, W, device)
+        assert (out - ref).abs().max() <= 1e-5 * max(ref.abs().max().item(), 1e-6), f"step {i}"
+    if not stream.state:
+        assert db.stats[0].active == 0 and out.abs().max() <= 1e-5
+
+
+def test_recycling_backbone_bad_input():
+    bb = small_backbone()
+    db = DeltaBackbone(bb, (16, 16), torch.float64)
+    with pytest.raises(ValueError, match="sites lie outside the"):
+        db.update(torch.tensor([[16, 0]]), torch.zeros(1, 8, dtype=torch.float64), torch.tensor([False]))
+    with pytest.raises(ValueError, match=r"features must be \(1, 8\)"):
+        db.update(torch.tensor([[1, 0]]), torch.zeros(1, 4), torch.tensor([False]))
+    with pytest.raises(ValueError, match="removed must be bool"):
+        db.update(torch.tensor([[1, 0]]), torch.zeros(1, 8), torch.tensor([0]))
+    with pytest.raises(ValueError, match="eval mode"):
+        DeltaBackbone(small_backbone().train(), (16, 16))
+    with pytest.raises(ValueError, match="dtype must be"):
+        DeltaBackbone(bb, (16, 16), torch.float16)
