@@ -1,0 +1,171 @@
+"""SSCATeR PointPillars: a LiDAR stream -> pillars -> PillarFeatureNet -> recycling backbone.
+
+Each :meth:`SSCATeRPointPillars.step` consumes one slice of points (10 ms in the paper), slides the
+window (:class:`lidarops.stream.PillarStream`), runs the pillar feature net only on the pillars that
+gained or lost points, and updates the backbone by delta convolution
+(:class:`lidarops.sscater.delta.DeltaBackbone`). The result equals ``backbone(mode="sparse")`` on the
+pillarized window with the same weights, up to float rounding; ``refresh_every`` full recomputations
+bound the drift of the recycled sums (docs/sscater.md measures it).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from lidarops.models.pointpillars import PillarFeatureNet, PointPillarsBackbone
+from lidarops.sscater.delta import DeltaBackbone, LayerStats
+
+__all__ = ["SSCATeRPointPillars", "StepStats"]
+
+
+@dataclass
+class StepStats:
+    """Figures of the last step.
+
+    Attributes:
+        step (int), t (float): step index since reset and the window's newest time.
+        refreshed (bool): the step was a full recomputation.
+        points_in, points_out (int): points that entered / left the window.
+        pillars_active, pillars_changed (int): non-empty pillars, and those that gained or lost points.
+        pfn_points, pfn_points_full (int): points run through the PFN, and what a full recomputation
+            would run (the PFN's work is proportional to its points).
+        ms_stream, ms_pfn, ms_backbone (float): wall time of each stage.
+        layers (list[LayerStats]): per-layer active / changed / touched sites and times.
+    """
+
+    step: int = 0
+    t: float = 0.0
+    refreshed: bool = False
+    points_in: int = 0
+    points_out: int = 0
+    pillars_active: int = 0
+    pillars_changed: int = 0
+    pfn_points: int = 0
+    pfn_points_full: int = 0
+    ms_stream: float = 0.0
+    ms_pfn: float = 0.0
+    ms_backbone: float = 0.0
+    layers: list = field(default_factory=list)
+
+    @property
+    def pfn_saved(self) -> float:
+        """Share of the PFN's work saved by recomputing only the changed pillars."""
+        return 1.0 - self.pfn_points / self.pfn_points_full if self.pfn_points_full else 0.0
+
+
+class SSCATeRPointPillars:
+    """Streaming PointPillars front (PFN + backbone) with temporal data recycling.
+
+    Args:
+        pfn (PillarFeatureNet), backbone (PointPillarsBackbone): the model, used in eval mode; its
+            parameters are read at construction (call :meth:`reset` with ``reload=True`` after changing them).
+        grid (lidarops.stream.PillarGrid): pillar grid; H and W divisible by 8 with the default backbone.
+        window (float): window length in seconds (100 ms in the paper).
+        max_points_per_pillar, max_pillars (int): capacities of the stream (overflow raises).
+        refresh_every (int): full recomputation every N steps (0: never after the first). Bounds the
+            float drift of the recycled sums; see docs/sscater.md for the measured drift.
+        dtype (torch.dtype): float32 or float64 state.
+        device: where everything runs (default: the backbone's device).
+        profile (bool): time each layer (synchronises CUDA between layers).
+
+    ``step(points, t)`` returns Tensor[1, C, H/2, W/2] (C = 384 by default): the state itself, valid
+    until the next step (clone it to keep it). ``stats`` describes the last step.
+    """
+
+    def __init__(self, pfn: PillarFeatureNet, backbone: PointPillarsBackbone, grid, window: float = 0.1,
+                 max_points_per_pillar: int = 100, max_pillars: int = 12000, refresh_every: int = 100,
+                 dtype: torch.dtype = torch.float32, device=None, profile: bool = False):
+        from lidarops.stream import PillarStream
+        if pfn.training or backbone.training:
+            raise ValueError("pfn and backbone must be in eval mode (call .eval()): SSCATeR folds BatchNorm's "
+                             "running statistics")
+        if pfn.out_channels != backbone.in_channels:
+            raise ValueError(f"pfn.out_channels ({pfn.out_channels}) must equal backbone.in_channels "
+                             f"({backbone.in_channels})")
+        if isinstance(refresh_every, bool) or not isinstance(refresh_every, int) or refresh_every < 0:
+            raise ValueError(f"refresh_every must be an int >= 0, got {refresh_every!r}")
+        backbone.output_shape(grid.shape)  # the grid must suit the backbone
+        self.pfn, self.backbone, self.grid = pfn, backbone, grid
+        self.device = torch.device(device) if device is not None else next(backbone.parameters()).device
+        self.dtype, self.refresh_every, self.profile = dtype, refresh_every, profile
+        self.stream = PillarStream(grid, window, max_points_per_pillar, max_pillars, device=self.device)
+        self.delta = DeltaBackbone(backbone, grid.shape, dtype, self.device)
+        self.stats = StepStats()
+        self._since_refresh: Optional[int] = None
+
+    @property
+    def window(self) -> float:
+        return self.stream.window
+
+    def reset(self, reload: bool = False) -> None:
+        """Empty the window; the next step is a full recomputation. ``reload`` re-reads the weights."""
+        self.stream.reset()
+        if reload:
+            self.delta.reload()
+        self._since_refresh = None
+        self.stats = StepStats()
+
+    def _pfn(self, pillars) -> Tensor:
+        with torch.no_grad():
+            return self.pfn(pillars).to(self.dtype)
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    def step(self, points, t, now: Optional[float] = None) -> Tensor:
+        """Consume one slice: ``points (Tensor[n, 4] float32)``, ``t (Tensor[n] float64)`` seconds (on
+        the model's device, or NumPy arrays). ``now`` advances the window's end (e.g. the slice's end
+        time) so that points expire during gaps in the stream."""
+        st = StepStats(step=self.stats.step + 1 if self._since_refresh is not None else 0)
+        t0 = time.perf_counter()
+        upd = self.stream.push(points, t, now=now)
+        st.t, st.points_in, st.points_out = upd.t, upd.points_in, upd.points_out
+        st.pillars_active, st.pillars_changed = int(upd.active.shape[0]), int(upd.changed.shape[0])
+        t1 = time.perf_counter()
+        refresh = self._since_refresh is None or (self.refresh_every and self._since_refresh + 1 >= self.refresh_every)
+        with torch.no_grad():
+            if refresh:
+                pillars = self.stream.pillars()
+                feats = self._pfn(pillars)
+                st.pfn_points = st.pfn_points_full = int(pillars.num_points.sum())
+                self._sync()
+                t2 = time.perf_counter()
+                out = self.delta.refresh(pillars.coords[:, 1:], feats)
+                self._since_refresh = 0
+            else:
+                changed, removed = upd.changed, upd.removed
+                live = self.stream.pillars(changed[~removed])
+                feats = torch.zeros(changed.shape[0], self.pfn.out_channels, dtype=self.dtype, device=self.device)
+                if live.coords.shape[0]:
+                    feats[~removed] = self._pfn(live)
+                st.pfn_points = int(live.num_points.sum())
+                st.pfn_points_full = self.stream.num_points
+                self._sync()
+                t2 = time.perf_counter()
+                out = self.delta.update(changed[:, 1:], feats, removed, profile=self.profile)
+                self._since_refresh += 1
+        self._sync()
+        t3 = time.perf_counter()
+        st.refreshed = bool(refresh)
+        st.ms_stream, st.ms_pfn, st.ms_backbone = (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3
+        st.layers = [LayerStats(s.name, s.active, s.changed, s.touched, s.ms) for s in self.delta.stats]
+        self.stats = st
+        return out
+
+    def recompute(self, points: Tensor, max_points_per_pillar: Optional[int] = None,
+                  max_pillars: Optional[int] = None) -> Tensor:
+        """The full recomputation SSCATeR must equal: ``pillarize`` the window's points, run the PFN on
+        every pillar and ``backbone(mode="sparse")``. ``points (Tensor[n, 4])`` = the current window."""
+        from lidarops.sparse import SparseConvTensor
+        from lidarops.stream import pillarize
+        p = pillarize(points.to(self.device), self.grid,
+                      max_points_per_pillar or self.stream.max_points_per_pillar, max_pillars or self.stream.max_pillars)
+        with torch.no_grad():
+            f = self.pfn(p)
+            x = SparseConvTensor(f, p.coords, list(self.grid.shape), 1)
+            return self.backbone(x, mode="sparse")
