@@ -8,6 +8,8 @@ Core ops (registered as ``torch.ops.lidarops.*``; these are their validated wrap
     lidarops.gather(x, idx)               grouping (PointNet++)         -> (B, *idx.shape[1:], C)
     lidarops.voxelize(points, voxel_size, point_range, max_points_per_voxel, max_voxels)
                                           hard voxelization             -> voxels, coords, num_points
+    lidarops.pillarize(points, grid)      decorated pillars (PointPillars) -> features, coords, num_points
+    lidarops.PillarStream(grid, window)   streaming pillarization (lidarops.stream)
 
 The compiled library is loaded on first use, so ``import lidarops.data`` works without it.
 """
@@ -23,6 +25,9 @@ _LAZY = {
     "ball_query": "lidarops.ops.neighbors",
     "gather": "lidarops.ops.neighbors",
     "voxelize": "lidarops.ops.voxelize",
+    "pillarize": "lidarops.stream",
+    "PillarGrid": "lidarops.stream",
+    "PillarStream": "lidarops.stream",
     "validation": "lidarops.ops.validation",
 }
 

@@ -24,6 +24,7 @@ _REGISTRATION_MODULES = (
     "lidarops._autograd_registrations",
     "lidarops.ops._voxelize_registrations",
     "lidarops.sparse._registrations",
+    "lidarops.stream._registrations",
     "lidarops.sscater._registrations",
 )
 

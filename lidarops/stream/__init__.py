@@ -1,0 +1,15 @@
+"""Streaming pillarization (the front end of SSCATeR): pillar grids, one-shot ``pillarize`` and
+``PillarStream``, a sliding time window kept as per-pillar queues. See ``docs/stream.md``.
+
+    PillarGrid(point_range, pillar_size)   H x W pillars; presets PillarGrid.drone(), .kitti(), .driving()
+    pillarize(points, grid, ...)           -> Pillars(features [P, N, 9], coords int32 [P, 3], num_points [P])
+    PillarStream(grid, window=0.1, ...)    .push(points, t) -> StreamUpdate; .pillars(coords) -> Pillars
+
+Pillars are sorted by the linear key ``y * W + x``; coords are ``(batch=0, y, x)``.
+"""
+from __future__ import annotations
+
+from lidarops.stream.pillars import PillarGrid, PillarOverflowError, Pillars, pillarize
+from lidarops.stream.stream import PillarStream, StreamUpdate
+
+__all__ = ["PillarGrid", "Pillars", "pillarize", "PillarStream", "StreamUpdate", "PillarOverflowError"]

@@ -1,0 +1,345 @@
+"""Streaming pillarization: a sliding time window of LiDAR points kept as per-pillar queues.
+
+The front end of SSCATeR (sparse convolution with temporal data recycling): points arrive in slices
+(e.g. every 10 ms), the window (e.g. 100 ms) slides, and only the pillars whose points changed need
+to be recomputed downstream. See ``docs/stream.md``.
+
+Window rule. ``t_newest`` is the largest timestamp seen so far (pushed points, and ``now`` when
+given), so it never decreases. After a push the window is ``(t_newest - window, t_newest]``: points
+with ``t <= t_newest - window`` leave (or, arriving late, never enter). The stream then holds exactly
+the pushed points that are inside the grid and have ``t`` in the window, and ``stream.pillars()``
+equals ``pillarize`` of those points (same points per pillar, same decorated features up to float
+rounding of the mean; same pillar order, by key ``y * W + x``).
+
+Cost of a push: proportional to the points entering and leaving the window and the pillars they touch
+(plus sorting the entering points, and O(H W) to build the change map and the active list).
+"""
+from __future__ import annotations
+
+from collections import deque
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from lidarops import extension
+from lidarops.ops.validation import describe, value_checks_enabled
+from lidarops.ops.voxelize import _check_capacity
+from lidarops.stream.pillars import (
+    PillarGrid,
+    PillarOverflowError,
+    Pillars,
+    _check_grid,
+    _decorate,
+    _overflow_message,
+)
+
+extension.load()
+
+__all__ = ["PillarStream", "StreamUpdate"]
+
+# indices into the stats output of lidarops::pillar_stream_push (csrc/include/lidarops/pillar_stream.h)
+(_P_IN, _P_OUT, _P_OUTSIDE, _P_LATE, _P_OVERFLOW, _P_MAX_POINTS, _P_PILLARS, _P_NEW, _P_EMPTIED, _P_TOUCHED,
+ _P_SEGMENTS, _NUM_STATS) = range(12)
+
+
+class StreamUpdate(NamedTuple):
+    """What one :meth:`PillarStream.push` did.
+
+    Attributes:
+        t (float): ``t_newest`` after the push; the window is ``(t - window, t]``.
+        active (int32 Tensor[A, 3]): ``(0, y, x)`` of every non-empty pillar, sorted by ``y * W + x``.
+        changed (int32 Tensor[C, 3]): pillars that gained or lost at least one point in this push
+            (including those that became empty), sorted by key.
+        removed (bool Tensor[C]): True where the changed pillar is now empty.
+        change_map (bool Tensor[H, W]): True at the changed pillars.
+        points_in (int): points that entered the window.
+        points_out (int): points that left the window.
+        points_outside (int): pushed points outside the grid (never enter).
+        points_late (int): pushed points inside the grid but already older than the window (never enter).
+    """
+
+    t: float
+    active: Tensor
+    changed: Tensor
+    removed: Tensor
+    change_map: Tensor
+    points_in: int
+    points_out: int
+    points_outside: int
+    points_late: int
+
+
+def _as_tensor(x, name: str, device: torch.device) -> Tensor:
+    """Tensors must already be on the stream's device; NumPy arrays are copied there."""
+    if isinstance(x, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(x)).to(device)
+    if not isinstance(x, Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor or a NumPy array, got {type(x).__name__}")
+    if x.device != device:
+        raise ValueError(f"{name} is on {x.device} but the stream is on {device}; move it with .to({str(device)!r})")
+    return x
+
+
+class PillarStream:
+    """A sliding time window of points, pillarized incrementally (per-pillar circular queues).
+
+    Args:
+        grid (PillarGrid): the pillar grid.
+        window (float): window length in seconds (> 0), default 100 ms.
+        max_points_per_pillar (int): N, the longest a pillar's queue may get.
+        max_pillars (int): M, the most pillars active at once.
+        device (str or torch.device): where the state and all outputs live (``"cpu"`` or ``"cuda"``).
+
+    Example::
+
+        stream = PillarStream(PillarGrid.drone(), window=0.1, device="cuda")
+        for points, t in sim.slices(0.0, 2.0, 0.01):      # float32 (n, 4), float64 (n,)
+            update = stream.push(points, t)
+            pillars = stream.pillars(update.changed[~update.removed])   # recompute these only
+
+    Capacity: a push that would make a queue longer than N or occupy more than M pillars raises
+    :class:`PillarOverflowError` naming the capacity and the count needed, and has no effect: the
+    stream keeps the window it had before the call (checked before anything is changed).
+
+    State (tensors on ``device``): a pool of M x N point slots (x, y, z, intensity float32 and t
+    float64), per-slot head and count, an (H * W) map pillar -> slot (-1: empty), a stack of free
+    slots, and a log of (pillar, t) entries in runs, one per push, each sorted by t: expiry pops the
+    front of each run, so it visits only points that leave. See ``docs/stream.md``.
+    """
+
+    def __init__(self, grid: PillarGrid, window: float = 0.100, max_points_per_pillar: int = 100,
+                 max_pillars: int = 12000, device: str | torch.device = "cpu") -> None:
+        self._grid = _check_grid(grid)
+        if isinstance(window, bool) or not isinstance(window, (int, float)) or not (0 < float(window) < float("inf")):
+            raise ValueError(f"window must be a positive finite number of seconds, got {window!r}")
+        self._window = float(window)
+        self._N = _check_capacity(max_points_per_pillar, "max_points_per_pillar")
+        self._M = _check_capacity(max_pillars, "max_pillars")
+        try:
+            self._device = torch.device(device)
+        except (RuntimeError, TypeError):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}") from None
+        if self._device.type not in ("cpu", "cuda"):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
+        if self._device.type == "cuda" and not extension.cuda_available():
+            raise extension.LidaropsBuildError(
+                "PillarStream(device='cuda') but lidarops was built without CUDA kernels "
+                f"({extension.build_info().get('cuda_reason', 'CPU-only build')})")
+        self.reset()
+
+    # ---- properties ----
+    @property
+    def grid(self) -> PillarGrid:
+        return self._grid
+
+    @property
+    def window(self) -> float:
+        return self._window
+
+    @property
+    def device(self) -> torch.device:
+        return self._device
+
+    @property
+    def max_points_per_pillar(self) -> int:
+        return self._N
+
+    @property
+    def max_pillars(self) -> int:
+        return self._M
+
+    @property
+    def num_active(self) -> int:
+        """Pillars holding at least one point."""
+        return self._num_active
+
+    @property
+    def t(self) -> float:
+        """``t_newest``: the largest timestamp seen (``-inf`` before the first point)."""
+        return self._t
+
+    @property
+    def num_points(self) -> int:
+        """Points in the window."""
+        return self._num_points
+
+    # ---- state ----
+    def reset(self) -> None:
+        """Forget every point: an empty window, ``t_newest = -inf``."""
+        M, N, dev = self._M, self._N, self._device
+        i32 = dict(dtype=torch.int32, device=dev)
+        self._pool_xyzi = torch.zeros((M, N, 4), dtype=torch.float32, device=dev)
+        self._pool_t = torch.zeros((M, N), dtype=torch.float64, device=dev)
+        self._head = torch.zeros(M, **i32)
+        self._count = torch.zeros(M, **i32)
+        self._slot_cell = torch.full((M,), -1, **i32)
+        self._cell_slot = torch.full((self._grid.num_pillars,), -1, **i32)
+        self._free_slots = torch.arange(M - 1, -1, -1, **i32)  # popped from the end: slot 0 first
+        self._num_free = torch.full((1,), M, **i32)
+        self._alloc_log(max(1024, min(M * N, 1 << 16)))
+        self._runs: deque[list[int]] = deque()  # [start, end) absolute log positions, in push order
+        self._log_head = 0
+        self._t = float("-inf")
+        self._num_active = 0
+        self._num_points = 0
+
+    def _alloc_log(self, length: int) -> None:
+        self._log_cell = torch.full((length,), -1, dtype=torch.int32, device=self._device)
+        self._log_t = torch.zeros(length, dtype=torch.float64, device=self._device)
+
+    def _ensure_log_space(self, n: int) -> None:
+        """Room for n more entries after the live runs: compact them to the front of a (possibly
+        larger) log when the ring would wrap onto them. Amortised O(1) per entry."""
+        L = self._log_cell.numel()
+        start = self._runs[0][0] if self._runs else self._log_head
+        if self._log_head - start + n <= L:
+            return
+        live = sum(e - s for s, e in self._runs)
+        new_L = L
+        while live + n > new_L // 2:
+            new_L *= 2
+        if self._runs:
+            pos = torch.cat([torch.arange(s, e, dtype=torch.int64) for s, e in self._runs]).to(self._device) % L
+            cells, times = self._log_cell.index_select(0, pos), self._log_t.index_select(0, pos)
+        self._alloc_log(new_L)
+        at = 0
+        for run in self._runs:
+            k = run[1] - run[0]
+            run[0], run[1] = at, at + k
+            at += k
+        if self._runs:
+            self._log_cell[:live] = cells
+            self._log_t[:live] = times
+        self._log_head = at
+
+    # ---- the push ----
+    def push(self, points, t, now: float | None = None) -> StreamUpdate:
+        """Enqueue a slice of points, expire what left the window, report what changed.
+
+        Args:
+            points (Tensor[n, 4] float32 or ndarray): ``x, y, z, intensity``; a tensor must be on the
+                stream's device (a NumPy array is copied there). n may be 0.
+            t (Tensor[n] float64, ndarray, or a float for all points): timestamps in seconds, finite,
+                in any order (equal and out-of-order timestamps are fine).
+            now (float, optional): advance ``t_newest`` to at least ``now`` (e.g. the end of the slice),
+                so that points expire during a gap in the stream even without new points.
+
+        Returns:
+            StreamUpdate (see its docstring). Points with ``t <= t_newest - window`` never enter
+            (``points_late``); points outside the grid never enter (``points_outside``).
+
+        Raises:
+            ValueError: bad arguments.
+            PillarOverflowError: a capacity would be exceeded; the push had no effect.
+        """
+        dev = self._device
+        points = _as_tensor(points, "points", dev)
+        if points.dim() != 2 or points.shape[1] != 4 or points.dtype != torch.float32:
+            raise ValueError(f"points must be float32 (n, 4): x, y, z, intensity, got {describe(points)}")
+        n = points.shape[0]
+        if isinstance(t, (int, float)) and not isinstance(t, bool):
+            t = torch.full((n,), float(t), dtype=torch.float64, device=dev)
+        t = _as_tensor(t, "t", dev)
+        if t.dim() != 1 or t.shape[0] != n or t.dtype != torch.float64:
+            raise ValueError(f"t must be float64 (n,) with n = {n} (float32 cannot hold timestamps to the "
+                             f"microsecond), got {describe(t)}")
+        if now is not None:
+            if isinstance(now, bool) or not isinstance(now, (int, float)) or not np.isfinite(now):
+                raise ValueError(f"now must be a finite number of seconds, got {now!r}")
+        newest = self._t
+        if n:
+            t_max, t_ok = torch.stack([t.max(), torch.isfinite(t).all().to(torch.float64)]).tolist()
+            if value_checks_enabled() and not t_ok:
+                raise ValueError("t must be finite (no NaN or infinite timestamps)")
+            newest = max(newest, t_max)
+        if now is not None:
+            newest = max(newest, float(now))
+        cutoff = newest - self._window  # -inf before the first timestamp: nothing expires
+        self._ensure_log_space(n)
+        runs = torch.tensor(list(self._runs), dtype=torch.int64).reshape(-1, 2).to(dev)
+        g = self._grid
+        change_map, stats, run_pops = torch.ops.lidarops.pillar_stream_push(
+            self._pool_xyzi, self._pool_t, self._head, self._count, self._slot_cell, self._cell_slot,
+            self._free_slots, self._num_free, self._log_cell, self._log_t, points.contiguous(), t.contiguous(),
+            runs, self._log_head, cutoff, list(g.point_range), list(g.pillar_size), list(g.shape))
+        vals = torch.cat([stats, run_pops]).tolist()
+        st, pops = vals[:_NUM_STATS], vals[_NUM_STATS:]
+        if st[_P_OVERFLOW]:
+            raise PillarOverflowError(
+                _overflow_message("PillarStream.push", f"the window ({newest - self._window!r}, {newest!r}]",
+                                  st[_P_MAX_POINTS], self._N, st[_P_PILLARS], self._M)
+                + " when creating the PillarStream. The push had no effect: the stream still holds its previous "
+                  "window")
+        # commit the host-side bookkeeping
+        self._t = newest
+        for run, k in zip(self._runs, pops):
+            run[0] += k
+        self._runs = deque(r for r in self._runs if r[0] < r[1])
+        if st[_P_IN]:
+            self._runs.append([self._log_head, self._log_head + st[_P_IN]])
+            self._log_head += st[_P_IN]
+        self._num_active = st[_P_PILLARS]
+        self._num_points += st[_P_IN] - st[_P_OUT]
+        changed_yx = change_map.nonzero()
+        keys = changed_yx[:, 0] * g.shape[1] + changed_yx[:, 1]
+        removed = self._cell_slot.index_select(0, keys) < 0
+        return StreamUpdate(self._t, self.active_coords(), _batch0(changed_yx), removed, change_map,
+                            st[_P_IN], st[_P_OUT], st[_P_OUTSIDE], st[_P_LATE])
+
+    # ---- reading the window ----
+    def active_coords(self) -> Tensor:
+        """int32 (A, 3): ``(0, y, x)`` of the non-empty pillars, sorted by key."""
+        yx = (self._cell_slot.view(self._grid.shape) >= 0).nonzero()
+        return _batch0(yx)
+
+    def pillars(self, coords: Tensor | None = None) -> Pillars:
+        """Decorated features of active pillars, in the given order.
+
+        Args:
+            coords (int Tensor[P, 3] or None): ``(batch=0, y, x)`` of active pillars (e.g.
+                ``update.changed[~update.removed]``); default: every active pillar, sorted by key.
+
+        Returns:
+            Pillars: features (P, max_points_per_pillar, 9) float32 (points in time order, ties in
+            arrival order), coords int32 (P, 3), num_points int32 (P,).
+
+        Raises:
+            ValueError: coords of the wrong shape, dtype or device, outside the grid, or of a pillar
+                that is not active.
+        """
+        H, W = self._grid.shape
+        if coords is None:
+            coords = self.active_coords()
+        else:
+            coords = _as_tensor(coords, "coords", self._device)
+            if coords.dim() != 2 or coords.shape[1] != 3 or coords.is_floating_point() or coords.is_complex() \
+                    or coords.dtype == torch.bool:
+                raise ValueError(f"coords must be an integer (P, 3) tensor of (batch, y, x), got {describe(coords)}")
+            coords = coords.to(torch.int32)
+        keys = coords[:, 1].to(torch.int64) * W + coords[:, 2].to(torch.int64)
+        if coords.shape[0]:
+            b, y, x = coords.unbind(1)
+            inside = (b == 0) & (y >= 0) & (y < H) & (x >= 0) & (x < W)
+            active = inside & (self._cell_slot.index_select(0, torch.where(inside, keys, 0)) >= 0)
+            bad = (~active).nonzero()
+            if bad.numel():
+                i = int(bad[0, 0])
+                raise ValueError(f"coords[{i}] = {coords[i].tolist()} is not an active pillar of the stream "
+                                 f"({bad.shape[0]} of {coords.shape[0]} coords are not; grid {H} x {W}, batch 0)")
+        raw, num_points = torch.ops.lidarops.pillar_stream_gather(self._pool_xyzi, self._head, self._count,
+                                                                  self._cell_slot, keys)
+        return Pillars(_decorate(raw, num_points, coords, self._grid), coords, num_points)
+
+    def __repr__(self) -> str:
+        return (f"PillarStream({self._grid!r}, window={self._window}, max_points_per_pillar={self._N}, "
+                f"max_pillars={self._M}, device={str(self._device)!r}; t={self._t}, "
+                f"{self._num_active} active pillars, {self._num_points} points)")
+
+
+def _batch0(yx: Tensor) -> Tensor:
+    """(K, 2) int64 (y, x) -> (K, 3) int32 (0, y, x)."""
+    out = torch.zeros((yx.shape[0], 3), dtype=torch.int32, device=yx.device)
+    out[:, 1:] = yx
+    return out
