@@ -41,10 +41,17 @@ def test_scatter_equals_dense_convolution_of_the_delta(device, kind, k, s, p, dt
         ref = F.conv_transpose2d(img, weight.permute(3, 0, 1, 2), None, s, p)[0].permute(1, 2, 0)
     start = torch.randn(*ref.shape, generator=g, dtype=torch.float64)
     acc = start.to(device, dtype).clone()
-    _ops.sscater_scatter_(acc, sites.to(device), delta.to(device, dtype), weight.to(device, dtype), s, p,
-                          kind == "transposed")
+    reached = _ops.sscater_scatter_(acc, sites.to(device), delta.to(device, dtype), weight.to(device, dtype), s, p,
+                                    kind == "transposed")
     tol = 1e-12 if dtype == torch.float64 else 2e-5
     assert (acc.double().cpu() - (start + ref)).abs().max() <= tol * (start + ref).abs().max()
+    # the reached sites are exactly those where a one-hot delta at each site lands
+    hit = (F.conv2d if kind == "conv" else lambda a, w, b, s_, p_: F.conv_transpose2d(a, w, b, s_, p_))(
+        _dense_delta(H, W, sites, torch.ones(40, 1, dtype=torch.float64)), torch.ones(1, 1, k, k, dtype=torch.float64),
+        None, s, p)[0, 0]
+    got = reached.cpu()
+    assert reached.shape == (40 * k * k,) and sorted(set(got[got >= 0].tolist())) == torch.nonzero(
+        hit.flatten() > 0).flatten().tolist()
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -202,3 +209,96 @@ def test_recycling_backbone_bad_input():
         DeltaBackbone(small_backbone().train(), (16, 16))
     with pytest.raises(ValueError, match="dtype must be"):
         DeltaBackbone(bb, (16, 16), torch.float16)
+
+
+# ---- the streaming PointPillars front on simulated LiDAR streams -----------------------------------
+
+from lidarops.models.pointpillars import PillarFeatureNet, PointPillarsBackbone  # noqa: E402
+from lidarops.stream import PillarGrid  # noqa: E402
+
+# driving_city ahead of the car from 10 m (320 x 320 pillars; nearer the HDL-64 ground pillars hold
+# hundreds of points per 100 ms, which makes the test's (P, N, 9) tensors large)
+DRIVING_AHEAD = PillarGrid((10.24, -25.6, -3.0, 61.44, 25.6, 3.0), (0.16, 0.16))
+STREAMS = {"drone_bridge": (PillarGrid.drone(), 100), "driving_city": (DRIVING_AHEAD, 256)}
+
+
+def streaming_model(dtype, device, negative_bias=0.3, seed=0, width=(16, 32, 64), up=32):
+    """Default PointPillars layout (layer counts 3/5/5, strides 2/2/2, upsampling 1/2/4) at reduced
+    width so that hundreds of CPU steps stay quick; identity does not depend on the width."""
+    torch.manual_seed(seed)
+    pfn = PillarFeatureNet(9, width[0])
+    bb = PointPillarsBackbone(width[0], (3, 5, 5), (2, 2, 2), width, (1, 2, 4), (up, up, up))
+    randomize_bn(pfn, seed)
+    randomize_bn(bb, seed + 1, negative_bias)
+    return pfn.eval().to(device, dtype), bb.eval().to(device, dtype)
+
+
+def run_identity(scenario, steps, dtype, device, refresh_every, check_every=1, seed=3, negative_bias=0.3):
+    """Stream ``steps`` 10 ms slices; every ``check_every`` steps compare with the full recomputation
+    of the pushed window. Returns (worst relative difference, stats of each step)."""
+    from lidarops.data.synthetic import Simulator
+    from lidarops.sscater import SSCATeRPointPillars
+    grid, N = STREAMS[scenario]
+    pfn, bb = streaming_model(dtype, device, negative_bias)
+    model = SSCATeRPointPillars(pfn, bb, grid, max_points_per_pillar=N, refresh_every=refresh_every, dtype=dtype,
+                                device=device)
+    pushed_p, pushed_t = [], []
+    worst, history = 0.0, []
+    for i, (p, t) in enumerate(Simulator(scenario, seed=seed).slices(0.0, 0.01 * steps, 0.01)):
+        end = 0.01 * (i + 1)
+        if i % 37 == 20:  # a dropout: nothing arrives for this slice
+            p, t = p[:0], t[:0]
+        pushed_p.append(torch.from_numpy(p))
+        pushed_t.append(torch.from_numpy(t))
+        out = model.step(torch.from_numpy(p).to(device), torch.from_numpy(t).to(device), now=end)
+        history.append(model.stats)
+        if i % check_every == 0 or i == steps - 1:
+            allp, allt = torch.cat(pushed_p), torch.cat(pushed_t)
+            keep = allt > model.stats.t - model.window
+            pushed_p, pushed_t = [allp[keep]], [allt[keep]]
+            ref = model.recompute(allp[keep], N)
+            scale = ref.abs().max().item()
+            diff = (out - ref).abs().max().item()
+            rel = diff / scale if scale > 0 else (0.0 if diff == 0 else float("inf"))  # empty window: all zero
+            worst = max(worst, rel)
+            assert rel <= (1e-12 if dtype == torch.float64 else 1e-5), f"{scenario} step {i}: relative diff {rel:.3e}"
+    return worst, history
+
+
+@pytest.mark.parametrize("scenario", ["drone_bridge", "driving_city"])
+def test_sscater_stream_equals_full_recomputation_float32(scenario):
+    """200 steps (2 s) on CPU, every step compared; with refresh_every=0 nothing is ever recomputed
+    after the first step, so the bound holds for the recycled sums themselves."""
+    worst, history = run_identity(scenario, 200, torch.float32, "cpu", refresh_every=0)
+    assert not any(s.refreshed for s in history[1:])
+    changed = [s.pillars_changed / max(s.pillars_active, 1) for s in history[20:]]
+    assert 0.0 < sum(changed) / len(changed) < 1.0  # pillars do change, and not all of them
+
+
+@pytest.mark.parametrize("scenario", ["drone_bridge", "driving_city"])
+def test_sscater_stream_equals_full_recomputation_float64(scenario):
+    run_identity(scenario, 25, torch.float64, "cpu", refresh_every=10, check_every=1)
+
+
+@pytest.mark.parametrize("device", [d for d in DEVICES if d.values[0] == "cuda"] or
+                         [pytest.param("cuda", marks=pytest.mark.skip(reason="needs a GPU; the CPU run is "
+                                                                           "test_sscater_stream_equals_full_recomputation_float32"))])
+def test_sscater_stream_1000_steps_on_gpu(device):
+    """The GPU acceptance run: 1,000 steps (10 s) of drone_bridge without any refresh, every 10th step
+    compared with the full recomputation."""
+    worst, history = run_identity("drone_bridge", 1000, torch.float32, device, refresh_every=0, check_every=10)
+    assert len(history) == 1000
+
+
+def test_sscater_pointpillars_bad_arguments():
+    from lidarops.sscater import SSCATeRPointPillars
+    pfn, bb = streaming_model(torch.float32, "cpu")
+    with pytest.raises(ValueError, match="eval mode"):
+        SSCATeRPointPillars(pfn.train(), bb, PillarGrid.drone())
+    pfn.eval()
+    with pytest.raises(ValueError, match="refresh_every must be an int >= 0"):
+        SSCATeRPointPillars(pfn, bb, PillarGrid.drone(), refresh_every=-1)
+    with pytest.raises(ValueError, match="upsampled maps of different sizes"):
+        SSCATeRPointPillars(pfn, bb, PillarGrid((0, 0, -1, 8.1, 8.1, 1), (0.1, 0.1)))
+    with pytest.raises(ValueError, match="must equal backbone.in_channels"):
+        SSCATeRPointPillars(PillarFeatureNet(9, 8).eval(), bb, PillarGrid.drone())

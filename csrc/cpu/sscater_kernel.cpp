@@ -10,18 +10,17 @@ namespace lidarops {
 namespace sscater {
 namespace {
 
-void scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in, const at::Tensor& weight_in,
-                 int64_t stride, int64_t padding, bool transposed) {
+at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in,
+                       const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed) {
   check_scatter_args(acc, sites_in, delta_in, weight_in, stride, padding);
   const int64_t n = sites_in.size(0);
-  if (n == 0 || acc.numel() == 0) return;
-  auto sites = sites_in.contiguous();
-  auto prod = tap_products(delta_in, weight_in.contiguous());  // (n, K, Cout)
   const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
   const int64_t kh = weight_in.size(1), kw = weight_in.size(2), K = kh * kw;
+  auto targets = at::empty({n * K}, sites_in.options().dtype(at::kLong));
+  if (n == 0) return targets;
+  auto sites = sites_in.contiguous();
   const int32_t* sp = sites.data_ptr<int32_t>();
-  // (n * K) target rows, -1 where the tap falls outside the grid
-  std::vector<int64_t> target(n * K);
+  int64_t* target = targets.data_ptr<int64_t>();
   for (int64_t i = 0; i < n; ++i)
     for (int64_t ky = 0; ky < kh; ++ky) {
       const int64_t oy = reach(sp[2 * i], ky, stride, padding, Ho, transposed);
@@ -30,6 +29,8 @@ void scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& 
         target[i * K + ky * kw + kx] = ox < 0 ? -1 : oy * Wo + ox;
       }
     }
+  if (acc.numel() == 0) return targets;
+  auto prod = tap_products(delta_in, weight_in);  // (n, K * Cout)
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_scatter_cpu", [&] {
     scalar_t* a = acc.data_ptr<scalar_t>();
     const scalar_t* p = prod.data_ptr<scalar_t>();
@@ -45,6 +46,7 @@ void scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& 
       }
     });
   });
+  return targets;
 }
 
 std::tuple<at::Tensor, at::Tensor> finalize_cpu(const at::Tensor& acc, at::Tensor& out, const at::Tensor& active,

@@ -20,19 +20,28 @@ inline unsigned blocks_for(int64_t n) {
   return static_cast<unsigned>(b < 1 ? 1 : (b > 65535 * 16 ? 65535 * 16 : b));
 }
 
-template <typename T>
-__global__ void scatter_kernel(T* __restrict__ acc, const int32_t* __restrict__ sites, const T* __restrict__ prod,
-                               int64_t n, int64_t kh, int64_t kw, int64_t C, int64_t Ho, int64_t Wo, int64_t stride,
-                               int64_t padding, bool transposed) {
-  const int64_t K = kh * kw, total = n * K * C;
-  for (int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; t < total;
-       t += static_cast<int64_t>(gridDim.x) * blockDim.x) {
-    const int64_t c = t % C, r = t / C, k = r % K, i = r / K;
+// One thread per (changed site, tap): the reached output site, -1 outside the grid.
+__global__ void targets_kernel(const int32_t* __restrict__ sites, int64_t* __restrict__ target, int64_t n,
+                               int64_t kh, int64_t kw, int64_t Ho, int64_t Wo, int64_t stride, int64_t padding,
+                               bool transposed) {
+  const int64_t K = kh * kw;
+  for (int64_t r = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; r < n * K;
+       r += static_cast<int64_t>(gridDim.x) * blockDim.x) {
+    const int64_t k = r % K, i = r / K;
     const int64_t oy = reach(sites[2 * i], k / kw, stride, padding, Ho, transposed);
-    if (oy < 0) continue;
-    const int64_t ox = reach(sites[2 * i + 1], k % kw, stride, padding, Wo, transposed);
-    if (ox < 0) continue;
-    atomicAdd(acc + (oy * Wo + ox) * C + c, prod[t]);
+    const int64_t ox = oy < 0 ? -1 : reach(sites[2 * i + 1], k % kw, stride, padding, Wo, transposed);
+    target[r] = ox < 0 ? -1 : oy * Wo + ox;
+  }
+}
+
+// One thread per (changed site, tap, channel).
+template <typename T>
+__global__ void scatter_kernel(T* __restrict__ acc, const int64_t* __restrict__ target, const T* __restrict__ prod,
+                               int64_t rows, int64_t C) {
+  for (int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; t < rows * C;
+       t += static_cast<int64_t>(gridDim.x) * blockDim.x) {
+    const int64_t o = target[t / C];
+    if (o >= 0) atomicAdd(acc + o * C + t % C, prod[t]);
   }
 }
 
@@ -56,22 +65,28 @@ __global__ void finalize_kernel(const T* __restrict__ acc, T* __restrict__ out, 
   }
 }
 
-void scatter_cuda(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in, const at::Tensor& weight_in,
-                  int64_t stride, int64_t padding, bool transposed) {
+at::Tensor scatter_cuda(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in,
+                        const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed) {
   check_scatter_args(acc, sites_in, delta_in, weight_in, stride, padding);
   const int64_t n = sites_in.size(0);
-  if (n == 0 || acc.numel() == 0) return;
+  const int64_t kh = weight_in.size(1), kw = weight_in.size(2), C = acc.size(2), rows = n * kh * kw;
+  auto targets = at::empty({rows}, sites_in.options().dtype(at::kLong));
+  if (n == 0) return targets;
   c10::cuda::CUDAGuard guard(acc.device());
   auto sites = sites_in.contiguous();
-  auto prod = tap_products(delta_in, weight_in.contiguous());  // (n, K, Cout)
-  const int64_t kh = weight_in.size(1), kw = weight_in.size(2), C = acc.size(2);
   auto stream = c10::cuda::getCurrentCUDAStream();
+  targets_kernel<<<blocks_for(rows), kThreads, 0, stream>>>(sites.data_ptr<int32_t>(), targets.data_ptr<int64_t>(), n,
+                                                            kh, kw, acc.size(0), acc.size(1), stride, padding,
+                                                            transposed);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  if (acc.numel() == 0) return targets;
+  auto prod = tap_products(delta_in, weight_in);  // (n, K * Cout)
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_scatter_cuda", [&] {
-    scatter_kernel<scalar_t><<<blocks_for(n * kh * kw * C), kThreads, 0, stream>>>(
-        acc.data_ptr<scalar_t>(), sites.data_ptr<int32_t>(), prod.data_ptr<scalar_t>(), n, kh, kw, C, acc.size(0),
-        acc.size(1), stride, padding, transposed);
+    scatter_kernel<scalar_t><<<blocks_for(rows * C), kThreads, 0, stream>>>(
+        acc.data_ptr<scalar_t>(), targets.data_ptr<int64_t>(), prod.data_ptr<scalar_t>(), rows, C);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
+  return targets;
 }
 
 std::tuple<at::Tensor, at::Tensor> finalize_cuda(const at::Tensor& acc, at::Tensor& out, const at::Tensor& active,

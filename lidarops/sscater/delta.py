@@ -83,7 +83,8 @@ class _Layer:
         self.padding = 0 if spec.kind == "up" else 1
         self.transposed = spec.kind == "up"
         w = spec.sparse_weight().detach().to(device=device, dtype=dtype)
-        self.weight = w.contiguous()
+        # (Cout, kh, kw, Cin) view of tap-major memory: the scatter op's GEMM reads it in place
+        self.weight = w.permute(1, 2, 0, 3).contiguous().permute(2, 0, 1, 3)
         self.kh, self.kw = w.shape[1], w.shape[2]
         scale, shift = spec.folded_norm()
         self.scale = scale.detach().to(device=device, dtype=dtype).contiguous()
@@ -304,11 +305,10 @@ class DeltaBackbone:
             if removed.shape[0]:
                 layer.active.view(-1)[_keys(removed, Wo)] = False
         # 2. acc += delta (*) W at every site the kernel reaches
-        if change.sites.shape[0]:
-            torch.ops.lidarops.sscater_scatter_(layer.acc, change.sites, change.delta, layer.weight, layer.stride,
-                                                layer.padding, layer.transposed)
+        reached = torch.ops.lidarops.sscater_scatter_(layer.acc, change.sites, change.delta, layer.weight,
+                                                      layer.stride, layer.padding, layer.transposed)
         # 3. re-evaluate BN + ReLU where the scatter reached or the status changed
-        cand = torch.cat([layer.reach_keys(change.sites), _keys(added, Wo), _keys(removed, Wo)])
+        cand = torch.cat([reached[reached >= 0], _keys(added, Wo), _keys(removed, Wo)])
         cand = torch.unique(cand)
         cand_sites = _sites(cand, Wo)
         changed, delta = torch.ops.lidarops.sscater_finalize_(layer.acc, layer.feats, layer.active, cand_sites,

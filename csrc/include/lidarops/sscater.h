@@ -70,12 +70,13 @@ inline void check_finalize_args(const at::Tensor& acc, const at::Tensor& out, co
 }
 
 // Products of every changed input row with every kernel tap: (n, K * Cout), row i holding
-// delta[i] @ W[:, k, :]^T for k = 0..K-1 (one GEMM for the whole layer).
+// delta[i] @ W[:, k, :]^T for k = 0..K-1 (one GEMM for the whole layer). A weight whose memory is
+// tap-major (a (Cout, kh, kw, Cin) view of a contiguous (kh, kw, Cout, Cin) tensor, as the streaming
+// backbone keeps it) is used in place; any other layout is copied into that order first.
 inline at::Tensor tap_products(const at::Tensor& delta, const at::Tensor& weight) {
   const int64_t cout = weight.size(0), K = weight.size(1) * weight.size(2), cin = weight.size(3);
-  auto w_all = weight.reshape({cout * K, cin});  // row (c * K + k)
-  auto p = at::mm(delta.contiguous(), w_all.t());  // (n, Cout * K), column c * K + k
-  return p.view({delta.size(0), cout, K}).transpose(1, 2).contiguous();  // (n, K, Cout)
+  auto w_taps = weight.permute({1, 2, 0, 3}).reshape({K * cout, cin});  // row k * Cout + c
+  return at::mm(delta.contiguous(), w_taps.t());  // (n, K * Cout): column k * Cout + c
 }
 
 }  // namespace sscater
