@@ -10,7 +10,8 @@ What is measured, per case (all times are medians in ms; the IQR and run count a
 * ``lidarops``: the validated wrapper (``lidarops.knn`` ...) as users call it, value checks on (on
   CUDA these cost a device-to-host sync per call). Ratios are taken against this column.
 * ``raw op``: the registered op (``torch.ops.lidarops.knn`` ...), method "auto", no checks.
-* one column per forced ``method`` of the raw op (knn/ball_query: brute, grid; fps: plain, leaves),
+* one column per forced ``method`` of the raw op (knn: brute, grid, tree (CPU); ball_query: brute,
+  grid; fps: plain, leaves),
   to show where the automatic choice switches.
 * peers, measured in the same run on the same inputs: plain PyTorch everywhere (``torch.cdist`` +
   ``topk`` for kNN; ``cdist`` + mask + first k by index for ball query; the Python-loop FPS of
@@ -67,7 +68,7 @@ from benchmarks.common import (
 
 import lidarops
 from lidarops import extension
-from lidarops.ops.neighbors import _FPS_METHODS, _METHODS
+from lidarops.ops.neighbors import _FPS_METHODS, _KNN_METHODS, _METHODS
 
 extension.load()
 
@@ -321,7 +322,8 @@ def bench_knn_like(run: Runner, op: str, cloud_kinds, quick: bool):
     dev = run.device
     cpu = dev.type == "cpu"
     S = sizes(quick)
-    methods = [m for m in _METHODS if m != "auto"]
+    table = _KNN_METHODS if op == "knn" and cpu else _METHODS  # the k-d tree is CPU-only
+    methods = [m for m in table if m != "auto"]
     for kind in cloud_kinds:
         for N in S["N"]:
             for B in S["B"]:
@@ -351,7 +353,7 @@ def bench_knn_like(run: Runner, op: str, cloud_kinds, quick: bool):
                     impls = [Impl("lidarops", "lidarops", *wrapper),
                              Impl("raw op", "raw", raw, (query, points, ql, pl, 0))]
                     for m in methods:
-                        code = _METHODS[m]
+                        code = table[m]
                         probe = None
                         if m == "brute":
                             probe = run.probe(lambda raw=raw, code=code: raw(qsub, points, qls, pl, code), sub)

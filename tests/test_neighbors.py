@@ -43,13 +43,24 @@ from conftest import (
 )
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-KNN_METHODS = ("brute", "grid", "auto")
+KNN_METHODS = ("brute", "grid", "auto")  # ball_query's; knn adds the CPU k-d tree
+KNN_ONLY_METHODS = KNN_METHODS + ("tree",)
 FPS_METHODS = ("plain", "leaves", "auto")
 
 
 # ================================================================================================
 # Independent NumPy references (compute dtype; same rounding and tie rules as documented)
 # ================================================================================================
+
+def knn_methods(device) -> tuple[str, ...]:
+    """The knn methods available on ``device``."""
+    return KNN_ONLY_METHODS if torch.device(device).type == "cpu" else KNN_METHODS
+
+
+def skip_tree_off_cpu(device, method):
+    if method == "tree" and torch.device(device).type != "cpu":
+        pytest.skip("the k-d tree is CPU-only")
+
 
 def np_sqdist(q: np.ndarray, p: np.ndarray) -> np.ndarray:
     """(M, 3), (N, 3) -> (M, N) as ((dx*dx + dy*dy) + dz*dz), every operation rounded (NumPy never fuses)."""
@@ -315,7 +326,7 @@ def test_knn_matches_reference(device, dtype, kind):
     ql, pl = ragged_lengths(B, M, seed=1), ragged_lengths(B, N, seed=2)
     ql[1], pl[2] = M - 17, 5  # row 1: no points; row 2: fewer points than k
     expected = np_knn(q, pts, k, ql, pl)
-    for method in KNN_METHODS:
+    for method in knn_methods(device):
         out = lidarops.knn(q, pts, k, ql.to(device), pl.to(device), method=method)
         check_knn_like(out, expected, q, pts, dtype, f"knn {kind} method={method}")
 
@@ -328,13 +339,14 @@ def test_knn_auto_grid_size(device, kind):
     q = torch.cat([pts[:, :200], _cast(make_cloud(kind, B, M - 200, seed=32), device, torch.float32)], 1)
     pl = torch.tensor([N, 4500])
     expected = np_knn(q, pts, k, None, pl)
-    for method in KNN_METHODS:
+    for method in knn_methods(device):
         check_knn_like(lidarops.knn(q, pts, k, None, pl.to(device), method=method), expected, q, pts,
                        torch.float32, f"knn {kind} method={method}")
 
 
-@pytest.mark.parametrize("method", KNN_METHODS)
+@pytest.mark.parametrize("method", KNN_ONLY_METHODS)
 def test_knn_k_larger_than_n_and_self(device, dtype, method):
+    skip_tree_off_cpu(device, method)
     pts = _cast(uniform_cloud(2, 7, seed=3), device, dtype)
     dist, idx = lidarops.knn(pts, pts, 10, method=method)
     check_knn_like((dist, idx), np_knn(pts, pts, 10), pts, pts, dtype, "knn k > N")
@@ -342,9 +354,10 @@ def test_knn_k_larger_than_n_and_self(device, dtype, method):
     assert (dist[..., 0] == 0).all()  # each point is its own nearest neighbour
 
 
-@pytest.mark.parametrize("method", KNN_METHODS)
+@pytest.mark.parametrize("method", KNN_ONLY_METHODS)
 def test_knn_ties(device, method):
     """Identical points: indices 0..k-1 in order; lattice: exact ties broken to the lower index."""
+    skip_tree_off_cpu(device, method)
     pts = _cast(identical_cloud(2, 50), device, torch.float32)
     q = pts[:, :5] + torch.tensor([0.5, 0.0, 0.0], device=device)
     dist, idx = lidarops.knn(q, pts, 12, method=method)
@@ -355,8 +368,9 @@ def test_knn_ties(device, method):
     check_knn_like(lidarops.knn(q, pts, 20, method=method), np_knn(q, pts, 20), q, pts, torch.float64, "knn lattice")
 
 
-@pytest.mark.parametrize("method", KNN_METHODS)
+@pytest.mark.parametrize("method", KNN_ONLY_METHODS)
 def test_knn_empty(device, method):
+    skip_tree_off_cpu(device, method)
     def run(B, M, N, k=4, **kw):
         q, p = torch.zeros(B, M, 3, device=device), torch.zeros(B, N, 3, device=device)
         dist, idx = lidarops.knn(q, p, k, method=method, **kw)
@@ -378,7 +392,7 @@ def test_knn_noncontiguous(device, how):
     else:
         p, q = noncontiguous(base_p, how), noncontiguous(base_q, how)
     expected = np_knn(q, p, 6)
-    for method in KNN_METHODS:
+    for method in knn_methods(device):
         check_knn_like(lidarops.knn(q, p, 6, method=method), expected, q, p, torch.float32, f"knn {how} {method}")
 
 
@@ -389,13 +403,14 @@ def test_knn_large_coordinates(device, offset, dt):
     pts = (lidar_cloud(2, 3000, seed=51) + off).to(device, dt)
     q = (lidar_cloud(2, 150, seed=52) + off).to(device, dt)
     expected = np_knn(q, pts, 8)
-    for method in KNN_METHODS:
+    for method in knn_methods(device):
         check_knn_like(lidarops.knn(q, pts, 8, method=method), expected, q, pts, dt, f"knn offset {offset} {method}")
 
 
-@pytest.mark.parametrize("method", KNN_METHODS)
+@pytest.mark.parametrize("method", KNN_ONLY_METHODS)
 def test_knn_far_neighbours_are_not_sentinels(device, method):
     """Neighbours 1e3 .. 1e6 m away are real results, not 'not found' (a sentinel like 1e10 would fail)."""
+    skip_tree_off_cpu(device, method)
     q = torch.zeros(1, 4, 3, dtype=torch.float64)
     q[0, :, 0] = torch.tensor([0.0, 1.0, 2.0, 3.0])
     p = torch.tensor([[[1.0e6, 0, 0], [0, -3.0e5, 0], [0, 0, 1.0e3], [7.0e4, 7.0e4, 7.0e4]]], dtype=torch.float64)
@@ -405,6 +420,33 @@ def test_knn_far_neighbours_are_not_sentinels(device, method):
         out = lidarops.knn(qq, pp, 3004, method=method)
         check_knn_like(out, np_knn(qq, pp, 3004), qq, pp, dt, f"knn far {dt}")
         assert (out[1] >= 0).all() and torch.isfinite(out[0]).all()
+
+
+@pytest.mark.parametrize("dt", [torch.float32, torch.float64, torch.float16], ids=lambda d: DTYPE_IDS[d])
+def test_knn_tree_nonfinite_points_and_dense_clusters(dt):
+    """CPU k-d tree vs brute force through the raw op (no value checks): NaN/inf points are never
+    neighbours; 300 identical points (leaves of zero extent, all ties); k below and above a leaf."""
+    pts = lidar_cloud(2, 6000, seed=131)
+    pts[0, 100:400] = pts[0, 100]
+    pts[1, 7] = math.nan
+    pts[1, 8, 2] = math.inf
+    pts[1, 9, 0] = -math.inf
+    q = torch.cat([pts[:, 1::30], lidar_cloud(2, 100, seed=132)], 1).to(dt)
+    pts = pts.to(dt)
+    ql, pl = torch.tensor([q.shape[1], q.shape[1] - 9]), torch.tensor([6000, 5000])
+    for k in (1, 16, 17, 40, 333):
+        brute = torch.ops.lidarops.knn(q, pts, ql, pl, k, 1)
+        tree = torch.ops.lidarops.knn(q, pts, ql, pl, k, 3)
+        assert_equal_report(tree[1], brute[1], f"tree idx k={k}")
+        assert_equal_report(tree[0], brute[0], f"tree dist2 k={k}")
+        assert not torch.isin(tree[1][1], torch.tensor([7, 8, 9])).any()
+
+
+@requires_cuda
+def test_knn_tree_is_cpu_only():
+    p = torch.rand(1, 50, 3, device="cuda")
+    with pytest.raises(ValueError, match="CPU-only"):
+        lidarops.knn(p, p, 3, method="tree")
 
 
 # ================================================================================================
@@ -549,9 +591,10 @@ def test_random_small_cases(device, data):
     e_knn = np_knn(q, p, k, ql, pl)
     e_ball = np_ball_query(q, p, radius, k, ql, pl)
     e_fps = np_fps(p, k, pl, start)
-    for method in KNN_METHODS:
+    for method in knn_methods(device):
         check_knn_like(lidarops.knn(q, p, k, ql.to(device), pl.to(device), method=method), e_knn, q, p, dt,
                        f"knn {method}")
+    for method in KNN_METHODS:
         check_knn_like(lidarops.ball_query(q, p, radius, k, ql.to(device), pl.to(device), method=method), e_ball,
                        q, p, dt, f"ball_query {method}")
     for method in FPS_METHODS:
@@ -566,7 +609,8 @@ def test_far_outliers_stretch_the_grid(device, method):
     pts[:, :3] = torch.tensor([[1.0e6, -2.0e4, 3.0], [-5.0e5, 1.0e4, -7.0e3], [0.0, 0.0, 2.5e5]], dtype=torch.float64)
     pts = pts.to(device, torch.float32)
     q = pts[:, ::20]
-    check_knn_like(lidarops.knn(q, pts, 8, method=method), np_knn(q, pts, 8), q, pts, torch.float32, "knn outliers")
+    for m in [method] + (["tree"] if method == "grid" and device == "cpu" else []):
+        check_knn_like(lidarops.knn(q, pts, 8, method=m), np_knn(q, pts, 8), q, pts, torch.float32, "knn outliers")
     check_knn_like(lidarops.ball_query(q, pts, 0.75, 8, method=method), np_ball_query(q, pts, 0.75, 8), q, pts,
                    torch.float32, "ball_query outliers")
 

@@ -33,6 +33,7 @@ extension.load()
 __all__ = ["fps", "knn", "ball_query", "gather"]
 
 _METHODS = {"auto": 0, "brute": 1, "grid": 2}
+_KNN_METHODS = {**_METHODS, "tree": 3}  # the k-d tree is CPU-only
 _FPS_METHODS = {"auto": 0, "plain": 1, "leaves": 2}
 
 
@@ -129,8 +130,9 @@ def knn(query: Tensor, points: Tensor, k: int, query_lengths: Tensor | None = No
         points (Tensor[B, N, 3]): points searched, same dtype and device as ``query``.
         k (int): neighbours per query.
         query_lengths, point_lengths (Tensor[B], optional): ragged batch lengths; default M and N.
-        method (str): ``"auto"`` (grid for large clouds, brute force for small), ``"brute"``, ``"grid"``.
-            Every method returns the same result.
+        method (str): ``"auto"`` (brute force for small clouds; for large ones a k-d tree on CPU, the
+            uniform grid on CUDA), ``"brute"``, ``"grid"``, ``"tree"`` (CPU only). Every method returns
+            the same result.
 
     Returns:
         dist2 (Tensor[B, M, k]): squared distances, ascending; +inf where fewer than k points exist
@@ -140,8 +142,11 @@ def knn(query: Tensor, points: Tensor, k: int, query_lengths: Tensor | None = No
     Same convention as PyTorch3D's ``knn_points`` except the padding (-1/+inf here, 0/0 there; see
     ``lidarops.compat.pytorch3d``).
     """
+    m = _method(method, _KNN_METHODS)
+    if method == "tree" and query.device.type != "cpu":
+        raise ValueError(f"method='tree' is CPU-only, got query on {query.device}; use 'auto' or 'grid'")
     ql, pl, k = _pair_args(query, points, query_lengths, point_lengths, k)
-    return torch.ops.lidarops.knn(query, points, ql, pl, k, _method(method, _METHODS))
+    return torch.ops.lidarops.knn(query, points, ql, pl, k, m)
 
 
 def ball_query(query: Tensor, points: Tensor, radius: float, k: int, query_lengths: Tensor | None = None,

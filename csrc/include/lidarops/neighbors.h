@@ -8,8 +8,8 @@
 
 namespace lidarops {
 
-// method codes of the neighborhood ops
-enum : int64_t { kMethodAuto = 0, kMethodBrute = 1, kMethodGrid = 2 };
+// method codes of the neighborhood ops (kMethodTree: kNN on CPU only)
+enum : int64_t { kMethodAuto = 0, kMethodBrute = 1, kMethodGrid = 2, kMethodTree = 3 };
 
 // Relative slack applied to geometric lower bounds before comparing with computed distances.
 template <typename T>
