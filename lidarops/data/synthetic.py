@@ -60,6 +60,26 @@ def crop_forward(frame: Frame, fov_deg: float = 90.0) -> Frame:
     return frame.crop_forward(fov_deg)
 
 
+def _rotate_per_firing(rot: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """``einsum("kij,krj->kri", rot, dirs)``: the rays of each firing turned by that firing's rotation.
+
+    Written out as products and sums, 4-5x faster than ``einsum`` for these shapes; the terms are added
+    in the order ``(j=0 + j=2) + j=1`` in which NumPy's einsum reduces a length-3 axis (its SIMD
+    horizontal sum), so the result is bit for bit the einsum's (checked on NumPy 2.4, x86-64 AVX2).
+
+    Args:
+        rot (ndarray float64[K, 3, 3]), dirs (ndarray float64[K, R, 3]).
+
+    Returns:
+        ndarray float64[K, R, 3].
+    """
+    out = np.empty(dirs.shape)
+    d0, d1, d2 = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    for i in range(3):
+        out[..., i] = rot[:, i, 0:1] * d0 + rot[:, i, 2:3] * d2 + rot[:, i, 1:2] * d1
+    return out
+
+
 class Simulator:
     """A LiDAR sensor moving through a procedurally generated scene.
 
@@ -100,6 +120,7 @@ class Simulator:
         per_block = self._rate * Fraction(repr(self.block_duration)).limit_denominator(10**6)
         self._block_num, self._block_den = per_block.numerator, per_block.denominator
         self._cache: OrderedDict[int, dict] = OrderedDict()
+        self._boxes_of: tuple | None = None  # (static primitives, their boxes + the objects)
         self._cache_blocks = int(cache_blocks)
 
     def __getstate__(self) -> dict:
@@ -210,7 +231,7 @@ class Simulator:
         rot, pos = scenario.ego.pose(t_firing)
         n_per = dirs_sensor.shape[1]
         if scenario.ego.has_jitter or scenario.ego.yaw_rate != 0.0:
-            dirs_world = np.einsum("kij,krj->kri", rot, dirs_sensor).reshape(-1, 3)
+            dirs_world = _rotate_per_firing(rot, dirs_sensor).reshape(-1, 3)
             dirs_sensor = dirs_sensor.reshape(-1, 3)
         else:  # constant attitude: one matrix product
             dirs_sensor = dirs_sensor.reshape(-1, 3)
@@ -222,7 +243,13 @@ class Simulator:
 
         max_range = sensor.max_range
         static = scenario.static_in_x_range(float(pos[:, 0].min()) - max_range, float(pos[:, 0].max()) + max_range)
-        boxes = BoxSet.concat([static.boxes, scenario.objects]) if len(scenario.objects) else static.boxes
+        if len(scenario.objects):
+            # consecutive blocks see the same static tiles: reuse the concatenation
+            if self._boxes_of is None or self._boxes_of[0] is not static:
+                self._boxes_of = (static, BoxSet.concat([static.boxes, scenario.objects]))
+            boxes = self._boxes_of[1]
+        else:
+            boxes = static.boxes
         rng = _rng(self.seed, scenario.name, "block", sensor.name, b)
         hits = cast_rays(origins, dirs_world, t, scenario.ground, boxes, static.cylinders, static.ellipsoids,
                          max_range, rng, len(scenario.objects), origin_samples=pos)
