@@ -12,6 +12,7 @@ import sys
 _SUBCOMMAND_MODULES = (
     "lidarops.tour",  # lidarops tour: a short tour of the ops on synthetic clouds
     "lidarops.data.cli",  # lidarops data synth|show
+    "lidarops.sscater.cli",  # lidarops stream: the simulator through SSCATeR PointPillars (make demo)
 )
 
 
