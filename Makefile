@@ -1,5 +1,8 @@
-# make demo   build everything and run the main job on built-in synthetic data
+# make demo   build everything and run the main job on built-in synthetic data: simulated LiDAR streams
+#             through streaming pillarization, the PFN and the SSCATeR backbone, checked against full
+#             recomputation (lidarops stream; writes lidarops_stream_<scenario>.png)
 # make test   build everything and run the test suite
+# make tour   the short tour of the neighbourhood ops (lidarops tour)
 #
 # Uses the python3 that already has torch (the GPU machine: torch + nvcc preinstalled, offline);
 # otherwise creates .venv and installs the CPU torch wheel there.
@@ -9,7 +12,7 @@ VENV ?= .venv
 PY := $(shell if $(PYTHON) -c "import torch" >/dev/null 2>&1; then command -v $(PYTHON); else echo $(abspath $(VENV))/bin/python; fi)
 PYTEST_ARGS ?= -q
 
-.PHONY: env build test demo bench clean
+.PHONY: env build test demo tour bench clean
 
 env:
 	@if [ ! -x "$(PY)" ]; then echo "[make] creating $(VENV)"; $(PYTHON) -m venv $(VENV); fi
@@ -21,7 +24,12 @@ build: env
 test: build
 	$(PY) -m pytest $(PYTEST_ARGS) tests
 
+# on CPU lidarops stream picks its narrow network (--small) unless --full-size is given: ~2 minutes on 2 CPU cores
 demo: build
+	$(PY) -m lidarops stream --scenario drone_bridge --seconds 5
+	$(PY) -m lidarops stream --scenario driving_city --seconds 1
+
+tour: build
 	$(PY) -m lidarops tour
 
 bench: build
