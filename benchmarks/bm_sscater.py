@@ -18,7 +18,8 @@ Sections (``--only``):
   sites against the full sparse layer (kernel map cached) and the dense layer (cuDNN).
 
 No trained checkpoint exists, so the weights are seeded random ones whose BatchNorm shifts are
-calibrated on the first window so that a chosen share of each layer's pre-activations is negative
+calibrated on the first window to unit spread, and so that a chosen share of each layer's
+pre-activations is negative
 (``--relu-zeros``, default 0.5): a trained network's ReLU sparsity, which is what stops changes from
 spreading through the layers. The share actually reached is reported.
 """
@@ -70,10 +71,12 @@ def calibrate_relu_zeros(model, zeros: float) -> list[float]:
             act = layer.active.view(-1).nonzero().flatten()
             if act.numel() == 0:
                 continue
-            scale, _ = spec.folded_norm()
-            pre = layer.acc.view(-1, layer.cout)[act].to(scale.dtype) * scale
-            q = torch.quantile(pre.float(), zeros, dim=0).to(scale.dtype)
             n = spec.norm
+            raw = layer.acc.view(-1, layer.cout)[act].to(n.weight.dtype)
+            # unit spread after BatchNorm (as a trained network's statistics give), then the shift
+            scale = 1.0 / raw.std(0).clamp_min(1e-6) if raw.shape[0] > 1 else torch.ones_like(n.weight)
+            n.weight.copy_(scale * torch.sqrt(n.running_var + n.eps))
+            q = torch.quantile((raw * scale).float(), zeros, dim=0).to(scale.dtype)
             n.bias.copy_(-q + n.running_mean * scale)
         delta.reload()
         delta.refresh(pillars.coords[:, 1:], feats)

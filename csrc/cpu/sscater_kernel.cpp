@@ -1,6 +1,7 @@
-// SSCATeR delta convolution on CPU. The scatter runs one GEMM for all taps, then adds the products
-// into the accumulator with threads split over output channels: no two threads write the same
-// element, so it needs no atomics and the result does not depend on the thread count.
+// SSCATeR delta convolution on CPU. The scatter runs, per kernel tap, one GEMM over the changed rows
+// that reach a site, then adds the products into the accumulator with threads split over output
+// channels: no two threads write the same element, so it needs no atomics and the result does not
+// depend on the thread count.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 
@@ -11,8 +12,10 @@ namespace sscater {
 namespace {
 
 at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in,
-                       const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed) {
+                       const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed,
+                       const c10::optional<at::Tensor>& out_active) {
   check_scatter_args(acc, sites_in, delta_in, weight_in, stride, padding);
+  check_out_active(out_active, acc);
   const int64_t n = sites_in.size(0);
   const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
   const int64_t kh = weight_in.size(1), kw = weight_in.size(2), K = kh * kw;
@@ -26,26 +29,43 @@ at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Te
       const int64_t oy = reach(sp[2 * i], ky, stride, padding, Ho, transposed);
       for (int64_t kx = 0; kx < kw; ++kx) {
         const int64_t ox = oy < 0 ? -1 : reach(sp[2 * i + 1], kx, stride, padding, Wo, transposed);
-        target[i * K + ky * kw + kx] = ox < 0 ? -1 : oy * Wo + ox;
+        int64_t o = ox < 0 ? -1 : oy * Wo + ox;
+        target[i * K + ky * kw + kx] = o;
       }
     }
+  if (out_active.has_value()) {
+    const bool* act = out_active->data_ptr<bool>();
+    for (int64_t r = 0; r < n * K; ++r)
+      if (target[r] >= 0 && !act[target[r]]) target[r] = -1;
+  }
   if (acc.numel() == 0) return targets;
-  auto prod = tap_products(delta_in, weight_in);  // (n, K * Cout)
-  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_scatter_cpu", [&] {
-    scalar_t* a = acc.data_ptr<scalar_t>();
-    const scalar_t* p = prod.data_ptr<scalar_t>();
-    const int64_t rows = n * K;
-    const int64_t grain = std::max<int64_t>(1, 16384 / std::max<int64_t>(rows, 1));
-    at::parallel_for(0, C, grain, [&](int64_t c0, int64_t c1) {
-      for (int64_t r = 0; r < rows; ++r) {
-        const int64_t o = target[r];
-        if (o < 0) continue;
-        scalar_t* dst = a + o * C;
-        const scalar_t* src = p + r * C;
-        for (int64_t c = c0; c < c1; ++c) dst[c] += src[c];
-      }
+  // Per tap: gather the rows that reach a site, one GEMM, scatter-add. Only the (changed input,
+  // updated output) pairs cost a product, as in a gather-GEMM-scatter sparse convolution.
+  auto delta = delta_in.contiguous();
+  auto w_taps = weight_in.permute({1, 2, 0, 3}).reshape({K, C, weight_in.size(3)});  // (K, Cout, Cin)
+  std::vector<int64_t> rows;
+  rows.reserve(n);
+  for (int64_t k = 0; k < K; ++k) {
+    rows.clear();
+    for (int64_t i = 0; i < n; ++i)
+      if (target[i * K + k] >= 0) rows.push_back(i);
+    if (rows.empty()) continue;
+    const int64_t nk = static_cast<int64_t>(rows.size());
+    auto idx = at::from_blob(rows.data(), {nk}, at::TensorOptions().dtype(at::kLong));
+    auto prod = at::mm(delta.index_select(0, idx), w_taps[k].t());  // (nk, Cout)
+    AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_scatter_cpu", [&] {
+      scalar_t* a = acc.data_ptr<scalar_t>();
+      const scalar_t* p = prod.data_ptr<scalar_t>();
+      const int64_t grain = std::max<int64_t>(1, 16384 / nk);
+      at::parallel_for(0, C, grain, [&](int64_t c0, int64_t c1) {
+        for (int64_t j = 0; j < nk; ++j) {
+          scalar_t* dst = a + target[rows[j] * K + k] * C;
+          const scalar_t* src = p + j * C;
+          for (int64_t c = c0; c < c1; ++c) dst[c] += src[c];
+        }
+      });
     });
-  });
+  }
   return targets;
 }
 

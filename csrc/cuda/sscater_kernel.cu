@@ -2,6 +2,8 @@
 // The scatter runs one cuBLAS GEMM for all taps, then one thread per (changed site, tap, channel) adds
 // its product into the accumulator with atomicAdd: several changed inputs can reach one output site.
 // The order of those additions is not fixed, so results agree with the CPU to rounding, not bit for bit.
+// The GEMM covers every tap of every changed row (one cuBLAS call; on the GPU the products for taps
+// that land on inactive sites cost less than splitting the GEMM per tap); the scatter skips them.
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
@@ -21,16 +23,18 @@ inline unsigned blocks_for(int64_t n) {
 }
 
 // One thread per (changed site, tap): the reached output site, -1 outside the grid.
-__global__ void targets_kernel(const int32_t* __restrict__ sites, int64_t* __restrict__ target, int64_t n,
-                               int64_t kh, int64_t kw, int64_t Ho, int64_t Wo, int64_t stride, int64_t padding,
-                               bool transposed) {
+__global__ void targets_kernel(const int32_t* __restrict__ sites, const bool* __restrict__ active,
+                               int64_t* __restrict__ target, int64_t n, int64_t kh, int64_t kw, int64_t Ho, int64_t Wo,
+                               int64_t stride, int64_t padding, bool transposed) {
   const int64_t K = kh * kw;
   for (int64_t r = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; r < n * K;
        r += static_cast<int64_t>(gridDim.x) * blockDim.x) {
     const int64_t k = r % K, i = r / K;
     const int64_t oy = reach(sites[2 * i], k / kw, stride, padding, Ho, transposed);
     const int64_t ox = oy < 0 ? -1 : reach(sites[2 * i + 1], k % kw, stride, padding, Wo, transposed);
-    target[r] = ox < 0 ? -1 : oy * Wo + ox;
+    int64_t o = ox < 0 ? -1 : oy * Wo + ox;
+    if (o >= 0 && active != nullptr && !active[o]) o = -1;
+    target[r] = o;
   }
 }
 
@@ -66,8 +70,10 @@ __global__ void finalize_kernel(const T* __restrict__ acc, T* __restrict__ out, 
 }
 
 at::Tensor scatter_cuda(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in,
-                        const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed) {
+                        const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed,
+                        const c10::optional<at::Tensor>& out_active) {
   check_scatter_args(acc, sites_in, delta_in, weight_in, stride, padding);
+  check_out_active(out_active, acc);
   const int64_t n = sites_in.size(0);
   const int64_t kh = weight_in.size(1), kw = weight_in.size(2), C = acc.size(2), rows = n * kh * kw;
   auto targets = at::empty({rows}, sites_in.options().dtype(at::kLong));
@@ -75,8 +81,9 @@ at::Tensor scatter_cuda(at::Tensor& acc, const at::Tensor& sites_in, const at::T
   c10::cuda::CUDAGuard guard(acc.device());
   auto sites = sites_in.contiguous();
   auto stream = c10::cuda::getCurrentCUDAStream();
-  targets_kernel<<<blocks_for(rows), kThreads, 0, stream>>>(sites.data_ptr<int32_t>(), targets.data_ptr<int64_t>(), n,
-                                                            kh, kw, acc.size(0), acc.size(1), stride, padding,
+  const bool* act = out_active.has_value() ? out_active->data_ptr<bool>() : nullptr;
+  targets_kernel<<<blocks_for(rows), kThreads, 0, stream>>>(sites.data_ptr<int32_t>(), act, targets.data_ptr<int64_t>(),
+                                                            n, kh, kw, acc.size(0), acc.size(1), stride, padding,
                                                             transposed);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   if (acc.numel() == 0) return targets;

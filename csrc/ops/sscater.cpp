@@ -9,11 +9,13 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // (y, x) of the input grid: for every tap (ky, kx) of weight (Cout, kh, kw, Cin), the output site
   // reached (regular: o * stride - padding + k = i; transposed: o = i * stride - padding + k) gets
   // delta @ weight[:, ky, kx, :]^T. Sites outside the output grid are skipped. float32 / float64.
-  // Returns the reached output sites: (n * kh * kw,) int64 linear keys oy * Wo + ox, entry
-  // i * K + ky * kw + kx, or -1 where the tap falls outside the grid.
+  // With out_active (Ho, Wo) bool, only active output sites are updated (the others' acc goes stale
+  // and must be recomputed when they become active). Returns the reached output sites:
+  // (n * kh * kw,) int64 linear keys oy * Wo + ox, entry i * K + ky * kw + kx, or -1 where the tap
+  // falls outside the grid (or on an inactive site).
   m.def(
       "sscater_scatter_(Tensor(a!) acc, Tensor sites, Tensor delta, Tensor weight, int stride, int padding,"
-      " bool transposed) -> Tensor");
+      " bool transposed, Tensor? out_active=None) -> Tensor");
   // For each site (m, 2) int32 of the output grid: y = active ? relu(acc * scale + shift) : 0, written
   // into out (Ho, Wo, C), any strides. Returns (changed (m,) bool: y differs from out's previous
   // value in some channel, delta (m, C) = y - previous).

@@ -7,7 +7,7 @@ import torch
 
 
 @torch.library.register_fake("lidarops::sscater_scatter_")
-def _scatter_fake(acc, sites, delta, weight, stride, padding, transposed):
+def _scatter_fake(acc, sites, delta, weight, stride, padding, transposed, out_active=None):
     return sites.new_empty((sites.shape[0] * weight.shape[1] * weight.shape[2],), dtype=torch.int64)
 
 

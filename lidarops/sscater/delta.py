@@ -10,14 +10,17 @@ State (all dense, channels last, on the backbone's device):
   active input under the kernel, tracked by a ``cover`` count; the children of active inputs after a
   transposed convolution; submanifold layers keep their block's sites);
 - per convolution: ``acc`` (Ho, Wo, Cout), the convolution without bias of the layer's zero-filled
-  input at *every* site (linear in the input, so a delta at a few sites updates it exactly), and the
-  layer's post-activation output ``feats`` (zero at inactive sites), the next layer's input. The
-  upsampling layers write their outputs straight into the returned (1, 384, H/2, W/2) map.
+  input, kept up to date at the *active* output sites (linear in the input, so a delta at a few sites
+  updates it exactly), and the layer's post-activation output ``feats`` (zero at inactive sites), the
+  next layer's input. The upsampling layers write their outputs straight into the returned
+  (1, 384, H/2, W/2) map.
 
-One step: the changed input sites carry ``delta = new - old``; each layer scatters ``delta (*) W`` into
-``acc`` (one GEMM and one scatter, :func:`torch.ops.lidarops.sscater_scatter_`), updates its active
-map from the sites that became active or inactive, and re-evaluates BatchNorm (folded) and ReLU only
-at the sites the scatter touched or whose status changed (:func:`torch.ops.lidarops.sscater_finalize_`).
+One step: the changed input sites carry ``delta = new - old``; each layer first updates its active
+map from the sites that became active or inactive, scatters ``delta (*) W`` into ``acc`` at the active
+sites it reaches (per tap: gather, GEMM, scatter-add; :func:`torch.ops.lidarops.sscater_scatter_`),
+computes ``acc`` in full at the sites that just became active (their ``acc`` was not maintained while
+inactive), and re-evaluates BatchNorm (folded) and ReLU only at the sites the scatter reached or whose
+status changed (:func:`torch.ops.lidarops.sscater_finalize_`).
 The changed sites it passes on are those whose post-ReLU value changed (a site that stays <= 0 is not
 passed on) plus those whose active status changed.
 """
@@ -83,8 +86,10 @@ class _Layer:
         self.padding = 0 if spec.kind == "up" else 1
         self.transposed = spec.kind == "up"
         w = spec.sparse_weight().detach().to(device=device, dtype=dtype)
-        # (Cout, kh, kw, Cin) view of tap-major memory: the scatter op's GEMM reads it in place
+        # (Cout, kh, kw, Cin) view of tap-major memory: the scatter op's GEMMs read it in place
         self.weight = w.permute(1, 2, 0, 3).contiguous().permute(2, 0, 1, 3)
+        self.weight_flat = w.reshape(w.shape[0], -1).contiguous()  # (Cout, kh * kw * Cin) for the gather
+        self.input: Optional[Tensor] = None  # the input node's features (H_in, W_in, Cin)
         self.kh, self.kw = w.shape[1], w.shape[2]
         scale, shift = spec.folded_norm()
         self.scale = scale.detach().to(device=device, dtype=dtype).contiguous()
@@ -172,6 +177,7 @@ class DeltaBackbone:
             layer = _Layer(spec, dt, dev, shape, out, name)
             layer.feats = torch.zeros(*out, layer.cout, dtype=dt, device=dev)
             layer.active = block_active[spec.block]
+            layer.input = self.layers[-1].feats if self.layers else self.in_feats
             self.layers.append(layer)
             shape = out
         self.block_last = {}
@@ -187,6 +193,7 @@ class DeltaBackbone:
         c0 = 0
         for spec, cu in zip(ups, couts):
             layer = _Layer(spec, dt, dev, block_shape[spec.block], (Hu, Wu), f"up{spec.block}")
+            layer.input = self.layers[self.block_last[spec.block]].feats
             layer.feats = self.out[0, c0:c0 + cu].permute(1, 2, 0)  # (Hu, Wu, Cu) view, channels-first memory
             layer.active = torch.zeros(Hu, Wu, dtype=torch.bool, device=dev)
             self.up_layers.append(layer)
@@ -304,9 +311,15 @@ class DeltaBackbone:
                 layer.active.view(-1)[_keys(added, Wo)] = True
             if removed.shape[0]:
                 layer.active.view(-1)[_keys(removed, Wo)] = False
-        # 2. acc += delta (*) W at every site the kernel reaches
+        # 2. acc += delta (*) W at the active sites the kernel reaches
         reached = torch.ops.lidarops.sscater_scatter_(layer.acc, change.sites, change.delta, layer.weight,
-                                                      layer.stride, layer.padding, layer.transposed)
+                                                      layer.stride, layer.padding, layer.transposed, layer.active)
+        # sites that just became active had no up-to-date acc: compute theirs in full from the input
+        # (a transposed layer's child has one parent, whose delta is its whole value: no gather)
+        if added.shape[0] and layer.kind != "up":
+            self._gather(layer, added)
+        if removed.shape[0]:  # an inactive site's acc is not maintained: start from zero when it returns
+            layer.acc.view(-1, layer.cout)[_keys(removed, Wo)] = 0
         # 3. re-evaluate BN + ReLU where the scatter reached or the status changed
         cand = torch.cat([reached[reached >= 0], _keys(added, Wo), _keys(removed, Wo)])
         cand = torch.unique(cand)
@@ -324,6 +337,21 @@ class DeltaBackbone:
             status = torch.isin(cand, torch.cat([_keys(added, Wo), _keys(removed, Wo)]))
         st.changed = int((changed | status).sum())
         return out
+
+    def _gather(self, layer: _Layer, sites: Tensor) -> None:
+        """acc at ``sites`` (output grid) = the full convolution of the layer's current input there."""
+        dev = sites.device
+        s, p = layer.stride, layer.padding
+        ky = torch.arange(layer.kh, device=dev)
+        kx = torch.arange(layer.kw, device=dev)
+        iy = sites[:, 0:1].long() * s - p + ky[None, :]  # (m, kh) input rows
+        ix = sites[:, 1:2].long() * s - p + kx[None, :]
+        Hi, Wi = layer.in_shape
+        vy, vx = (iy >= 0) & (iy < Hi), (ix >= 0) & (ix < Wi)
+        patch = layer.input[iy.clamp(0, Hi - 1)[:, :, None], ix.clamp(0, Wi - 1)[:, None, :]]  # (m, kh, kw, Cin)
+        patch = patch * (vy[:, :, None] & vx[:, None, :])[..., None].to(patch.dtype)
+        layer.acc.view(-1, layer.cout)[_keys(sites, layer.out_shape[1])] = (
+            patch.reshape(sites.shape[0], -1) @ layer.weight_flat.t())
 
     def _block_first(self, block: int) -> int:
         for i, layer in enumerate(self.layers):

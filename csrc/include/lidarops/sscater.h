@@ -48,6 +48,15 @@ inline void check_scatter_args(const at::Tensor& acc, const at::Tensor& sites, c
                 t->device());
 }
 
+inline void check_out_active(const c10::optional<at::Tensor>& out_active, const at::Tensor& acc) {
+  if (!out_active.has_value()) return;
+  const auto& a = *out_active;
+  TORCH_CHECK(a.dim() == 2 && a.size(0) == acc.size(0) && a.size(1) == acc.size(1) && a.scalar_type() == at::kBool &&
+                  a.is_contiguous() && a.device() == acc.device(),
+              "out_active must be a contiguous bool (Ho, Wo) map on acc's device, got ", a.scalar_type(), " ",
+              a.sizes(), " on ", a.device());
+}
+
 inline void check_finalize_args(const at::Tensor& acc, const at::Tensor& out, const at::Tensor& active,
                                 const at::Tensor& sites, const at::Tensor& scale, const at::Tensor& shift) {
   TORCH_CHECK(acc.dim() == 3 && acc.is_contiguous(), "acc must be a contiguous (Ho, Wo, C) tensor, got ",
