@@ -4,7 +4,7 @@
 # Everything printed goes to $OUT/run.log (the device tool returns at most 8 files); benchmark JSON
 # results are copied to $OUT. Usage (from the repository root):
 #   bash tools/device_run.sh [tests|bench|all] [pytest -k expression for the sanitizer]
-# Environment: TESTS (test files, default tests/test_*.py), TEST_TIMEOUT (per file), SANITIZER_TIMEOUT,
+# Environment: TESTS (test files, default tests/test_*.py), TEST_K (a pytest -k expression for them), TEST_TIMEOUT (per file), SANITIZER_TIMEOUT,
 # SANITIZER_TESTS, BENCHES, BENCH_TIMEOUT, LIDAROPS_SKIP_BUILD=1 (reuse lidarops/_C*.so), PRE (a command
 # run after the build, e.g. a diagnostic).
 set -uo pipefail
@@ -34,14 +34,14 @@ if [ "$what" = tests ] || [ "$what" = all ]; then
   for f in ${TESTS:-tests/test_*.py}; do
     s=$(date +%s)
     LIDAROPS_TEST_REQUIRE_CUDA=1 timeout ${TEST_TIMEOUT:-300} python3 -X faulthandler -m pytest "$f" -q -rfE \
-      -p no:cacheprovider 2>&1 \
+      -p no:cacheprovider ${TEST_K:+-k "$TEST_K"} 2>&1 \
       | grep -v -E "site-packages/(_pytest|pluggy)/|frozen runpy|^Extension modules" | tail -40
     echo "[device_run] $f exit ${PIPESTATUS[0]} in $(( $(date +%s) - s )) s"
   done
   echo "[device_run] tests: $(( $(date +%s) - start )) s"
   if command -v compute-sanitizer >/dev/null && [ -z "${NO_SANITIZER:-}" ]; then
     start=$(date +%s)
-    for tool in memcheck racecheck; do
+    for tool in ${SANITIZER_TOOLS:-memcheck racecheck}; do
       timeout ${SANITIZER_TIMEOUT:-240} compute-sanitizer --tool $tool --error-exitcode 9 python3 -m pytest -q \
         -p no:cacheprovider ${SANITIZER_TESTS:-tests/test_neighbors.py} -k "${2:-cuda and not slow}" -x 2>&1 | tail -6
       echo "[device_run] compute-sanitizer $tool exit ${PIPESTATUS[0]}"

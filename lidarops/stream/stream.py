@@ -123,6 +123,9 @@ class PillarStream:
             raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}") from None
         if self._device.type not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
+        if self._device.type == "cuda" and self._device.index is None and torch.cuda.is_available():
+            # "cuda" means the current device; tensors report theirs with an index ("cuda:0")
+            self._device = torch.device("cuda", torch.cuda.current_device())
         if self._device.type == "cuda" and not extension.cuda_available():
             raise extension.LidaropsBuildError(
                 "PillarStream(device='cuda') but lidarops was built without CUDA kernels "
