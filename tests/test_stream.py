@@ -135,9 +135,9 @@ def test_pillarize_lidar_like(device):
 def test_pillarize_kitti_grid_and_non_contiguous(device):
     grid = PillarGrid.kitti()
     pts = _random_points(3000, 5, grid=grid, margin=2.0)
-    buf = torch.zeros(3000, 6)
-    buf[:, 1:5] = pts
-    nc = buf[:, 1:5].to(device)
+    buf = torch.zeros(3000, 6, device=device)
+    buf[:, 1:5] = pts.to(device)
+    nc = buf[:, 1:5]  # a view made on the device (.to() of a CPU view would make it contiguous)
     assert not nc.is_contiguous()
     res = pillarize(nc, grid, 8, 3000)
     _check_against_reference(res, pts.to(device), grid, 8, f"{device} kitti non-contiguous")
