@@ -46,7 +46,7 @@ def _grid(scenario: str):
     from lidarops.stream import PillarGrid
     if scenario.startswith("drone"):
         return PillarGrid.drone(), 100
-    return PillarGrid((10.24, -25.6, -3.0, 61.44, 25.6, 3.0), (0.16, 0.16)), 256
+    return PillarGrid.driving_ahead(), 256
 
 
 def _sync(device):
@@ -83,8 +83,7 @@ def calibrate_relu_zeros(model, zeros: float) -> list[float]:
         reached = []
         for layer in delta.layers + delta.up_layers:
             act = layer.active.view(-1).nonzero().flatten()
-            v = layer.feats.reshape(-1, layer.cout)[act] if layer.feats.is_contiguous() else \
-                layer.feats.reshape(-1, layer.cout)[act]
+            v = layer.feats.reshape(-1, layer.cout)[act]
             reached.append(float((v == 0).float().mean()) if act.numel() else 0.0)
     model.reset(reload=True)
     return reached

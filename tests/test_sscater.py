@@ -216,9 +216,7 @@ def test_recycling_backbone_bad_input():
 from lidarops.models.pointpillars import PillarFeatureNet, PointPillarsBackbone  # noqa: E402
 from lidarops.stream import PillarGrid  # noqa: E402
 
-# driving_city ahead of the car from 10 m (320 x 320 pillars; nearer the HDL-64 ground pillars hold
-# hundreds of points per 100 ms, which makes the test's (P, N, 9) tensors large)
-DRIVING_AHEAD = PillarGrid((10.24, -25.6, -3.0, 61.44, 25.6, 3.0), (0.16, 0.16))
+DRIVING_AHEAD = PillarGrid.driving_ahead()
 STREAMS = {"drone_bridge": (PillarGrid.drone(), 100), "driving_city": (DRIVING_AHEAD, 256)}
 
 

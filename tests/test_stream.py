@@ -15,10 +15,8 @@ from lidarops.stream.pillars import _pillar_keys_reference, _pillarize_reference
 from conftest import assert_close_report, assert_equal_report, requires_cuda
 
 SMALL = PillarGrid((-8.0, -8.0, -2.0, 8.0, 8.0, 2.0), (1.0, 1.0))  # 16 x 16 pillars: many points per pillar
-# driving_city ahead of the car from 10 m: 320 x 320 pillars, at most ~150 points per pillar in 100 ms
-# (closer to the HDL-64, ground pillars get 250-1000 points, which makes (P, N, 9) tensors too large for
-# a test that compares 200 windows)
-DRIVING_AHEAD = PillarGrid((10.24, -25.6, -3.0, 61.44, 25.6, 3.0), (0.16, 0.16))
+# driving_city ahead of the car from 10 m: at most ~150 points per pillar in 100 ms
+DRIVING_AHEAD = PillarGrid.driving_ahead()
 
 # float32 features are float64 values rounded once: relative error <= 2^-24 (we allow 2^-20)
 F32_RTOL, F32_ATOL = 2.0**-20, 1e-7

@@ -41,7 +41,8 @@ class PillarFeatureNet(nn.Module):
     Shape:
         ``forward(pillars)`` takes anything with ``features (Tensor[P, N, in_channels])`` and
         ``num_points (Tensor[P])`` (the ``Pillars`` of :func:`lidarops.stream.pillarize`) and returns
-        Tensor[P, out_channels], rows in the pillars' order. Slots at or beyond ``num_points[p]`` are
+        Tensor[P, out_channels] in the parameters' dtype (features are cast to it), rows in the
+        pillars' order. Slots at or beyond ``num_points[p]`` are
         padding: they take no part in BatchNorm's batch statistics nor in the max.
     """
 
@@ -58,6 +59,8 @@ class PillarFeatureNet(nn.Module):
             raise ValueError(f"pillars.features must be (P, N, {self.in_channels}), got {describe(features)}")
         if num_points.dim() != 1 or num_points.shape[0] != features.shape[0]:
             raise ValueError(f"pillars.num_points must be ({features.shape[0]},), got {describe(num_points)}")
+        # pillarize / PillarStream give float32 features (the points' dtype); a float64 net widens them
+        features = features.to(self.linear.weight.dtype)
         P, N, _ = features.shape
         mask = torch.arange(N, device=features.device) < num_points.to(features.device).long()[:, None]  # (P, N)
         x = self.linear(features[mask])  # only the real points

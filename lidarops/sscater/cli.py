@@ -47,22 +47,6 @@ _BUDGET_MS = 10.0  # one 10 ms slice: a step must keep up with the sensor
 
 # ---- the model ---------------------------------------------------------------------------------------
 
-def _pfn_class():
-    from lidarops.models.pointpillars import PillarFeatureNet
-
-    class CastingPillarFeatureNet(PillarFeatureNet):
-        """PillarFeatureNet that casts the pillars' features to its parameters' dtype: the stream and
-        ``pillarize`` give float32 features (the points' dtype), and a float64 PFN would refuse them."""
-
-        def forward(self, pillars) -> Tensor:
-            dtype = self.linear.weight.dtype
-            if pillars.features.dtype != dtype:
-                pillars = pillars._replace(features=pillars.features.to(dtype))
-            return super().forward(pillars)
-
-    return CastingPillarFeatureNet
-
-
 def build_model(small: bool, seed: int, dtype: torch.dtype, device) -> tuple:
     """Seeded random PointPillars front: (pfn, backbone), in eval mode, on ``device`` in ``dtype``.
 
@@ -72,13 +56,13 @@ def build_model(small: bool, seed: int, dtype: torch.dtype, device) -> tuple:
             256); 3 x 128 = 384 output channels). The layout (3/5/5 convolutions, strides 2/2/2,
             upsampling 1/2/4) is PointPillars' in both cases.
     """
-    from lidarops.models.pointpillars import PointPillarsBackbone
+    from lidarops.models.pointpillars import PillarFeatureNet, PointPillarsBackbone
     torch.manual_seed(seed)
     if small:
-        pfn = _pfn_class()(9, 16)
+        pfn = PillarFeatureNet(9, 16)
         backbone = PointPillarsBackbone(16, (3, 5, 5), (2, 2, 2), (16, 32, 64), (1, 2, 4), (32, 32, 32))
     else:
-        pfn = _pfn_class()(9, 64)
+        pfn = PillarFeatureNet(9, 64)
         backbone = PointPillarsBackbone()
     return pfn.eval().to(device, dtype), backbone.eval().to(device, dtype)
 

@@ -113,7 +113,7 @@ class SSCATeRPointPillars:
 
     def _pfn(self, pillars) -> Tensor:
         with torch.no_grad():
-            return self.pfn(_as_dtype(pillars, self.pfn.linear.weight.dtype)).to(self.dtype)
+            return self.pfn(pillars).to(self.dtype)
 
     def _sync(self) -> None:
         if self.device.type == "cuda":
@@ -168,13 +168,7 @@ class SSCATeRPointPillars:
         p = pillarize(points.to(self.device), self.grid,
                       max_points_per_pillar or self.stream.max_points_per_pillar, max_pillars or self.stream.max_pillars)
         with torch.no_grad():
-            f = self.pfn(_as_dtype(p, self.pfn.linear.weight.dtype))
+            f = self.pfn(p)
             x = SparseConvTensor(f.to(self.backbone.blocks[0][1].weight.dtype), p.coords, list(self.grid.shape), 1)
             return self.backbone(x, mode="sparse")
 
-
-def _as_dtype(pillars, dtype: torch.dtype):
-    """The stream's pillars are float32; a float64 model sees them widened (exactly)."""
-    if pillars.features.dtype == dtype:
-        return pillars
-    return type(pillars)(pillars.features.to(dtype), pillars.coords, pillars.num_points)

@@ -107,6 +107,13 @@ class PillarGrid:
         0.16 m pillars: 640 x 640."""
         return cls((-51.2, -51.2, -5.0, 51.2, 51.2, 3.0), (0.16, 0.16))
 
+    @classmethod
+    def driving_ahead(cls) -> "PillarGrid":
+        """Ahead of a car from 10 m: x in [10.24, 61.44), y in [-25.6, 25.6), z in [-3, 3), 0.16 m:
+        320 x 320. Nearer a spinning sensor, ground pillars hold hundreds of points per 100 ms, which
+        makes (P, N, 9) pillar tensors large; the tests and benchmarks of streams use this crop."""
+        return cls((10.24, -25.6, -3.0, 61.44, 25.6, 3.0), (0.16, 0.16))
+
     # ---- derived ----
     @property
     def H(self) -> int:
