@@ -11,6 +11,8 @@ Environment:
 import glob
 import json
 import os
+import shutil
+import subprocess
 import sys
 
 import torch
@@ -84,12 +86,44 @@ def make_extension():
         include_dirs=[os.path.join(ROOT, CSRC, "include")],
         define_macros=define_macros,
         extra_compile_args=extra,
-        extra_link_args=["-fopenmp"],
+        extra_link_args=["-fopenmp"] + _shared_libstdcxx(),
     )
+
+
+def _shared_libstdcxx() -> list[str]:
+    """Link the C++ runtime dynamically, even under a compiler set up to link it statically.
+
+    On the GPU machine ``CXX=/opt/gcc/bin/g++`` links ``libstdc++`` statically. The extension then
+    carries a second, uninitialised copy of the iostream/locale machinery, and the first
+    ``TORCH_CHECK`` whose message formats a number (``std::ostringstream << long``) dies with SIGSEGV
+    inside it instead of raising (found with cuda-gdb, 2026-11-21). An explicit ``-lstdc++`` comes
+    before the driver's own ``-Bstatic -lstdc++`` on the link line, so the shared library wins.
+    """
+    return ["-lstdc++"] if sys.platform.startswith("linux") else []
+
+
+def _check_runtime_linkage(path: str) -> None:
+    """Refuse an extension that does not load ``libstdc++`` dynamically (see ``_shared_libstdcxx``)."""
+    if not sys.platform.startswith("linux") or shutil.which("readelf") is None:
+        return
+    dyn = subprocess.run(["readelf", "-d", path], capture_output=True, text=True).stdout
+    if "libstdc++" not in dyn and "libc++" not in dyn:
+        raise RuntimeError(
+            f"[lidarops] {path} does not link the C++ runtime dynamically (no libstdc++ in its "
+            f"NEEDED entries; CXX={os.environ.get('CXX', '(default)')}). A static copy of libstdc++ "
+            "inside a torch extension crashes on the first formatted error message. Build with a "
+            "compiler that links libstdc++ dynamically.")
+    print(f"[lidarops] {os.path.basename(path)}: libstdc++ linked dynamically", flush=True)
+
+
+class LidaropsBuildExtension(BuildExtension):
+    def build_extension(self, ext):
+        super().build_extension(ext)
+        _check_runtime_linkage(self.get_ext_fullpath(ext.name))
 
 
 setup(
     ext_modules=[make_extension()],
-    cmdclass={"build_ext": BuildExtension.with_options(use_ninja=True)},
+    cmdclass={"build_ext": LidaropsBuildExtension.with_options(use_ninja=True)},
     package_data={"lidarops": ["_build_info.json"]},
 )
