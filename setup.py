@@ -93,13 +93,30 @@ def make_extension():
 def _shared_libstdcxx() -> list[str]:
     """Link the C++ runtime dynamically, even under a compiler set up to link it statically.
 
-    On the GPU machine ``CXX=/opt/gcc/bin/g++`` links ``libstdc++`` statically. The extension then
-    carries a second, uninitialised copy of the iostream/locale machinery, and the first
-    ``TORCH_CHECK`` whose message formats a number (``std::ostringstream << long``) dies with SIGSEGV
-    inside it instead of raising (found with cuda-gdb, 2026-11-21). An explicit ``-lstdc++`` comes
-    before the driver's own ``-Bstatic -lstdc++`` on the link line, so the shared library wins.
+    On the GPU machine ``CXX=/opt/gcc/bin/g++`` is a wrapper whose ``-B`` directory holds only
+    ``libstdc++.a``, so ``-lstdc++`` links libstdc++ statically. The extension then carries a second,
+    uninitialised copy of the iostream/locale machinery, and the first ``TORCH_CHECK`` whose message
+    formats a number (``std::ostringstream << long``) dies with SIGSEGV inside it instead of raising
+    (found with cuda-gdb, 2026-11-21). When the compiler cannot find a shared ``libstdc++.so``, link
+    the very ``libstdc++.so.6`` that torch has loaded into this process, by path: it comes before the
+    driver's own ``-lstdc++``, so no archive member is pulled in.
     """
-    return ["-lstdc++"] if sys.platform.startswith("linux") else []
+    if not sys.platform.startswith("linux"):
+        return []
+    cxx = os.environ.get("CXX", "c++").split()
+    try:
+        found = subprocess.run(cxx + ["-print-file-name=libstdc++.so"], capture_output=True,
+                               text=True, timeout=60).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return []
+    if os.path.isabs(found) and os.path.exists(found):
+        return []  # the usual case: the driver links the shared runtime
+    with open("/proc/self/maps") as maps:
+        loaded = sorted({line.split()[-1] for line in maps if "/libstdc++.so" in line})
+    if loaded:
+        print(f"[lidarops] {' '.join(cxx)} finds no shared libstdc++; linking {loaded[0]}", flush=True)
+        return [loaded[0]]
+    return []
 
 
 def _check_runtime_linkage(path: str) -> None:
