@@ -38,3 +38,10 @@ def _gather_fake(x, idx):
 @torch.library.register_fake("lidarops::gather_backward")
 def _gather_backward_fake(grad, idx, n):
     return grad.new_empty((grad.shape[0], n, grad.shape[2]))
+
+
+@torch.library.register_fake("lidarops::value_flags")
+def _value_flags_fake(finite, ranged, lo, hi):
+    tensors = list(finite) + list(ranged)
+    device = tensors[0].device if tensors else torch.device("cpu")
+    return torch.empty((len(tensors),), dtype=torch.int32, device=device)

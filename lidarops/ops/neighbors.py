@@ -24,7 +24,7 @@ from lidarops.ops.validation import (
     check_tensor,
     describe,
     lengths_or_full,
-    run_value_checks,
+    check_values,
     value_checks_enabled,
 )
 
@@ -43,14 +43,16 @@ def _method(method: str, table: dict, name: str = "method") -> int:
     return table[method]
 
 
-def _nan_check(t: Tensor, name: str):
+def _finite(t: Tensor, name: str):
     # inf is rejected too: no point can be infinitely far, and the grid search needs finite bounds
-    return (~torch.isfinite(t).all(), f"{name} contains NaN or infinite coordinates ({describe(t)})")
+    return (t, lambda: f"{name} contains NaN or infinite coordinates ({describe(t)})")
 
 
-def _lengths_check(lengths: Tensor, n: int, name: str):
-    bad = (lengths < 0) | (lengths > n)
-    return (bad.any(), lambda: f"{name} must lie in [0, {n}], got {lengths.tolist()}")
+def _lengths_range(lengths: Tensor | None, full: Tensor, n: int, name: str) -> list:
+    """The range check of user-given lengths (the default, all rows full, needs none)."""
+    if lengths is None:
+        return []
+    return [(full, 0, n, lambda: f"{name} must lie in [0, {n}], got {full.tolist()}")]
 
 
 def fps(points: Tensor, k: int, lengths: Tensor | None = None, start_idx: Tensor | int | None = None,
@@ -79,6 +81,7 @@ def fps(points: Tensor, k: int, lengths: Tensor | None = None, start_idx: Tensor
     extension.check_device(points, "points")
     k = check_positive_int(k, "k")
     B, N = points.shape[0], points.shape[1]
+    given_lengths = lengths
     lengths = lengths_or_full(lengths, points, "lengths")
     if start_idx is None:
         start = torch.zeros(B, dtype=torch.int64, device=points.device)
@@ -91,13 +94,13 @@ def fps(points: Tensor, k: int, lengths: Tensor | None = None, start_idx: Tensor
         start = start_idx.to(device=points.device, dtype=torch.int64)
     m = _method(method, _FPS_METHODS)
     if value_checks_enabled():
-        bad_start = (((start < 0) | (start >= lengths)) & (lengths > 0)).any()
-        run_value_checks([
-            _nan_check(points, "points"),
-            _lengths_check(lengths, N, "lengths"),
-            (bad_start, lambda: f"start_idx must lie in [0, lengths), got start_idx={start.tolist()}, "
-                                f"lengths={lengths.tolist()}"),
-        ])
+        extra = []
+        if start_idx is not None:
+            bad_start = (((start < 0) | (start >= lengths)) & (lengths > 0)).any()
+            extra = [(bad_start, lambda: f"start_idx must lie in [0, lengths), got start_idx={start.tolist()}, "
+                                         f"lengths={lengths.tolist()}")]
+        check_values(finite=[_finite(points, "points")],
+                     ranged=_lengths_range(given_lengths, lengths, N, "lengths"), extra=extra)
     return torch.ops.lidarops.fps(points, lengths, start, k, m)
 
 
@@ -112,12 +115,9 @@ def _pair_args(query, points, query_lengths, point_lengths, k):
     ql = lengths_or_full(query_lengths, query, "query_lengths")
     pl = lengths_or_full(point_lengths, points, "point_lengths")
     if value_checks_enabled():
-        run_value_checks([
-            _nan_check(query, "query"),
-            _nan_check(points, "points"),
-            _lengths_check(ql, query.shape[1], "query_lengths"),
-            _lengths_check(pl, points.shape[1], "point_lengths"),
-        ])
+        check_values(finite=[_finite(query, "query"), _finite(points, "points")],
+                     ranged=_lengths_range(query_lengths, ql, query.shape[1], "query_lengths")
+                     + _lengths_range(point_lengths, pl, points.shape[1], "point_lengths"))
     return ql, pl, k
 
 
@@ -197,9 +197,8 @@ def gather(x: Tensor, idx: Tensor) -> Tensor:
     flat = idx.reshape(idx.shape[0], math.prod(idx.shape[1:])).to(torch.int64)  # not -1: B may be 0
     if value_checks_enabled() and flat.numel():
         n = x.shape[1]
-        run_value_checks([(((flat < -1) | (flat >= n)).any(),
-                           lambda: f"idx must lie in [-1, {n}), got values in "
-                                   f"[{int(flat.min())}, {int(flat.max())}]")])
+        check_values(ranged=[(flat, -1, n - 1, lambda: f"idx must lie in [-1, {n}), got values in "
+                                                        f"[{int(flat.min())}, {int(flat.max())}]")])
     out = torch.ops.lidarops.gather(x, flat)
     return out.reshape(*idx.shape, x.shape[2])
 

@@ -1,7 +1,8 @@
 """Argument validation shared by the op wrappers.
 
 Shape, dtype and device checks are free. Checks that read tensor values (NaN coordinates, lengths
-and indices in range) cost one small device-to-host copy per call on CUDA; they are on by default
+and indices in range) cost one small kernel per tensor (the ``value_flags`` op) and one
+device-to-host copy per call on CUDA; they are on by default
 and skipped while ``torch.compile`` traces. Turn them off in a hot loop you have already validated::
 
     with lidarops.validation(False):
@@ -95,6 +96,33 @@ def lengths_or_full(lengths, like: torch.Tensor, name: str) -> torch.Tensor:
     if lengths.device != like.device:
         raise ValueError(f"{name} is on {lengths.device} but the points are on {like.device}")
     return lengths.to(torch.int64)
+
+
+def check_values(finite: Sequence[tuple[torch.Tensor, object]] = (),
+                 ranged: Sequence[tuple[torch.Tensor, int, int, object]] = (),
+                 extra: Sequence[tuple[torch.Tensor, object]] = ()) -> None:
+    """Value checks with one registered op call and one host sync; raise ValueError for the first failure.
+
+    Args:
+        finite: ``(tensor, message)``: the floating tensor must hold no NaN or infinity.
+        ranged: ``(tensor, lo, hi, message)``: every value of the integer tensor lies in ``[lo, hi]``.
+        extra: ``(bool 0-d tensor, message)``: any other check, True = bad.
+    A message may be a callable, evaluated only on failure (it may read tensors to say more).
+    """
+    first = next((c[0] for group in (finite, ranged, extra) for c in group), None)
+    if first is None or first.device.type == "meta":  # meta tensors carry no values to check
+        return
+    parts = []
+    if finite or ranged:
+        parts.append(torch.ops.lidarops.value_flags([t for t, _ in finite], [c[0] for c in ranged],
+                                                    [int(c[1]) for c in ranged], [int(c[2]) for c in ranged]))
+    if extra:
+        parts.append(torch.stack([c.reshape(()).to(torch.int32) for c, _ in extra]))
+    flags = parts[0] if len(parts) == 1 else torch.cat(parts)
+    messages = [m for _, m in finite] + [c[3] for c in ranged] + [m for _, m in extra]
+    for bad, message in zip(flags.tolist(), messages):
+        if bad:
+            raise ValueError(message() if callable(message) else message)
 
 
 def run_value_checks(checks: Sequence[tuple[torch.Tensor, object]]) -> None:
