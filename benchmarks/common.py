@@ -262,7 +262,10 @@ def _git(*args: str) -> str | None:
 
 
 def _git_commit() -> str | None:
-    """Short commit id, with ``+dirty`` when tracked files differ from it."""
+    """Short commit id, with ``+dirty`` when tracked files differ from it. ``LIDAROPS_COMMIT`` names it
+    where the checkout has no git history (the GPU machine's copy of the working tree)."""
+    if os.environ.get("LIDAROPS_COMMIT"):
+        return os.environ["LIDAROPS_COMMIT"]
     commit = _git("rev-parse", "--short", "HEAD")
     if commit and _git("status", "--porcelain", "--untracked-files=no"):
         commit += "+dirty"
