@@ -1105,6 +1105,50 @@ def test_cuda_knn_ball_parity_ties_and_offsets():
                     assert_equal_report(gpu[0], cpu[0], f"{name} ties cuda vs cpu {dt} {method} dist2")
 
 
+# Every CUDA kernel path of the four ops once, at sizes small enough for compute-sanitizer
+# (memcheck, racecheck, synccheck): tools/device_run.sh selects this test with -k sanitize_paths.
+@requires_cuda
+def test_cuda_sanitize_paths():
+    g = torch.Generator().manual_seed(7)
+    pts = lidar_cloud(2, 6000, seed=130)  # >= 4096 points: the kNN grid refines its cells
+    pl = torch.tensor([6000, 4500])
+    q = torch.cat([pts[:, :400], lidar_cloud(2, 200, seed=131)], 1)
+    ql = torch.tensor([600, 450])
+    for dt in (torch.float32, torch.float64):
+        p_, q_ = pts.to(dt), q.to(dt)
+        for k in (5, 40, 80):  # register lists (merged sub-warp lists, one thread) and output-row lists
+            for method in ("brute", "grid"):
+                cpu = lidarops.knn(q_, p_, k, ql, pl)
+                gpu = lidarops.knn(q_.cuda(), p_.cuda(), k, ql.cuda(), pl.cuda(), method=method)
+                assert_equal_report(gpu[1], cpu[1], f"knn {dt} k={k} {method} idx")
+                assert_equal_report(gpu[0], cpu[0], f"knn {dt} k={k} {method} dist2")
+                cpu = lidarops.ball_query(q_, p_, 1.5, k, ql, pl)
+                gpu = lidarops.ball_query(q_.cuda(), p_.cuda(), 1.5, k, ql.cuda(), pl.cuda(), method=method)
+                assert_equal_report(gpu[1], cpu[1], f"ball {dt} k={k} {method} idx")
+                assert_equal_report(gpu[0], cpu[0], f"ball {dt} k={k} {method} dist2")
+    # FPS: one block per cloud, a cluster per cloud (float: pushes, double: cluster barrier), and
+    # distances in global memory (too big for a cluster)
+    for B, N, K, dt, methods in ((2, 3000, 200, torch.float32, FPS_METHODS),
+                                 (2, 6000, 150, torch.float64, FPS_METHODS),
+                                 (1, 150000, 16, torch.float32, ("auto",))):
+        p_ = lidar_cloud(B, N, seed=132).to(dt)
+        lengths = torch.tensor([N, N // 3 + 1][:B])
+        cpu = lidarops.fps(p_, K, lengths)
+        for method in methods:
+            gpu = lidarops.fps(p_.cuda(), K, lengths.cuda(), method=method)
+            assert_equal_report(gpu, cpu, f"fps B={B} N={N} {dt} {method}")
+    # gather and its scatter-add backward
+    x = torch.randn(2, 700, 24, generator=g, dtype=torch.float64, requires_grad=True)
+    idx = torch.randint(-1, 700, (2, 300, 9), generator=g)
+    xc = x.detach().cuda().requires_grad_()
+    gout = torch.randn(2, 300, 9, 24, generator=g, dtype=torch.float64)
+    lidarops.gather(x, idx).backward(gout)
+    out = lidarops.gather(xc, idx.cuda())
+    out.backward(gout.cuda())
+    torch.testing.assert_close(out.detach().cpu(), lidarops.gather(x.detach(), idx), rtol=0, atol=0)
+    torch.testing.assert_close(xc.grad.cpu(), x.grad, rtol=1e-12, atol=1e-12)
+
+
 @requires_cuda
 def test_cuda_gather_and_backward_parity():
     g = torch.Generator().manual_seed(0)
