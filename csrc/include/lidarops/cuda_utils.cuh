@@ -247,50 +247,18 @@ __device__ __forceinline__ int64_t cell_key(const DGrid& g, double x, double y, 
   return (cz * g.dims[1] + cy) * g.dims[0] + cx;
 }
 
-// Grid dims for cell edge `cell` over extents `ext`; the cell grows until the grid has at most
-// `cap` cells. Returns the cell used (total = 0: no admissible grid, the caller falls back).
-__device__ inline double grid_dims(const double ext[3], double cell, int64_t cap, int64_t dims[3], int64_t& total) {
-  constexpr double kMaxCells = 1048576.0;  // 2^20 per axis, as the CPU builder
-  double emax = fmax(fmax(ext[0], ext[1]), ext[2]);
-  cell = fmax(fmax(cell, emax / (kMaxCells - 1.0)), 1e-9);
-  total = 0;
-  if (!isfinite(cell)) return cell;
-  for (int it = 0; it < 200; ++it) {
-    for (int a = 0; a < 3; ++a)
-      dims[a] = static_cast<int64_t>(fmin(fmax(floor(ext[a] / cell) + 1.0, 1.0), kMaxCells));
-    total = dims[0] * dims[1] * dims[2];
-    if (total <= cap) return cell;
-    cell *= fmax(1.01, cbrt(static_cast<double>(total) / static_cast<double>(cap)));
-  }
-  total = 0;
-  return cell;
-}
-
 // One block per cloud: bounding box (min/max are exact in T), cell size, dims. The cell size
 // follows the CPU builder (csrc/cpu/grid_cpu.cpp), then grows until the grid has at most `cap`
 // cells, so that every cloud has a dense cell table. Non-finite boxes get a single cell, which is
 // exact too (every point is then visited).
-//
-// kNN grids of large clouds are then refined for the density the queries see: the mean density of
-// the box puts ~k/2 points in a cell of a uniform cloud, but a LiDAR sweep piles its points near
-// the sensor (a random point of a 16k-point sweep shares its cell with ~270 others). A histogram
-// at the first cell size (counted in `scratch`, the zeroed table row of the cloud, and zeroed
-// again) gives the point-weighted occupancy q = sum_c n_c^2 / n; when q > k the cell shrinks by
-// sqrt(k / q) (a sweep is nearly a surface, so occupancy goes with the cell's area), at least to
-// 1/4, and grows back if the table would overflow. Any cell size gives the same, exact results.
 constexpr int kSetupThreads = 1024;
-constexpr int64_t kRefineMinPoints = 4096;
 
 template <typename T>
 __global__ void __launch_bounds__(kSetupThreads) grid_setup_kernel(const T* __restrict__ pts,
                                                                    const int64_t* __restrict__ lengths,
                                                                    int64_t N, int mode, int64_t k, double radius,
-                                                                   int64_t cap, int32_t* __restrict__ scratch,
-                                                                   DGrid* __restrict__ grids) {
+                                                                   int64_t cap, DGrid* __restrict__ grids) {
   __shared__ T red[kSetupThreads / 32][6];
-  __shared__ double sq[kSetupThreads / 32];
-  __shared__ DGrid sg;
-  __shared__ bool refine;
   const int64_t b = blockIdx.x;
   const int64_t n = clamp_len(lengths[b], N);
   T v[6];  // lo x, y, z, then -hi x, y, z
@@ -316,87 +284,60 @@ __global__ void __launch_bounds__(kSetupThreads) grid_setup_kernel(const T* __re
 #pragma unroll
     for (int a = 0; a < 6; ++a) red[warp][a] = v[a];
   __syncthreads();
-  double lo[3], ext[3];
+  if (threadIdx.x != 0) return;
+  for (int w = 1; w < static_cast<int>(blockDim.x >> 5); ++w)
+#pragma unroll
+    for (int a = 0; a < 6; ++a) v[a] = v[a] < red[w][a] ? v[a] : red[w][a];
+  constexpr double kMaxCells = 1048576.0;  // 2^20 per axis, as the CPU builder
+  double lo[3], ext[3], emax = 0.0;
+  bool finite = true;
+  for (int a = 0; a < 3; ++a) {
+    lo[a] = n > 0 ? static_cast<double>(v[a]) : 0.0;
+    const double hi = n > 0 ? -static_cast<double>(v[a + 3]) : 0.0;
+    ext[a] = hi - lo[a];
+    finite = finite && isfinite(lo[a]) && isfinite(hi) && isfinite(ext[a]);
+    emax = fmax(emax, ext[a]);
+  }
+  double cell;
+  if (mode == kGridKnn) {
+    // as the CPU kNN grid: about k/2 points per cell at the mean density of the (floored) box.
+    const double fl = emax * 1e-2 + 1e-6;
+    const double vol = fmax(ext[0], fl) * fmax(ext[1], fl) * fmax(ext[2], fl);
+    const double kk = static_cast<double>(k > 2 ? k : 2);
+    cell = cbrt(vol * (kk * 0.5) / static_cast<double>(n > 1 ? n : 1));
+  } else {
+    cell = radius;
+  }
+  cell = fmax(fmax(cell, emax / (kMaxCells - 1.0)), 1e-9);
   int64_t dims[3] = {1, 1, 1};
   int64_t total = 1;
-  double cell = 1.0;
-  if (threadIdx.x == 0) {
-    for (int w = 1; w < static_cast<int>(blockDim.x >> 5); ++w)
-#pragma unroll
-      for (int a = 0; a < 6; ++a) v[a] = v[a] < red[w][a] ? v[a] : red[w][a];
-    double emax = 0.0;
-    bool finite = true;
-    for (int a = 0; a < 3; ++a) {
-      lo[a] = n > 0 ? static_cast<double>(v[a]) : 0.0;
-      const double hi = n > 0 ? -static_cast<double>(v[a + 3]) : 0.0;
-      ext[a] = hi - lo[a];
-      finite = finite && isfinite(lo[a]) && isfinite(hi) && isfinite(ext[a]);
-      emax = fmax(emax, ext[a]);
-    }
-    if (mode == kGridKnn) {
-      // as the CPU kNN grid: about k/2 points per cell at the mean density of the (floored) box.
-      const double fl = emax * 1e-2 + 1e-6;
-      const double vol = fmax(ext[0], fl) * fmax(ext[1], fl) * fmax(ext[2], fl);
-      const double kk = static_cast<double>(k > 2 ? k : 2);
-      cell = cbrt(vol * (kk * 0.5) / static_cast<double>(n > 1 ? n : 1));
-    } else {
-      cell = radius;
-    }
-    total = 0;
-    if (finite) cell = grid_dims(ext, cell, cap, dims, total);
-    if (total == 0) {
-      for (int a = 0; a < 3; ++a) {
-        lo[a] = 0.0;
-        dims[a] = 1;
-      }
-      cell = 1.0;
-      total = 1;
-    }
-    for (int a = 0; a < 3; ++a) {
-      sg.o[a] = lo[a];
-      sg.dims[a] = static_cast<int32_t>(dims[a]);
-    }
-    sg.h = cell;
-    sg.n = n;
-    sg.total = total;
-    sg.pad = 0;
-    refine = mode == kGridKnn && finite && total > 1 && n >= kRefineMinPoints;
-  }
-  __syncthreads();
-  if (refine) {
-    int32_t* hist = scratch + b * (cap + 1);
-    const DGrid g = sg;
-    for (int64_t i = threadIdx.x; i < n; i += blockDim.x) {
-      const T* p = cloud + 3 * i;
-      atomicAdd(hist + cell_key(g, static_cast<double>(p[0]), static_cast<double>(p[1]),
-                                static_cast<double>(p[2])), 1);
-    }
-    __syncthreads();
-    double s = 0.0;
-    for (int64_t c = threadIdx.x; c < g.total; c += blockDim.x) {
-      const double m = static_cast<double>(hist[c]);
-      s += m * m;
-      hist[c] = 0;
-    }
-    for (int off = 16; off > 0; off >>= 1) s += __shfl_xor_sync(kFullMask, s, off);
-    if (lane == 0) sq[warp] = s;
-    __syncthreads();
-    if (threadIdx.x == 0) {
-      for (int w = 1; w < static_cast<int>(blockDim.x >> 5); ++w) s += sq[w];
-      const double q = s / static_cast<double>(n);
-      const double kk = static_cast<double>(k > 2 ? k : 2);
-      if (q > kk) {
-        const double shrink = fmax(sqrt(kk / q), 0.25);
-        cell = grid_dims(ext, g.h * shrink, cap, dims, total);
-        if (total > 0 && cell < g.h) {
-          for (int a = 0; a < 3; ++a) sg.dims[a] = static_cast<int32_t>(dims[a]);
-          sg.h = cell;
-          sg.total = total;
-        }
-      }
+  if (finite && isfinite(cell)) {
+    for (int it = 0; it < 200; ++it) {
+      for (int a = 0; a < 3; ++a)
+        dims[a] = static_cast<int64_t>(fmin(fmax(floor(ext[a] / cell) + 1.0, 1.0), kMaxCells));
+      total = dims[0] * dims[1] * dims[2];
+      if (total <= cap) break;
+      cell *= fmax(1.01, cbrt(static_cast<double>(total) / static_cast<double>(cap)));
     }
   }
-  if (threadIdx.x == 0) grids[b] = sg;
+  if (!finite || !isfinite(cell) || total > cap) {
+    for (int a = 0; a < 3; ++a) {
+      lo[a] = 0.0;
+      dims[a] = 1;
+    }
+    cell = 1.0;
+    total = 1;
+  }
+  DGrid g;
+  for (int a = 0; a < 3; ++a) {
+    g.o[a] = lo[a];
+    g.dims[a] = static_cast<int32_t>(dims[a]);
+  }
+  g.h = cell;
+  g.n = n;
+  g.total = total;
+  g.pad = 0;
+  grids[b] = g;
 }
 
 // Counting sort of the points and of the queries by cell, pass 1: each valid entry gets its cell
@@ -471,16 +412,16 @@ DeviceGrid build_device_grid(const at::Tensor& pts, const at::Tensor& plen, cons
   TORCH_CHECK(B * (N + M) < std::numeric_limits<int32_t>::max(), "grid: at most 2^31 - 1 points and queries in a "
               "batch, got B = ", B, ", N = ", N, ", M = ", M);
   DeviceGrid g;
-  // Cells per cloud: kNN grids start at about 2 n / k cells (at most ~1.2 n for k >= 2, flat and line
-  // clouds included) and clustered clouds are refined up to 4 n; ball grids have cells of edge
-  // radius, grown when a sparse cloud would need more. The table costs 8 bytes per cell and cloud.
-  g.cap = 4 * N + 1024;
+  // Cells per cloud: kNN grids have about 2 n / k cells (at most ~1.2 n for k >= 2, flat and line
+  // clouds included); ball grids have cells of edge radius, grown when a sparse cloud would need
+  // more. The table costs 8 bytes per cell and cloud.
+  g.cap = (mode == kGridKnn ? 2 : 4) * N + 1024;
   g.params = at::empty({B * static_cast<int64_t>(sizeof(DGrid))}, pts.options().dtype(at::kByte));
   auto* grids = reinterpret_cast<DGrid*>(g.params.data_ptr());
-  g.table = at::zeros({2, B, g.cap + 1}, pts.options().dtype(at::kInt));
   grid_setup_kernel<T><<<static_cast<unsigned>(B), kSetupThreads, 0, stream>>>(
-      pts.data_ptr<T>(), plen.data_ptr<int64_t>(), N, mode, k, radius, g.cap, g.table.data_ptr<int32_t>(), grids);
+      pts.data_ptr<T>(), plen.data_ptr<int64_t>(), N, mode, k, radius, g.cap, grids);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
+  g.table = at::zeros({2, B, g.cap + 1}, pts.options().dtype(at::kInt));
   auto key_rank = at::empty({B * (N + M), 2}, pts.options().dtype(at::kInt));
   const int64_t items = B * (N + M);
   grid_count_kernel<T><<<stride_blocks(items, 256, 1 << 20), 256, 0, stream>>>(
