@@ -1105,6 +1105,22 @@ def test_cuda_knn_ball_parity_ties_and_offsets():
                     assert_equal_report(gpu[0], cpu[0], f"{name} ties cuda vs cpu {dt} {method} dist2")
 
 
+# The CUDA kNN grid kernel gives each query a group of 8, 4, 2 or 1 threads, depending on how many
+# queries there are (B * M * S fills half the GPU); each group size must give the CPU's answer.
+@requires_cuda
+@pytest.mark.parametrize("M", [1000, 20000, 50000, 150000])
+def test_cuda_knn_grid_group_sizes(M):
+    pts = lidar_cloud(1, 30000, seed=140)
+    q = lidar_cloud(1, M, seed=141)
+    n = min(pts.shape[1], (M + 2) // 3)
+    q[0, : 3 * n : 3] = pts[0, :n]  # some queries on points (zero distances, ties)
+    for k in (7, 16, 32, 40):
+        cpu = lidarops.knn(q, pts, k)
+        gpu = lidarops.knn(q.cuda(), pts.cuda(), k, method="grid")
+        assert_equal_report(gpu[1], cpu[1], f"knn grid M={M} k={k} idx")
+        assert_equal_report(gpu[0], cpu[0], f"knn grid M={M} k={k} dist2")
+
+
 # Every CUDA kernel path of the four ops once, at sizes small enough for compute-sanitizer
 # (memcheck, racecheck, synccheck): tools/device_run.sh selects this test with -k sanitize_paths.
 @requires_cuda

@@ -115,21 +115,28 @@ __global__ void __launch_bounds__(kBruteThreads, 1)
   }
 }
 
-// One thread per query, in the order of qorder (queries grouped by grid cell).
-template <typename T, int C>
-__global__ void __launch_bounds__(kGridThreads, 1)
+// S threads per query (S a power of two <= 8; S = 1 for lists in the output rows and for C > 32),
+// queries in the order of qorder (grouped by grid cell, so neighbouring groups search the same
+// cells). With S > 1 each lane searches a share of every row into its register list (see
+// knn_grid_search_dev) and the S lists are merged by sub-warp shuffles, as in the brute kernel.
+// A group never straddles a warp and all its lanes share the query, so they exit together.
+template <typename T, int C, int S>
+__global__ void __launch_bounds__(kGridThreads)
     knn_grid_kernel(const T* __restrict__ query, const int64_t* __restrict__ qlen, const int32_t* __restrict__ qorder,
                     int64_t B, int64_t M, const gpu::DGrid* __restrict__ grids, const int32_t* __restrict__ table,
                     const T* __restrict__ recs, int64_t N, int64_t cap, int64_t k, T* __restrict__ dist,
                     int64_t* __restrict__ idx) {
-  const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  static_assert(S == 1 || (C > 0 && C <= 32), "S > 1 needs register lists of at most 32 entries");
+  const int64_t t = (blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x) / S;
   if (t >= B * M) return;
+  const int lane = static_cast<int>(threadIdx.x & (S - 1));
+  const unsigned mask = S == 32 ? gpu::kFullMask : ((1u << S) - 1u) << (threadIdx.x & 31 & ~(S - 1));
   const int64_t b = t / M;
   const int64_t m = qorder[t];  // a permutation of [0, M) per cloud
   const int64_t row = (b * M + m) * k;
   const gpu::GridRef<T> G = gpu::grid_ref(grids, table, recs, b, N, cap);
   if (m >= clamp_len(qlen[b], M) || G.g.n == 0) {
-    for (int64_t r = 0; r < k; ++r) {
+    for (int64_t r = lane; r < k; r += S) {
       dist[row + r] = gpu::inf_value<T>();
       idx[row + r] = -1;
     }
@@ -140,12 +147,34 @@ __global__ void __launch_bounds__(kGridThreads, 1)
   if constexpr (C > 0) {
     gpu::RegKnnList<T, C> list;
     list.init();
-    gpu::knn_grid_search_dev(G, qx, qy, qz, list);
+    gpu::knn_grid_search_dev<T, decltype(list), S>(G, qx, qy, qz, list, lane, mask);
+    if constexpr (S == 1) {
 #pragma unroll
-    for (int r = 0; r < C; ++r) {
-      if (r < k) {
-        dist[row + r] = list.d[r];
-        idx[row + r] = list.i[r];
+      for (int r = 0; r < C; ++r) {
+        if (r < k) {
+          dist[row + r] = list.d[r];
+          idx[row + r] = list.i[r];
+        }
+      }
+    } else {
+      for (int64_t r = 0; r < k; ++r) {
+        T md = list.d[0];
+        int mi = list.i[0];
+#pragma unroll
+        for (int off = S >> 1; off > 0; off >>= 1) {
+          const T od = __shfl_xor_sync(mask, md, off);
+          const int oi = __shfl_xor_sync(mask, mi, off);
+          if (closer(od, oi, md, mi)) {
+            md = od;
+            mi = oi;
+          }
+        }
+        // Real entries are unique across the group (disjoint point sets); only padding can tie.
+        if (list.d[0] == md && list.i[0] == mi) list.pop_front();
+        if (lane == 0) {
+          dist[row + r] = md;
+          idx[row + r] = mi;
+        }
       }
     }
   } else {
@@ -205,12 +234,27 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
       const gpu::DeviceGrid g =
           gpu::build_device_grid<T>(points, plen, query, qlen, gpu::kGridKnn, k, 0.0, stream);
       const auto* grids = reinterpret_cast<const gpu::DGrid*>(g.params.data_ptr());
-      const unsigned blocks = static_cast<unsigned>(gpu::ceil_div(B * M, kGridThreads));
       by_capacity([&](auto cap_c) {
         constexpr int C = decltype(cap_c)::value;
-        knn_grid_kernel<T, C><<<blocks, kGridThreads, 0, stream>>>(
-            qp, qlen.data_ptr<int64_t>(), g.qorder.data_ptr<int32_t>(), B, M, grids, g.table.data_ptr<int32_t>(),
-            g.recs.data_ptr<T>(), N, g.cap, k, dp, ip);
+        // Threads per query: up to 8, while the queries alone would leave the GPU half empty.
+        int S = 1;
+        const int64_t want = static_cast<int64_t>(info.sm_count) * 1024;
+        if (C > 0 && C <= 32)
+          while (S < 8 && B * M * S < want) S <<= 1;
+        const unsigned blocks = static_cast<unsigned>(gpu::ceil_div(B * M * S, kGridThreads));
+        auto launch = [&](auto s_c) {
+          constexpr int SS = decltype(s_c)::value;
+          if constexpr (SS == 1 || (C > 0 && C <= 32))
+            knn_grid_kernel<T, C, SS><<<blocks, kGridThreads, 0, stream>>>(
+                qp, qlen.data_ptr<int64_t>(), g.qorder.data_ptr<int32_t>(), B, M, grids,
+                g.table.data_ptr<int32_t>(), g.recs.data_ptr<T>(), N, g.cap, k, dp, ip);
+        };
+        switch (S) {
+          case 8: launch(std::integral_constant<int, 8>{}); break;
+          case 4: launch(std::integral_constant<int, 4>{}); break;
+          case 2: launch(std::integral_constant<int, 2>{}); break;
+          default: launch(std::integral_constant<int, 1>{});
+        }
         C10_CUDA_KERNEL_LAUNCH_CHECK();
       });
     } else {

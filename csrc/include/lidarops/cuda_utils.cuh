@@ -461,13 +461,15 @@ __device__ __forceinline__ GridRef<T> grid_ref(const DGrid* grids, const int32_t
   return r;
 }
 
-// Visits the points of cells [x0, x1] of row (cz, cy): f(x, y, z, index).
-template <typename T, typename F>
-__device__ __forceinline__ void grid_row(const GridRef<T>& G, int64_t cz, int64_t cy, int64_t x0, int64_t x1, F& f) {
+// Visits the points of cells [x0, x1] of row (cz, cy): f(x, y, z, index); with a group of S
+// threads, thread `lane` (< S) visits every S-th point from its lane.
+template <typename T, typename F, int S = 1>
+__device__ __forceinline__ void grid_row(const GridRef<T>& G, int64_t cz, int64_t cy, int64_t x0, int64_t x1, F& f,
+                                         int lane = 0) {
   const int64_t row = (cz * G.g.dims[1] + cy) * G.g.dims[0];
   // row + x1 + 1 <= total <= cap; both ends carry the same row base.
   const int64_t s = G.table[row + x0] - G.base, e = G.table[row + x1 + 1] - G.base;
-  for (int64_t t = s; t < e; ++t) {
+  for (int64_t t = s + lane; t < e; t += S) {
     T x, y, z;
     int j;
     load_rec<T>(G.recs, t, x, y, z, j);
@@ -475,10 +477,31 @@ __device__ __forceinline__ void grid_row(const GridRef<T>& G, int64_t cz, int64_
   }
 }
 
+// Smallest v over the S lanes of the calling thread's group (S a power of two <= 32, groups aligned
+// in the warp, `mask` the group's lanes; every lane of the group calls it).
+template <int S, typename T>
+__device__ __forceinline__ T group_min(T v, unsigned mask) {
+#pragma unroll
+  for (int off = S >> 1; off > 0; off >>= 1) {
+    const T o = __shfl_xor_sync(mask, v, off);
+    v = o < v ? o : v;
+  }
+  return v;
+}
+
 // Exact kNN of one query: the ring search of knn_grid_search() (neighbors.h), line for line, on
 // the device grid. Same bounds, same stopping rule, so the list ends with the exact C smallest.
-template <typename T, typename List>
-__device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List& list) {
+//
+// S > 1: a group of S threads (lanes `lane` of group mask `mask`) searches for one query; each
+// visits every S-th point of each row into its own list, and the rows and the stopping rule use
+// the smallest of the S lists' worst entries, so the lanes stay in step. That bound is valid: the
+// union of the lists holds at least C points at or below any one list's worst, so the exact C-th
+// of the query is at or below it. Every point among the query's C nearest is then in its lane's
+// list (a lane keeps the C smallest of the points it visited), and merging the S lists (the
+// caller) gives the exact answer.
+template <typename T, typename List, int S = 1>
+__device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List& list, int lane = 0,
+                                    unsigned mask = 0xffffffffu) {
   const DGrid& g = G.g;
   const double* o = g.o;
   const double h = g.h;
@@ -500,7 +523,7 @@ __device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List&
       for (int64_t cy = lo[1]; cy <= hi[1]; ++cy) {
         const bool ys = cy == c0[1] - r || cy == c0[1] + r;
         const double gy = slab_gap(q[1], o[1], h, cy, dims[1]);
-        const double kth = static_cast<double>(list.worst());
+        const double kth = static_cast<double>(group_min<S>(list.worst(), mask));
         const double rest = kth / slack - (gz * gz + gy * gy);
         if (rest < 0.0) continue;  // every point of this row is farther than the k-th
         int64_t x0 = lo[0], x1 = hi[0];
@@ -512,11 +535,11 @@ __device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List&
           x1 = x1 < a1 ? x1 : a1;
         }
         if (zs || ys) {
-          if (x0 <= x1) grid_row(G, cz, cy, x0, x1, visit);
+          if (x0 <= x1) grid_row<T, decltype(visit), S>(G, cz, cy, x0, x1, visit, lane);
         } else {
           const int64_t xl = c0[0] - r, xh = c0[0] + r;
-          if (xl >= x0 && xl <= x1) grid_row(G, cz, cy, xl, xl, visit);
-          if (r > 0 && xh >= x0 && xh <= x1) grid_row(G, cz, cy, xh, xh, visit);
+          if (xl >= x0 && xl <= x1) grid_row<T, decltype(visit), S>(G, cz, cy, xl, xl, visit, lane);
+          if (r > 0 && xh >= x0 && xh <= x1) grid_row<T, decltype(visit), S>(G, cz, cy, xh, xh, visit, lane);
         }
       }
     }
@@ -537,7 +560,7 @@ __device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List&
       }
     }
     if (!outside) return;
-    if (static_cast<double>(list.worst()) < lb * lb * slack) return;
+    if (static_cast<double>(group_min<S>(list.worst(), mask)) < lb * lb * slack) return;
   }
 }
 
