@@ -1105,8 +1105,8 @@ def test_cuda_knn_ball_parity_ties_and_offsets():
                     assert_equal_report(gpu[0], cpu[0], f"{name} ties cuda vs cpu {dt} {method} dist2")
 
 
-# The CUDA kNN grid kernel gives each query a group of 8, 4, 2 or 1 threads, depending on how many
-# queries there are (B * M * S fills half the GPU); each group size must give the CPU's answer.
+# The CUDA kNN grid kernel gives each query a group of 4, 2 or 1 threads, depending on how many
+# queries there are (B * M * S up to 256 threads per SM); each group size must give the CPU's answer.
 @requires_cuda
 @pytest.mark.parametrize("M", [1000, 20000, 50000, 150000])
 def test_cuda_knn_grid_group_sizes(M):

@@ -510,7 +510,13 @@ __device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List&
   const double slack = 1.0 - bound_slack<T>();
   int64_t c0[3];
   for (int a = 0; a < 3; ++a) c0[a] = cell_of(q[a], o[a], h, dims[a]);
-  auto visit = [&](T x, T y, T z, int j) { list.push(sqdist3<T>(x, y, z, qx, qy, qz), j); };
+  // S > 1: a point farther than the group's bound (as of the row's start; bounds only fall) is
+  // not among the C nearest, so it is not pushed (a lane's own list may not be full yet).
+  T bound = inf_value<T>();
+  auto visit = [&](T x, T y, T z, int j) {
+    const T d = sqdist3<T>(x, y, z, qx, qy, qz);
+    if (S == 1 || !(d > bound)) list.push(d, j);
+  };
   for (int64_t r = 0;; ++r) {
     int64_t lo[3], hi[3];
     for (int a = 0; a < 3; ++a) {
@@ -523,7 +529,8 @@ __device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List&
       for (int64_t cy = lo[1]; cy <= hi[1]; ++cy) {
         const bool ys = cy == c0[1] - r || cy == c0[1] + r;
         const double gy = slab_gap(q[1], o[1], h, cy, dims[1]);
-        const double kth = static_cast<double>(group_min<S>(list.worst(), mask));
+        bound = group_min<S>(list.worst(), mask);
+        const double kth = static_cast<double>(bound);
         const double rest = kth / slack - (gz * gz + gy * gy);
         if (rest < 0.0) continue;  // every point of this row is farther than the k-th
         int64_t x0 = lo[0], x1 = hi[0];
