@@ -189,8 +189,9 @@ __global__ void __launch_bounds__(kGridThreads)
 
 bool use_grid_cuda(int64_t method, int64_t B, int64_t M, int64_t N) {
   if (method != kMethodAuto) return method == kMethodGrid;
-  // Brute force costs B*M*N distances; the grid costs a few launches and sorts (~0.1 ms).
-  return N >= 2048 && static_cast<double>(B) * static_cast<double>(M) * static_cast<double>(N) >= 67108864.0;
+  // Brute force costs B*M*N distances; the grid costs a few launches and a counting sort. H200, B = 1,
+  // M = N = 4096 (2^24): grid 0.081 / 0.121 ms, brute 0.148 / 0.125 ms (uniform / LiDAR, k = 16).
+  return N >= 2048 && static_cast<double>(B) * static_cast<double>(M) * static_cast<double>(N) >= 16777216.0;
 }
 
 std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at::Tensor& points_in,
