@@ -29,12 +29,13 @@ fi
 echo "[device_run] build: $(( $(date +%s) - start )) s"
 python3 -c "import lidarops.extension as e; e.load(); print('with_cuda', e.cuda_available())"
 [ -n "${PRE:-}" ] && { echo "[device_run] PRE: $PRE"; bash -c "$PRE"; echo "[device_run] PRE exit $?"; }
-sanitize() {  # compute-sanitizer on CUDA kernel tests; SANITIZER_PLAN="tool:file,file tool:file ..."
+sanitize() {  # compute-sanitizer on CUDA kernel tests; SANITIZER_PLAN="tool:file,file tool:file@k+expr ..."
   mkdir -p /tmp/san; local i=0
   for entry in ${SANITIZER_PLAN:-memcheck:tests/test_neighbors.py racecheck:tests/test_neighbors.py}; do
-    local tool=${entry%%:*} files=${entry#*:}; i=$((i + 1))
+    local tool=${entry%%:*} files=${entry#*:} k=${SANITIZER_K:-cuda and not slow}; i=$((i + 1))
+    if [[ $files == *@* ]]; then k=${files#*@}; k=${k//+/ }; files=${files%%@*}; fi  # tool:files@k+expr
     timeout ${SANITIZER_TIMEOUT:-240} compute-sanitizer --tool $tool --error-exitcode 9 python3 -m pytest -q \
-      -p no:cacheprovider ${files//,/ } -k "${SANITIZER_K:-cuda and not slow}" -x > /tmp/san/$i-$tool.log 2>&1
+      -p no:cacheprovider ${files//,/ } -k "$k" -x > /tmp/san/$i-$tool.log 2>&1
     echo "[device_run] compute-sanitizer $tool on $files exit $?" >> /tmp/san/$i-$tool.log
     tail -8 /tmp/san/$i-$tool.log
   done
