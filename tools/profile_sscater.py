@@ -1,0 +1,68 @@
+"""Where an SSCATeR step spends its time: torch.profiler over steps of the drone_bridge stream.
+
+    python tools/profile_sscater.py [--device cuda] [--steps 20] [--scenario drone_bridge]
+
+Prints the top ops by self device time and by self CPU time, the host-device synchronisations, and
+the per-layer times of one profiled step (``SSCATeRPointPillars(profile=True)``).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from benchmarks.bm_sscater import _model, calibrate_relu_zeros  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--scenario", default="drone_bridge")
+    a = ap.parse_args()
+    from lidarops.data.synthetic import Simulator
+    dev = torch.device(a.device)
+    model, _ = _model(a.scenario, dev, 0.5)
+    slices = list(Simulator(a.scenario, seed=0).slices(0.0, 0.01 * (40 + a.steps), 0.01))
+    feed = [(torch.from_numpy(p).to(dev), torch.from_numpy(t).to(dev)) for p, t in slices]
+    for i, (p, t) in enumerate(feed[:10]):
+        model.step(p, t, now=0.01 * (i + 1))
+    calibrate_relu_zeros(model, 0.5)
+    for i in range(10, 40):
+        model.step(*feed[i], now=0.01 * (i + 1))
+    acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    with torch.profiler.profile(activities=acts) as prof:
+        for i in range(40, 40 + a.steps):
+            model.step(*feed[i], now=0.01 * (i + 1))
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+    ka = prof.key_averages()
+    dkey = "self_device_time_total" if dev.type == "cuda" else "self_cpu_time_total"
+    print(f"== top ops by {dkey} over {a.steps} steps (ms per step)")
+    for e in sorted(ka, key=lambda e: getattr(e, dkey, 0), reverse=True)[:25]:
+        print(f"{e.key[:60]:60s} calls/step {e.count / a.steps:8.1f}  dev {getattr(e, dkey, 0) / 1e3 / a.steps:8.3f}"
+              f"  cpu {e.self_cpu_time_total / 1e3 / a.steps:8.3f}")
+    print("== top ops by self CPU time (ms per step)")
+    for e in sorted(ka, key=lambda e: e.self_cpu_time_total, reverse=True)[:25]:
+        print(f"{e.key[:60]:60s} calls/step {e.count / a.steps:8.1f}  cpu {e.self_cpu_time_total / 1e3 / a.steps:8.3f}")
+    syncs = [e for e in ka if any(s in e.key for s in ("Synchronize", "cudaMemcpy", "item", "nonzero", "unique"))]
+    print("== syncing calls per step:", {e.key: round(e.count / a.steps, 1) for e in syncs})
+    model.profile = True
+    ms = []
+    for i in range(40, 40 + min(a.steps, 10)):
+        model.step(*feed[i], now=0.01 * (i + 1))
+        ms.append([l.ms for l in model.stats.layers])
+    names = [l.name for l in model.stats.layers]
+    print("== per-layer ms (median of profiled steps, synchronised per layer)")
+    for j, n in enumerate(names):
+        print(f"{n:16s} {statistics.median(r[j] for r in ms):7.3f}  active {model.stats.layers[j].active:6d}"
+              f"  changed {model.stats.layers[j].changed:6d}")
+
+
+if __name__ == "__main__":
+    main()
