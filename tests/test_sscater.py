@@ -83,6 +83,149 @@ def test_finalize_applies_folded_bn_relu_on_active_sites(device, channels_first)
     assert torch.equal(out.cpu()[untouched], old[untouched])
 
 
+# ---- the fused layer-step ops, against Python references ---------------------------------------
+
+def _rows(t):
+    """The valid (y, x) rows of a padded site list, as a sorted list of tuples."""
+    t = t.cpu()
+    return sorted(map(tuple, t[t[:, 0] >= 0].tolist()))
+
+
+def _random_sites(g, H, W, n):
+    keys = torch.randperm(H * W, generator=g)[:n]
+    return torch.stack([keys // W, keys % W], 1).int()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_cover_update_flips_the_outputs_whose_cover_crosses_zero(device):
+    g = torch.Generator().manual_seed(21)
+    Hi, Wi, k, s, p = 12, 10, 3, 2, 1
+    Ho, Wo = (Hi + 2 * p - k) // s + 1, (Wi + 2 * p - k) // s + 1
+    ones = torch.ones(1, 1, k, k, dtype=torch.float64)
+
+    def cover_of(act_in):
+        return F.conv2d(act_in[None, None].double(), ones, None, s, p)[0, 0].round().int()
+
+    act_in = torch.rand(Hi, Wi, generator=g) > 0.6
+    cover = cover_of(act_in)
+    active = cover > 0
+    sites_on = torch.nonzero(act_in).int()
+    sites_off = torch.nonzero(~act_in).int()
+    removed = sites_on[torch.randperm(sites_on.shape[0], generator=g)[:7]]
+    added = sites_off[torch.randperm(sites_off.shape[0], generator=g)[:9]]
+    padded_added = torch.cat([added, torch.full((3, 2), -1, dtype=torch.int32)])  # padding rows are skipped
+    new_in = act_in.clone()
+    new_in[added[:, 0].long(), added[:, 1].long()] = True
+    new_in[removed[:, 0].long(), removed[:, 1].long()] = False
+    new_cover = cover_of(new_in)
+    stamp = torch.zeros(Ho, Wo, dtype=torch.int32, device=device)
+    cv, act = cover.to(device), active.to(device)
+    a_out, r_out, counts = _ops.sscater_cover_update_(cv, act, stamp, 4, padded_added.to(device), removed.to(device),
+                                                      k, k, s, p)
+    assert torch.equal(cv.cpu(), new_cover) and torch.equal(act.cpu(), new_cover > 0)
+    assert _rows(a_out) == sorted(map(tuple, torch.nonzero((new_cover > 0) & ~active).tolist()))
+    assert _rows(r_out) == sorted(map(tuple, torch.nonzero(~(new_cover > 0) & active).tolist()))
+    assert counts.tolist() == [len(_rows(a_out)), len(_rows(r_out))]
+    assert (a_out.cpu()[: counts[0]] >= 0).all() and (r_out.cpu()[: counts[1]] >= 0).all()  # filled from the top
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_children_mark_every_upsampled_child(device):
+    g = torch.Generator().manual_seed(22)
+    Hi, Wi, k = 5, 6, 2
+    active = torch.zeros(Hi * k, Wi * k, dtype=torch.bool)
+    active[::3] = True
+    added, removed = _random_sites(g, Hi, Wi, 6)[:4], _random_sites(g, Hi, Wi, 6)[:3]
+    ref = active.clone()
+    for sites, on in ((added, True), (removed, False)):
+        for y, x in sites.tolist():
+            ref[y * k:(y + 1) * k, x * k:(x + 1) * k] = on
+    act = active.to(device)
+    ca, cr = _ops.sscater_children_(act, added.to(device), removed.to(device), k, k, k, 0)
+    assert torch.equal(act.cpu(), ref)
+    assert _rows(ca) == sorted((y * k + i, x * k + j) for y, x in added.tolist() for i in range(k) for j in range(k))
+    assert _rows(cr) == sorted((y * k + i, x * k + j) for y, x in removed.tolist() for i in range(k) for j in range(k))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("s", [1, 2])
+def test_gather_sets_the_full_convolution_at_the_sites(device, s):
+    g = torch.Generator().manual_seed(23 + s)
+    Hi, Wi, cin, cout = 9, 8, 5, 6
+    inp = torch.randn(Hi, Wi, cin, generator=g, dtype=torch.float64)
+    w = torch.randn(cout, 3, 3, cin, generator=g, dtype=torch.float64)
+    ref = F.conv2d(inp.permute(2, 0, 1)[None], w.permute(0, 3, 1, 2), None, s, 1)[0].permute(1, 2, 0)
+    start = torch.randn(*ref.shape, generator=g, dtype=torch.float64)
+    sites = _random_sites(g, ref.shape[0], ref.shape[1], 7)
+    padded = torch.cat([sites[:3], torch.full((2, 2), -1, dtype=torch.int32), sites[3:]])
+    acc = start.clone().to(device)
+    _ops.sscater_gather_(acc, inp.to(device), w.to(device), padded.to(device), s, 1)
+    exp = start.clone()
+    exp[sites[:, 0].long(), sites[:, 1].long()] = ref[sites[:, 0].long(), sites[:, 1].long()]
+    assert (acc.cpu() - exp).abs().max() <= 1e-12 * exp.abs().max()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_touch_then_finalize_compact(device):
+    g = torch.Generator().manual_seed(24)
+    H, W, C = 7, 9, 5
+    acc = torch.randn(H, W, C, generator=g, dtype=torch.float64)
+    active = torch.rand(H, W, generator=g) > 0.3
+    scale, shift = torch.rand(C, generator=g, dtype=torch.float64) + 0.5, torch.randn(C, generator=g, dtype=torch.float64)
+    feats = torch.where(active[..., None], torch.relu(acc * scale + shift), torch.zeros(1, dtype=acc.dtype))
+    feats[1, 1] += 1.0  # (1, 1) is removed below: evaluated, it becomes 0
+    targets = torch.tensor([5, -1, 12, 5, 40, 12, 62], dtype=torch.int64)  # duplicates and a -1
+    added = torch.tensor([[0, 5], [-1, -1]], dtype=torch.int32)            # (0, 5) = key 5 again
+    removed = torch.tensor([[1, 1], [6, 8]], dtype=torch.int32)
+    stamp = torch.zeros(H, W, dtype=torch.int32)
+    stamp[2, 3] = 4  # touched in an earlier step: does not count now
+    acc_d, stamp_d, feats_d = acc.clone().to(device), stamp.to(device), feats.clone().to(device)
+    active_d = active.clone().to(device)
+    active_d[1, 1] = active_d[6, 8] = False  # the removed sites' status
+    cand, count = _ops.sscater_touch_(stamp_d, acc_d, 10, targets.to(device), added.to(device), removed.to(device))
+    keys = {5, 12, 40, 62, 1 * W + 1, 6 * W + 8}
+    assert count.item() == len(keys) and cand.shape == (targets.shape[0] + 4, 2)
+    assert _rows(cand) == sorted((k_ // W, k_ % W) for k_ in keys) and (cand.cpu()[: len(keys)] >= 0).all()
+    st = stamp_d.cpu().flatten()
+    assert st[5] == 11 and st[12] == 10 and st[40] == 10 and st[W + 1] == 11 and st[6 * W + 8] == 11
+    assert st[2 * W + 3] == 4 and (acc_d.cpu()[1, 1] == 0).all() and (acc_d.cpu()[6, 8] == 0).all()
+    old = feats_d.clone().cpu()
+    sites, delta, counts = _ops.sscater_finalize_compact_(acc_d, feats_d, active_d, cand, count, stamp_d, 11,
+                                                          scale.to(device), shift.to(device))
+    acc_c, act_c = acc_d.cpu(), active_d.cpu()
+    new = torch.where(act_c[..., None], torch.relu(acc_c * scale + shift), torch.zeros(1, dtype=acc.dtype))
+    changed = sorted((k_ // W, k_ % W) for k_ in keys if not torch.equal(new.view(-1, C)[k_], old.view(-1, C)[k_]))
+    n = counts[0].item()
+    assert sorted(map(tuple, sites.cpu()[:n].tolist())) == changed
+    for (y, x), d in zip(sites.cpu()[:n].tolist(), delta.cpu()[:n]):
+        assert torch.equal(d, new[y, x] - old[y, x])
+    flagged = set(changed) | {(0, 5), (1, 1), (6, 8)}
+    assert counts.tolist() == [len(changed), len(flagged), len(keys)]
+    for k_ in keys:
+        assert torch.equal(feats_d.cpu().view(-1, C)[k_], new.view(-1, C)[k_])
+
+
+def test_fused_ops_opcheck():
+    g = torch.Generator().manual_seed(1)
+    d = torch.float64
+    sites = torch.tensor([[0, 1], [4, 5], [-1, -1]], dtype=torch.int32)
+    torch.library.opcheck(_ops.sscater_cover_update_, (torch.ones(3, 3, dtype=torch.int32),
+                                                       torch.ones(3, 3, dtype=torch.bool),
+                                                       torch.zeros(3, 3, dtype=torch.int32), 4, sites[:1], sites[1:2],
+                                                       3, 3, 2, 1))
+    torch.library.opcheck(_ops.sscater_children_, (torch.zeros(12, 12, dtype=torch.bool), sites, sites[:1], 2, 2, 2, 0))
+    torch.library.opcheck(_ops.sscater_gather_, (torch.zeros(5, 6, 3, dtype=d), torch.randn(5, 6, 2, generator=g, dtype=d),
+                                                 torch.randn(3, 3, 3, 2, generator=g, dtype=d), sites, 1, 1))
+    acc = torch.randn(5, 6, 3, generator=g, dtype=d)
+    stamp = torch.zeros(5, 6, dtype=torch.int32)
+    args = (stamp, acc, 4, torch.tensor([0, 7, -1]), sites[:1], sites[1:])
+    torch.library.opcheck(_ops.sscater_touch_, args)
+    cand, count = _ops.sscater_touch_(stamp.clone(), acc.clone(), 8, torch.tensor([0, 7, -1]), sites[:1], sites[1:])
+    torch.library.opcheck(_ops.sscater_finalize_compact_, (acc, torch.zeros_like(acc), torch.ones(5, 6, dtype=torch.bool),
+                                                           cand, count, stamp, 9, torch.ones(3, dtype=d),
+                                                           torch.zeros(3, dtype=d)))
+
+
 def test_ops_reject_bad_arguments():
     acc = torch.zeros(4, 4, 3)
     sites = torch.zeros(2, 2, dtype=torch.int32)
@@ -97,6 +240,17 @@ def test_ops_reject_bad_arguments():
                                torch.tensor([[4, 0]], dtype=torch.int32), torch.ones(3), torch.zeros(3))
     with pytest.raises(RuntimeError, match="active must be a contiguous bool"):
         _ops.sscater_finalize_(acc, acc.clone(), torch.ones(4, 4), sites, torch.ones(3), torch.zeros(3))
+    stamp = torch.zeros(4, 4, dtype=torch.int32)
+    with pytest.raises(RuntimeError, match="cover must be a contiguous Int"):
+        _ops.sscater_cover_update_(torch.zeros(4, 4), torch.ones(4, 4, dtype=torch.bool), stamp, 4, sites, sites, 3, 3, 2, 1)
+    with pytest.raises(RuntimeError, match="stride 0"):
+        _ops.sscater_children_(torch.ones(4, 4, dtype=torch.bool), sites, sites, 2, 2, 0, 0)
+    with pytest.raises(RuntimeError, match="weight must be"):
+        _ops.sscater_gather_(acc, torch.zeros(4, 4, 2), torch.zeros(3, 3, 3, 5), sites, 1, 1)
+    with pytest.raises(RuntimeError, match="targets must be int64"):
+        _ops.sscater_touch_(stamp, acc, 4, torch.zeros(3, dtype=torch.int32), sites, sites)
+    with pytest.raises(RuntimeError, match="stamp and acc must cover the same"):
+        _ops.sscater_touch_(torch.zeros(5, 4, dtype=torch.int32), acc, 4, torch.zeros(3, dtype=torch.int64), sites, sites)
 
 
 def test_ops_opcheck():

@@ -5,6 +5,9 @@
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 
+#include <algorithm>
+#include <vector>
+
 #include "lidarops/sscater.h"
 
 namespace lidarops {
@@ -114,11 +117,213 @@ std::tuple<at::Tensor, at::Tensor> finalize_cpu(const at::Tensor& acc, at::Tenso
   return {changed, delta};
 }
 
+// ---- the fused layer step (sequential loops: the lists are short; finalize runs in parallel) ----
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> cover_update_cpu(at::Tensor& cover, at::Tensor& active, at::Tensor& stamp,
+                                                     int64_t value, const at::Tensor& added_in,
+                                                     const at::Tensor& removed_in, int64_t kh, int64_t kw,
+                                                     int64_t stride, int64_t padding) {
+  check_cover_update_args(cover, active, stamp, added_in, removed_in, kh, kw, stride, padding);
+  const int64_t Ho = cover.size(0), Wo = cover.size(1), K = kh * kw;
+  const int64_t a = added_in.size(0), r = removed_in.size(0), rows = (a + r) * K;
+  auto added_out = at::full({rows, 2}, -1, added_in.options());
+  auto removed_out = at::full({rows, 2}, -1, added_in.options());
+  auto added = added_in.contiguous(), removed = removed_in.contiguous();
+  int32_t* cv = cover.data_ptr<int32_t>();
+  bool* act = active.data_ptr<bool>();
+  int32_t* st = stamp.data_ptr<int32_t>();
+  std::vector<int64_t> touched;
+  touched.reserve(rows);
+  for (int64_t i = 0; i < a + r; ++i) {
+    const bool add = i < a;
+    const int32_t* sp = add ? added.data_ptr<int32_t>() + 2 * i : removed.data_ptr<int32_t>() + 2 * (i - a);
+    if (sp[0] < 0 || sp[1] < 0) continue;
+    for (int64_t ky = 0; ky < kh; ++ky) {
+      const int64_t oy = reach(sp[0], ky, stride, padding, Ho, false);
+      if (oy < 0) continue;
+      for (int64_t kx = 0; kx < kw; ++kx) {
+        const int64_t ox = reach(sp[1], kx, stride, padding, Wo, false);
+        if (ox < 0) continue;
+        const int64_t o = oy * Wo + ox;
+        cv[o] += add ? 1 : -1;
+        if (st[o] < value) {
+          st[o] = static_cast<int32_t>(value);
+          touched.push_back(o);
+        }
+      }
+    }
+  }
+  int32_t* ao = added_out.data_ptr<int32_t>();
+  int32_t* ro = removed_out.data_ptr<int32_t>();
+  int64_t na = 0, nr = 0;
+  for (size_t i = 0; i < touched.size(); ++i) {
+    const int64_t o = touched[i];
+    const bool after = cv[o] > 0;
+    if (after == act[o]) continue;
+    act[o] = after;
+    int32_t* dst = after ? ao + 2 * na++ : ro + 2 * nr++;
+    dst[0] = static_cast<int32_t>(o / Wo);
+    dst[1] = static_cast<int32_t>(o % Wo);
+  }
+  auto counts = at::empty({2}, added_in.options().dtype(at::kLong));
+  counts.data_ptr<int64_t>()[0] = na;
+  counts.data_ptr<int64_t>()[1] = nr;
+  return {added_out, removed_out, counts};
+}
+
+std::tuple<at::Tensor, at::Tensor> children_cpu(at::Tensor& active, const at::Tensor& added_in,
+                                                const at::Tensor& removed_in, int64_t kh, int64_t kw, int64_t stride,
+                                                int64_t padding) {
+  check_children_args(active, added_in, removed_in, kh, kw, stride, padding);
+  const int64_t Ho = active.size(0), Wo = active.size(1), K = kh * kw;
+  bool* act = active.data_ptr<bool>();
+  auto run = [&](const at::Tensor& in, bool on) {
+    auto sites = in.contiguous();
+    const int64_t n = sites.size(0);
+    auto out = at::full({n * K, 2}, -1, sites.options());
+    const int32_t* sp = sites.data_ptr<int32_t>();
+    int32_t* op = out.data_ptr<int32_t>();
+    for (int64_t i = 0; i < n; ++i) {
+      if (sp[2 * i] < 0 || sp[2 * i + 1] < 0) continue;
+      for (int64_t k = 0; k < K; ++k) {
+        const int64_t oy = reach(sp[2 * i], k / kw, stride, padding, Ho, true);
+        const int64_t ox = oy < 0 ? -1 : reach(sp[2 * i + 1], k % kw, stride, padding, Wo, true);
+        if (ox < 0) continue;
+        act[oy * Wo + ox] = on;
+        op[2 * (i * K + k)] = static_cast<int32_t>(oy);
+        op[2 * (i * K + k) + 1] = static_cast<int32_t>(ox);
+      }
+    }
+    return out;
+  };
+  auto a = run(added_in, true);
+  auto r = run(removed_in, false);  // after the added: a site under both ends inactive
+  return {a, r};
+}
+
+void gather_cpu(at::Tensor& acc, const at::Tensor& input, const at::Tensor& weight_in, const at::Tensor& sites_in,
+                int64_t stride, int64_t padding) {
+  check_gather_args(acc, input, weight_in, sites_in, stride, padding);
+  const int64_t m = sites_in.size(0);
+  if (m == 0) return;
+  const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
+  const int64_t Hi = input.size(0), Wi = input.size(1), Ci = input.size(2);
+  const int64_t kh = weight_in.size(1), kw = weight_in.size(2);
+  auto w = weight_in.contiguous();
+  auto sites = sites_in.contiguous();
+  const int32_t* sp = sites.data_ptr<int32_t>();
+  const int64_t s0 = input.stride(0), s1 = input.stride(1), s2 = input.stride(2);
+  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_gather_cpu", [&] {
+    scalar_t* a = acc.data_ptr<scalar_t>();
+    const scalar_t* in = input.data_ptr<scalar_t>();
+    const scalar_t* wp = w.data_ptr<scalar_t>();
+    at::parallel_for(0, m, 16, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i) {
+        int64_t y, x;
+        if (!site_at(sp, i, Ho, Wo, y, x)) continue;
+        scalar_t* dst = a + (y * Wo + x) * C;
+        for (int64_t c = 0; c < C; ++c)
+          dst[c] = conv_at(in, s0, s1, s2, Hi, Wi, Ci, wp, kh, kw, y, x, c, stride, padding);
+      }
+    });
+  });
+}
+
+std::tuple<at::Tensor, at::Tensor> touch_cpu(at::Tensor& stamp, at::Tensor& acc, int64_t value,
+                                             const at::Tensor& targets_in, const at::Tensor& added_in,
+                                             const at::Tensor& removed_in) {
+  check_touch_args(stamp, acc, targets_in, added_in, removed_in);
+  const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2), HW = Ho * Wo;
+  const int64_t R = targets_in.size(0), a = added_in.size(0), r = removed_in.size(0);
+  auto cand = at::full({R + a + r, 2}, -1, added_in.options());
+  auto count = at::zeros({1}, targets_in.options());
+  auto targets = targets_in.contiguous();
+  auto added = added_in.contiguous(), removed = removed_in.contiguous();
+  int32_t* st = stamp.data_ptr<int32_t>();
+  int32_t* cp = cand.data_ptr<int32_t>();
+  int64_t m = 0;
+  auto mark = [&](int64_t o, int64_t v) {
+    const int32_t old = st[o];
+    if (old < v) st[o] = static_cast<int32_t>(v);
+    if (old < value) {
+      cp[2 * m] = static_cast<int32_t>(o / Wo);
+      cp[2 * m + 1] = static_cast<int32_t>(o % Wo);
+      ++m;
+    }
+  };
+  const int64_t* tp = targets.data_ptr<int64_t>();
+  for (int64_t i = 0; i < R; ++i)
+    if (tp[i] >= 0 && tp[i] < HW) mark(tp[i], value);
+  const int32_t* ap = added.data_ptr<int32_t>();
+  for (int64_t i = 0; i < a; ++i) {
+    int64_t y, x;
+    if (site_at(ap, i, Ho, Wo, y, x)) mark(y * Wo + x, value + 1);
+  }
+  const int32_t* rp = removed.data_ptr<int32_t>();
+  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_touch_cpu", [&] {
+    scalar_t* ac = acc.data_ptr<scalar_t>();
+    for (int64_t i = 0; i < r; ++i) {
+      int64_t y, x;
+      if (!site_at(rp, i, Ho, Wo, y, x)) continue;
+      mark(y * Wo + x, value + 1);
+      std::fill(ac + (y * Wo + x) * C, ac + (y * Wo + x + 1) * C, scalar_t(0));
+    }
+  });
+  count.data_ptr<int64_t>()[0] = m;
+  return {cand, count};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> finalize_compact_cpu(const at::Tensor& acc, at::Tensor& out,
+                                                                    const at::Tensor& active, const at::Tensor& cand,
+                                                                    const at::Tensor& count, const at::Tensor& stamp,
+                                                                    int64_t status_value, const at::Tensor& scale,
+                                                                    const at::Tensor& shift) {
+  TORCH_CHECK(count.numel() == 1 && count.scalar_type() == at::kLong, "count must be int64 (1,), got ", count.sizes());
+  check_map(stamp, "stamp", at::kInt, acc);
+  check_same_hw(stamp, acc, "stamp", "acc");
+  check_sites(cand, "cand", acc);
+  const int64_t m = std::min<int64_t>(count.item<int64_t>(), cand.size(0));
+  auto used = cand.narrow(0, 0, std::max<int64_t>(m, 0));
+  auto [changed, delta] = finalize_cpu(acc, out, active, used, scale, shift);
+  const int64_t C = acc.size(2), Wo = acc.size(1);
+  auto sites_out = at::full({cand.size(0), 2}, -1, cand.options());
+  auto delta_out = at::zeros({cand.size(0), C}, acc.options());  // padding rows: zero
+  auto counts = at::zeros({3}, count.options());
+  const bool* ch = changed.data_ptr<bool>();
+  const int32_t* sp = used.data_ptr<int32_t>();
+  const int32_t* st = stamp.data_ptr<int32_t>();
+  int32_t* so = sites_out.data_ptr<int32_t>();
+  int64_t n = 0, flagged = 0;
+  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_finalize_compact_cpu", [&] {
+    const scalar_t* d = delta.data_ptr<scalar_t>();
+    scalar_t* dout = delta_out.data_ptr<scalar_t>();
+    for (int64_t i = 0; i < m; ++i) {
+      const bool status = st[sp[2 * i] * Wo + sp[2 * i + 1]] == status_value;
+      flagged += ch[i] || status;
+      if (!ch[i]) continue;
+      so[2 * n] = sp[2 * i];
+      so[2 * n + 1] = sp[2 * i + 1];
+      std::copy(d + i * C, d + (i + 1) * C, dout + n * C);
+      ++n;
+    }
+  });
+  int64_t* cn = counts.data_ptr<int64_t>();
+  cn[0] = n;
+  cn[1] = flagged;
+  cn[2] = m;
+  return {sites_out, delta_out, counts};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
   m.impl("sscater_scatter_", &scatter_cpu);
   m.impl("sscater_finalize_", &finalize_cpu);
+  m.impl("sscater_cover_update_", &cover_update_cpu);
+  m.impl("sscater_children_", &children_cpu);
+  m.impl("sscater_gather_", &gather_cpu);
+  m.impl("sscater_touch_", &touch_cpu);
+  m.impl("sscater_finalize_compact_", &finalize_compact_cpu);
 }
 
 }  // namespace sscater

@@ -22,4 +22,39 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   m.def(
       "sscater_finalize_(Tensor acc, Tensor(a!) out, Tensor active, Tensor sites, Tensor scale, Tensor shift)"
       " -> (Tensor, Tensor)");
+
+  // ---- the fused layer step (lidarops/sscater/delta.py): site lists are int32 (n, 2) (y, x); a row
+  // (-1, -1) is no site (lists are padded to an upper bound so that no host sync is needed). A
+  // stamp map (Ho, Wo) int32 marks the sites a step touched: values only grow from step to step.
+  //
+  // Strided layer: cover (Ho, Wo) int32 counts the active inputs under each output's kernel; the
+  // inputs `added` / `removed` (n, 2) add / remove one under every tap. Outputs whose cover crosses
+  // zero flip `active` and are returned as (added, removed), both ((a + r) * kh * kw, 2), filled from
+  // their first row (the rest is padding), with their counts (2,) int64. Dedup of the touched
+  // outputs: stamp = value.
+  m.def(
+      "sscater_cover_update_(Tensor(a!) cover, Tensor(b!) active, Tensor(c!) stamp, int value, Tensor added,"
+      " Tensor removed, int kh, int kw, int stride, int padding) -> (Tensor, Tensor, Tensor)");
+  // Transposed layer: the children (every tap's output) of the added / removed input sites become
+  // active / inactive (the removed last); returned as (a * kh * kw, 2) and (r * kh * kw, 2), padded.
+  m.def(
+      "sscater_children_(Tensor(a!) active, Tensor added, Tensor removed, int kh, int kw, int stride,"
+      " int padding) -> (Tensor, Tensor)");
+  // acc at `sites` (m, 2) of the output grid (padded) = the full convolution (no bias) of input
+  // (Hi, Wi, Cin) there: sum over taps of input[y * stride - padding + ky, x * stride - padding + kx]
+  // @ weight[:, ky, kx, :]^T (zero outside the input grid).
+  m.def("sscater_gather_(Tensor(a!) acc, Tensor input, Tensor weight, Tensor sites, int stride, int padding) -> ()");
+  // The sites to re-evaluate, each once: the reached keys `targets` (R,) int64 (-1: none; stamp =
+  // value) and the status changes `added`, `removed` (padded; stamp = value + 1); acc is zeroed at
+  // the removed sites. Returns (cand (R + a + r, 2) int32, padded, count (1,) int64: its used rows).
+  m.def(
+      "sscater_touch_(Tensor(a!) stamp, Tensor(b!) acc, int value, Tensor targets, Tensor added, Tensor removed)"
+      " -> (Tensor, Tensor)");
+  // sscater_finalize_ over the first count[0] rows of cand, compacted: returns (sites (m, 2) int32,
+  // delta (m, C)) of the sites whose value changed, in their first rows (then (-1, -1) and zero rows),
+  // and counts (3,) int64:
+  // changed sites, sites changed or with a status change (stamp == status_value), sites evaluated.
+  m.def(
+      "sscater_finalize_compact_(Tensor acc, Tensor(a!) out, Tensor active, Tensor cand, Tensor count,"
+      " Tensor stamp, int status_value, Tensor scale, Tensor shift) -> (Tensor, Tensor, Tensor)");
 }

@@ -15,3 +15,33 @@ def _scatter_fake(acc, sites, delta, weight, stride, padding, transposed, out_ac
 def _finalize_fake(acc, out, active, sites, scale, shift):
     m, C = sites.shape[0], acc.shape[2]
     return sites.new_empty((m,), dtype=torch.bool), acc.new_empty((m, C))
+
+
+# ---- the fused layer step: every output is padded to a bound known from the input shapes ----
+
+@torch.library.register_fake("lidarops::sscater_cover_update_")
+def _cover_update_fake(cover, active, stamp, value, added, removed, kh, kw, stride, padding):
+    rows = (added.shape[0] + removed.shape[0]) * kh * kw
+    return added.new_empty((rows, 2)), added.new_empty((rows, 2)), added.new_empty((2,), dtype=torch.int64)
+
+
+@torch.library.register_fake("lidarops::sscater_children_")
+def _children_fake(active, added, removed, kh, kw, stride, padding):
+    return added.new_empty((added.shape[0] * kh * kw, 2)), removed.new_empty((removed.shape[0] * kh * kw, 2))
+
+
+@torch.library.register_fake("lidarops::sscater_gather_")
+def _gather_fake(acc, input, weight, sites, stride, padding):
+    return None
+
+
+@torch.library.register_fake("lidarops::sscater_touch_")
+def _touch_fake(stamp, acc, value, targets, added, removed):
+    rows = targets.shape[0] + added.shape[0] + removed.shape[0]
+    return added.new_empty((rows, 2)), targets.new_empty((1,))
+
+
+@torch.library.register_fake("lidarops::sscater_finalize_compact_")
+def _finalize_compact_fake(acc, out, active, cand, count, stamp, status_value, scale, shift):
+    rows = cand.shape[0]
+    return cand.new_empty((rows, 2)), acc.new_empty((rows, acc.shape[2])), count.new_empty((3,))

@@ -19,8 +19,12 @@ One step: the changed input sites carry ``delta = new - old``; each layer first 
 map from the sites that became active or inactive, scatters ``delta (*) W`` into ``acc`` at the active
 sites it reaches (per tap: gather, GEMM, scatter-add; :func:`torch.ops.lidarops.sscater_scatter_`),
 computes ``acc`` in full at the sites that just became active (their ``acc`` was not maintained while
-inactive), and re-evaluates BatchNorm (folded) and ReLU only at the sites the scatter reached or whose
-status changed (:func:`torch.ops.lidarops.sscater_finalize_`).
+inactive; ``sscater_gather_``), and re-evaluates BatchNorm (folded) and ReLU only at the sites the
+scatter reached or whose status changed (``sscater_touch_`` lists them once each through a stamp map,
+``sscater_finalize_compact_`` evaluates them and compacts the changed ones). A layer is a handful of
+kernels and one host synchronisation (the number of changed sites): site lists are padded to upper
+bounds with (-1, -1) rows instead of being compacted on the host, and the statistics of a step are
+read once at its end.
 The changed sites it passes on are those whose post-ReLU value changed (a site that stays <= 0 is not
 passed on) plus those whose active status changed.
 """
@@ -66,19 +70,6 @@ class LayerStats:
     ms: float = 0.0
 
 
-def _reach_1d(i: Tensor, k: Tensor, stride: int, padding: int, n_out: int, transposed: bool) -> Tensor:
-    """Torch twin of ``reach`` in csrc/include/lidarops/sscater.h: (n, K) output coordinates or -1."""
-    i, k = i[:, None], k[None, :]
-    if transposed:
-        o = i * stride - padding + k
-        ok = (o >= 0) & (o < n_out)
-    else:
-        t = i + padding - k
-        o = torch.div(t, stride, rounding_mode="floor")
-        ok = (t >= 0) & (t % stride == 0) & (o < n_out)
-    return torch.where(ok, o, torch.full_like(o, -1))
-
-
 class _Layer:
     def __init__(self, spec: BackboneLayer, dtype, device, in_shape, out_shape, name: str):
         self.kind, self.block, self.name = spec.kind, spec.block, name
@@ -99,27 +90,13 @@ class _Layer:
         self.acc = torch.zeros(*out_shape, self.cout, dtype=dtype, device=device)
         self.feats: Optional[Tensor] = None  # set by the owner (own buffer or a view of the output map)
         self.active: Optional[Tensor] = None
+        # sites touched in a step: values only grow (see DeltaBackbone._stamp)
+        self.stamp = torch.zeros(*out_shape, dtype=torch.int32, device=device)
         self.stats = LayerStats(name)
-
-    def reach_keys(self, sites: Tensor) -> Tensor:
-        """Linear keys (y * Wo + x) of the output sites the kernel reaches from input sites (n, 2)."""
-        dev = sites.device
-        s = sites.long()
-        oy = _reach_1d(s[:, 0], torch.arange(self.kh, device=dev), self.stride, self.padding, self.out_shape[0],
-                       self.transposed)
-        ox = _reach_1d(s[:, 1], torch.arange(self.kw, device=dev), self.stride, self.padding, self.out_shape[1],
-                       self.transposed)
-        keys = oy[:, :, None] * self.out_shape[1] + ox[:, None, :]
-        ok = (oy[:, :, None] >= 0) & (ox[:, None, :] >= 0)
-        return keys[ok]
 
 
 def _keys(sites: Tensor, W: int) -> Tensor:
     return sites[:, 0].long() * W + sites[:, 1].long()
-
-
-def _sites(keys: Tensor, W: int) -> Tensor:
-    return torch.stack([keys // W, keys % W], 1).int()
 
 
 class DeltaBackbone:
@@ -200,6 +177,7 @@ class DeltaBackbone:
             c0 += cu
         self.stats: list[LayerStats] = [layer.stats for layer in self.layers + self.up_layers]
         self.steps = 0
+        self._stamp = 0  # stamp values of a step: base (strided layers' cover), base + 2 (reached), base + 3 (status)
 
     # ---- full recomputation ----------------------------------------------------------------------
 
@@ -285,101 +263,66 @@ class DeltaBackbone:
         flat_a[keys] = ~removed
         moved = delta.ne(0).any(1)
         change = Change(sites[moved], delta[moved], sites[~was & ~removed], sites[was & removed])
+        if self._stamp > 2**31 - 16:  # int32 stamps: start again from zero (after ~5e8 steps)
+            for layer in self.layers + self.up_layers:
+                layer.stamp.zero_()
+            self._stamp = 0
+        self._stamp += 4
         block_change = {}
+        counts = []
         for layer in self.layers:
             t0 = self._tick(profile)
-            change = self._layer_step(layer, change)
+            change, c = self._layer_step(layer, change)
+            counts.append(c)
             layer.stats.ms = self._tock(t0, profile)
             block_change[layer.block] = change
         for layer in self.up_layers:
             t0 = self._tick(profile)
-            self._layer_step(layer, block_change[layer.block])
+            counts.append(self._layer_step(layer, block_change[layer.block])[1])
             layer.stats.ms = self._tock(t0, profile)
+        # the step's statistics in one device-to-host copy
+        active = torch.stack([layer.active.sum() for layer in self.layers + self.up_layers])
+        figures = torch.cat([active[:, None], torch.stack(counts)[:, 1:]], 1).tolist()
+        for st, (a, changed, touched) in zip(self.stats, figures):
+            st.active, st.changed, st.touched = int(a), int(changed), int(touched)
         self.steps += 1
         return self.out
 
-    def _layer_step(self, layer: _Layer, change: Change) -> Change:
-        Ho, Wo = layer.out_shape
-        # 1. active status of the output sites
+    def _layer_step(self, layer: _Layer, change: Change) -> tuple[Change, Tensor]:
+        """One layer of a step; returns the change it passes on and its counts (3,) int64 on the
+        device: sites changed, sites changed or with a status change, sites re-evaluated. One host
+        synchronisation (the number of changed sites, which sizes the next layer's work)."""
+        ops = torch.ops.lidarops
+        base = self._stamp
+        # 1. active status of the output sites (site lists padded with (-1, -1) rows)
         if layer.kind == "subm":
             added, removed = change.added, change.removed  # the block's map was updated by its strided layer
-        elif layer.kind == "down":
-            added, removed = self._cover_update(layer, change)
+        elif layer.kind == "down":  # outputs filled from their first rows, counts in `flips`
+            added, removed, flips = ops.sscater_cover_update_(self.block_cover[layer.block], layer.active,
+                                                              layer.stamp, base, change.added, change.removed,
+                                                              layer.kh, layer.kw, layer.stride, layer.padding)
         else:
-            added, removed = self._children(layer, change.added), self._children(layer, change.removed)
-            if added.shape[0]:
-                layer.active.view(-1)[_keys(added, Wo)] = True
-            if removed.shape[0]:
-                layer.active.view(-1)[_keys(removed, Wo)] = False
+            added, removed = ops.sscater_children_(layer.active, change.added, change.removed, layer.kh, layer.kw,
+                                                   layer.stride, layer.padding)
         # 2. acc += delta (*) W at the active sites the kernel reaches
-        reached = torch.ops.lidarops.sscater_scatter_(layer.acc, change.sites, change.delta, layer.weight,
-                                                      layer.stride, layer.padding, layer.transposed, layer.active)
+        reached = ops.sscater_scatter_(layer.acc, change.sites, change.delta, layer.weight, layer.stride,
+                                       layer.padding, layer.transposed, layer.active)
         # sites that just became active had no up-to-date acc: compute theirs in full from the input
         # (a transposed layer's child has one parent, whose delta is its whole value: no gather)
         if added.shape[0] and layer.kind != "up":
-            self._gather(layer, added)
-        if removed.shape[0]:  # an inactive site's acc is not maintained: start from zero when it returns
-            layer.acc.view(-1, layer.cout)[_keys(removed, Wo)] = 0
-        # 3. re-evaluate BN + ReLU where the scatter reached or the status changed
-        cand = torch.cat([reached[reached >= 0], _keys(added, Wo), _keys(removed, Wo)])
-        cand = torch.unique(cand)
-        cand_sites = _sites(cand, Wo)
-        changed, delta = torch.ops.lidarops.sscater_finalize_(layer.acc, layer.feats, layer.active, cand_sites,
-                                                              layer.scale, layer.shift)
-        st = layer.stats
-        st.touched = int(cand.shape[0])
-        st.active = int(layer.active.sum()) if layer.kind != "subm" else self.layers[
-            self._block_first(layer.block)].stats.active
-        out = Change(cand_sites[changed], delta[changed], added, removed)
-        # change map = value changed or status changed
-        status = torch.zeros(cand.shape[0], dtype=torch.bool, device=cand.device)
-        if added.shape[0] + removed.shape[0]:
-            status = torch.isin(cand, torch.cat([_keys(added, Wo), _keys(removed, Wo)]))
-        st.changed = int((changed | status).sum())
-        return out
-
-    def _gather(self, layer: _Layer, sites: Tensor) -> None:
-        """acc at ``sites`` (output grid) = the full convolution of the layer's current input there."""
-        dev = sites.device
-        s, p = layer.stride, layer.padding
-        ky = torch.arange(layer.kh, device=dev)
-        kx = torch.arange(layer.kw, device=dev)
-        iy = sites[:, 0:1].long() * s - p + ky[None, :]  # (m, kh) input rows
-        ix = sites[:, 1:2].long() * s - p + kx[None, :]
-        Hi, Wi = layer.in_shape
-        vy, vx = (iy >= 0) & (iy < Hi), (ix >= 0) & (ix < Wi)
-        patch = layer.input[iy.clamp(0, Hi - 1)[:, :, None], ix.clamp(0, Wi - 1)[:, None, :]]  # (m, kh, kw, Cin)
-        patch = patch * (vy[:, :, None] & vx[:, None, :])[..., None].to(patch.dtype)
-        layer.acc.view(-1, layer.cout)[_keys(sites, layer.out_shape[1])] = (
-            patch.reshape(sites.shape[0], -1) @ layer.weight_flat.t())
-
-    def _block_first(self, block: int) -> int:
-        for i, layer in enumerate(self.layers):
-            if layer.block == block:
-                return i
-        raise KeyError(block)
-
-    def _cover_update(self, layer: _Layer, change: Change) -> tuple[Tensor, Tensor]:
-        Wo = layer.out_shape[1]
-        cover = self.block_cover[layer.block].view(-1)
-        ka, kr = layer.reach_keys(change.added), layer.reach_keys(change.removed)
-        if ka.shape[0] + kr.shape[0] == 0:
-            empty = change.added.new_zeros(0, 2)
-            return empty, empty
-        allk = torch.cat([ka, kr])
-        uk = torch.unique(allk)
-        before = cover[uk]
-        vals = torch.cat([torch.ones_like(ka), -torch.ones_like(kr)]).to(torch.int32)
-        cover.index_add_(0, allk, vals)
-        after = cover[uk]
-        added, removed = uk[(before == 0) & (after > 0)], uk[(before > 0) & (after == 0)]
-        act = layer.active.view(-1)
-        act[added] = True
-        act[removed] = False
-        return _sites(added, Wo), _sites(removed, Wo)
-
-    def _children(self, layer: _Layer, sites: Tensor) -> Tensor:
-        return _sites(layer.reach_keys(sites), layer.out_shape[1])
+            w = layer.weight_flat.view(layer.cout, layer.kh, layer.kw, layer.cin)  # contiguous: no copy
+            ops.sscater_gather_(layer.acc, layer.input, w, added, layer.stride, layer.padding)
+        # 3. the sites to re-evaluate, each once (an inactive site's acc restarts from zero)
+        cand, count = ops.sscater_touch_(layer.stamp, layer.acc, base + 2, reached, added, removed)
+        # 4. BN + ReLU there; the sites whose value changed, compacted
+        sites, delta, counts = ops.sscater_finalize_compact_(layer.acc, layer.feats, layer.active, cand, count,
+                                                             layer.stamp, base + 3, layer.scale, layer.shift)
+        if layer.kind == "down":  # trim the block's status lists, or their padding would grow block by block
+            n, na, nr = torch.cat([counts[:1], flips]).tolist()
+            added, removed = added[:na], removed[:nr]
+        else:
+            n = int(counts[0])
+        return Change(sites[:n], delta[:n], added, removed), counts
 
     # ---- helpers ---------------------------------------------------------------------------------
 

@@ -78,6 +78,104 @@ inline void check_finalize_args(const at::Tensor& acc, const at::Tensor& out, co
                 t->device());
 }
 
+// ---- the fused layer step ----------------------------------------------------------------------
+
+inline void check_map(const at::Tensor& t, const char* name, at::ScalarType dt, const at::Tensor& ref) {
+  TORCH_CHECK(t.dim() == 2 && t.scalar_type() == dt && t.is_contiguous() && t.device() == ref.device(), name,
+              " must be a contiguous ", dt, " (H, W) map on ", ref.device(), ", got ", t.scalar_type(), " ", t.sizes(),
+              " on ", t.device());
+}
+
+inline void check_sites(const at::Tensor& t, const char* name, const at::Tensor& ref) {
+  TORCH_CHECK(t.dim() == 2 && t.size(1) == 2 && t.scalar_type() == at::kInt && t.device() == ref.device(), name,
+              " must be int32 (n, 2) (y, x) on ", ref.device(), ", got ", t.scalar_type(), " ", t.sizes(), " on ",
+              t.device());
+}
+
+inline void check_same_hw(const at::Tensor& a, const at::Tensor& b, const char* na, const char* nb) {
+  TORCH_CHECK(a.size(0) == b.size(0) && a.size(1) == b.size(1), na, " and ", nb, " must cover the same (H, W) grid, got ",
+              a.sizes(), " and ", b.sizes());
+}
+
+inline void check_cover_update_args(const at::Tensor& cover, const at::Tensor& active, const at::Tensor& stamp,
+                                    const at::Tensor& added_in, const at::Tensor& removed_in, int64_t kh, int64_t kw,
+                                    int64_t stride, int64_t padding) {
+  check_map(cover, "cover", at::kInt, cover);
+  check_map(active, "active", at::kBool, cover);
+  check_map(stamp, "stamp", at::kInt, cover);
+  check_same_hw(cover, active, "cover", "active");
+  check_same_hw(cover, stamp, "cover", "stamp");
+  check_sites(added_in, "added", cover);
+  check_sites(removed_in, "removed", cover);
+  TORCH_CHECK(kh >= 1 && kw >= 1 && stride >= 1 && padding >= 0, "kernel ", kh, "x", kw, ", stride ", stride,
+              " and padding ", padding, ": need kh, kw, stride >= 1 and padding >= 0");
+}
+
+inline void check_children_args(const at::Tensor& active, const at::Tensor& added_in, const at::Tensor& removed_in,
+                                int64_t kh, int64_t kw, int64_t stride, int64_t padding) {
+  check_map(active, "active", at::kBool, active);
+  check_sites(added_in, "added", active);
+  check_sites(removed_in, "removed", active);
+  TORCH_CHECK(kh >= 1 && kw >= 1 && stride >= 1 && padding >= 0, "kernel ", kh, "x", kw, ", stride ", stride,
+              " and padding ", padding, ": need kh, kw, stride >= 1 and padding >= 0");
+}
+
+inline void check_gather_args(const at::Tensor& acc, const at::Tensor& input, const at::Tensor& weight,
+                              const at::Tensor& sites, int64_t stride, int64_t padding) {
+  TORCH_CHECK(acc.dim() == 3 && acc.is_contiguous() && (acc.scalar_type() == at::kFloat || acc.scalar_type() == at::kDouble),
+              "acc must be a contiguous float32/float64 (Ho, Wo, Cout) tensor, got ", acc.scalar_type(), " ", acc.sizes());
+  TORCH_CHECK(input.dim() == 3 && input.scalar_type() == acc.scalar_type() && input.device() == acc.device(),
+              "input must be (Hi, Wi, Cin) of acc's dtype and device, got ", input.scalar_type(), " ", input.sizes(),
+              " on ", input.device());
+  TORCH_CHECK(weight.dim() == 4 && weight.size(0) == acc.size(2) && weight.size(3) == input.size(2) &&
+                  weight.scalar_type() == acc.scalar_type() && weight.device() == acc.device(),
+              "weight must be (Cout = ", acc.size(2), ", kh, kw, Cin = ", input.size(2), ") of acc's dtype and device, got ",
+              weight.scalar_type(), " ", weight.sizes(), " on ", weight.device());
+  check_sites(sites, "sites", acc);
+  TORCH_CHECK(stride >= 1 && padding >= 0, "stride must be >= 1 and padding >= 0, got ", stride, " and ", padding);
+}
+
+inline void check_touch_args(const at::Tensor& stamp, const at::Tensor& acc, const at::Tensor& targets,
+                             const at::Tensor& added, const at::Tensor& removed) {
+  TORCH_CHECK(acc.dim() == 3 && acc.is_contiguous() && (acc.scalar_type() == at::kFloat || acc.scalar_type() == at::kDouble),
+              "acc must be a contiguous float32/float64 (Ho, Wo, C) tensor, got ", acc.scalar_type(), " ", acc.sizes());
+  check_map(stamp, "stamp", at::kInt, acc);
+  check_same_hw(stamp, acc, "stamp", "acc");
+  TORCH_CHECK(targets.dim() == 1 && targets.scalar_type() == at::kLong && targets.device() == acc.device(),
+              "targets must be int64 (R,) on acc's device, got ", targets.scalar_type(), " ", targets.sizes(), " on ",
+              targets.device());
+  check_sites(added, "added", acc);
+  check_sites(removed, "removed", acc);
+}
+
+// The full convolution (no bias) of input (Hi, Wi, Ci; strides s0, s1, s2) at output site (y, x),
+// channel c, with a contiguous weight (Cout, kh, kw, Ci): zero outside the input grid.
+template <typename T>
+LIDAROPS_HD T conv_at(const T* in, int64_t s0, int64_t s1, int64_t s2, int64_t Hi, int64_t Wi, int64_t Ci,
+                      const T* w, int64_t kh, int64_t kw, int64_t y, int64_t x, int64_t c, int64_t stride,
+                      int64_t padding) {
+  T sum = T(0);
+  for (int64_t ky = 0; ky < kh; ++ky) {
+    const int64_t iy = y * stride - padding + ky;
+    if (iy < 0 || iy >= Hi) continue;
+    for (int64_t kx = 0; kx < kw; ++kx) {
+      const int64_t ix = x * stride - padding + kx;
+      if (ix < 0 || ix >= Wi) continue;
+      const T* src = in + iy * s0 + ix * s1;
+      const T* wk = w + ((c * kh + ky) * kw + kx) * Ci;
+      for (int64_t ci = 0; ci < Ci; ++ci) sum += src[ci * s2] * wk[ci];
+    }
+  }
+  return sum;
+}
+
+// A padded site list's row i: (y, x) or none (y < 0).
+LIDAROPS_HD bool site_at(const int32_t* s, int64_t i, int64_t H, int64_t W, int64_t& y, int64_t& x) {
+  y = s[2 * i];
+  x = s[2 * i + 1];
+  return y >= 0 && y < H && x >= 0 && x < W;
+}
+
 // Products of every changed input row with every kernel tap: (n, K * Cout), row i holding
 // delta[i] @ W[:, k, :]^T for k = 0..K-1 (one GEMM for the whole layer). A weight whose memory is
 // tap-major (a (Cout, kh, kw, Cin) view of a contiguous (kh, kw, Cout, Cin) tensor, as the streaming
