@@ -567,3 +567,22 @@ def test_rotate_per_firing_matches_einsum():
     rot, dirs = rng.normal(size=(500, 3, 3)), rng.normal(size=(500, 6, 3))
     # bit for bit on the NumPy builds this was written against; a few ulp elsewhere
     np.testing.assert_allclose(_rotate_per_firing(rot, dirs), np.einsum("kij,krj->kri", rot, dirs), rtol=1e-14, atol=1e-14)
+
+
+def test_candidate_pairs_are_unique_when_a_primitive_surrounds_the_origin():
+    """A primitive whose bounding cylinder holds the origin has a full azimuth window: each of its pairs is
+    listed once (its wrapped-around parts used to repeat them, and object_rays counted those crossings twice)."""
+    from lidarops.data import _raycast
+
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(5000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    d32 = dirs.astype(np.float32)
+    index = _raycast._RayIndex.build(np.arctan2(d32[:, 1], d32[:, 0]), np.arcsin(np.clip(d32[:, 2], -1.0, 1.0)))
+    # primitive 0 around the origin, primitive 1 beside it
+    ray, prim = _raycast._candidate_pairs(index, np.array([[0.5, 0.2], [10.0, 0.0]]), np.array([3.0, 1.0]),
+                                          np.array([-1.0, -1.0]), np.array([2.0, 2.0]), np.zeros(3), 100.0)
+    pairs = ray * 2 + prim
+    assert np.unique(pairs).size == pairs.size
+    el = np.arcsin(dirs[:, 2])
+    assert (prim == 0).sum() >= ((el > -0.3) & (el < 0.5)).sum()  # every ray towards its band (z in [-1, 2] at >= 2.5 m)

@@ -240,11 +240,13 @@ def _candidate_pairs(
         nb = narrow[prim_b]
         lo = np.where(nb, np.maximum(lo, phi[prim_b] + r_lo[prim_b] - 1e-5), lo)
         hi = np.where(nb, np.minimum(hi, phi[prim_b] + r_hi[prim_b] + 1e-5), hi)
-    # the window itself (clipped to the band), plus the parts that wrap around +-pi
-    win_lo = np.concatenate([base + np.maximum(lo, -np.pi - 1e-3), np.where(lo < -np.pi, base + lo + 2 * np.pi, np.inf),
-                             base - np.pi - 1e-3])
+    # the window itself (clipped to the band), plus the parts that wrap around +-pi (none for full windows,
+    # whose clipped window already holds every ray of the band: a wrapped part would repeat pairs)
+    full_b = full[prim_b]
+    win_lo = np.concatenate([base + np.maximum(lo, -np.pi - 1e-3),
+                             np.where((lo < -np.pi) & ~full_b, base + lo + 2 * np.pi, np.inf), base - np.pi - 1e-3])
     win_hi = np.concatenate([base + np.minimum(hi, np.pi + 1e-3), base + np.pi + 1e-3,
-                             np.where(hi > np.pi, base + hi - 2 * np.pi, -np.inf)])
+                             np.where((hi > np.pi) & ~full_b, base + hi - 2 * np.pi, -np.inf)])
     starts = np.searchsorted(index.key_sorted, win_lo, side="left")
     ends = np.searchsorted(index.key_sorted, win_hi, side="right")
     counts = np.maximum(ends - starts, 0)
