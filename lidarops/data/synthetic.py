@@ -1,4 +1,5 @@
-"""Synthetic LiDAR: a scene simulator with per-point timestamps (NumPy only).
+"""Synthetic LiDAR: a scene simulator with per-point timestamps (NumPy; rays are cast by the native kernel
+when the extension is built, see :mod:`lidarops.data._raycast`).
 
 Example:
     >>> from lidarops.data.synthetic import Simulator
