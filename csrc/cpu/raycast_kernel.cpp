@@ -32,7 +32,7 @@ constexpr double kPi = 3.14159265358979323846;
 constexpr double kMargin = 1e-5;  // rad, on every window edge
 constexpr int kAzimuthBins = 256;
 constexpr int kElevationBands = 16;
-constexpr int64_t kGrain = 1024;
+constexpr int64_t kGrain = 16384;  // rays; smaller batches run on one thread: waking a second one costs more CPU time than it saves
 
 // ------------------------------------------------------------------------------------------- arguments
 void check_arg(const at::Tensor& t, const char* name, at::ScalarType dtype, std::initializer_list<int64_t> shape) {

@@ -594,10 +594,9 @@ def _apply_ground_material(hits: RayHits, origins: np.ndarray, dirs: np.ndarray,
     """Reflectivity and extra dropout of the ground hits, from the ground's material map (a Python callable)."""
     g = np.flatnonzero(hits.surface == SURFACE_GROUND)
     if g.size:
-        o_g = np.take(origins, g, axis=0)
-        d_g = np.take(dirs, g, axis=0)
         s_g = hits.distance[g]
-        refl_g, drop_g = ground.material(o_g[:, 0] + s_g * d_g[:, 0], o_g[:, 1] + s_g * d_g[:, 1])
+        refl_g, drop_g = ground.material(np.take(origins[:, 0], g) + s_g * np.take(dirs[:, 0], g),
+                                         np.take(origins[:, 1], g) + s_g * np.take(dirs[:, 1], g))
         hits.reflectivity[g] = refl_g
         hits.extra_dropout[g] = drop_g
 

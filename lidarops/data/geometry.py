@@ -162,6 +162,16 @@ def _local_coords(xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
     return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
 
 
+def _in_box(xyz: np.ndarray, box: np.ndarray, margin: float) -> np.ndarray:
+    """Which of the points ``xyz`` lie in the closed box grown by ``margin``."""
+    local = _local_coords(xyz, box)
+    half = box[3:6] / 2.0 + margin
+    return (np.abs(local[:, 0]) <= half[0]) & (np.abs(local[:, 1]) <= half[1]) & (np.abs(local[:, 2]) <= half[2])
+
+
+_FEW_BOXES = 4  # up to this many boxes, count_points_in_boxes tests every point against every box
+
+
 def _inside_per_box(points: np.ndarray, boxes: np.ndarray, margin: float, cell: float = 4.0):
     """Yields ``(j, candidate_indices, inside)`` per box: the points in the grid cells (``cell`` metres,
     found by binary search on points sorted by cell) overlapping box ``j``'s bounding square, and which
@@ -185,10 +195,7 @@ def _inside_per_box(points: np.ndarray, boxes: np.ndarray, margin: float, cell: 
             yield j, order[:0], np.zeros(0, bool)
             continue
         near = np.concatenate(parts) if len(parts) > 1 else parts[0]
-        xyz = np.take(points, near, axis=0)[:, :3].astype(np.float64)
-        local = _local_coords(xyz, box)
-        half = box[3:6] / 2.0 + margin
-        yield j, near, (np.abs(local[:, 0]) <= half[0]) & (np.abs(local[:, 1]) <= half[1]) & (np.abs(local[:, 2]) <= half[2])
+        yield j, near, _in_box(np.take(points, near, axis=0)[:, :3].astype(np.float64), box, margin)
 
 
 def points_in_boxes_mask(points: np.ndarray, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -224,7 +231,18 @@ def count_points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     points = np.asarray(points)
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     counts = np.zeros(boxes.shape[0], dtype=np.int64)
-    if points.shape[0] and boxes.shape[0]:
+    if points.shape[0] and boxes.shape[0] <= _FEW_BOXES:
+        # a handful of boxes (drone frames): testing every point is cheaper than sorting them into cells; the
+        # arithmetic of _in_box on contiguous components (N x 3 arrays run NumPy's loops several times slower)
+        x, y, z = (points[:, i].astype(np.float64) for i in range(3))
+        for j, box in enumerate(boxes):
+            c, s = np.cos(box[6]), np.sin(box[6])
+            dx, dy = x - box[0], y - box[1]
+            inside = np.abs(c * dx + s * dy) <= box[3] / 2.0
+            inside &= np.abs(-s * dx + c * dy) <= box[4] / 2.0
+            inside &= np.abs(z - box[2]) <= box[5] / 2.0
+            counts[j] = int(np.count_nonzero(inside))
+    elif points.shape[0]:
         for j, _, inside in _inside_per_box(points, boxes, 0.0):
             counts[j] = int(np.count_nonzero(inside))
     return counts
