@@ -628,3 +628,26 @@ def test_num_points_in_box_of_a_drone_frame_matches_recount(bridge):
     _, f = bridge
     assert 0 < f.num_boxes <= 4 and f.num_points_in_box.sum() > 0  # the few-boxes path of count_points_in_boxes
     assert np.array_equal(f.num_points_in_box, count_in_boxes_bruteforce(f.points, f.boxes))
+
+
+@pytest.mark.parametrize("n_boxes", [3, 40])
+@pytest.mark.parametrize("margin", [0.0, 0.4, -0.2])
+def test_points_in_boxes_mask_matches_bruteforce(n_boxes, margin):
+    from lidarops.data.geometry import box_index_of_points, count_points_in_boxes, points_in_boxes_mask
+
+    rng = np.random.default_rng(n_boxes)
+    boxes = np.column_stack([rng.uniform(-30, 30, (n_boxes, 2)), rng.uniform(-1, 1, n_boxes), rng.uniform(0.5, 9, (n_boxes, 3)),
+                             rng.uniform(-np.pi, np.pi, n_boxes)])
+    points = np.concatenate([rng.uniform([-35, -35, -3, 0], [35, 35, 3, 1], (20_000, 4)),
+                             (boxes[rng.integers(0, n_boxes, 5000), :3] + rng.normal(0, 1.5, (5000, 3)))[:, [0, 1, 2, 2]]])
+    points = points.astype(np.float32)
+    grown = boxes.copy()
+    grown[:, 3:6] += 2 * margin
+    expected = np.stack([count_in_boxes_bruteforce(points, grown[j:j + 1]) for j in range(n_boxes)], axis=1)[0]
+    mask = points_in_boxes_mask(points, boxes, margin)
+    assert mask.shape == (points.shape[0], n_boxes)
+    assert np.array_equal(mask.sum(axis=0), expected) and expected.sum() > 1000
+    if margin == 0.0:
+        assert np.array_equal(count_points_in_boxes(points, boxes), expected)
+        first = box_index_of_points(points, boxes)
+        assert np.array_equal(first >= 0, mask.any(axis=1)) and np.all(mask[first >= 0, first[first >= 0]])
