@@ -4,7 +4,7 @@ bad input, backend selection.
 
 Agreement rules (see the module docstring of lidarops/data/_raycast.py): box, cylinder and foliage hits are
 computed with the same operations in the same order, so their distances agree to ~1e-12; ground hits agree
-to 1e-7 relative (the ground's float32 sines: NumPy's SIMD ones and glibc's differ in the last bit). A ray
+to 1e-7 relative (the ground's float32 sines: NumPy's SIMD ones and the kernel's differ in the last bit). A ray
 may end on a different surface only where its two nearest candidates are that close (a near tie).
 """
 from __future__ import annotations
@@ -35,7 +35,7 @@ def _native_available() -> bool:
 
 pytestmark = pytest.mark.skipif(not _native_available(), reason="lidarops._C with raycast_scene is not built")
 
-GROUND_RTOL = 1e-7  # float32 sines of the ground waves (NumPy SIMD vs glibc; seen: up to 2e-8)
+GROUND_RTOL = 1e-7  # float32 sines of the ground waves (NumPy's SIMD vs the kernel's; seen: up to 2e-8)
 EXACT_RTOL = 1e-12  # boxes, cylinders, ellipsoids, planar ground
 
 

@@ -15,9 +15,10 @@ Two implementations of :func:`cast_rays`:
 native kernel; :func:`raycast_backend` tells which one is used.  The native kernel repeats the NumPy
 arithmetic of every intersection test operation by operation: box, cylinder and foliage distances are
 the same bits, ground distances agree to about 1e-8 relative (the ground's waves are evaluated with
-float32 sines, NumPy's SIMD ones and glibc's differ in the last bit), and a ray can end on a different
-surface only at a near tie of its two nearest candidates.  Exact ties go to the later primitive (boxes,
-then cylinders, then ellipsoids, by index) in the native kernel and arbitrarily in NumPy.
+float32 sines: NumPy's SIMD ones are not always correctly rounded, the kernel's vectorised ones are), and
+a ray can end on a different surface only at a near tie of its two nearest candidates.  Exact ties go to
+the later primitive (boxes, then cylinders, then ellipsoids, by index) in the native kernel and
+arbitrarily in NumPy.
 
 Foliage randomness is counter-based: the penetration depth and the incidence cosine of a (ray,
 ellipsoid) pair come from a 64-bit hash (MurmurHash3's finaliser) of ``key + ray * G1 + (ellipsoid + 1) * G2``, with one
@@ -92,7 +93,8 @@ _GROUND_ITERATIONS, _GROUND_TOLERANCE = 3, 2e-4
 
 
 def intersect_ground(origins: np.ndarray, dirs: np.ndarray, ground: Ground, max_distance: float,
-                     iterations: int = _GROUND_ITERATIONS, tolerance: float = _GROUND_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int = _GROUND_ITERATIONS,
+                     tolerance: float = _GROUND_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
     """First intersection of rays with the ground height field.
 
     Starts from the intersection with the ground's plane part and refines with Newton steps on
@@ -685,7 +687,8 @@ def _cast_rays_numpy(origins, dirs, times, ground: Ground, boxes: BoxSet, cylind
             ellipsoids.center[:, 2] + ellipsoids.radii[:, 2] + spread_z, origin, max_distance,
         )
         if ray.size:
-            s, cos = _intersect_ellipsoids(np.take(origins, ray, axis=0), np.take(dirs, ray, axis=0), ellipsoids, prim, ray, key)
+            s, cos = _intersect_ellipsoids(np.take(origins, ray, axis=0), np.take(dirs, ray, axis=0), ellipsoids, prim,
+                                           ray, key)
             keep = np.isfinite(s)
             ray_parts.append(ray[keep]); s_parts.append(s[keep]); cos_parts.append(cos[keep])
             src_parts.append(np.full(int(keep.sum()), 2, np.int8)); prim_parts.append(prim[keep])
