@@ -4,12 +4,16 @@ Usage::
 
     python benchmarks/bm_data.py               # all scenarios, 5 sweeps each
     python benchmarks/bm_data.py --repeat 10 --scenarios driving_city
+    LIDAROPS_DATA_NATIVE=0 python benchmarks/bm_data.py   # the NumPy ray caster
     python -m benchmarks.bm_data
 
 For every scenario it reports the first sweep of a fresh simulator (scene generation included) and
 the median of later sweeps (cache cleared, so every ray is cast again), in wall-clock and CPU
 seconds, and the ray-casting throughput (rays cast / CPU second).  Wall time includes whatever else
-the machine is doing; CPU time is the better number on a shared machine.
+the machine is doing; CPU time is the better number on a shared machine (CPU time adds up all threads;
+run with ``OMP_WAIT_POLICY=PASSIVE`` so that idle OpenMP threads do not spin).  The header names the ray
+caster used (native kernel or NumPy, see lidarops.data._raycast); the native one is loaded before any
+timing, so the first sweep does not include importing torch.
 """
 from __future__ import annotations
 
@@ -24,6 +28,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: import lidarops from this checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from lidarops.data._raycast import raycast_backend  # noqa: E402
 from lidarops.data.synthetic import SCENARIOS, Simulator  # noqa: E402
 
 
@@ -62,8 +67,10 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=5, help="sweeps per scenario after the first (default 5)")
     parser.add_argument("--scenarios", nargs="*", default=sorted(SCENARIOS))
     args = parser.parse_args()
+    backend = raycast_backend()  # loads the native kernel (and torch) before anything is timed
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load average {load:.1f}")
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load average {load:.1f}, "
+          f"ray caster: {backend}")
     header = f"{'scenario':16s} {'sensor':8s} {'rays':>7s} {'points':>7s} {'1st sweep (wall/cpu)':>21s} " \
              f"{'sweep (wall/cpu)':>17s} {'rays/s (cpu)':>13s}"
     print(header)

@@ -567,3 +567,87 @@ def test_rotate_per_firing_matches_einsum():
     rot, dirs = rng.normal(size=(500, 3, 3)), rng.normal(size=(500, 6, 3))
     # bit for bit on the NumPy builds this was written against; a few ulp elsewhere
     np.testing.assert_allclose(_rotate_per_firing(rot, dirs), np.einsum("kij,krj->kri", rot, dirs), rtol=1e-14, atol=1e-14)
+
+
+def test_candidate_pairs_are_unique_when_a_primitive_surrounds_the_origin():
+    """A primitive whose bounding cylinder holds the origin has a full azimuth window: each of its pairs is
+    listed once (its wrapped-around parts used to repeat them, and object_rays counted those crossings twice)."""
+    from lidarops.data import _raycast
+
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(5000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    d32 = dirs.astype(np.float32)
+    index = _raycast._RayIndex.build(np.arctan2(d32[:, 1], d32[:, 0]), np.arcsin(np.clip(d32[:, 2], -1.0, 1.0)))
+    # primitive 0 around the origin, primitive 1 beside it
+    ray, prim = _raycast._candidate_pairs(index, np.array([[0.5, 0.2], [10.0, 0.0]]), np.array([3.0, 1.0]),
+                                          np.array([-1.0, -1.0]), np.array([2.0, 2.0]), np.zeros(3), 100.0)
+    pairs = ray * 2 + prim
+    assert np.unique(pairs).size == pairs.size
+    el = np.arcsin(dirs[:, 2])
+    assert (prim == 0).sum() >= ((el > -0.3) & (el < 0.5)).sum()  # every ray towards its band (z in [-1, 2] at >= 2.5 m)
+
+
+def test_risley_directions_follow_the_deflection_formula():
+    """Per-firing trigonometry with angle addition and sqrt(1 - sin^2) cosines give the textbook directions."""
+    s = avia()
+    k = np.arange(123_456, 125_456)
+    dirs, ring = s.directions(k)
+    c = np.arange(s.channels)
+    orient, petal = np.pi * c / s.channels, 2.0 * np.pi * 0.6180339887 * c / s.channels
+    th1 = 2 * np.pi * s.prism_hz[0] * (k / s.firing_rate)[:, None] + orient + petal
+    th2 = 2 * np.pi * s.prism_hz[1] * (k / s.firing_rate)[:, None] + orient - petal
+    az = 0.5 * (np.cos(th1) + np.cos(th2)) * np.deg2rad(s.fov_h_deg) / 2
+    el = 0.5 * (np.sin(th1) + np.sin(th2)) * np.deg2rad(s.fov_v_deg) / 2
+    ref = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+    np.testing.assert_allclose(dirs, ref, rtol=0, atol=1e-12)  # the phase is large: 2 pi f k / rate ~ 1e3 rad
+    np.testing.assert_allclose(np.stack(s.angles(k)), np.stack([az, el]), rtol=0, atol=1e-12)
+    assert dirs.flags.c_contiguous and ring.tolist() == list(range(s.channels))
+
+
+def test_ego_pose_matches_the_motion_formula():
+    from lidarops.data.geometry import euler_to_matrix
+    from lidarops.data.scene import EgoMotion
+
+    ego = EgoMotion.hover(np.random.default_rng(3), (1.0, 2.0, 3.0), yaw=0.4, pitch=0.1)
+    ego.velocity = np.array([0.5, -0.2, 0.1])
+    ego.yaw_rate = 0.05
+    t = np.linspace(0.0, 3.0, 301).reshape(7, 43)
+    rot, pos = ego.pose(t)
+    s = np.sin(2 * np.pi * ego.jitter_freq * t[..., None] + ego.jitter_phase)
+    ref_pos = ego.position0 + ego.velocity * t[..., None] + np.einsum("...j,jk->...k", s, ego.jitter_pos)
+    ang = ego.angles0 + np.einsum("...j,jk->...k", s, ego.jitter_ang)
+    ang[..., 2] += ego.yaw_rate * t
+    np.testing.assert_allclose(pos, ref_pos, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(rot, euler_to_matrix(ang[..., 0], ang[..., 1], ang[..., 2]), rtol=0, atol=1e-13)
+    r0, p0 = ego.pose(1.25)
+    assert r0.shape == (3, 3) and p0.shape == (3,)
+
+
+def test_num_points_in_box_of_a_drone_frame_matches_recount(bridge):
+    _, f = bridge
+    assert 0 < f.num_boxes <= 4 and f.num_points_in_box.sum() > 0  # the few-boxes path of count_points_in_boxes
+    assert np.array_equal(f.num_points_in_box, count_in_boxes_bruteforce(f.points, f.boxes))
+
+
+@pytest.mark.parametrize("n_boxes", [3, 40])
+@pytest.mark.parametrize("margin", [0.0, 0.4, -0.2])
+def test_points_in_boxes_mask_matches_bruteforce(n_boxes, margin):
+    from lidarops.data.geometry import box_index_of_points, count_points_in_boxes, points_in_boxes_mask
+
+    rng = np.random.default_rng(n_boxes)
+    boxes = np.column_stack([rng.uniform(-30, 30, (n_boxes, 2)), rng.uniform(-1, 1, n_boxes), rng.uniform(0.5, 9, (n_boxes, 3)),
+                             rng.uniform(-np.pi, np.pi, n_boxes)])
+    points = np.concatenate([rng.uniform([-35, -35, -3, 0], [35, 35, 3, 1], (20_000, 4)),
+                             (boxes[rng.integers(0, n_boxes, 5000), :3] + rng.normal(0, 1.5, (5000, 3)))[:, [0, 1, 2, 2]]])
+    points = points.astype(np.float32)
+    grown = boxes.copy()
+    grown[:, 3:6] += 2 * margin
+    expected = np.stack([count_in_boxes_bruteforce(points, grown[j:j + 1]) for j in range(n_boxes)], axis=1)[0]
+    mask = points_in_boxes_mask(points, boxes, margin)
+    assert mask.shape == (points.shape[0], n_boxes)
+    assert np.array_equal(mask.sum(axis=0), expected) and expected.sum() > 1000
+    if margin == 0.0:
+        assert np.array_equal(count_points_in_boxes(points, boxes), expected)
+        first = box_index_of_points(points, boxes)
+        assert np.array_equal(first >= 0, mask.any(axis=1)) and np.all(mask[first >= 0, first[first >= 0]])

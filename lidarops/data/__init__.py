@@ -1,9 +1,10 @@
 """LiDAR data for lidarops: a synthetic LiDAR simulator with per-point timestamps, readers and writers of
 the real dataset formats, object-level classification sets and PyTorch datasets.
 
-Pure Python/NumPy; nothing here needs the compiled extension.  ``import lidarops.data`` loads only
-NumPy; the simulator, the formats, torch datasets (torch) and plotting (matplotlib) are imported on
-first use::
+Python/NumPy; nothing here needs the compiled extension, but the simulator's ray caster uses it when it
+is built (``torch.ops.lidarops.raycast_scene``, loaded with torch on the first cast; ``LIDAROPS_DATA_NATIVE=0``
+keeps to NumPy: see :mod:`lidarops.data._raycast`).  ``import lidarops.data`` loads only NumPy; the
+simulator, the formats, torch datasets (torch) and plotting (matplotlib) are imported on first use::
 
     from lidarops.data import Simulator, CLASSES
     frame = Simulator("driving_city", seed=0).sweep(0)

@@ -1,7 +1,32 @@
-"""Vectorised ray casting against the ground, oriented (moving) boxes, vertical cylinders and foliage
-ellipsoids (NumPy only).
+"""Ray casting against the ground, oriented (moving) boxes, vertical cylinders and foliage ellipsoids.
 
-Culling: rays are sorted by azimuth once; every primitive gets a bounding vertical cylinder (grown by
+Two implementations of :func:`cast_rays`:
+
+* **native** (the default when the compiled extension is available): ``torch.ops.lidarops.raycast_scene``
+  (csrc/cpu/raycast_kernel.cpp), a C++ loop over the rays, parallel with ``at::parallel_for``.  Each
+  primitive's conservative angular window (the bounding vertical cylinder described below, narrowed to
+  the footprint's corners for boxes that do not turn) is entered once per call into a grid of azimuth
+  bins x elevation bands; a ray tests the labelled objects of its cell, then the other primitives
+  nearest first, and stops at the first one that lies beyond its nearest hit so far.  The first call
+  in a process imports torch and loads ``lidarops._C`` (about 2 s).
+* **NumPy** (the reference, and the fallback without the extension): below.
+
+``LIDAROPS_DATA_NATIVE=0`` (or ``cast_rays(..., backend="numpy")``) forces NumPy, ``=1`` requires the
+native kernel; :func:`raycast_backend` tells which one is used.  The native kernel repeats the NumPy
+arithmetic of every intersection test operation by operation: box, cylinder and foliage distances are
+the same bits, ground distances agree to about 1e-8 relative (the ground's waves are evaluated with
+float32 sines: NumPy's SIMD ones are not always correctly rounded, the kernel's vectorised ones are), and
+a ray can end on a different surface only at a near tie of its two nearest candidates.  Exact ties go to
+the later primitive (boxes, then cylinders, then ellipsoids, by index) in the native kernel and
+arbitrarily in NumPy.
+
+Foliage randomness is counter-based: the penetration depth and the incidence cosine of a (ray,
+ellipsoid) pair come from a 64-bit hash (MurmurHash3's finaliser) of ``key + ray * G1 + (ellipsoid + 1) * G2``, with one
+``key`` drawn from the block's generator per call (only when the scene has ellipsoids), so both
+implementations draw the same numbers whatever pairs their culling keeps.  (Until this change the NumPy
+code drew two numbers per candidate pair from the generator, so the culling decided the stream.)
+
+NumPy culling: rays are sorted by azimuth once; every primitive gets a bounding vertical cylinder (grown by
 its motion during the batch and by the spread of the ray origins), which subtends an azimuth window
 and an elevation window seen from the batch's mean origin.  ``searchsorted`` turns each azimuth window
 into a slice of the sorted rays, the slices become (ray, primitive) candidate pairs in one vectorised
@@ -13,9 +38,13 @@ from outside: the angular span of its corners, intersected with the cylinder's w
 are a subset of the cylinder's in the same order.  Static axis-aligned boxes (nearly all of them) take
 a slab test without rotation or motion terms, in chunks of a few thousand pairs; it gives the same
 bits as the general test, and the incidence cosine is only computed for the rays a box wins.
+
+``object_rays`` counts the crossings of each labelled box (the ray's line enters the box) within
+``max_distance``, occluded or not; ``object_visible`` the rays whose nearest hit is the object.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,7 +59,7 @@ from lidarops.data.scene import (
     Ground,
 )
 
-__all__ = ["RayHits", "cast_rays", "intersect_ground"]
+__all__ = ["RayHits", "cast_rays", "intersect_ground", "raycast_backend"]
 
 _EMPTY_I = np.zeros(0, dtype=np.int64)
 
@@ -60,8 +89,12 @@ class RayHits:
     object_visible: np.ndarray
 
 
+_GROUND_ITERATIONS, _GROUND_TOLERANCE = 3, 2e-4
+
+
 def intersect_ground(origins: np.ndarray, dirs: np.ndarray, ground: Ground, max_distance: float,
-                     iterations: int = 3, tolerance: float = 2e-4) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int = _GROUND_ITERATIONS,
+                     tolerance: float = _GROUND_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
     """First intersection of rays with the ground height field.
 
     Starts from the intersection with the ground's plane part and refines with Newton steps on
@@ -240,11 +273,13 @@ def _candidate_pairs(
         nb = narrow[prim_b]
         lo = np.where(nb, np.maximum(lo, phi[prim_b] + r_lo[prim_b] - 1e-5), lo)
         hi = np.where(nb, np.minimum(hi, phi[prim_b] + r_hi[prim_b] + 1e-5), hi)
-    # the window itself (clipped to the band), plus the parts that wrap around +-pi
-    win_lo = np.concatenate([base + np.maximum(lo, -np.pi - 1e-3), np.where(lo < -np.pi, base + lo + 2 * np.pi, np.inf),
-                             base - np.pi - 1e-3])
+    # the window itself (clipped to the band), plus the parts that wrap around +-pi (none for full windows,
+    # whose clipped window already holds every ray of the band: a wrapped part would repeat pairs)
+    full_b = full[prim_b]
+    win_lo = np.concatenate([base + np.maximum(lo, -np.pi - 1e-3),
+                             np.where((lo < -np.pi) & ~full_b, base + lo + 2 * np.pi, np.inf), base - np.pi - 1e-3])
     win_hi = np.concatenate([base + np.minimum(hi, np.pi + 1e-3), base + np.pi + 1e-3,
-                             np.where(hi > np.pi, base + hi - 2 * np.pi, -np.inf)])
+                             np.where((hi > np.pi) & ~full_b, base + hi - 2 * np.pi, -np.inf)])
     starts = np.searchsorted(index.key_sorted, win_lo, side="left")
     ends = np.searchsorted(index.key_sorted, win_hi, side="right")
     counts = np.maximum(ends - starts, 0)
@@ -391,8 +426,34 @@ def _intersect_cylinders(o, d, cyl: CylinderSet, prim):
     return s, cos
 
 
-def _intersect_ellipsoids(o, d, ell: EllipsoidSet, prim, rng: np.random.Generator):
-    """Foliage: first return after an exponential free path inside the ellipsoid."""
+# Counter-based randomness of the foliage, shared with the native kernel (csrc/cpu/raycast_kernel.cpp): the
+# uniforms of a (ray, ellipsoid) pair are the 64-bit finaliser ``mix64`` (MurmurHash3's fmix64, csrc/include/
+# lidarops/common.h) of ``key + ray * G1 + (ellipsoid + 1) * G2`` and of that plus G3, so they do not depend on
+# which pairs the culling keeps nor on their order.
+_G1, _G2, _G3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xD1B54A32D192ED03), np.uint64(0x632BE59BD9B4E019)
+_M1, _M2, _S = np.uint64(0xFF51AFD7ED558CCD), np.uint64(0xC4CEB9FE1A85EC53), np.uint64(33)
+
+
+def _mix64(z: np.ndarray) -> np.ndarray:
+    z = z ^ (z >> _S)
+    z *= _M1
+    z ^= z >> _S
+    z *= _M2
+    z ^= z >> _S
+    return z
+
+
+def _foliage_uniforms(key: int, ray: np.ndarray, prim: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two uniforms in ``[0, 1)`` per (ray, ellipsoid) pair: for the penetration depth and the cosine."""
+    h = np.uint64(key) + ray.astype(np.uint64) * _G1 + (prim.astype(np.uint64) + np.uint64(1)) * _G2
+    scale = 2.0 ** -53
+    return ((_mix64(h) >> np.uint64(11)).astype(np.float64) * scale,
+            (_mix64(h + _G3) >> np.uint64(11)).astype(np.float64) * scale)
+
+
+def _intersect_ellipsoids(o, d, ell: EllipsoidSet, prim, ray, key: int):
+    """Foliage: first return after an exponential free path inside the ellipsoid (``ray``: the rays' indices,
+    which with ``prim`` and ``key`` pick the pairs' random numbers)."""
     radii = np.take(ell.radii, prim, axis=0)
     u = (o - np.take(ell.center, prim, axis=0)) / radii
     v = d / radii
@@ -403,11 +464,74 @@ def _intersect_ellipsoids(o, d, ell: EllipsoidSet, prim, rng: np.random.Generato
     root = np.sqrt(np.maximum(disc, 0.0))
     s_in = np.maximum((-b - root) / a, 0.0)
     s_out = (-b + root) / a
-    depth = rng.standard_exponential(prim.shape[0]) * np.take(ell.mean_free_path, prim)
+    u_depth, u_cos = _foliage_uniforms(key, ray, prim)
+    depth = -np.log1p(-u_depth) * np.take(ell.mean_free_path, prim)
     s = s_in + depth
     hit = (disc > 0) & (s_out > 0) & (s < s_out)
-    cos = 0.3 + 0.7 * rng.random(prim.shape[0])
+    cos = 0.3 + 0.7 * u_cos
     return np.where(hit, s, np.inf), cos
+
+
+_NATIVE_ENV = "LIDAROPS_DATA_NATIVE"
+_native: dict = {}  # "op": the native op or None once looked up, "why": why it is unavailable
+
+
+def _native_op():
+    """``torch.ops.lidarops.raycast_scene`` when torch and the compiled extension load, else None (looked up
+    once: the first call imports torch and lidarops._C)."""
+    if "op" not in _native:
+        try:
+            import torch
+
+            from lidarops.extension import load
+
+            load()
+            _native["op"] = torch.ops.lidarops.raycast_scene
+        except Exception as e:  # no torch, extension not built or built before the op existed
+            _native["op"], _native["why"] = None, f"{type(e).__name__}: {e}"
+    return _native["op"]
+
+
+def raycast_backend(backend: str | None = None) -> str:
+    """Which ray caster :func:`cast_rays` uses: ``"native"`` or ``"numpy"``.
+
+    Args:
+        backend (str or None): ``"native"``, ``"numpy"`` or ``None`` (automatic: the environment variable
+            ``LIDAROPS_DATA_NATIVE=0`` forces NumPy, ``=1`` requires the native kernel; otherwise native
+            when the compiled extension is available).
+
+    Raises:
+        ValueError: unknown backend name.
+        RuntimeError: the native kernel is required but unavailable.
+    """
+    if backend is None:
+        env = os.environ.get(_NATIVE_ENV, "").strip().lower()
+        if env in ("0", "false", "no", "off", "numpy"):
+            return "numpy"
+        if env in ("1", "true", "yes", "on", "native"):
+            backend = "native"
+        elif env not in ("", "auto"):
+            raise ValueError(f"{_NATIVE_ENV} must be 0, 1 or auto, got {env!r}")
+        else:
+            return "native" if _native_op() is not None else "numpy"
+    if backend == "numpy":
+        return "numpy"
+    if backend != "native":
+        raise ValueError(f"backend must be 'native', 'numpy' or None, got {backend!r}")
+    if _native_op() is None:
+        raise RuntimeError(f"the native ray caster is unavailable ({_native.get('why')}); build the extension "
+                           "(make build) or use backend='numpy' / LIDAROPS_DATA_NATIVE=0")
+    return "native"
+
+
+def _rays_array(name: str, a: np.ndarray, shape: tuple) -> np.ndarray:
+    a = np.asarray(a)
+    if a.ndim != len(shape) or any(want is not None and got != want for got, want in zip(a.shape, shape)):
+        want = "(" + ", ".join("N" if w is None else str(w) for w in shape) + ("," if len(shape) == 1 else "") + ")"
+        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f"{name} must be a float array, got {a.dtype}")
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 def cast_rays(
@@ -422,8 +546,13 @@ def cast_rays(
     rng: np.random.Generator,
     num_objects: int,
     origin_samples: np.ndarray | None = None,
+    backend: str | None = None,
 ) -> RayHits:
     """Nearest hit of each ray against the whole scene.
+
+    Both backends compute the same thing (the native one follows the NumPy code operation by operation;
+    see the module docstring for what may differ by rounding).  ``rng`` is drawn from once, for the key of
+    the foliage's random numbers, when there are ellipsoids.
 
     Args:
         origins (ndarray float64[N, 3]): ray origins (world).
@@ -437,10 +566,72 @@ def cast_rays(
         num_objects (int): number of labelled objects (length of the per-object counters).
         origin_samples (ndarray float64[K, 3] or None): the distinct ray origins (e.g. one per firing),
             used to bound the origin spread cheaply; default ``origins``.
+        backend (str or None): ``"native"``, ``"numpy"`` or ``None`` (see :func:`raycast_backend`).
 
     Returns:
         RayHits.
+
+    Raises:
+        ValueError: arrays of the wrong shape or dtype (the message names the argument).
     """
+    origins = _rays_array("origins", origins, (None, 3))
+    n = origins.shape[0]
+    dirs = _rays_array("dirs", dirs, (n, 3))
+    times = _rays_array("times", times, (n,))
+    samples = origins if origin_samples is None else _rays_array("origin_samples", origin_samples, (None, 3))
+    if n and samples.shape[0] == 0:
+        raise ValueError("origin_samples must not be empty when there are rays")
+    key = int(rng.integers(1 << 63)) if len(ellipsoids) else 0
+    if raycast_backend(backend) == "native":
+        hits = _cast_rays_native(origins, dirs, times, ground, boxes, cylinders, ellipsoids, float(max_distance), key,
+                                 int(num_objects), samples)
+    else:
+        hits = _cast_rays_numpy(origins, dirs, times, ground, boxes, cylinders, ellipsoids, float(max_distance), key,
+                                int(num_objects), samples)
+    _apply_ground_material(hits, origins, dirs, ground)
+    return hits
+
+
+def _apply_ground_material(hits: RayHits, origins: np.ndarray, dirs: np.ndarray, ground: Ground) -> None:
+    """Reflectivity and extra dropout of the ground hits, from the ground's material map (a Python callable)."""
+    g = np.flatnonzero(hits.surface == SURFACE_GROUND)
+    if g.size:
+        s_g = hits.distance[g]
+        refl_g, drop_g = ground.material(np.take(origins[:, 0], g) + s_g * np.take(dirs[:, 0], g),
+                                         np.take(origins[:, 1], g) + s_g * np.take(dirs[:, 1], g))
+        hits.reflectivity[g] = refl_g
+        hits.extra_dropout[g] = drop_g
+
+
+def _f64(a: np.ndarray, dtype=np.float64):
+    """A tensor sharing a contiguous, writable array of ``dtype`` (copied only when it must be)."""
+    import torch
+
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return torch.from_numpy(a if a.flags.writeable else a.copy())
+
+
+def _cast_rays_native(origins, dirs, times, ground: Ground, boxes: BoxSet, cylinders: CylinderSet,
+                      ellipsoids: EllipsoidSet, max_distance: float, key: int, num_objects: int, samples) -> RayHits:
+    """cast_rays through ``torch.ops.lidarops.raycast_scene`` (ground material applied by the caller)."""
+    t = _f64
+    out = _native_op()(
+        t(origins), t(dirs), t(times), t(samples), t(np.array([ground.z0, ground.slope[0], ground.slope[1]])),
+        t(ground.wave_amp), t(np.reshape(ground.wave_k, (-1, 2))), t(ground.wave_phase),
+        t(boxes.center), t(boxes.half), t(boxes.yaw), t(boxes.velocity), t(boxes.yaw_rate), t(boxes.reflectivity),
+        t(boxes.kind, np.uint8), t(boxes.object_index, np.int32),
+        t(cylinders.center_xy), t(cylinders.z_min), t(cylinders.z_max), t(cylinders.radius),
+        t(cylinders.reflectivity), t(cylinders.kind, np.uint8),
+        t(ellipsoids.center), t(ellipsoids.radii), t(ellipsoids.mean_free_path), t(ellipsoids.reflectivity),
+        max_distance, key, num_objects, _GROUND_ITERATIONS, _GROUND_TOLERANCE)
+    distance, surface, object_index, cos_inc, reflectivity, object_rays, object_visible = (x.numpy() for x in out)
+    return RayHits(distance, surface, object_index, cos_inc, reflectivity, np.zeros(distance.shape[0]), object_rays,
+                   object_visible)
+
+
+def _cast_rays_numpy(origins, dirs, times, ground: Ground, boxes: BoxSet, cylinders: CylinderSet,
+                     ellipsoids: EllipsoidSet, max_distance: float, key: int, num_objects: int, samples) -> RayHits:
+    """The NumPy reference of cast_rays (ground material applied by the caller)."""
     n = origins.shape[0]
     best, ground_cos = intersect_ground(origins, dirs, ground, max_distance)
     if n == 0:
@@ -452,7 +643,6 @@ def cast_rays(
     azimuth = np.arctan2(d32[:, 1], d32[:, 0])
     elevation = np.arcsin(np.clip(d32[:, 2], -1.0, 1.0))
     index = _RayIndex.build(azimuth, elevation)
-    samples = origins if origin_samples is None else origin_samples
     origin = samples.mean(axis=0)
     spread_xy = float(np.max(np.hypot(samples[:, 0] - origin[0], samples[:, 1] - origin[1]))) + 1e-6
     spread_z = float(np.max(np.abs(samples[:, 2] - origin[2]))) + 1e-6
@@ -497,7 +687,8 @@ def cast_rays(
             ellipsoids.center[:, 2] + ellipsoids.radii[:, 2] + spread_z, origin, max_distance,
         )
         if ray.size:
-            s, cos = _intersect_ellipsoids(np.take(origins, ray, axis=0), np.take(dirs, ray, axis=0), ellipsoids, prim, rng)
+            s, cos = _intersect_ellipsoids(np.take(origins, ray, axis=0), np.take(dirs, ray, axis=0), ellipsoids, prim,
+                                           ray, key)
             keep = np.isfinite(s)
             ray_parts.append(ray[keep]); s_parts.append(s[keep]); cos_parts.append(cos[keep])
             src_parts.append(np.full(int(keep.sum()), 2, np.int8)); prim_parts.append(prim[keep])
@@ -549,21 +740,12 @@ def cast_rays(
         cos_inc[wr] = wc
         reflectivity[wr] = refl
         if num_objects:
-            is_obj = src == 0
+            is_obj = (src == 0) & (s <= max_distance)  # crossings within range: independent of the culling
             ids = boxes.object_index[prim[is_obj]]
             ids = ids[ids >= 0]
             object_rays = np.bincount(ids, minlength=num_objects).astype(np.int64)
             vis = obj[obj >= 0]
             object_visible = np.bincount(vis, minlength=num_objects).astype(np.int64)
-    is_ground = surface == SURFACE_GROUND
-    if is_ground.any():
-        g = np.flatnonzero(is_ground)
-        o_g = np.take(origins, g, axis=0)
-        d_g = np.take(dirs, g, axis=0)
-        s_g = best[g]
-        refl_g, drop_g = ground.material(o_g[:, 0] + s_g * d_g[:, 0], o_g[:, 1] + s_g * d_g[:, 1])
-        reflectivity[g] = refl_g
-        extra_dropout[g] = drop_g
     best = np.where(surface == SURFACE_NONE, np.inf, best)
     return RayHits(best, surface, object_index, cos_inc, reflectivity, extra_dropout, object_rays, object_visible)
 

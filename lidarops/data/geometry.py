@@ -156,39 +156,60 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     return np.einsum("mij,mkj->mki", rot, local) + boxes[:, None, :3]
 
 
-def _local_coords(xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
-    c, s = np.cos(box[6]), np.sin(box[6])
-    d = xyz - box[:3]
-    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
+def _inside(x: np.ndarray, y: np.ndarray, z: np.ndarray, boxes: np.ndarray, margin: float,
+            box: np.ndarray | int) -> np.ndarray:
+    """Whether point ``i`` (float64 ``x, y, z``) lies in the closed box ``box[i]`` (or in box ``box`` for all)
+    grown by ``margin``."""
+    c, s = np.cos(boxes[:, 6])[box], np.sin(boxes[:, 6])[box]
+    cx, cy, cz = (boxes[:, i][box] for i in range(3))
+    hx, hy, hz = ((boxes[:, i] / 2.0 + margin)[box] for i in range(3, 6))
+    dx, dy = x - cx, y - cy
+    inside = np.abs(c * dx + s * dy) <= hx
+    inside &= np.abs(-s * dx + c * dy) <= hy
+    inside &= np.abs(z - cz) <= hz
+    return inside
 
 
-def _inside_per_box(points: np.ndarray, boxes: np.ndarray, margin: float, cell: float = 4.0):
-    """Yields ``(j, candidate_indices, inside)`` per box: the points in the grid cells (``cell`` metres,
-    found by binary search on points sorted by cell) overlapping box ``j``'s bounding square, and which
-    of them lie in the (closed, grown) box."""
-    points = np.ascontiguousarray(points)  # (np.take on a strided view would copy the whole array)
-    ix = np.floor(points[:, 0] / cell).astype(np.int64)
-    iy = np.floor(points[:, 1] / cell).astype(np.int64)
-    offset = 1 << 20
-    key = (ix + offset) * (2 * offset) + (iy + offset)
-    order = np.argsort(key)
-    key_sorted = key[order]
+_FEW_BOXES = 4  # up to this many boxes, every point is tested against every box (no grid)
+
+
+def _point_box_pairs(points: np.ndarray, boxes: np.ndarray, margin: float,
+                     cell: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(box, point)`` index pairs of the points inside each (closed, grown) box.
+
+    With more than a few boxes, the candidates of a box are the points in the grid cells (``cell`` metres)
+    overlapping its bounding square, found by binary search on the points sorted by cell, for all boxes at
+    once; the candidates are then tested exactly.  Coordinates are taken in float64.
+    """
+    x, y, z = (np.asarray(points[:, i], dtype=np.float64) for i in range(3))
+    m = boxes.shape[0]
+    if m <= _FEW_BOXES:
+        inside = [np.flatnonzero(_inside(x, y, z, boxes, margin, j)) for j in range(m)]
+        return np.repeat(np.arange(m), [i.size for i in inside]), np.concatenate(inside)
     radius = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4]) + max(margin, 0.0) + 1e-6
-    for j, box in enumerate(boxes):
-        x_lo, x_hi = int(np.floor((box[0] - radius[j]) / cell)), int(np.floor((box[0] + radius[j]) / cell))
-        y_lo, y_hi = int(np.floor((box[1] - radius[j]) / cell)), int(np.floor((box[1] + radius[j]) / cell))
-        rows = np.arange(x_lo, x_hi + 1, dtype=np.int64) + offset
-        lo = np.searchsorted(key_sorted, rows * (2 * offset) + (y_lo + offset), side="left")
-        hi = np.searchsorted(key_sorted, rows * (2 * offset) + (y_hi + offset), side="right")
-        parts = [order[a:b] for a, b in zip(lo.tolist(), hi.tolist()) if b > a]
-        if not parts:
-            yield j, order[:0], np.zeros(0, bool)
-            continue
-        near = np.concatenate(parts) if len(parts) > 1 else parts[0]
-        xyz = np.take(points, near, axis=0)[:, :3].astype(np.float64)
-        local = _local_coords(xyz, box)
-        half = box[3:6] / 2.0 + margin
-        yield j, near, (np.abs(local[:, 0]) <= half[0]) & (np.abs(local[:, 1]) <= half[1]) & (np.abs(local[:, 2]) <= half[2])
+    x_lo, x_hi, y_lo, y_hi = (np.floor((boxes[:, i] + sign * radius) / cell).astype(np.int64)
+                              for i, sign in ((0, -1), (0, 1), (1, -1), (1, 1)))
+    # cells numbered row-major over the boxes' extent; points outside it get -1 and are never candidates
+    x0, y0 = int(x_lo.min()), int(y_lo.min())
+    nx, ny = int(x_hi.max()) - x0 + 1, int(y_hi.max()) - y0 + 1
+    ix = np.floor(x / cell) - x0
+    iy = np.floor(y / cell) - y0
+    key = np.where((ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny), ix * ny + iy, -1.0)
+    # few enough cells for int16 keys: NumPy's stable argsort is then a radix sort, several times faster
+    key = key.astype(np.int16 if nx * ny < 32767 else np.int64)
+    order = np.argsort(key, kind="stable")
+    key_sorted = key[order]
+    # one slice of sorted points per (box, row of cells)
+    rows = x_hi - x_lo + 1
+    box_of_row = np.repeat(np.arange(m), rows)
+    row = np.repeat(x_lo - x0 - np.cumsum(rows) + rows, rows) + np.arange(int(rows.sum()))
+    lo = np.searchsorted(key_sorted, (row * ny + (y_lo[box_of_row] - y0)).astype(key.dtype), side="left")
+    hi = np.searchsorted(key_sorted, (row * ny + (y_hi[box_of_row] - y0)).astype(key.dtype), side="right")
+    counts = hi - lo
+    box = np.repeat(box_of_row, counts)
+    point = order[np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts - lo, counts)]
+    inside = _inside(x[point], y[point], z[point], boxes, margin, box)
+    return box[inside], point[inside]
 
 
 def points_in_boxes_mask(points: np.ndarray, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -206,8 +227,8 @@ def points_in_boxes_mask(points: np.ndarray, boxes: np.ndarray, margin: float = 
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     mask = np.zeros((points.shape[0], boxes.shape[0]), dtype=bool)
     if points.shape[0] and boxes.shape[0]:
-        for j, near, inside in _inside_per_box(points, boxes, margin):
-            mask[near[inside], j] = True
+        box, point = _point_box_pairs(points, boxes, margin)
+        mask[point, box] = True
     return mask
 
 
@@ -223,11 +244,10 @@ def count_points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """
     points = np.asarray(points)
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    counts = np.zeros(boxes.shape[0], dtype=np.int64)
-    if points.shape[0] and boxes.shape[0]:
-        for j, _, inside in _inside_per_box(points, boxes, 0.0):
-            counts[j] = int(np.count_nonzero(inside))
-    return counts
+    if not (points.shape[0] and boxes.shape[0]):
+        return np.zeros(boxes.shape[0], dtype=np.int64)
+    box, _ = _point_box_pairs(points, boxes, 0.0)
+    return np.bincount(box, minlength=boxes.shape[0]).astype(np.int64)
 
 
 def box_index_of_points(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:

@@ -406,14 +406,20 @@ class EgoMotion:
             rotation (ndarray[..., 3, 3]), position (ndarray[..., 3]).
         """
         t = np.asarray(t, dtype=np.float64)
-        pos = self.position0 + self.velocity * t[..., None]
-        ang = np.broadcast_to(self.angles0, t.shape + (3,)).copy()
-        ang[..., 2] += self.yaw_rate * t
+        flat = t.reshape(-1)
+        # one [K] array per component and [J, K] jitter terms: the long axis innermost (K x 3 and K x J
+        # arrays run NumPy's elementwise loops several times slower)
+        pos = [self.position0[i] + self.velocity[i] * flat for i in range(3)]
+        ang = [np.full(flat.shape, self.angles0[i]) for i in range(3)]
+        ang[2] += self.yaw_rate * flat
         if self.has_jitter:
-            s = np.sin(2 * np.pi * self.jitter_freq * t[..., None] + self.jitter_phase)  # [..., J]
-            pos = pos + s @ self.jitter_pos
-            ang = ang + s @ self.jitter_ang
-        return euler_to_matrix(ang[..., 0], ang[..., 1], ang[..., 2]), pos
+            s = np.sin(np.multiply.outer(2 * np.pi * self.jitter_freq, flat) + self.jitter_phase[:, None])  # [J, K]
+            for i in range(3):
+                pos[i] += self.jitter_pos[:, i] @ s
+                ang[i] += self.jitter_ang[:, i] @ s
+        position = np.stack(pos, axis=-1).reshape(t.shape + (3,))
+        rotation = euler_to_matrix(*(a.reshape(t.shape) for a in ang))
+        return rotation, position
 
     @staticmethod
     def hover(rng: np.random.Generator, position: Sequence[float], yaw: float = 0.0, pitch: float = 0.0,

@@ -219,24 +219,47 @@ class RisleyLidar(LidarSensor):
         Returns:
             azimuth, elevation (ndarray float64[K, channels]).
         """
+        az, el = self._angles_by_channel(firing_index)
+        return az.T, el.T
+
+    def _angles_by_channel(self, firing_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Azimuth and elevation as ``[channels, K]`` arrays: the long axis innermost, which NumPy's
+        elementwise loops run several times faster than ``[K, 6]``.
+
+        The deflection is ``u = (e^{i theta1} + e^{i theta2}) / 2`` with ``theta_j = 2 pi turns_j(k) +
+        offset_j(c)``; the cosines and sines are taken per firing and per channel and combined with the
+        angle-addition formulas (4 trigonometric calls per firing instead of 4 per ray; the same values
+        up to rounding).
+        """
         k = np.asarray(firing_index, dtype=np.int64)
         rate = self.firing_rate
-        # reduce the phase exactly-ish: theta = 2 pi f k / rate, with k split to keep precision
         c = np.arange(self.channels)
         orient = np.pi * c / self.channels  # petals of different channels point different ways
         petal = 2.0 * np.pi * 0.6180339887 * c / self.channels
-        turns1 = np.mod(self.prism_hz[0] * (k / rate), 1.0)
-        turns2 = np.mod(self.prism_hz[1] * (k / rate), 1.0)
-        th1 = 2.0 * np.pi * turns1[:, None] + orient + petal
-        th2 = 2.0 * np.pi * turns2[:, None] + orient - petal
-        ux = 0.5 * (np.cos(th1) + np.cos(th2))
-        uy = 0.5 * (np.sin(th1) + np.sin(th2))
-        return ux * np.deg2rad(self.fov_h_deg) / 2.0, uy * np.deg2rad(self.fov_v_deg) / 2.0
+        ux = np.zeros((self.channels, k.shape[0]))
+        uy = np.zeros((self.channels, k.shape[0]))
+        for hz, offset in ((self.prism_hz[0], orient + petal), (self.prism_hz[1], orient - petal)):
+            turn = 2.0 * np.pi * np.mod(hz * (k / rate), 1.0)
+            ct, st = np.cos(turn), np.sin(turn)
+            co, so = np.cos(offset)[:, None], np.sin(offset)[:, None]
+            ux += co * ct - so * st
+            uy += co * st + so * ct
+        ux *= 0.5 * np.deg2rad(self.fov_h_deg) / 2.0
+        uy *= 0.5 * np.deg2rad(self.fov_v_deg) / 2.0
+        return ux, uy
 
     def directions(self, firing_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        az, el = self.angles(firing_index)
-        ce = np.cos(el)
-        dirs = np.stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)], axis=-1)
+        az, el = self._angles_by_channel(firing_index)
+        dirs = np.empty((az.shape[1], self.channels, 3))
+        xyz = dirs.transpose(2, 1, 0)  # [3, channels, K] view
+        # within +-60 deg the cosine is >= 0.5 and sqrt(1 - sin^2) is as accurate as np.cos (to an ulp or two),
+        # for one libm call per ray fewer
+        se, sa = np.sin(el), np.sin(az)
+        ce = np.sqrt(1.0 - se * se) if self.fov_v_deg <= 120.0 else np.cos(el)
+        ca = np.sqrt(1.0 - sa * sa) if self.fov_h_deg <= 120.0 else np.cos(az)
+        np.multiply(ce, ca, out=xyz[0])
+        np.multiply(ce, sa, out=xyz[1])
+        xyz[2] = se
         return dirs, np.arange(self.channels, dtype=np.int16)
 
     def in_field_of_view(self, dirs: np.ndarray) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""Synthetic LiDAR: a scene simulator with per-point timestamps (NumPy only).
+"""Synthetic LiDAR: a scene simulator with per-point timestamps (NumPy; rays are cast by the native kernel
+when the extension is built, see :mod:`lidarops.data._raycast`).
 
 Example:
     >>> from lidarops.data.synthetic import Simulator
@@ -74,9 +75,14 @@ def _rotate_per_firing(rot: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         ndarray float64[K, R, 3].
     """
     out = np.empty(dirs.shape)
-    d0, d1, d2 = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    # component-major views [3, R, K]: the firing axis innermost (K is long, R is a handful of channels for
+    # a Risley sensor), and each firing's matrix entry broadcasts along it
+    d, o = dirs.transpose(2, 1, 0), out.transpose(2, 1, 0)
     for i in range(3):
-        out[..., i] = rot[:, i, 0:1] * d0 + rot[:, i, 2:3] * d2 + rot[:, i, 1:2] * d1
+        r = rot[:, i, :]
+        np.multiply(r[:, 0], d[0], out=o[i])
+        o[i] += r[:, 2] * d[2]
+        o[i] += r[:, 1] * d[1]
     return out
 
 
@@ -238,8 +244,6 @@ class Simulator:
             dirs_world = dirs_sensor @ rot[0].T
         origins = np.repeat(pos, n_per, axis=0)
         t = np.repeat(t_firing, n_per)
-        firing_of_ray = np.repeat(firing, n_per)
-        ring_of_ray = np.tile(ring, firing.shape[0])
 
         max_range = sensor.max_range
         static = scenario.static_in_x_range(float(pos[:, 0].min()) - max_range, float(pos[:, 0].max()) + max_range)
@@ -254,41 +258,40 @@ class Simulator:
         hits = cast_rays(origins, dirs_world, t, scenario.ground, boxes, static.cylinders, static.ellipsoids,
                          max_range, rng, len(scenario.objects), origin_samples=pos)
 
-        n = t.shape[0]
-        u = rng.random(n, dtype=np.float32)
-        range_noise = rng.standard_normal(n, dtype=np.float32) * np.float32(sensor.range_noise_std)
-        intensity_noise = rng.standard_normal(n, dtype=np.float32) * np.float32(sensor.intensity_noise_std)
-        with np.errstate(invalid="ignore"):
-            # received power ~ reflectivity * (0.2 + 0.8 cos) / range^4-ish: detection range scales with its 4th root
-            effective = hits.reflectivity * (0.2 + 0.8 * hits.cos_incidence)
-            detect_range = max_range * np.sqrt(np.sqrt(np.clip(effective / sensor.reference_reflectivity, 1e-4, 1.0)))
-            rng_m = hits.distance + range_noise
-            p_drop = 1.0 - (1.0 - sensor.dropout) * (1.0 - hits.extra_dropout)
-            keep = (
-                (hits.distance <= detect_range)
-                & (rng_m >= sensor.min_range)
-                & (rng_m <= max_range)
-                & (u >= p_drop)
-            )
-        idx = np.flatnonzero(keep)
-        rng_k = rng_m[idx]
+        # only rays that hit something can return: their dropout draws and range noise, in ray order, then
+        # the intensity noise of the returns kept
+        hit = np.flatnonzero(hits.distance <= max_range)
+        u = rng.random(hit.size, dtype=np.float32)
+        range_noise = rng.standard_normal(hit.size, dtype=np.float32) * np.float32(sensor.range_noise_std)
+        distance, refl, cos = hits.distance[hit], hits.reflectivity[hit], hits.cos_incidence[hit]
+        # received power ~ reflectivity * (0.2 + 0.8 cos) / range^4-ish: detection range scales with its 4th root
+        effective = refl * (0.2 + 0.8 * cos)
+        detect_range = max_range * np.sqrt(np.sqrt(np.clip(effective / sensor.reference_reflectivity, 1e-4, 1.0)))
+        rng_m = distance + range_noise
+        p_drop = 1.0 - (1.0 - sensor.dropout) * (1.0 - hits.extra_dropout[hit])
+        keep = (distance <= detect_range) & (rng_m >= sensor.min_range) & (rng_m <= max_range) & (u >= p_drop)
+        sel = np.flatnonzero(keep)
+        idx = hit[sel]
+        rng_k = rng_m[sel]
+        intensity_noise = rng.standard_normal(idx.size, dtype=np.float32) * np.float32(sensor.intensity_noise_std)
         intensity = np.clip(
-            hits.reflectivity[idx] * (0.3 + 0.7 * hits.cos_incidence[idx])
+            refl[sel] * (0.3 + 0.7 * cos[sel])
             * np.exp((rng_k * (-1.0 / sensor.intensity_range_scale)).astype(np.float32))
-            + intensity_noise[idx], 0.0, 1.0)
+            + intensity_noise, 0.0, 1.0)
         points = np.empty((idx.size, 4), dtype=np.float32)
-        points[:, :3] = np.take(dirs_sensor, idx, axis=0) * rng_k[:, None]
+        for c in range(3):  # per component: NumPy's loops over [n, 3] arrays are several times slower
+            np.multiply(dirs_sensor[idx, c], rng_k, out=points[:, c], casting="same_kind")
         points[:, 3] = intensity
         return {
             "points": points,
             "t": t[idx],
-            "firing": firing_of_ray[idx],
-            "ring": ring_of_ray[idx].astype(np.int16),
+            "firing": firing[idx // n_per],
+            "ring": ring[idx % n_per].astype(np.int16),
             "surface": hits.surface[idx],
             "object": hits.object_index[idx],
             "object_rays": hits.object_rays,
             "object_visible": hits.object_visible,
-            "rays": n,
+            "rays": t.shape[0],
         }
 
     def _span(self, k0: int, k1: int) -> dict:

@@ -55,6 +55,18 @@ LIDAROPS_HD T sqdist3(T ax, T ay, T az, T bx, T by, T bz) {
   return add_rn(add_rn(mul_rn(dx, dx), mul_rn(dy, dy)), mul_rn(dz, dz));
 }
 
+// 64-bit finaliser (MurmurHash3's fmix64, as used by splitmix64-style generators): spreads grid-regular
+// keys over a hash table, and turns counters into independent random bits (lidarops/data/_raycast.py
+// repeats it in NumPy for the simulator's foliage).
+LIDAROPS_HD uint64_t mix64(uint64_t x) {
+  x ^= x >> 33;
+  x *= 0xff51afd7ed558ccdULL;
+  x ^= x >> 33;
+  x *= 0xc4ceb9fe1a85ec53ULL;
+  x ^= x >> 33;
+  return x;
+}
+
 // (distance, index) order used for every "ties to the lower index" rule.
 template <typename T>
 LIDAROPS_HD bool closer(T d0, int64_t i0, T d1, int64_t i1) {

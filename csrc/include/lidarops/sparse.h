@@ -94,16 +94,6 @@ LIDAROPS_HD bool output_of_input(const ConvGeometry& g, const int64_t* p, const 
   return true;
 }
 
-// splitmix64 finaliser: spreads grid-regular keys over the table.
-LIDAROPS_HD uint64_t mix64(uint64_t x) {
-  x ^= x >> 33;
-  x *= 0xff51afd7ed558ccdULL;
-  x ^= x >> 33;
-  x *= 0xc4ceb9fe1a85ec53ULL;
-  x ^= x >> 33;
-  return x;
-}
-
 // Read-only view of a coordinate table: key -> row, or -1.
 struct TableView {
   const int32_t* dense = nullptr;  // dense index grid (one slot per site), or nullptr for the hash table
