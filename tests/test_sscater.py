@@ -171,38 +171,49 @@ def test_touch_then_finalize_compact(device):
     H, W, C = 7, 9, 5
     acc = torch.randn(H, W, C, generator=g, dtype=torch.float64)
     active = torch.rand(H, W, generator=g) > 0.3
+    active[1, 1] = active[6, 8] = True
     scale, shift = torch.rand(C, generator=g, dtype=torch.float64) + 0.5, torch.randn(C, generator=g, dtype=torch.float64)
-    feats = torch.where(active[..., None], torch.relu(acc * scale + shift), torch.zeros(1, dtype=acc.dtype))
-    feats[1, 1] += 1.0  # (1, 1) is removed below: evaluated, it becomes 0
-    targets = torch.tensor([5, -1, 12, 5, 40, 12, 62], dtype=torch.int64)  # duplicates and a -1
-    added = torch.tensor([[0, 5], [-1, -1]], dtype=torch.int32)            # (0, 5) = key 5 again
+    acc[6, 8] = (1.0 - shift) / scale  # a positive value at (6, 8) before it is removed
+    acc_d, active_d = acc.clone().to(device), active.clone().to(device)
+    sc, sh = scale.to(device), shift.to(device)
+    stamp_d = torch.zeros(H, W, dtype=torch.int32, device=device)
+    feats_d = torch.zeros(H, W, C, dtype=torch.float64, device=device)
+    # settle every site with the device's own arithmetic (stamp values 2 and 3), then perturb two
+    everything = torch.arange(H * W, device=device)
+    none = torch.zeros(0, 2, dtype=torch.int32, device=device)
+    cand, count = _ops.sscater_touch_(stamp_d, acc_d, 2, everything, none, none)
+    _ops.sscater_finalize_compact_(acc_d, feats_d, active_d, cand, count, stamp_d, 3, sc, sh)
+    ref = torch.where(active[..., None], torch.relu(acc * scale + shift), torch.zeros(1, dtype=acc.dtype))
+    assert (feats_d.cpu() - ref).abs().max() <= 1e-12 * ref.abs().max()
+    settled = feats_d.cpu().clone()
+    feats_d[2, 4] += 1.0  # key 22: reached below, so evaluated again: changes back
+    feats_d[3, 0] += 1.0  # key 27: not reached: stays stale
+    # this step: reached keys with duplicates and a -1, one added site (also reached), two removed
+    targets = torch.tensor([5, -1, 22, 5, 40, 22, 62], dtype=torch.int64)
+    added = torch.tensor([[0, 5], [-1, -1]], dtype=torch.int32)  # (0, 5) = key 5
     removed = torch.tensor([[1, 1], [6, 8]], dtype=torch.int32)
-    stamp = torch.zeros(H, W, dtype=torch.int32)
-    stamp[2, 3] = 4  # touched in an earlier step: does not count now
-    acc_d, stamp_d, feats_d = acc.clone().to(device), stamp.to(device), feats.clone().to(device)
-    active_d = active.clone().to(device)
-    active_d[1, 1] = active_d[6, 8] = False  # the removed sites' status
+    active_d[1, 1] = active_d[6, 8] = False
+    stamp_d[2, 3] = 8  # touched in an earlier step: not listed now
+    old = feats_d.cpu().clone()  # (on CPU, .cpu() is the same tensor)
     cand, count = _ops.sscater_touch_(stamp_d, acc_d, 10, targets.to(device), added.to(device), removed.to(device))
-    keys = {5, 12, 40, 62, 1 * W + 1, 6 * W + 8}
+    keys = {5, 22, 40, 62, 1 * W + 1, 6 * W + 8}
     assert count.item() == len(keys) and cand.shape == (targets.shape[0] + 4, 2)
     assert _rows(cand) == sorted((k_ // W, k_ % W) for k_ in keys) and (cand.cpu()[: len(keys)] >= 0).all()
     st = stamp_d.cpu().flatten()
-    assert st[5] == 11 and st[12] == 10 and st[40] == 10 and st[W + 1] == 11 and st[6 * W + 8] == 11
-    assert st[2 * W + 3] == 4 and (acc_d.cpu()[1, 1] == 0).all() and (acc_d.cpu()[6, 8] == 0).all()
-    old = feats_d.clone().cpu()
-    sites, delta, counts = _ops.sscater_finalize_compact_(acc_d, feats_d, active_d, cand, count, stamp_d, 11,
-                                                          scale.to(device), shift.to(device))
-    acc_c, act_c = acc_d.cpu(), active_d.cpu()
-    new = torch.where(act_c[..., None], torch.relu(acc_c * scale + shift), torch.zeros(1, dtype=acc.dtype))
-    changed = sorted((k_ // W, k_ % W) for k_ in keys if not torch.equal(new.view(-1, C)[k_], old.view(-1, C)[k_]))
+    assert st[5] == 11 and st[22] == 10 and st[40] == 10 and st[W + 1] == 11 and st[6 * W + 8] == 11
+    assert st[2 * W + 3] == 8 and (acc_d.cpu()[1, 1] == 0).all() and (acc_d.cpu()[6, 8] == 0).all()
+    sites, delta, counts = _ops.sscater_finalize_compact_(acc_d, feats_d, active_d, cand, count, stamp_d, 11, sc, sh)
+    new = feats_d.cpu()
+    # changed: the perturbed site that was evaluated, and the two removed sites (both were > 0)
+    changed = [(1, 1), (2, 4), (6, 8)]
     n = counts[0].item()
     assert sorted(map(tuple, sites.cpu()[:n].tolist())) == changed
     for (y, x), d in zip(sites.cpu()[:n].tolist(), delta.cpu()[:n]):
         assert torch.equal(d, new[y, x] - old[y, x])
-    flagged = set(changed) | {(0, 5), (1, 1), (6, 8)}
-    assert counts.tolist() == [len(changed), len(flagged), len(keys)]
-    for k_ in keys:
-        assert torch.equal(feats_d.cpu().view(-1, C)[k_], new.view(-1, C)[k_])
+    assert (sites.cpu()[n:] == -1).all() and (delta.cpu()[n:] == 0).all()
+    assert counts.tolist() == [3, 4, len(keys)]  # changed or status: the three, and (0, 5)
+    assert torch.equal(new[2, 4], settled[2, 4]) and torch.equal(new[3, 0], old[3, 0])
+    assert (new[1, 1] == 0).all() and (new[6, 8] == 0).all()
 
 
 def test_fused_ops_opcheck():
