@@ -219,12 +219,18 @@ def bench_layers(device, quick: bool, rows: list):
             act[active[:, 0].long(), active[:, 1].long()] = True
             delta = torch.randn(changed.shape[0], cin, generator=g).to(device)
 
-            def sscater_layer():
-                reached = ops.sscater_scatter_(acc, changed, delta, w_taps, 1, 1, False)
-                cand = torch.unique(reached[reached >= 0])
-                sites = torch.stack([cand // W, cand % W], 1).int()
-                ch, d = ops.sscater_finalize_(acc, feats, act, sites, scale, shift)
-                return sites[ch], d[ch]
+            stamp = torch.zeros(H, W, dtype=torch.int32, device=device)
+            none = torch.zeros(0, 2, dtype=torch.int32, device=device)
+            step = [0]
+
+            def sscater_layer():  # what DeltaBackbone._layer_step does for a submanifold layer
+                step[0] += 4
+                reached = ops.sscater_scatter_(acc, changed, delta, w_taps, 1, 1, False, act)
+                cand, count = ops.sscater_touch_(stamp, acc, step[0] + 2, reached, none, none)
+                sites, d, counts = ops.sscater_finalize_compact_(acc, feats, act, cand, count, stamp, step[0] + 3,
+                                                                 scale, shift)
+                n = int(counts[0])
+                return sites[:n], d[:n]
 
             xs = SparseConvTensor(x, torch.cat([torch.zeros_like(active[:, :1]), active], 1), [H, W], 1)
             km = Fs.build_kernel_map(xs, "subm", 3)
