@@ -212,20 +212,40 @@ void gather_cpu(at::Tensor& acc, const at::Tensor& input, const at::Tensor& weig
   auto w = weight_in.contiguous();
   auto sites = sites_in.contiguous();
   const int32_t* sp = sites.data_ptr<int32_t>();
-  const int64_t s0 = input.stride(0), s1 = input.stride(1), s2 = input.stride(2);
+  const int64_t s0 = input.stride(0), s1 = input.stride(1), s2 = input.stride(2), P = kh * kw * Ci;
+  // im2col of the valid sites' windows, then one GEMM with the (Cout, kh * kw * Cin) weight
+  std::vector<int64_t> rows;
+  rows.reserve(m);
+  for (int64_t i = 0; i < m; ++i) {
+    int64_t y, x;
+    if (site_at(sp, i, Ho, Wo, y, x)) rows.push_back(y * Wo + x);
+  }
+  const int64_t n = static_cast<int64_t>(rows.size());
+  if (n == 0) return;
+  auto patches = at::zeros({n, P}, acc.options());
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_gather_cpu", [&] {
-    scalar_t* a = acc.data_ptr<scalar_t>();
     const scalar_t* in = input.data_ptr<scalar_t>();
-    const scalar_t* wp = w.data_ptr<scalar_t>();
-    at::parallel_for(0, m, 16, [&](int64_t b, int64_t e) {
-      for (int64_t i = b; i < e; ++i) {
-        int64_t y, x;
-        if (!site_at(sp, i, Ho, Wo, y, x)) continue;
-        scalar_t* dst = a + (y * Wo + x) * C;
-        for (int64_t c = 0; c < C; ++c)
-          dst[c] = conv_at(in, s0, s1, s2, Hi, Wi, Ci, wp, kh, kw, y, x, c, stride, padding);
+    scalar_t* pp = patches.data_ptr<scalar_t>();
+    at::parallel_for(0, n, 64, [&](int64_t b, int64_t e) {
+      for (int64_t r = b; r < e; ++r) {
+        const int64_t y = rows[r] / Wo, x = rows[r] % Wo;
+        for (int64_t ky = 0; ky < kh; ++ky) {
+          const int64_t iy = y * stride - padding + ky;
+          if (iy < 0 || iy >= Hi) continue;
+          for (int64_t kx = 0; kx < kw; ++kx) {
+            const int64_t ix = x * stride - padding + kx;
+            if (ix < 0 || ix >= Wi) continue;
+            const scalar_t* src = in + iy * s0 + ix * s1;
+            scalar_t* dst = pp + r * P + (ky * kw + kx) * Ci;
+            for (int64_t ci = 0; ci < Ci; ++ci) dst[ci] = src[ci * s2];
+          }
+        }
       }
     });
+    auto res = at::mm(patches, w.view({C, P}).t()).contiguous();  // (n, Cout)
+    scalar_t* a = acc.data_ptr<scalar_t>();
+    const scalar_t* rp = res.data_ptr<scalar_t>();
+    for (int64_t r = 0; r < n; ++r) std::copy(rp + r * C, rp + (r + 1) * C, a + rows[r] * C);
   });
 }
 
