@@ -228,18 +228,12 @@ void gather_cpu(at::Tensor& acc, const at::Tensor& input, const at::Tensor& weig
     scalar_t* pp = patches.data_ptr<scalar_t>();
     at::parallel_for(0, n, 64, [&](int64_t b, int64_t e) {
       for (int64_t r = b; r < e; ++r) {
-        const int64_t y = rows[r] / Wo, x = rows[r] % Wo;
-        for (int64_t ky = 0; ky < kh; ++ky) {
-          const int64_t iy = y * stride - padding + ky;
-          if (iy < 0 || iy >= Hi) continue;
-          for (int64_t kx = 0; kx < kw; ++kx) {
-            const int64_t ix = x * stride - padding + kx;
-            if (ix < 0 || ix >= Wi) continue;
-            const scalar_t* src = in + iy * s0 + ix * s1;
-            scalar_t* dst = pp + r * P + (ky * kw + kx) * Ci;
-            for (int64_t ci = 0; ci < Ci; ++ci) dst[ci] = src[ci * s2];
-          }
-        }
+        for_window(rows[r] / Wo, rows[r] % Wo, kh, kw, stride, padding, Hi, Wi,
+                   [&](int64_t ky, int64_t kx, int64_t iy, int64_t ix) {
+                     const scalar_t* src = in + iy * s0 + ix * s1;
+                     scalar_t* dst = pp + r * P + (ky * kw + kx) * Ci;
+                     for (int64_t ci = 0; ci < Ci; ++ci) dst[ci] = src[ci * s2];
+                   });
       }
     });
     auto res = at::mm(patches, w.view({C, P}).t()).contiguous();  // (n, Cout)

@@ -148,6 +148,21 @@ inline void check_touch_args(const at::Tensor& stamp, const at::Tensor& acc, con
   check_sites(removed, "removed", acc);
 }
 
+// Calls f(ky, kx, iy, ix) for each tap of output site (y, x) whose input (iy, ix) lies in the
+// (Hi, Wi) grid (regular convolution geometry).
+template <typename F>
+LIDAROPS_HD void for_window(int64_t y, int64_t x, int64_t kh, int64_t kw, int64_t stride, int64_t padding, int64_t Hi,
+                            int64_t Wi, F&& f) {
+  for (int64_t ky = 0; ky < kh; ++ky) {
+    const int64_t iy = y * stride - padding + ky;
+    if (iy < 0 || iy >= Hi) continue;
+    for (int64_t kx = 0; kx < kw; ++kx) {
+      const int64_t ix = x * stride - padding + kx;
+      if (ix >= 0 && ix < Wi) f(ky, kx, iy, ix);
+    }
+  }
+}
+
 // The full convolution (no bias) of input (Hi, Wi, Ci; strides s0, s1, s2) at output site (y, x),
 // channel c, with a contiguous weight (Cout, kh, kw, Ci): zero outside the input grid.
 template <typename T>
@@ -155,17 +170,11 @@ LIDAROPS_HD T conv_at(const T* in, int64_t s0, int64_t s1, int64_t s2, int64_t H
                       const T* w, int64_t kh, int64_t kw, int64_t y, int64_t x, int64_t c, int64_t stride,
                       int64_t padding) {
   T sum = T(0);
-  for (int64_t ky = 0; ky < kh; ++ky) {
-    const int64_t iy = y * stride - padding + ky;
-    if (iy < 0 || iy >= Hi) continue;
-    for (int64_t kx = 0; kx < kw; ++kx) {
-      const int64_t ix = x * stride - padding + kx;
-      if (ix < 0 || ix >= Wi) continue;
-      const T* src = in + iy * s0 + ix * s1;
-      const T* wk = w + ((c * kh + ky) * kw + kx) * Ci;
-      for (int64_t ci = 0; ci < Ci; ++ci) sum += src[ci * s2] * wk[ci];
-    }
-  }
+  for_window(y, x, kh, kw, stride, padding, Hi, Wi, [&](int64_t ky, int64_t kx, int64_t iy, int64_t ix) {
+    const T* src = in + iy * s0 + ix * s1;
+    const T* wk = w + ((c * kh + ky) * kw + kx) * Ci;
+    for (int64_t ci = 0; ci < Ci; ++ci) sum += src[ci * s2] * wk[ci];
+  });
   return sum;
 }
 
