@@ -318,16 +318,16 @@ std::tuple<at::Tensor, at::Tensor> touch_cuda(at::Tensor& stamp, at::Tensor& acc
   return {cand, count};
 }
 
-// One warp per candidate row (count read on the device): BN + ReLU per channel, the warp votes on
-// "changed", and a changed row is appended (site and delta) by an atomic counter.
+// One warp per candidate row (count read on the device): BN + ReLU per channel; the warp votes on
+// "changed" (pass 1, reads only), a changed row takes its compacted slot from an atomic counter, and
+// pass 2 recomputes the same values to write the output and the delta there.
 template <typename T>
 __global__ void finalize_compact_kernel(const T* __restrict__ acc, T* __restrict__ out, const bool* __restrict__ active,
                                         const int32_t* __restrict__ cand, const int64_t* __restrict__ count,
                                         int64_t rows, const int32_t* __restrict__ stamp, int32_t status_value,
                                         const T* __restrict__ scale, const T* __restrict__ shift, int64_t C, int64_t Ho,
                                         int64_t Wo, int64_t sy, int64_t sx, int64_t sc, int32_t* __restrict__ sites_out,
-                                        T* __restrict__ delta_out, T* __restrict__ scratch,
-                                        unsigned long long* __restrict__ counts) {
+                                        T* __restrict__ delta_out, unsigned long long* __restrict__ counts) {
   const int64_t m = *count < rows ? *count : rows;
   const int lane = threadIdx.x & 31;
   const int64_t warps = static_cast<int64_t>(gridDim.x) * (blockDim.x >> 5);
@@ -337,16 +337,12 @@ __global__ void finalize_compact_kernel(const T* __restrict__ acc, T* __restrict
     const bool on = active[y * Wo + x];
     const T* ai = acc + (y * Wo + x) * C;
     T* oi = out + y * sy + x * sx;
-    T* d = scratch + i * C;  // the row's delta, copied to its compacted place once it is known
+    auto value = [&](int64_t c) {
+      const T v = on ? ai[c] * scale[c] + shift[c] : T(0);
+      return v > T(0) ? v : T(0);
+    };
     bool any = false;
-    for (int64_t c = lane; c < C; c += 32) {
-      T v = on ? ai[c] * scale[c] + shift[c] : T(0);
-      v = v > T(0) ? v : T(0);
-      const T old = oi[c * sc];
-      d[c] = v - old;
-      any |= v != old;
-      oi[c * sc] = v;
-    }
+    for (int64_t c = lane; c < C; c += 32) any |= value(c) != oi[c * sc];
     const bool changed = __any_sync(0xffffffffu, any);
     const bool status = stamp[y * Wo + x] == status_value;
     unsigned long long j = 0;
@@ -354,14 +350,17 @@ __global__ void finalize_compact_kernel(const T* __restrict__ acc, T* __restrict
       if (changed || status) atomicAdd(counts + 1, 1ull);
       if (changed) j = atomicAdd(counts, 1ull);
     }
-    if (!changed) continue;
+    if (!changed) continue;  // nothing to write: the stored values are the new ones
     j = __shfl_sync(0xffffffffu, j, 0);
     if (lane == 0) {
       sites_out[2 * j] = static_cast<int32_t>(y);
       sites_out[2 * j + 1] = static_cast<int32_t>(x);
     }
-    __syncwarp();
-    for (int64_t c = lane; c < C; c += 32) delta_out[j * C + c] = d[c];
+    for (int64_t c = lane; c < C; c += 32) {
+      const T v = value(c);
+      delta_out[j * C + c] = v - oi[c * sc];
+      oi[c * sc] = v;
+    }
   }
 }
 
@@ -386,7 +385,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> finalize_compact_cuda(const at::T
   if (rows == 0 || C == 0) return {sites_out, delta_out, counts};
   auto cnd = cand.contiguous();
   auto scale = scale_in.contiguous(), shift = shift_in.contiguous();
-  auto scratch = at::empty({rows, C}, acc.options());
   const unsigned blocks = blocks_for(rows * 32);
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_finalize_compact_cuda", [&] {
     finalize_compact_kernel<scalar_t><<<blocks, kThreads, 0, stream>>>(
@@ -394,7 +392,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> finalize_compact_cuda(const at::T
         count.data_ptr<int64_t>(), rows, stamp.data_ptr<int32_t>(), static_cast<int32_t>(status_value),
         scale.data_ptr<scalar_t>(), shift.data_ptr<scalar_t>(), C, acc.size(0), acc.size(1), out.stride(0),
         out.stride(1), out.stride(2), sites_out.data_ptr<int32_t>(), delta_out.data_ptr<scalar_t>(),
-        scratch.data_ptr<scalar_t>(), reinterpret_cast<unsigned long long*>(counts.data_ptr<int64_t>()));
+        reinterpret_cast<unsigned long long*>(counts.data_ptr<int64_t>()));
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
   return {sites_out, delta_out, counts};

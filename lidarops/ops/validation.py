@@ -128,9 +128,4 @@ def check_values(finite: Sequence[tuple[torch.Tensor, object]] = (),
 def run_value_checks(checks: Sequence[tuple[torch.Tensor, object]]) -> None:
     """Evaluate boolean 0-d tensors (True = bad) with one host sync and raise ValueError for the first
     failure; a message may be a callable, evaluated only then (it may read tensors to say more)."""
-    if not checks or checks[0][0].device.type == "meta":  # meta tensors carry no values to check
-        return
-    flags = torch.stack([c.reshape(()).to(torch.bool) for c, _ in checks]).tolist()
-    for bad, (_, message) in zip(flags, checks):
-        if bad:
-            raise ValueError(message() if callable(message) else message)
+    check_values(extra=checks)

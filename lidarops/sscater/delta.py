@@ -281,7 +281,9 @@ class DeltaBackbone:
             counts.append(self._layer_step(layer, block_change[layer.block])[1])
             layer.stats.ms = self._tock(t0, profile)
         # the step's statistics in one device-to-host copy
-        active = torch.stack([layer.active.sum() for layer in self.layers + self.up_layers])
+        sums: dict = {}  # a block's layers share one active map: count it once
+        active = torch.stack([sums.setdefault(id(layer.active), layer.active.sum())
+                              for layer in self.layers + self.up_layers])
         figures = torch.cat([active[:, None], torch.stack(counts)[:, 1:]], 1).tolist()
         for st, (a, changed, touched) in zip(self.stats, figures):
             st.active, st.changed, st.touched = int(a), int(changed), int(touched)
