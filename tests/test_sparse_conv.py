@@ -488,6 +488,61 @@ def test_cpu_cuda_parity(D, method, dtype):
 
 
 @_cuda
+@pytest.mark.parametrize("cin,cout,D,ksize,sites,ordered", [
+    (32, 8, 2, 3, 3000, True),       # 64 x 16 tiles (Cout <= 16), cp.async pipeline
+    (20, 32, 2, 3, 3000, False),     # 64 x 32 tiles; Cin not a multiple of the 32-channel step
+    (64, 64, 2, 3, 5000, True),      # 64 x 64 tiles
+    (64, 100, 2, 3, 40000, True),    # many blocks; Cout not a multiple of the tile (or of 4)
+    (16, 64, 3, 3, 4000, True),      # K = 27 (3D)
+    (4, 10, 2, 1, 500, True),        # K = 1, one 4-channel copy per row
+    (8, 16, 2, 7, 2000, True),       # K = 49 > 32: the general SIMT kernel
+    (6, 12, 2, 3, 2000, True),       # Cin not a multiple of 4: the general SIMT kernel
+])
+def test_cuda_float32_tiles_match_float64(cin, cout, D, ksize, sites, ordered):
+    """Every float32 CUDA tile configuration (and the fallbacks around it) against the float64 CPU
+    product on the same kernel map, with and without the mask order; rows with no input stay 0."""
+    shape = (400, 400) if D == 2 else (40, 40, 40)
+    x = random_tensor(2, shape, sites // 2, cin, seed=sites + cin, dtype=torch.float32, device="cuda")
+    km = Fs.build_kernel_map(x, "subm", ksize, 1, ksize // 2, 1)
+    nbr = km.neighbors.clone()
+    nbr[::7] = -1  # rows with no input at all
+    w = random_weight(cout, (ksize,) * D, cin, seed=cin, dtype=torch.float32, device="cuda").reshape(cout, -1, cin)
+    ref = ops.sparse_conv(x.features.double().cpu(), w.double().cpu(), nbr.cpu())
+    order = ops.sparse_kernel_map_order(nbr) if ordered else None
+    got = ops.sparse_conv(x.features, w, nbr, order).double().cpu()
+    assert got.shape == ref.shape
+    assert torch.all(got[::7] == 0)
+    scale = max(1.0, ref.abs().max().item())
+    assert (got - ref).abs().max().item() <= 2e-5 * scale
+
+
+@_cuda
+@pytest.mark.parametrize("dtype", ["f16", "bf16", "tf32"])
+@pytest.mark.parametrize("cin,cout,D,sites", [(24, 100, 2, 20000), (64, 64, 2, 3000), (16, 32, 3, 4000)])
+def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites):
+    """The cp.async-fed tensor-core kernel (float16, bfloat16, TF32) against the float64 product of the
+    same (rounded) inputs: several blocks, Cout not a multiple of the tile, rows with no input."""
+    shape = (400, 400) if D == 2 else (40, 40, 40)
+    dt = {"f16": torch.float16, "bf16": torch.bfloat16, "tf32": torch.float32}[dtype]
+    x = random_tensor(2, shape, sites // 2, cin, seed=sites + cin, dtype=dt, device="cuda")
+    km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+    nbr = km.neighbors.clone()
+    nbr[::7] = -1
+    w = (random_weight(cout, (3,) * D, cin, seed=cin, dtype=dt, device="cuda") / 8).reshape(cout, -1, cin)
+    ref = ops.sparse_conv(x.features.double().cpu(), w.double().cpu(), nbr.cpu())
+    old = torch.backends.cuda.matmul.allow_tf32
+    try:
+        torch.backends.cuda.matmul.allow_tf32 = dtype == "tf32"
+        got = ops.sparse_conv(x.features, w, nbr, ops.sparse_kernel_map_order(nbr)).double().cpu()
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = old
+    assert torch.all(got[::7] == 0)
+    scale = max(1.0, ref.abs().max().item())
+    tol = {"f16": 4e-3, "bf16": 3e-2, "tf32": 5e-3}[dtype]
+    assert (got - ref).abs().max().item() <= tol * scale
+
+
+@_cuda
 def test_tf32_follows_torch_matmul_setting():
     x = random_tensor(2, SHAPES[3], 60, 32, seed=3, dtype=torch.float32, device="cuda")
     w = random_weight(32, (3, 3, 3), 32, seed=3, dtype=torch.float32, device="cuda") / 16

@@ -7,8 +7,10 @@
 // tile are skipped (a block-wide vote). One launch per layer, no atomics, no host synchronisation:
 // each output element is summed by one thread in a fixed order, so results are deterministic.
 //   - float16 / bfloat16 (sm_80+, Cin and Cout >= 16): tensor cores (WMMA 16x16x16, float accumulation);
-//     float32 likewise with TF32 fragments when torch allows TF32 matmuls (off by default).
-//   - otherwise SIMT tiles in float (float64 in float64).
+//     float32 likewise with TF32 fragments when torch allows TF32 matmuls (off by default); fed by
+//     cp.async pipelines when Cin is a multiple of the 16-byte vector and K <= 32.
+//   - float32 otherwise (sm_80+, Cin a multiple of 4, K <= 32): SIMT tiles fed by cp.async pipelines;
+//   - otherwise general SIMT tiles in float (float64 in float64).
 // Rows are processed in the order given by sparse_kernel_map_order (grouped by their offset masks),
 // so the rows of a tile share their offsets and the skipping is effective on real data.
 // Backward: the features gradient is this kernel over the transposed map (autograd in Python); the
@@ -120,6 +122,166 @@ __global__ void __launch_bounds__((BM / TM) * (BN / TN))
   }
 }
 
+constexpr int kAsyncMaxK = 32;  // offsets a float32 tile kernel lists in one 32-bit mask
+
+// ------------------------------------------------------------------------------------------------
+// forward, float32 SIMT with asynchronous copies (sm_80+; Cin a multiple of 4, K <= 32, 16-byte
+// aligned inputs): the same output-stationary product as conv_fwd_simt_kernel, built like a tuned
+// SGEMM.
+//   - At the start a block reads its rows' whole kernel-map slice into shared memory and lists the
+//     offsets any of its rows has, so the main loop runs over (present offset, BK-channel chunk) steps
+//     with no vote in between.
+//   - The gathered rows and the weights go straight from global to shared memory with cp.async through
+//     a ring of STAGES buffers: STAGES - 1 steps are in flight while one is multiplied. On LiDAR-sized
+//     maps a block's steps form a chain of dependent gathers whose latency, not the arithmetic, set the
+//     time (H200, session 5: a register-prefetched version with one step in flight was 1.2-1.4x slower).
+//   - Tiles are stored row-major with a 4-float pad (rows 16-byte aligned; a quarter-warp's float4 reads
+//     of 8 consecutive rows hit 8 different bank groups); a thread owns the rows ty + i * (BM / TM) and
+//     the columns tx + j * (BN / TN) and reads float4 fragments along the channels.
+//   - Per output element the sum runs over offsets, then channels, in ascending order.
+// ------------------------------------------------------------------------------------------------
+__device__ __forceinline__ void cp_async16(void* smem, const void* gmem, bool valid) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  const unsigned dst = static_cast<unsigned>(__cvta_generic_to_shared(smem));
+  const int bytes = valid ? 16 : 0;  // 0: fill the 16 bytes with zeros, read nothing
+  asm volatile("cp.async.cg.shared.global [%0], [%1], 16, %2;\n" ::"r"(dst), "l"(gmem), "r"(bytes));
+#endif
+}
+__device__ __forceinline__ void cp_async_commit() {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  asm volatile("cp.async.commit_group;\n" ::);
+#endif
+}
+template <int N>
+__device__ __forceinline__ void cp_async_wait() {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  asm volatile("cp.async.wait_group %0;\n" ::"n"(N));
+#endif
+}
+
+// The map slice of a tile of BM output rows starting at row0: orow[m] (the output row at tile row m,
+// -1 past the end), rows[k * BM + m] (its input at offset k, or -1) and klist[0, nk) (the offsets any
+// row of the tile has, ascending; K <= 32). Called by the whole block; returns nk after a barrier.
+template <int BM, int kThreads>
+__device__ int tile_map_slice(const int32_t* __restrict__ nbr, const int32_t* __restrict__ order, int64_t n_out,
+                              int K, int64_t row0, int64_t* orow, int32_t* rows, int* klist, unsigned* present,
+                              int* nk) {
+  const int tid = threadIdx.x;
+  for (int m = tid; m < BM; m += kThreads) orow[m] = output_row(order, row0 + m, n_out);
+  if (tid == 0) *present = 0u;
+  __syncthreads();
+  for (int e = tid; e < BM * K; e += kThreads) {  // row by row: coalesced reads of the map
+    const int m = e / K, k = e % K;
+    const int64_t o = orow[m];
+    const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
+    rows[k * BM + m] = r;
+    if (r >= 0) atomicOr(present, 1u << k);
+  }
+  __syncthreads();
+  if (tid < 32) {
+    const unsigned bits = *present;
+    if ((bits >> tid) & 1u) klist[__popc(bits & ((1u << tid) - 1u))] = tid;
+    if (tid == 0) *nk = __popc(bits);
+  }
+  __syncthreads();
+  return *nk;
+}
+
+template <int BM, int BN, int TM, int TN, int BK, int STAGES>
+struct AsyncTile {
+  static constexpr int kThreads = (BM / TM) * (BN / TN);
+  static constexpr int LD = BK + 4;
+  static constexpr size_t kSmem = sizeof(float) * STAGES * (BM + BN) * LD + sizeof(int32_t) * kAsyncMaxK * BM;
+};
+
+template <int BM, int BN, int TM, int TN, int BK, int STAGES>
+__global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThreads)
+    conv_fwd_f32_async_kernel(const float* __restrict__ x, const float* __restrict__ w,
+                              const int32_t* __restrict__ nbr, const int32_t* __restrict__ order,
+                              float* __restrict__ out, int64_t n_out, int cin, int cout, int K) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  using Tile = AsyncTile<BM, BN, TM, TN, BK, STAGES>;
+  constexpr int kThreads = Tile::kThreads, LD = Tile::LD;
+  static_assert(BK % 4 == 0 && STAGES >= 2, "16-byte copies, at least double buffering");
+  extern __shared__ __align__(16) float smem[];
+  float* As = smem;                                   // [STAGES][BM][LD]
+  float* Bs = smem + STAGES * BM * LD;                // [STAGES][BN][LD]
+  int32_t* rows = reinterpret_cast<int32_t*>(Bs + STAGES * BN * LD);  // [kAsyncMaxK][BM]
+  __shared__ int64_t orow[BM];
+  __shared__ unsigned present;
+  __shared__ int klist[kAsyncMaxK];
+  __shared__ int nk;
+  const int tid = threadIdx.x;
+  const int tx = tid % (BN / TN), ty = tid / (BN / TN);
+  const int col0 = static_cast<int>(blockIdx.y) * BN;
+  const int chunks = (cin + BK - 1) / BK;
+  const int steps = tile_map_slice<BM, kThreads>(nbr, order, n_out, K, static_cast<int64_t>(blockIdx.x) * BM, orow, rows,
+                                                 klist, &present, &nk) * chunks;
+  auto issue = [&](int t) {  // step t's tiles into stage t % STAGES (nothing past the last step)
+    if (t < steps) {
+      const int k = klist[t / chunks], c0 = (t % chunks) * BK, st = t % STAGES;
+      for (int e = tid; e < BM * (BK / 4); e += kThreads) {
+        const int m = e / (BK / 4), ci = c0 + (e % (BK / 4)) * 4;
+        const int32_t r = rows[k * BM + m];
+        const bool ok = r >= 0 && ci < cin;
+        cp_async16(As + (st * BM + m) * LD + (ci - c0), ok ? x + static_cast<int64_t>(r) * cin + ci : x, ok);
+      }
+      for (int e = tid; e < BN * (BK / 4); e += kThreads) {
+        const int n = e / (BK / 4), ci = c0 + (e % (BK / 4)) * 4, co = col0 + n;
+        const bool ok = co < cout && ci < cin;
+        cp_async16(Bs + (st * BN + n) * LD + (ci - c0), ok ? w + (static_cast<int64_t>(co) * K + k) * cin + ci : w, ok);
+      }
+    }
+    cp_async_commit();  // an empty group past the end keeps the wait counts uniform
+  };
+
+  float acc[TM][TN];
+#pragma unroll
+  for (int i = 0; i < TM; ++i)
+#pragma unroll
+    for (int j = 0; j < TN; ++j) acc[i][j] = 0.f;
+#pragma unroll
+  for (int t = 0; t < STAGES - 1; ++t) issue(t);
+  for (int t = 0; t < steps; ++t) {
+    cp_async_wait<STAGES - 2>();  // step t has landed (for this thread's copies) ...
+    __syncthreads();              // ... and for everyone's; stage (t - 1) % STAGES is free again
+    issue(t + STAGES - 1);
+    const float* a_t = As + (t % STAGES) * BM * LD;
+    const float* b_t = Bs + (t % STAGES) * BN * LD;
+#pragma unroll
+    for (int kk = 0; kk < BK; kk += 4) {
+      float4 a[TM], b[TN];
+#pragma unroll
+      for (int i = 0; i < TM; ++i) a[i] = *reinterpret_cast<const float4*>(a_t + (ty + i * (BM / TM)) * LD + kk);
+#pragma unroll
+      for (int j = 0; j < TN; ++j) b[j] = *reinterpret_cast<const float4*>(b_t + (tx + j * (BN / TN)) * LD + kk);
+#pragma unroll
+      for (int i = 0; i < TM; ++i)
+#pragma unroll
+        for (int j = 0; j < TN; ++j) {
+          acc[i][j] = fmaf(a[i].x, b[j].x, acc[i][j]);
+          acc[i][j] = fmaf(a[i].y, b[j].y, acc[i][j]);
+          acc[i][j] = fmaf(a[i].z, b[j].z, acc[i][j]);
+          acc[i][j] = fmaf(a[i].w, b[j].w, acc[i][j]);
+        }
+    }
+  }
+  cp_async_wait<0>();
+#pragma unroll
+  for (int i = 0; i < TM; ++i) {
+    const int64_t o = orow[ty + i * (BM / TM)];
+    if (o < 0) continue;
+#pragma unroll
+    for (int j = 0; j < TN; ++j) {
+      const int co = col0 + tx + j * (BN / TN);
+      if (co < cout) out[o * cout + co] = acc[i][j];
+    }
+  }
+#else
+  __trap();  // launched only on sm_80+ (checked on the host)
+#endif
+}
+
 // ------------------------------------------------------------------------------------------------
 // forward, tensor cores: 64 x 64 tile per block of 4 warps (2 x 2, each 32 x 32 = 2 x 2 WMMA
 // fragments), 32 input channels per step, float accumulation. float16 / bfloat16: 16x16x16 fragments;
@@ -150,6 +312,42 @@ struct MmaTraits<float> {
 
 constexpr int kWmmaThreads = 128;
 
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+// One BK-channel step of a warp's 32 x 32 share of the 64 x 64 tile: A row-major (As[m * lda + kk]),
+// B column-major (Bs[n * ldb + kk]); float32 goes through TF32 fragments.
+template <typename T, int BK, typename S, typename Acc>
+__device__ __forceinline__ void wmma_tile_step(const S* As, int lda, const S* Bs, int ldb, int wm, int wn, Acc (&c)[2][2]) {
+  using namespace nvcuda;
+  using FE = typename MmaTraits<T>::F;
+  constexpr int KS = MmaTraits<T>::KS;
+#pragma unroll
+  for (int ks = 0; ks < BK / KS; ++ks) {
+    wmma::fragment<wmma::matrix_a, 16, 16, KS, FE, wmma::row_major> a[2];
+    wmma::fragment<wmma::matrix_b, 16, 16, KS, FE, wmma::col_major> b[2];
+#pragma unroll
+    for (int i = 0; i < 2; ++i) {
+      wmma::load_matrix_sync(a[i], As + (wm * 32 + i * 16) * lda + ks * KS, lda);
+      if constexpr (std::is_same_v<T, float>) {
+#pragma unroll
+        for (int t = 0; t < a[i].num_elements; ++t) a[i].x[t] = wmma::__float_to_tf32(a[i].x[t]);
+      }
+    }
+#pragma unroll
+    for (int j = 0; j < 2; ++j) {
+      wmma::load_matrix_sync(b[j], Bs + (wn * 32 + j * 16) * ldb + ks * KS, ldb);
+      if constexpr (std::is_same_v<T, float>) {
+#pragma unroll
+        for (int t = 0; t < b[j].num_elements; ++t) b[j].x[t] = wmma::__float_to_tf32(b[j].x[t]);
+      }
+    }
+#pragma unroll
+    for (int i = 0; i < 2; ++i)
+#pragma unroll
+      for (int j = 0; j < 2; ++j) wmma::mma_sync(c[i][j], a[i], b[j], c[i][j]);
+  }
+}
+#endif
+
 template <typename T, bool kVec>
 __global__ void __launch_bounds__(kWmmaThreads)
     conv_fwd_wmma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
@@ -158,7 +356,6 @@ __global__ void __launch_bounds__(kWmmaThreads)
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using namespace nvcuda;
   using S = typename MmaTraits<T>::S;
-  using FE = typename MmaTraits<T>::F;
   constexpr int KS = MmaTraits<T>::KS, V = MmaTraits<T>::VEC;
   constexpr int BM = 64, BN = 64, BK = 32;
   constexpr int LDA = BK + V, LDB = BK + V;  // in elements: rows stay 16-byte aligned, as WMMA needs
@@ -227,31 +424,7 @@ __global__ void __launch_bounds__(kWmmaThreads)
         }
       }
       __syncthreads();
-#pragma unroll
-      for (int ks = 0; ks < BK / KS; ++ks) {
-        wmma::fragment<wmma::matrix_a, 16, 16, KS, FE, wmma::row_major> a[2];
-        wmma::fragment<wmma::matrix_b, 16, 16, KS, FE, wmma::col_major> b[2];
-#pragma unroll
-        for (int i = 0; i < 2; ++i) {
-          wmma::load_matrix_sync(a[i], As + (wm * 32 + i * 16) * LDA + ks * KS, LDA);
-          if constexpr (std::is_same_v<T, float>) {
-#pragma unroll
-            for (int t = 0; t < a[i].num_elements; ++t) a[i].x[t] = wmma::__float_to_tf32(a[i].x[t]);
-          }
-        }
-#pragma unroll
-        for (int j = 0; j < 2; ++j) {
-          wmma::load_matrix_sync(b[j], Bs + (wn * 32 + j * 16) * LDB + ks * KS, LDB);
-          if constexpr (std::is_same_v<T, float>) {
-#pragma unroll
-            for (int t = 0; t < b[j].num_elements; ++t) b[j].x[t] = wmma::__float_to_tf32(b[j].x[t]);
-          }
-        }
-#pragma unroll
-        for (int i = 0; i < 2; ++i)
-#pragma unroll
-          for (int j = 0; j < 2; ++j) wmma::mma_sync(c[i][j], a[i], b[j], c[i][j]);
-      }
+      wmma_tile_step<T, BK>(As, LDA, Bs, LDB, wm, wn, c);
       __syncthreads();
     }
   }
@@ -264,6 +437,106 @@ __global__ void __launch_bounds__(kWmmaThreads)
   for (int e = tid; e < BM * BN; e += kWmmaThreads) {
     const int m = e / BN, n = e % BN;
     const int64_t o = orow[m], co = col0 + n;
+    if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(Cs[m * LDC + n]);
+  }
+#else
+  __trap();  // launched only on sm_80+ (checked on the host)
+#endif
+}
+
+// ------------------------------------------------------------------------------------------------
+// forward, tensor cores fed by cp.async (16-byte aligned rows, Cin a multiple of the 16-byte vector,
+// K <= 32): conv_fwd_wmma_kernel's 64 x 64 tile and fragments, with the float32 SIMT kernel's offset
+// list and a ring of STAGES shared buffers, so the gathers of the next steps are in flight while
+// one step is multiplied. The float accumulator tile for the coalesced store reuses the ring.
+// ------------------------------------------------------------------------------------------------
+template <typename T>
+struct WmmaAsyncTile {
+  using S = typename MmaTraits<T>::S;
+  static constexpr int V = MmaTraits<T>::VEC;
+  static constexpr int BM = 64, BN = 64, BK = 32, STAGES = 3;
+  static constexpr int LD = BK + V;  // elements: rows 16-byte aligned, 16-row blocks 32-byte aligned (WMMA)
+  static constexpr int LDC = BN + 4;
+  static constexpr size_t kStage = sizeof(S) * (BM + BN) * LD;
+  static constexpr size_t kRing = kStage * STAGES;
+  static constexpr size_t kC = sizeof(float) * BM * LDC;
+  static constexpr size_t kRows = sizeof(int32_t) * kAsyncMaxK * BM;
+  static constexpr size_t kSmem = (kRing > kC ? kRing : kC) + kRows;
+};
+
+template <typename T>
+__global__ void __launch_bounds__(kWmmaThreads)
+    conv_fwd_wmma_async_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
+                               const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int cin,
+                               int cout, int K) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  using namespace nvcuda;
+  using Tile = WmmaAsyncTile<T>;
+  using S = typename Tile::S;
+  constexpr int KS = MmaTraits<T>::KS, V = Tile::V, BM = Tile::BM, BN = Tile::BN, BK = Tile::BK;
+  constexpr int STAGES = Tile::STAGES, LD = Tile::LD, LDC = Tile::LDC;
+  extern __shared__ __align__(128) unsigned char smem_raw[];
+  S* ring = reinterpret_cast<S*>(smem_raw);
+  float* Cs = reinterpret_cast<float*>(smem_raw);  // after the main loop only
+  int32_t* rows = reinterpret_cast<int32_t*>(smem_raw + (Tile::kSmem - Tile::kRows));  // [kAsyncMaxK][BM]
+  __shared__ int64_t orow[BM];
+  __shared__ unsigned present;
+  __shared__ int klist[kAsyncMaxK];
+  __shared__ int nk;
+  const int tid = threadIdx.x, warp = tid / 32;
+  const int wm = warp / 2, wn = warp % 2;
+  const int col0 = static_cast<int>(blockIdx.y) * BN;
+  const int chunks = (cin + BK - 1) / BK;
+  const int steps = tile_map_slice<BM, kWmmaThreads>(nbr, order, n_out, K, static_cast<int64_t>(blockIdx.x) * BM, orow,
+                                                     rows, klist, &present, &nk) * chunks;
+  const S* xs = reinterpret_cast<const S*>(x);
+  const S* ws = reinterpret_cast<const S*>(w);
+  auto issue = [&](int t) {
+    if (t < steps) {
+      const int k = klist[t / chunks], c0 = (t % chunks) * BK;
+      S* As = ring + (t % STAGES) * (BM + BN) * LD;
+      S* Bs = As + BM * LD;  // column-major B: Bs[n * LD + kk] = W[col0 + n, k, c0 + kk]
+      for (int e = tid; e < BM * (BK / V); e += kWmmaThreads) {
+        const int m = e / (BK / V), ci = c0 + (e % (BK / V)) * V;
+        const int32_t r = rows[k * BM + m];
+        const bool ok = r >= 0 && ci < cin;  // Cin is a multiple of V: a vector is all in or all out
+        cp_async16(As + m * LD + (ci - c0), ok ? xs + static_cast<int64_t>(r) * cin + ci : xs, ok);
+      }
+      for (int e = tid; e < BN * (BK / V); e += kWmmaThreads) {
+        const int n = e / (BK / V), ci = c0 + (e % (BK / V)) * V, co = col0 + n;
+        const bool ok = co < cout && ci < cin;
+        cp_async16(Bs + n * LD + (ci - c0), ok ? ws + (static_cast<int64_t>(co) * K + k) * cin + ci : ws, ok);
+      }
+    }
+    cp_async_commit();
+  };
+
+  wmma::fragment<wmma::accumulator, 16, 16, KS, float> c[2][2];
+#pragma unroll
+  for (int i = 0; i < 2; ++i)
+#pragma unroll
+    for (int j = 0; j < 2; ++j) wmma::fill_fragment(c[i][j], 0.0f);
+#pragma unroll
+  for (int t = 0; t < STAGES - 1; ++t) issue(t);
+  for (int t = 0; t < steps; ++t) {
+    cp_async_wait<STAGES - 2>();
+    __syncthreads();
+    issue(t + STAGES - 1);
+    const S* As = ring + (t % STAGES) * (BM + BN) * LD;
+    wmma_tile_step<T, BK>(As, LD, As + BM * LD, LD, wm, wn, c);
+  }
+  cp_async_wait<0>();
+  __syncthreads();  // every warp is done with the ring before Cs overwrites it
+#pragma unroll
+  for (int i = 0; i < 2; ++i)
+#pragma unroll
+    for (int j = 0; j < 2; ++j)
+      wmma::store_matrix_sync(Cs + (wm * 32 + i * 16) * LDC + wn * 32 + j * 16, c[i][j], LDC, wmma::mem_row_major);
+  __syncthreads();
+  for (int e = tid; e < BM * BN; e += kWmmaThreads) {
+    const int m = e / BN, n = e % BN;
+    const int64_t o = orow[m];
+    const int co = col0 + n;
     if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(Cs[m * LDC + n]);
   }
 #else
@@ -422,6 +695,16 @@ at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight
     const dim3 grid(static_cast<unsigned>(ceil_div(n_out, 64)), static_cast<unsigned>(ceil_div(cout, 64)));
     auto launch = [&](auto tag) {
       using scalar_t = decltype(tag);
+      if (use_vec && K <= kAsyncMaxK) {  // the pipelined kernel
+        using Tile = WmmaAsyncTile<scalar_t>;
+        auto kernel = conv_fwd_wmma_async_kernel<scalar_t>;
+        C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(Tile::kSmem)));
+        kernel<<<grid, kWmmaThreads, Tile::kSmem, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
+                                                            nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(), n_out,
+                                                            static_cast<int>(cin), static_cast<int>(cout), static_cast<int>(K));
+        C10_CUDA_KERNEL_LAUNCH_CHECK();
+        return;
+      }
       auto kernel = use_vec ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
       kernel<<<grid, kWmmaThreads, 0, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(),
                                                 order, out.data_ptr<scalar_t>(), n_out, cin, cout, K);
@@ -430,6 +713,23 @@ at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight
     if (dtype == at::kHalf) launch(c10::Half{});
     else if (dtype == at::kBFloat16) launch(c10::BFloat16{});
     else launch(float{});
+    return out;
+  }
+  if (dtype == at::kFloat && cin % 4 == 0 && K <= kAsyncMaxK && device_props(x.get_device()).cc_major >= 8 &&
+      aligned16(x.data_ptr()) && aligned16(w.data_ptr())) {
+    auto launch = [&](auto kernel, auto tile, int bm, int bn) {
+      using Tile = decltype(tile);
+      C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(Tile::kSmem)));
+      const dim3 grid(static_cast<unsigned>(ceil_div(n_out, bm)), static_cast<unsigned>(ceil_div(cout, bn)));
+      kernel<<<grid, Tile::kThreads, Tile::kSmem, stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
+                                                            order, out.data_ptr<float>(), n_out, static_cast<int>(cin),
+                                                            static_cast<int>(cout), static_cast<int>(K));
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    };
+    // 64-row tiles, 32 channels per step, 3 stages: the best of the tiles tried on the H200 (docs/sparse.md)
+    if (cout <= 16) launch(conv_fwd_f32_async_kernel<64, 16, 4, 2, 32, 3>, AsyncTile<64, 16, 4, 2, 32, 3>{}, 64, 16);
+    else if (cout <= 32) launch(conv_fwd_f32_async_kernel<64, 32, 4, 2, 32, 3>, AsyncTile<64, 32, 4, 2, 32, 3>{}, 64, 32);
+    else launch(conv_fwd_f32_async_kernel<64, 64, 4, 4, 32, 3>, AsyncTile<64, 64, 4, 4, 32, 3>{}, 64, 64);
     return out;
   }
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, dtype, "lidarops_sparse_conv_simt", [&] {
