@@ -103,11 +103,12 @@ def _model(scenario: str, device, zeros: float, seed: int = 0):
     return SSCATeRPointPillars(pfn, bb, grid, max_points_per_pillar=N, refresh_every=0, device=device), N
 
 
-def bench_stream(device, steps: int, every: int, zeros: float, rows: list, traces: dict):
+def bench_stream(device, steps: int, every: int, zeros: float, rows: list, traces: dict, scenarios=_SCENARIOS):
     from lidarops.data.synthetic import Simulator
     from lidarops.models.pointpillars import scatter_to_bev
+    from lidarops.sparse import SparseConvTensor
     from lidarops.stream import pillarize
-    for scenario in _SCENARIOS:
+    for scenario in scenarios:
         model, N = _model(scenario, device, zeros)
         sim = Simulator(scenario, seed=0)
         slices = list(sim.slices(0.0, 0.01 * steps, 0.01))
@@ -116,7 +117,7 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
             model.step(torch.from_numpy(p).to(device), torch.from_numpy(t).to(device), now=0.01 * (i + 1))
         reached = calibrate_relu_zeros(model, zeros)
         pushed_p, pushed_t = [], []
-        ss, full, dense, rel, stats = [], [], [], [], []
+        ss, full, full_bb, dense, rel, stats = [], [], [], [], [], []
         for i, (p, t) in enumerate(slices):
             pt, tt = torch.from_numpy(p).to(device), torch.from_numpy(t).to(device)
             pushed_p.append(pt)
@@ -136,9 +137,15 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
             out = out.clone()
             _sync(device)
             t0 = time.perf_counter()
-            ref = model.recompute(win, N)
+            with torch.no_grad():  # what model.recompute does, with the backbone timed on its own
+                pil = pillarize(win, model.grid, N, model.stream.max_pillars)
+                f = model.pfn(pil).to(model.dtype)
+                _sync(device)
+                t1 = time.perf_counter()
+                ref = model.backbone(SparseConvTensor(f, pil.coords, list(model.grid.shape), 1), mode="sparse")
             _sync(device)
             full.append((time.perf_counter() - t0) * 1e3)
+            full_bb.append((time.perf_counter() - t1) * 1e3)
             scale = float(ref.abs().max())
             rel.append(float((out - ref).abs().max()) / scale if scale else 0.0)
             _sync(device)
@@ -164,6 +171,8 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
             "speedup_vs_full": med(full) / med(ss_run) if full else None,
             "speedup_vs_dense": med(dense) / med(ss_run) if dense else None,
             "ms_sscater_stages": {k: med([getattr(s, k) for s in run]) for k in ("ms_stream", "ms_pfn", "ms_backbone")},
+            # the backbones alone: the recycling update against backbone(mode="sparse") with its maps built
+            "ms_full_backbone": med(full_bb) if full_bb else None,
             "under_10ms": sum(v < 10.0 for v in ss_run) / len(ss_run),
             "pillars_active": med([s.pillars_active for s in run]), "pillars_changed": med([s.pillars_changed for s in run]),
             "pfn_saved": statistics.mean([s.pfn_saved for s in run]),
@@ -171,6 +180,8 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
             "changed_share_mean": statistics.mean(share), "max_rel_diff": max(rel) if rel else None,
             "checks": len(rel),
         }
+        row["backbone_speedup_vs_full"] = (row["ms_full_backbone"] / row["ms_sscater_stages"]["ms_backbone"]
+                                           if full_bb else None)
         rows.append(row)
         traces[scenario] = {"ms_sscater": ss, "ms_full_sparse_every": every, "ms_full_sparse": full, "ms_dense": dense,
                             "changed_share": [s.pillars_changed / max(s.pillars_active, 1) for s in stats]}
@@ -178,7 +189,10 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
                     ["stage", "SSCATeR ms", "full sparse ms", "dense ms", "vs full", "vs dense"],
                     [["step (median)", fmt_ms(row["ms_sscater"]), fmt_ms(row["ms_full_sparse"]), fmt_ms(row["ms_dense"]),
                       fmt_ratio(row["speedup_vs_full"]), fmt_ratio(row["speedup_vs_dense"])]]
-                    + [[f"  {k[3:]}", fmt_ms(v), "", "", "", ""] for k, v in row["ms_sscater_stages"].items()],
+                    + [[f"  {k[3:]}", fmt_ms(v), "", "", "", ""] for k, v in row["ms_sscater_stages"].items()
+                       if k != "ms_backbone"]
+                    + [["  backbone", fmt_ms(row["ms_sscater_stages"]["ms_backbone"]), fmt_ms(row["ms_full_backbone"]),
+                        "", fmt_ratio(row["backbone_speedup_vs_full"]), ""]],
                     right=(1, 2, 3, 4, 5))
         print_table("", ["layer", "active", "changed", "changed %", "zeros %"],
                     [[n, f"{a:.0f}", f"{c:.0f}", f"{100 * s:.1f}", f"{100 * z:.0f}"]
@@ -229,7 +243,9 @@ def bench_layers(device, quick: bool, rows: list):
                 cand, count = ops.sscater_touch_(stamp, acc, step[0] + 2, reached, none, none)
                 sites, d, counts = ops.sscater_finalize_compact_(acc, feats, act, cand, count, stamp, step[0] + 3,
                                                                  scale, shift)
-                n = int(counts[0])
+                if device.type == "cuda":  # sync-free: the next layer reads the count on the device
+                    return sites, d, counts[:1]
+                n = int(counts[0])  # CPU: the list is trimmed
                 return sites[:n], d[:n]
 
             xs = SparseConvTensor(x, torch.cat([torch.zeros_like(active[:, :1]), active], 1), [H, W], 1)
@@ -295,6 +311,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=None, help="10 ms steps per scenario (default 1000 on CUDA, 60 on CPU)")
     ap.add_argument("--every", type=int, default=None, help="time the full recomputation every N steps")
     ap.add_argument("--relu-zeros", type=float, default=0.5)
+    ap.add_argument("--scenarios", default=",".join(_SCENARIOS))
     ap.add_argument("--plot", default=None, help="PNG of the per-step runtime trace (default docs/img/sscater_trace_<device>.png)")
     a = ap.parse_args(argv)
     import lidarops.extension as ext
@@ -308,7 +325,7 @@ def main(argv=None) -> int:
     rows, traces = [], {}
     only = set(a.only.split(","))
     if "stream" in only:
-        bench_stream(device, steps, every, a.relu_zeros, rows, traces)
+        bench_stream(device, steps, every, a.relu_zeros, rows, traces, a.scenarios.split(","))
     if "layer" in only:
         bench_layers(device, a.quick, rows)
     if traces and not a.quick:

@@ -166,6 +166,47 @@ def test_gather_sets_the_full_convolution_at_the_sites(device, s):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_scatter_and_gather_read_only_the_counted_rows(device, dtype):
+    """A padded list whose length is on the device: (-1, -1) rows and rows past ``count`` are ignored
+    (they hold real sites and deltas here, which would land if read). Channel counts that are not
+    multiples of the CUDA tile (64), and more rows than one tile."""
+    g = torch.Generator().manual_seed(31)
+    H, W, cin, cout, n = 20, 18, 70, 67, 150
+    keys = torch.randperm(H * W, generator=g)[:n + 40]
+    sites = torch.stack([keys // W, keys % W], 1).int()
+    sites[5] = sites[77] = -1  # padding inside the counted rows
+    delta = torch.randn(n + 40, cin, generator=g, dtype=torch.float64)
+    weight = torch.randn(cout, 3, 3, cin, generator=g, dtype=torch.float64)
+    used = torch.ones(n, dtype=torch.bool)
+    used[5] = used[77] = False
+    ref = F.conv2d(_dense_delta(H, W, sites[:n][used], delta[:n][used]), weight.permute(0, 3, 1, 2), None, 1, 1)
+    ref = ref[0].permute(1, 2, 0)
+    start = torch.randn(H, W, cout, generator=g, dtype=torch.float64)
+    acc = start.to(device, dtype).clone()
+    count = torch.tensor([n], device=device)
+    reached = _ops.sscater_scatter_(acc, sites.to(device), delta.to(device, dtype), weight.to(device, dtype), 1, 1,
+                                    False, None, count)
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    assert (acc.double().cpu() - (start + ref)).abs().max() <= tol * (start + ref).abs().max()
+    r = reached.cpu().view(n + 40, 9)
+    assert (r[n:] == -1).all() and (r[5] == -1).all() and (r[77] == -1).all() and (r[:5] >= -1).all()
+    # the gather: the first 100 of 150 listed sites, in float64 against conv2d of a random input
+    inp = torch.randn(H, W, cin, generator=g, dtype=torch.float64)
+    full = F.conv2d(inp.permute(2, 0, 1)[None], weight.permute(0, 3, 1, 2), None, 1, 1)[0].permute(1, 2, 0)
+    acc = start.to(device, dtype).clone()
+    _ops.sscater_gather_(acc, inp.to(device, dtype), weight.to(device, dtype), sites.to(device), 1, 1,
+                         torch.tensor([100], device=device))
+    exp = start.clone()
+    s_ = sites[:100][used[:100]].long()
+    exp[s_[:, 0], s_[:, 1]] = full[s_[:, 0], s_[:, 1]]
+    assert (acc.double().cpu() - exp).abs().max() <= tol * exp.abs().max()
+    with pytest.raises(RuntimeError, match="count must be an int64"):
+        _ops.sscater_gather_(acc, inp.to(device, dtype), weight.to(device, dtype), sites.to(device), 1, 1,
+                             torch.tensor([1], dtype=torch.int32, device=device))
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_touch_then_finalize_compact(device):
     g = torch.Generator().manual_seed(24)
     H, W, C = 7, 9, 5
@@ -181,7 +222,8 @@ def test_touch_then_finalize_compact(device):
     # settle every site with the device's own arithmetic (stamp values 2 and 3), then perturb two
     everything = torch.arange(H * W, device=device)
     none = torch.zeros(0, 2, dtype=torch.int32, device=device)
-    cand, count = _ops.sscater_touch_(stamp_d, acc_d, 2, everything, none, none)
+    cand, count = _ops.sscater_touch_(stamp_d, acc_d, 2, torch.cat([everything, everything.flip(0)]), none, none)
+    assert cand.shape == (H * W, 2) and count.item() == H * W  # each site once: the list is capped at the grid
     _ops.sscater_finalize_compact_(acc_d, feats_d, active_d, cand, count, stamp_d, 3, sc, sh)
     ref = torch.where(active[..., None], torch.relu(acc * scale + shift), torch.zeros(1, dtype=acc.dtype))
     assert (feats_d.cpu() - ref).abs().max() <= 1e-12 * ref.abs().max()
@@ -210,7 +252,7 @@ def test_touch_then_finalize_compact(device):
     assert sorted(map(tuple, sites.cpu()[:n].tolist())) == changed
     for (y, x), d in zip(sites.cpu()[:n].tolist(), delta.cpu()[:n]):
         assert torch.equal(d, new[y, x] - old[y, x])
-    assert (sites.cpu()[n:] == -1).all() and (delta.cpu()[n:] == 0).all()
+    assert (sites.cpu()[n:] == -1).all()  # (the padding rows' delta is unspecified)
     assert counts.tolist() == [3, 4, len(keys)]  # changed or status: the three, and (0, 5)
     assert torch.equal(new[2, 4], settled[2, 4]) and torch.equal(new[3, 0], old[3, 0])
     assert (new[1, 1] == 0).all() and (new[6, 8] == 0).all()
@@ -318,13 +360,25 @@ def _full(bb, sites, feats, H, W, device):
         return bb(SparseConvTensor(feats.to(device), c.to(device), [H, W], 1), mode="sparse")
 
 
+STEP_MODES = ["trimmed", "sync_free", "cuda_graph"]
+
+
+def _delta_backbone(bb, shape, dtype, device, mode):
+    """trimmed: lists trimmed on the host each layer (the CPU default); sync_free: padded lists and
+    row counts on the device; cuda_graph: the sync-free step captured in CUDA graphs (the CUDA default)."""
+    if mode == "cuda_graph" and torch.device(device).type != "cuda":
+        pytest.skip("CUDA graphs need a GPU")
+    return DeltaBackbone(bb, shape, dtype, device, sync_free=mode != "trimmed", cuda_graph=mode == "cuda_graph")
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("negative_bias", [0.0, 0.8])
-def test_recycling_backbone_equals_full_recomputation_float64(device, negative_bias):
+@pytest.mark.parametrize("mode", STEP_MODES)
+def test_recycling_backbone_equals_full_recomputation_float64(device, negative_bias, mode):
     H, W = 40, 48
     bb = small_backbone(seed=7, negative_bias=negative_bias).to(device)
     stream = PillarMapStream(H, W, 8, seed=11)
-    db = DeltaBackbone(bb, (H, W), torch.float64, device)
+    db = _delta_backbone(bb, (H, W), torch.float64, device, mode)
     sites, feats = stream.current()
     out = db.refresh(sites, feats)
     ref = _full(bb, sites, feats, H, W, device)
@@ -346,11 +400,12 @@ def test_recycling_backbone_equals_full_recomputation_float64(device, negative_b
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_recycling_backbone_float32_and_emptying_the_grid(device):
+@pytest.mark.parametrize("mode", STEP_MODES)
+def test_recycling_backbone_float32_and_emptying_the_grid(device, mode):
     H, W = 32, 40
     bb = small_backbone(seed=2, dtype=torch.float32).to(device)
     stream = PillarMapStream(H, W, 8, seed=5, start=60, dtype=torch.float32)
-    db = DeltaBackbone(bb, (H, W), torch.float32, device)
+    db = _delta_backbone(bb, (H, W), torch.float32, device, mode)
     db.refresh(*stream.current())
     for i in range(40):
         s, f, r = stream.step(30, only_remove=i >= 30)  # the last steps only remove: the grid empties
@@ -374,6 +429,8 @@ def test_recycling_backbone_bad_input():
         DeltaBackbone(small_backbone().train(), (16, 16))
     with pytest.raises(ValueError, match="dtype must be"):
         DeltaBackbone(bb, (16, 16), torch.float16)
+    with pytest.raises(ValueError, match="cuda_graph needs a CUDA device and sync_free=True"):
+        DeltaBackbone(bb, (16, 16), torch.float64, "cpu", sync_free=True, cuda_graph=True)
 
 
 # ---- the streaming PointPillars front on simulated LiDAR streams -----------------------------------

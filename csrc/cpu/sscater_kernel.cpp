@@ -16,26 +16,20 @@ namespace {
 
 at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in,
                        const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed,
-                       const c10::optional<at::Tensor>& out_active) {
+                       const c10::optional<at::Tensor>& out_active, const c10::optional<at::Tensor>& count) {
   check_scatter_args(acc, sites_in, delta_in, weight_in, stride, padding);
   check_out_active(out_active, acc);
-  const int64_t n = sites_in.size(0);
+  check_count(count, acc);
+  const int64_t n_rows = sites_in.size(0);
   const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
   const int64_t kh = weight_in.size(1), kw = weight_in.size(2), K = kh * kw;
-  auto targets = at::empty({n * K}, sites_in.options().dtype(at::kLong));
+  auto targets = at::full({n_rows * K}, -1, sites_in.options().dtype(at::kLong));
+  const int64_t n = count.has_value() ? std::clamp<int64_t>(count->item<int64_t>(), 0, n_rows) : n_rows;
   if (n == 0) return targets;
   auto sites = sites_in.contiguous();
   const int32_t* sp = sites.data_ptr<int32_t>();
   int64_t* target = targets.data_ptr<int64_t>();
-  for (int64_t i = 0; i < n; ++i)
-    for (int64_t ky = 0; ky < kh; ++ky) {
-      const int64_t oy = reach(sp[2 * i], ky, stride, padding, Ho, transposed);
-      for (int64_t kx = 0; kx < kw; ++kx) {
-        const int64_t ox = oy < 0 ? -1 : reach(sp[2 * i + 1], kx, stride, padding, Wo, transposed);
-        int64_t o = ox < 0 ? -1 : oy * Wo + ox;
-        target[i * K + ky * kw + kx] = o;
-      }
-    }
+  for (int64_t r = 0; r < n * K; ++r) target[r] = tap_target(sp, r / K, r % K, kw, stride, padding, Ho, Wo, transposed);
   if (out_active.has_value()) {
     const bool* act = out_active->data_ptr<bool>();
     for (int64_t r = 0; r < n * K; ++r)
@@ -125,8 +119,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> cover_update_cpu(at::Tensor& cove
                                                      int64_t stride, int64_t padding) {
   check_cover_update_args(cover, active, stamp, added_in, removed_in, kh, kw, stride, padding);
   const int64_t Ho = cover.size(0), Wo = cover.size(1), K = kh * kw;
-  const int64_t a = added_in.size(0), r = removed_in.size(0), rows = (a + r) * K;
-  auto added_out = at::full({rows, 2}, -1, added_in.options());
+  const int64_t a = added_in.size(0), r = removed_in.size(0), rows = std::min((a + r) * K, Ho * Wo);
+  auto added_out = at::full({rows, 2}, -1, added_in.options());  // an output flips at most once
   auto removed_out = at::full({rows, 2}, -1, added_in.options());
   auto added = added_in.contiguous(), removed = removed_in.contiguous();
   int32_t* cv = cover.data_ptr<int32_t>();
@@ -202,9 +196,11 @@ std::tuple<at::Tensor, at::Tensor> children_cpu(at::Tensor& active, const at::Te
 }
 
 void gather_cpu(at::Tensor& acc, const at::Tensor& input, const at::Tensor& weight_in, const at::Tensor& sites_in,
-                int64_t stride, int64_t padding) {
+                int64_t stride, int64_t padding, const c10::optional<at::Tensor>& count) {
   check_gather_args(acc, input, weight_in, sites_in, stride, padding);
-  const int64_t m = sites_in.size(0);
+  check_count(count, acc);
+  const int64_t m = count.has_value() ? std::clamp<int64_t>(count->item<int64_t>(), 0, sites_in.size(0))
+                                      : sites_in.size(0);
   if (m == 0) return;
   const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
   const int64_t Hi = input.size(0), Wi = input.size(1), Ci = input.size(2);
@@ -249,7 +245,7 @@ std::tuple<at::Tensor, at::Tensor> touch_cpu(at::Tensor& stamp, at::Tensor& acc,
   check_touch_args(stamp, acc, targets_in, added_in, removed_in);
   const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2), HW = Ho * Wo;
   const int64_t R = targets_in.size(0), a = added_in.size(0), r = removed_in.size(0);
-  auto cand = at::full({R + a + r, 2}, -1, added_in.options());
+  auto cand = at::full({std::min(R + a + r, HW), 2}, -1, added_in.options());  // each site at most once
   auto count = at::zeros({1}, targets_in.options());
   auto targets = targets_in.contiguous();
   auto added = added_in.contiguous(), removed = removed_in.contiguous();

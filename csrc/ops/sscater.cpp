@@ -12,10 +12,12 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // With out_active (Ho, Wo) bool, only active output sites are updated (the others' acc goes stale
   // and must be recomputed when they become active). Returns the reached output sites:
   // (n * kh * kw,) int64 linear keys oy * Wo + ox, entry i * K + ky * kw + kx, or -1 where the tap
-  // falls outside the grid (or on an inactive site).
+  // falls outside the grid (or on an inactive site). A row with a negative coordinate is padding (no
+  // site); with count (int64 (1,) on acc's device), only the first count[0] rows are read: the rest
+  // get -1 and cost nothing (a padded list whose length is known only on the device).
   m.def(
       "sscater_scatter_(Tensor(a!) acc, Tensor sites, Tensor delta, Tensor weight, int stride, int padding,"
-      " bool transposed, Tensor? out_active=None) -> Tensor");
+      " bool transposed, Tensor? out_active=None, Tensor? count=None) -> Tensor");
   // For each site (m, 2) int32 of the output grid: y = active ? relu(acc * scale + shift) : 0, written
   // into out (Ho, Wo, C), any strides. Returns (changed (m,) bool: y differs from out's previous
   // value in some channel, delta (m, C) = y - previous).
@@ -30,8 +32,8 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // Strided layer: cover (Ho, Wo) int32 counts the active inputs under each output's kernel; the
   // inputs `added` / `removed` (n, 2) add / remove one under every tap. Outputs whose cover crosses
   // zero flip `active` and are returned as (added, removed), both ((a + r) * kh * kw, 2), filled from
-  // their first row (the rest is padding), with their counts (2,) int64. Dedup of the touched
-  // outputs: stamp = value.
+  // their first row (the rest is padding), with their counts (2,) int64; at most Ho * Wo rows each
+  // (an output flips once). Dedup of the touched outputs: stamp = value.
   m.def(
       "sscater_cover_update_(Tensor(a!) cover, Tensor(b!) active, Tensor(c!) stamp, int value, Tensor added,"
       " Tensor removed, int kh, int kw, int stride, int padding) -> (Tensor, Tensor, Tensor)");
@@ -42,16 +44,20 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       " int padding) -> (Tensor, Tensor)");
   // acc at `sites` (m, 2) of the output grid (padded) = the full convolution (no bias) of input
   // (Hi, Wi, Cin) there: sum over taps of input[y * stride - padding + ky, x * stride - padding + kx]
-  // @ weight[:, ky, kx, :]^T (zero outside the input grid).
-  m.def("sscater_gather_(Tensor(a!) acc, Tensor input, Tensor weight, Tensor sites, int stride, int padding) -> ()");
+  // @ weight[:, ky, kx, :]^T (zero outside the input grid). With count, only the first count[0] rows.
+  m.def(
+      "sscater_gather_(Tensor(a!) acc, Tensor input, Tensor weight, Tensor sites, int stride, int padding,"
+      " Tensor? count=None) -> ()");
   // The sites to re-evaluate, each once: the reached keys `targets` (R,) int64 (-1: none; stamp =
   // value) and the status changes `added`, `removed` (padded; stamp = value + 1); acc is zeroed at
-  // the removed sites. Returns (cand (R + a + r, 2) int32, padded, count (1,) int64: its used rows).
+  // the removed sites. Returns (cand (min(R + a + r, Ho * Wo), 2) int32, padded: each site at most
+  // once, and count (1,) int64: its used rows).
   m.def(
       "sscater_touch_(Tensor(a!) stamp, Tensor(b!) acc, int value, Tensor targets, Tensor added, Tensor removed)"
       " -> (Tensor, Tensor)");
   // sscater_finalize_ over the first count[0] rows of cand, compacted: returns (sites (m, 2) int32,
-  // delta (m, C)) of the sites whose value changed, in their first rows (then (-1, -1) and zero rows),
+  // delta (m, C)) of the sites whose value changed, in their first rows (then (-1, -1) rows, whose
+  // delta is unspecified),
   // and counts (3,) int64:
   // changed sites, sites changed or with a status change (stamp == status_value), sites evaluated.
   m.def(

@@ -63,12 +63,20 @@ class PillarFeatureNet(nn.Module):
         features = features.to(self.linear.weight.dtype)
         P, N, _ = features.shape
         mask = torch.arange(N, device=features.device) < num_points.to(features.device).long()[:, None]  # (P, N)
-        x = self.linear(features[mask])  # only the real points
-        x = torch.relu(self.norm(x)) if x.shape[0] else x
-        out = features.new_zeros(P, N, self.out_channels)
-        out[mask] = x
+        if not N or not P:
+            return features.new_zeros(P, self.out_channels)
+        if features.is_cuda and not self.training:
+            # every slot, padding masked to zero afterwards: no boolean indexing, so no host sync
+            # (eval mode only: BatchNorm's batch statistics must see the real points alone)
+            x = torch.relu(self.norm(self.linear(features.reshape(P * N, -1)))).view(P, N, -1)
+            out = torch.where(mask[..., None], x, x.new_zeros(()))
+        else:  # only the real points (on CPU the padding would multiply the work)
+            x = self.linear(features[mask])
+            x = torch.relu(self.norm(x)) if x.shape[0] else x
+            out = features.new_zeros(P, N, self.out_channels)
+            out[mask] = x
         # post-ReLU values are >= 0, so zero padding never wins the max over a non-empty pillar
-        return out.amax(dim=1) if N else features.new_zeros(P, self.out_channels)
+        return out.amax(dim=1)
 
 
 def scatter_to_bev(pillar_features: Tensor, coords: Tensor, shape: Sequence[int], batch_size: int = 1) -> Tensor:

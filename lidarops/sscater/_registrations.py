@@ -7,7 +7,7 @@ import torch
 
 
 @torch.library.register_fake("lidarops::sscater_scatter_")
-def _scatter_fake(acc, sites, delta, weight, stride, padding, transposed, out_active=None):
+def _scatter_fake(acc, sites, delta, weight, stride, padding, transposed, out_active=None, count=None):
     return sites.new_empty((sites.shape[0] * weight.shape[1] * weight.shape[2],), dtype=torch.int64)
 
 
@@ -21,7 +21,7 @@ def _finalize_fake(acc, out, active, sites, scale, shift):
 
 @torch.library.register_fake("lidarops::sscater_cover_update_")
 def _cover_update_fake(cover, active, stamp, value, added, removed, kh, kw, stride, padding):
-    rows = (added.shape[0] + removed.shape[0]) * kh * kw
+    rows = min((added.shape[0] + removed.shape[0]) * kh * kw, cover.shape[0] * cover.shape[1])
     return added.new_empty((rows, 2)), added.new_empty((rows, 2)), added.new_empty((2,), dtype=torch.int64)
 
 
@@ -31,13 +31,13 @@ def _children_fake(active, added, removed, kh, kw, stride, padding):
 
 
 @torch.library.register_fake("lidarops::sscater_gather_")
-def _gather_fake(acc, input, weight, sites, stride, padding):
+def _gather_fake(acc, input, weight, sites, stride, padding, count=None):
     return None
 
 
 @torch.library.register_fake("lidarops::sscater_touch_")
 def _touch_fake(stamp, acc, value, targets, added, removed):
-    rows = targets.shape[0] + added.shape[0] + removed.shape[0]
+    rows = min(targets.shape[0] + added.shape[0] + removed.shape[0], stamp.shape[0] * stamp.shape[1])
     return added.new_empty((rows, 2)), targets.new_empty((1,))
 
 

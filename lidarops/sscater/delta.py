@@ -22,9 +22,11 @@ computes ``acc`` in full at the sites that just became active (their ``acc`` was
 inactive; ``sscater_gather_``), and re-evaluates BatchNorm (folded) and ReLU only at the sites the
 scatter reached or whose status changed (``sscater_touch_`` lists them once each through a stamp map,
 ``sscater_finalize_compact_`` evaluates them and compacts the changed ones). A layer is a handful of
-kernels and one host synchronisation (the number of changed sites): site lists are padded to upper
-bounds with (-1, -1) rows instead of being compacted on the host, and the statistics of a step are
-read once at its end.
+kernels: site lists are padded to upper bounds with (-1, -1) rows instead of being compacted on the
+host, and the statistics of a step are read once at its end. On CUDA (``sync_free``) the lists are
+never trimmed: every list holds each site of its grid at most once, and the scatter and gather read
+their row counts from the device, so a step makes no host synchronisation between layers; on CPU one
+synchronisation per layer (free there) trims them.
 The changed sites it passes on are those whose post-ReLU value changed (a site that stays <= 0 is not
 passed on) plus those whose active status changed.
 """
@@ -47,15 +49,20 @@ class Change:
     """What changed at one node in one step.
 
     Attributes:
-        sites (Tensor[n, 2] int32): (y, x) of the sites whose value changed.
+        sites (Tensor[n, 2] int32): (y, x) of the sites whose value changed; (-1, -1) rows are padding.
         delta (Tensor[n, C]): new value - old value at those sites.
-        added, removed (Tensor[a, 2] / [r, 2] int32): sites that became active / inactive.
+        added, removed (Tensor[a, 2] / [r, 2] int32): sites that became active / inactive (padded too).
+        count (Tensor[1] int64, optional): only the first ``count[0]`` rows of ``sites`` / ``delta`` are
+            used (a length known only on the device: the sync-free step does not trim its lists).
+        added_count (Tensor[1] int64, optional): the same for ``added``.
     """
 
     sites: Tensor
     delta: Tensor
     added: Tensor
     removed: Tensor
+    count: Optional[Tensor] = None
+    added_count: Optional[Tensor] = None
 
 
 @dataclass
@@ -90,8 +97,8 @@ class _Layer:
         self.acc = torch.zeros(*out_shape, self.cout, dtype=dtype, device=device)
         self.feats: Optional[Tensor] = None  # set by the owner (own buffer or a view of the output map)
         self.active: Optional[Tensor] = None
-        # sites touched in a step: values only grow (see DeltaBackbone._stamp)
-        self.stamp = torch.zeros(*out_shape, dtype=torch.int32, device=device)
+        # sites touched in a step (zeroed at the start of each step; a view of DeltaBackbone._stamps)
+        self.stamp: Optional[Tensor] = None
         self.stats = LayerStats(name)
 
 
@@ -108,13 +115,21 @@ class DeltaBackbone:
         shape (tuple[int, int]): the pillar grid (H, W).
         dtype (torch.dtype): float32 or float64 state.
         device: where the state lives (default: the backbone's).
+        sync_free (bool): never trim the site lists on the host; each op reads the previous op's row
+            count from the device instead, so a step makes no host synchronisation between layers
+            (default: on CUDA, where a sync stalls the launch queue; on CPU reading a count is free
+            and trimmed lists are smaller).
+        cuda_graph (bool): run :meth:`update` as a CUDA graph (one per power-of-two input capacity,
+            captured on first use); default: on CUDA with ``sync_free``. Not with ``profile=True``.
 
     ``refresh(sites, features)`` sets the whole input (a full recomputation through the sparse ops);
     ``update(change)`` applies one step's input change; both return the (1, C_out, H/2, W/2) map, which
-    is the state itself: it is overwritten by the next call (clone it to keep it).
+    is the state itself: it is overwritten by the next call (clone it to keep it). Its memory format is
+    ``torch.channels_last`` (call ``.contiguous()`` for channels-first memory).
     """
 
-    def __init__(self, backbone: PointPillarsBackbone, shape, dtype: torch.dtype = torch.float32, device=None):
+    def __init__(self, backbone: PointPillarsBackbone, shape, dtype: torch.dtype = torch.float32, device=None,
+                 sync_free: Optional[bool] = None, cuda_graph: Optional[bool] = None):
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         if backbone.training:
@@ -123,6 +138,11 @@ class DeltaBackbone:
         self.shape = (int(shape[0]), int(shape[1]))
         self.dtype = dtype
         self.device = torch.device(device) if device is not None else next(backbone.parameters()).device
+        self.sync_free = self.device.type == "cuda" if sync_free is None else bool(sync_free)
+        self.cuda_graph = self.sync_free and self.device.type == "cuda" if cuda_graph is None else bool(cuda_graph)
+        if self.cuda_graph and not (self.sync_free and self.device.type == "cuda"):
+            raise ValueError(f"cuda_graph needs a CUDA device and sync_free=True, got {self.device} and "
+                             f"sync_free={self.sync_free}")
         self.reload()
 
     # ---- construction ----------------------------------------------------------------------------
@@ -133,8 +153,12 @@ class DeltaBackbone:
         specs = backbone_layers(self.backbone)
         H, W = self.shape
         self.in_channels = self.backbone.in_channels
-        self.in_feats = torch.zeros(H, W, self.in_channels, dtype=dt, device=dev)
-        self.in_active = torch.zeros(H, W, dtype=torch.bool, device=dev)
+        # the input maps, flat with one scratch row at H * W where padding rows of a step's input land
+        self._in_feats = torch.zeros(H * W + 1, self.in_channels, dtype=dt, device=dev)
+        self._in_active = torch.zeros(H * W + 1, dtype=torch.bool, device=dev)
+        self.in_feats = self._in_feats[:H * W].view(H, W, self.in_channels)
+        self.in_active = self._in_active[:H * W].view(H, W)
+        self._graphs: dict = {}  # CUDA graphs of the step, by input capacity
         self.layers: list[_Layer] = []
         block_shape, block_active, self.block_cover = {}, {}, {}
         shape, prev = (H, W), None
@@ -165,19 +189,28 @@ class DeltaBackbone:
             raise ValueError(f"the upsampling branches reach different grids {up_shapes}")
         Hu, Wu = up_shapes[0]
         couts = [s.conv.weight.shape[1] for s in ups]
-        self.out = torch.zeros(1, sum(couts), Hu, Wu, dtype=dt, device=dev)
+        # channels_last memory: each upsampling layer writes its sites' channels contiguously
+        self.out = torch.zeros(1, sum(couts), Hu, Wu, dtype=dt, device=dev).to(memory_format=torch.channels_last)
         self.up_layers: list[_Layer] = []
         c0 = 0
         for spec, cu in zip(ups, couts):
             layer = _Layer(spec, dt, dev, block_shape[spec.block], (Hu, Wu), f"up{spec.block}")
             layer.input = self.layers[self.block_last[spec.block]].feats
-            layer.feats = self.out[0, c0:c0 + cu].permute(1, 2, 0)  # (Hu, Wu, Cu) view, channels-first memory
+            layer.feats = self.out[0, c0:c0 + cu].permute(1, 2, 0)  # (Hu, Wu, Cu) view of channels-last memory
             layer.active = torch.zeros(Hu, Wu, dtype=torch.bool, device=dev)
             self.up_layers.append(layer)
             c0 += cu
         self.stats: list[LayerStats] = [layer.stats for layer in self.layers + self.up_layers]
         self.steps = 0
-        self._stamp = 0  # stamp values of a step: base (strided layers' cover), base + 2 (reached), base + 3 (status)
+        # every layer's stamp map in one buffer, zeroed once per step
+        every = self.layers + self.up_layers
+        self._stamps = torch.zeros(sum(lay.out_shape[0] * lay.out_shape[1] for lay in every), dtype=torch.int32,
+                                   device=dev)
+        off = 0
+        for lay in every:
+            n = lay.out_shape[0] * lay.out_shape[1]
+            lay.stamp = self._stamps[off:off + n].view(lay.out_shape)
+            off += n
 
     # ---- full recomputation ----------------------------------------------------------------------
 
@@ -244,30 +277,49 @@ class DeltaBackbone:
         """Apply one step's input change and return the output map.
 
         Args:
-            sites (Tensor[n, 2] int): (y, x) of the pillars that changed (gained or lost points).
+            sites (Tensor[n, 2] int): (y, x) of the pillars that changed (gained or lost points), each
+                at most once.
             features (Tensor[n, Cin]): their new features (ignored where ``removed``).
             removed (Tensor[n] bool): pillars that became empty (inactive).
-            profile (bool): time each layer (synchronises CUDA after each layer).
+            profile (bool): time each layer (synchronises CUDA after each layer; no CUDA graph).
         """
         sites, features = self._check_input(sites, features)
         if removed.shape != (sites.shape[0],) or removed.dtype != torch.bool:
             raise ValueError(f"removed must be bool ({sites.shape[0]},), got {removed.dtype} {tuple(removed.shape)}")
         removed = removed.to(self.device)
-        H, W = self.shape
-        keys = _keys(sites, W)
-        flat_f, flat_a = self.in_feats.view(H * W, -1), self.in_active.view(-1)
-        was = flat_a[keys]
+        if self.cuda_graph and not profile:
+            active, counts = self._replay(sites, features, removed)
+        else:
+            active, counts = self._step(sites, features, removed, profile)
+        figures = torch.cat([active[:, None], counts[:, 1:]], 1).tolist()  # the step's one device-to-host copy
+        for st, (a, changed, touched) in zip(self.stats, figures):
+            st.active, st.changed, st.touched = int(a), int(changed), int(touched)
+            if self.cuda_graph and not profile:
+                st.ms = 0.0  # not timed per layer inside a graph
+        self.steps += 1
+        return self.out
+
+    def _step(self, sites: Tensor, features: Tensor, removed: Tensor, profile: bool = False) -> tuple[Tensor, Tensor]:
+        """The step on validated input; returns the active sites and the counts of every layer (on the
+        device). With ``sync_free`` it makes no host synchronisation (it can be captured in a CUDA
+        graph): rows with a negative site are padding, and their keys land in the scratch row."""
+        HW = self.shape[0] * self.shape[1]
+        keys = _keys(sites, self.shape[1])
+        if self.sync_free:
+            keys = torch.where(sites[:, 0] >= 0, keys, HW)
+        was = self._in_active[keys]
         new = torch.where(removed[:, None], torch.zeros_like(features), features)
-        delta = new - flat_f[keys]
-        flat_f[keys] = new
-        flat_a[keys] = ~removed
+        delta = new - self._in_feats[keys]
+        self._in_feats[keys] = new
+        self._in_active[keys] = ~removed
         moved = delta.ne(0).any(1)
-        change = Change(sites[moved], delta[moved], sites[~was & ~removed], sites[was & removed])
-        if self._stamp > 2**31 - 16:  # int32 stamps: start again from zero (after ~5e8 steps)
-            for layer in self.layers + self.up_layers:
-                layer.stamp.zero_()
-            self._stamp = 0
-        self._stamp += 4
+        if self.sync_free:  # mask rows out with (-1, -1) instead of compacting them on the host
+            def keep(mask):
+                return torch.where(mask[:, None], sites, -1)
+            change = Change(keep(moved), delta, keep(~was & ~removed), keep(was & removed))
+        else:
+            change = Change(sites[moved], delta[moved], sites[~was & ~removed], sites[was & removed])
+        self._stamps.zero_()
         block_change = {}
         counts = []
         for layer in self.layers:
@@ -280,45 +332,80 @@ class DeltaBackbone:
             t0 = self._tick(profile)
             counts.append(self._layer_step(layer, block_change[layer.block])[1])
             layer.stats.ms = self._tock(t0, profile)
-        # the step's statistics in one device-to-host copy
         sums: dict = {}  # a block's layers share one active map: count it once
         active = torch.stack([sums.setdefault(id(layer.active), layer.active.sum())
                               for layer in self.layers + self.up_layers])
-        figures = torch.cat([active[:, None], torch.stack(counts)[:, 1:]], 1).tolist()
-        for st, (a, changed, touched) in zip(self.stats, figures):
-            st.active, st.changed, st.touched = int(a), int(changed), int(touched)
-        self.steps += 1
-        return self.out
+        return active, torch.stack(counts)
+
+    def _replay(self, sites: Tensor, features: Tensor, removed: Tensor) -> tuple[Tensor, Tensor]:
+        """The step as a CUDA graph: the input is padded to a power-of-two capacity (one graph per
+        capacity, captured on first use from a step that changes nothing)."""
+        n = sites.shape[0]
+        cap = max(256, 1 << max(n - 1, 0).bit_length())
+        g = self._graphs.get(cap)
+        if g is None:
+            g = self._capture(cap)
+        s_sites, s_feats, s_removed, graph, outputs = g
+        s_sites[n:].fill_(-1)
+        s_sites[:n].copy_(sites)
+        s_feats[:n].copy_(features)
+        s_removed[n:].fill_(False)
+        s_removed[:n].copy_(removed)
+        graph.replay()
+        return outputs
+
+    def _capture(self, cap: int):
+        s_sites = torch.full((cap, 2), -1, dtype=torch.int32, device=self.device)
+        s_feats = torch.zeros(cap, self.in_channels, dtype=self.dtype, device=self.device)
+        s_removed = torch.zeros(cap, dtype=torch.bool, device=self.device)
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):  # warm-up on all-padding input: changes no state
+            self._step(s_sites, s_feats, s_removed)
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        pool = next(iter(self._graphs.values()))[3].pool() if self._graphs else None
+        with torch.cuda.graph(graph, pool=pool):
+            outputs = self._step(s_sites, s_feats, s_removed)
+        self._graphs[cap] = (s_sites, s_feats, s_removed, graph, outputs)
+        return self._graphs[cap]
 
     def _layer_step(self, layer: _Layer, change: Change) -> tuple[Change, Tensor]:
         """One layer of a step; returns the change it passes on and its counts (3,) int64 on the
-        device: sites changed, sites changed or with a status change, sites re-evaluated. One host
-        synchronisation (the number of changed sites, which sizes the next layer's work)."""
+        device: sites changed, sites changed or with a status change, sites re-evaluated. Without
+        ``sync_free``, one host synchronisation (the number of changed sites, which trims the lists
+        that size the next layer's work)."""
         ops = torch.ops.lidarops
-        base = self._stamp
+        base = 4  # stamp values of a step (the maps are zeroed first): base (strided layers' cover),
+        # base + 2 (reached), base + 3 (status changed)
         # 1. active status of the output sites (site lists padded with (-1, -1) rows)
+        added_count = change.added_count
         if layer.kind == "subm":
             added, removed = change.added, change.removed  # the block's map was updated by its strided layer
         elif layer.kind == "down":  # outputs filled from their first rows, counts in `flips`
             added, removed, flips = ops.sscater_cover_update_(self.block_cover[layer.block], layer.active,
                                                               layer.stamp, base, change.added, change.removed,
                                                               layer.kh, layer.kw, layer.stride, layer.padding)
+            added_count = flips[:1]
         else:
             added, removed = ops.sscater_children_(layer.active, change.added, change.removed, layer.kh, layer.kw,
                                                    layer.stride, layer.padding)
         # 2. acc += delta (*) W at the active sites the kernel reaches
         reached = ops.sscater_scatter_(layer.acc, change.sites, change.delta, layer.weight, layer.stride,
-                                       layer.padding, layer.transposed, layer.active)
+                                       layer.padding, layer.transposed, layer.active, change.count)
         # sites that just became active had no up-to-date acc: compute theirs in full from the input
         # (a transposed layer's child has one parent, whose delta is its whole value: no gather)
         if added.shape[0] and layer.kind != "up":
             w = layer.weight_flat.view(layer.cout, layer.kh, layer.kw, layer.cin)  # contiguous: no copy
-            ops.sscater_gather_(layer.acc, layer.input, w, added, layer.stride, layer.padding)
+            ops.sscater_gather_(layer.acc, layer.input, w, added, layer.stride, layer.padding,
+                                added_count if self.sync_free else None)
         # 3. the sites to re-evaluate, each once (an inactive site's acc restarts from zero)
         cand, count = ops.sscater_touch_(layer.stamp, layer.acc, base + 2, reached, added, removed)
         # 4. BN + ReLU there; the sites whose value changed, compacted
         sites, delta, counts = ops.sscater_finalize_compact_(layer.acc, layer.feats, layer.active, cand, count,
                                                              layer.stamp, base + 3, layer.scale, layer.shift)
+        if self.sync_free:  # the lists stay padded (at most one row per site of the grid): counts go along
+            return Change(sites, delta, added, removed, counts[:1], added_count), counts
         if layer.kind == "down":  # trim the block's status lists, or their padding would grow block by block
             n, na, nr = torch.cat([counts[:1], flips]).tolist()
             added, removed = added[:na], removed[:nr]

@@ -27,6 +27,26 @@ LIDAROPS_HD int64_t reach(int64_t i, int64_t k, int64_t stride, int64_t padding,
   return (o >= 0 && o < n_out) ? o : -1;
 }
 
+// The output site (linear key oy * Wo + ox) that input row i of a padded site list reaches through
+// tap k, or -1: no site (a row with a negative coordinate is padding), or outside the output grid.
+LIDAROPS_HD int64_t tap_target(const int32_t* sites, int64_t i, int64_t k, int64_t kw, int64_t stride,
+                               int64_t padding, int64_t Ho, int64_t Wo, bool transposed) {
+  const int64_t y = sites[2 * i], x = sites[2 * i + 1];
+  if (y < 0 || x < 0) return -1;
+  const int64_t oy = reach(y, k / kw, stride, padding, Ho, transposed);
+  const int64_t ox = oy < 0 ? -1 : reach(x, k % kw, stride, padding, Wo, transposed);
+  return ox < 0 ? -1 : oy * Wo + ox;
+}
+
+// An optional row count (int64 (1,) on `ref`'s device): only the first count[0] rows of a padded list
+// of `rows` rows are used (the count a previous op left on the device, so that no host sync is needed).
+inline void check_count(const c10::optional<at::Tensor>& count, const at::Tensor& ref) {
+  if (!count.has_value()) return;
+  TORCH_CHECK(count->numel() == 1 && count->scalar_type() == at::kLong && count->device() == ref.device(),
+              "count must be an int64 (1,) tensor on ", ref.device(), ", got ", count->scalar_type(), " ",
+              count->sizes(), " on ", count->device());
+}
+
 inline void check_scatter_args(const at::Tensor& acc, const at::Tensor& sites, const at::Tensor& delta,
                                const at::Tensor& weight, int64_t stride, int64_t padding) {
   TORCH_CHECK(acc.dim() == 3 && acc.is_contiguous(), "acc must be a contiguous (Ho, Wo, Cout) tensor, got shape ",
@@ -183,16 +203,6 @@ LIDAROPS_HD bool site_at(const int32_t* s, int64_t i, int64_t H, int64_t W, int6
   y = s[2 * i];
   x = s[2 * i + 1];
   return y >= 0 && y < H && x >= 0 && x < W;
-}
-
-// Products of every changed input row with every kernel tap: (n, K * Cout), row i holding
-// delta[i] @ W[:, k, :]^T for k = 0..K-1 (one GEMM for the whole layer). A weight whose memory is
-// tap-major (a (Cout, kh, kw, Cin) view of a contiguous (kh, kw, Cout, Cin) tensor, as the streaming
-// backbone keeps it) is used in place; any other layout is copied into that order first.
-inline at::Tensor tap_products(const at::Tensor& delta, const at::Tensor& weight) {
-  const int64_t cout = weight.size(0), K = weight.size(1) * weight.size(2), cin = weight.size(3);
-  auto w_taps = weight.permute({1, 2, 0, 3}).reshape({K * cout, cin});  // row k * Cout + c
-  return at::mm(delta.contiguous(), w_taps.t());  // (n, K * Cout): column k * Cout + c
 }
 
 }  // namespace sscater
