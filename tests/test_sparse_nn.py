@@ -58,6 +58,21 @@ def test_dense_is_differentiable_and_checks_sites(device):
         bad.dense()
 
 
+def test_dense_check_is_cached_per_indices_version_and_shape(device):
+    # dense() checks an indices tensor once (no host sync on the next calls), but again after an
+    # in-place change of the indices or with another spatial_shape / batch_size
+    x = random_tensor(1, (4, 4), 5, 2, seed=0, device=device)
+    idx = x.indices.clone()
+    SparseConvTensor(x.features, idx, [4, 4], 1).dense()
+    idx[0, 1] = 7  # in place: the cached check must not hide it
+    with pytest.raises(ValueError, match=r"indices lie outside batch_size 1 / spatial_shape \[4, 4\]"):
+        SparseConvTensor(x.features, idx, [4, 4], 1).dense()
+    idx[0, 1] = 3
+    SparseConvTensor(x.features, idx, [4, 4], 1).dense()
+    with pytest.raises(ValueError, match=r"indices lie outside batch_size 1 / spatial_shape \[3, 4\]"):
+        SparseConvTensor(x.features, idx, [3, 4], 1).dense()
+
+
 def test_replace_feature_add_and_setter(device):
     x = random_tensor(1, (4, 4), 5, 2, seed=0, device=device)
     x.indice_dict["k"] = "cached"

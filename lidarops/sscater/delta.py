@@ -286,7 +286,11 @@ class DeltaBackbone:
         sites, features = self._check_input(sites, features)
         if removed.shape != (sites.shape[0],) or removed.dtype != torch.bool:
             raise ValueError(f"removed must be bool ({sites.shape[0]},), got {removed.dtype} {tuple(removed.shape)}")
-        removed = removed.to(self.device)
+        return self._apply(sites, features, removed.to(self.device), profile)
+
+    def _apply(self, sites: Tensor, features: Tensor, removed: Tensor, profile: bool = False) -> Tensor:
+        """:meth:`update` on checked input (int32 sites inside the grid, features in the state's dtype,
+        all on its device): no host synchronisation before the step's figures are read."""
         if self.cuda_graph and not profile:
             active, counts = self._replay(sites, features, removed)
         else:

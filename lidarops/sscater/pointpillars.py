@@ -115,46 +115,52 @@ class SSCATeRPointPillars:
         with torch.no_grad():
             return self.pfn(pillars).to(self.dtype)
 
-    def _sync(self) -> None:
+    def _mark(self):
+        """A point in time: a CUDA event on CUDA (read after the step's final synchronisation, so the
+        stages are timed without synchronising between them), else the host clock."""
         if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
+            ev = torch.cuda.Event(enable_timing=True)
+            ev.record()
+            return ev
+        return time.perf_counter()
+
+    def _elapsed(self, a, b) -> float:
+        return a.elapsed_time(b) if self.device.type == "cuda" else (b - a) * 1e3
 
     def step(self, points, t, now: Optional[float] = None) -> Tensor:
         """Consume one slice: ``points (Tensor[n, 4] float32)``, ``t (Tensor[n] float64)`` seconds (on
         the model's device, or NumPy arrays). ``now`` advances the window's end (e.g. the slice's end
         time) so that points expire during gaps in the stream."""
         st = StepStats(step=self.stats.step + 1 if self._since_refresh is not None else 0)
-        t0 = time.perf_counter()
-        upd = self.stream.push(points, t, now=now)
+        m0 = self._mark()
+        upd = self.stream.push(points, t, now=now)  # its figures are read on the host: it synchronises
         st.t, st.points_in, st.points_out = upd.t, upd.points_in, upd.points_out
         st.pillars_active, st.pillars_changed = int(upd.active.shape[0]), int(upd.changed.shape[0])
-        t1 = time.perf_counter()
+        m1 = self._mark()
         refresh = self._since_refresh is None or (self.refresh_every and self._since_refresh + 1 >= self.refresh_every)
         with torch.no_grad():
             if refresh:
-                pillars = self.stream.pillars()
+                pillars = self.stream._gather(upd.active)
                 feats = self._pfn(pillars)
-                st.pfn_points = st.pfn_points_full = int(pillars.num_points.sum())
-                self._sync()
-                t2 = time.perf_counter()
+                pfn_points = pfn_points_full = pillars.num_points.sum()
+                m2 = self._mark()
                 out = self.delta.refresh(pillars.coords[:, 1:], feats)
                 self._since_refresh = 0
             else:
-                changed, removed = upd.changed, upd.removed
-                live = self.stream.pillars(changed[~removed])
-                feats = torch.zeros(changed.shape[0], self.pfn.out_channels, dtype=self.dtype, device=self.device)
-                if live.coords.shape[0]:
-                    feats[~removed] = self._pfn(live)
-                st.pfn_points = int(live.num_points.sum())
-                st.pfn_points_full = self.stream.num_points
-                self._sync()
-                t2 = time.perf_counter()
-                out = self.delta.update(changed[:, 1:], feats, removed, profile=self.profile)
+                # the PFN on every changed pillar, the emptied ones included (zero points: their rows
+                # are ignored by the update), so that nothing waits for the device to pick them out
+                changed = self.stream._gather(upd.changed)
+                feats = self._pfn(changed)
+                pfn_points, pfn_points_full = changed.num_points.sum(), self.stream.num_points
+                m2 = self._mark()
+                out = self.delta._apply(changed.coords[:, 1:], feats, upd.removed, profile=self.profile)
                 self._since_refresh += 1
-        self._sync()
-        t3 = time.perf_counter()
+        m3 = self._mark()
+        if self.device.type == "cuda":
+            m3.synchronize()
+        st.pfn_points, st.pfn_points_full = int(pfn_points), int(pfn_points_full)
         st.refreshed = bool(refresh)
-        st.ms_stream, st.ms_pfn, st.ms_backbone = (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3
+        st.ms_stream, st.ms_pfn, st.ms_backbone = self._elapsed(m0, m1), self._elapsed(m1, m2), self._elapsed(m2, m3)
         st.layers = [LayerStats(s.name, s.active, s.changed, s.touched, s.ms) for s in self.delta.stats]
         self.stats = st
         return out

@@ -261,14 +261,17 @@ class PillarStream:
             newest = max(newest, float(now))
         cutoff = newest - self._window  # -inf before the first timestamp: nothing expires
         self._ensure_log_space(n)
-        runs = torch.tensor(list(self._runs), dtype=torch.int64).reshape(-1, 2).to(dev)
+        runs = torch.tensor(list(self._runs), dtype=torch.int64).reshape(-1, 2)
+        if dev.type == "cuda":  # pinned and asynchronous: a pageable copy would wait for the device
+            runs = runs.pin_memory().to(dev, non_blocking=True)
         g = self._grid
         change_map, stats, run_pops = torch.ops.lidarops.pillar_stream_push(
             self._pool_xyzi, self._pool_t, self._head, self._count, self._slot_cell, self._cell_slot,
             self._free_slots, self._num_free, self._log_cell, self._log_t, points.contiguous(), t.contiguous(),
             runs, self._log_head, cutoff, list(g.point_range), list(g.pillar_size), list(g.shape))
-        vals = torch.cat([stats, run_pops]).tolist()
-        st, pops = vals[:_NUM_STATS], vals[_NUM_STATS:]
+        # the push's one device-to-host copy: its figures, the runs' expiries and the changed count
+        vals = torch.cat([stats, run_pops, change_map.sum().view(1)]).tolist()
+        st, pops, n_changed = vals[:_NUM_STATS], vals[_NUM_STATS:-1], vals[-1]
         if st[_P_OVERFLOW]:
             raise PillarOverflowError(
                 _overflow_message("PillarStream.push", f"the window ({newest - self._window!r}, {newest!r}]",
@@ -285,7 +288,8 @@ class PillarStream:
             self._log_head += st[_P_IN]
         self._num_active = st[_P_PILLARS]
         self._num_points += st[_P_IN] - st[_P_OUT]
-        changed_yx = change_map.nonzero()
+        # the lengths are known on the host: nonzero_static does not wait for the device
+        changed_yx = torch.nonzero_static(change_map, size=n_changed)
         keys = changed_yx[:, 0] * g.shape[1] + changed_yx[:, 1]
         removed = self._cell_slot.index_select(0, keys) < 0
         return StreamUpdate(self._t, self.active_coords(), _batch0(changed_yx), removed, change_map,
@@ -294,7 +298,7 @@ class PillarStream:
     # ---- reading the window ----
     def active_coords(self) -> Tensor:
         """int32 (A, 3): ``(0, y, x)`` of the non-empty pillars, sorted by key."""
-        yx = (self._cell_slot.view(self._grid.shape) >= 0).nonzero()
+        yx = torch.nonzero_static(self._cell_slot.view(self._grid.shape) >= 0, size=self._num_active)
         return _batch0(yx)
 
     def pillars(self, coords: Tensor | None = None) -> Pillars:
@@ -331,6 +335,13 @@ class PillarStream:
                 i = int(bad[0, 0])
                 raise ValueError(f"coords[{i}] = {coords[i].tolist()} is not an active pillar of the stream "
                                  f"({bad.shape[0]} of {coords.shape[0]} coords are not; grid {H} x {W}, batch 0)")
+        return self._gather(coords, keys)
+
+    def _gather(self, coords: Tensor, keys: Tensor | None = None) -> Pillars:
+        """:meth:`pillars` of int32 ``(0, y, x)`` coords inside the grid, without the checks (no host
+        synchronisation); a pillar that is empty gives zero points and zero features."""
+        if keys is None:
+            keys = coords[:, 1].to(torch.int64) * self._grid.shape[1] + coords[:, 2].to(torch.int64)
         raw, num_points = torch.ops.lidarops.pillar_stream_gather(self._pool_xyzi, self._head, self._count,
                                                                   self._cell_slot, keys)
         return Pillars(_decorate(raw, num_points, coords, self._grid), coords, num_points)
