@@ -339,6 +339,10 @@ def write_results(section: str, device: str | torch.device, rows: list[dict], me
     if replace_by is not None and old.get("rows"):
         new_keys = {r.get(replace_by) for r in rows}
         kept = [r for r in old["rows"] if r.get(replace_by) not in new_keys]
+    # each row says which commit measured it (the section's meta is the newest run's)
+    for r, m in [(r, old.get("meta", {})) for r in kept] + [(r, meta) for r in rows]:
+        if m.get("commit") is not None:
+            r.setdefault("commit", m["commit"])
     sections[section] = {"meta": meta, "rows": kept + rows}
     tmp = path.with_suffix(".json.tmp")
     with open(tmp, "w") as f:

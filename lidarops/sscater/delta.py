@@ -405,6 +405,8 @@ class DeltaBackbone:
                                 added_count if self.sync_free else None)
         # 3. the sites to re-evaluate, each once (an inactive site's acc restarts from zero)
         cand, count = ops.sscater_touch_(layer.stamp, layer.acc, base + 2, reached, added, removed)
+        if not self.sync_free:  # trim to the sites listed (free on CPU): finalize's outputs are sized by it
+            cand = cand[:int(count)]
         # 4. BN + ReLU there; the sites whose value changed, compacted
         sites, delta, counts = ops.sscater_finalize_compact_(layer.acc, layer.feats, layer.active, cand, count,
                                                              layer.stamp, base + 3, layer.scale, layer.shift)
