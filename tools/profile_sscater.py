@@ -24,6 +24,8 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--scenario", default="drone_bridge")
+    ap.add_argument("--per-call", default="", help="comma-separated kernel name parts: print each launch's "
+                    "device time in the first profiled step, in launch order")
     a = ap.parse_args()
     from lidarops.data.synthetic import Simulator
     dev = torch.device(a.device)
@@ -50,6 +52,14 @@ def main() -> None:
     print("== top ops by self CPU time (ms per step)")
     for e in sorted(ka, key=lambda e: e.self_cpu_time_total, reverse=True)[:25]:
         print(f"{e.key[:60]:60s} calls/step {e.count / a.steps:8.1f}  cpu {e.self_cpu_time_total / 1e3 / a.steps:8.3f}")
+    if a.per_call and dev.type == "cuda":
+        parts = a.per_call.split(",")
+        events = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
+        events.sort(key=lambda e: e.time_range.start)
+        per_step = len(events) // a.steps
+        for part in parts:
+            times = [e.time_range.elapsed_us() for e in events[:per_step] if part in e.name]
+            print(f"== {part}: {len(times)} launches in one step, µs: " + " ".join(f"{t:.0f}" for t in times))
     syncs = [e for e in ka if any(s in e.key for s in ("Synchronize", "cudaMemcpy", "item", "nonzero", "unique"))]
     print("== syncing calls per step:", {e.key: round(e.count / a.steps, 1) for e in syncs})
     model.profile = True

@@ -436,31 +436,49 @@ void gather_cuda(at::Tensor& acc, const at::Tensor& input, const at::Tensor& wei
   });
 }
 
+// Slot for an append to a list whose length is *n, taken by the lanes of a warp with `take` set:
+// one atomic per warp (a ballot counts the lanes). Every lane of the warp must call it. Appends from
+// per-lane atomics on the one counter were most of the touch and finalize kernels' time.
+__device__ __forceinline__ unsigned long long warp_append(bool take, unsigned long long* n) {
+  const unsigned mask = __ballot_sync(0xffffffffu, take);
+  if (mask == 0) return 0;
+  const int lane = threadIdx.x & 31, leader = __ffs(mask) - 1;
+  unsigned long long base = 0;
+  if (lane == leader) base = atomicAdd(n, static_cast<unsigned long long>(__popc(mask)));
+  base = __shfl_sync(0xffffffffu, base, leader);
+  return base + __popc(mask & ((1u << lane) - 1u));
+}
+
 // One thread per entry of targets ++ added ++ removed: raise the stamp; the first touch appends.
-// Removed sites also get their accumulator zeroed.
+// Removed sites also get their accumulator zeroed. The loop bounds are block-uniform (blockDim is a
+// multiple of 32), so whole warps reach the append.
 template <typename T>
 __global__ void touch_kernel(int32_t* __restrict__ stamp, T* __restrict__ acc, int32_t value,
                              const int64_t* __restrict__ targets, int64_t R, const int32_t* __restrict__ added,
                              int64_t a, const int32_t* __restrict__ removed, int64_t r, int64_t Ho, int64_t Wo,
                              int64_t C, int32_t* __restrict__ cand, unsigned long long* __restrict__ n) {
-  for (int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; t < R + a + r;
-       t += static_cast<int64_t>(gridDim.x) * blockDim.x) {
-    int64_t o;
+  const int64_t total = R + a + r;
+  for (int64_t t0 = blockIdx.x * static_cast<int64_t>(blockDim.x); t0 < total;
+       t0 += static_cast<int64_t>(gridDim.x) * blockDim.x) {
+    const int64_t t = t0 + threadIdx.x;
+    int64_t o = -1;
     int32_t v = value + 1;
     if (t < R) {
       o = targets[t];
-      if (o < 0 || o >= Ho * Wo) continue;
+      if (o >= Ho * Wo) o = -1;
       v = value;
-    } else {
+    } else if (t < total) {
       int64_t y, x;
       const bool add = t < R + a;
-      if (!site_at(add ? added : removed, add ? t - R : t - R - a, Ho, Wo, y, x)) continue;
-      o = y * Wo + x;
-      if (!add)
-        for (int64_t c = 0; c < C; ++c) acc[o * C + c] = T(0);
+      if (site_at(add ? added : removed, add ? t - R : t - R - a, Ho, Wo, y, x)) {
+        o = y * Wo + x;
+        if (!add)
+          for (int64_t c = 0; c < C; ++c) acc[o * C + c] = T(0);
+      }
     }
-    if (atomicMax(stamp + o, v) < value) {
-      const unsigned long long j = atomicAdd(n, 1ull);
+    const bool first = o >= 0 && atomicMax(stamp + o, v) < value;
+    const unsigned long long j = warp_append(first, n);
+    if (first) {
       cand[2 * j] = static_cast<int32_t>(o / Wo);
       cand[2 * j + 1] = static_cast<int32_t>(o % Wo);
     }
@@ -490,48 +508,67 @@ std::tuple<at::Tensor, at::Tensor> touch_cuda(at::Tensor& stamp, at::Tensor& acc
 }
 
 // One warp per candidate row (count read on the device): BN + ReLU per channel; the warp votes on
-// "changed" (pass 1, reads only), a changed row takes its compacted slot from an atomic counter, and
-// pass 2 recomputes the same values to write the output and the delta there.
+// "changed" (pass 1, reads only); the block then takes the compacted slots of its changed rows with
+// one atomic (and one for the rows changed or with a status change), and pass 2 recomputes the same
+// values to write the output and the delta there. The row loop is block-uniform (__syncthreads).
+constexpr int kFinalizeWarps = kThreads / 32;
+
 template <typename T>
-__global__ void finalize_compact_kernel(const T* __restrict__ acc, T* __restrict__ out, const bool* __restrict__ active,
-                                        const int32_t* __restrict__ cand, const int64_t* __restrict__ count,
-                                        int64_t rows, const int32_t* __restrict__ stamp, int32_t status_value,
-                                        const T* __restrict__ scale, const T* __restrict__ shift, int64_t C, int64_t Ho,
-                                        int64_t Wo, int64_t sy, int64_t sx, int64_t sc, int32_t* __restrict__ sites_out,
-                                        T* __restrict__ delta_out, unsigned long long* __restrict__ counts) {
+__global__ void __launch_bounds__(kThreads) finalize_compact_kernel(
+    const T* __restrict__ acc, T* __restrict__ out, const bool* __restrict__ active, const int32_t* __restrict__ cand,
+    const int64_t* __restrict__ count, int64_t rows, const int32_t* __restrict__ stamp, int32_t status_value,
+    const T* __restrict__ scale, const T* __restrict__ shift, int64_t C, int64_t Ho, int64_t Wo, int64_t sy,
+    int64_t sx, int64_t sc, int32_t* __restrict__ sites_out, T* __restrict__ delta_out,
+    unsigned long long* __restrict__ counts) {
+  __shared__ int s_changed[kFinalizeWarps], s_flagged[kFinalizeWarps];
+  __shared__ unsigned long long s_base;
   const int64_t m = *count < rows ? *count : rows;
-  const int lane = threadIdx.x & 31;
-  const int64_t warps = static_cast<int64_t>(gridDim.x) * (blockDim.x >> 5);
-  for (int64_t i = (blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x) >> 5; i < m; i += warps) {
-    int64_t y, x;
-    if (!site_at(cand, i, Ho, Wo, y, x)) continue;  // warp-uniform
-    const bool on = active[y * Wo + x];
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  for (int64_t i0 = blockIdx.x * static_cast<int64_t>(kFinalizeWarps); i0 < m;
+       i0 += static_cast<int64_t>(gridDim.x) * kFinalizeWarps) {
+    const int64_t i = i0 + warp;
+    int64_t y = 0, x = 0;
+    const bool row = i < m && site_at(cand, i, Ho, Wo, y, x);  // warp-uniform
+    const bool on = row && active[y * Wo + x];
     const T* ai = acc + (y * Wo + x) * C;
     T* oi = out + y * sy + x * sx;
     auto value = [&](int64_t c) {
       const T v = on ? ai[c] * scale[c] + shift[c] : T(0);
       return v > T(0) ? v : T(0);
     };
-    bool any = false;
-    for (int64_t c = lane; c < C; c += 32) any |= value(c) != oi[c * sc];
-    const bool changed = __any_sync(0xffffffffu, any);
-    const bool status = stamp[y * Wo + x] == status_value;
-    unsigned long long j = 0;
+    bool changed = false, flagged = false;
+    if (row) {
+      bool any = false;
+      for (int64_t c = lane; c < C; c += 32) any |= value(c) != oi[c * sc];
+      changed = __any_sync(0xffffffffu, any);
+      flagged = changed || stamp[y * Wo + x] == status_value;
+    }
     if (lane == 0) {
-      if (changed || status) atomicAdd(counts + 1, 1ull);
-      if (changed) j = atomicAdd(counts, 1ull);
+      s_changed[warp] = changed;
+      s_flagged[warp] = flagged;
     }
-    if (!changed) continue;  // nothing to write: the stored values are the new ones
-    j = __shfl_sync(0xffffffffu, j, 0);
-    if (lane == 0) {
-      sites_out[2 * j] = static_cast<int32_t>(y);
-      sites_out[2 * j + 1] = static_cast<int32_t>(x);
+    __syncthreads();
+    if (threadIdx.x == 0) {
+      int nc = 0, nf = 0;
+      for (int w = 0; w < kFinalizeWarps; ++w) nc += s_changed[w], nf += s_flagged[w];
+      if (nf) atomicAdd(counts + 1, static_cast<unsigned long long>(nf));
+      s_base = nc ? atomicAdd(counts, static_cast<unsigned long long>(nc)) : 0ull;
     }
-    for (int64_t c = lane; c < C; c += 32) {
-      const T v = value(c);
-      delta_out[j * C + c] = v - oi[c * sc];
-      oi[c * sc] = v;
+    __syncthreads();
+    if (changed) {  // nothing to write otherwise: the stored values are the new ones
+      unsigned long long j = s_base;
+      for (int w = 0; w < warp; ++w) j += s_changed[w];
+      if (lane == 0) {
+        sites_out[2 * j] = static_cast<int32_t>(y);
+        sites_out[2 * j + 1] = static_cast<int32_t>(x);
+      }
+      for (int64_t c = lane; c < C; c += 32) {
+        const T v = value(c);
+        delta_out[j * C + c] = v - oi[c * sc];
+        oi[c * sc] = v;
+      }
     }
+    __syncthreads();  // the shared counts are rewritten by the next rows
   }
 }
 

@@ -1,0 +1,56 @@
+"""Where the Sparse-PointPillars backbone of benchmarks/bm_sparse.py spends its GPU time (maps cached).
+
+    python tools/profile_sparse.py [--precision fp32|tf32|fp16] [--calls 10]
+
+Prints the top kernels by device time per forward (torch.profiler), on the KITTI grid with 15,000
+pillars, every kernel map cached, as the benchmark's "maps cached" column runs it.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--precision", default="fp32", choices=["fp32", "tf32", "fp16"])
+    ap.add_argument("--calls", type=int, default=10)
+    a = ap.parse_args(argv)
+    if not torch.cuda.is_available():
+        print("profile_sparse: needs a GPU")
+        return 0
+    from benchmarks.bm_sparse import GRIDS, bev_sites, precision, sparse_pointpillars
+    from lidarops.compat import spconv as lspconv
+    from lidarops.sparse import SparseConvTensor
+    dev = torch.device("cuda")
+    shape, n = GRIDS["kitti"]
+    idx = bev_sites(shape, n, sensor=(shape[0] / 2, 0)).to(dev)
+    with precision(a.precision) as dtype, torch.no_grad():
+        feats = torch.randn(idx.shape[0], 64, device=dev, dtype=dtype)
+        net = sparse_pointpillars(lspconv).to(device=dev, dtype=dtype).eval()
+        net(SparseConvTensor(feats, idx, list(shape), 1))
+        x = SparseConvTensor(feats, idx, list(shape), 1, indice_dict=net.last_dict)
+        for _ in range(3):
+            net(x)
+        torch.cuda.synchronize()
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU,
+                                                torch.profiler.ProfilerActivity.CUDA]) as prof:
+            for _ in range(a.calls):
+                net(x)
+            torch.cuda.synchronize()
+    ka = prof.key_averages()
+    total = sum(e.self_device_time_total for e in ka) / 1e3 / a.calls
+    print(f"== {a.precision}: {total:.3f} ms of device time per forward; top kernels (ms per forward)")
+    for e in sorted(ka, key=lambda e: e.self_device_time_total, reverse=True)[:15]:
+        if e.self_device_time_total:
+            print(f"{e.key[:70]:70s} calls {e.count / a.calls:5.1f}  {e.self_device_time_total / 1e3 / a.calls:7.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
