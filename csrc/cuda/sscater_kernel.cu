@@ -60,7 +60,10 @@ __global__ void targets_kernel(const int32_t* __restrict__ sites, const bool* __
 
 // kChunk: input channels per tile. Measured on the H200 (drone_bridge backbone step, session 6):
 // 64 -> 2.82 ms, 128 -> 2.91, 256 -> 3.06, 16 -> 3.09.
-constexpr int kBM = 64, kBN = 64, kBK = 16, kChunk = 64, kGemmThreads = 256;
+// kGatherChunk: the gather's (a step adds 45-250 sites per layer: few rows, so smaller chunks give
+// more tiles and shorter dependency chains): backbone step 2.48 ms with 64, 2.40 with 32, 2.39 with 16
+// (H200, session 7).
+constexpr int kBM = 64, kBN = 64, kBK = 16, kChunk = 64, kGatherChunk = 16, kGemmThreads = 256;
 
 template <typename T>
 struct GemmTile {
@@ -200,7 +203,7 @@ inline unsigned gemm_blocks(int64_t tiles, const at::Tensor& on) {
 template <typename T>
 void launch_tap_gemm(T* acc, const T* src, const T* w, const int64_t* count, TapGemmArgs g, const at::Tensor& on,
                      cudaStream_t stream) {
-  g.chunk = kChunk;
+  g.chunk = g.gather ? kGatherChunk : kChunk;
   g.chunks = (g.Cin + g.chunk - 1) / g.chunk;
   g.col_tiles = (g.C + kBN - 1) / kBN;
   const int64_t tiles = (g.rows + kBM - 1) / kBM * g.col_tiles * g.K * g.chunks;  // an upper bound (count)
