@@ -452,14 +452,27 @@ __device__ __forceinline__ unsigned long long warp_append(bool take, unsigned lo
   return base + __popc(mask & ((1u << lane) - 1u));
 }
 
-// One thread per entry of targets ++ added ++ removed: raise the stamp; the first touch appends.
-// Removed sites also get their accumulator zeroed. The loop bounds are block-uniform (blockDim is a
-// multiple of 32), so whole warps reach the append.
+// A warp per row of sites (count-free: padding rows are skipped): zero the accumulator there, the
+// channels spread over the lanes.
 template <typename T>
-__global__ void touch_kernel(int32_t* __restrict__ stamp, T* __restrict__ acc, int32_t value,
-                             const int64_t* __restrict__ targets, int64_t R, const int32_t* __restrict__ added,
-                             int64_t a, const int32_t* __restrict__ removed, int64_t r, int64_t Ho, int64_t Wo,
-                             int64_t C, int32_t* __restrict__ cand, unsigned long long* __restrict__ n) {
+__global__ void zero_rows_kernel(T* __restrict__ acc, const int32_t* __restrict__ sites, int64_t rows, int64_t Ho,
+                                 int64_t Wo, int64_t C) {
+  const int lane = threadIdx.x & 31;
+  const int64_t warps = static_cast<int64_t>(gridDim.x) * (blockDim.x >> 5);
+  for (int64_t i = (blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x) >> 5; i < rows; i += warps) {
+    int64_t y, x;
+    if (!site_at(sites, i, Ho, Wo, y, x)) continue;  // warp-uniform
+    for (int64_t c = lane; c < C; c += 32) acc[(y * Wo + x) * C + c] = T(0);
+  }
+}
+
+// One thread per entry of targets ++ added ++ removed: raise the stamp; the first touch appends.
+// (The removed sites' accumulators are zeroed by zero_rows_kernel first, a warp per site.) The loop
+// bounds are block-uniform (blockDim is a multiple of 32), so whole warps reach the append.
+__global__ void touch_kernel(int32_t* __restrict__ stamp, int32_t value, const int64_t* __restrict__ targets,
+                             int64_t R, const int32_t* __restrict__ added, int64_t a,
+                             const int32_t* __restrict__ removed, int64_t r, int64_t Ho, int64_t Wo,
+                             int32_t* __restrict__ cand, unsigned long long* __restrict__ n) {
   const int64_t total = R + a + r;
   for (int64_t t0 = blockIdx.x * static_cast<int64_t>(blockDim.x); t0 < total;
        t0 += static_cast<int64_t>(gridDim.x) * blockDim.x) {
@@ -473,11 +486,7 @@ __global__ void touch_kernel(int32_t* __restrict__ stamp, T* __restrict__ acc, i
     } else if (t < total) {
       int64_t y, x;
       const bool add = t < R + a;
-      if (site_at(add ? added : removed, add ? t - R : t - R - a, Ho, Wo, y, x)) {
-        o = y * Wo + x;
-        if (!add)
-          for (int64_t c = 0; c < C; ++c) acc[o * C + c] = T(0);
-      }
+      if (site_at(add ? added : removed, add ? t - R : t - R - a, Ho, Wo, y, x)) o = y * Wo + x;
     }
     const bool first = o >= 0 && atomicMax(stamp + o, v) < value;
     const unsigned long long j = warp_append(first, n);
@@ -501,12 +510,17 @@ std::tuple<at::Tensor, at::Tensor> touch_cuda(at::Tensor& stamp, at::Tensor& acc
   auto added = added_in.contiguous(), removed = removed_in.contiguous();
   auto stream = c10::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_touch_cuda", [&] {
-    touch_kernel<scalar_t><<<blocks_for(R + a + r), kThreads, 0, stream>>>(
-        stamp.data_ptr<int32_t>(), acc.data_ptr<scalar_t>(), static_cast<int32_t>(value), targets.data_ptr<int64_t>(), R,
-        added.data_ptr<int32_t>(), a, removed.data_ptr<int32_t>(), r, acc.size(0), acc.size(1), acc.size(2),
-        cand.data_ptr<int32_t>(), reinterpret_cast<unsigned long long*>(count.data_ptr<int64_t>()));
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    if (r > 0 && acc.size(2) > 0) {
+      zero_rows_kernel<scalar_t><<<blocks_for(r * 32), kThreads, 0, stream>>>(
+          acc.data_ptr<scalar_t>(), removed.data_ptr<int32_t>(), r, acc.size(0), acc.size(1), acc.size(2));
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    }
   });
+  touch_kernel<<<blocks_for(R + a + r), kThreads, 0, stream>>>(
+      stamp.data_ptr<int32_t>(), static_cast<int32_t>(value), targets.data_ptr<int64_t>(), R, added.data_ptr<int32_t>(),
+      a, removed.data_ptr<int32_t>(), r, acc.size(0), acc.size(1), cand.data_ptr<int32_t>(),
+      reinterpret_cast<unsigned long long*>(count.data_ptr<int64_t>()));
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
   return {cand, count};
 }
 
