@@ -467,8 +467,10 @@ __global__ void zero_rows_kernel(T* __restrict__ acc, const int32_t* __restrict_
 }
 
 // One thread per entry of targets ++ added ++ removed: raise the stamp; the first touch appends.
-// (The removed sites' accumulators are zeroed by zero_rows_kernel first, a warp per site.) The loop
-// bounds are block-uniform (blockDim is a multiple of 32), so whole warps reach the append.
+// The removed sites' accumulators are zeroed first by zero_rows_kernel, a warp per site: when one
+// thread here looped over the site's channels, this kernel took 17-36 µs per layer instead of 2-3
+// (H200, session 7). The loop bounds are block-uniform (blockDim is a multiple of 32), so whole warps
+// reach the append.
 __global__ void touch_kernel(int32_t* __restrict__ stamp, int32_t value, const int64_t* __restrict__ targets,
                              int64_t R, const int32_t* __restrict__ added, int64_t a,
                              const int32_t* __restrict__ removed, int64_t r, int64_t Ho, int64_t Wo,
