@@ -444,6 +444,11 @@ def test_stream_pillars_subset_and_errors(device):
     assert bool(u.removed.all()) and stream.num_active == 0
     with pytest.raises(ValueError, match="not an active pillar"):
         stream.pillars(u.changed[:1])
+    # the unchecked gather (the SSCATeR step runs its PFN on every changed pillar) gives an emptied
+    # pillar zero points and zero features
+    empty = stream._gather(u.changed)
+    assert empty.features.shape == (u.changed.shape[0], 100, 9) and empty.features.abs().sum().item() == 0
+    assert (empty.num_points == 0).all() and torch.equal(empty.coords, u.changed)
 
 
 def test_stream_bad_input(device):
