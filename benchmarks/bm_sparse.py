@@ -368,19 +368,28 @@ def bench_maps(device, quick, rows_out):
                 ["grid", "sites", "kind", "table", "ms"], table, right=(1, 4))
 
 
-def bench_pillars(device, modes, quick, rows_out):
-    sp = _spconv() if torch.device(device).type == "cuda" else None
+def pillars_input(device, dtype, quick=False):
+    """The pillars section's network and input: (the lidarops Sparse-PointPillars net in eval mode,
+    its input SparseConvTensor, the same input with every kernel map cached). KITTI grid, 15k
+    range-weighted pillars (128 x 128 with 1,500 when ``quick``). Call under ``torch.no_grad()``."""
     shape, n = ((128, 128), 1500) if quick else GRIDS["kitti"]
     idx = bev_sites(shape, n, sensor=(shape[0] / 2, 0)).to(device)
+    feats = torch.randn(idx.shape[0], 64, device=device, dtype=dtype)
+    net = sparse_pointpillars(lspconv).to(device=device, dtype=dtype).eval()
+    x = SparseConvTensor(feats, idx, list(shape), 1)
+    net(x)  # builds the maps
+    return net, x, SparseConvTensor(feats, idx, list(shape), 1, indice_dict=net.last_dict)
+
+
+def bench_pillars(device, modes, quick, rows_out):
+    sp = _spconv() if torch.device(device).type == "cuda" else None
+    shape = (128, 128) if quick else GRIDS["kitti"][0]
     table = []
     for mode in modes:
         with precision(mode) as dtype, torch.no_grad():
-            feats = torch.randn(idx.shape[0], 64, device=device, dtype=dtype)
-            net = sparse_pointpillars(lspconv).to(device=device, dtype=dtype).eval()
-            x = SparseConvTensor(feats, idx, list(shape), 1)
+            net, x, cached = pillars_input(device, dtype, quick)
+            feats, idx, shape = x.features, x.indices, x.spatial_shape
             t_full = _try(net, (x,), device)
-            net(x)
-            cached = SparseConvTensor(feats, idx, list(shape), 1, indice_dict=net.last_dict)
             t_cached = _try(lambda f: net(cached.replace_feature(f)), (feats,), device)
             t_graph = _graphed(net, cached, feats) if torch.device(device).type == "cuda" else None
             dnet = dense_pointpillars().to(device=device, dtype=dtype).eval()

@@ -24,17 +24,10 @@ def main(argv=None) -> int:
     if not torch.cuda.is_available():
         print("profile_sparse: needs a GPU")
         return 0
-    from benchmarks.bm_sparse import GRIDS, bev_sites, precision, sparse_pointpillars
-    from lidarops.compat import spconv as lspconv
-    from lidarops.sparse import SparseConvTensor
+    from benchmarks.bm_sparse import pillars_input, precision
     dev = torch.device("cuda")
-    shape, n = GRIDS["kitti"]
-    idx = bev_sites(shape, n, sensor=(shape[0] / 2, 0)).to(dev)
     with precision(a.precision) as dtype, torch.no_grad():
-        feats = torch.randn(idx.shape[0], 64, device=dev, dtype=dtype)
-        net = sparse_pointpillars(lspconv).to(device=dev, dtype=dtype).eval()
-        net(SparseConvTensor(feats, idx, list(shape), 1))
-        x = SparseConvTensor(feats, idx, list(shape), 1, indice_dict=net.last_dict)
+        net, _, x = pillars_input(dev, dtype)
         for _ in range(3):
             net(x)
         torch.cuda.synchronize()

@@ -47,11 +47,9 @@ def main(argv=None) -> int:
     if not torch.cuda.is_available():
         print("sync_audit: needs a GPU")
         return 0
-    from benchmarks.bm_sparse import bev_sites, sparse_pointpillars, GRIDS
+    from benchmarks.bm_sparse import pillars_input
     from benchmarks.bm_sscater import _model, calibrate_relu_zeros
-    from lidarops.compat import spconv as lspconv
     from lidarops.data.synthetic import Simulator
-    from lidarops.sparse import SparseConvTensor
 
     dev = torch.device("cuda")
     model, _ = _model("drone_bridge", dev, 0.5)
@@ -68,16 +66,10 @@ def main(argv=None) -> int:
         model.step(p, t, now=0.01 * (21 + i))
     audit(step, args.steps, "SSCATeR step (drone_bridge; stream push, PFN, backbone)")
 
-    shape, n = GRIDS["kitti"]
-    idx = bev_sites(shape, n, sensor=(shape[0] / 2, 0)).to(dev)
     with torch.no_grad():
-        feats = torch.randn(idx.shape[0], 64, device=dev)
-        net = sparse_pointpillars(lspconv).to(dev).eval()
-        net(SparseConvTensor(feats, idx, list(shape), 1))
-        cached = SparseConvTensor(feats, idx, list(shape), 1, indice_dict=net.last_dict)
-        net(cached.replace_feature(feats))
-        audit(lambda i: net(cached.replace_feature(feats)), args.steps,
-              "Sparse-PointPillars forward, KITTI grid, maps cached")
+        net, _, cached = pillars_input(dev, torch.float32)
+        net(cached)
+        audit(lambda i: net(cached), args.steps, "Sparse-PointPillars forward, KITTI grid, maps cached")
     return 0
 
 

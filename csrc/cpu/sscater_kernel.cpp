@@ -66,36 +66,23 @@ at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Te
   return targets;
 }
 
-// BN + ReLU of one site's accumulator into its output row, the change into delta; returns whether
-// any channel changed. Contiguous channels: restrict pointers, so the loop vectorises.
-template <typename T>
+// BN + ReLU of one site's accumulator into its output row (channel stride sc; kUnit: sc == 1, known
+// at compile time so that the loop vectorises), the change into delta; returns whether any channel
+// changed.
+template <typename T, bool kUnit>
 bool finalize_row(const T* __restrict__ acc, const T* __restrict__ scale, const T* __restrict__ shift, bool on,
-                  T* __restrict__ out, T* __restrict__ delta, int64_t C) {
+                  T* __restrict__ out, int64_t sc, T* __restrict__ delta, int64_t C) {
+  const int64_t s = kUnit ? 1 : sc;
   int any = 0;
   for (int64_t c = 0; c < C; ++c) {
     T v = on ? acc[c] * scale[c] + shift[c] : T(0);
     v = v > T(0) ? v : T(0);
-    const T old = out[c];
+    const T old = out[c * s];
     delta[c] = v - old;
     any |= v != old;
-    out[c] = v;
+    out[c * s] = v;
   }
   return any != 0;
-}
-
-template <typename T>
-bool finalize_row_strided(const T* acc, const T* scale, const T* shift, bool on, T* out, int64_t sc, T* delta,
-                          int64_t C) {
-  bool any = false;
-  for (int64_t c = 0; c < C; ++c) {
-    T v = on ? acc[c] * scale[c] + shift[c] : T(0);
-    v = v > T(0) ? v : T(0);
-    const T old = out[c * sc];
-    delta[c] = v - old;
-    any |= v != old;
-    out[c * sc] = v;
-  }
-  return any;
 }
 
 std::tuple<at::Tensor, at::Tensor> finalize_cpu(const at::Tensor& acc, at::Tensor& out, const at::Tensor& active,
@@ -127,7 +114,8 @@ std::tuple<at::Tensor, at::Tensor> finalize_cpu(const at::Tensor& acc, at::Tenso
         const bool on = act[y * Wo + x];
         const scalar_t* ai = a + (y * Wo + x) * C;
         scalar_t* oi = o + y * sy + x * sx;
-        ch[i] = sc == 1 ? finalize_row(ai, g, b, on, oi, d + i * C, C) : finalize_row_strided(ai, g, b, on, oi, sc, d + i * C, C);
+        ch[i] = sc == 1 ? finalize_row<scalar_t, true>(ai, g, b, on, oi, sc, d + i * C, C)
+                        : finalize_row<scalar_t, false>(ai, g, b, on, oi, sc, d + i * C, C);
       }
     });
   });

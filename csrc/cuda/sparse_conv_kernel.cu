@@ -313,6 +313,15 @@ struct MmaTraits<float> {
 constexpr int kWmmaThreads = 128;
 
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+// float32 fragments are rounded to TF32 before the MMA; other types are used as loaded.
+template <typename T, typename Frag>
+__device__ __forceinline__ void round_tf32(Frag& f) {
+  if constexpr (std::is_same_v<T, float>) {
+#pragma unroll
+    for (int t = 0; t < f.num_elements; ++t) f.x[t] = nvcuda::wmma::__float_to_tf32(f.x[t]);
+  }
+}
+
 // One BK-channel step of a warp's 32 x 32 share of the 64 x 64 tile: A row-major (As[m * lda + kk]),
 // B column-major (Bs[n * ldb + kk]); float32 goes through TF32 fragments.
 template <typename T, int BK, typename S, typename Acc>
@@ -327,18 +336,12 @@ __device__ __forceinline__ void wmma_tile_step(const S* As, int lda, const S* Bs
 #pragma unroll
     for (int i = 0; i < 2; ++i) {
       wmma::load_matrix_sync(a[i], As + (wm * 32 + i * 16) * lda + ks * KS, lda);
-      if constexpr (std::is_same_v<T, float>) {
-#pragma unroll
-        for (int t = 0; t < a[i].num_elements; ++t) a[i].x[t] = wmma::__float_to_tf32(a[i].x[t]);
-      }
+      round_tf32<T>(a[i]);
     }
 #pragma unroll
     for (int j = 0; j < 2; ++j) {
       wmma::load_matrix_sync(b[j], Bs + (wn * 32 + j * 16) * ldb + ks * KS, ldb);
-      if constexpr (std::is_same_v<T, float>) {
-#pragma unroll
-        for (int t = 0; t < b[j].num_elements; ++t) b[j].x[t] = wmma::__float_to_tf32(b[j].x[t]);
-      }
+      round_tf32<T>(b[j]);
     }
 #pragma unroll
     for (int i = 0; i < 2; ++i)
