@@ -305,7 +305,7 @@ def bench_layers(device, modes, quick, rows_out):
                         w = torch.randn(C, 3, 3, C, device=device, dtype=dtype) / (3 * math.sqrt(C))
                         km = Fs.build_kernel_map(x, kind, 3, 2 if kind == "conv" else 1, 1, 1)
                         w3 = w.reshape(C, 9, C)
-                        t_ours = _try(ops.sparse_conv, (x.features, w3, km.neighbors), device)
+                        t_ours = _try(ops.sparse_conv, (x.features, w3, km.neighbors, km.order), device)
                         dense = x.dense()
                         wd = w.permute(0, 3, 1, 2).contiguous()
                         s = 2 if kind == "conv" else 1

@@ -1,9 +1,11 @@
 """Where the Sparse-PointPillars backbone of benchmarks/bm_sparse.py spends its GPU time (maps cached).
 
-    python tools/profile_sparse.py [--precision fp32|tf32|fp16] [--calls 10]
+    python tools/profile_sparse.py [--precision fp32|tf32|fp16] [--calls 10] [--host]
 
 Prints the top kernels by device time per forward (torch.profiler), on the KITTI grid with 15,000
-pillars, every kernel map cached, as the benchmark's "maps cached" column runs it.
+pillars, every kernel map cached, as the benchmark's "maps cached" column runs it. ``--host`` also
+prints where the host time of an eager forward goes: its wall time, the ops and CUDA runtime calls
+by self CPU time, and the Python functions by own time (cProfile).
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--precision", default="fp32", choices=["fp32", "tf32", "fp16"])
     ap.add_argument("--calls", type=int, default=10)
+    ap.add_argument("--host", action="store_true")
     a = ap.parse_args(argv)
     if not torch.cuda.is_available():
         print("profile_sparse: needs a GPU")
@@ -44,7 +47,44 @@ def main(argv=None) -> int:
     for e in sorted(ka, key=lambda e: e.self_device_time_total, reverse=True)[:15]:
         if e.self_device_time_total:
             print(f"{e.key[:70]:70s} calls {e.count / a.calls:5.1f}  {e.self_device_time_total / 1e3 / a.calls:7.3f}")
+    if a.host:
+        host_profile(a.precision, a.calls)
     return 0
+
+
+def host_profile(prec: str, calls: int) -> None:
+    import cProfile
+    import pstats
+    import time
+    from benchmarks.bm_sparse import pillars_input, precision
+    dev = torch.device("cuda")
+    with precision(prec) as dtype, torch.no_grad():
+        net, _, x = pillars_input(dev, dtype)
+        for _ in range(5):
+            net(x)
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            net(x)
+        t_host = (time.perf_counter() - t0) / calls
+        torch.cuda.synchronize()
+        t_all = (time.perf_counter() - t0) / calls
+        print(f"== {prec} eager forward: {t_host * 1e3:.3f} ms of host time per call "
+              f"({t_all * 1e3:.3f} ms with the GPU drained)")
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            for _ in range(calls):
+                net(x)
+            torch.cuda.synchronize()
+        print("ops and runtime calls by self CPU time (ms per forward, calls per forward)")
+        for e in sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)[:20]:
+            print(f"  {e.key[:60]:60s} {e.count / calls:6.1f} {e.self_cpu_time_total / 1e3 / calls:8.3f}")
+        pr = cProfile.Profile()
+        pr.enable()
+        for _ in range(calls):
+            net(x)
+        pr.disable()
+        torch.cuda.synchronize()
+    pstats.Stats(pr).sort_stats("tottime").print_stats(15)
 
 
 if __name__ == "__main__":

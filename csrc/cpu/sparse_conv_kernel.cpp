@@ -46,16 +46,23 @@ at::Tensor sparse_kernel_map_order_cpu(const at::Tensor& nbr_in) {
 
 // The CPU kernel lists the pairs of each offset, so it never touches absent pairs; `order` (a GPU
 // tiling hint) is checked and ignored.
-at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weight_in, const at::Tensor& nbr_in,
-                           const c10::optional<at::Tensor>& order) {
-  check_conv_args(features_in, weight_in, nbr_in);
-  check_order(order, nbr_in);
+at::Tensor sparse_conv_cpu_impl(const at::Tensor& features_in, const at::Tensor& weight_in, const at::Tensor& nbr_in,
+                                const ConvEpilogue& epi) {
   const auto dtype = features_in.scalar_type();
   const auto ct = compute_type(dtype);
   const int64_t n_in = features_in.size(0), cin = features_in.size(1);
   const int64_t cout = weight_in.size(0), K = weight_in.size(1), n_out = nbr_in.size(0);
-  if (n_out == 0 || cout == 0 || cin == 0 || n_in == 0 || K == 0)
-    return at::zeros({n_out, cout}, features_in.options());
+  if (n_out == 0 || cout == 0 || cin == 0 || n_in == 0 || K == 0) {
+    auto acc = at::zeros({n_out, cout}, features_in.options().dtype(ct));
+    if (n_out > 0 && cout > 0 && (epi.scale || epi.shift || epi.relu)) {  // every row is epi(0)
+      AT_DISPATCH_FLOATING_TYPES(ct, "lidarops_sparse_conv_cpu_empty", [&] {
+        scalar_t* ap = acc.data_ptr<scalar_t>();
+        for (int64_t o = 0; o < n_out; ++o)
+          for (int64_t c = 0; c < cout; ++c) ap[o * cout + c] = epi(scalar_t(0), c);
+      });
+    }
+    return acc.to(dtype);
+  }
   auto acc = at::empty({n_out, cout}, features_in.options().dtype(ct));  // every block writes its rows
   auto nbr = nbr_in.contiguous();
   check_map_values(nbr, n_in);
@@ -134,10 +141,35 @@ at::Tensor sparse_conv_cpu(const at::Tensor& features_in, const at::Tensor& weig
             for (int64_t c = 0; c < cout; ++c) d[c] += a[c];
           }
         }
+        if (epi.scale || epi.shift || epi.relu)
+          for (int64_t o = o0; o < o1; ++o)
+            for (int64_t c = 0; c < cout; ++c) ap[o * cout + c] = epi(ap[o * cout + c], c);
       }
     });
   });
   return acc.to(dtype);
+}
+
+at::Tensor sparse_conv_cpu(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr,
+                           const c10::optional<at::Tensor>& order) {
+  check_conv_args(features, weight, nbr);
+  check_order(order, nbr);
+  return sparse_conv_cpu_impl(features, weight, nbr, ConvEpilogue{});
+}
+
+at::Tensor sparse_conv_affine_cpu(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr,
+                                  const c10::optional<at::Tensor>& order, const c10::optional<at::Tensor>& scale_in,
+                                  const c10::optional<at::Tensor>& shift_in, bool relu) {
+  check_conv_args(features, weight, nbr);
+  check_order(order, nbr);
+  check_epilogue_arg(scale_in, "scale", weight.size(0), features);
+  check_epilogue_arg(shift_in, "shift", weight.size(0), features);
+  at::Tensor scale, shift;
+  if (scale_in.has_value() && scale_in->defined()) scale = scale_in->contiguous();
+  if (shift_in.has_value() && shift_in->defined()) shift = shift_in->contiguous();
+  const ConvEpilogue epi{scale.defined() ? scale.data_ptr<float>() : nullptr,
+                         shift.defined() ? shift.data_ptr<float>() : nullptr, relu};
+  return sparse_conv_cpu_impl(features, weight, nbr, epi);
 }
 
 at::Tensor sparse_conv_weight_grad_cpu(const at::Tensor& features_in, const at::Tensor& grad_in,
@@ -202,6 +234,7 @@ at::Tensor sparse_conv_weight_grad_cpu(const at::Tensor& features_in, const at::
 TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
   m.impl("sparse_kernel_map_order", &sparse_kernel_map_order_cpu);
   m.impl("sparse_conv", &sparse_conv_cpu);
+  m.impl("sparse_conv_affine", &sparse_conv_affine_cpu);
   m.impl("sparse_conv_weight_grad", &sparse_conv_weight_grad_cpu);
 }
 

@@ -53,7 +53,7 @@ template <typename T, int BM, int BN, int BK, int TM, int TN>
 __global__ void __launch_bounds__((BM / TM) * (BN / TN))
     conv_fwd_simt_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
                          const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int64_t cin,
-                         int64_t cout, int64_t K) {
+                         int64_t cout, int64_t K, ConvEpilogue epi) {
   using A = acc_t<T>;
   constexpr int kThreads = (BM / TM) * (BN / TN);
   __shared__ A As[BK][BM + 1];  // +1: conflict-free transposed stores
@@ -117,7 +117,7 @@ __global__ void __launch_bounds__((BM / TM) * (BN / TN))
 #pragma unroll
     for (int j = 0; j < TN; ++j) {
       const int64_t co = col0 + tx * TN + j;
-      if (co < cout) out[o * cout + co] = static_cast<T>(acc[i][j]);
+      if (co < cout) out[o * cout + co] = static_cast<T>(epi(acc[i][j], co));
     }
   }
 }
@@ -198,7 +198,7 @@ template <int BM, int BN, int TM, int TN, int BK, int STAGES>
 __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThreads)
     conv_fwd_f32_async_kernel(const float* __restrict__ x, const float* __restrict__ w,
                               const int32_t* __restrict__ nbr, const int32_t* __restrict__ order,
-                              float* __restrict__ out, int64_t n_out, int cin, int cout, int K) {
+                              float* __restrict__ out, int64_t n_out, int cin, int cout, int K, ConvEpilogue epi) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using Tile = AsyncTile<BM, BN, TM, TN, BK, STAGES>;
   constexpr int kThreads = Tile::kThreads, LD = Tile::LD;
@@ -274,7 +274,7 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
 #pragma unroll
     for (int j = 0; j < TN; ++j) {
       const int co = col0 + tx + j * (BN / TN);
-      if (co < cout) out[o * cout + co] = acc[i][j];
+      if (co < cout) out[o * cout + co] = epi(acc[i][j], co);
     }
   }
 #else
@@ -322,31 +322,33 @@ __device__ __forceinline__ void round_tf32(Frag& f) {
   }
 }
 
-// One BK-channel step of a warp's 32 x 32 share of the 64 x 64 tile: A row-major (As[m * lda + kk]),
-// B column-major (Bs[n * ldb + kk]); float32 goes through TF32 fragments.
-template <typename T, int BK, typename S, typename Acc>
-__device__ __forceinline__ void wmma_tile_step(const S* As, int lda, const S* Bs, int ldb, int wm, int wn, Acc (&c)[2][2]) {
+// One BK-channel step of a warp's (16 FM) x (16 FN) share of the block tile, whose rows start at
+// m0 and columns at n0: A row-major (As[m * lda + kk]), B column-major (Bs[n * ldb + kk]); float32
+// goes through TF32 fragments.
+template <typename T, int BK, int FM, int FN, typename S, typename Acc>
+__device__ __forceinline__ void wmma_tile_step(const S* As, int lda, const S* Bs, int ldb, int m0, int n0,
+                                               Acc (&c)[FM][FN]) {
   using namespace nvcuda;
   using FE = typename MmaTraits<T>::F;
   constexpr int KS = MmaTraits<T>::KS;
 #pragma unroll
   for (int ks = 0; ks < BK / KS; ++ks) {
-    wmma::fragment<wmma::matrix_a, 16, 16, KS, FE, wmma::row_major> a[2];
-    wmma::fragment<wmma::matrix_b, 16, 16, KS, FE, wmma::col_major> b[2];
+    wmma::fragment<wmma::matrix_a, 16, 16, KS, FE, wmma::row_major> a[FM];
+    wmma::fragment<wmma::matrix_b, 16, 16, KS, FE, wmma::col_major> b[FN];
 #pragma unroll
-    for (int i = 0; i < 2; ++i) {
-      wmma::load_matrix_sync(a[i], As + (wm * 32 + i * 16) * lda + ks * KS, lda);
+    for (int i = 0; i < FM; ++i) {
+      wmma::load_matrix_sync(a[i], As + (m0 + i * 16) * lda + ks * KS, lda);
       round_tf32<T>(a[i]);
     }
 #pragma unroll
-    for (int j = 0; j < 2; ++j) {
-      wmma::load_matrix_sync(b[j], Bs + (wn * 32 + j * 16) * ldb + ks * KS, ldb);
+    for (int j = 0; j < FN; ++j) {
+      wmma::load_matrix_sync(b[j], Bs + (n0 + j * 16) * ldb + ks * KS, ldb);
       round_tf32<T>(b[j]);
     }
 #pragma unroll
-    for (int i = 0; i < 2; ++i)
+    for (int i = 0; i < FM; ++i)
 #pragma unroll
-      for (int j = 0; j < 2; ++j) wmma::mma_sync(c[i][j], a[i], b[j], c[i][j]);
+      for (int j = 0; j < FN; ++j) wmma::mma_sync(c[i][j], a[i], b[j], c[i][j]);
   }
 }
 #endif
@@ -355,7 +357,7 @@ template <typename T, bool kVec>
 __global__ void __launch_bounds__(kWmmaThreads)
     conv_fwd_wmma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
                          const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int64_t cin,
-                         int64_t cout, int64_t K) {
+                         int64_t cout, int64_t K, ConvEpilogue epi) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using namespace nvcuda;
   using S = typename MmaTraits<T>::S;
@@ -427,7 +429,7 @@ __global__ void __launch_bounds__(kWmmaThreads)
         }
       }
       __syncthreads();
-      wmma_tile_step<T, BK>(As, LDA, Bs, LDB, wm, wn, c);
+      wmma_tile_step<T, BK, 2, 2>(As, LDA, Bs, LDB, wm * 32, wn * 32, c);
       __syncthreads();
     }
   }
@@ -440,7 +442,7 @@ __global__ void __launch_bounds__(kWmmaThreads)
   for (int e = tid; e < BM * BN; e += kWmmaThreads) {
     const int m = e / BN, n = e % BN;
     const int64_t o = orow[m], co = col0 + n;
-    if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(Cs[m * LDC + n]);
+    if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(epi(Cs[m * LDC + n], co));
   }
 #else
   __trap();  // launched only on sm_80+ (checked on the host)
@@ -453,11 +455,14 @@ __global__ void __launch_bounds__(kWmmaThreads)
 // list and a ring of STAGES shared buffers, so the gathers of the next steps are in flight while
 // one step is multiplied. The float accumulator tile for the coalesced store reuses the ring.
 // ------------------------------------------------------------------------------------------------
-template <typename T>
+template <typename T, int BM_ = 64, int BN_ = 64, int FM_ = 2, int FN_ = 2>
 struct WmmaAsyncTile {
   using S = typename MmaTraits<T>::S;
   static constexpr int V = MmaTraits<T>::VEC;
-  static constexpr int BM = 64, BN = 64, BK = 32, STAGES = 3;
+  static constexpr int BM = BM_, BN = BN_, BK = 32, STAGES = 3;
+  static constexpr int FM = FM_, FN = FN_;                      // 16 x 16 fragments per warp
+  static constexpr int WARPS_N = BN / (16 * FN);                 // warps along the columns
+  static constexpr int kThreads = 32 * (BM / (16 * FM)) * WARPS_N;
   static constexpr int LD = BK + V;  // elements: rows 16-byte aligned, 16-row blocks 32-byte aligned (WMMA)
   static constexpr int LDC = BN + 4;
   static constexpr size_t kStage = sizeof(S) * (BM + BN) * LD;
@@ -465,19 +470,20 @@ struct WmmaAsyncTile {
   static constexpr size_t kC = sizeof(float) * BM * LDC;
   static constexpr size_t kRows = sizeof(int32_t) * kAsyncMaxK * BM;
   static constexpr size_t kSmem = (kRing > kC ? kRing : kC) + kRows;
+  static_assert(BM % (16 * FM) == 0 && BN % (16 * FN) == 0, "whole warp tiles");
 };
 
-template <typename T>
-__global__ void __launch_bounds__(kWmmaThreads)
+template <typename T, typename Tile>
+__global__ void __launch_bounds__(Tile::kThreads)
     conv_fwd_wmma_async_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
                                const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int cin,
-                               int cout, int K) {
+                               int cout, int K, ConvEpilogue epi) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using namespace nvcuda;
-  using Tile = WmmaAsyncTile<T>;
   using S = typename Tile::S;
   constexpr int KS = MmaTraits<T>::KS, V = Tile::V, BM = Tile::BM, BN = Tile::BN, BK = Tile::BK;
-  constexpr int STAGES = Tile::STAGES, LD = Tile::LD, LDC = Tile::LDC;
+  constexpr int STAGES = Tile::STAGES, LD = Tile::LD, LDC = Tile::LDC, FM = Tile::FM, FN = Tile::FN;
+  constexpr int kThreads = Tile::kThreads;
   extern __shared__ __align__(128) unsigned char smem_raw[];
   S* ring = reinterpret_cast<S*>(smem_raw);
   float* Cs = reinterpret_cast<float*>(smem_raw);  // after the main loop only
@@ -487,11 +493,11 @@ __global__ void __launch_bounds__(kWmmaThreads)
   __shared__ int klist[kAsyncMaxK];
   __shared__ int nk;
   const int tid = threadIdx.x, warp = tid / 32;
-  const int wm = warp / 2, wn = warp % 2;
+  const int m0 = (warp / Tile::WARPS_N) * 16 * FM, n0 = (warp % Tile::WARPS_N) * 16 * FN;
   const int col0 = static_cast<int>(blockIdx.y) * BN;
   const int chunks = (cin + BK - 1) / BK;
-  const int steps = tile_map_slice<BM, kWmmaThreads>(nbr, order, n_out, K, static_cast<int64_t>(blockIdx.x) * BM, orow,
-                                                     rows, klist, &present, &nk) * chunks;
+  const int steps = tile_map_slice<BM, kThreads>(nbr, order, n_out, K, static_cast<int64_t>(blockIdx.x) * BM, orow,
+                                                 rows, klist, &present, &nk) * chunks;
   const S* xs = reinterpret_cast<const S*>(x);
   const S* ws = reinterpret_cast<const S*>(w);
   auto issue = [&](int t) {
@@ -499,13 +505,13 @@ __global__ void __launch_bounds__(kWmmaThreads)
       const int k = klist[t / chunks], c0 = (t % chunks) * BK;
       S* As = ring + (t % STAGES) * (BM + BN) * LD;
       S* Bs = As + BM * LD;  // column-major B: Bs[n * LD + kk] = W[col0 + n, k, c0 + kk]
-      for (int e = tid; e < BM * (BK / V); e += kWmmaThreads) {
+      for (int e = tid; e < BM * (BK / V); e += kThreads) {
         const int m = e / (BK / V), ci = c0 + (e % (BK / V)) * V;
         const int32_t r = rows[k * BM + m];
         const bool ok = r >= 0 && ci < cin;  // Cin is a multiple of V: a vector is all in or all out
         cp_async16(As + m * LD + (ci - c0), ok ? xs + static_cast<int64_t>(r) * cin + ci : xs, ok);
       }
-      for (int e = tid; e < BN * (BK / V); e += kWmmaThreads) {
+      for (int e = tid; e < BN * (BK / V); e += kThreads) {
         const int n = e / (BK / V), ci = c0 + (e % (BK / V)) * V, co = col0 + n;
         const bool ok = co < cout && ci < cin;
         cp_async16(Bs + n * LD + (ci - c0), ok ? ws + (static_cast<int64_t>(co) * K + k) * cin + ci : ws, ok);
@@ -514,11 +520,11 @@ __global__ void __launch_bounds__(kWmmaThreads)
     cp_async_commit();
   };
 
-  wmma::fragment<wmma::accumulator, 16, 16, KS, float> c[2][2];
+  wmma::fragment<wmma::accumulator, 16, 16, KS, float> c[FM][FN];
 #pragma unroll
-  for (int i = 0; i < 2; ++i)
+  for (int i = 0; i < FM; ++i)
 #pragma unroll
-    for (int j = 0; j < 2; ++j) wmma::fill_fragment(c[i][j], 0.0f);
+    for (int j = 0; j < FN; ++j) wmma::fill_fragment(c[i][j], 0.0f);
 #pragma unroll
   for (int t = 0; t < STAGES - 1; ++t) issue(t);
   for (int t = 0; t < steps; ++t) {
@@ -526,21 +532,21 @@ __global__ void __launch_bounds__(kWmmaThreads)
     __syncthreads();
     issue(t + STAGES - 1);
     const S* As = ring + (t % STAGES) * (BM + BN) * LD;
-    wmma_tile_step<T, BK>(As, LD, As + BM * LD, LD, wm, wn, c);
+    wmma_tile_step<T, BK, FM, FN>(As, LD, As + BM * LD, LD, m0, n0, c);
   }
   cp_async_wait<0>();
   __syncthreads();  // every warp is done with the ring before Cs overwrites it
 #pragma unroll
-  for (int i = 0; i < 2; ++i)
+  for (int i = 0; i < FM; ++i)
 #pragma unroll
-    for (int j = 0; j < 2; ++j)
-      wmma::store_matrix_sync(Cs + (wm * 32 + i * 16) * LDC + wn * 32 + j * 16, c[i][j], LDC, wmma::mem_row_major);
+    for (int j = 0; j < FN; ++j)
+      wmma::store_matrix_sync(Cs + (m0 + i * 16) * LDC + n0 + j * 16, c[i][j], LDC, wmma::mem_row_major);
   __syncthreads();
-  for (int e = tid; e < BM * BN; e += kWmmaThreads) {
+  for (int e = tid; e < BM * BN; e += kThreads) {
     const int m = e / BN, n = e % BN;
     const int64_t o = orow[m];
     const int co = col0 + n;
-    if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(Cs[m * LDC + n]);
+    if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(epi(Cs[m * LDC + n], co));
   }
 #else
   __trap();  // launched only on sm_80+ (checked on the host)
@@ -639,13 +645,26 @@ DeviceProps device_props(c10::DeviceIndex dev) {
 
 bool aligned16(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 15) == 0; }
 
+// Raises a kernel's dynamic shared-memory limit once per (kernel, device): a driver call per launch
+// showed in the host time of small layers.
+void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
+  static std::mutex mutex;
+  static std::unordered_map<const void*, uint64_t> done;  // kernel -> bit mask of devices
+  const uint64_t bit = uint64_t(1) << (dev & 63);
+  std::lock_guard<std::mutex> lock(mutex);
+  uint64_t& mask = done[kernel];
+  if (mask & bit) return;
+  C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(bytes)));
+  mask |= bit;
+}
+
 template <typename T, int BM, int BN, int BK, int TM, int TN>
 void launch_simt(const at::Tensor& x, const at::Tensor& w, const at::Tensor& nbr, const int32_t* order, at::Tensor& out,
-                 cudaStream_t stream) {
+                 const ConvEpilogue& epi, cudaStream_t stream) {
   const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
   const dim3 grid(static_cast<unsigned>(ceil_div(n_out, BM)), static_cast<unsigned>(ceil_div(cout, BN)));
   conv_fwd_simt_kernel<T, BM, BN, BK, TM, TN><<<grid, (BM / TM) * (BN / TN), 0, stream>>>(
-      x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<T>(), n_out, cin, cout, K);
+      x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<T>(), n_out, cin, cout, K, epi);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
@@ -669,11 +688,21 @@ at::Tensor sparse_kernel_map_order_cuda(const at::Tensor& nbr_in) {
   return std::get<1>(masks.sort(/*stable=*/true, /*dim=*/0, /*descending=*/false)).to(at::kInt);
 }
 
-at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr_in,
-                            const c10::optional<at::Tensor>& order_in) {
-  check_conv_args(features, weight, nbr_in);
-  check_order(order_in, nbr_in);
+// Output rows with no input: every one is epi(0) (at::empty otherwise, so each kernel writes every row).
+at::Tensor conv_without_inputs(at::Tensor& out, const ConvEpilogue& epi, const at::Tensor& scale,
+                               const at::Tensor& shift) {
+  if (!scale.defined() && !shift.defined()) return out.zero_();
+  auto row = shift.defined() ? shift.clone() : at::zeros({out.size(1)}, out.options().dtype(at::kFloat));
+  if (epi.relu) row.clamp_min_(0);  // scale * 0 = 0
+  return out.copy_(row.unsqueeze(0).expand_as(out));
+}
+
+at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr_in,
+                                 const c10::optional<at::Tensor>& order_in, const at::Tensor& scale,
+                                 const at::Tensor& shift, bool relu) {
   const c10::cuda::OptionalCUDAGuard guard(features.device());
+  const ConvEpilogue epi{scale.defined() ? scale.data_ptr<float>() : nullptr,
+                         shift.defined() ? shift.data_ptr<float>() : nullptr, relu};
   auto x = features.contiguous();
   auto w = weight.contiguous();
   auto nbr = nbr_in.contiguous();
@@ -685,7 +714,7 @@ at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight
                     "sparse_conv: too many output rows or channels for one launch (", n_out, " x ", cout, ")");
   auto out = at::empty({n_out, cout}, x.options());
   if (n_out == 0 || cout == 0) return out;
-  if (n_in == 0 || cin == 0 || K == 0) return out.zero_();
+  if (n_in == 0 || cin == 0 || K == 0) return conv_without_inputs(out, epi, scale, shift);
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
   const auto dtype = x.scalar_type();
   const bool half_type = dtype == at::kHalf || dtype == at::kBFloat16;
@@ -699,18 +728,20 @@ at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight
     auto launch = [&](auto tag) {
       using scalar_t = decltype(tag);
       if (use_vec && K <= kAsyncMaxK) {  // the pipelined kernel
+        // 64 x 64 tiles: 128 x 64, 64 x 128 and 128 x 128 were slower on the H100 (docs/sparse.md)
         using Tile = WmmaAsyncTile<scalar_t>;
-        auto kernel = conv_fwd_wmma_async_kernel<scalar_t>;
-        C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(Tile::kSmem)));
-        kernel<<<grid, kWmmaThreads, Tile::kSmem, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
-                                                            nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(), n_out,
-                                                            static_cast<int>(cin), static_cast<int>(cout), static_cast<int>(K));
+        auto kernel = conv_fwd_wmma_async_kernel<scalar_t, Tile>;
+        raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::kSmem, x.get_device());
+        kernel<<<grid, Tile::kThreads, Tile::kSmem, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
+                                                              nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(), n_out,
+                                                              static_cast<int>(cin), static_cast<int>(cout),
+                                                              static_cast<int>(K), epi);
         C10_CUDA_KERNEL_LAUNCH_CHECK();
         return;
       }
       auto kernel = use_vec ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
       kernel<<<grid, kWmmaThreads, 0, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(),
-                                                order, out.data_ptr<scalar_t>(), n_out, cin, cout, K);
+                                                order, out.data_ptr<scalar_t>(), n_out, cin, cout, K, epi);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     };
     if (dtype == at::kHalf) launch(c10::Half{});
@@ -722,11 +753,11 @@ at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight
       aligned16(x.data_ptr()) && aligned16(w.data_ptr())) {
     auto launch = [&](auto kernel, auto tile, int bm, int bn) {
       using Tile = decltype(tile);
-      C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(Tile::kSmem)));
+      raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::kSmem, x.get_device());
       const dim3 grid(static_cast<unsigned>(ceil_div(n_out, bm)), static_cast<unsigned>(ceil_div(cout, bn)));
       kernel<<<grid, Tile::kThreads, Tile::kSmem, stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
                                                             order, out.data_ptr<float>(), n_out, static_cast<int>(cin),
-                                                            static_cast<int>(cout), static_cast<int>(K));
+                                                            static_cast<int>(cout), static_cast<int>(K), epi);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     };
     // 64-row tiles, 32 channels per step, 3 stages: the best of the tiles tried on the H200 (docs/sparse.md)
@@ -736,11 +767,31 @@ at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight
     return out;
   }
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, dtype, "lidarops_sparse_conv_simt", [&] {
-    if (cout <= 16) launch_simt<scalar_t, 128, 16, 16, 4, 2>(x, w, nbr, order, out, stream);
-    else if (cout <= 32) launch_simt<scalar_t, 64, 32, 16, 4, 2>(x, w, nbr, order, out, stream);
-    else launch_simt<scalar_t, 64, 64, 16, 4, 4>(x, w, nbr, order, out, stream);
+    if (cout <= 16) launch_simt<scalar_t, 128, 16, 16, 4, 2>(x, w, nbr, order, out, epi, stream);
+    else if (cout <= 32) launch_simt<scalar_t, 64, 32, 16, 4, 2>(x, w, nbr, order, out, epi, stream);
+    else launch_simt<scalar_t, 64, 64, 16, 4, 4>(x, w, nbr, order, out, epi, stream);
   });
   return out;
+}
+
+at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr,
+                            const c10::optional<at::Tensor>& order) {
+  check_conv_args(features, weight, nbr);
+  check_order(order, nbr);
+  return sparse_conv_cuda_impl(features, weight, nbr, order, at::Tensor(), at::Tensor(), false);
+}
+
+at::Tensor sparse_conv_affine_cuda(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr,
+                                   const c10::optional<at::Tensor>& order, const c10::optional<at::Tensor>& scale,
+                                   const c10::optional<at::Tensor>& shift, bool relu) {
+  check_conv_args(features, weight, nbr);
+  check_order(order, nbr);
+  check_epilogue_arg(scale, "scale", weight.size(0), features);
+  check_epilogue_arg(shift, "shift", weight.size(0), features);
+  auto defined = [](const c10::optional<at::Tensor>& t) {
+    return t.has_value() && t->defined() ? t->contiguous() : at::Tensor();
+  };
+  return sparse_conv_cuda_impl(features, weight, nbr, order, defined(scale), defined(shift), relu);
 }
 
 at::Tensor sparse_conv_weight_grad_cuda(const at::Tensor& features, const at::Tensor& grad_in, const at::Tensor& nbr_in) {
@@ -780,6 +831,7 @@ at::Tensor sparse_conv_weight_grad_cuda(const at::Tensor& features, const at::Te
 TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("sparse_kernel_map_order", &sparse_kernel_map_order_cuda);
   m.impl("sparse_conv", &sparse_conv_cuda);
+  m.impl("sparse_conv_affine", &sparse_conv_affine_cuda);
   m.impl("sparse_conv_weight_grad", &sparse_conv_weight_grad_cuda);
 }
 

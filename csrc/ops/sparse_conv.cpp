@@ -30,6 +30,11 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // weight (Cout, K, Cin), kernel_map (N_out, K) int32 -> (N_out, Cout). Accumulates in float32
   // (float64 for float64). order (optional, from sparse_kernel_map_order) only changes the speed.
   m.def("sparse_conv(Tensor features, Tensor weight, Tensor kernel_map, Tensor? order=None) -> Tensor");
+  // Inference form with a fused per-channel epilogue on the float accumulator:
+  // relu?(sparse_conv(...) * scale + shift), scale / shift float32 (Cout,) or None (BatchNorm in eval
+  // mode folded to an affine map, then ReLU). No autograd formula: for use without gradients.
+  m.def("sparse_conv_affine(Tensor features, Tensor weight, Tensor kernel_map, Tensor? order, Tensor? scale, "
+        "Tensor? shift, bool relu=False) -> Tensor");
   // Gradient of sparse_conv with respect to weight: (Cout, K, Cin), sum over o of
   // grad_out[o] (x) features[kernel_map[o, k]].
   m.def("sparse_conv_weight_grad(Tensor features, Tensor grad_out, Tensor kernel_map) -> Tensor");

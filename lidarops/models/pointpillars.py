@@ -230,15 +230,14 @@ class PointPillarsBackbone(nn.Module):
         block_out = {}
         for layer in layers:
             if layer.kind == "down":
-                x = Fs.conv(x, layer.sparse_weight(), None, "conv", stride=layer.stride, padding=1)
+                x = _conv_norm_relu(x, layer, "conv", stride=layer.stride, padding=1)
             elif layer.kind == "subm":
-                x = Fs.conv(x, layer.sparse_weight(), None, "subm", indice_key=f"subm{layer.block}")
+                x = _conv_norm_relu(x, layer, "subm", indice_key=f"subm{layer.block}")
             else:
                 break
-            x = _norm_relu(x, layer)
             block_out[layer.block] = x
-        ups = [_norm_relu(Fs.conv(block_out[layer.block], layer.sparse_weight(), None, "transposed",
-                                  stride=layer.stride), layer) for layer in layers if layer.kind == "up"]
+        ups = [_conv_norm_relu(block_out[layer.block], layer, "transposed", stride=layer.stride)
+               for layer in layers if layer.kind == "up"]
         # one zero map in channels_last memory, each branch's rows written into its channel slice: no
         # per-branch dense map, transposing copy or concatenation (they were most of the CPU time)
         H, W = ups[0].spatial_shape
@@ -250,6 +249,36 @@ class PointPillarsBackbone(nn.Module):
             out[b, y, xx, c0:c1] = u.features
             c0 = c1
         return out.permute(0, 3, 1, 2)  # (B, C, H, W), channels_last memory
+
+
+def _conv_norm_relu(x, layer: BackboneLayer, kind: str, **kw):
+    """The layer's sparse convolution, BatchNorm and ReLU: fused into the convolution's kernel in eval
+    mode without gradients (lidarops.sparse.functional.conv's epilogue), else three steps."""
+    from lidarops.sparse import functional as Fs
+    n = layer.norm
+    grad = torch.is_grad_enabled() and (x.features.requires_grad or layer.conv.weight.requires_grad
+                                        or any(p is not None and p.requires_grad for p in (n.weight, n.bias)))
+    if (n.training or grad or n.running_mean is None or x.features.dtype == torch.float64
+            or torch.compiler.is_compiling()):  # float64: BatchNorm's own float64 arithmetic
+        return _norm_relu(Fs.conv(x, layer.sparse_weight(), None, kind, **kw), layer)
+    scale, shift = Fs.norm_affine(n)
+    return Fs.conv(x, _inference_weight(layer), None, kind, **kw, scale=scale, shift=shift, relu=True)
+
+
+def _inference_weight(layer: BackboneLayer) -> Tensor:
+    """``layer.sparse_weight()``, kept on the conv module until its weight changes, so that an eval
+    forward does not copy every weight again (cached by its data pointer and version counter)."""
+    src = layer.conv.weight
+    try:
+        key = (src.data_ptr(), src._version, src.dtype, src.device)
+    except RuntimeError:  # an inference tensor: no version counter, no caching
+        return layer.sparse_weight()
+    cached = layer.conv.__dict__.get("_lidarops_sparse_weight")
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    w = layer.sparse_weight()
+    layer.conv.__dict__["_lidarops_sparse_weight"] = (key, w)
+    return w
 
 
 def _norm_relu(x, layer: BackboneLayer):

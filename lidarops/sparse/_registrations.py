@@ -47,6 +47,11 @@ def _conv_fake(features, weight, kernel_map, order=None):
     return features.new_empty((kernel_map.shape[0], weight.shape[0]))
 
 
+@torch.library.register_fake("lidarops::sparse_conv_affine")
+def _conv_affine_fake(features, weight, kernel_map, order=None, scale=None, shift=None, relu=False):
+    return _conv_fake(features, weight, kernel_map, order)
+
+
 @torch.library.register_fake("lidarops::sparse_conv_weight_grad")
 def _conv_weight_grad_fake(features, grad_out, kernel_map):
     return features.new_empty((grad_out.shape[1], kernel_map.shape[1], features.shape[1]))

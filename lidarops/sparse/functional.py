@@ -30,9 +30,11 @@ from lidarops.sparse.tensor import KernelMap, SparseConvTensor
 extension.load()
 from lidarops.sparse import _registrations  # noqa: E402,F401  (fake kernels and autograd)
 
+_compiling = torch.compiler.is_compiling
+
 __all__ = [
     "conv_output_shape", "conv_transpose_output_shape", "conv_out_indices", "kernel_map", "build_kernel_map",
-    "sparse_conv", "conv", "max_pool",
+    "sparse_conv", "conv", "max_pool", "norm_affine",
 ]
 
 _METHODS = {"auto": 0, "dense": 1, "hash": 2}
@@ -307,9 +309,51 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
     return km, cache
 
 
+def norm_affine(norm: torch.nn.Module, bias: Optional[Tensor] = None) -> tuple:
+    """``(scale, shift)``, float32 ``(C,)``, such that ``norm(y + bias) == y * scale + shift`` for a
+    BatchNorm in eval mode (running statistics): what :func:`conv` fuses into its epilogue.
+
+    Cached on the module until one of its parameters or buffers (or ``bias``) is replaced or changed
+    in place (their version counters are part of the key).
+    """
+    if not isinstance(norm, torch.nn.modules.batchnorm._BatchNorm) or norm.training or norm.running_mean is None:
+        raise ValueError(f"norm_affine takes a BatchNorm in eval mode with running statistics, got {norm!r}")
+    ts = (norm.weight, norm.bias, norm.running_mean, norm.running_var, bias)
+    try:
+        key = tuple(None if t is None else (t.data_ptr(), t._version, t.device) for t in ts) + (norm.eps,)
+    except RuntimeError:  # inference tensors keep no version counter: no caching
+        key = None
+    cached = norm.__dict__.get("_lidarops_affine")
+    if key is not None and cached is not None and cached[0] == key:
+        return cached[1], cached[2]
+    with torch.no_grad():
+        scale = torch.rsqrt(norm.running_var.float() + norm.eps)
+        if norm.weight is not None:
+            scale = scale * norm.weight.float()
+        shift = -norm.running_mean.float() * scale
+        if norm.bias is not None:
+            shift = shift + norm.bias.float()
+        if bias is not None:
+            shift = shift + bias.float() * scale
+        scale, shift = scale.contiguous(), shift.contiguous()
+    if key is not None:
+        norm.__dict__["_lidarops_affine"] = (key, scale, shift)
+    return scale, shift
+
+
+def _affine_torch(out: Tensor, scale: Optional[Tensor], shift: Optional[Tensor], relu: bool) -> Tensor:
+    """The fused epilogue in differentiable torch ops (the path with gradients)."""
+    if scale is not None:
+        out = out * scale.to(out.dtype)
+    if shift is not None:
+        out = out + shift.to(out.dtype)
+    return torch.relu(out) if relu else out
+
+
 def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kind: str = "conv", stride=1,
          padding=0, dilation=1, output_padding=0, indice_key: Optional[str] = None,
-         out_spatial_shape: Optional[Sequence[int]] = None, method: str = "auto") -> SparseConvTensor:
+         out_spatial_shape: Optional[Sequence[int]] = None, method: str = "auto", *,
+         scale: Optional[Tensor] = None, shift: Optional[Tensor] = None, relu: bool = False) -> SparseConvTensor:
     """Sparse convolution of one layer.
 
     Args:
@@ -324,6 +368,10 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
             sites, else ValueError); otherwise the new map is registered in the output's dict.
         out_spatial_shape (Sequence[int], optional): override the output grid of conv / transposed.
         method (str): coordinate table for a new map: ``"auto"``, ``"dense"`` or ``"hash"``.
+        scale, shift (Tensor[Cout] float32, optional), relu (bool): an epilogue, ``out = relu?((conv +
+            bias) * scale + shift)`` (a BatchNorm in eval mode and a ReLU: :func:`norm_affine`). Without
+            gradients it runs inside the convolution kernel on its float accumulator
+            (``torch.ops.lidarops.sparse_conv_affine``): no separate BatchNorm and ReLU kernels.
 
     Returns:
         SparseConvTensor with features (N_out, Cout): same sites as x for ``"subm"``, the registered
@@ -346,6 +394,12 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
         raise ValueError(f"features must be floating point, got {describe(x.features)}")
     if bias is not None and (bias.shape != (weight.shape[0],) or bias.dtype != weight.dtype):
         raise ValueError(f"bias must be ({weight.shape[0]},) of dtype {weight.dtype}, got {describe(bias)}")
+    for name, t in (("scale", scale), ("shift", shift)):
+        if t is not None and (not isinstance(t, Tensor) or t.shape != (weight.shape[0],) or t.dtype != torch.float32
+                              or t.device != weight.device):
+            raise ValueError(f"{name} must be a float32 ({weight.shape[0]},) tensor on {weight.device}, "
+                             f"got {describe(t)}")
+    epilogue = scale is not None or shift is not None or bool(relu)
     extension.check_device(x.features, "features")
     ksize = tuple(weight.shape[1:-1])
     cout, K = weight.shape[0], math.prod(ksize)
@@ -353,14 +407,31 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
     if kind == "subm" and K == 1:
         # every site is its own only neighbour: a matrix product, no kernel map needed
         out = x.features.matmul(w[:, 0, :].t())
-        y = x.replace_feature(out + bias if bias is not None else out)
-        return y
+        out = out + bias if bias is not None else out
+        return x.replace_feature(_affine_torch(out, scale, shift, relu) if epilogue else out)
     km, cache = _kernel_map_for(x, kind, ksize, stride, padding, dilation, output_padding, indice_key,
                                 out_spatial_shape, method)
-    out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order)
-    if bias is not None:
-        out = out + bias
-    return SparseConvTensor(out, km.out_indices, list(km.out_spatial_shape), x.batch_size, indice_dict=cache)
+    grad = torch.is_grad_enabled() and (x.features.requires_grad or w.requires_grad
+                                        or (bias is not None and bias.requires_grad))
+    if grad or _compiling() or (epilogue and x.features.dtype == torch.float64):  # float64: the float32
+        out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order)  # epilogue would round
+        if bias is not None:
+            out = out + bias
+        if epilogue:
+            out = _affine_torch(out, scale, shift, relu)
+    else:  # no autograd node to record: skip the Python autograd wrapper (host time of eager inference)
+        with torch._C._AutoDispatchBelowAutograd():
+            if epilogue:
+                if bias is not None:  # (conv + bias) * scale + shift
+                    b = bias.float() if scale is None else bias.float() * scale
+                    shift = b if shift is None else shift + b
+                out = torch.ops.lidarops.sparse_conv_affine(x.features, w, km.neighbors, km.order, scale, shift,
+                                                            bool(relu))
+            else:
+                out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order)
+                if bias is not None:
+                    out = out + bias
+    return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)
 
 
 def max_pool(x: SparseConvTensor, kernel_size, stride=None, padding=0, dilation=1, subm: bool = False,
@@ -391,7 +462,7 @@ def max_pool(x: SparseConvTensor, kernel_size, stride=None, padding=0, dilation=
     extension.check_device(x.features, "features")
     km, cache = _kernel_map_for(x, "subm" if subm else "pool", k, s, padding, dilation, 0, indice_key, None, method)
     out, _ = torch.ops.lidarops.sparse_max_pool(x.features, km.neighbors)
-    return SparseConvTensor(out, km.out_indices, list(km.out_spatial_shape), x.batch_size, indice_dict=cache)
+    return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)
 
 
 # ---- dense references (used by the tests) -----------------------------------------------------------

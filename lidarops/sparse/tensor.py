@@ -145,6 +145,25 @@ class SparseConvTensor:
         self.benchmark_record = {}
         self.thrust_allocator = None
 
+    @classmethod
+    def _derived(cls, features: Tensor, indices: Tensor, spatial_shape: Sequence[int], batch_size: int,
+                 indice_dict: dict, grid=None, voxel_num=None, benchmark: bool = False) -> "SparseConvTensor":
+        """A tensor from parts that are already valid (those of another SparseConvTensor or of a kernel
+        map): only the features are checked. The layers make one per call, so it skips __init__'s checks
+        (host time of eager forwards)."""
+        out = cls.__new__(cls)
+        out.indices = indices
+        out.spatial_shape = list(spatial_shape)
+        out.batch_size = batch_size
+        out.features = features
+        out.indice_dict = indice_dict
+        out.grid = grid
+        out.voxel_num = voxel_num
+        out.benchmark = benchmark
+        out.benchmark_record = {}
+        out.thrust_allocator = None
+        return out
+
     # features are checked on every assignment (replace_feature, or ``x.features = ...`` in old code)
     @property
     def features(self) -> Tensor:
@@ -191,8 +210,8 @@ class SparseConvTensor:
 
     def replace_feature(self, features: Tensor) -> "SparseConvTensor":
         """A tensor with the same sites (and kernel-map cache) and new features ``(N, C')``."""
-        out = SparseConvTensor(features, self.indices, self.spatial_shape, self.batch_size, self.grid,
-                               self.voxel_num, self.indice_dict, self.benchmark)
+        out = SparseConvTensor._derived(features, self.indices, self.spatial_shape, self.batch_size, self.indice_dict,
+                                        self.grid, self.voxel_num, self.benchmark)
         out.benchmark_record = self.benchmark_record
         return out
 
@@ -243,12 +262,14 @@ class SparseConvTensor:
                                        f"{self.spatial_shape}")])
             if key is not None:
                 self.indices._lidarops_checked = key
-        out = self.features.new_zeros([self.batch_size] + self.spatial_shape + [C])
-        out = out.index_put(tuple(idx.unbind(1)), self.features)
-        if not channels_first:
-            return out
         D = self.ndim
-        return out.permute(0, D + 1, *range(1, D + 1)).contiguous()
+        if not channels_first:
+            out = self.features.new_zeros([self.batch_size] + self.spatial_shape + [C])
+            return out.index_put(tuple(idx.unbind(1)), self.features)
+        # written straight into the channels-first map through a channels-last view (no transposing copy)
+        out = self.features.new_zeros([self.batch_size, C] + self.spatial_shape)
+        out.permute(0, *range(2, D + 2), 1).index_put_(tuple(idx.unbind(1)), self.features)
+        return out
 
     @classmethod
     def from_dense(cls, x: Tensor, channels_first: bool = False) -> "SparseConvTensor":

@@ -270,6 +270,32 @@ inline void check_order(const c10::optional<at::Tensor>& order, const at::Tensor
                     nbr.device());
 }
 
+// Per-output-channel epilogue of the fused inference convolution (sparse_conv_affine):
+// out = relu?(acc * scale[co] + shift[co]) on the float accumulator; a null scale / shift is 1 / 0.
+// relu keeps NaN (as torch.relu).
+struct ConvEpilogue {
+  const float* scale = nullptr;
+  const float* shift = nullptr;
+  bool relu = false;
+  template <typename A>
+  LIDAROPS_HD A operator()(A v, int64_t co) const {
+    if (scale != nullptr) v *= static_cast<A>(scale[co]);
+    if (shift != nullptr) v += static_cast<A>(shift[co]);
+    return relu && v < A(0) ? A(0) : v;
+  }
+};
+
+// scale / shift of sparse_conv_affine: undefined, or float32 (Cout,) on the device of the features.
+inline void check_epilogue_arg(const c10::optional<at::Tensor>& t, const char* name, int64_t cout,
+                               const at::Tensor& features) {
+  if (!t.has_value() || !t->defined()) return;
+  TORCH_CHECK_VALUE(t->dim() == 1 && t->size(0) == cout && t->scalar_type() == at::kFloat, name,
+                    " must be a float32 (Cout,) = (", cout, ",) tensor, got shape ", t->sizes(), " and dtype ",
+                    t->scalar_type());
+  TORCH_CHECK_VALUE(t->device() == features.device(), name, " is on ", t->device(), " but features is on ",
+                    features.device());
+}
+
 // Sort key of a kernel-map row: bit k set when offset k (< 63) has an input.
 LIDAROPS_HD int64_t row_mask(const int32_t* row, int64_t K) {
   int64_t mask = 0;
