@@ -162,14 +162,9 @@ at::Tensor sparse_conv_affine_cpu(const at::Tensor& features, const at::Tensor& 
                                   const c10::optional<at::Tensor>& shift_in, bool relu) {
   check_conv_args(features, weight, nbr);
   check_order(order, nbr);
-  check_epilogue_arg(scale_in, "scale", weight.size(0), features);
-  check_epilogue_arg(shift_in, "shift", weight.size(0), features);
-  at::Tensor scale, shift;
-  if (scale_in.has_value() && scale_in->defined()) scale = scale_in->contiguous();
-  if (shift_in.has_value() && shift_in->defined()) shift = shift_in->contiguous();
-  const ConvEpilogue epi{scale.defined() ? scale.data_ptr<float>() : nullptr,
-                         shift.defined() ? shift.data_ptr<float>() : nullptr, relu};
-  return sparse_conv_cpu_impl(features, weight, nbr, epi);
+  const auto scale = epilogue_operand(scale_in, "scale", weight.size(0), features);
+  const auto shift = epilogue_operand(shift_in, "shift", weight.size(0), features);
+  return sparse_conv_cpu_impl(features, weight, nbr, make_epilogue(scale, shift, relu));
 }
 
 at::Tensor sparse_conv_weight_grad_cpu(const at::Tensor& features_in, const at::Tensor& grad_in,

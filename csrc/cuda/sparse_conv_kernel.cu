@@ -701,8 +701,7 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
                                  const c10::optional<at::Tensor>& order_in, const at::Tensor& scale,
                                  const at::Tensor& shift, bool relu) {
   const c10::cuda::OptionalCUDAGuard guard(features.device());
-  const ConvEpilogue epi{scale.defined() ? scale.data_ptr<float>() : nullptr,
-                         shift.defined() ? shift.data_ptr<float>() : nullptr, relu};
+  const ConvEpilogue epi = make_epilogue(scale, shift, relu);
   auto x = features.contiguous();
   auto w = weight.contiguous();
   auto nbr = nbr_in.contiguous();
@@ -786,12 +785,9 @@ at::Tensor sparse_conv_affine_cuda(const at::Tensor& features, const at::Tensor&
                                    const c10::optional<at::Tensor>& shift, bool relu) {
   check_conv_args(features, weight, nbr);
   check_order(order, nbr);
-  check_epilogue_arg(scale, "scale", weight.size(0), features);
-  check_epilogue_arg(shift, "shift", weight.size(0), features);
-  auto defined = [](const c10::optional<at::Tensor>& t) {
-    return t.has_value() && t->defined() ? t->contiguous() : at::Tensor();
-  };
-  return sparse_conv_cuda_impl(features, weight, nbr, order, defined(scale), defined(shift), relu);
+  const auto scale_c = epilogue_operand(scale, "scale", weight.size(0), features);  // checked in this order
+  const auto shift_c = epilogue_operand(shift, "shift", weight.size(0), features);
+  return sparse_conv_cuda_impl(features, weight, nbr, order, scale_c, shift_c, relu);
 }
 
 at::Tensor sparse_conv_weight_grad_cuda(const at::Tensor& features, const at::Tensor& grad_in, const at::Tensor& nbr_in) {

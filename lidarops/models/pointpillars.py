@@ -256,29 +256,11 @@ def _conv_norm_relu(x, layer: BackboneLayer, kind: str, **kw):
     mode without gradients (lidarops.sparse.functional.conv's epilogue), else three steps."""
     from lidarops.sparse import functional as Fs
     n = layer.norm
-    grad = torch.is_grad_enabled() and (x.features.requires_grad or layer.conv.weight.requires_grad
-                                        or any(p is not None and p.requires_grad for p in (n.weight, n.bias)))
-    if (n.training or grad or n.running_mean is None or x.features.dtype == torch.float64
-            or torch.compiler.is_compiling()):  # float64: BatchNorm's own float64 arithmetic
+    if not Fs.fusable_norm(x, n, layer.conv.weight):
         return _norm_relu(Fs.conv(x, layer.sparse_weight(), None, kind, **kw), layer)
     scale, shift = Fs.norm_affine(n)
-    return Fs.conv(x, _inference_weight(layer), None, kind, **kw, scale=scale, shift=shift, relu=True)
-
-
-def _inference_weight(layer: BackboneLayer) -> Tensor:
-    """``layer.sparse_weight()``, kept on the conv module until its weight changes, so that an eval
-    forward does not copy every weight again (cached by its data pointer and version counter)."""
-    src = layer.conv.weight
-    try:
-        key = (src.data_ptr(), src._version, src.dtype, src.device)
-    except RuntimeError:  # an inference tensor: no version counter, no caching
-        return layer.sparse_weight()
-    cached = layer.conv.__dict__.get("_lidarops_sparse_weight")
-    if cached is not None and cached[0] == key:
-        return cached[1]
-    w = layer.sparse_weight()
-    layer.conv.__dict__["_lidarops_sparse_weight"] = (key, w)
-    return w
+    w = Fs.cached_by_version(layer.conv, "_lidarops_sparse_weight", (layer.conv.weight,), layer.sparse_weight)
+    return Fs.conv(x, w, None, kind, **kw, scale=scale, shift=shift, relu=True)
 
 
 def _norm_relu(x, layer: BackboneLayer):

@@ -309,36 +309,59 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
     return km, cache
 
 
+def cached_by_version(owner, attr: str, tensors: Sequence[Optional[Tensor]], compute, extra: tuple = ()):
+    """``compute()``, kept in ``owner.__dict__[attr]`` until one of ``tensors`` is replaced or changed in
+    place (the key holds each one's data pointer, version counter and device, plus ``extra``).
+    Inference tensors keep no version counter: then nothing is cached."""
+    try:
+        key = tuple(None if t is None else (t.data_ptr(), t._version, t.device) for t in tensors) + tuple(extra)
+    except RuntimeError:
+        return compute()
+    cached = owner.__dict__.get(attr)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    value = compute()
+    owner.__dict__[attr] = (key, value)
+    return value
+
+
+def fusable_norm(x: SparseConvTensor, norm: torch.nn.Module, *params: Optional[Tensor]) -> bool:
+    """Whether a convolution of ``x`` followed by ``norm`` can run as one fused inference convolution:
+    ``norm`` is a BatchNorm in eval mode with running statistics, no gradient is needed (``x`` and the
+    layers' ``params``), the features are not float64 (which keeps BatchNorm's own float64
+    arithmetic), and the code is not being compiled."""
+    if (not isinstance(norm, torch.nn.modules.batchnorm._BatchNorm) or norm.training or norm.running_mean is None
+            or norm.running_var is None or x.features.dtype == torch.float64 or _compiling()):
+        return False
+    return not (torch.is_grad_enabled() and (x.features.requires_grad or any(
+        p is not None and p.requires_grad for p in params + (norm.weight, norm.bias))))
+
+
 def norm_affine(norm: torch.nn.Module, bias: Optional[Tensor] = None) -> tuple:
     """``(scale, shift)``, float32 ``(C,)``, such that ``norm(y + bias) == y * scale + shift`` for a
     BatchNorm in eval mode (running statistics): what :func:`conv` fuses into its epilogue.
 
     Cached on the module until one of its parameters or buffers (or ``bias``) is replaced or changed
-    in place (their version counters are part of the key).
+    in place (:func:`cached_by_version`).
     """
     if not isinstance(norm, torch.nn.modules.batchnorm._BatchNorm) or norm.training or norm.running_mean is None:
         raise ValueError(f"norm_affine takes a BatchNorm in eval mode with running statistics, got {norm!r}")
-    ts = (norm.weight, norm.bias, norm.running_mean, norm.running_var, bias)
-    try:
-        key = tuple(None if t is None else (t.data_ptr(), t._version, t.device) for t in ts) + (norm.eps,)
-    except RuntimeError:  # inference tensors keep no version counter: no caching
-        key = None
-    cached = norm.__dict__.get("_lidarops_affine")
-    if key is not None and cached is not None and cached[0] == key:
-        return cached[1], cached[2]
-    with torch.no_grad():
-        scale = torch.rsqrt(norm.running_var.float() + norm.eps)
-        if norm.weight is not None:
-            scale = scale * norm.weight.float()
-        shift = -norm.running_mean.float() * scale
-        if norm.bias is not None:
-            shift = shift + norm.bias.float()
-        if bias is not None:
-            shift = shift + bias.float() * scale
-        scale, shift = scale.contiguous(), shift.contiguous()
-    if key is not None:
-        norm.__dict__["_lidarops_affine"] = (key, scale, shift)
-    return scale, shift
+
+    def compute():
+        with torch.no_grad():
+            scale = torch.rsqrt(norm.running_var.float() + norm.eps)
+            if norm.weight is not None:
+                scale = scale * norm.weight.float()
+            shift = -norm.running_mean.float() * scale
+            if norm.bias is not None:
+                shift = shift + norm.bias.float()
+            if bias is not None:
+                shift = shift + bias.float() * scale
+            return scale.contiguous(), shift.contiguous()
+
+    return cached_by_version(norm, "_lidarops_affine",
+                             (norm.weight, norm.bias, norm.running_mean, norm.running_var, bias), compute,
+                             (norm.eps,))
 
 
 def _affine_torch(out: Tensor, scale: Optional[Tensor], shift: Optional[Tensor], relu: bool) -> Tensor:

@@ -319,25 +319,20 @@ def _fusable(modules: list, i: int, x: SparseConvTensor) -> int:
     after it, BatchNorm in training mode or without running statistics, gradients needed, float64
     features, spconv's kernel-size-1 shortcut, or inside torch.compile)."""
     conv = modules[i]
-    if (i + 1 >= len(modules) or getattr(conv, "conv1x1", False) or x.features.dtype == torch.float64
-            or Fs._compiling()):
-        return 0  # float64 (a reference dtype) keeps BatchNorm's own float64 arithmetic
+    if i + 1 >= len(modules) or getattr(conv, "conv1x1", False):
+        return 0
     bn = modules[i + 1]
-    if (not isinstance(bn, nn.modules.batchnorm._BatchNorm) or bn.training or bn.running_mean is None
-            or bn.running_var is None):
+    if not Fs.fusable_norm(x, bn, conv.weight, conv.bias):
         return 0
     relu = i + 2 < len(modules) and type(modules[i + 2]) in (nn.ReLU, SparseReLU)
     hooked = modules[i:i + 3 if relu else i + 2]
     if any(m._forward_hooks or m._forward_pre_hooks for m in hooked) or _global_hooks():
         return 0  # the fused path does not call these modules, so their hooks would not run
-    if torch.is_grad_enabled() and (x.features.requires_grad or any(
-            p is not None and p.requires_grad for p in (conv.weight, conv.bias, bn.weight, bn.bias))):
-        return 0
     return 3 if relu else 2
 
 
 def _global_hooks() -> bool:
-    from torch.nn.modules import module as m
+    m = nn.modules.module
     return bool(m._global_forward_hooks or m._global_forward_pre_hooks)
 
 

@@ -285,15 +285,22 @@ struct ConvEpilogue {
   }
 };
 
-// scale / shift of sparse_conv_affine: undefined, or float32 (Cout,) on the device of the features.
-inline void check_epilogue_arg(const c10::optional<at::Tensor>& t, const char* name, int64_t cout,
-                               const at::Tensor& features) {
-  if (!t.has_value() || !t->defined()) return;
+// scale / shift of sparse_conv_affine: undefined, or float32 (Cout,) on the device of the features
+// (checked); returned contiguous, or undefined.
+inline at::Tensor epilogue_operand(const c10::optional<at::Tensor>& t, const char* name, int64_t cout,
+                                   const at::Tensor& features) {
+  if (!t.has_value() || !t->defined()) return at::Tensor();
   TORCH_CHECK_VALUE(t->dim() == 1 && t->size(0) == cout && t->scalar_type() == at::kFloat, name,
                     " must be a float32 (Cout,) = (", cout, ",) tensor, got shape ", t->sizes(), " and dtype ",
                     t->scalar_type());
   TORCH_CHECK_VALUE(t->device() == features.device(), name, " is on ", t->device(), " but features is on ",
                     features.device());
+  return t->contiguous();
+}
+
+inline ConvEpilogue make_epilogue(const at::Tensor& scale, const at::Tensor& shift, bool relu) {
+  return ConvEpilogue{scale.defined() ? scale.data_ptr<float>() : nullptr,
+                      shift.defined() ? shift.data_ptr<float>() : nullptr, relu};
 }
 
 // Sort key of a kernel-map row: bit k set when offset k (< 63) has an input.
