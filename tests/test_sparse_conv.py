@@ -517,13 +517,17 @@ def test_cuda_float32_tiles_match_float64(cin, cout, D, ksize, sites, ordered):
 
 
 @_cuda
-@pytest.mark.parametrize("dtype", ["f16", "bf16", "tf32"])
-@pytest.mark.parametrize("cin,cout,D,sites", [(24, 100, 2, 20000), (64, 64, 2, 3000), (16, 32, 3, 4000)])
-def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites):
-    """The cp.async-fed tensor-core kernel (float16, bfloat16, TF32) against the float64 product of the
-    same (rounded) inputs: several blocks, Cout not a multiple of the tile, rows with no input."""
+@pytest.mark.parametrize("dtype", ["f16", "bf16", "tf32", "3xtf32"])
+@pytest.mark.parametrize("cin,cout,D,sites", [(24, 100, 2, 20000), (64, 64, 2, 3000), (16, 32, 3, 4000),
+                                              (32, 16, 2, 3000), (40, 17, 2, 5000), (128, 128, 2, 8000)])
+def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites, monkeypatch):
+    """The cp.async-fed mma.sync kernel (float16, bfloat16, TF32, and float32 as 3xTF32) against the
+    float64 product of the same (rounded) inputs: several blocks, Cout not a multiple of the tile (and
+    odd), the 16-, 32- and 64-column tiles (also picked for few rows: 8000 rows of 128 channels),
+    Cin not a multiple of the 128-byte step, rows with no input. 3xTF32 must be as accurate as float32."""
+    monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if dtype == "3xtf32" else "ffma")
     shape = (400, 400) if D == 2 else (40, 40, 40)
-    dt = {"f16": torch.float16, "bf16": torch.bfloat16, "tf32": torch.float32}[dtype]
+    dt = {"f16": torch.float16, "bf16": torch.bfloat16, "tf32": torch.float32, "3xtf32": torch.float32}[dtype]
     x = random_tensor(2, shape, sites // 2, cin, seed=sites + cin, dtype=dt, device="cuda")
     km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
     nbr = km.neighbors.clone()
@@ -538,7 +542,7 @@ def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites):
         torch.backends.cuda.matmul.allow_tf32 = old
     assert torch.all(got[::7] == 0)
     scale = max(1.0, ref.abs().max().item())
-    tol = {"f16": 4e-3, "bf16": 3e-2, "tf32": 5e-3}[dtype]
+    tol = {"f16": 4e-3, "bf16": 3e-2, "tf32": 5e-3, "3xtf32": 2e-5}[dtype]
     assert (got - ref).abs().max().item() <= tol * scale
 
 

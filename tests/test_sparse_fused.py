@@ -38,15 +38,16 @@ def _reference(features, weight, nbr, scale, shift, relu):
 # float32 cp.async tiles, the tensor-core pipeline (cin a multiple of the vector) and the plain
 # tensor-core kernel (float16 with cin % 8 != 0); every one runs on the CPU too
 CASES = [(6, 10, torch.float32), (24, 100, torch.float32), (32, 64, torch.float16), (20, 48, torch.float16),
-         (32, 40, torch.bfloat16), (16, 24, torch.float64), (64, 16, "tf32")]
+         (32, 40, torch.bfloat16), (16, 24, torch.float64), (64, 16, "tf32"), (48, 32, "3xtf32")]
 
 
 @pytest.mark.parametrize("cin,cout,dtype", CASES, ids=[f"{a}-{b}-{c}".replace("torch.", "") for a, b, c in CASES])
 @pytest.mark.parametrize("parts", ["scale+shift+relu", "shift+relu", "scale", "relu"])
-def test_sparse_conv_affine_matches_float64(device, cin, cout, dtype, parts):
-    if dtype == "tf32" and device == "cpu":
+def test_sparse_conv_affine_matches_float64(device, cin, cout, dtype, parts, monkeypatch):
+    if dtype in ("tf32", "3xtf32") and device == "cpu":
         pytest.skip("TF32 is a CUDA mode")
-    dt = torch.float32 if dtype == "tf32" else dtype
+    monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if dtype == "3xtf32" else "ffma")
+    dt = torch.float32 if dtype in ("tf32", "3xtf32") else dtype
     x = random_tensor(2, (40, 40), 300, cin, seed=cin + cout, dtype=dt, device=device)
     km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
     nbr = km.neighbors.clone()
@@ -71,7 +72,7 @@ def test_sparse_conv_affine_matches_float64(device, cin, cout, dtype, parts):
         row0 = row0.clamp_min(0)
     torch.testing.assert_close(got[::7].double().cpu(), row0.to(dt).double().expand(got[::7].shape[0], cout),
                                rtol=0, atol=0)
-    tol = 5e-3 if dtype == "tf32" else TOL[dt]
+    tol = 5e-3 if dtype == "tf32" else TOL[dt]  # 3xTF32: float32's tolerance
     assert (got.double().cpu() - ref).abs().max().item() <= tol * max(1.0, ref.abs().max().item())
     if relu:
         assert (got >= 0).all()

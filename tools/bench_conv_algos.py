@@ -6,18 +6,22 @@ For each BEV grid of benchmarks/bm_sparse.py, kind (SubM 3x3, strided 3x3 s2) an
 registered op ``sparse_conv`` with its cached map and order, per algorithm:
 
 * ``fp32``: float32 FFMA tiles (exact float32);
+* ``3xtf32``: float32 as three TF32 tensor-core products (``LIDAROPS_CONV_FP32=3xtf32``);
 * ``tf32``: one TF32 product (``allow_tf32``);
 * ``fp16``: float16 operands, float32 accumulation.
 
 ``call`` is the benchmark's per-call time (CUDA events around each Python call); ``kernel`` is the GPU
 time alone (20 calls captured in a CUDA graph, replayed; per call); ``err`` is max |out - ref| / max
 |ref| against the float64 product of the same float32 inputs. ``--pillars`` also times the
-Sparse-PointPillars backbone (maps cached, and in a CUDA graph) per precision.
+Sparse-PointPillars backbone (maps cached, and in a CUDA graph) per precision; ``--layers`` times each
+of its convolutions alone (kernel time, on the backbone's own maps and channels) and their sum
+weighted by how often each occurs.
 """
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import sys
 from pathlib import Path
@@ -63,12 +67,54 @@ def call_ms(fn, runs: int = 200) -> float:
     return statistics.median(a.elapsed_time(b) for a, b in ev)
 
 
+def use_algo(algo: str) -> torch.dtype:
+    """Sets the switches of one algorithm; returns the operands' dtype."""
+    torch.backends.cuda.matmul.allow_tf32 = algo == "tf32"
+    os.environ["LIDAROPS_CONV_FP32"] = "3xtf32" if algo == "3xtf32" else "ffma"
+    return torch.float16 if algo == "fp16" else torch.float32
+
+
+# the Sparse-PointPillars backbone's convolutions: map key, Cin, Cout, how many use that map and channels
+BACKBONE = [("down0", 64, 64, 1), ("subm0", 64, 64, 3), ("down1", 64, 128, 1), ("subm1", 128, 128, 5),
+            ("up1", 128, 128, 1), ("down2", 128, 256, 1), ("subm2", 256, 256, 5), ("up2", 256, 128, 1)]
+
+
+def backbone_layers(algos, dev) -> None:
+    from benchmarks.bm_sparse import pillars_input
+    with torch.no_grad():
+        _, _, cached = pillars_input(dev, torch.float32)
+    maps = cached.indice_dict
+    n_in = {"down0": cached.features.shape[0]}
+    n_in.update(subm0=maps["subm0"].neighbors.shape[0], down1=maps["subm0"].neighbors.shape[0],
+                subm1=maps["subm1"].neighbors.shape[0], up1=maps["subm1"].neighbors.shape[0],
+                down2=maps["subm1"].neighbors.shape[0], subm2=maps["subm2"].neighbors.shape[0],
+                up2=maps["subm2"].neighbors.shape[0])
+    print(f"{'layer':6s} {'rows':>6s} {'Cin':>4s} {'Cout':>4s} {'x':>2s} " + " ".join(f"{al:>9s}" for al in algos))
+    total = dict.fromkeys(algos, 0.0)
+    for key, cin, cout, count in BACKBONE:
+        km = maps[key]
+        nbr, order = km.neighbors, km.order
+        g = torch.Generator().manual_seed(cin + cout)
+        x32 = torch.randn(n_in[key], cin, generator=g).to(dev)
+        w32 = (torch.randn(cout, nbr.shape[1], cin, generator=g) / math.sqrt(9 * cin)).to(dev)
+        cells = []
+        for algo in algos:
+            dt = use_algo(algo)
+            xf, wf = x32.to(dt), w32.to(dt)
+            t = graph_ms(lambda: torch.ops.lidarops.sparse_conv(xf, wf, nbr, order))  # noqa: B023
+            total[algo] += count * t
+            cells.append(f"{t:9.3f}")
+        print(f"{key:6s} {nbr.shape[0]:6d} {cin:4d} {cout:4d} {count:2d} " + " ".join(cells), flush=True)
+    print(f"{'sum':6s} {'':6s} {'':4s} {'':4s} {'':2s} " + " ".join(f"{total[al]:9.3f}" for al in algos), flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--grids", default="drone,kitti,dense")
     ap.add_argument("--channels", default="32,64,128")
-    ap.add_argument("--algos", default="fp32,tf32,fp16")
+    ap.add_argument("--algos", default="fp32,3xtf32,tf32,fp16")
     ap.add_argument("--pillars", action="store_true")
+    ap.add_argument("--layers", action="store_true")
     a = ap.parse_args(argv)
     if not torch.cuda.is_available():
         print("bench_conv_algos: needs a GPU")
@@ -79,7 +125,7 @@ def main(argv=None) -> int:
     ops = torch.ops.lidarops
     dev = torch.device("cuda")
     old = torch.backends.cuda.matmul.allow_tf32
-    print(f"{'grid':6s} {'kind':4s} {'C':>4s} {'algo':7s} {'call':>7s} {'kernel':>7s} {'TFLOP/s':>8s} {'err':>9s}")
+    print(f"{'grid':6s} {'kind':4s} {'C':>4s} {'algo':9s} {'call':>7s} {'kernel':>7s} {'TFLOP/s':>8s} {'err':>9s}")
     try:
         for gname in filter(None, a.grids.split(",")):
             shape, n = GRIDS[gname]
@@ -97,24 +143,26 @@ def main(argv=None) -> int:
                     ref = ops.sparse_conv(f32.double().cpu(), w.double().cpu(), nbr.cpu())
                     scale = ref.abs().max().item()
                     for algo in a.algos.split(","):
-                        torch.backends.cuda.matmul.allow_tf32 = algo == "tf32"
-                        xf, wf = (f32.half(), w.half()) if algo == "fp16" else (f32, w)
+                        dt = use_algo(algo)
+                        xf, wf = f32.to(dt), w.to(dt)
                         fn = lambda: ops.sparse_conv(xf, wf, nbr, order)  # noqa: E731
                         err = (fn().double().cpu() - ref).abs().max().item() / scale
                         t_call, t_kernel = call_ms(fn), graph_ms(fn)
-                        print(f"{gname:6s} {kind:4s} {C:4d} {algo:7s} {t_call:7.3f} {t_kernel:7.3f} "
+                        print(f"{gname:6s} {kind:4s} {C:4d} {algo:9s} {t_call:7.3f} {t_kernel:7.3f} "
                               f"{flop / t_kernel / 1e9:8.1f} {err:9.2e}", flush=True)
+        if a.layers:
+            backbone_layers(a.algos.split(","), dev)
         if a.pillars:
             for algo in a.algos.split(","):
-                torch.backends.cuda.matmul.allow_tf32 = algo == "tf32"
-                dtype = torch.float16 if algo == "fp16" else torch.float32
+                dtype = use_algo(algo)
                 with torch.no_grad():
                     net, _, cached = pillars_input(dev, dtype)
                     t_call = call_ms(lambda: net(cached), runs=50)
                     t_graph = graph_ms(lambda: net(cached), reps=1, replays=50)
-                print(f"pillars {algo:7s} maps cached {t_call:6.3f} ms, in a CUDA graph {t_graph:6.3f} ms", flush=True)
+                print(f"pillars {algo:9s} maps cached {t_call:6.3f} ms, in a CUDA graph {t_graph:6.3f} ms", flush=True)
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old
+        os.environ.pop("LIDAROPS_CONV_FP32", None)
     return 0
 
 

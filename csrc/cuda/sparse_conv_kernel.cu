@@ -6,11 +6,13 @@
 // gathering the input rows straight into shared memory; offsets with no input for any row of the
 // tile are skipped (a block-wide vote). One launch per layer, no atomics, no host synchronisation:
 // each output element is summed by one thread in a fixed order, so results are deterministic.
-//   - float16 / bfloat16 (sm_80+, Cin and Cout >= 16): tensor cores (WMMA 16x16x16, float accumulation);
-//     float32 likewise with TF32 fragments when torch allows TF32 matmuls (off by default); fed by
-//     cp.async pipelines when Cin is a multiple of the 16-byte vector and K <= 32.
-//   - float32 otherwise (sm_80+, Cin a multiple of 4, K <= 32): SIMT tiles fed by cp.async pipelines;
+//   - float16 / bfloat16 (sm_80+, Cin and Cout >= 16): tensor cores with float accumulation; float32
+//     likewise with TF32 when torch allows TF32 matmuls (off by default). Cin a multiple of the 16-byte
+//     vector and K <= 32: mma.sync fed by a cp.async pipeline; otherwise WMMA 16x16x16 (TF32 16x16x8).
+//   - float32 otherwise (sm_80+, Cin a multiple of 4, K <= 32): SIMT (FFMA) tiles fed by cp.async
+//     pipelines, or, with LIDAROPS_CONV_FP32=3xtf32 (experimental), the mma.sync kernel as 3xTF32;
 //   - otherwise general SIMT tiles in float (float64 in float64).
+// The pipelined kernels start with the tiles of the rows with the most offsets (heavy_first_tile).
 // Rows are processed in the order given by sparse_kernel_map_order (grouped by their offset masks),
 // so the rows of a tile share their offsets and the skipping is effective on real data.
 // Backward: the features gradient is this kernel over the transposed map (autograd in Python); the
@@ -26,6 +28,8 @@
 #include <mma.h>
 
 #include <cstdint>
+#include <cstdlib>
+#include <cstring>
 #include <mutex>
 #include <type_traits>
 #include <unordered_map>
@@ -44,6 +48,11 @@ __device__ __forceinline__ int64_t output_row(const int32_t* order, int64_t t, i
   const int64_t o = order != nullptr ? static_cast<int64_t>(order[t]) : t;
   return o >= 0 && o < n_out ? o : -1;
 }
+
+// Tile of output rows a block of the pipelined kernels takes: the last first. The rows are grouped by
+// their offset masks in ascending order, so the rows with every offset, whose tiles take longest, come
+// last; starting those first keeps the multiprocessors busy to the end of the launch (longest job first).
+__device__ __forceinline__ int64_t heavy_first_tile() { return static_cast<int64_t>(gridDim.x) - 1 - blockIdx.x; }
 
 // ------------------------------------------------------------------------------------------------
 // forward, SIMT tiles: BM output rows x BN output channels per block, BK input channels per step,
@@ -161,21 +170,27 @@ __device__ __forceinline__ void cp_async_wait() {
 
 // The map slice of a tile of BM output rows starting at row0: orow[m] (the output row at tile row m,
 // -1 past the end), rows[k * BM + m] (its input at offset k, or -1) and klist[0, nk) (the offsets any
-// row of the tile has, ascending; K <= 32). Called by the whole block; returns nk after a barrier.
+// row of the tile has, ascending; K <= 32); with `groups`, also groups[k]: bit g set when a row of
+// the 16-row group g has an input at offset k. Called by the whole block; returns nk after a barrier.
 template <int BM, int kThreads>
 __device__ int tile_map_slice(const int32_t* __restrict__ nbr, const int32_t* __restrict__ order, int64_t n_out,
                               int K, int64_t row0, int64_t* orow, int32_t* rows, int* klist, unsigned* present,
-                              int* nk) {
+                              int* nk, unsigned* groups = nullptr) {
+  static_assert(BM <= 16 * 32, "one bit per 16-row group");
   const int tid = threadIdx.x;
   for (int m = tid; m < BM; m += kThreads) orow[m] = output_row(order, row0 + m, n_out);
   if (tid == 0) *present = 0u;
+  if (groups != nullptr && tid < kAsyncMaxK) groups[tid] = 0u;
   __syncthreads();
   for (int e = tid; e < BM * K; e += kThreads) {  // row by row: coalesced reads of the map
     const int m = e / K, k = e % K;
     const int64_t o = orow[m];
     const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
     rows[k * BM + m] = r;
-    if (r >= 0) atomicOr(present, 1u << k);
+    if (r >= 0) {
+      atomicOr(present, 1u << k);
+      if (groups != nullptr) atomicOr(groups + k, 1u << (m / 16));
+    }
   }
   __syncthreads();
   if (tid < 32) {
@@ -190,8 +205,13 @@ __device__ int tile_map_slice(const int32_t* __restrict__ nbr, const int32_t* __
 template <int BM, int BN, int TM, int TN, int BK, int STAGES>
 struct AsyncTile {
   static constexpr int kThreads = (BM / TM) * (BN / TN);
-  static constexpr int LD = BK + 4;
-  static constexpr size_t kSmem = sizeof(float) * STAGES * (BM + BN) * LD + sizeof(int32_t) * kAsyncMaxK * BM;
+  // A rows unpadded: the 8 threads of a quarter-warp read the same A row (a broadcast). B rows padded by
+  // 16 bytes: those threads read 8 consecutive B rows, which then fall in 8 different bank groups.
+  // Without A's pad four 64 x 64 blocks fit in an SM's shared memory instead of three.
+  static constexpr int LDA = BK, LDB = BK + 4;
+  static_assert((BN / TN) % 8 == 0, "a quarter-warp shares its A row");
+  // the ring, then the map slice of K offsets (the largest K for the launch limit)
+  static size_t smem(int K) { return sizeof(float) * STAGES * (BM * LDA + BN * LDB) + sizeof(int32_t) * K * BM; }
 };
 
 template <int BM, int BN, int TM, int TN, int BK, int STAGES>
@@ -201,12 +221,12 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
                               float* __restrict__ out, int64_t n_out, int cin, int cout, int K, ConvEpilogue epi) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using Tile = AsyncTile<BM, BN, TM, TN, BK, STAGES>;
-  constexpr int kThreads = Tile::kThreads, LD = Tile::LD;
+  constexpr int kThreads = Tile::kThreads, LDA = Tile::LDA, LDB = Tile::LDB;
   static_assert(BK % 4 == 0 && STAGES >= 2, "16-byte copies, at least double buffering");
   extern __shared__ __align__(16) float smem[];
-  float* As = smem;                                   // [STAGES][BM][LD]
-  float* Bs = smem + STAGES * BM * LD;                // [STAGES][BN][LD]
-  int32_t* rows = reinterpret_cast<int32_t*>(Bs + STAGES * BN * LD);  // [kAsyncMaxK][BM]
+  float* As = smem;                                    // [STAGES][BM][LDA]
+  float* Bs = smem + STAGES * BM * LDA;                // [STAGES][BN][LDB]
+  int32_t* rows = reinterpret_cast<int32_t*>(Bs + STAGES * BN * LDB);  // [K][BM]
   __shared__ int64_t orow[BM];
   __shared__ unsigned present;
   __shared__ int klist[kAsyncMaxK];
@@ -215,8 +235,8 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
   const int tx = tid % (BN / TN), ty = tid / (BN / TN);
   const int col0 = static_cast<int>(blockIdx.y) * BN;
   const int chunks = (cin + BK - 1) / BK;
-  const int steps = tile_map_slice<BM, kThreads>(nbr, order, n_out, K, static_cast<int64_t>(blockIdx.x) * BM, orow, rows,
-                                                 klist, &present, &nk) * chunks;
+  const int steps = tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM, orow, rows, klist,
+                                                 &present, &nk) * chunks;
   auto issue = [&](int t) {  // step t's tiles into stage t % STAGES (nothing past the last step)
     if (t < steps) {
       const int k = klist[t / chunks], c0 = (t % chunks) * BK, st = t % STAGES;
@@ -224,12 +244,12 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
         const int m = e / (BK / 4), ci = c0 + (e % (BK / 4)) * 4;
         const int32_t r = rows[k * BM + m];
         const bool ok = r >= 0 && ci < cin;
-        cp_async16(As + (st * BM + m) * LD + (ci - c0), ok ? x + static_cast<int64_t>(r) * cin + ci : x, ok);
+        cp_async16(As + (st * BM + m) * LDA + (ci - c0), ok ? x + static_cast<int64_t>(r) * cin + ci : x, ok);
       }
       for (int e = tid; e < BN * (BK / 4); e += kThreads) {
         const int n = e / (BK / 4), ci = c0 + (e % (BK / 4)) * 4, co = col0 + n;
         const bool ok = co < cout && ci < cin;
-        cp_async16(Bs + (st * BN + n) * LD + (ci - c0), ok ? w + (static_cast<int64_t>(co) * K + k) * cin + ci : w, ok);
+        cp_async16(Bs + (st * BN + n) * LDB + (ci - c0), ok ? w + (static_cast<int64_t>(co) * K + k) * cin + ci : w, ok);
       }
     }
     cp_async_commit();  // an empty group past the end keeps the wait counts uniform
@@ -246,15 +266,15 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
     cp_async_wait<STAGES - 2>();  // step t has landed (for this thread's copies) ...
     __syncthreads();              // ... and for everyone's; stage (t - 1) % STAGES is free again
     issue(t + STAGES - 1);
-    const float* a_t = As + (t % STAGES) * BM * LD;
-    const float* b_t = Bs + (t % STAGES) * BN * LD;
+    const float* a_t = As + (t % STAGES) * BM * LDA;
+    const float* b_t = Bs + (t % STAGES) * BN * LDB;
 #pragma unroll
     for (int kk = 0; kk < BK; kk += 4) {
       float4 a[TM], b[TN];
 #pragma unroll
-      for (int i = 0; i < TM; ++i) a[i] = *reinterpret_cast<const float4*>(a_t + (ty + i * (BM / TM)) * LD + kk);
+      for (int i = 0; i < TM; ++i) a[i] = *reinterpret_cast<const float4*>(a_t + (ty + i * (BM / TM)) * LDA + kk);
 #pragma unroll
-      for (int j = 0; j < TN; ++j) b[j] = *reinterpret_cast<const float4*>(b_t + (tx + j * (BN / TN)) * LD + kk);
+      for (int j = 0; j < TN; ++j) b[j] = *reinterpret_cast<const float4*>(b_t + (tx + j * (BN / TN)) * LDB + kk);
 #pragma unroll
       for (int i = 0; i < TM; ++i)
 #pragma unroll
@@ -450,104 +470,248 @@ __global__ void __launch_bounds__(kWmmaThreads)
 }
 
 // ------------------------------------------------------------------------------------------------
-// forward, tensor cores fed by cp.async (16-byte aligned rows, Cin a multiple of the 16-byte vector,
-// K <= 32): conv_fwd_wmma_kernel's 64 x 64 tile and fragments, with the float32 SIMT kernel's offset
-// list and a ring of STAGES shared buffers, so the gathers of the next steps are in flight while
-// one step is multiplied. The float accumulator tile for the coalesced store reuses the ring.
+// forward, tensor cores through mma.sync (sm_80+; 16-byte aligned rows, Cin a multiple of the
+// 16-byte vector, K <= 32). The float32 SIMT kernel's pipeline (offset list, cp.async ring of STAGES
+// buffers) feeding fragments loaded by ldmatrix and multiplied by mma.sync:
+//   - A (BM gathered rows x 128 bytes of channels) and B (BN output channels x the same channels, the
+//     weights as stored) sit in shared memory with the channels contiguous, 16-byte chunks swizzled
+//     (MmaTile::at) so that ldmatrix and the copies are free of bank conflicts without padding: four
+//     blocks fit in a multiprocessor;
+//   - one ldmatrix.x4 gives a 16 x (32 bytes) A fragment or two 8 x (32 bytes) B fragments, for 16-bit
+//     types (m16n8k16) and for float32 (m16n8k8 TF32: a 32-bit element is a pair of 16-bit ones) alike;
+//   - float32 is rounded to TF32 (cvt.rna); in the 3xTF32 mode each operand is split into a TF32 "big"
+//     part and the TF32 rounding of the rest, and big*big + big*small + small*big (the small products
+//     first) recovers float32 accuracy on the tensor cores;
+//   - a warp skips the products of each 16-row fragment none of whose rows has an input at the
+//     step's offset (the tile lists the offsets any of its 64 rows has);
+//   - each thread writes its accumulator fragments to their output rows through the epilogue.
+// Per output element the sum runs over offsets, then channels, in ascending order: deterministic.
 // ------------------------------------------------------------------------------------------------
-template <typename T, int BM_ = 64, int BN_ = 64, int FM_ = 2, int FN_ = 2>
-struct WmmaAsyncTile {
-  using S = typename MmaTraits<T>::S;
-  static constexpr int V = MmaTraits<T>::VEC;
-  static constexpr int BM = BM_, BN = BN_, BK = 32, STAGES = 3;
-  static constexpr int FM = FM_, FN = FN_;                      // 16 x 16 fragments per warp
-  static constexpr int WARPS_N = BN / (16 * FN);                 // warps along the columns
-  static constexpr int kThreads = 32 * (BM / (16 * FM)) * WARPS_N;
-  static constexpr int LD = BK + V;  // elements: rows 16-byte aligned, 16-row blocks 32-byte aligned (WMMA)
-  static constexpr int LDC = BN + 4;
-  static constexpr size_t kStage = sizeof(S) * (BM + BN) * LD;
-  static constexpr size_t kRing = kStage * STAGES;
-  static constexpr size_t kC = sizeof(float) * BM * LDC;
-  static constexpr size_t kRows = sizeof(int32_t) * kAsyncMaxK * BM;
-  static constexpr size_t kSmem = (kRing > kC ? kRing : kC) + kRows;
-  static_assert(BM % (16 * FM) == 0 && BN % (16 * FN) == 0, "whole warp tiles");
+enum class Mma { kF16, kBF16, kTF32, k3xTF32 };
+
+template <Mma M>
+struct MmaKind {  // 16-bit types: m16n8k16
+  using S = std::conditional_t<M == Mma::kF16, __half, __nv_bfloat16>;
+  static constexpr int V = 8;  // elements per 16 bytes
+};
+template <>
+struct MmaKind<Mma::kTF32> {  // float32: m16n8k8 TF32
+  using S = float;
+  static constexpr int V = 4;
+};
+template <>
+struct MmaKind<Mma::k3xTF32> : MmaKind<Mma::kTF32> {};
+
+template <Mma M, int BN_, int WM_, int STAGES_>
+struct MmaTile {
+  using S = typename MmaKind<M>::S;
+  static constexpr int V = MmaKind<M>::V;
+  static constexpr int BM = 64, BN = BN_, BK = 8 * V, STAGES = STAGES_;  // a step: 128 bytes of channels
+  static constexpr int WM = WM_, WN = 4 / WM_;                   // 4 warps: WM along rows, WN along columns
+  static constexpr int kThreads = 128;
+  static constexpr int MF = BM / (16 * WM), NF = BN / (8 * WN);  // 16 x 8 fragments per warp
+  static constexpr int KS = 2 * V;                                // elements per mma k-step (32 bytes)
+  static constexpr size_t kStage = sizeof(S) * (BM + BN) * BK;
+  static size_t smem(int K) { return kStage * STAGES + sizeof(int32_t) * K * BM; }  // the ring, the map slice
+  static_assert(MF >= 1 && NF >= 2 && NF % 2 == 0 && BK % KS == 0 && WM * WN == 4, "whole fragments");
+  static_assert(BM % 8 == 0 && BN % 8 == 0, "swizzle: row & 7 of a tile row is that of its stage row");
+  // Shared rows are 128 bytes, unpadded; the 16-byte chunk c of row r is stored at chunk c ^ (r & 7), so
+  // the eight rows an ldmatrix phase reads, and the eight chunks of a row a quarter-warp copies, fall in
+  // eight different bank groups.
+  static __device__ __forceinline__ int at(int r, int c) { return r * BK + ((c ^ (r & 7)) * V); }
 };
 
-template <typename T, typename Tile>
-__global__ void __launch_bounds__(Tile::kThreads)
-    conv_fwd_wmma_async_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
-                               const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int cin,
-                               int cout, int K, ConvEpilogue epi) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
-  using namespace nvcuda;
+__device__ __forceinline__ void ldmatrix_x4(unsigned (&r)[4], const void* p) {
+  const unsigned a = static_cast<unsigned>(__cvta_generic_to_shared(p));
+  asm volatile("ldmatrix.sync.aligned.m8n8.x4.shared.b16 {%0, %1, %2, %3}, [%4];\n"
+               : "=r"(r[0]), "=r"(r[1]), "=r"(r[2]), "=r"(r[3])
+               : "r"(a));
+}
+
+__device__ __forceinline__ unsigned tf32_rna(float x) {
+  unsigned y;
+  asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(y) : "f"(x));
+  return y;
+}
+
+// d += a . b for one 16 x 8 fragment (k = 16 for 16-bit types, 8 for TF32)
+template <Mma M>
+__device__ __forceinline__ void mma_16x8(float (&d)[4], const unsigned (&a)[4], const unsigned (&b)[2]) {
+  if constexpr (M == Mma::kF16) {
+    asm volatile("mma.sync.aligned.m16n8k16.row.col.f32.f16.f16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
+                 "{%0, %1, %2, %3};\n"
+                 : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
+                 : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]));
+  } else if constexpr (M == Mma::kBF16) {
+    asm volatile("mma.sync.aligned.m16n8k16.row.col.f32.bf16.bf16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
+                 "{%0, %1, %2, %3};\n"
+                 : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
+                 : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]));
+  } else {
+    asm volatile("mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
+                 "{%0, %1, %2, %3};\n"
+                 : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
+                 : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]));
+  }
+}
+
+// float32 bits -> TF32 (round to nearest); with `small`, the TF32 rounding of what that leaves out
+template <int N>
+__device__ __forceinline__ void split_tf32(unsigned (&big)[N], unsigned (&small)[N]) {
+#pragma unroll
+  for (int i = 0; i < N; ++i) {
+    const float x = __uint_as_float(big[i]);
+    big[i] = tf32_rna(x);
+    small[i] = tf32_rna(x - __uint_as_float(big[i]));
+  }
+}
+template <int N>
+__device__ __forceinline__ void round_tf32(unsigned (&r)[N]) {
+#pragma unroll
+  for (int i = 0; i < N; ++i) r[i] = tf32_rna(__uint_as_float(r[i]));
+}
+
+template <typename T>
+__device__ __forceinline__ void store_pair(T* p, float v0, float v1, bool both, bool pair) {
+  if constexpr (std::is_same_v<T, float>) {
+    if (pair) {
+      *reinterpret_cast<float2*>(p) = make_float2(v0, v1);
+      return;
+    }
+  }
+  p[0] = static_cast<T>(v0);
+  if (both) p[1] = static_cast<T>(v1);
+}
+#endif
+
+template <typename T, Mma M, typename Tile>
+__global__ void __launch_bounds__(Tile::kThreads)
+    conv_fwd_mma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
+                        const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int cin, int cout,
+                        int K, ConvEpilogue epi) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using S = typename Tile::S;
-  constexpr int KS = MmaTraits<T>::KS, V = Tile::V, BM = Tile::BM, BN = Tile::BN, BK = Tile::BK;
-  constexpr int STAGES = Tile::STAGES, LD = Tile::LD, LDC = Tile::LDC, FM = Tile::FM, FN = Tile::FN;
-  constexpr int kThreads = Tile::kThreads;
+  constexpr int V = Tile::V, BM = Tile::BM, BN = Tile::BN, BK = Tile::BK, KS = Tile::KS;
+  constexpr int STAGES = Tile::STAGES, MF = Tile::MF, NF = Tile::NF, kThreads = Tile::kThreads, CH = BK / V;
   extern __shared__ __align__(128) unsigned char smem_raw[];
-  S* ring = reinterpret_cast<S*>(smem_raw);
-  float* Cs = reinterpret_cast<float*>(smem_raw);  // after the main loop only
-  int32_t* rows = reinterpret_cast<int32_t*>(smem_raw + (Tile::kSmem - Tile::kRows));  // [kAsyncMaxK][BM]
+  S* ring = reinterpret_cast<S*>(smem_raw);                                             // [STAGES][BM + BN][BK]
+  int32_t* rows = reinterpret_cast<int32_t*>(smem_raw + Tile::kStage * STAGES);         // [K][BM]
   __shared__ int64_t orow[BM];
-  __shared__ unsigned present;
+  __shared__ unsigned present, groups[kAsyncMaxK];
   __shared__ int klist[kAsyncMaxK];
   __shared__ int nk;
-  const int tid = threadIdx.x, warp = tid / 32;
-  const int m0 = (warp / Tile::WARPS_N) * 16 * FM, n0 = (warp % Tile::WARPS_N) * 16 * FN;
+  const int tid = threadIdx.x, warp = tid / 32, lane = tid % 32;
+  const int m0 = (warp / Tile::WN) * 16 * MF, n0 = (warp % Tile::WN) * 8 * NF;
   const int col0 = static_cast<int>(blockIdx.y) * BN;
   const int chunks = (cin + BK - 1) / BK;
-  const int steps = tile_map_slice<BM, kThreads>(nbr, order, n_out, K, static_cast<int64_t>(blockIdx.x) * BM, orow,
-                                                 rows, klist, &present, &nk) * chunks;
+  const int steps = tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM, orow, rows, klist,
+                                                 &present, &nk, groups) * chunks;
   const S* xs = reinterpret_cast<const S*>(x);
   const S* ws = reinterpret_cast<const S*>(w);
   auto issue = [&](int t) {
     if (t < steps) {
       const int k = klist[t / chunks], c0 = (t % chunks) * BK;
-      S* As = ring + (t % STAGES) * (BM + BN) * LD;
-      S* Bs = As + BM * LD;  // column-major B: Bs[n * LD + kk] = W[col0 + n, k, c0 + kk]
-      for (int e = tid; e < BM * (BK / V); e += kThreads) {
-        const int m = e / (BK / V), ci = c0 + (e % (BK / V)) * V;
+      S* As = ring + (t % STAGES) * (BM + BN) * BK;
+      S* Bs = As + BM * BK;  // Bs[at(n, c)] = W[col0 + n, k, c0 + c * V ...]
+      for (int e = tid; e < BM * CH; e += kThreads) {
+        const int m = e / CH, c = e % CH, ci = c0 + c * V;
         const int32_t r = rows[k * BM + m];
         const bool ok = r >= 0 && ci < cin;  // Cin is a multiple of V: a vector is all in or all out
-        cp_async16(As + m * LD + (ci - c0), ok ? xs + static_cast<int64_t>(r) * cin + ci : xs, ok);
+        cp_async16(As + Tile::at(m, c), ok ? xs + static_cast<int64_t>(r) * cin + ci : xs, ok);
       }
-      for (int e = tid; e < BN * (BK / V); e += kThreads) {
-        const int n = e / (BK / V), ci = c0 + (e % (BK / V)) * V, co = col0 + n;
+      for (int e = tid; e < BN * CH; e += kThreads) {
+        const int n = e / CH, c = e % CH, ci = c0 + c * V, co = col0 + n;
         const bool ok = co < cout && ci < cin;
-        cp_async16(Bs + n * LD + (ci - c0), ok ? ws + (static_cast<int64_t>(co) * K + k) * cin + ci : ws, ok);
+        cp_async16(Bs + Tile::at(n, c), ok ? ws + (static_cast<int64_t>(co) * K + k) * cin + ci : ws, ok);
       }
     }
     cp_async_commit();
   };
 
-  wmma::fragment<wmma::accumulator, 16, 16, KS, float> c[FM][FN];
+  float acc[MF][NF][4];
 #pragma unroll
-  for (int i = 0; i < FM; ++i)
+  for (int i = 0; i < MF; ++i)
 #pragma unroll
-    for (int j = 0; j < FN; ++j) wmma::fill_fragment(c[i][j], 0.0f);
+    for (int j = 0; j < NF; ++j)
+#pragma unroll
+      for (int q = 0; q < 4; ++q) acc[i][j][q] = 0.f;
 #pragma unroll
   for (int t = 0; t < STAGES - 1; ++t) issue(t);
+  // ldmatrix addresses of this lane at k-step ks: A row m0 + lane % 16 (+16 per fragment), chunk
+  // 2 ks + lane / 16; B row n0 + lane % 8 + 8 (lane / 16) (+16 per fragment pair), chunk 2 ks + (lane / 8) % 2.
+  // Fragments start at multiples of 8 rows, so every row this lane reads has row & 7 == lane & 7.
+  int a_off[BK / KS], b_off[BK / KS];
+#pragma unroll
+  for (int ks = 0; ks < BK / KS; ++ks) {
+    a_off[ks] = Tile::at(m0 + lane % 16, 2 * ks + lane / 16);
+    b_off[ks] = BM * BK + Tile::at(n0 + lane % 8 + 8 * (lane / 16), 2 * ks + (lane / 8) % 2);
+  }
   for (int t = 0; t < steps; ++t) {
     cp_async_wait<STAGES - 2>();
     __syncthreads();
     issue(t + STAGES - 1);
-    const S* As = ring + (t % STAGES) * (BM + BN) * LD;
-    wmma_tile_step<T, BK, FM, FN>(As, LD, As + BM * LD, LD, m0, n0, c);
+    const unsigned live = groups[klist[t / chunks]] >> (m0 / 16);  // bit i: fragment row i has inputs
+    const S* st = ring + (t % STAGES) * (BM + BN) * BK;
+#pragma unroll
+    for (int ks = 0; ks < BK / KS; ++ks) {
+      unsigned b[NF][2];
+#pragma unroll
+      for (int j = 0; j < NF / 2; ++j) {
+        unsigned r[4];
+        ldmatrix_x4(r, st + b_off[ks] + j * 16 * BK);
+        b[2 * j][0] = r[0];
+        b[2 * j][1] = r[1];
+        b[2 * j + 1][0] = r[2];
+        b[2 * j + 1][1] = r[3];
+      }
+      [[maybe_unused]] unsigned b_small[NF][2];
+      if constexpr (M == Mma::k3xTF32) {
+#pragma unroll
+        for (int j = 0; j < NF; ++j) split_tf32(b[j], b_small[j]);
+      } else if constexpr (M == Mma::kTF32) {
+#pragma unroll
+        for (int j = 0; j < NF; ++j) round_tf32(b[j]);
+      }
+#pragma unroll
+      for (int i = 0; i < MF; ++i) {
+        if (!((live >> i) & 1u)) continue;  // warp-uniform: no row of this fragment has the offset
+        unsigned a[4];
+        ldmatrix_x4(a, st + a_off[ks] + i * 16 * BK);
+        if constexpr (M == Mma::k3xTF32) {
+          unsigned a_small[4];
+          split_tf32(a, a_small);
+#pragma unroll
+          for (int j = 0; j < NF; ++j) {
+            mma_16x8<M>(acc[i][j], a_small, b[j]);
+            mma_16x8<M>(acc[i][j], a, b_small[j]);
+            mma_16x8<M>(acc[i][j], a, b[j]);
+          }
+        } else {
+          if constexpr (M == Mma::kTF32) round_tf32(a);
+#pragma unroll
+          for (int j = 0; j < NF; ++j) mma_16x8<M>(acc[i][j], a, b[j]);
+        }
+      }
+    }
   }
   cp_async_wait<0>();
-  __syncthreads();  // every warp is done with the ring before Cs overwrites it
+  // accumulator fragment: rows lane / 4 and lane / 4 + 8, columns 2 * (lane % 4) and the next one
+  const bool pair = cout % 2 == 0;
 #pragma unroll
-  for (int i = 0; i < FM; ++i)
+  for (int i = 0; i < MF; ++i)
 #pragma unroll
-    for (int j = 0; j < FN; ++j)
-      wmma::store_matrix_sync(Cs + (m0 + i * 16) * LDC + n0 + j * 16, c[i][j], LDC, wmma::mem_row_major);
-  __syncthreads();
-  for (int e = tid; e < BM * BN; e += kThreads) {
-    const int m = e / BN, n = e % BN;
-    const int64_t o = orow[m];
-    const int co = col0 + n;
-    if (o >= 0 && co < cout) out[o * cout + co] = static_cast<T>(epi(Cs[m * LDC + n], co));
-  }
+    for (int h = 0; h < 2; ++h) {
+      const int64_t o = orow[m0 + i * 16 + lane / 4 + 8 * h];
+      if (o < 0) continue;
+#pragma unroll
+      for (int j = 0; j < NF; ++j) {
+        const int co = col0 + n0 + j * 8 + 2 * (lane % 4);
+        if (co >= cout) continue;
+        store_pair(out + o * cout + co, epi(acc[i][j][2 * h], co), co + 1 < cout ? epi(acc[i][j][2 * h + 1], co + 1) : 0.f,
+                   co + 1 < cout, pair);
+      }
+    }
 #else
   __trap();  // launched only on sm_80+ (checked on the host)
 #endif
@@ -645,6 +809,13 @@ DeviceProps device_props(c10::DeviceIndex dev) {
 
 bool aligned16(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 15) == 0; }
 
+// LIDAROPS_CONV_FP32=3xtf32 (read at each call; docs/sparse.md): float32 without TF32 runs on the
+// tensor cores as three TF32 products (experimental; not faster than the FFMA tiles on the H100 yet)
+bool env_is(const char* name, const char* value) {
+  const char* v = std::getenv(name);
+  return v != nullptr && std::strcmp(v, value) == 0;
+}
+
 // Raises a kernel's dynamic shared-memory limit once per (kernel, device): a driver call per launch
 // showed in the host time of small layers.
 void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
@@ -656,6 +827,18 @@ void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
   if (mask & bit) return;
   C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(bytes)));
   mask |= bit;
+}
+
+// Output columns per tile of the tensor-core kernel (64-row tiles): 64, or fewer when Cout is small,
+// or when the layer has fewer than two 64 x 64 tiles per multiprocessor (the deep layers of a backbone:
+// few sites, many channels). H100, Sparse-PointPillars subm2 (2,358 rows, 256 channels): TF32 0.125 ->
+// 0.109 ms, fp16 0.054 -> 0.048 ms; aiming for four tiles per multiprocessor was slower, and the float32
+// FFMA tiles gained nothing (docs/sparse.md).
+int tile_columns(int64_t n_out, int64_t cout, c10::DeviceIndex dev) {
+  int bn = cout <= 16 ? 16 : cout <= 32 ? 32 : 64;
+  const int64_t want = 2 * static_cast<int64_t>(device_props(dev).sms);
+  while (bn > 16 && ceil_div(n_out, 64) * ceil_div(cout, bn) < want) bn /= 2;
+  return bn;
 }
 
 template <typename T, int BM, int BN, int BK, int TM, int TN>
@@ -717,27 +900,45 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
   const auto dtype = x.scalar_type();
   const bool half_type = dtype == at::kHalf || dtype == at::kBFloat16;
-  // float32 follows torch.backends.cuda.matmul.allow_tf32 (off by default: exact float32)
+  // float32 follows torch.backends.cuda.matmul.allow_tf32 (off by default: float32 accuracy)
   const bool tf32 = dtype == at::kFloat && at::globalContext().allowTF32CuBLAS();
-  if ((half_type || tf32) && cin >= 16 && cout >= 16 &&
-      device_props(x.get_device()).cc_major >= 8) {
+  const bool x3 = dtype == at::kFloat && !tf32 && env_is("LIDAROPS_CONV_FP32", "3xtf32");
+  if ((half_type || tf32 || x3) && cin >= 16 && cout >= 16 && device_props(x.get_device()).cc_major >= 8) {
+    const int64_t vec = half_type ? 8 : 4;
+    const bool use_vec = cin % vec == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
+    if (use_vec && K <= kAsyncMaxK) {
+      auto launch = [&](auto tag, auto mode) {
+        using scalar_t = decltype(tag);
+        constexpr Mma M = decltype(mode)::value;
+        auto go = [&](auto tile) {
+          using Tile = decltype(tile);
+          auto kernel = conv_fwd_mma_kernel<scalar_t, M, Tile>;
+          raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
+          const dim3 grid(static_cast<unsigned>(ceil_div(n_out, Tile::BM)), static_cast<unsigned>(ceil_div(cout, Tile::BN)));
+          kernel<<<grid, Tile::kThreads, Tile::smem(static_cast<int>(K)), stream>>>(
+              x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(),
+              n_out, static_cast<int>(cin), static_cast<int>(cout), static_cast<int>(K), epi);
+          C10_CUDA_KERNEL_LAUNCH_CHECK();
+        };
+        const int bn = tile_columns(n_out, cout, x.get_device());
+        if (bn <= 16) go(MmaTile<M, 16, 4, 3>{});
+        else if (bn <= 32) go(MmaTile<M, 32, 4, 3>{});
+        else go(MmaTile<M, 64, 2, 3>{});
+      };
+      if (dtype == at::kHalf) launch(c10::Half{}, std::integral_constant<Mma, Mma::kF16>{});
+      else if (dtype == at::kBFloat16) launch(c10::BFloat16{}, std::integral_constant<Mma, Mma::kBF16>{});
+      else if (x3) launch(float{}, std::integral_constant<Mma, Mma::k3xTF32>{});
+      else launch(float{}, std::integral_constant<Mma, Mma::kTF32>{});
+      return out;
+    }
+  }
+  if ((half_type || tf32) && cin >= 16 && cout >= 16 && device_props(x.get_device()).cc_major >= 8) {
+    // the plain WMMA kernel: rows not 16-byte vectors, or K > 32
     const int64_t vec = half_type ? 8 : 4;
     const bool use_vec = cin % vec == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
     const dim3 grid(static_cast<unsigned>(ceil_div(n_out, 64)), static_cast<unsigned>(ceil_div(cout, 64)));
     auto launch = [&](auto tag) {
       using scalar_t = decltype(tag);
-      if (use_vec && K <= kAsyncMaxK) {  // the pipelined kernel
-        // 64 x 64 tiles: 128 x 64, 64 x 128 and 128 x 128 were slower on the H100 (docs/sparse.md)
-        using Tile = WmmaAsyncTile<scalar_t>;
-        auto kernel = conv_fwd_wmma_async_kernel<scalar_t, Tile>;
-        raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::kSmem, x.get_device());
-        kernel<<<grid, Tile::kThreads, Tile::kSmem, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
-                                                              nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(), n_out,
-                                                              static_cast<int>(cin), static_cast<int>(cout),
-                                                              static_cast<int>(K), epi);
-        C10_CUDA_KERNEL_LAUNCH_CHECK();
-        return;
-      }
       auto kernel = use_vec ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
       kernel<<<grid, kWmmaThreads, 0, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(),
                                                 order, out.data_ptr<scalar_t>(), n_out, cin, cout, K, epi);
@@ -752,9 +953,9 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       aligned16(x.data_ptr()) && aligned16(w.data_ptr())) {
     auto launch = [&](auto kernel, auto tile, int bm, int bn) {
       using Tile = decltype(tile);
-      raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::kSmem, x.get_device());
+      raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
       const dim3 grid(static_cast<unsigned>(ceil_div(n_out, bm)), static_cast<unsigned>(ceil_div(cout, bn)));
-      kernel<<<grid, Tile::kThreads, Tile::kSmem, stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
+      kernel<<<grid, Tile::kThreads, Tile::smem(static_cast<int>(K)), stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
                                                             order, out.data_ptr<float>(), n_out, static_cast<int>(cin),
                                                             static_cast<int>(cout), static_cast<int>(K), epi);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
