@@ -1,6 +1,6 @@
 """Plots and markdown tables from ``benchmarks/results/*.json``.
 
-    python benchmarks/report.py                 # draw docs/img/neighbors_<op>.png
+    python benchmarks/report.py                 # draw docs/img/neighbors_<op>.png and docs/img/sparse_*.png
     python benchmarks/report.py --markdown      # also print the tables used in docs/ops.md
 
 One figure per op: a row of panels per cloud kind, a column per device (each result file), grouped
@@ -116,6 +116,101 @@ def plot(devices, op: str, out_path: Path) -> bool:
     return True
 
 
+def _slug(dev: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in dev.lower()).strip("-")
+
+
+def plot_sparse(devices, out_dir: Path) -> list[Path]:
+    """Per device with sparse-convolution results: the single layers (median ms against the channels, a
+    panel per grid and kind: lidarops, spconv and dense cuDNN per precision, the 0.05 ms target) and the
+    Sparse-PointPillars backbone (bars per precision, the 1.0 ms fp32 target)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    written = []
+    colors = {"fp32": "#1f77b4", "tf32": "#2ca02c", "fp16": "#d62728"}
+    for dev, meta, rows in devices:
+        layers = [r for r in rows if r.get("section") == "layer"]
+        if layers:
+            grids = list(dict.fromkeys(r["grid"] for r in layers))
+            kinds = list(dict.fromkeys(r["kind"] for r in layers))
+            fig, axes = plt.subplots(len(grids), len(kinds), figsize=(5.2 * len(kinds), 3.4 * len(grids)),
+                                     squeeze=False)
+            for gi, grid in enumerate(grids):
+                for ki, kind in enumerate(kinds):
+                    ax = axes[gi][ki]
+                    sel = [r for r in layers if r["grid"] == grid and r["kind"] == kind]
+                    for prec in dict.fromkeys(r["precision"] for r in sel):
+                        pr = sorted((r for r in sel if r["precision"] == prec), key=lambda r: r["channels"])
+                        for impl, style, label in (("lidarops", "-o", "lidarops"), ("spconv", "--s", "spconv"),
+                                                   ("dense_cudnn", ":^", "dense")):
+                            pts = [(r["channels"], r[impl]["median_ms"]) for r in pr
+                                   if isinstance(r.get(impl), dict) and r[impl].get("median_ms")]
+                            if pts:
+                                ax.plot(*zip(*pts), style, color=colors.get(prec, "k"), ms=4,
+                                        lw=1.6 if impl == "lidarops" else 1.0, label=f"{label} {prec}")
+                    ax.axhline(0.05, color="k", lw=0.8, ls="-.", label="target 0.05 ms")
+                    ax.set_xscale("log", base=2)
+                    ax.set_yscale("log")
+                    ax.set_xticks([16, 32, 64, 128])
+                    ax.set_xticklabels(["16", "32", "64", "128"])
+                    sites = sel[0]["sites"] if sel else ""
+                    ax.set_title(f"{grid} ({sites} sites), {kind} 3x3" + (" s2" if kind == "conv" else ""), fontsize=9)
+                    ax.set_xlabel("Cin = Cout")
+                    ax.set_ylabel("median ms per call, log")
+                    ax.grid(alpha=0.3, which="both")
+                    ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+                    ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+                    ax.tick_params(axis="y", which="minor", labelsize=6)
+            handles, labels = axes[0][0].get_legend_handles_labels()
+            fig.legend(handles, labels, loc="upper center", ncol=5, fontsize=7, bbox_to_anchor=(0.5, 1.0))
+            fig.suptitle(f"lidarops sparse convolution, single layers, {dev} (commit {meta.get('commit')}): lower is "
+                         "better", fontsize=10, y=1.04)
+            fig.tight_layout()
+            path = out_dir / f"sparse_layers_{_slug(dev)}.png"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fig.savefig(path, dpi=110, bbox_inches="tight")
+            plt.close(fig)
+            written.append(path)
+        pillars = [r for r in rows if r.get("section") == "pillars"]
+        if pillars:
+            cols = [("lidarops_full", "lidarops, maps built"), ("lidarops_cached_maps", "lidarops, maps cached"),
+                    ("lidarops_cached_maps_cuda_graph", "lidarops, maps cached + CUDA graph"),
+                    ("dense_cudnn", "dense cuDNN"), ("spconv", "spconv 2.3.8")]
+            cols = [c for c in cols if any(isinstance(r.get(c[0]), dict) for r in pillars)]
+            fig, ax = plt.subplots(figsize=(7.5, 4.4))
+            width = 0.8 / len(cols)
+            palette = ["#9ecae1", "#3182bd", "#08519c", "#7f7f7f", "#ff7f0e"]
+            for j, (key, label) in enumerate(cols):
+                xs, ys = [], []
+                for i, r in enumerate(pillars):
+                    v = r.get(key)
+                    if isinstance(v, dict) and v.get("median_ms"):
+                        xs.append(i - 0.4 + width * (j + 0.5))
+                        ys.append(v["median_ms"])
+                bars = ax.bar(xs, ys, width, color=palette[j % len(palette)], label=label)
+                ax.bar_label(bars, fmt="%.2f", fontsize=6)
+            ax.axhline(1.0, color="k", lw=0.8, ls="-.", label="fp32 target 1.0 ms")
+            ax.set_xticks(range(len(pillars)))
+            ax.set_xticklabels([r["precision"] for r in pillars])
+            ax.set_yscale("log")
+            ax.set_ylabel("median ms per forward, log")
+            grid = pillars[0].get("grid")
+            ax.set_title(f"Sparse-PointPillars backbone, {grid[0]} x {grid[1]} grid, {pillars[0]['sites']} pillars, "
+                         f"{dev}", fontsize=9)
+            ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.1))
+            ax.grid(axis="y", alpha=0.3, which="both")
+            ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+            fig.tight_layout()
+            path = out_dir / f"sparse_pillars_{_slug(dev)}.png"
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            written.append(path)
+    return written
+
+
 def markdown(devices, ops=OPS) -> str:
     lines = []
     for dev, meta, rows in devices:
@@ -184,6 +279,9 @@ def main(argv: list[str] | None = None) -> int:
         path = Path(a.out) / f"neighbors_{op}.png"
         if plot(devices, op, path):
             print(f"wrote {path}")
+    for path in plot_sparse([d for d in load(Path(a.results), "sparse") if d[1].get("device_type") == "cuda"],
+                            Path(a.out)):
+        print(f"wrote {path}")
     if a.markdown:
         print()
         print(markdown(devices))
