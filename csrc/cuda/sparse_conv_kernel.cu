@@ -144,9 +144,10 @@ constexpr int kAsyncMaxK = 32;  // offsets a float32 tile kernel lists in one 32
 //     a ring of STAGES buffers: STAGES - 1 steps are in flight while one is multiplied. On LiDAR-sized
 //     maps a block's steps form a chain of dependent gathers whose latency, not the arithmetic, set the
 //     time (H200, session 5: a register-prefetched version with one step in flight was 1.2-1.4x slower).
-//   - Tiles are stored row-major with a 4-float pad (rows 16-byte aligned; a quarter-warp's float4 reads
-//     of 8 consecutive rows hit 8 different bank groups); a thread owns the rows ty + i * (BM / TM) and
-//     the columns tx + j * (BN / TN) and reads float4 fragments along the channels.
+//   - Tiles are stored row-major, B rows with a 4-float pad (a quarter-warp's float4 reads of 8
+//     consecutive B rows hit 8 different bank groups; its A reads are one broadcast row, unpadded: see
+//     AsyncTile); a thread owns the rows ty + i * (BM / TM) and the columns tx + j * (BN / TN) and reads
+//     float4 fragments along the channels.
 //   - Per output element the sum runs over offsets, then channels, in ascending order.
 // ------------------------------------------------------------------------------------------------
 __device__ __forceinline__ void cp_async16(void* smem, const void* gmem, bool valid) {
