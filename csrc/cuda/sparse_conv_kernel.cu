@@ -835,9 +835,9 @@ void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
 // few sites, many channels). H100, Sparse-PointPillars subm2 (2,358 rows, 256 channels): TF32 0.125 ->
 // 0.109 ms, fp16 0.054 -> 0.048 ms; aiming for four tiles per multiprocessor was slower, and the float32
 // FFMA tiles gained nothing (docs/sparse.md).
-int tile_columns(int64_t n_out, int64_t cout, c10::DeviceIndex dev) {
+int tile_columns(int64_t n_out, int64_t cout, int sms) {
   int bn = cout <= 16 ? 16 : cout <= 32 ? 32 : 64;
-  const int64_t want = 2 * static_cast<int64_t>(device_props(dev).sms);
+  const int64_t want = 2 * static_cast<int64_t>(sms);
   while (bn > 16 && ceil_div(n_out, 64) * ceil_div(cout, bn) < want) bn /= 2;
   return bn;
 }
@@ -904,43 +904,42 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
   // float32 follows torch.backends.cuda.matmul.allow_tf32 (off by default: float32 accuracy)
   const bool tf32 = dtype == at::kFloat && at::globalContext().allowTF32CuBLAS();
   const bool x3 = dtype == at::kFloat && !tf32 && env_is("LIDAROPS_CONV_FP32", "3xtf32");
-  if ((half_type || tf32 || x3) && cin >= 16 && cout >= 16 && device_props(x.get_device()).cc_major >= 8) {
-    const int64_t vec = half_type ? 8 : 4;
-    const bool use_vec = cin % vec == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
-    if (use_vec && K <= kAsyncMaxK) {
-      auto launch = [&](auto tag, auto mode) {
-        using scalar_t = decltype(tag);
-        constexpr Mma M = decltype(mode)::value;
-        auto go = [&](auto tile) {
-          using Tile = decltype(tile);
-          auto kernel = conv_fwd_mma_kernel<scalar_t, M, Tile>;
-          raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
-          const dim3 grid(static_cast<unsigned>(ceil_div(n_out, Tile::BM)), static_cast<unsigned>(ceil_div(cout, Tile::BN)));
-          kernel<<<grid, Tile::kThreads, Tile::smem(static_cast<int>(K)), stream>>>(
-              x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(),
-              n_out, static_cast<int>(cin), static_cast<int>(cout), static_cast<int>(K), epi);
-          C10_CUDA_KERNEL_LAUNCH_CHECK();
-        };
-        const int bn = tile_columns(n_out, cout, x.get_device());
-        if (bn <= 16) go(MmaTile<M, 16, 4, 3>{});
-        else if (bn <= 32) go(MmaTile<M, 32, 4, 3>{});
-        else go(MmaTile<M, 64, 2, 3>{});
+  const DeviceProps props = device_props(x.get_device());
+  const bool sm80 = props.cc_major >= 8;
+  const bool tensor_cores = (half_type || tf32 || x3) && cin >= 16 && cout >= 16 && sm80;
+  // rows of 16-byte vectors (8 halves or 4 floats), 16-byte aligned: the cp.async pipelines
+  const bool vec_rows = cin % (half_type ? 8 : 4) == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
+  const bool pipelined = vec_rows && K <= kAsyncMaxK;
+  if (tensor_cores && pipelined) {
+    auto launch = [&](auto tag, auto mode) {
+      using scalar_t = decltype(tag);
+      constexpr Mma M = decltype(mode)::value;
+      auto go = [&](auto tile) {
+        using Tile = decltype(tile);
+        auto kernel = conv_fwd_mma_kernel<scalar_t, M, Tile>;
+        raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
+        const dim3 grid(static_cast<unsigned>(ceil_div(n_out, Tile::BM)), static_cast<unsigned>(ceil_div(cout, Tile::BN)));
+        kernel<<<grid, Tile::kThreads, Tile::smem(static_cast<int>(K)), stream>>>(
+            x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(),
+            n_out, static_cast<int>(cin), static_cast<int>(cout), static_cast<int>(K), epi);
+        C10_CUDA_KERNEL_LAUNCH_CHECK();
       };
-      if (dtype == at::kHalf) launch(c10::Half{}, std::integral_constant<Mma, Mma::kF16>{});
-      else if (dtype == at::kBFloat16) launch(c10::BFloat16{}, std::integral_constant<Mma, Mma::kBF16>{});
-      else if (x3) launch(float{}, std::integral_constant<Mma, Mma::k3xTF32>{});
-      else launch(float{}, std::integral_constant<Mma, Mma::kTF32>{});
-      return out;
-    }
+      const int bn = tile_columns(n_out, cout, props.sms);
+      if (bn <= 16) go(MmaTile<M, 16, 4, 3>{});
+      else if (bn <= 32) go(MmaTile<M, 32, 4, 3>{});
+      else go(MmaTile<M, 64, 2, 3>{});
+    };
+    if (dtype == at::kHalf) launch(c10::Half{}, std::integral_constant<Mma, Mma::kF16>{});
+    else if (dtype == at::kBFloat16) launch(c10::BFloat16{}, std::integral_constant<Mma, Mma::kBF16>{});
+    else if (x3) launch(float{}, std::integral_constant<Mma, Mma::k3xTF32>{});
+    else launch(float{}, std::integral_constant<Mma, Mma::kTF32>{});
+    return out;
   }
-  if ((half_type || tf32) && cin >= 16 && cout >= 16 && device_props(x.get_device()).cc_major >= 8) {
-    // the plain WMMA kernel: rows not 16-byte vectors, or K > 32
-    const int64_t vec = half_type ? 8 : 4;
-    const bool use_vec = cin % vec == 0 && aligned16(x.data_ptr()) && aligned16(w.data_ptr());
+  if (tensor_cores && !x3) {  // the plain WMMA kernel: rows not 16-byte vectors, or K > 32
     const dim3 grid(static_cast<unsigned>(ceil_div(n_out, 64)), static_cast<unsigned>(ceil_div(cout, 64)));
     auto launch = [&](auto tag) {
       using scalar_t = decltype(tag);
-      auto kernel = use_vec ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
+      auto kernel = vec_rows ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
       kernel<<<grid, kWmmaThreads, 0, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(),
                                                 order, out.data_ptr<scalar_t>(), n_out, cin, cout, K, epi);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
@@ -950,8 +949,7 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
     else launch(float{});
     return out;
   }
-  if (dtype == at::kFloat && cin % 4 == 0 && K <= kAsyncMaxK && device_props(x.get_device()).cc_major >= 8 &&
-      aligned16(x.data_ptr()) && aligned16(w.data_ptr())) {
+  if (dtype == at::kFloat && pipelined && sm80) {
     auto launch = [&](auto kernel, auto tile, int bm, int bn) {
       using Tile = decltype(tile);
       raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
