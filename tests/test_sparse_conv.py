@@ -519,12 +519,15 @@ def test_cuda_float32_tiles_match_float64(cin, cout, D, ksize, sites, ordered):
 @_cuda
 @pytest.mark.parametrize("dtype", ["f16", "bf16", "tf32", "3xtf32"])
 @pytest.mark.parametrize("cin,cout,D,sites", [(24, 100, 2, 20000), (64, 64, 2, 3000), (16, 32, 3, 4000),
-                                              (32, 16, 2, 3000), (40, 17, 2, 5000), (128, 128, 2, 8000)])
+                                              (32, 16, 2, 3000), (40, 17, 2, 5000), (128, 128, 2, 8000),
+                                              (128, 128, 2, 2000), (32, 256, 2, 16000)])
 def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites, monkeypatch):
     """The cp.async-fed mma.sync kernel (float16, bfloat16, TF32, and float32 as 3xTF32) against the
     float64 product of the same (rounded) inputs: several blocks, Cout not a multiple of the tile (and
-    odd), the 16-, 32- and 64-column tiles (also picked for few rows: 8000 rows of 128 channels),
-    Cin not a multiple of the 128-byte step, rows with no input. 3xTF32 must be as accurate as float32."""
+    odd), Cin not a multiple of the 128-byte step, rows with no input, and every tile shape on a
+    132-multiprocessor GPU: 32 x 64 (20000 rows of 100 channels, 8000 of 128), 64 x 64 (16000 rows of
+    256 channels), and 64 rows by 32 or 16 columns (Cout <= 32; 2000 rows of 128 channels). 3xTF32 must
+    be as accurate as float32."""
     monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if dtype == "3xtf32" else "ffma")
     shape = (400, 400) if D == 2 else (40, 40, 40)
     dt = {"f16": torch.float16, "bf16": torch.bfloat16, "tf32": torch.float32, "3xtf32": torch.float32}[dtype]
@@ -544,6 +547,51 @@ def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites, m
     scale = max(1.0, ref.abs().max().item())
     tol = {"f16": 4e-3, "bf16": 3e-2, "tf32": 5e-3, "3xtf32": 2e-5}[dtype]
     assert (got - ref).abs().max().item() <= tol * scale
+
+
+_NONFINITE = ([pytest.param("cpu", a, id=f"cpu-{a}") for a in ("f64", "f32", "f16", "bf16")]
+              + [pytest.param("cuda", a, id=f"cuda-{a}", marks=_cuda)
+                 for a in ("f64", "f32", "tf32", "3xtf32", "f16", "bf16")])
+
+
+@pytest.mark.parametrize("dev,algo", _NONFINITE)
+def test_conv_propagates_nan_and_inf(dev, algo, monkeypatch):
+    """Non-finite inputs against the dense float64 reference: NaN inputs (CUDA's own bit pattern
+    0x7fff..., whose low bits a TF32 rounding by integer addition would carry into the sign, and a
+    negative NaN) give NaN wherever their window reaches, a +inf input with positive weights gives
+    +inf, every other output stays finite. The experimental 3xTF32 mode may give NaN where float32
+    gives inf (it also multiplies inf by each weight's small part, which can be 0)."""
+    monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if algo == "3xtf32" else "ffma")
+    dt = {"f64": torch.float64, "f32": torch.float32, "tf32": torch.float32, "3xtf32": torch.float32,
+          "f16": torch.float16, "bf16": torch.bfloat16}[algo]
+    bits, nan = {torch.float64: (torch.int64, 0x7FFFFFFFFFFFFFFF), torch.float32: (torch.int32, 0x7FFFFFFF),
+                 torch.float16: (torch.int16, 0x7FFF), torch.bfloat16: (torch.int16, 0x7FFF)}[dt]
+    shape = (40, 36)
+    x = random_tensor(2, shape, 150, 40, seed=21)
+    feats = x.features.to(dt)
+    feats.view(bits)[3] = nan
+    feats.view(bits)[50] = -1  # every bit set: a negative NaN
+    feats[100] = float("inf")
+    w = ((random_weight(24, (3, 3), 40, seed=21).abs() + 0.05) / 8).to(dt)  # positive: inf stays +inf
+    xd = SparseConvTensor(feats.to(dev), x.indices.to(dev), list(shape), 2)
+    old = torch.backends.cuda.matmul.allow_tf32
+    try:
+        torch.backends.cuda.matmul.allow_tf32 = algo == "tf32"
+        y = Fs.conv(xd, w.to(dev), None, "subm")
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = old
+    got = y.features.double().cpu()[linear_order(y.indices, shape)]
+    ref_i, ref = Fs._conv_reference(SparseConvTensor(feats.double(), x.indices, list(shape), 2), w.double(), None,
+                                    "subm")
+    ref = ref[linear_order(ref_i, shape)]
+    inf = float("inf")
+    assert ref.isnan().any() and (ref == inf).any() and ref.isfinite().any(), "the data must hold all three"
+    assert got[ref.isfinite()].isfinite().all(), "finite outputs must stay finite"
+    assert got[ref.isnan()].isnan().all(), "NaN must propagate"
+    if algo == "3xtf32":
+        assert not got[ref == inf].isfinite().any()
+    else:
+        assert (got[ref == inf] == inf).all(), "+inf must stay +inf"
 
 
 @_cuda

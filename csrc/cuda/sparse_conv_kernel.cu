@@ -477,44 +477,44 @@ __global__ void __launch_bounds__(kWmmaThreads)
 //   - A (BM gathered rows x 128 bytes of channels) and B (BN output channels x the same channels, the
 //     weights as stored) sit in shared memory with the channels contiguous, 16-byte chunks swizzled
 //     (MmaTile::at) so that ldmatrix and the copies are free of bank conflicts without padding: four
-//     blocks fit in a multiprocessor;
+//     64 x 64 blocks fit in a multiprocessor; tiles of 32 or 64 rows (mma_tile_shape);
 //   - one ldmatrix.x4 gives a 16 x (32 bytes) A fragment or two 8 x (32 bytes) B fragments, for 16-bit
 //     types (m16n8k16) and for float32 (m16n8k8 TF32: a 32-bit element is a pair of 16-bit ones) alike;
-//   - float32 is rounded to TF32 (cvt.rna); in the 3xTF32 mode each operand is split into a TF32 "big"
-//     part and the TF32 rounding of the rest, and big*big + big*small + small*big (the small products
-//     first) recovers float32 accuracy on the tensor cores;
+//   - float32 is rounded to nearest TF32 (tf32_round); in the 3xTF32 mode each operand is split into a
+//     TF32 "big" part and the TF32 rounding of the rest, and big*big + big*small + small*big (the small
+//     products first) comes close to float32 accuracy on the tensor cores (split_tf32);
 //   - a warp skips the products of each 16-row fragment none of whose rows has an input at the
-//     step's offset (the tile lists the offsets any of its 64 rows has);
+//     step's offset (the tile lists the offsets any of its rows has);
 //   - each thread writes its accumulator fragments to their output rows through the epilogue.
 // Per output element the sum runs over offsets, then channels, in ascending order: deterministic.
 // ------------------------------------------------------------------------------------------------
 enum class Mma { kF16, kBF16, kTF32, k3xTF32 };
-
 template <Mma M>
+constexpr bool is_tf32 = M == Mma::kTF32 || M == Mma::k3xTF32;
+
+template <Mma M, typename = void>
 struct MmaKind {  // 16-bit types: m16n8k16
   using S = std::conditional_t<M == Mma::kF16, __half, __nv_bfloat16>;
   static constexpr int V = 8;  // elements per 16 bytes
 };
-template <>
-struct MmaKind<Mma::kTF32> {  // float32: m16n8k8 TF32
+template <Mma M>
+struct MmaKind<M, std::enable_if_t<is_tf32<M>>> {  // float32: m16n8k8 TF32
   using S = float;
   static constexpr int V = 4;
 };
-template <>
-struct MmaKind<Mma::k3xTF32> : MmaKind<Mma::kTF32> {};
 
-template <Mma M, int BN_, int WM_, int STAGES_>
+template <Mma M, int BM_, int BN_, int WM_, int WN_, int STAGES_>
 struct MmaTile {
   using S = typename MmaKind<M>::S;
   static constexpr int V = MmaKind<M>::V;
-  static constexpr int BM = 64, BN = BN_, BK = 8 * V, STAGES = STAGES_;  // a step: 128 bytes of channels
-  static constexpr int WM = WM_, WN = 4 / WM_;                   // 4 warps: WM along rows, WN along columns
-  static constexpr int kThreads = 128;
+  static constexpr int BM = BM_, BN = BN_, BK = 8 * V, STAGES = STAGES_;  // a step: 128 bytes of channels
+  static constexpr int WM = WM_, WN = WN_;                       // warps: WM along rows, WN along columns
+  static constexpr int kThreads = 32 * WM * WN;
   static constexpr int MF = BM / (16 * WM), NF = BN / (8 * WN);  // 16 x 8 fragments per warp
   static constexpr int KS = 2 * V;                                // elements per mma k-step (32 bytes)
   static constexpr size_t kStage = sizeof(S) * (BM + BN) * BK;
   static size_t smem(int K) { return kStage * STAGES + sizeof(int32_t) * K * BM; }  // the ring, the map slice
-  static_assert(MF >= 1 && NF >= 2 && NF % 2 == 0 && BK % KS == 0 && WM * WN == 4, "whole fragments");
+  static_assert(MF >= 1 && NF >= 2 && NF % 2 == 0 && BK % KS == 0 && BM <= 16 * 32, "whole fragments");
   static_assert(BM % 8 == 0 && BN % 8 == 0, "swizzle: row & 7 of a tile row is that of its stage row");
   // Shared rows are 128 bytes, unpadded; the 16-byte chunk c of row r is stored at chunk c ^ (r & 7), so
   // the eight rows an ldmatrix phase reads, and the eight chunks of a row a quarter-warp copies, fall in
@@ -528,12 +528,6 @@ __device__ __forceinline__ void ldmatrix_x4(unsigned (&r)[4], const void* p) {
   asm volatile("ldmatrix.sync.aligned.m8n8.x4.shared.b16 {%0, %1, %2, %3}, [%4];\n"
                : "=r"(r[0]), "=r"(r[1]), "=r"(r[2]), "=r"(r[3])
                : "r"(a));
-}
-
-__device__ __forceinline__ unsigned tf32_rna(float x) {
-  unsigned y;
-  asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(y) : "f"(x));
-  return y;
 }
 
 // d += a . b for one 16 x 8 fragment (k = 16 for 16-bit types, 8 for TF32)
@@ -557,20 +551,31 @@ __device__ __forceinline__ void mma_16x8(float (&d)[4], const unsigned (&a)[4], 
   }
 }
 
-// float32 bits -> TF32 (round to nearest); with `small`, the TF32 rounding of what that leaves out
-template <int N>
-__device__ __forceinline__ void split_tf32(unsigned (&big)[N], unsigned (&small)[N]) {
-#pragma unroll
-  for (int i = 0; i < N; ++i) {
-    const float x = __uint_as_float(big[i]);
-    big[i] = tf32_rna(x);
-    small[i] = tf32_rna(x - __uint_as_float(big[i]));
-  }
+// The tensor core reads a float32 operand as TF32 by dropping its low 13 bits (truncation; measured on
+// the H100: a plain-truncation variant was 7.6e-4 of the output range off, against 2.9e-4 rounded).
+// Rounding to nearest is then one fused multiply-add: x + sign(x) 2^(exponent - 11), half a TF32 ulp,
+// computed from x's sign and exponent bits. inf and NaN stay as they are. Two instructions per
+// register instead of cvt.rna's three (a compare, an add and a mask): 4 % on the backbone's TF32 layers.
+__device__ __forceinline__ unsigned tf32_round(unsigned x) {
+  return __float_as_uint(__fmaf_rn(__uint_as_float(x & 0xff800000u), 0.00048828125f, __uint_as_float(x)));
 }
 template <int N>
 __device__ __forceinline__ void round_tf32(unsigned (&r)[N]) {
 #pragma unroll
-  for (int i = 0; i < N; ++i) r[i] = tf32_rna(__uint_as_float(r[i]));
+  for (int i = 0; i < N; ++i) r[i] = tf32_round(r[i]);
+}
+// 3xTF32 operands: big = the float32 bits as they are (the tensor core truncates them), small = the
+// exact rest x - trunc(x), rounded to nearest by adding half an ulp to its bits (the bits of an inf or
+// NaN x give the rest NaN, 0x7fffffff, which that addition turns into -0: big carries the inf or NaN).
+// Four instructions per register, against seven with cvt.rna; the dropped small*small term and the
+// truncated big leave about 7x the error of FFMA float32 (docs/sparse.md).
+template <int N>
+__device__ __forceinline__ void split_tf32(const unsigned (&big)[N], unsigned (&small)[N]) {
+#pragma unroll
+  for (int i = 0; i < N; ++i) {
+    const float rest = __uint_as_float(big[i]) - __uint_as_float(big[i] & 0xffffe000u);
+    small[i] = (__float_as_uint(rest) + 0x1000u) & 0xffffe000u;
+  }
 }
 
 template <typename T>
@@ -830,16 +835,34 @@ void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
   mask |= bit;
 }
 
-// Output columns per tile of the tensor-core kernel (64-row tiles): 64, or fewer when Cout is small,
-// or when the layer has fewer than two 64 x 64 tiles per multiprocessor (the deep layers of a backbone:
-// few sites, many channels). H100, Sparse-PointPillars subm2 (2,358 rows, 256 channels): TF32 0.125 ->
-// 0.109 ms, fp16 0.054 -> 0.048 ms; aiming for four tiles per multiprocessor was slower, and the float32
-// FFMA tiles gained nothing (docs/sparse.md).
+// Tile of the tensor-core kernel. H100 kernel times (session 10, docs/sparse.md):
+//   - 32 x 64 tiles (4 warps of 16 x 32) beat 64 x 64 on most layers with Cout > 32: KITTI SubM C = 128
+//     TF32 0.062 -> 0.051 ms, fp16 0.032 -> 0.027; dense SubM C = 64 TF32 0.036 -> 0.027. Twice the
+//     blocks, each with half the rows waiting on gathers, hide the gathers' latency better;
+//   - 64 x 64 stays ahead when a layer already has about seven 64 x 64 tiles per multiprocessor
+//     (dense SubM C = 128: TF32 0.078 vs 0.087 ms);
+//   - with Cout <= 32, or too few rows for two 32 x 64 tiles per multiprocessor, 64-row tiles with
+//     fewer columns (tile_columns). Larger tiles (128 x 64, 128 x 128, 64 x 128), 2 or 4 stages and 8 warps
+//     per block were slower on the benchmark layers.
+struct MmaShape {
+  int rows, cols;
+};
+// Output columns per 64-row tile: 64, or fewer when Cout is small, or when the layer has fewer than two
+// 64 x 64 tiles per multiprocessor (the deep layers of a backbone: few sites, many channels). H100,
+// Sparse-PointPillars subm2 (2,358 rows, 256 channels): TF32 0.125 -> 0.109 ms, fp16 0.054 -> 0.048 ms
+// (session 9); aiming for four tiles per multiprocessor was slower, and the FFMA tiles gained nothing.
 int tile_columns(int64_t n_out, int64_t cout, int sms) {
   int bn = cout <= 16 ? 16 : cout <= 32 ? 32 : 64;
   const int64_t want = 2 * static_cast<int64_t>(sms);
   while (bn > 16 && ceil_div(n_out, 64) * ceil_div(cout, bn) < want) bn /= 2;
   return bn;
+}
+MmaShape mma_tile_shape(int64_t n_out, int64_t cout, int sms) {
+  const int64_t col_tiles = ceil_div(cout, 64);
+  if (cout > 32 && ceil_div(n_out, 64) * col_tiles < 7 * static_cast<int64_t>(sms) &&
+      ceil_div(n_out, 32) * col_tiles >= 2 * static_cast<int64_t>(sms))
+    return {32, 64};
+  return {64, tile_columns(n_out, cout, sms)};
 }
 
 template <typename T, int BM, int BN, int BK, int TM, int TN>
@@ -924,10 +947,11 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
             n_out, static_cast<int>(cin), static_cast<int>(cout), static_cast<int>(K), epi);
         C10_CUDA_KERNEL_LAUNCH_CHECK();
       };
-      const int bn = tile_columns(n_out, cout, props.sms);
-      if (bn <= 16) go(MmaTile<M, 16, 4, 3>{});
-      else if (bn <= 32) go(MmaTile<M, 32, 4, 3>{});
-      else go(MmaTile<M, 64, 2, 3>{});
+      const MmaShape shape = mma_tile_shape(n_out, cout, props.sms);
+      if (shape.rows == 32) go(MmaTile<M, 32, 64, 2, 2, 3>{});
+      else if (shape.cols <= 16) go(MmaTile<M, 64, 16, 4, 1, 3>{});
+      else if (shape.cols <= 32) go(MmaTile<M, 64, 32, 4, 1, 3>{});
+      else go(MmaTile<M, 64, 64, 2, 2, 3>{});
     };
     if (dtype == at::kHalf) launch(c10::Half{}, std::integral_constant<Mma, Mma::kF16>{});
     else if (dtype == at::kBFloat16) launch(c10::BFloat16{}, std::integral_constant<Mma, Mma::kBF16>{});
