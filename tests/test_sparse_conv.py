@@ -321,6 +321,8 @@ def test_opcheck_all_sparse_ops(device):
         (ops.sparse_conv, (f, w, km.neighbors, ops.sparse_kernel_map_order(km.neighbors))),
         (ops.sparse_conv_weight_grad, (f, g.requires_grad_(), km.neighbors)),
         (ops.sparse_max_pool, (f, km.neighbors)),
+        (ops.sparse_to_dense, (f, x.indices, 2, shape)),
+        (ops.sparse_from_dense, (x.dense().requires_grad_(), x.indices)),
     ]
     out, arg = ops.sparse_max_pool(x.features, km.neighbors)
     checks.append((ops.sparse_max_pool_backward, (g[:, :3].contiguous(), arg, km.neighbors_t)))

@@ -58,6 +58,60 @@ def test_dense_is_differentiable_and_checks_sites(device):
         bad.dense()
 
 
+_DENSE_SHAPES = {1: (50,), 2: (13, 11), 3: (7, 9, 6), 4: (3, 4, 5, 3)}
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16],
+                         ids=["f64", "f32", "f16", "bf16"])
+@pytest.mark.parametrize("D,batch,C", [(1, 2, 5), (2, 3, 40), (3, 1, 33), (4, 2, 3)])
+def test_sparse_to_dense_op_and_its_adjoint(device, dtype, D, batch, C):
+    """The registered dense-map op against index_put (exact: both copy), with more than one 32 x 32 tile
+    of rows and of channels, shuffled rows, an empty middle sample (batch 3), a row outside the grid
+    (skipped) and no rows at all; sparse_from_dense reads the sites back (zeros for the outside row)."""
+    ops = torch.ops.lidarops
+    shape = _DENSE_SHAPES[D]
+    x = random_tensor(batch, shape, 40, C, seed=D + C, dtype=dtype, device=device)
+    idx = x.indices
+    ref = x.features.new_zeros([batch, *shape, C])
+    ref[tuple(idx.long().unbind(1))] = x.features
+    ref = ref.movedim(-1, 1)
+    got = ops.sparse_to_dense(x.features, idx, batch, list(shape))
+    assert got.shape == ref.shape and got.dtype == dtype and got.is_contiguous()
+    assert torch.equal(got, ref)
+    assert torch.equal(ops.sparse_from_dense(got, idx), x.features)
+    dense = torch.randn(ref.shape, dtype=torch.float64).to(device=device, dtype=dtype)
+    assert torch.equal(ops.sparse_from_dense(dense, idx), dense.movedim(1, -1)[tuple(idx.long().unbind(1))])
+    outside = idx[:1].clone()
+    outside[0, 1] = shape[0]  # one past the grid
+    idx2, f2 = torch.cat([idx, outside]), torch.cat([x.features, x.features[:1] + 1])
+    assert torch.equal(ops.sparse_to_dense(f2, idx2, batch, list(shape)), ref)
+    back = ops.sparse_from_dense(ref, idx2)
+    assert torch.equal(back[:-1], x.features) and torch.equal(back[-1], torch.zeros_like(back[-1]))
+    empty = ops.sparse_to_dense(x.features[:0], idx[:0], batch, list(shape))
+    assert empty.shape == ref.shape and not empty.any()
+
+
+def test_sparse_to_dense_gradients_and_errors(device):
+    ops = torch.ops.lidarops
+    x = random_tensor(2, (5, 4), 6, 3, seed=4, device=device)
+    f = x.features.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: ops.sparse_to_dense(t, x.indices, 2, [5, 4]), (f,))
+    assert torch.autograd.gradgradcheck(lambda t: ops.sparse_to_dense(t, x.indices, 2, [5, 4]), (f,))
+    d = torch.randn(2, 3, 5, 4, dtype=torch.float64, device=device, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: ops.sparse_from_dense(t, x.indices), (d,))
+    with pytest.raises(ValueError, match="indices must be int32"):
+        ops.sparse_to_dense(x.features, x.indices.long(), 2, [5, 4])
+    n = x.indices.shape[0]
+    with pytest.raises(ValueError, match=f"indices has {n} rows but features has {n + 1}"):
+        ops.sparse_to_dense(torch.cat([x.features, x.features[:1]]), x.indices, 2, [5, 4])
+    with pytest.raises(ValueError, match=r"indices must be \(N, 4\) for D = 3"):
+        ops.sparse_to_dense(x.features, x.indices, 2, [5, 4, 2])
+    with pytest.raises(ValueError, match="features must be floating point"):
+        ops.sparse_to_dense(x.indices[:, :1].expand(-1, 3).contiguous(), x.indices, 2, [5, 4])
+    with pytest.raises(ValueError, match=r"dense must be \(B, C, \*spatial\)"):
+        ops.sparse_from_dense(torch.zeros(3, 4, device=device), x.indices)
+
+
 def test_dense_check_is_cached_per_indices_version_and_shape(device):
     # dense() checks an indices tensor once (no host sync on the next calls), but again after an
     # in-place change of the indices or with another spatial_shape / batch_size

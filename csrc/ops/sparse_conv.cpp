@@ -43,4 +43,11 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   m.def("sparse_max_pool(Tensor features, Tensor kernel_map) -> (Tensor, Tensor)");
   // Adjoint of sparse_max_pool: grad (N_out, C), argmax (N_out, C), kernel_map_t (N_in, K) -> (N_in, C).
   m.def("sparse_max_pool_backward(Tensor grad, Tensor argmax, Tensor kernel_map_t) -> Tensor");
+  // Dense map of a sparse tensor: features (N, C), indices (N, 1 + D) int32 -> (B, C, *spatial_shape),
+  // channels first, zeros at inactive sites (SparseConvTensor.dense()). Rows whose batch index or
+  // coordinates lie outside the grid are skipped (dense() checks them first).
+  m.def("sparse_to_dense(Tensor features, Tensor indices, int batch_size, int[] spatial_shape) -> Tensor");
+  // Its adjoint: dense (B, C, *S), indices (N, 1 + D) -> (N, C), the feature vector at each site (0 for a
+  // row outside the grid).
+  m.def("sparse_from_dense(Tensor dense, Tensor indices) -> Tensor");
 }

@@ -68,6 +68,16 @@ def _max_pool_backward_fake(grad, argmax, kernel_map_t):
     return grad.new_empty((kernel_map_t.shape[0], grad.shape[1]))
 
 
+@torch.library.register_fake("lidarops::sparse_to_dense")
+def _to_dense_fake(features, indices, batch_size, spatial_shape):
+    return features.new_empty([batch_size, features.shape[1], *spatial_shape])
+
+
+@torch.library.register_fake("lidarops::sparse_from_dense")
+def _from_dense_fake(dense, indices):
+    return dense.new_empty((indices.shape[0], dense.shape[1]))
+
+
 # ---- autograd -----------------------------------------------------------------------------------
 # sparse_conv: out[o] = sum_k W[:, k, :] @ x[map[o, k]]
 #   d x = sparse_conv(d out, W^T, map^T)       (W^T[ci, k, co] = W[co, k, ci])
@@ -157,3 +167,37 @@ def _pool_bw_backward(ctx, gg):
 
 
 torch.library.register_autograd("lidarops::sparse_max_pool_backward", _pool_bw_backward, setup_context=_pool_bw_setup)
+
+
+# sparse_to_dense and sparse_from_dense are adjoint linear maps (a scatter to unique sites and the
+# gather from them): each one's backward is the other.
+
+def _to_dense_setup(ctx, inputs, output):
+    _, indices, _, _ = inputs
+    ctx.save_for_backward(indices)
+
+
+def _to_dense_backward(ctx, grad):
+    (indices,) = ctx.saved_tensors
+    if grad is None or not ctx.needs_input_grad[0]:
+        return None, None, None, None
+    return _ops.sparse_from_dense(grad, indices), None, None, None
+
+
+torch.library.register_autograd("lidarops::sparse_to_dense", _to_dense_backward, setup_context=_to_dense_setup)
+
+
+def _from_dense_setup(ctx, inputs, output):
+    dense, indices = inputs
+    ctx.save_for_backward(indices)
+    ctx.batch_size, ctx.spatial_shape = dense.shape[0], list(dense.shape[2:])
+
+
+def _from_dense_backward(ctx, grad):
+    (indices,) = ctx.saved_tensors
+    if grad is None or not ctx.needs_input_grad[0]:
+        return None, None
+    return _ops.sparse_to_dense(grad, indices, ctx.batch_size, ctx.spatial_shape), None
+
+
+torch.library.register_autograd("lidarops::sparse_from_dense", _from_dense_backward, setup_context=_from_dense_setup)

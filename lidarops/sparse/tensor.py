@@ -248,27 +248,31 @@ class SparseConvTensor:
             Differentiable with respect to ``features``.
         """
         C = self.features.shape[1]
-        idx = self.indices.long()
         # checked once per indices tensor and shape (a layer with a cached map returns the same indices
         # tensor every call: no host synchronisation after the first); an in-place change re-checks.
         # Inference tensors keep no version counter: they are checked every time.
         key = None if self.indices.is_inference() else (self.indices._version, self.batch_size,
                                                          tuple(self.spatial_shape))
-        if value_checks_enabled() and idx.numel() and (key is None
-                                                       or getattr(self.indices, "_lidarops_checked", None) != key):
+        if value_checks_enabled() and self.indices.numel() and (
+                key is None or getattr(self.indices, "_lidarops_checked", None) != key):
+            idx = self.indices.long()
             bound = torch.tensor([self.batch_size] + self.spatial_shape, device=idx.device)
             run_value_checks([(((idx < 0) | (idx >= bound)).any(),
                                lambda: f"indices lie outside batch_size {self.batch_size} / spatial_shape "
                                        f"{self.spatial_shape}")])
             if key is not None:
                 self.indices._lidarops_checked = key
-        D = self.ndim
+        if channels_first and self.features.is_floating_point():
+            # the registered op moves 32 x 32 tiles through shared memory on CUDA: coalesced writes into
+            # the channel planes (index_put_ through a channels-last view: 0.14 ms for 37,500 x 128 float32
+            # on an H100, 0.2 ms of each Sparse-PointPillars forward)
+            return torch.ops.lidarops.sparse_to_dense(self.features, self.indices, self.batch_size,
+                                                      self.spatial_shape)
+        idx = tuple(self.indices.long().unbind(1))
         if not channels_first:
-            out = self.features.new_zeros([self.batch_size] + self.spatial_shape + [C])
-            return out.index_put(tuple(idx.unbind(1)), self.features)
-        # written straight into the channels-first map through a channels-last view (no transposing copy)
-        out = self.features.new_zeros([self.batch_size, C] + self.spatial_shape)
-        out.permute(0, *range(2, D + 2), 1).index_put_(tuple(idx.unbind(1)), self.features)
+            return self.features.new_zeros([self.batch_size] + self.spatial_shape + [C]).index_put(idx, self.features)
+        out = self.features.new_zeros([self.batch_size, C] + self.spatial_shape)  # integer or bool features
+        out.permute(0, *range(2, self.ndim + 2), 1).index_put_(idx, self.features)
         return out
 
     @classmethod

@@ -326,6 +326,70 @@ inline void check_weight_grad_args(const at::Tensor& features, const at::Tensor&
                     features.device());
 }
 
+// The grid of sparse_to_dense / sparse_from_dense: batch size, spatial shape, sites per sample.
+struct DenseGrid {
+  int64_t batch = 0, cells = 1;
+  int ndim = 0;
+  int64_t shape[kMaxDim] = {};
+};
+
+// Offset of a site in one channel plane of the (B, C, *S) map, b * C * cells + row-major position, or
+// -1 when the batch index or a coordinate lies outside the grid.
+LIDAROPS_HD int64_t dense_site_offset(const int32_t* row, const DenseGrid& g, int64_t C) {
+  const int64_t b = row[0];
+  if (b < 0 || b >= g.batch) return -1;
+  int64_t lin = 0;
+  for (int d = 0; d < g.ndim; ++d) {
+    const int64_t c = row[1 + d];
+    if (c < 0 || c >= g.shape[d]) return -1;
+    lin = lin * g.shape[d] + c;
+  }
+  return b * C * g.cells + lin;
+}
+
+inline DenseGrid check_to_dense_args(const at::Tensor& features, const at::Tensor& indices, int64_t batch_size,
+                                     at::IntArrayRef spatial_shape) {
+  TORCH_CHECK_VALUE(features.dim() == 2, "features must be (N, C), got shape ", features.sizes());
+  const int64_t D = static_cast<int64_t>(spatial_shape.size());
+  TORCH_CHECK_VALUE(D >= 1 && D <= kMaxDim, "spatial_shape must have 1 to ", kMaxDim, " dimensions, got ",
+                    spatial_shape);
+  check_indices(indices, "indices", D);
+  TORCH_CHECK_VALUE(indices.size(0) == features.size(0), "indices has ", indices.size(0), " rows but features has ",
+                    features.size(0));
+  TORCH_CHECK_VALUE(indices.device() == features.device(), "indices is on ", indices.device(),
+                    " but features is on ", features.device());
+  TORCH_CHECK_VALUE(batch_size >= 0, "batch_size must be >= 0, got ", batch_size);
+  TORCH_CHECK_VALUE(at::isFloatingType(features.scalar_type()), "features must be floating point, got ",
+                    features.scalar_type());
+  DenseGrid g;
+  g.batch = batch_size;
+  g.ndim = static_cast<int>(D);
+  for (int64_t d = 0; d < D; ++d) {
+    TORCH_CHECK_VALUE(spatial_shape[d] >= 0, "spatial_shape must be >= 0, got ", spatial_shape);
+    g.shape[d] = spatial_shape[d];
+    g.cells *= spatial_shape[d];
+  }
+  return g;
+}
+
+inline DenseGrid check_from_dense_args(const at::Tensor& dense, const at::Tensor& indices) {
+  TORCH_CHECK_VALUE(dense.dim() >= 3 && dense.dim() <= 2 + kMaxDim, "dense must be (B, C, *spatial) with 1 to ",
+                    kMaxDim, " spatial dimensions, got shape ", dense.sizes());
+  TORCH_CHECK_VALUE(indices.device() == dense.device(), "indices is on ", indices.device(), " but dense is on ",
+                    dense.device());
+  check_indices(indices, "indices", dense.dim() - 2);
+  TORCH_CHECK_VALUE(at::isFloatingType(dense.scalar_type()), "dense must be floating point, got ",
+                    dense.scalar_type());
+  DenseGrid g;
+  g.batch = dense.size(0);
+  g.ndim = static_cast<int>(dense.dim() - 2);
+  for (int d = 0; d < g.ndim; ++d) {
+    g.shape[d] = dense.size(2 + d);
+    g.cells *= g.shape[d];
+  }
+  return g;
+}
+
 inline void check_pool_args(const at::Tensor& features, const at::Tensor& nbr) {
   TORCH_CHECK_VALUE(features.dim() == 2, "features must be (N_in, C), got shape ", features.sizes());
   check_map(nbr, features, "features");
