@@ -2,9 +2,9 @@
 // through shared memory: it reads the features row by row (32 consecutive channels per warp) and writes
 // the map channel by channel (32 consecutive rows per warp). Rows come in linear site order from every
 // lidarops layer, so consecutive rows mostly sit at consecutive sites and the writes coalesce. A plain
-// index_put_ into the channels-first map wrote one 4-byte element per channel plane per thread:
-// 0.14 ms for 37,500 rows of 128 float32 channels on an H100, 0.2 ms of each Sparse-PointPillars
-// forward (three branch maps).
+// index_put_ into the channels-first map wrote one 4-byte element per channel plane per thread. H100,
+// 37,500 rows of 128 float32 channels at 70 % of a 248 x 216 grid, with the zero fill: 0.22 ms then,
+// 0.11 ms now; the Sparse-PointPillars forward writes three such maps.
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
