@@ -489,19 +489,19 @@ __global__ void __launch_bounds__(kWmmaThreads)
 // Per output element the sum runs over offsets, then channels, in ascending order: deterministic.
 // ------------------------------------------------------------------------------------------------
 enum class Mma { kF16, kBF16, kTF32, k3xTF32 };
-template <Mma M>
-constexpr bool is_tf32 = M == Mma::kTF32 || M == Mma::k3xTF32;
 
-template <Mma M, typename = void>
+template <Mma M>
 struct MmaKind {  // 16-bit types: m16n8k16
   using S = std::conditional_t<M == Mma::kF16, __half, __nv_bfloat16>;
   static constexpr int V = 8;  // elements per 16 bytes
 };
-template <Mma M>
-struct MmaKind<M, std::enable_if_t<is_tf32<M>>> {  // float32: m16n8k8 TF32
+template <>
+struct MmaKind<Mma::kTF32> {  // float32: m16n8k8 TF32
   using S = float;
   static constexpr int V = 4;
 };
+template <>
+struct MmaKind<Mma::k3xTF32> : MmaKind<Mma::kTF32> {};
 
 template <Mma M, int BM_, int BN_, int WM_, int WN_, int STAGES_>
 struct MmaTile {

@@ -268,12 +268,9 @@ class SparseConvTensor:
             # 37,500 x 128 float32 on an H100, zero fill included)
             return torch.ops.lidarops.sparse_to_dense(self.features, self.indices, self.batch_size,
                                                       self.spatial_shape)
-        idx = tuple(self.indices.long().unbind(1))
-        if not channels_first:
-            return self.features.new_zeros([self.batch_size] + self.spatial_shape + [C]).index_put(idx, self.features)
-        out = self.features.new_zeros([self.batch_size, C] + self.spatial_shape)  # integer or bool features
-        out.permute(0, *range(2, self.ndim + 2), 1).index_put_(idx, self.features)
-        return out
+        out = self.features.new_zeros([self.batch_size] + self.spatial_shape + [C])
+        out = out.index_put(tuple(self.indices.long().unbind(1)), self.features)
+        return out.movedim(-1, 1).contiguous() if channels_first else out  # integer or bool features
 
     @classmethod
     def from_dense(cls, x: Tensor, channels_first: bool = False) -> "SparseConvTensor":
