@@ -551,6 +551,54 @@ def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites, m
     assert (got - ref).abs().max().item() <= tol * scale
 
 
+_SPLIT_ALGOS = {"fp32": torch.float32, "tf32": torch.float32, "3xtf32": torch.float32, "f16": torch.float16,
+                "bf16": torch.bfloat16}
+
+
+@_cuda
+@pytest.mark.parametrize("algo", list(_SPLIT_ALGOS))
+@pytest.mark.parametrize("splits", ["auto", "1", "2", "3", "9"])
+@pytest.mark.parametrize("cin,cout,D,sites", [(128, 128, 2, 1200), (32, 64, 3, 3000)])
+def test_cuda_offset_splits_match_float64(algo, splits, cin, cout, D, sites, monkeypatch):
+    """Offset splits (split-K over the kernel offsets, for layers with too few tiles to fill the GPU)
+    against the float64 product followed by the epilogue: the automatic choice (several splits for
+    these few-row layers), forced 1, 2, 3 and 9 (more splits than most tiles have offsets: empty splits
+    add zeros), 2D and 3D (K = 27), every pipelined kernel (FFMA tiles, TF32, 3xTF32, float16,
+    bfloat16), with the fused scale, shift and ReLU applied once after the splits are added, and rows
+    with no input at epi(0) exactly. Two calls give the same bits."""
+    monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if algo == "3xtf32" else "ffma")
+    if splits == "auto":
+        monkeypatch.delenv("LIDAROPS_CONV_SPLITS", raising=False)
+    else:
+        monkeypatch.setenv("LIDAROPS_CONV_SPLITS", splits)
+    dt = _SPLIT_ALGOS[algo]
+    shape = (48, 48) if D == 2 else (40, 40, 40)
+    x = random_tensor(2, shape, sites // 2, cin, seed=sites + cin, dtype=dt, device="cuda")
+    km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+    nbr = km.neighbors.clone()
+    nbr[::7] = -1
+    w = (random_weight(cout, (3,) * D, cin, seed=cin, dtype=dt, device="cuda") / 8).reshape(cout, -1, cin)
+    g = torch.Generator().manual_seed(cout)
+    scale = (torch.rand(cout, generator=g) + 0.5).cuda()
+    shift = torch.randn(cout, generator=g).cuda()
+    ref = ops.sparse_conv(x.features.double().cpu(), w.double().cpu(), nbr.cpu())
+    ref = (ref * scale.double().cpu() + shift.double().cpu()).clamp_min(0)
+    old = torch.backends.cuda.matmul.allow_tf32
+    try:
+        torch.backends.cuda.matmul.allow_tf32 = algo == "tf32"
+        order = ops.sparse_kernel_map_order(nbr)
+        got = ops.sparse_conv_affine(x.features, w, nbr, order, scale, shift, True)
+        again = ops.sparse_conv_affine(x.features, w, nbr, order, scale, shift, True)
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = old
+    assert got.dtype == dt and torch.equal(got, again)
+    got = got.double().cpu()
+    empty = shift.double().cpu().clamp_min(0).to(dt).double()
+    assert torch.equal(got[::7], empty.expand(got[::7].shape[0], cout))
+    tol = {"fp32": 2e-5, "tf32": 5e-3, "3xtf32": 2e-5, "f16": 4e-3, "bf16": 3e-2}[algo]
+    assert (got - ref).abs().max().item() <= tol * max(1.0, ref.abs().max().item())
+
+
 _NONFINITE = ([pytest.param("cpu", a, id=f"cpu-{a}") for a in ("f64", "f32", "f16", "bf16")]
               + [pytest.param("cuda", a, id=f"cuda-{a}", marks=_cuda)
                  for a in ("f64", "f32", "tf32", "3xtf32", "f16", "bf16")])

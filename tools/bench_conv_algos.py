@@ -1,6 +1,6 @@
 """Kernel time and accuracy of the CUDA sparse-convolution algorithms for float32 and float16.
 
-    python tools/bench_conv_algos.py [--grids kitti,dense] [--channels 64,128] [--pillars]
+    python tools/bench_conv_algos.py [--grids kitti,dense] [--channels 64,128] [--pillars] [--splits auto,1,2]
 
 For each BEV grid of benchmarks/bm_sparse.py, kind (SubM 3x3, strided 3x3 s2) and C = Cin = Cout, the
 registered op ``sparse_conv`` with its cached map and order, per algorithm:
@@ -115,10 +115,26 @@ def main(argv=None) -> int:
     ap.add_argument("--algos", default="fp32,3xtf32,tf32,fp16")
     ap.add_argument("--pillars", action="store_true")
     ap.add_argument("--layers", action="store_true")
+    ap.add_argument("--splits", default="auto",
+                    help="offset splits to time, comma-separated: auto (the library's choice) or a number "
+                         "(LIDAROPS_CONV_SPLITS)")
     a = ap.parse_args(argv)
+    for sp in a.splits.split(","):
+        if sp == "auto":
+            os.environ.pop("LIDAROPS_CONV_SPLITS", None)
+        else:
+            os.environ["LIDAROPS_CONV_SPLITS"] = sp
+        if len(a.splits.split(",")) > 1:
+            print(f"--- offset splits: {sp}", flush=True)
+        run(a)
+    os.environ.pop("LIDAROPS_CONV_SPLITS", None)
+    return 0
+
+
+def run(a) -> None:
     if not torch.cuda.is_available():
         print("bench_conv_algos: needs a GPU")
-        return 0
+        return
     from benchmarks.bm_sparse import GRIDS, bev_sites, pillars_input
     from lidarops.sparse import SparseConvTensor
     from lidarops.sparse import functional as Fs
@@ -163,7 +179,6 @@ def main(argv=None) -> int:
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old
         os.environ.pop("LIDAROPS_CONV_FP32", None)
-    return 0
 
 
 if __name__ == "__main__":

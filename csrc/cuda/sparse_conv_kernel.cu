@@ -4,8 +4,10 @@
 // concatenation over offsets k of features[kernel_map[o, k]] (zeros where the map is -1). A block
 // owns a tile of output rows x output channels and walks every offset and input-channel chunk,
 // gathering the input rows straight into shared memory; offsets with no input for any row of the
-// tile are skipped (a block-wide vote). One launch per layer, no atomics, no host synchronisation:
-// each output element is summed by one thread in a fixed order, so results are deterministic.
+// tile are skipped (a block-wide vote). No atomics, no host synchronisation: each output element is
+// summed by one thread in a fixed order, so results are deterministic. Layers with too few tiles to
+// fill the GPU (the deep layers of a backbone: few sites, many channels) split each tile's offsets
+// over up to four blocks (offset_splits); a second kernel adds their partial sums in a fixed order.
 //   - float16 / bfloat16 (sm_80+, Cin and Cout >= 16): tensor cores with float accumulation; float32
 //     likewise with TF32 when torch allows TF32 matmuls (off by default). Cin a multiple of the 16-byte
 //     vector and K <= 32: mma.sync fed by a cp.async pipeline; otherwise WMMA 16x16x16 (TF32 16x16x8).
@@ -47,6 +49,17 @@ __device__ __forceinline__ int64_t output_row(const int32_t* order, int64_t t, i
   if (t >= n_out) return -1;
   const int64_t o = order != nullptr ? static_cast<int64_t>(order[t]) : t;
   return o >= 0 && o < n_out ? o : -1;
+}
+
+// Offset splits (split-K over the kernel offsets) of the pipelined kernels: with gridDim.z > 1, block z
+// takes its share [lo, hi) of the nk offsets its tile has and writes float partial sums, without the
+// epilogue, to partial[z] (N_out x Cout); reduce_splits_kernel then adds the splits in a fixed order.
+struct OffsetSplit {
+  int lo, hi;
+};
+__device__ __forceinline__ OffsetSplit offset_split(int nk) {
+  const int z = static_cast<int>(blockIdx.z), s = static_cast<int>(gridDim.z);
+  return {nk * z / s, nk * (z + 1) / s};
 }
 
 // Tile of output rows a block of the pipelined kernels takes: the last first. The rows are grouped by
@@ -219,7 +232,8 @@ template <int BM, int BN, int TM, int TN, int BK, int STAGES>
 __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThreads)
     conv_fwd_f32_async_kernel(const float* __restrict__ x, const float* __restrict__ w,
                               const int32_t* __restrict__ nbr, const int32_t* __restrict__ order,
-                              float* __restrict__ out, int64_t n_out, int cin, int cout, int K, ConvEpilogue epi) {
+                              float* __restrict__ out, int64_t n_out, int cin, int cout, int K, ConvEpilogue epi,
+                              float* __restrict__ partial) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using Tile = AsyncTile<BM, BN, TM, TN, BK, STAGES>;
   constexpr int kThreads = Tile::kThreads, LDA = Tile::LDA, LDB = Tile::LDB;
@@ -236,11 +250,12 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
   const int tx = tid % (BN / TN), ty = tid / (BN / TN);
   const int col0 = static_cast<int>(blockIdx.y) * BN;
   const int chunks = (cin + BK - 1) / BK;
-  const int steps = tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM, orow, rows, klist,
-                                                 &present, &nk) * chunks;
+  const OffsetSplit split = offset_split(
+      tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM, orow, rows, klist, &present, &nk));
+  const int steps = (split.hi - split.lo) * chunks;
   auto issue = [&](int t) {  // step t's tiles into stage t % STAGES (nothing past the last step)
     if (t < steps) {
-      const int k = klist[t / chunks], c0 = (t % chunks) * BK, st = t % STAGES;
+      const int k = klist[split.lo + t / chunks], c0 = (t % chunks) * BK, st = t % STAGES;
       for (int e = tid; e < BM * (BK / 4); e += kThreads) {
         const int m = e / (BK / 4), ci = c0 + (e % (BK / 4)) * 4;
         const int32_t r = rows[k * BM + m];
@@ -288,6 +303,7 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
     }
   }
   cp_async_wait<0>();
+  float* part = partial != nullptr ? partial + blockIdx.z * n_out * cout : nullptr;
 #pragma unroll
   for (int i = 0; i < TM; ++i) {
     const int64_t o = orow[ty + i * (BM / TM)];
@@ -295,7 +311,9 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
 #pragma unroll
     for (int j = 0; j < TN; ++j) {
       const int co = col0 + tx + j * (BN / TN);
-      if (co < cout) out[o * cout + co] = epi(acc[i][j], co);
+      if (co >= cout) continue;
+      if (part != nullptr) part[o * cout + co] = acc[i][j];
+      else out[o * cout + co] = epi(acc[i][j], co);
     }
   }
 #else
@@ -597,7 +615,7 @@ template <typename T, Mma M, typename Tile>
 __global__ void __launch_bounds__(Tile::kThreads)
     conv_fwd_mma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
                         const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int cin, int cout,
-                        int K, ConvEpilogue epi) {
+                        int K, ConvEpilogue epi, float* __restrict__ partial) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using S = typename Tile::S;
   constexpr int V = Tile::V, BM = Tile::BM, BN = Tile::BN, BK = Tile::BK, KS = Tile::KS;
@@ -613,13 +631,14 @@ __global__ void __launch_bounds__(Tile::kThreads)
   const int m0 = (warp / Tile::WN) * 16 * MF, n0 = (warp % Tile::WN) * 8 * NF;
   const int col0 = static_cast<int>(blockIdx.y) * BN;
   const int chunks = (cin + BK - 1) / BK;
-  const int steps = tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM, orow, rows, klist,
-                                                 &present, &nk, groups) * chunks;
+  const OffsetSplit split = offset_split(tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM,
+                                                                      orow, rows, klist, &present, &nk, groups));
+  const int steps = (split.hi - split.lo) * chunks;
   const S* xs = reinterpret_cast<const S*>(x);
   const S* ws = reinterpret_cast<const S*>(w);
   auto issue = [&](int t) {
     if (t < steps) {
-      const int k = klist[t / chunks], c0 = (t % chunks) * BK;
+      const int k = klist[split.lo + t / chunks], c0 = (t % chunks) * BK;
       S* As = ring + (t % STAGES) * (BM + BN) * BK;
       S* Bs = As + BM * BK;  // Bs[at(n, c)] = W[col0 + n, k, c0 + c * V ...]
       for (int e = tid; e < BM * CH; e += kThreads) {
@@ -659,7 +678,7 @@ __global__ void __launch_bounds__(Tile::kThreads)
     cp_async_wait<STAGES - 2>();
     __syncthreads();
     issue(t + STAGES - 1);
-    const unsigned live = groups[klist[t / chunks]] >> (m0 / 16);  // bit i: fragment row i has inputs
+    const unsigned live = groups[klist[split.lo + t / chunks]] >> (m0 / 16);  // bit i: fragment row i has inputs
     const S* st = ring + (t % STAGES) * (BM + BN) * BK;
 #pragma unroll
     for (int ks = 0; ks < BK / KS; ++ks) {
@@ -706,6 +725,7 @@ __global__ void __launch_bounds__(Tile::kThreads)
   cp_async_wait<0>();
   // accumulator fragment: rows lane / 4 and lane / 4 + 8, columns 2 * (lane % 4) and the next one
   const bool pair = cout % 2 == 0;
+  float* part = partial != nullptr ? partial + blockIdx.z * n_out * cout : nullptr;
 #pragma unroll
   for (int i = 0; i < MF; ++i)
 #pragma unroll
@@ -716,8 +736,9 @@ __global__ void __launch_bounds__(Tile::kThreads)
       for (int j = 0; j < NF; ++j) {
         const int co = col0 + n0 + j * 8 + 2 * (lane % 4);
         if (co >= cout) continue;
-        store_pair(out + o * cout + co, epi(acc[i][j][2 * h], co), co + 1 < cout ? epi(acc[i][j][2 * h + 1], co + 1) : 0.f,
-                   co + 1 < cout, pair);
+        const float v0 = acc[i][j][2 * h], v1 = acc[i][j][2 * h + 1];
+        if (part != nullptr) store_pair(part + o * cout + co, v0, v1, co + 1 < cout, pair);
+        else store_pair(out + o * cout + co, epi(v0, co), co + 1 < cout ? epi(v1, co + 1) : 0.f, co + 1 < cout, pair);
       }
     }
 #else
@@ -797,9 +818,22 @@ __global__ void __launch_bounds__((BCO / TCO) * (BCI / TCI))
   }
 }
 
-// Compute capability major and SM count of a device, queried once per device.
+// out = epi(partial[0] + ... + partial[splits - 1]), added in that order: the offset splits' sums
+template <typename T>
+__global__ void reduce_splits_kernel(const float* __restrict__ partial, int splits, int64_t numel, int cout,
+                                     T* __restrict__ out, ConvEpilogue epi) {
+  const int64_t stride = static_cast<int64_t>(gridDim.x) * blockDim.x;
+  for (int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; i < numel; i += stride) {
+    float v = partial[i];
+    for (int z = 1; z < splits; ++z) v += partial[z * numel + i];
+    out[i] = static_cast<T>(epi(v, i % cout));
+  }
+}
+
+// Compute capability major, SM count and shared memory per SM (and reserved per block) of a device,
+// queried once per device.
 struct DeviceProps {
-  int cc_major = 0, sms = 1;
+  int cc_major = 0, sms = 1, smem_per_sm = 0, smem_reserved = 0;
 };
 
 DeviceProps device_props(c10::DeviceIndex dev) {
@@ -811,6 +845,8 @@ DeviceProps device_props(c10::DeviceIndex dev) {
   DeviceProps p;
   C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.cc_major, cudaDevAttrComputeCapabilityMajor, dev));
   C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.sms, cudaDevAttrMultiProcessorCount, dev));
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.smem_per_sm, cudaDevAttrMaxSharedMemoryPerMultiprocessor, dev));
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.smem_reserved, cudaDevAttrReservedSharedMemoryPerBlock, dev));
   cache[dev] = p;
   return p;
 }
@@ -866,6 +902,50 @@ MmaShape mma_tile_shape(int64_t n_out, int64_t cout, int sms) {
       ceil_div(n_out, 32) * col_tiles >= 2 * static_cast<int64_t>(sms))
     return {32, 64};
   return {64, tile_columns(n_out, cout, sms)};
+}
+
+// Offset splits of a pipelined launch of `tiles` blocks (threads and dynamic shared memory each), on a
+// GPU with `slots` such blocks resident at once: none when the tiles fill more than `split_below` of one
+// wave, otherwise as many as keep the launch within 1.6 waves, at most four and two offsets per split
+// on average. H100, Sparse-PointPillars convolutions (session 11, docs/sparse.md), kernel time:
+//   - FFMA tiles (8 warps; split_below 1): subm2 (2,358 rows, 256 channels) 0.167 -> 0.113 ms with 4
+//     splits, down2 0.086 -> 0.062, subm1 (8,782 rows, 128) 0.119 -> 0.102 with 3, down0 (19,319 rows,
+//     64) 0.040 -> 0.032 with 2;
+//   - tensor-core tiles (4 warps; split_below 0.5): subm2 TF32 0.103 -> 0.076 ms, fp16 0.048 -> 0.039
+//     with 4; on layers that already fill three quarters of a wave (down0, subm0 at 32 x 64) 2 splits
+//     were 25 % slower.
+// LIDAROPS_CONV_SPLITS=n (read at each call) forces n, for the tests and for tuning.
+int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, double split_below, const DeviceProps& p) {
+  constexpr int kMaxSplits = 4;
+  if (const char* v = std::getenv("LIDAROPS_CONV_SPLITS")) {
+    const int forced = std::atoi(v);
+    if (forced >= 1) return static_cast<int>(std::min<int64_t>(forced, std::max<int64_t>(K, 1)));
+  }
+  const int64_t static_smem = 1024;  // the map slice's row list and offset lists
+  const int64_t per_sm = std::max<int64_t>(
+      1, std::min<int64_t>(2048 / threads, p.smem_per_sm / (static_cast<int64_t>(smem) + static_smem + p.smem_reserved)));
+  const double slots = static_cast<double>(per_sm * p.sms);
+  if (static_cast<double>(tiles) > split_below * slots) return 1;
+  int s = 1;
+  while (s < kMaxSplits && 2 * (s + 1) <= K && static_cast<double>(tiles * (s + 1)) <= 1.6 * slots) ++s;
+  return s;
+}
+
+// Launches a pipelined kernel over `splits` offset splits: one launch writing `out` directly, or the
+// float partial sums of every split and reduce_splits_kernel.
+template <typename T, typename Launch>
+void launch_split(int splits, at::Tensor& out, const ConvEpilogue& epi, int sms, cudaStream_t stream, Launch&& launch) {
+  if (splits <= 1) {
+    launch(static_cast<float*>(nullptr));
+    return;
+  }
+  const int64_t numel = out.numel();
+  auto partial = at::empty({splits, numel}, out.options().dtype(at::kFloat));
+  launch(partial.data_ptr<float>());
+  const int64_t blocks = std::min<int64_t>(ceil_div(numel, 256), 8 * static_cast<int64_t>(sms));
+  reduce_splits_kernel<T><<<static_cast<unsigned>(blocks), 256, 0, stream>>>(
+      partial.data_ptr<float>(), splits, numel, static_cast<int>(out.size(1)), out.data_ptr<T>(), epi);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
 template <typename T, int BM, int BN, int BK, int TM, int TN>
@@ -944,11 +1024,17 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
         using Tile = decltype(tile);
         auto kernel = conv_fwd_mma_kernel<scalar_t, M, Tile>;
         raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
-        const dim3 grid(static_cast<unsigned>(ceil_div(n_out, Tile::BM)), static_cast<unsigned>(ceil_div(cout, Tile::BN)));
-        kernel<<<grid, Tile::kThreads, Tile::smem(static_cast<int>(K)), stream>>>(
-            x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(),
-            n_out, static_cast<int>(cin), static_cast<int>(cout), static_cast<int>(K), epi);
-        C10_CUDA_KERNEL_LAUNCH_CHECK();
+        const int64_t row_tiles = ceil_div(n_out, Tile::BM), col_tiles = ceil_div(cout, Tile::BN);
+        const size_t smem = Tile::smem(static_cast<int>(K));
+        const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, 0.5, props);
+        launch_split<scalar_t>(splits, out, epi, props.sms, stream, [&](float* partial) {
+          const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
+          kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
+                                                         nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(), n_out,
+                                                         static_cast<int>(cin), static_cast<int>(cout),
+                                                         static_cast<int>(K), epi, partial);
+          C10_CUDA_KERNEL_LAUNCH_CHECK();
+        });
       };
       const MmaShape shape = mma_tile_shape(n_out, cout, props.sms);
       if (shape.rows == 32) go(MmaTile<M, 32, 64, 2, 2, 3>{});
@@ -980,11 +1066,16 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
     auto launch = [&](auto kernel, auto tile, int bm, int bn) {
       using Tile = decltype(tile);
       raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
-      const dim3 grid(static_cast<unsigned>(ceil_div(n_out, bm)), static_cast<unsigned>(ceil_div(cout, bn)));
-      kernel<<<grid, Tile::kThreads, Tile::smem(static_cast<int>(K)), stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
-                                                            order, out.data_ptr<float>(), n_out, static_cast<int>(cin),
-                                                            static_cast<int>(cout), static_cast<int>(K), epi);
-      C10_CUDA_KERNEL_LAUNCH_CHECK();
+      const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
+      const size_t smem = Tile::smem(static_cast<int>(K));
+      const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, 1.0, props);
+      launch_split<float>(splits, out, epi, props.sms, stream, [&](float* partial) {
+        const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
+        kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
+                                                       order, out.data_ptr<float>(), n_out, static_cast<int>(cin),
+                                                       static_cast<int>(cout), static_cast<int>(K), epi, partial);
+        C10_CUDA_KERNEL_LAUNCH_CHECK();
+      });
     };
     // 64-row tiles, 32 channels per step, 3 stages: the best of the tiles tried on the H200 (docs/sparse.md)
     if (cout <= 16) launch(conv_fwd_f32_async_kernel<64, 16, 4, 2, 32, 3>, AsyncTile<64, 16, 4, 2, 32, 3>{}, 64, 16);
