@@ -218,7 +218,7 @@ __device__ int tile_map_slice(const int32_t* __restrict__ nbr, const int32_t* __
 
 template <int BM, int BN, int TM, int TN, int BK, int STAGES>
 struct AsyncTile {
-  static constexpr int kThreads = (BM / TM) * (BN / TN);
+  static constexpr int kThreads = (BM / TM) * (BN / TN), kStepChannels = BK;
   // A rows unpadded: the 8 threads of a quarter-warp read the same A row (a broadcast). B rows padded by
   // 16 bytes: those threads read 8 consecutive B rows, which then fall in 8 different bank groups.
   // Without A's pad four 64 x 64 blocks fit in an SM's shared memory instead of three.
@@ -904,30 +904,33 @@ MmaShape mma_tile_shape(int64_t n_out, int64_t cout, int sms) {
   return {64, tile_columns(n_out, cout, sms)};
 }
 
-// Offset splits of a pipelined launch of `tiles` blocks (threads and dynamic shared memory each), on a
-// GPU with `slots` such blocks resident at once: none when the tiles fill more than `split_below` of one
-// wave, otherwise as many as keep the launch within 1.6 waves, at most four and two offsets per split
-// on average. H100, Sparse-PointPillars convolutions (session 11, docs/sparse.md), kernel time:
-//   - FFMA tiles (8 warps; split_below 1): subm2 (2,358 rows, 256 channels) 0.167 -> 0.113 ms with 4
-//     splits, down2 0.086 -> 0.062, subm1 (8,782 rows, 128) 0.119 -> 0.102 with 3, down0 (19,319 rows,
-//     64) 0.040 -> 0.032 with 2;
-//   - tensor-core tiles (4 warps; split_below 0.5): subm2 TF32 0.103 -> 0.076 ms, fp16 0.048 -> 0.039
-//     with 4; on layers that already fill three quarters of a wave (down0, subm0 at 32 x 64) 2 splits
-//     were 25 % slower.
+// Offset splits of a pipelined launch of `tiles` blocks (threads and dynamic shared memory each), whose
+// tiles take `steps` pipeline steps (offsets x input-channel chunks) without splits. None when a tile
+// has fewer than 32 steps (its kernel is short: the second launch would cost the host more than the
+// splits save) or when the tiles already fill more than `split_below` of one wave; otherwise as many as
+// keep the launch within 1.6 waves, at most four and 8 steps per split. H100, kernel time (session 11,
+// docs/sparse.md), Sparse-PointPillars convolutions:
+//   - FFMA tiles (8 warps, split_below 1): subm2 (2,358 rows, 256 channels) 0.167 -> 0.113 ms with 4
+//     splits, down2 0.086 -> 0.062, subm1 (8,782 rows, 128 channels) 0.119 -> 0.102 with 3;
+//   - tensor-core tiles (4 warps, split_below 0.6): subm2 TF32 0.103 -> 0.076 ms, fp16 0.048 -> 0.039
+//     with 4; layers that fill three quarters of a wave (down0, subm0: 19,319 rows, 64 channels, 32 x 64
+//     tiles) were 25 % slower with 2.
 // LIDAROPS_CONV_SPLITS=n (read at each call) forces n, for the tests and for tuning.
-int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, double split_below, const DeviceProps& p) {
+int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, int64_t steps, double split_below,
+                  const DeviceProps& p) {
   constexpr int kMaxSplits = 4;
   if (const char* v = std::getenv("LIDAROPS_CONV_SPLITS")) {
     const int forced = std::atoi(v);
     if (forced >= 1) return static_cast<int>(std::min<int64_t>(forced, std::max<int64_t>(K, 1)));
   }
+  if (steps < 32) return 1;
   const int64_t static_smem = 1024;  // the map slice's row list and offset lists
   const int64_t per_sm = std::max<int64_t>(
       1, std::min<int64_t>(2048 / threads, p.smem_per_sm / (static_cast<int64_t>(smem) + static_smem + p.smem_reserved)));
   const double slots = static_cast<double>(per_sm * p.sms);
   if (static_cast<double>(tiles) > split_below * slots) return 1;
   int s = 1;
-  while (s < kMaxSplits && 2 * (s + 1) <= K && static_cast<double>(tiles * (s + 1)) <= 1.6 * slots) ++s;
+  while (s < kMaxSplits && 8 * (s + 1) <= steps && static_cast<double>(tiles * (s + 1)) <= 1.6 * slots) ++s;
   return s;
 }
 
@@ -1026,7 +1029,8 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
         raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
         const int64_t row_tiles = ceil_div(n_out, Tile::BM), col_tiles = ceil_div(cout, Tile::BN);
         const size_t smem = Tile::smem(static_cast<int>(K));
-        const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, 0.5, props);
+        const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, K * ceil_div(cin, Tile::BK), 0.6,
+                                          props);
         launch_split<scalar_t>(splits, out, epi, props.sms, stream, [&](float* partial) {
           const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
           kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
@@ -1068,7 +1072,8 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
       const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
       const size_t smem = Tile::smem(static_cast<int>(K));
-      const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, 1.0, props);
+      const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, K * ceil_div(cin, Tile::kStepChannels), 1.0,
+                                        props);
       launch_split<float>(splits, out, epi, props.sms, stream, [&](float* partial) {
         const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
         kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
