@@ -561,11 +561,11 @@ _SPLIT_ALGOS = {"fp32": torch.float32, "tf32": torch.float32, "3xtf32": torch.fl
 @pytest.mark.parametrize("cin,cout,D,sites", [(128, 128, 2, 1200), (32, 64, 3, 3000)])
 def test_cuda_offset_splits_match_float64(algo, splits, cin, cout, D, sites, monkeypatch):
     """Offset splits (split-K over the kernel offsets, for layers with too few tiles to fill the GPU)
-    against the float64 product followed by the epilogue: the automatic choice (several splits for
-    the float32 kernels on these few-row layers), forced 1, 2, 3 and 9 (more splits than most tiles have offsets: empty splits
-    add zeros), 2D and 3D (K = 27), every pipelined kernel (FFMA tiles, TF32, 3xTF32, float16,
-    bfloat16), with the fused scale, shift and ReLU applied once after the splits are added, and rows
-    with no input at epi(0) exactly. Two calls give the same bits."""
+    against the float64 product followed by the epilogue: the automatic choice (on an H100 it splits
+    the 2D layer's float32 kernels), forced 1, 2, 3 and 9 (more splits than most tiles have offsets:
+    empty splits add zeros), 2D and 3D (K = 27), every pipelined kernel (FFMA tiles, TF32, 3xTF32,
+    float16, bfloat16), with the fused scale, shift and ReLU applied once after the splits are added,
+    and rows with no input at epi(0) exactly. Two calls give the same bits."""
     monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if algo == "3xtf32" else "ffma")
     if splits == "auto":
         monkeypatch.delenv("LIDAROPS_CONV_SPLITS", raising=False)

@@ -678,7 +678,8 @@ __global__ void __launch_bounds__(Tile::kThreads)
     cp_async_wait<STAGES - 2>();
     __syncthreads();
     issue(t + STAGES - 1);
-    const unsigned live = groups[klist[split.lo + t / chunks]] >> (m0 / 16);  // bit i: fragment row i has inputs
+    // bit i: fragment row i has inputs at this step's offset
+    const unsigned live = groups[klist[split.lo + t / chunks]] >> (m0 / 16);
     const S* st = ring + (t % STAGES) * (BM + BN) * BK;
 #pragma unroll
     for (int ks = 0; ks < BK / KS; ++ks) {
@@ -738,7 +739,8 @@ __global__ void __launch_bounds__(Tile::kThreads)
         if (co >= cout) continue;
         const float v0 = acc[i][j][2 * h], v1 = acc[i][j][2 * h + 1];
         if (part != nullptr) store_pair(part + o * cout + co, v0, v1, co + 1 < cout, pair);
-        else store_pair(out + o * cout + co, epi(v0, co), co + 1 < cout ? epi(v1, co + 1) : 0.f, co + 1 < cout, pair);
+        else
+          store_pair(out + o * cout + co, epi(v0, co), co + 1 < cout ? epi(v1, co + 1) : 0.f, co + 1 < cout, pair);
       }
     }
 #else
@@ -926,7 +928,8 @@ int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, int64_t st
   if (steps < 32) return 1;
   const int64_t static_smem = 1024;  // the map slice's row list and offset lists
   const int64_t per_sm = std::max<int64_t>(
-      1, std::min<int64_t>(2048 / threads, p.smem_per_sm / (static_cast<int64_t>(smem) + static_smem + p.smem_reserved)));
+      1, std::min<int64_t>(2048 / threads,
+                           p.smem_per_sm / (static_cast<int64_t>(smem) + static_smem + p.smem_reserved)));
   const double slots = static_cast<double>(per_sm * p.sms);
   if (static_cast<double>(tiles) > split_below * slots) return 1;
   int s = 1;
@@ -1029,10 +1032,11 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
         raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
         const int64_t row_tiles = ceil_div(n_out, Tile::BM), col_tiles = ceil_div(cout, Tile::BN);
         const size_t smem = Tile::smem(static_cast<int>(K));
-        const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, K * ceil_div(cin, Tile::BK), 0.6,
-                                          props);
+        const int64_t steps = K * ceil_div(cin, Tile::BK);  // of a tile, without splits
+        const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, 0.6, props);
         launch_split<scalar_t>(splits, out, epi, props.sms, stream, [&](float* partial) {
-          const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
+          const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles),
+                          static_cast<unsigned>(splits));
           kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
                                                          nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(), n_out,
                                                          static_cast<int>(cin), static_cast<int>(cout),
@@ -1072,10 +1076,11 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
       const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
       const size_t smem = Tile::smem(static_cast<int>(K));
-      const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, K * ceil_div(cin, Tile::kStepChannels), 1.0,
-                                        props);
+      const int64_t steps = K * ceil_div(cin, Tile::kStepChannels);  // of a tile, without splits
+      const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, 1.0, props);
       launch_split<float>(splits, out, epi, props.sms, stream, [&](float* partial) {
-        const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
+        const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles),
+                        static_cast<unsigned>(splits));
         kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
                                                        order, out.data_ptr<float>(), n_out, static_cast<int>(cin),
                                                        static_cast<int>(cout), static_cast<int>(K), epi, partial);
