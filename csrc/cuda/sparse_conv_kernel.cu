@@ -937,20 +937,32 @@ int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, int64_t st
   return s;
 }
 
-// Launches a pipelined kernel over `splits` offset splits: one launch writing `out` directly, or the
-// float partial sums of every split and reduce_splits_kernel.
-template <typename T, typename Launch>
-void launch_split(int splits, at::Tensor& out, const ConvEpilogue& epi, int sms, cudaStream_t stream, Launch&& launch) {
-  if (splits <= 1) {
-    launch(static_cast<float*>(nullptr));
-    return;
-  }
+// Launches a pipelined forward kernel (the FFMA tiles or the tensor-core kernel: the same parameters) on
+// tiles of bm x bn, step_channels input channels per step, with the offset splits offset_splits picks:
+// one launch writing `out`, or the float partial sums of every split and reduce_splits_kernel.
+template <typename T, typename Tile, typename Kernel>
+void launch_pipelined(Kernel kernel, int bm, int bn, int step_channels, double split_below, const at::Tensor& x,
+                      const at::Tensor& w, const at::Tensor& nbr, const int32_t* order, at::Tensor& out,
+                      const ConvEpilogue& epi, const DeviceProps& props, cudaStream_t stream) {
+  const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
+  raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
+  const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
+  const size_t smem = Tile::smem(static_cast<int>(K));
+  const int64_t steps = K * ceil_div(cin, step_channels);  // of a tile, without splits
+  const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, split_below, props);
+  at::Tensor partial;
+  if (splits > 1) partial = at::empty({splits, out.numel()}, out.options().dtype(at::kFloat));
+  const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
+  kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), order,
+                                                 out.data_ptr<T>(), n_out, static_cast<int>(cin),
+                                                 static_cast<int>(cout), static_cast<int>(K), epi,
+                                                 splits > 1 ? partial.data_ptr<float>() : nullptr);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  if (splits == 1) return;
   const int64_t numel = out.numel();
-  auto partial = at::empty({splits, numel}, out.options().dtype(at::kFloat));
-  launch(partial.data_ptr<float>());
-  const int64_t blocks = std::min<int64_t>(ceil_div(numel, 256), 8 * static_cast<int64_t>(sms));
+  const int64_t blocks = std::min<int64_t>(ceil_div(numel, 256), 8 * static_cast<int64_t>(props.sms));
   reduce_splits_kernel<T><<<static_cast<unsigned>(blocks), 256, 0, stream>>>(
-      partial.data_ptr<float>(), splits, numel, static_cast<int>(out.size(1)), out.data_ptr<T>(), epi);
+      partial.data_ptr<float>(), splits, numel, static_cast<int>(cout), out.data_ptr<T>(), epi);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
@@ -1028,21 +1040,8 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       constexpr Mma M = decltype(mode)::value;
       auto go = [&](auto tile) {
         using Tile = decltype(tile);
-        auto kernel = conv_fwd_mma_kernel<scalar_t, M, Tile>;
-        raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
-        const int64_t row_tiles = ceil_div(n_out, Tile::BM), col_tiles = ceil_div(cout, Tile::BN);
-        const size_t smem = Tile::smem(static_cast<int>(K));
-        const int64_t steps = K * ceil_div(cin, Tile::BK);  // of a tile, without splits
-        const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, 0.6, props);
-        launch_split<scalar_t>(splits, out, epi, props.sms, stream, [&](float* partial) {
-          const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles),
-                          static_cast<unsigned>(splits));
-          kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(),
-                                                         nbr.data_ptr<int32_t>(), order, out.data_ptr<scalar_t>(), n_out,
-                                                         static_cast<int>(cin), static_cast<int>(cout),
-                                                         static_cast<int>(K), epi, partial);
-          C10_CUDA_KERNEL_LAUNCH_CHECK();
-        });
+        launch_pipelined<scalar_t, Tile>(conv_fwd_mma_kernel<scalar_t, M, Tile>, Tile::BM, Tile::BN, Tile::BK, 0.6, x,
+                                         w, nbr, order, out, epi, props, stream);
       };
       const MmaShape shape = mma_tile_shape(n_out, cout, props.sms);
       if (shape.rows == 32) go(MmaTile<M, 32, 64, 2, 2, 3>{});
@@ -1073,19 +1072,8 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
   if (dtype == at::kFloat && pipelined && sm80) {
     auto launch = [&](auto kernel, auto tile, int bm, int bn) {
       using Tile = decltype(tile);
-      raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
-      const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
-      const size_t smem = Tile::smem(static_cast<int>(K));
-      const int64_t steps = K * ceil_div(cin, Tile::kStepChannels);  // of a tile, without splits
-      const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, 1.0, props);
-      launch_split<float>(splits, out, epi, props.sms, stream, [&](float* partial) {
-        const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles),
-                        static_cast<unsigned>(splits));
-        kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<float>(), w.data_ptr<float>(), nbr.data_ptr<int32_t>(),
-                                                       order, out.data_ptr<float>(), n_out, static_cast<int>(cin),
-                                                       static_cast<int>(cout), static_cast<int>(K), epi, partial);
-        C10_CUDA_KERNEL_LAUNCH_CHECK();
-      });
+      launch_pipelined<float, Tile>(kernel, bm, bn, Tile::kStepChannels, 1.0, x, w, nbr, order, out, epi, props,
+                                    stream);
     };
     // 64-row tiles, 32 channels per step, 3 stages: the best of the tiles tried on the H200 (docs/sparse.md)
     if (cout <= 16) launch(conv_fwd_f32_async_kernel<64, 16, 4, 2, 32, 3>, AsyncTile<64, 16, 4, 2, 32, 3>{}, 64, 16);
