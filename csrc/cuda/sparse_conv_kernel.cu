@@ -197,6 +197,43 @@ struct StepCursor {
   }
 };
 
+// The 16-byte chunks one thread of a pipelined kernel copies in every step: one chunk column of the
+// gathered A rows r + u * RSTEP (u < AU) and of the weight rows (output columns) col0 + r + u * RSTEP
+// (u < BU). The weight-row offsets and which columns exist are fixed for the block, so a step costs a
+// map read and an address per chunk (H100, session 12: recomputing them with divisions on every step
+// had kept the tensor-core kernel issue-bound).
+template <typename S, int AU, int BU, int RSTEP>
+struct StepCopies {
+  int64_t w_row[BU];
+  unsigned w_in = 0u;  // bit u: column col0 + r + u * RSTEP < Cout
+  __device__ __forceinline__ StepCopies(int col0, int r, int K, int cin, int cout) {
+#pragma unroll
+    for (int u = 0; u < BU; ++u) {
+      const int co = col0 + r + u * RSTEP;
+      w_row[u] = static_cast<int64_t>(co) * K * cin;
+      if (co < cout) w_in |= 1u << u;
+    }
+  }
+  // The step at offset k, this thread's chunk starting at channel ci: A row u (input rk[u * RSTEP], -1
+  // for none) to a_dst + u * a_stride, weight row u to b_dst + u * b_stride; zeros where absent.
+  __device__ __forceinline__ void copy(S* a_dst, int a_stride, S* b_dst, int b_stride, const int32_t* rk,
+                                       const S* x, const S* w, int k, int ci, int cin) const {
+    const bool ci_in = ci < cin;  // Cin is a multiple of the vector: a chunk is all in or all out
+#pragma unroll
+    for (int u = 0; u < AU; ++u) {
+      const int32_t r = rk[u * RSTEP];
+      const bool ok = r >= 0 && ci_in;
+      cp_async16(a_dst + u * a_stride, ok ? x + static_cast<int64_t>(r) * cin + ci : x, ok);
+    }
+    const int64_t kc = static_cast<int64_t>(k) * cin + ci;
+#pragma unroll
+    for (int u = 0; u < BU; ++u) {
+      const bool ok = ((w_in >> u) & 1u) && ci_in;
+      cp_async16(b_dst + u * b_stride, ok ? w + w_row[u] + kc : w, ok);
+    }
+  }
+};
+
 // The map slice of a tile of BM output rows starting at row0: orow[m] (the output row at tile row m,
 // -1 past the end), rows[k * BM + m] (its input at offset k, or -1) and klist[0, nk) (the offsets any
 // row of the tile has, ascending; K <= 32); with `groups`, also groups[k]: bit g set when a row of
@@ -269,39 +306,16 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
       tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM, orow, rows, klist, &present, &nk));
   const int steps = (split.hi - split.lo) * chunks;
   // This thread's 16-byte chunks of a step: chunk c_t of the A rows r_t + u * RSTEP and of the B rows
-  // (weight columns) likewise; the weight offsets are fixed.
-  constexpr int CH = BK / 4, RSTEP = kThreads / CH, AU = BM / RSTEP, BU = BN / RSTEP;
+  // (weight columns) likewise.
+  constexpr int CH = BK / 4, RSTEP = kThreads / CH;
   static_assert(kThreads % CH == 0 && BM % RSTEP == 0 && BN % RSTEP == 0, "whole rows");
   const int c_t = tid % CH, r_t = tid / CH;
-  int64_t w_row[BU];
-  unsigned w_in = 0u;  // bit u: column col0 + r_t + u * RSTEP < Cout
-#pragma unroll
-  for (int u = 0; u < BU; ++u) {
-    const int co = col0 + r_t + u * RSTEP;
-    w_row[u] = static_cast<int64_t>(co) * K * cin;
-    if (co < cout) w_in |= 1u << u;
-  }
+  const StepCopies<float, BM / RSTEP, BN / RSTEP, RSTEP> copies(col0, r_t, K, cin, cout);
   StepCursor<STAGES> in(split.lo);  // the next step to issue
   auto issue = [&]() {              // its tiles into its ring slot (nothing past the last step)
-    if (in.kpos < split.hi) {
-      const int k = klist[in.kpos], ci = in.chunk * BK + c_t * 4, st = in.slot;
-      const bool ci_in = ci < cin;
-      float* a_dst = As + (st * BM + r_t) * LDA + c_t * 4;
-      float* b_dst = Bs + (st * BN + r_t) * LDB + c_t * 4;
-      const int32_t* rk = rows + k * BM + r_t;
-#pragma unroll
-      for (int u = 0; u < AU; ++u) {
-        const int32_t r = rk[u * RSTEP];
-        const bool ok = r >= 0 && ci_in;
-        cp_async16(a_dst + u * RSTEP * LDA, ok ? x + static_cast<int64_t>(r) * cin + ci : x, ok);
-      }
-      const int64_t kc = static_cast<int64_t>(k) * cin + ci;
-#pragma unroll
-      for (int u = 0; u < BU; ++u) {
-        const bool ok = ((w_in >> u) & 1u) && ci_in;
-        cp_async16(b_dst + u * RSTEP * LDB, ok ? w + w_row[u] + kc : w, ok);
-      }
-    }
+    if (in.kpos < split.hi)
+      copies.copy(As + (in.slot * BM + r_t) * LDA + c_t * 4, RSTEP * LDA, Bs + (in.slot * BN + r_t) * LDB + c_t * 4,
+                  RSTEP * LDB, rows + klist[in.kpos] * BM + r_t, x, w, klist[in.kpos], in.chunk * BK + c_t * 4, cin);
     in.next(chunks);
     cp_async_commit();  // an empty group past the end keeps the wait counts uniform
   };
@@ -674,38 +688,17 @@ __global__ void __launch_bounds__(Tile::kThreads)
   const S* xs = reinterpret_cast<const S*>(x);
   const S* ws = reinterpret_cast<const S*>(w);
   // This thread's 16-byte chunks of a step: chunk c_t of the rows r_t + u * RSTEP of A and of B, at the
-  // same swizzled place in both (row & 7 is r_t & 7 for every u); their weight offsets are fixed.
-  constexpr int RSTEP = kThreads / CH, AU = BM / RSTEP, BU = BN / RSTEP;
+  // same swizzled place in both (row & 7 is r_t & 7 for every u).
+  constexpr int RSTEP = kThreads / CH;
   static_assert(kThreads % CH == 0 && RSTEP % 8 == 0 && BM % RSTEP == 0 && BN % RSTEP == 0, "whole rows");
   const int c_t = tid % CH, r_t = tid / CH, dst0 = Tile::at(r_t, c_t);
-  int64_t w_row[BU];
-  unsigned w_in = 0u;  // bit u: column col0 + r_t + u * RSTEP < Cout
-#pragma unroll
-  for (int u = 0; u < BU; ++u) {
-    const int co = col0 + r_t + u * RSTEP;
-    w_row[u] = static_cast<int64_t>(co) * K * cin;
-    if (co < cout) w_in |= 1u << u;
-  }
+  const StepCopies<S, BM / RSTEP, BN / RSTEP, RSTEP> copies(col0, r_t, K, cin, cout);
   StepCursor<STAGES> in(split.lo);  // the next step to issue
   auto issue = [&]() {
     if (in.kpos < split.hi) {
-      const int k = klist[in.kpos], ci = in.chunk * BK + c_t * V;
-      const bool ci_in = ci < cin;  // Cin is a multiple of V: a vector is all in or all out
-      S* As = ring + in.slot * (BM + BN) * BK + dst0;
-      S* Bs = As + BM * BK;  // Bs[at(n, c)] = W[col0 + n, k, c0 + c * V ...]
-      const int32_t* rk = rows + k * BM + r_t;
-#pragma unroll
-      for (int u = 0; u < AU; ++u) {
-        const int32_t r = rk[u * RSTEP];
-        const bool ok = r >= 0 && ci_in;
-        cp_async16(As + u * RSTEP * BK, ok ? xs + static_cast<int64_t>(r) * cin + ci : xs, ok);
-      }
-      const int64_t kc = static_cast<int64_t>(k) * cin + ci;
-#pragma unroll
-      for (int u = 0; u < BU; ++u) {
-        const bool ok = ((w_in >> u) & 1u) && ci_in;
-        cp_async16(Bs + u * RSTEP * BK, ok ? ws + w_row[u] + kc : ws, ok);
-      }
+      S* As = ring + in.slot * (BM + BN) * BK + dst0;  // B follows: Bs[at(n, c)] = W[col0 + n, k, c0 + c * V ...]
+      copies.copy(As, RSTEP * BK, As + BM * BK, RSTEP * BK, rows + klist[in.kpos] * BM + r_t, xs, ws, klist[in.kpos],
+                  in.chunk * BK + c_t * V, cin);
     }
     in.next(chunks);
     cp_async_commit();
