@@ -52,6 +52,30 @@ def sources(with_cuda: bool) -> list[str]:
     return srcs
 
 
+def hopper_arch_list() -> bool:
+    """Builds compute capability 9.0 as sm_90a (wgmma, the sparse convolutions' Hopper kernel).
+
+    Rewrites TORCH_CUDA_ARCH_LIST (or, unset, the visible GPUs' capabilities): "9.0" becomes "9.0a",
+    "9.0+PTX" becomes "9.0a;9.0+PTX" (the PTX stays portable). Returns whether 9.0a is built.
+    """
+    arch = os.environ.get("TORCH_CUDA_ARCH_LIST", "").strip()
+    if not arch and torch.cuda.is_available():
+        caps = {torch.cuda.get_device_capability(i) for i in range(torch.cuda.device_count())}
+        arch = ";".join(f"{a}.{b}" for a, b in sorted(caps))
+    if not arch or arch == "native":
+        return False
+    out = []
+    for tok in arch.replace(" ", ";").split(";"):
+        if tok == "9.0":
+            out.append("9.0a")
+        elif tok == "9.0+PTX":
+            out += ["9.0a", "9.0+PTX"]
+        elif tok:
+            out.append(tok)
+    os.environ["TORCH_CUDA_ARCH_LIST"] = ";".join(dict.fromkeys(out))
+    return "9.0a" in out
+
+
 def make_extension():
     with_cuda, why = want_cuda()
     debug = _flag("LIDAROPS_DEBUG")
@@ -61,6 +85,8 @@ def make_extension():
     extra = {"cxx": cxx}
     if with_cuda:
         define_macros.append(("WITH_CUDA", None))
+        if hopper_arch_list():
+            define_macros.append(("LIDAROPS_SM90A", None))
         extra["nvcc"] = opt + ["--expt-relaxed-constexpr", "-lineinfo",
                                "-Xptxas=-warn-spills"]
         ext_cls = CUDAExtension

@@ -519,18 +519,22 @@ def test_cuda_float32_tiles_match_float64(cin, cout, D, ksize, sites, ordered):
 
 
 @_cuda
+@pytest.mark.parametrize("mma", ["auto", "sync"])
 @pytest.mark.parametrize("dtype", ["f16", "bf16", "tf32", "3xtf32"])
 @pytest.mark.parametrize("cin,cout,D,sites", [(24, 100, 2, 20000), (64, 64, 2, 3000), (16, 32, 3, 4000),
                                               (32, 16, 2, 3000), (40, 17, 2, 5000), (128, 128, 2, 8000),
-                                              (128, 128, 2, 2000), (32, 256, 2, 16000)])
-def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites, monkeypatch):
-    """The cp.async-fed mma.sync kernel (float16, bfloat16, TF32, and float32 as 3xTF32) against the
+                                              (128, 128, 2, 2000), (32, 256, 2, 16000), (128, 72, 3, 3000)])
+def test_cuda_tensor_core_pipeline_matches_float64(mma, dtype, cin, cout, D, sites, monkeypatch):
+    """The cp.async-fed tensor-core kernels (float16, bfloat16, TF32, and float32 as 3xTF32) against the
     float64 product of the same (rounded) inputs: several blocks, Cout not a multiple of the tile (and
-    odd), Cin not a multiple of the 128-byte step, rows with no input, and every tile shape on a
-    132-multiprocessor GPU: 32 x 64 (20000 rows of 100 channels, 8000 of 128), 64 x 64 (16000 rows of
-    256 channels), and 64 rows by 32 or 16 columns (Cout <= 32; 2000 rows of 128 channels). 3xTF32 must
-    be as accurate as float32."""
+    odd), Cin not a multiple of the 128-byte step, rows with no input. ``sync`` forces the mma.sync
+    kernel, which then takes every tile shape on a 132-multiprocessor GPU: 32 x 64 (20000 rows of 100
+    channels, 8000 of 128), 64 x 64 (16000 rows of 256 channels), and 64 rows by 32 or 16 columns
+    (Cout <= 32; 2000 rows of 128 channels). ``auto`` on an sm_90a build on a Hopper GPU gives the
+    layers with Cout > 64 to the wgmma kernel (64 x 128 tiles in TF32, 64 x 64 in 16 bits; 72 columns:
+    a partial second tile, K = 27), the others as ``sync``. 3xTF32 must be as accurate as float32."""
     monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if dtype == "3xtf32" else "ffma")
+    monkeypatch.setenv("LIDAROPS_CONV_MMA", mma)
     shape = (400, 400) if D == 2 else (40, 40, 40)
     dt = {"f16": torch.float16, "bf16": torch.bfloat16, "tf32": torch.float32, "3xtf32": torch.float32}[dtype]
     x = random_tensor(2, shape, sites // 2, cin, seed=sites + cin, dtype=dt, device="cuda")
@@ -549,6 +553,47 @@ def test_cuda_tensor_core_pipeline_matches_float64(dtype, cin, cout, D, sites, m
     scale = max(1.0, ref.abs().max().item())
     tol = {"f16": 4e-3, "bf16": 3e-2, "tf32": 5e-3, "3xtf32": 2e-5}[dtype]
     assert (got - ref).abs().max().item() <= tol * scale
+
+
+@_cuda
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32], ids=["f16", "bf16", "tf32"])
+def test_cuda_hopper_builds_use_wgmma(dtype, monkeypatch):
+    """On a compute capability 9.0 GPU with an sm_90a build (setup.py builds 9.0 as 9.0a), tensor-core
+    layers with Cout > 64 launch the wgmma kernel, and LIDAROPS_CONV_MMA=sync the mma.sync kernel: the
+    Hopper path cannot go dead unnoticed. The two give the same answer to the tolerance of the type."""
+    import json
+    from pathlib import Path
+    import lidarops
+    info = json.loads((Path(lidarops.__file__).parent / "_build_info.json").read_text())
+    if torch.cuda.get_device_capability() != (9, 0) or "9.0a" not in info["arch_list"].split(";"):
+        pytest.skip(f"needs compute capability 9.0 and an sm_90a build (arch list {info['arch_list']})")
+    x = random_tensor(2, (200, 200), 3000, 128, seed=5, dtype=dtype, device="cuda")
+    km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+    w = (random_weight(128, (3, 3), 128, seed=5, dtype=dtype, device="cuda") / 8).reshape(128, -1, 128)
+    order = ops.sparse_kernel_map_order(km.neighbors)
+
+    def kernels(mma):
+        monkeypatch.setenv("LIDAROPS_CONV_MMA", mma)
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA], acc_events=True) as prof:
+            y = ops.sparse_conv(x.features, w, km.neighbors, order)
+            torch.cuda.synchronize()
+        names = {e.name for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA}
+        if not names:  # no kernel at all: CUPTI is unavailable (compute-sanitizer, another profiler)
+            pytest.skip("the CUDA profiler records no kernels here")
+        return y, {n for n in names if "conv_fwd" in n}
+
+    old = torch.backends.cuda.matmul.allow_tf32
+    try:
+        torch.backends.cuda.matmul.allow_tf32 = True
+        y_wg, names_wg = kernels("auto")
+        y_sync, names_sync = kernels("sync")
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = old
+    assert any("conv_fwd_wgmma_kernel" in n for n in names_wg), names_wg
+    assert names_sync and all("conv_fwd_mma_kernel" in n for n in names_sync), names_sync
+    scale = y_sync.double().abs().max().item()
+    tol = {torch.float16: 4e-3, torch.bfloat16: 3e-2, torch.float32: 5e-3}[dtype]
+    assert (y_wg.double() - y_sync.double()).abs().max().item() <= tol * scale
 
 
 _SPLIT_ALGOS = {"fp32": torch.float32, "tf32": torch.float32, "3xtf32": torch.float32, "f16": torch.float16,

@@ -10,7 +10,8 @@
 // over up to four blocks (offset_splits); a second kernel adds their partial sums in a fixed order.
 //   - float16 / bfloat16 (sm_80+, Cin and Cout >= 16): tensor cores with float accumulation; float32
 //     likewise with TF32 when torch allows TF32 matmuls (off by default). Cin a multiple of the 16-byte
-//     vector and K <= 32: mma.sync fed by a cp.async pipeline; otherwise WMMA 16x16x16 (TF32 16x16x8).
+//     vector and K <= 32: mma.sync fed by a cp.async pipeline, or, on Hopper (compute capability 9.0,
+//     sm_90a builds) for Cout > 64, wgmma fed by the same pipeline; otherwise WMMA 16x16x16 (TF32 16x16x8).
 //   - float32 otherwise (sm_80+, Cin a multiple of 4, K <= 32): SIMT (FFMA) tiles fed by cp.async
 //     pipelines, or, with LIDAROPS_CONV_FP32=3xtf32 (experimental), the mma.sync kernel as 3xTF32;
 //   - otherwise general SIMT tiles in float (float64 in float64).
@@ -29,6 +30,7 @@
 #include <cuda_fp16.h>
 #include <mma.h>
 
+#include <algorithm>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
@@ -579,8 +581,6 @@ struct MmaTile {
   static constexpr int kThreads = 32 * WM * WN;
   static constexpr int MF = BM / (16 * WM), NF = BN / (8 * WN);  // 16 x 8 fragments per warp
   static constexpr int KS = 2 * V;                                // elements per mma k-step (32 bytes)
-  // accumulator sets (conv_fwd_mma_kernel): two for 3xTF32 on warp tiles of up to 8 fragments
-  static constexpr int kChains = M == Mma::k3xTF32 && MF * NF <= 8 ? 2 : 1;
   static constexpr size_t kStage = sizeof(S) * (BM + BN) * BK;
   static size_t smem(int K) { return kStage * STAGES + sizeof(int32_t) * K * BM; }  // the ring, the map slice
   static_assert(MF >= 1 && NF >= 2 && NF % 2 == 0 && BK % KS == 0 && BM <= 16 * 32, "whole fragments");
@@ -704,11 +704,11 @@ __global__ void __launch_bounds__(Tile::kThreads)
     cp_async_commit();
   };
 
-  // Tile::kChains accumulator sets: k-step ks adds into set ks % CHAINS, and the sets are added in a
+  // CHAINS accumulator sets: k-step ks adds into set ks % CHAINS, and the sets are added in a
   // fixed order at the end. 3xTF32 chains three mma.sync per fragment and k-step; with two sets (H100,
   // session 12) it was 3-7 % faster on the single layers and its error fell from 8.7e-6 to 4.7e-6 of
   // the output range (shorter sums). TF32 and 16-bit types gained nothing from a second set.
-  constexpr int CHAINS = Tile::kChains;
+  constexpr int CHAINS = M == Mma::k3xTF32 && MF * NF <= 8 ? 2 : 1;
   float acc[CHAINS][MF][NF][4];
 #pragma unroll
   for (int c = 0; c < CHAINS; ++c)
@@ -813,6 +813,192 @@ __global__ void __launch_bounds__(Tile::kThreads)
 }
 
 // ------------------------------------------------------------------------------------------------
+// forward, Hopper warpgroup MMA (sm_90a builds on compute capability 9.0; float16, bfloat16, TF32;
+// Cout > 64): the mma.sync kernel's pipeline (map slice, offset list, cp.async ring of 128-byte rows
+// whose 16-byte chunks are swizzled as c ^ (row & 7), which is exactly wgmma's 128-byte swizzle layout)
+// feeding wgmma.mma_async straight from shared memory:
+//   - one warpgroup (4 warps) per 64-row tile of BN = 64 or 128 columns; a step is four m64nBNk8 (TF32)
+//     or m64nBNk16 (16-bit) products, with no ldmatrix and no operand registers;
+//   - TF32: each thread rounds the chunks it copied itself to nearest TF32 in shared memory once they
+//     have landed (the tensor core would truncate them), before the barrier that publishes the step;
+//   - all 64 rows are multiplied at every offset the tile has (rows without an input there are zeros);
+//   - the accumulator layout per warp is mma.sync's (16 rows x 8 columns per fragment), so the epilogue,
+//     the offset splits and the summation order over offsets and channels are those of conv_fwd_mma_kernel.
+// ------------------------------------------------------------------------------------------------
+template <int N>
+struct Wgmma;  // d (64 x N, float) += A (64 x 32 bytes) . B (N x 32 bytes), both from shared memory
+#if defined(__CUDA_ARCH_FEAT_SM90_ALL)
+#define LIDAROPS_ACC4(j) "+f"(d[j][0]), "+f"(d[j][1]), "+f"(d[j][2]), "+f"(d[j][3])
+#define LIDAROPS_WGMMA(SHAPE, REGS, DESCS, ...)                                                                   \
+  if constexpr (M == Mma::kTF32)                                                                                 \
+    asm volatile("wgmma.mma_async.sync.aligned." SHAPE "k8.f32.tf32.tf32 " REGS ", " DESCS ", 1, 1, 1;\n"         \
+                 : __VA_ARGS__                                                                                   \
+                 : "l"(a), "l"(b));                                                                              \
+  else if constexpr (M == Mma::kF16)                                                                             \
+    asm volatile("wgmma.mma_async.sync.aligned." SHAPE "k16.f32.f16.f16 " REGS ", " DESCS ", 1, 1, 1, 0, 0;\n"    \
+                 : __VA_ARGS__                                                                                   \
+                 : "l"(a), "l"(b));                                                                              \
+  else                                                                                                           \
+    asm volatile("wgmma.mma_async.sync.aligned." SHAPE "k16.f32.bf16.bf16 " REGS ", " DESCS ", 1, 1, 1, 0, 0;\n"  \
+                 : __VA_ARGS__                                                                                   \
+                 : "l"(a), "l"(b))
+template <>
+struct Wgmma<64> {
+  template <Mma M>
+  static __device__ __forceinline__ void run(float (&d)[8][4], uint64_t a, uint64_t b) {
+    LIDAROPS_WGMMA("m64n64",
+                   "{%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, "
+                   "%16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31}", "%32, %33",
+                   LIDAROPS_ACC4(0), LIDAROPS_ACC4(1), LIDAROPS_ACC4(2), LIDAROPS_ACC4(3), LIDAROPS_ACC4(4),
+                   LIDAROPS_ACC4(5), LIDAROPS_ACC4(6), LIDAROPS_ACC4(7));
+  }
+};
+template <>
+struct Wgmma<128> {
+  template <Mma M>
+  static __device__ __forceinline__ void run(float (&d)[16][4], uint64_t a, uint64_t b) {
+    LIDAROPS_WGMMA("m64n128",
+                   "{%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, "
+                   "%16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31, "
+                   "%32, %33, %34, %35, %36, %37, %38, %39, %40, %41, %42, %43, %44, %45, %46, %47, "
+                   "%48, %49, %50, %51, %52, %53, %54, %55, %56, %57, %58, %59, %60, %61, %62, %63}", "%64, %65",
+                   LIDAROPS_ACC4(0), LIDAROPS_ACC4(1), LIDAROPS_ACC4(2), LIDAROPS_ACC4(3), LIDAROPS_ACC4(4),
+                   LIDAROPS_ACC4(5), LIDAROPS_ACC4(6), LIDAROPS_ACC4(7), LIDAROPS_ACC4(8), LIDAROPS_ACC4(9),
+                   LIDAROPS_ACC4(10), LIDAROPS_ACC4(11), LIDAROPS_ACC4(12), LIDAROPS_ACC4(13), LIDAROPS_ACC4(14),
+                   LIDAROPS_ACC4(15));
+  }
+};
+#undef LIDAROPS_WGMMA
+#undef LIDAROPS_ACC4
+
+// Shared-memory matrix descriptor: K-major rows of 128 bytes, 128-byte swizzle, 8-row groups 1024 bytes
+// apart (the leading-dimension offset is unused in this mode: 1).
+__device__ __forceinline__ uint64_t wgmma_desc(uint32_t saddr) {
+  return static_cast<uint64_t>((saddr & 0x3FFFFu) >> 4) | (uint64_t(1) << 16) | (uint64_t(1024 >> 4) << 32) |
+         (uint64_t(1) << 62);
+}
+template <int NF>
+__device__ __forceinline__ void wgmma_fence_acc(float (&d)[NF][4]) {
+#pragma unroll
+  for (int j = 0; j < NF; ++j)
+#pragma unroll
+    for (int q = 0; q < 4; ++q) asm volatile("" : "+f"(d[j][q])::"memory");
+}
+#endif
+
+template <Mma M, int BN_, int STAGES_>
+struct WgTile : MmaTile<M, 64, BN_, 4, 1, STAGES_> {
+  using Base = MmaTile<M, 64, BN_, 4, 1, STAGES_>;
+  // All of the block's shared memory is dynamic, so that it starts at the 1024-byte boundary the swizzle
+  // atoms need, with nothing lost to padding: the ring, then the map slice rows [K][64], the output rows
+  // orow[64], klist[32], present and nk. At 64 x 128 (TF32, 3 stages) three blocks then fit in a
+  // multiprocessor instead of two.
+  static constexpr size_t kAux = sizeof(int64_t) * 64 + sizeof(int) * (kAsyncMaxK + 2);
+  static size_t smem(int K) { return Base::kStage * Base::STAGES + sizeof(int32_t) * K * 64 + kAux; }
+};
+
+template <typename T, Mma M, typename Tile>
+__global__ void __launch_bounds__(Tile::kThreads)
+    conv_fwd_wgmma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
+                          const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int cin, int cout,
+                          int K, ConvEpilogue epi, float* __restrict__ partial) {
+#if defined(__CUDA_ARCH_FEAT_SM90_ALL)
+  using S = typename Tile::S;
+  constexpr int V = Tile::V, BM = Tile::BM, BN = Tile::BN, BK = Tile::BK, NF = Tile::NF;
+  constexpr int STAGES = Tile::STAGES, kThreads = Tile::kThreads, CH = BK / V;
+  static_assert(BM == 64 && kThreads == 128 && Tile::MF == 1 && BK * sizeof(S) == 128, "one warpgroup, 128-byte rows");
+  static_assert(M != Mma::k3xTF32, "3xTF32 runs on conv_fwd_mma_kernel");
+  extern __shared__ __align__(1024) unsigned char wg_smem[];  // no static shared memory: see WgTile
+  const uint32_t ring_s = static_cast<uint32_t>(__cvta_generic_to_shared(wg_smem));
+  if (ring_s % 1024 != 0) __trap();  // the swizzle atoms would be misread: fail loudly, never silently
+  S* ring = reinterpret_cast<S*>(wg_smem);                                             // [STAGES][BM + BN][BK]
+  int32_t* rows = reinterpret_cast<int32_t*>(wg_smem + Tile::kStage * STAGES);         // [K][BM]
+  int64_t* orow = reinterpret_cast<int64_t*>(rows + K * BM);                           // [BM]
+  int* klist = reinterpret_cast<int*>(orow + BM);                                      // [kAsyncMaxK]
+  unsigned* present = reinterpret_cast<unsigned*>(klist + kAsyncMaxK);
+  int* nk = klist + kAsyncMaxK + 1;
+  const int tid = threadIdx.x, warp = tid / 32, lane = tid % 32;
+  const int col0 = static_cast<int>(blockIdx.y) * BN;
+  const int chunks = (cin + BK - 1) / BK;
+  const OffsetSplit split = offset_split(tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM,
+                                                                      orow, rows, klist, present, nk));
+  const int steps = (split.hi - split.lo) * chunks;
+  const S* xs = reinterpret_cast<const S*>(x);
+  const S* ws = reinterpret_cast<const S*>(w);
+  constexpr int RSTEP = kThreads / CH, AU = BM / RSTEP, BU = BN / RSTEP;
+  static_assert(kThreads % CH == 0 && RSTEP % 8 == 0 && BM % RSTEP == 0 && BN % RSTEP == 0, "whole rows");
+  const int c_t = tid % CH, r_t = tid / CH, dst0 = Tile::at(r_t, c_t);
+  const StepCopies<S, AU, BU, RSTEP> copies(col0, r_t, K, cin, cout);
+  StepCursor<STAGES> in(split.lo);
+  auto issue = [&]() {
+    if (in.kpos < split.hi) {
+      S* As = ring + in.slot * (BM + BN) * BK + dst0;
+      copies.copy(As, RSTEP * BK, As + BM * BK, RSTEP * BK, rows + klist[in.kpos] * BM + r_t, xs, ws, klist[in.kpos],
+                  in.chunk * BK + c_t * V, cin);
+    }
+    in.next(chunks);
+    cp_async_commit();
+  };
+  float acc[NF][4];
+#pragma unroll
+  for (int j = 0; j < NF; ++j)
+#pragma unroll
+    for (int q = 0; q < 4; ++q) acc[j][q] = 0.f;
+#pragma unroll
+  for (int t = 0; t < STAGES - 1; ++t) issue();
+  StepCursor<STAGES> at(split.lo);
+  for (int t = 0; t < steps; ++t, at.next(chunks)) {
+    cp_async_wait<STAGES - 2>();
+    if constexpr (M == Mma::kTF32) {  // round this thread's own chunks of the step to nearest TF32
+      unsigned* st = reinterpret_cast<unsigned*>(ring + at.slot * (BM + BN) * BK + dst0);
+#pragma unroll
+      for (int u = 0; u < AU + BU; ++u) {
+        uint4 v = *reinterpret_cast<uint4*>(st + u * RSTEP * BK);
+        v.x = tf32_round(v.x);
+        v.y = tf32_round(v.y);
+        v.z = tf32_round(v.z);
+        v.w = tf32_round(v.w);
+        *reinterpret_cast<uint4*>(st + u * RSTEP * BK) = v;
+      }
+    }
+    asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");  // generic-proxy writes -> wgmma reads
+    __syncthreads();
+    issue();  // step t + STAGES - 1, into the slot step t - 1 used (its wgmma has completed)
+    const uint32_t a_s = ring_s + static_cast<uint32_t>(at.slot * (BM + BN) * BK * sizeof(S));
+    const uint32_t b_s = a_s + static_cast<uint32_t>(BM * BK * sizeof(S));
+    wgmma_fence_acc(acc);
+    asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory");
+#pragma unroll
+    for (int ks = 0; ks < BK * static_cast<int>(sizeof(S)) / 32; ++ks)  // 32 bytes of channels per wgmma
+      Wgmma<BN>::template run<M>(acc, wgmma_desc(a_s + 32 * ks), wgmma_desc(b_s + 32 * ks));
+    asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
+    asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+    wgmma_fence_acc(acc);
+  }
+  cp_async_wait<0>();
+  // accumulator: warp w holds rows 16 w + lane / 4 (+ 8), columns 8 j + 2 (lane % 4) (+ 1), as mma.sync
+  const bool pair = cout % 2 == 0;
+  float* part = partial != nullptr ? partial + blockIdx.z * n_out * cout : nullptr;
+#pragma unroll
+  for (int h = 0; h < 2; ++h) {
+    const int64_t o = orow[warp * 16 + lane / 4 + 8 * h];
+    if (o < 0) continue;
+#pragma unroll
+    for (int j = 0; j < NF; ++j) {
+      const int co = col0 + j * 8 + 2 * (lane % 4);
+      if (co >= cout) continue;
+      const float v0 = acc[j][2 * h], v1 = acc[j][2 * h + 1];
+      if (part != nullptr) store_pair(part + o * cout + co, v0, v1, co + 1 < cout, pair);
+      else store_pair(out + o * cout + co, epi(v0, co), co + 1 < cout ? epi(v1, co + 1) : 0.f, co + 1 < cout, pair);
+    }
+  }
+#else
+  __trap();  // launched only when built for sm_90a (wgmma_built)
+#endif
+}
+
+
+// ------------------------------------------------------------------------------------------------
 // weight gradient: dW[co, k, ci] = sum_o g[o, co] x[map[o, k], ci]. Block: BCO x BCI tile of one
 // offset k over one split of the output rows; BR rows per step; partial sums per split.
 // ------------------------------------------------------------------------------------------------
@@ -899,7 +1085,7 @@ __global__ void reduce_splits_kernel(const float* __restrict__ partial, int spli
 // Compute capability major, SM count and shared memory per SM (and reserved per block) of a device,
 // queried once per device.
 struct DeviceProps {
-  int cc_major = 0, sms = 1, smem_per_sm = 0, smem_reserved = 0;
+  int cc_major = 0, cc_minor = 0, sms = 1, smem_per_sm = 0, smem_reserved = 0;
 };
 
 DeviceProps device_props(c10::DeviceIndex dev) {
@@ -910,6 +1096,7 @@ DeviceProps device_props(c10::DeviceIndex dev) {
   if (it != cache.end()) return it->second;
   DeviceProps p;
   C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.cc_major, cudaDevAttrComputeCapabilityMajor, dev));
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.cc_minor, cudaDevAttrComputeCapabilityMinor, dev));
   C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.sms, cudaDevAttrMultiProcessorCount, dev));
   C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.smem_per_sm, cudaDevAttrMaxSharedMemoryPerMultiprocessor, dev));
   C10_CUDA_CHECK(cudaDeviceGetAttribute(&p.smem_reserved, cudaDevAttrReservedSharedMemoryPerBlock, dev));
@@ -952,6 +1139,24 @@ void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
 struct MmaShape {
   int rows, cols;
 };
+// Columns of the wgmma tile (conv_fwd_wgmma_kernel) for a tensor-core layer, or 0 for the mma.sync
+// tiles: wgmma needs an sm_90a build running on compute capability 9.0; LIDAROPS_CONV_MMA=sync (read at
+// each call) keeps mma.sync, for the tests and for comparisons. H100 kernel time (session 13,
+// docs/sparse.md), against the mma.sync tiles:
+//   - Cout <= 64: mma.sync's 32 x 64 tiles, which skip the 16-row fragments without an input at an
+//     offset, stay as fast or faster (KITTI and dense C = 64);
+//   - TF32: 64 x 128, each gathered row read once for 128 columns: dense SubM C = 128 0.059 -> 0.044 ms,
+//     conv 0.062 -> 0.047, subm1 0.048 -> 0.043;
+//   - 16-bit: 64 x 64 with four stages: subm1 0.022 -> 0.019 ms, subm2 0.028 -> 0.025, dense SubM
+//     C = 128 0.032 -> 0.029.
+int wgmma_columns(int64_t cout, bool tf32, const DeviceProps& p) {
+#ifdef LIDAROPS_SM90A
+  if (p.cc_major != 9 || p.cc_minor != 0 || cout <= 64 || env_is("LIDAROPS_CONV_MMA", "sync")) return 0;
+  return tf32 ? 128 : 64;
+#else
+  return 0;
+#endif
+}
 // Output columns per 64-row tile: 64, or fewer when Cout is small, or when the layer has fewer than two
 // 64 x 64 tiles per multiprocessor (the deep layers of a backbone: few sites, many channels). H100,
 // Sparse-PointPillars subm2 (2,358 rows, 256 channels): TF32 0.125 -> 0.109 ms, fp16 0.054 -> 0.048 ms
@@ -983,14 +1188,13 @@ MmaShape mma_tile_shape(int64_t n_out, int64_t cout, int sms) {
 //     tiles) were 25 % slower with 2.
 // LIDAROPS_CONV_SPLITS=n (read at each call) forces n, for the tests and for tuning.
 int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, int64_t steps, double split_below,
-                  const DeviceProps& p) {
+                  const DeviceProps& p, int64_t static_smem) {
   constexpr int kMaxSplits = 4;
   if (const char* v = std::getenv("LIDAROPS_CONV_SPLITS")) {
     const int forced = std::atoi(v);
     if (forced >= 1) return static_cast<int>(std::min<int64_t>(forced, std::max<int64_t>(K, 1)));
   }
   if (steps < 32) return 1;
-  const int64_t static_smem = 1024;  // the map slice's row list and offset lists
   const int64_t per_sm = std::max<int64_t>(
       1, std::min<int64_t>(2048 / threads,
                            p.smem_per_sm / (static_cast<int64_t>(smem) + static_smem + p.smem_reserved)));
@@ -1001,19 +1205,37 @@ int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, int64_t st
   return s;
 }
 
+// Static shared memory of a pipelined kernel, for offset_splits: about 1 KB (the output rows and the
+// offset lists) for the FFMA and mma.sync kernels, none for the wgmma kernel (WgTile).
+template <typename Tile>
+constexpr int64_t static_smem(const Tile*) {
+  return 1024;
+}
+template <Mma M, int BN, int STAGES>
+constexpr int64_t static_smem(const WgTile<M, BN, STAGES>*) {
+  return 0;
+}
+
 // Launches a pipelined forward kernel (the FFMA tiles or the tensor-core kernel: the same parameters) on
 // tiles of bm x bn, step_channels input channels per step, with the offset splits offset_splits picks:
 // one launch writing `out`, or the float partial sums of every split and reduce_splits_kernel.
 template <typename T, typename Tile, typename Kernel>
 void launch_pipelined(Kernel kernel, int bm, int bn, int step_channels, double split_below, const at::Tensor& x,
                       const at::Tensor& w, const at::Tensor& nbr, const int32_t* order, at::Tensor& out,
-                      const ConvEpilogue& epi, const DeviceProps& props, cudaStream_t stream) {
+                      const ConvEpilogue& epi, const DeviceProps& props, cudaStream_t stream,
+                      int max_blocks_per_sm = 0) {
   const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
-  raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
+  const size_t smem_limit = Tile::smem(kAsyncMaxK);
+  raise_smem_limit(reinterpret_cast<const void*>(kernel), smem_limit, x.get_device());
   const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
-  const size_t smem = Tile::smem(static_cast<int>(K));
+  size_t smem = Tile::smem(static_cast<int>(K));
+  if (max_blocks_per_sm > 0) {  // ask for enough shared memory that one block more does not fit
+    const size_t cap = static_cast<size_t>(props.smem_per_sm / (max_blocks_per_sm + 1) - props.smem_reserved + 128);
+    smem = std::max(smem, std::min(cap, smem_limit));
+  }
   const int64_t steps = K * ceil_div(cin, step_channels);  // of a tile, without splits
-  const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, split_below, props);
+  const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, split_below, props,
+                                   static_smem(static_cast<const Tile*>(nullptr)));
   at::Tensor partial;
   if (splits > 1) partial = at::empty({splits, out.numel()}, out.options().dtype(at::kFloat));
   const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
@@ -1108,6 +1330,22 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
                                          w, nbr, order, out, epi, props, stream);
       };
       const MmaShape shape = mma_tile_shape(n_out, cout, props.sms);
+      if constexpr (M != Mma::k3xTF32) {
+        // 64 x 128 tiles: three blocks fit in a multiprocessor (WgTile). Layers with a full wave of those
+        // tiles or more run two per multiprocessor instead, for fewer waves with less of a tail. H100,
+        // session 13: dense SubM C = 128 (469 tiles, 1.2 waves of three, 1.8 of two) 0.050 -> 0.045 ms,
+        // while subm2 (74 tiles, 4 offset splits: 0.75 waves of three, 1.1 of two) takes 0.042 against
+        // 0.056 with two.
+        auto go_wg = [&](auto tile) {
+          using Tile = decltype(tile);
+          const bool wide = Tile::BN == 128 && ceil_div(n_out, 64) * ceil_div(cout, 128) >= 3 * props.sms;
+          launch_pipelined<scalar_t, Tile>(conv_fwd_wgmma_kernel<scalar_t, M, Tile>, Tile::BM, Tile::BN, Tile::BK, 0.6,
+                                           x, w, nbr, order, out, epi, props, stream, wide ? 2 : 0);
+        };
+        const int wg = wgmma_columns(cout, M == Mma::kTF32, props);
+        if (wg == 128) return go_wg(WgTile<M, 128, 3>{});
+        if (wg == 64) return go_wg(WgTile<M, 64, 4>{});
+      }
       if (shape.rows == 32) go(MmaTile<M, 32, 64, 2, 2, 3>{});
       else if (shape.cols <= 16) go(MmaTile<M, 64, 16, 4, 1, 3>{});
       else if (shape.cols <= 32) go(MmaTile<M, 64, 32, 4, 1, 3>{});
