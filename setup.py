@@ -4,7 +4,7 @@ a CUDA toolkit and a CUDA build of torch are present (or ``FORCE_CUDA=1``).
 Environment:
     FORCE_CUDA=1           build the CUDA kernels even if torch cannot see a GPU (needs nvcc + CUDA torch)
     LIDAROPS_NO_CUDA=1     never build CUDA kernels
-    TORCH_CUDA_ARCH_LIST   e.g. "9.0" (honoured by torch.utils.cpp_extension)
+    TORCH_CUDA_ARCH_LIST   e.g. "9.0" (honoured by torch.utils.cpp_extension; 9.0 is built as 9.0a, for wgmma)
     MAX_JOBS               parallel compile jobs (ninja)
     LIDAROPS_DEBUG=1       -O0 -g
 """
