@@ -993,10 +993,9 @@ __global__ void __launch_bounds__(Tile::kThreads)
     }
   }
 #else
-  __trap();  // launched only when built for sm_90a (wgmma_built)
+  __trap();  // launched only by an sm_90a build on compute capability 9.0 (wgmma_columns)
 #endif
 }
-
 
 // ------------------------------------------------------------------------------------------------
 // weight gradient: dW[co, k, ci] = sum_o g[o, co] x[map[o, k], ci]. Block: BCO x BCI tile of one
