@@ -660,6 +660,28 @@ __device__ __forceinline__ void store_pair(T* p, float v0, float v1, bool both, 
   p[0] = static_cast<T>(v0);
   if (both) p[1] = static_cast<T>(v1);
 }
+
+// Writes one 16-row block of a thread's accumulators in the mma.sync / wgmma fragment layout: rows
+// row0 + lane / 4 (+ 8), columns col0 + 8 j + 2 (lane % 4) (+ 1), the float sums to `part` (an offset
+// split's partial sums) or, without splits, through the epilogue to `out`.
+template <typename T, int NF>
+__device__ __forceinline__ void store_fragments(const float (&acc)[NF][4], const int64_t* orow, int row0, int col0,
+                                                int lane, int cout, T* out, float* part, const ConvEpilogue& epi) {
+  const bool pair = cout % 2 == 0;
+#pragma unroll
+  for (int h = 0; h < 2; ++h) {
+    const int64_t o = orow[row0 + lane / 4 + 8 * h];
+    if (o < 0) continue;
+#pragma unroll
+    for (int j = 0; j < NF; ++j) {
+      const int co = col0 + j * 8 + 2 * (lane % 4);
+      if (co >= cout) continue;
+      const float v0 = acc[j][2 * h], v1 = acc[j][2 * h + 1];
+      if (part != nullptr) store_pair(part + o * cout + co, v0, v1, co + 1 < cout, pair);
+      else store_pair(out + o * cout + co, epi(v0, co), co + 1 < cout ? epi(v1, co + 1) : 0.f, co + 1 < cout, pair);
+    }
+  }
+}
 #endif
 
 template <typename T, Mma M, typename Tile>
@@ -788,25 +810,9 @@ __global__ void __launch_bounds__(Tile::kThreads)
       for (int j = 0; j < NF; ++j)
 #pragma unroll
         for (int q = 0; q < 4; ++q) acc[0][i][j][q] += acc[c][i][j][q];
-  // accumulator fragment: rows lane / 4 and lane / 4 + 8, columns 2 * (lane % 4) and the next one
-  const bool pair = cout % 2 == 0;
   float* part = partial != nullptr ? partial + blockIdx.z * n_out * cout : nullptr;
 #pragma unroll
-  for (int i = 0; i < MF; ++i)
-#pragma unroll
-    for (int h = 0; h < 2; ++h) {
-      const int64_t o = orow[m0 + i * 16 + lane / 4 + 8 * h];
-      if (o < 0) continue;
-#pragma unroll
-      for (int j = 0; j < NF; ++j) {
-        const int co = col0 + n0 + j * 8 + 2 * (lane % 4);
-        if (co >= cout) continue;
-        const float v0 = acc[0][i][j][2 * h], v1 = acc[0][i][j][2 * h + 1];
-        if (part != nullptr) store_pair(part + o * cout + co, v0, v1, co + 1 < cout, pair);
-        else
-          store_pair(out + o * cout + co, epi(v0, co), co + 1 < cout ? epi(v1, co + 1) : 0.f, co + 1 < cout, pair);
-      }
-    }
+  for (int i = 0; i < MF; ++i) store_fragments(acc[0][i], orow, m0 + i * 16, col0 + n0, lane, cout, out, part, epi);
 #else
   __trap();  // launched only on sm_80+ (checked on the host)
 #endif
@@ -976,22 +982,9 @@ __global__ void __launch_bounds__(Tile::kThreads)
     wgmma_fence_acc(acc);
   }
   cp_async_wait<0>();
-  // accumulator: warp w holds rows 16 w + lane / 4 (+ 8), columns 8 j + 2 (lane % 4) (+ 1), as mma.sync
-  const bool pair = cout % 2 == 0;
+  // warp w holds rows 16 w .. 16 w + 15 of the tile, in mma.sync's fragment layout
   float* part = partial != nullptr ? partial + blockIdx.z * n_out * cout : nullptr;
-#pragma unroll
-  for (int h = 0; h < 2; ++h) {
-    const int64_t o = orow[warp * 16 + lane / 4 + 8 * h];
-    if (o < 0) continue;
-#pragma unroll
-    for (int j = 0; j < NF; ++j) {
-      const int co = col0 + j * 8 + 2 * (lane % 4);
-      if (co >= cout) continue;
-      const float v0 = acc[j][2 * h], v1 = acc[j][2 * h + 1];
-      if (part != nullptr) store_pair(part + o * cout + co, v0, v1, co + 1 < cout, pair);
-      else store_pair(out + o * cout + co, epi(v0, co), co + 1 < cout ? epi(v1, co + 1) : 0.f, co + 1 < cout, pair);
-    }
-  }
+  store_fragments(acc, orow, warp * 16, col0, lane, cout, out, part, epi);
 #else
   __trap();  // launched only by an sm_90a build on compute capability 9.0 (wgmma_columns)
 #endif
