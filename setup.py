@@ -46,6 +46,7 @@ def want_cuda() -> tuple[bool, str]:
 def sources(with_cuda: bool) -> list[str]:
     srcs = sorted(glob.glob(os.path.join(CSRC, "*.cpp")))
     srcs += sorted(glob.glob(os.path.join(CSRC, "ops", "*.cpp")))
+    srcs += sorted(glob.glob(os.path.join(CSRC, "ops", "autograd", "*.cpp")))
     srcs += sorted(glob.glob(os.path.join(CSRC, "cpu", "*.cpp")))
     if with_cuda:
         srcs += sorted(glob.glob(os.path.join(CSRC, "cuda", "*.cu")))

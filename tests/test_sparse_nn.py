@@ -99,6 +99,7 @@ def test_sparse_to_dense_gradients_and_errors(device):
     assert torch.autograd.gradgradcheck(lambda t: ops.sparse_to_dense(t, x.indices, 2, [5, 4]), (f,))
     d = torch.randn(2, 3, 5, 4, dtype=torch.float64, device=device, requires_grad=True)
     assert torch.autograd.gradcheck(lambda t: ops.sparse_from_dense(t, x.indices), (d,))
+    assert torch.autograd.gradgradcheck(lambda t: ops.sparse_from_dense(t, x.indices), (d,))
     with pytest.raises(ValueError, match="indices must be int32"):
         ops.sparse_to_dense(x.features, x.indices.long(), 2, [5, 4])
     n = x.indices.shape[0]

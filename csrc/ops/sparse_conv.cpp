@@ -1,5 +1,6 @@
 // Schemas of the sparse convolution ops. Kernels: csrc/cpu/sparse_*_kernel.cpp,
-// csrc/cuda/sparse_*_kernel.cu; fake kernels and autograd: lidarops/sparse/_registrations.py.
+// csrc/cuda/sparse_*_kernel.cu; fake kernels and autograd: lidarops/sparse/_registrations.py (sparse_conv's
+// autograd: csrc/ops/autograd/sparse_conv_kernel.cpp).
 // Conventions (indices layout, keys, kernel-offset order, transposed pairing): csrc/include/lidarops/sparse.h.
 #include <torch/library.h>
 

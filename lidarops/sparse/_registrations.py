@@ -1,5 +1,8 @@
 """Fake kernels and autograd formulas of the sparse convolution ops (``torch.ops.lidarops.sparse_*``).
 
+The autograd formulas of the ops a network calls in every forward (``sparse_conv``, ``sparse_to_dense``,
+``sparse_from_dense``) are C++ kernels instead (``csrc/ops/autograd``), for their host time.
+
 Imported by :mod:`lidarops.sparse.functional` after :func:`lidarops.extension.load`. Every backward is
 made of registered ops, so it runs on every device, under ``torch.compile``, and twice (the
 convolution is bilinear in features and weight: its second derivatives are convolutions again).
@@ -79,34 +82,11 @@ def _from_dense_fake(dense, indices):
 
 
 # ---- autograd -----------------------------------------------------------------------------------
-# sparse_conv: out[o] = sum_k W[:, k, :] @ x[map[o, k]]
-#   d x = sparse_conv(d out, W^T, map^T)       (W^T[ci, k, co] = W[co, k, ci])
-#   d W = sparse_conv_weight_grad(x, d out, map)
+# sparse_conv's formula is a C++ autograd kernel (csrc/ops/autograd/sparse_conv_kernel.cpp): a Python
+# one cost every call of the op 10-20 us of host time, gradients or not (docs/sparse.md, session 14).
 
 def _transpose_weight(w):
     return w.permute(2, 1, 0).contiguous()
-
-
-def _conv_setup(ctx, inputs, output):
-    features, weight, kernel_map = inputs[:3]
-    ctx.save_for_backward(features, weight, kernel_map)
-
-
-def _conv_backward(ctx, grad):
-    features, weight, kernel_map = ctx.saved_tensors
-    grad = grad.contiguous()
-    grad_x = grad_w = None
-    if ctx.needs_input_grad[0]:
-        kernel_map_t = _ops.sparse_kernel_map_transpose(kernel_map, features.shape[0])
-        # the fused CUDA kernel skips absent offsets per tile when rows are grouped by offset mask
-        order_t = _ops.sparse_kernel_map_order(kernel_map_t) if kernel_map_t.is_cuda else None
-        grad_x = _ops.sparse_conv(grad, _transpose_weight(weight), kernel_map_t, order_t)
-    if ctx.needs_input_grad[1]:
-        grad_w = _ops.sparse_conv_weight_grad(features, grad, kernel_map)
-    return grad_x, grad_w, None, None
-
-
-torch.library.register_autograd("lidarops::sparse_conv", _conv_backward, setup_context=_conv_setup)
 
 
 # sparse_conv_weight_grad(x, g, map)[co, k, ci] = sum_o g[o, co] x[map[o, k], ci]: bilinear in (x, g).
@@ -168,36 +148,5 @@ def _pool_bw_backward(ctx, gg):
 
 torch.library.register_autograd("lidarops::sparse_max_pool_backward", _pool_bw_backward, setup_context=_pool_bw_setup)
 
-
-# sparse_to_dense and sparse_from_dense are adjoint linear maps (a scatter to unique sites and the
-# gather from them): each one's backward is the other.
-
-def _to_dense_setup(ctx, inputs, output):
-    _, indices, _, _ = inputs
-    ctx.save_for_backward(indices)
-
-
-def _to_dense_backward(ctx, grad):
-    (indices,) = ctx.saved_tensors
-    if grad is None or not ctx.needs_input_grad[0]:
-        return None, None, None, None
-    return _ops.sparse_from_dense(grad, indices), None, None, None
-
-
-torch.library.register_autograd("lidarops::sparse_to_dense", _to_dense_backward, setup_context=_to_dense_setup)
-
-
-def _from_dense_setup(ctx, inputs, output):
-    dense, indices = inputs
-    ctx.save_for_backward(indices)
-    ctx.batch_size, ctx.spatial_shape = dense.shape[0], list(dense.shape[2:])
-
-
-def _from_dense_backward(ctx, grad):
-    (indices,) = ctx.saved_tensors
-    if grad is None or not ctx.needs_input_grad[0]:
-        return None, None
-    return _ops.sparse_to_dense(grad, indices, ctx.batch_size, ctx.spatial_shape), None
-
-
-torch.library.register_autograd("lidarops::sparse_from_dense", _from_dense_backward, setup_context=_from_dense_setup)
+# sparse_to_dense and sparse_from_dense: C++ autograd kernels (csrc/ops/autograd/sparse_dense_kernel.cpp),
+# for the same reason as sparse_conv.
