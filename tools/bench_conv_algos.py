@@ -10,12 +10,16 @@ registered op ``sparse_conv`` with its cached map and order, per algorithm:
 * ``tf32``: one TF32 product (``allow_tf32``);
 * ``fp16``: float16 operands, float32 accumulation.
 
-``call`` is the benchmark's per-call time (CUDA events around each Python call); ``kernel`` is the GPU
-time alone (20 calls captured in a CUDA graph, replayed; per call); ``err`` is max |out - ref| / max
+``call`` is the benchmark's per-call time (``benchmarks.common.time_cuda``: CUDA events around each
+Python call, the inputs rotated over copies so that they come from memory, not L2); ``kernel`` is the
+GPU time alone (20 calls on the same inputs captured in a CUDA graph, replayed; per call); ``err`` is max |out - ref| / max
 |ref| against the float64 product of the same float32 inputs. ``--pillars`` also times the
 Sparse-PointPillars backbone (maps cached, and in a CUDA graph) per precision; ``--layers`` times each
 of its convolutions alone (kernel time, on the backbone's own maps and channels) and their sum
-weighted by how often each occurs.
+weighted by how often each occurs. ``--ceiling`` adds, per layer (the single layers, and the backbone's
+with ``--layers``), cuBLAS on the dense GEMM of the same useful work (rows x (pairs per row x Cin)
+times (. x Cout), operands already gathered) in float32 and in TF32: what the vendor's GEMM takes on
+that work with no gather at all.
 """
 from __future__ import annotations
 
@@ -79,7 +83,22 @@ BACKBONE = [("down0", 64, 64, 1), ("subm0", 64, 64, 3), ("down1", 64, 128, 1), (
             ("up1", 128, 128, 1), ("down2", 128, 256, 1), ("subm2", 256, 256, 5), ("up2", 256, 128, 1)]
 
 
-def backbone_layers(algos, dev) -> None:
+def dense_gemm_ms(rows: int, pairs: int, cin: int, cout: int, tf32: bool) -> float:
+    """cuBLAS time of the dense product with the useful multiply-adds of a layer (its ``pairs`` input rows
+    folded into ``rows`` rows of K = pairs / rows * Cin, rounded to a multiple of 4)."""
+    k = max(4, round(pairs / rows * cin / 4) * 4)
+    g = torch.Generator().manual_seed(rows)
+    a = torch.randn(rows, k, generator=g).cuda()
+    b = torch.randn(k, cout, generator=g).cuda()
+    old = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    try:
+        return graph_ms(lambda: torch.mm(a, b))
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = old
+
+
+def backbone_layers(algos, dev, ceiling: bool = False) -> None:
     from benchmarks.bm_sparse import pillars_input
     with torch.no_grad():
         _, _, cached = pillars_input(dev, torch.float32)
@@ -89,8 +108,10 @@ def backbone_layers(algos, dev) -> None:
                 subm1=maps["subm1"].neighbors.shape[0], up1=maps["subm1"].neighbors.shape[0],
                 down2=maps["subm1"].neighbors.shape[0], subm2=maps["subm2"].neighbors.shape[0],
                 up2=maps["subm2"].neighbors.shape[0])
-    print(f"{'layer':6s} {'rows':>6s} {'Cin':>4s} {'Cout':>4s} {'x':>2s} " + " ".join(f"{al:>9s}" for al in algos))
-    total = dict.fromkeys(algos, 0.0)
+    extra = ["mm_fp32", "mm_tf32"] if ceiling else []
+    print(f"{'layer':6s} {'rows':>6s} {'Cin':>4s} {'Cout':>4s} {'x':>2s} "
+          + " ".join(f"{al:>9s}" for al in [*algos, *extra]))
+    total = dict.fromkeys([*algos, *extra], 0.0)
     for key, cin, cout, count in BACKBONE:
         km = maps[key]
         nbr, order = km.neighbors, km.order
@@ -104,8 +125,12 @@ def backbone_layers(algos, dev) -> None:
             t = graph_ms(lambda: torch.ops.lidarops.sparse_conv(xf, wf, nbr, order))  # noqa: B023
             total[algo] += count * t
             cells.append(f"{t:9.3f}")
+        for col in extra:
+            t = dense_gemm_ms(nbr.shape[0], int((nbr >= 0).sum()), cin, cout, tf32=col == "mm_tf32")
+            total[col] += count * t
+            cells.append(f"{t:9.3f}")
         print(f"{key:6s} {nbr.shape[0]:6d} {cin:4d} {cout:4d} {count:2d} " + " ".join(cells), flush=True)
-    print(f"{'sum':6s} {'':6s} {'':4s} {'':4s} {'':2s} " + " ".join(f"{total[al]:9.3f}" for al in algos), flush=True)
+    print(f"{'sum':6s} {'':6s} {'':4s} {'':4s} {'':2s} " + " ".join(f"{total[al]:9.3f}" for al in total), flush=True)
 
 
 def main(argv=None) -> int:
@@ -115,6 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--algos", default="fp32,3xtf32,tf32,fp16")
     ap.add_argument("--pillars", action="store_true")
     ap.add_argument("--layers", action="store_true")
+    ap.add_argument("--ceiling", action="store_true", help="cuBLAS on each layer's dense GEMM (mm_fp32, mm_tf32)")
     ap.add_argument("--splits", default="auto",
                     help="offset splits to time, comma-separated: auto (the library's choice) or a number "
                          "(LIDAROPS_CONV_SPLITS)")
@@ -136,6 +162,7 @@ def run(a) -> None:
         print("bench_conv_algos: needs a GPU")
         return
     from benchmarks.bm_sparse import GRIDS, bev_sites, pillars_input
+    from benchmarks.common import time_cuda
     from lidarops.sparse import SparseConvTensor
     from lidarops.sparse import functional as Fs
     ops = torch.ops.lidarops
@@ -163,11 +190,17 @@ def run(a) -> None:
                         xf, wf = f32.to(dt), w.to(dt)
                         fn = lambda: ops.sparse_conv(xf, wf, nbr, order)  # noqa: E731
                         err = (fn().double().cpu() - ref).abs().max().item() / scale
-                        t_call, t_kernel = call_ms(fn), graph_ms(fn)
+                        t_call = time_cuda(lambda *a: ops.sparse_conv(*a), (xf, wf, nbr, order)).median
+                        t_kernel = graph_ms(fn)
                         print(f"{gname:6s} {kind:4s} {C:4d} {algo:9s} {t_call:7.3f} {t_kernel:7.3f} "
                               f"{flop / t_kernel / 1e9:8.1f} {err:9.2e}", flush=True)
+                    for tf32 in (False, True) if a.ceiling else ():
+                        t_kernel = dense_gemm_ms(nbr.shape[0], pairs, C, C, tf32)
+                        name = "mm_tf32" if tf32 else "mm_fp32"
+                        print(f"{gname:6s} {kind:4s} {C:4d} {name:9s} {'':>7s} {t_kernel:7.3f} "
+                              f"{flop / t_kernel / 1e9:8.1f}", flush=True)
         if a.layers:
-            backbone_layers(a.algos.split(","), dev)
+            backbone_layers(a.algos.split(","), dev, a.ceiling)
         if a.pillars:
             for algo in a.algos.split(","):
                 dtype = use_algo(algo)

@@ -1331,8 +1331,11 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
         auto go_wg = [&](auto tile) {
           using Tile = decltype(tile);
           const bool wide = Tile::BN == 128 && ceil_div(n_out, 64) * ceil_div(cout, 128) >= 3 * props.sms;
+          // LIDAROPS_CONV_WG_BLOCKS=n (read at each call) caps the blocks per multiprocessor, for tuning
+          const char* forced = std::getenv("LIDAROPS_CONV_WG_BLOCKS");
+          const int blocks = forced != nullptr && *forced != 0 ? std::max(0, std::atoi(forced)) : wide ? 2 : 0;
           launch_pipelined<scalar_t, Tile>(conv_fwd_wgmma_kernel<scalar_t, M, Tile>, Tile::BM, Tile::BN, Tile::BK, 0.6,
-                                           x, w, nbr, order, out, epi, props, stream, wide ? 2 : 0);
+                                           x, w, nbr, order, out, epi, props, stream, blocks);
         };
         const int wg = wgmma_columns(cout, M == Mma::kTF32, props);
         if (wg == 128) return go_wg(WgTile<M, 128, 3>{});
