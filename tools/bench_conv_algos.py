@@ -12,8 +12,8 @@ registered op ``sparse_conv`` with its cached map and order, per algorithm:
 
 ``call`` is the benchmark's per-call time (``benchmarks.common.time_cuda``: CUDA events around each
 Python call, the inputs rotated over copies so that they come from memory, not L2); ``kernel`` is the
-GPU time alone (20 calls on the same inputs captured in a CUDA graph, replayed; per call); ``err`` is max |out - ref| / max
-|ref| against the float64 product of the same float32 inputs. ``--pillars`` also times the
+GPU time alone (20 calls on the same inputs captured in a CUDA graph, replayed; per call); ``err`` is
+max |out - ref| / max |ref| against the float64 product of the same float32 inputs. ``--pillars`` also times the
 Sparse-PointPillars backbone (maps cached, and in a CUDA graph) per precision; ``--layers`` times each
 of its convolutions alone (kernel time, on the backbone's own maps and channels) and their sum
 weighted by how often each occurs. ``--ceiling`` adds, per layer (the single layers, and the backbone's
@@ -190,7 +190,7 @@ def run(a) -> None:
                         xf, wf = f32.to(dt), w.to(dt)
                         fn = lambda: ops.sparse_conv(xf, wf, nbr, order)  # noqa: E731
                         err = (fn().double().cpu() - ref).abs().max().item() / scale
-                        t_call = time_cuda(lambda *a: ops.sparse_conv(*a), (xf, wf, nbr, order)).median
+                        t_call = time_cuda(lambda *args: ops.sparse_conv(*args), (xf, wf, nbr, order)).median
                         t_kernel = graph_ms(fn)
                         print(f"{gname:6s} {kind:4s} {C:4d} {algo:9s} {t_call:7.3f} {t_kernel:7.3f} "
                               f"{flop / t_kernel / 1e9:8.1f} {err:9.2e}", flush=True)
