@@ -372,6 +372,32 @@ def test_compile_fullgraph_sparse_conv_backward(device):
         torch.testing.assert_close(a, b)
 
 
+def test_compile_dynamic_shapes_through_cpp_autograd(device):
+    """Point clouds change size every frame: with dynamic shapes, the C++ autograd kernels of sparse_conv,
+    sparse_to_dense and sparse_from_dense trace and give the reference gradients for two sizes."""
+    @torch.compile(fullgraph=True, backend="aot_eager", dynamic=True)
+    def f(feats, weight, nbr, indices):
+        dense = ops.sparse_to_dense(ops.sparse_conv(feats, weight, nbr), indices, 2, [3, 3])
+        return ops.sparse_from_dense(dense * dense, indices)
+
+    def reference(feats, weight, nbr, indices):
+        out = _map_conv_reference(feats, weight, nbr)
+        return out * out  # to_dense then from_dense at the same (unique) sites is the identity
+
+    for per_sample in (6, 9):
+        x = random_tensor(2, (6, 5), per_sample, 3, seed=per_sample, device=device)
+        km = Fs.build_kernel_map(x, "conv", 3, 2, 1, 1)
+        w = random_weight(4, (9,), 3, device=device)
+        out_idx = km.out_indices
+        grads = []
+        for fn in (f, reference):
+            feats, weight = x.features.clone().requires_grad_(), w.clone().requires_grad_()
+            fn(feats, weight, km.neighbors, out_idx).sum().backward()
+            grads.append((feats.grad, weight.grad))
+        for a, b in zip(*grads):
+            torch.testing.assert_close(a, b)
+
+
 # ================================================================================================
 # Empty and bad inputs
 # ================================================================================================
@@ -546,7 +572,7 @@ def test_cuda_float32_tiles_match_float64(cin, cout, D, ksize, sites, ordered):
 
 
 @_cuda
-@pytest.mark.parametrize("mma", ["auto", "sync"])
+@pytest.mark.parametrize("mma", ["auto", "sync", "wg2"])
 @pytest.mark.parametrize("dtype", ["f16", "bf16", "tf32", "3xtf32"])
 @pytest.mark.parametrize("cin,cout,D,sites", [(24, 100, 2, 20000), (64, 64, 2, 3000), (16, 32, 3, 4000),
                                               (32, 16, 2, 3000), (40, 17, 2, 5000), (128, 128, 2, 8000),
@@ -559,9 +585,12 @@ def test_cuda_tensor_core_pipeline_matches_float64(mma, dtype, cin, cout, D, sit
     channels, 8000 of 128), 64 x 64 (16000 rows of 256 channels), and 64 rows by 32 or 16 columns
     (Cout <= 32; 2000 rows of 128 channels). ``auto`` on an sm_90a build on a Hopper GPU gives the
     layers with Cout > 64 to the wgmma kernel (64 x 128 tiles in TF32, 64 x 64 in 16 bits; 72 columns:
-    a partial second tile, K = 27), the others as ``sync``. 3xTF32 must be as accurate as float32."""
+    a partial second tile, K = 27), the others as ``sync``. ``wg2`` is ``auto`` with the TF32 64 x 128
+    tiles in the configuration of layers with a full wave of them (two blocks per multiprocessor, four
+    stages, one wgmma group in flight across steps). 3xTF32 must be as accurate as float32."""
     monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if dtype == "3xtf32" else "ffma")
-    monkeypatch.setenv("LIDAROPS_CONV_MMA", mma)
+    monkeypatch.setenv("LIDAROPS_CONV_MMA", "auto" if mma == "wg2" else mma)
+    monkeypatch.setenv("LIDAROPS_CONV_WG_BLOCKS", "2" if mma == "wg2" else "")
     shape = (400, 400) if D == 2 else (40, 40, 40)
     dt = {"f16": torch.float16, "bf16": torch.bfloat16, "tf32": torch.float32, "3xtf32": torch.float32}[dtype]
     x = random_tensor(2, shape, sites // 2, cin, seed=sites + cin, dtype=dt, device="cuda")

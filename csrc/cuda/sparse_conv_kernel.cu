@@ -892,9 +892,13 @@ __device__ __forceinline__ void wgmma_fence_acc(float (&d)[NF][4]) {
 }
 #endif
 
-template <Mma M, int BN_, int STAGES_>
+template <Mma M, int BN_, int STAGES_, int LOOKAHEAD_ = STAGES_ - 1>
 struct WgTile : MmaTile<M, 64, BN_, 4, 1, STAGES_> {
   using Base = MmaTile<M, 64, BN_, 4, 1, STAGES_>;
+  // steps whose gathers are in flight while one is multiplied; STAGES - 1 - LOOKAHEAD wgmma groups stay
+  // in flight across steps (the slot a step's copies overwrite is that of step t + LOOKAHEAD - STAGES)
+  static constexpr int LOOKAHEAD = LOOKAHEAD_, MMA_IN_FLIGHT = STAGES_ - 1 - LOOKAHEAD_;
+  static_assert(LOOKAHEAD >= 1 && MMA_IN_FLIGHT >= 0 && MMA_IN_FLIGHT <= 1, "a valid ring");
   // All of the block's shared memory is dynamic, so that it starts at the 1024-byte boundary the swizzle
   // atoms need, with nothing lost to padding: the ring, then the map slice rows [K][64], the output rows
   // orow[64], klist[32], present and nk. At 64 x 128 (TF32, 3 stages) three blocks then fit in a
@@ -950,11 +954,12 @@ __global__ void __launch_bounds__(Tile::kThreads)
   for (int j = 0; j < NF; ++j)
 #pragma unroll
     for (int q = 0; q < 4; ++q) acc[j][q] = 0.f;
+  constexpr int LOOKAHEAD = Tile::LOOKAHEAD;
 #pragma unroll
-  for (int t = 0; t < STAGES - 1; ++t) issue();
+  for (int t = 0; t < LOOKAHEAD; ++t) issue();
   StepCursor<STAGES> at(split.lo);
   for (int t = 0; t < steps; ++t, at.next(chunks)) {
-    cp_async_wait<STAGES - 2>();
+    cp_async_wait<LOOKAHEAD - 1>();
     if constexpr (M == Mma::kTF32) {  // round this thread's own chunks of the step to nearest TF32
       unsigned* st = reinterpret_cast<unsigned*>(ring + at.slot * (BM + BN) * BK + dst0);
 #pragma unroll
@@ -969,7 +974,7 @@ __global__ void __launch_bounds__(Tile::kThreads)
     }
     asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");  // generic-proxy writes -> wgmma reads
     __syncthreads();
-    issue();  // step t + STAGES - 1, into the slot step t - 1 used (its wgmma has completed)
+    issue();  // step t + LOOKAHEAD, into the slot of step t + LOOKAHEAD - STAGES (its wgmma has completed)
     const uint32_t a_s = ring_s + static_cast<uint32_t>(at.slot * (BM + BN) * BK * sizeof(S));
     const uint32_t b_s = a_s + static_cast<uint32_t>(BM * BK * sizeof(S));
     wgmma_fence_acc(acc);
@@ -978,9 +983,11 @@ __global__ void __launch_bounds__(Tile::kThreads)
     for (int ks = 0; ks < BK * static_cast<int>(sizeof(S)) / 32; ++ks)  // 32 bytes of channels per wgmma
       Wgmma<BN>::template run<M>(acc, wgmma_desc(a_s + 32 * ks), wgmma_desc(b_s + 32 * ks));
     asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
-    asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+    asm volatile("wgmma.wait_group.sync.aligned %0;\n" ::"n"(Tile::MMA_IN_FLIGHT) : "memory");
     wgmma_fence_acc(acc);
   }
+  asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+  wgmma_fence_acc(acc);
   cp_async_wait<0>();
   // warp w holds rows 16 w .. 16 w + 15 of the tile, in mma.sync's fragment layout
   float* part = partial != nullptr ? partial + blockIdx.z * n_out * cout : nullptr;
@@ -1203,8 +1210,8 @@ template <typename Tile>
 constexpr int64_t static_smem(const Tile*) {
   return 1024;
 }
-template <Mma M, int BN, int STAGES>
-constexpr int64_t static_smem(const WgTile<M, BN, STAGES>*) {
+template <Mma M, int BN, int STAGES, int LOOKAHEAD>
+constexpr int64_t static_smem(const WgTile<M, BN, STAGES, LOOKAHEAD>*) {
   return 0;
 }
 
@@ -1323,23 +1330,29 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       };
       const MmaShape shape = mma_tile_shape(n_out, cout, props.sms);
       if constexpr (M != Mma::k3xTF32) {
-        // 64 x 128 tiles: three blocks fit in a multiprocessor (WgTile). Layers with a full wave of those
-        // tiles or more run two per multiprocessor instead, for fewer waves with less of a tail. H100,
-        // session 13: dense SubM C = 128 (469 tiles, 1.2 waves of three, 1.8 of two) 0.050 -> 0.045 ms,
-        // while subm2 (74 tiles, 4 offset splits: 0.75 waves of three, 1.1 of two) takes 0.042 against
-        // 0.056 with two.
-        auto go_wg = [&](auto tile) {
+        // 64 x 128 tiles (TF32): three blocks with three stages fit in a multiprocessor (WgTile). Layers
+        // with a full wave of those tiles or more run two per multiprocessor instead, for fewer waves with
+        // less of a tail, and then have room for a fourth stage: two steps' gathers and one step's wgmma
+        // stay in flight while the next is multiplied. H100 kernel time (sessions 13 and 14): dense SubM
+        // C = 128 (469 tiles, 1.2 waves of three, 1.8 of two) 0.050 -> 0.045 ms with two blocks, 0.044 ->
+        // 0.043 with the fourth stage (dense conv C = 128 0.046 -> 0.045, up1 0.029 -> 0.028); subm2 (74
+        // tiles, 4 offset splits: 0.75 waves of three, 1.1 of two) takes 0.042 with three blocks against
+        // 0.056 with two. LIDAROPS_CONV_WG_BLOCKS=2 or 3 (read at each call) forces either, for the tests.
+        auto go_wg = [&](auto tile, int blocks) {
           using Tile = decltype(tile);
-          const bool wide = Tile::BN == 128 && ceil_div(n_out, 64) * ceil_div(cout, 128) >= 3 * props.sms;
-          // LIDAROPS_CONV_WG_BLOCKS=n (read at each call) caps the blocks per multiprocessor, for tuning
-          const char* forced = std::getenv("LIDAROPS_CONV_WG_BLOCKS");
-          const int blocks = forced != nullptr && *forced != 0 ? std::max(0, std::atoi(forced)) : wide ? 2 : 0;
           launch_pipelined<scalar_t, Tile>(conv_fwd_wgmma_kernel<scalar_t, M, Tile>, Tile::BM, Tile::BN, Tile::BK, 0.6,
                                            x, w, nbr, order, out, epi, props, stream, blocks);
         };
         const int wg = wgmma_columns(cout, M == Mma::kTF32, props);
-        if (wg == 128) return go_wg(WgTile<M, 128, 3>{});
-        if (wg == 64) return go_wg(WgTile<M, 64, 4>{});
+        if constexpr (M == Mma::kTF32) {  // 16-bit types take 64 columns
+          if (wg == 128) {
+            bool two = ceil_div(n_out, 64) * ceil_div(cout, 128) >= 3 * props.sms;
+            if (env_is("LIDAROPS_CONV_WG_BLOCKS", "2")) two = true;
+            if (env_is("LIDAROPS_CONV_WG_BLOCKS", "3")) two = false;
+            return two ? go_wg(WgTile<M, 128, 4, 2>{}, 2) : go_wg(WgTile<M, 128, 3>{}, 0);
+          }
+        }
+        if (wg == 64) return go_wg(WgTile<M, 64, 4>{}, 0);
       }
       if (shape.rows == 32) go(MmaTile<M, 32, 64, 2, 2, 3>{});
       else if (shape.cols <= 16) go(MmaTile<M, 64, 16, 4, 1, 3>{});
