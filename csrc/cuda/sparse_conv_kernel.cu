@@ -329,12 +329,13 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
     for (int j = 0; j < TN; ++j) acc[i][j] = 0.f;
 #pragma unroll
   for (int t = 0; t < STAGES - 1; ++t) issue();
-  for (int t = 0, slot = 0; t < steps; ++t, slot = slot + 1 == STAGES ? 0 : slot + 1) {
+  StepCursor<STAGES> at(split.lo);  // the step multiplied
+  for (int t = 0; t < steps; ++t, at.next(chunks)) {
     cp_async_wait<STAGES - 2>();  // step t has landed (for this thread's copies) ...
     __syncthreads();              // ... and for everyone's; stage (t - 1) % STAGES is free again
     issue();                      // step t + STAGES - 1
-    const float* a_t = As + slot * BM * LDA;
-    const float* b_t = Bs + slot * BN * LDB;
+    const float* a_t = As + at.slot * BM * LDA;
+    const float* b_t = Bs + at.slot * BN * LDB;
 #pragma unroll
     for (int kk = 0; kk < BK; kk += 4) {
       float4 b[TN];
@@ -1221,17 +1222,11 @@ constexpr int64_t static_smem(const WgTile<M, BN, STAGES, LOOKAHEAD>*) {
 template <typename T, typename Tile, typename Kernel>
 void launch_pipelined(Kernel kernel, int bm, int bn, int step_channels, double split_below, const at::Tensor& x,
                       const at::Tensor& w, const at::Tensor& nbr, const int32_t* order, at::Tensor& out,
-                      const ConvEpilogue& epi, const DeviceProps& props, cudaStream_t stream,
-                      int max_blocks_per_sm = 0) {
+                      const ConvEpilogue& epi, const DeviceProps& props, cudaStream_t stream) {
   const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
-  const size_t smem_limit = Tile::smem(kAsyncMaxK);
-  raise_smem_limit(reinterpret_cast<const void*>(kernel), smem_limit, x.get_device());
+  raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
   const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
-  size_t smem = Tile::smem(static_cast<int>(K));
-  if (max_blocks_per_sm > 0) {  // ask for enough shared memory that one block more does not fit
-    const size_t cap = static_cast<size_t>(props.smem_per_sm / (max_blocks_per_sm + 1) - props.smem_reserved + 128);
-    smem = std::max(smem, std::min(cap, smem_limit));
-  }
+  const size_t smem = Tile::smem(static_cast<int>(K));
   const int64_t steps = K * ceil_div(cin, step_channels);  // of a tile, without splits
   const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, split_below, props,
                                    static_smem(static_cast<const Tile*>(nullptr)));
@@ -1332,16 +1327,16 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       if constexpr (M != Mma::k3xTF32) {
         // 64 x 128 tiles (TF32): three blocks with three stages fit in a multiprocessor (WgTile). Layers
         // with a full wave of those tiles or more run two per multiprocessor instead, for fewer waves with
-        // less of a tail, and then have room for a fourth stage: two steps' gathers and one step's wgmma
-        // stay in flight while the next is multiplied. H100 kernel time (sessions 13 and 14): dense SubM
+        // less of a tail: four stages, whose shared memory (96 KB of ring) lets exactly two blocks fit, with
+        // two steps' gathers and one step's wgmma in flight while the next is multiplied. H100 kernel time (sessions 13 and 14): dense SubM
         // C = 128 (469 tiles, 1.2 waves of three, 1.8 of two) 0.050 -> 0.045 ms with two blocks, 0.044 ->
         // 0.043 with the fourth stage (dense conv C = 128 0.046 -> 0.045, up1 0.029 -> 0.028); subm2 (74
         // tiles, 4 offset splits: 0.75 waves of three, 1.1 of two) takes 0.042 with three blocks against
         // 0.056 with two. LIDAROPS_CONV_WG_BLOCKS=2 or 3 (read at each call) forces either, for the tests.
-        auto go_wg = [&](auto tile, int blocks) {
+        auto go_wg = [&](auto tile) {
           using Tile = decltype(tile);
           launch_pipelined<scalar_t, Tile>(conv_fwd_wgmma_kernel<scalar_t, M, Tile>, Tile::BM, Tile::BN, Tile::BK, 0.6,
-                                           x, w, nbr, order, out, epi, props, stream, blocks);
+                                           x, w, nbr, order, out, epi, props, stream);
         };
         const int wg = wgmma_columns(cout, M == Mma::kTF32, props);
         if constexpr (M == Mma::kTF32) {  // 16-bit types take 64 columns
@@ -1349,10 +1344,10 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
             bool two = ceil_div(n_out, 64) * ceil_div(cout, 128) >= 3 * props.sms;
             if (env_is("LIDAROPS_CONV_WG_BLOCKS", "2")) two = true;
             if (env_is("LIDAROPS_CONV_WG_BLOCKS", "3")) two = false;
-            return two ? go_wg(WgTile<M, 128, 4, 2>{}, 2) : go_wg(WgTile<M, 128, 3>{}, 0);
+            return two ? go_wg(WgTile<M, 128, 4, 2>{}) : go_wg(WgTile<M, 128, 3>{});
           }
         }
-        if (wg == 64) return go_wg(WgTile<M, 64, 4>{}, 0);
+        if (wg == 64) return go_wg(WgTile<M, 64, 4>{});
       }
       if (shape.rows == 32) go(MmaTile<M, 32, 64, 2, 2, 3>{});
       else if (shape.cols <= 16) go(MmaTile<M, 64, 16, 4, 1, 3>{});
