@@ -81,7 +81,9 @@ def make_extension():
     with_cuda, why = want_cuda()
     debug = _flag("LIDAROPS_DEBUG")
     opt = ["-O0", "-g"] if debug else ["-O3"]
-    cxx = opt + ["-fopenmp", "-Wno-unused-parameter"]
+    # no contraction into fused multiply-adds (aarch64 compilers contract by default): the CPU kernels
+    # round every operation, as the CUDA kernels do with their __*_rn intrinsics, so both give the same bits
+    cxx = opt + ["-fopenmp", "-Wno-unused-parameter", "-ffp-contract=off"]
     define_macros = []
     extra = {"cxx": cxx}
     if with_cuda:

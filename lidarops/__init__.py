@@ -9,6 +9,9 @@ Core ops (registered as ``torch.ops.lidarops.*``; these are their validated wrap
     lidarops.voxelize(points, voxel_size, point_range, max_points_per_voxel, max_voxels)
                                           hard voxelization             -> voxels, coords, num_points
     lidarops.pillarize(points, grid)      decorated pillars (PointPillars) -> features, coords, num_points
+    lidarops.box_iou_bev(a, b)            rotated BEV IoU (also box_overlap_bev, box_iou_3d) -> (N, M)
+    lidarops.nms_bev(boxes, scores, thr)  rotated NMS (also batched_nms_bev)  -> keep (K,)
+    lidarops.points_in_boxes(points, boxes)  box index of each point          -> (P,)
     lidarops.PillarStream(grid, window)   streaming pillarization (lidarops.stream)
 
 The compiled library is loaded on first use, so ``import lidarops.data`` works without it.
@@ -25,6 +28,12 @@ _LAZY = {
     "ball_query": "lidarops.ops.neighbors",
     "gather": "lidarops.ops.neighbors",
     "voxelize": "lidarops.ops.voxelize",
+    "box_overlap_bev": "lidarops.ops.boxes",
+    "box_iou_bev": "lidarops.ops.boxes",
+    "box_iou_3d": "lidarops.ops.boxes",
+    "nms_bev": "lidarops.ops.boxes",
+    "batched_nms_bev": "lidarops.ops.boxes",
+    "points_in_boxes": "lidarops.ops.boxes",
     "pillarize": "lidarops.stream",
     "PillarGrid": "lidarops.stream",
     "PillarStream": "lidarops.stream",

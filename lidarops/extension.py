@@ -23,6 +23,8 @@ _REGISTRATION_MODULES = (
     "lidarops._meta_registrations",
     "lidarops._autograd_registrations",
     "lidarops.ops._voxelize_registrations",
+    "lidarops.ops._boxes_registrations",
+    "lidarops.eval._registrations",
     "lidarops.sparse._registrations",
     "lidarops.stream._registrations",
     "lidarops.sscater._registrations",

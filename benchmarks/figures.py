@@ -1,0 +1,91 @@
+"""Explanatory figures of docs/ that are drawn, not measured.
+
+    python benchmarks/figures.py        # docs/img/boxes_convention.png
+"""
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def boxes_convention(path: Path) -> None:
+    """A box (x, y, z, dx, dy, dz, heading) seen from above in the LiDAR frame, and two overlapping
+    boxes with their intersection polygon (what box_overlap_bev measures)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    import lidarops
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
+    ax = axes[0]
+    x, y, dx, dy, h = 2.0, 1.0, 4.0, 1.8, math.radians(30)
+    c, s = math.cos(h), math.sin(h)
+    corners = np.array([[x + c * u - s * v, y + s * u + c * v]
+                        for u, v in ((dx / 2, dy / 2), (-dx / 2, dy / 2), (-dx / 2, -dy / 2), (dx / 2, -dy / 2))])
+    ax.fill(corners[:, 0], corners[:, 1], color="tab:blue", alpha=0.25, lw=0)
+    ax.plot(*np.vstack([corners, corners[:1]]).T, color="tab:blue")
+    ax.annotate("", xy=(x + c * dx / 2, y + s * dx / 2), xytext=(x, y),
+                arrowprops=dict(arrowstyle="->", color="tab:blue", lw=2))
+    ax.plot([x, x + 3], [y, y], color="gray", ls=":")
+    arc = np.linspace(0, h, 30)
+    ax.plot(x + 1.5 * np.cos(arc), y + 1.5 * np.sin(arc), color="tab:red")
+    ax.text(x + 1.65, y + 0.35, "heading", color="tab:red")
+    ax.text(x - 0.3, y - 0.45, "(x, y)")
+    mid_long = (corners[0] + corners[3]) / 2
+    ax.text(*(corners[1] + corners[0]) / 2 + np.array([-0.7, 0.25]), "dx (length)", rotation=30)
+    ax.text(*mid_long + np.array([0.15, -0.3]), "dy", rotation=30)
+    ax.annotate("", xy=(-1.5, 3.5), xytext=(-3, 3.5), arrowprops=dict(arrowstyle="->"))
+    ax.annotate("", xy=(-3, 5), xytext=(-3, 3.5), arrowprops=dict(arrowstyle="->"))
+    ax.text(-1.4, 3.4, "+x (forward)")
+    ax.text(-3.2, 5.15, "+y (left)")
+    ax.set_title("a box seen from above (LiDAR frame; z up, out of the page)")
+    ax.set_aspect("equal")
+    ax.set_xlim(-3.5, 6.5)
+    ax.set_ylim(-2.5, 5.8)
+    ax.grid(alpha=0.3)
+    ax = axes[1]
+    a = torch.tensor([[0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0]], dtype=torch.float64)
+    b = torch.tensor([[1.2, 0.6, 0.0, 3.5, 1.6, 1.5, math.radians(40)]], dtype=torch.float64)
+    for box, color, name in ((a, "tab:blue", "a"), (b, "tab:orange", "b")):
+        bx, by, _, bdx, bdy, _, bh = box[0].tolist()
+        c, s = math.cos(bh), math.sin(bh)
+        pts = np.array([[bx + c * u - s * v, by + s * u + c * v]
+                        for u, v in ((bdx / 2, bdy / 2), (-bdx / 2, bdy / 2), (-bdx / 2, -bdy / 2), (bdx / 2, -bdy / 2))])
+        ax.plot(*np.vstack([pts, pts[:1]]).T, color=color, label=f"box {name}")
+    inter = lidarops.box_overlap_bev(a, b).item()
+    iou_bev = lidarops.box_iou_bev(a, b).item()
+    from shapely.geometry import Polygon  # only to shade the polygon
+
+    def poly(box):
+        bx, by, _, bdx, bdy, _, bh = box[0].tolist()
+        c, s = math.cos(bh), math.sin(bh)
+        return Polygon([(bx + c * u - s * v, by + s * u + c * v)
+                        for u, v in ((bdx / 2, bdy / 2), (-bdx / 2, bdy / 2), (-bdx / 2, -bdy / 2), (bdx / 2, -bdy / 2))])
+
+    shared = poly(a).intersection(poly(b))
+    ax.fill(*shared.exterior.xy, color="tab:green", alpha=0.4, lw=0, label=f"overlap {inter:.2f} m²")
+    ax.set_title(f"box_overlap_bev = {inter:.2f} m², box_iou_bev = {iou_bev:.3f}")
+    ax.set_aspect("equal")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
+def main() -> int:
+    boxes_convention(ROOT / "docs" / "img" / "boxes_convention.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,133 @@
+// Rotated-box ops on CPU: pairwise BEV overlap / IoU and 3D IoU, rotated NMS, points in boxes.
+// The geometry (include/lidarops/boxes.h) is shared with the CUDA kernels, bit for bit.
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <numeric>
+#include <vector>
+
+#include "lidarops/boxes.h"
+
+namespace lidarops {
+namespace {
+
+using boxes::BoxGeom;
+
+
+std::vector<BoxGeom> geoms_of(const at::Tensor& b_in) {
+  auto b = b_in.contiguous();
+  std::vector<BoxGeom> out(static_cast<size_t>(b.size(0)));
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, b.scalar_type(), "lidarops_box_geoms", [&] {
+    const scalar_t* p = b.data_ptr<scalar_t>();
+    at::parallel_for(0, b.size(0), 4096, [&](int64_t s, int64_t e) {
+      for (int64_t i = s; i < e; ++i) out[i] = boxes::make_geom(p + 7 * i);
+    });
+  });
+  return out;
+}
+
+at::ScalarType out_dtype(const at::Tensor& t) { return t.scalar_type() == at::kDouble ? at::kDouble : at::kFloat; }
+
+at::Tensor pairwise_cpu(const at::Tensor& a, const at::Tensor& b, int mode) {
+  boxes::check_pair_args(a, b);
+  const int64_t N = a.size(0), M = b.size(0);
+  auto out = at::empty({N, M}, a.options().dtype(out_dtype(a)));
+  if (out.numel() == 0) return out;
+  const auto ga = geoms_of(a), gb = geoms_of(b);
+  AT_DISPATCH_FLOATING_TYPES(out.scalar_type(), "lidarops_box_pairwise", [&] {
+    scalar_t* o = out.data_ptr<scalar_t>();
+    at::parallel_for(0, N, std::max<int64_t>(1, 65536 / M), [&](int64_t s, int64_t e) {
+      for (int64_t i = s; i < e; ++i)
+        for (int64_t j = 0; j < M; ++j) o[i * M + j] = static_cast<scalar_t>(boxes::pair_value(ga[i], gb[j], mode));
+    });
+  });
+  return out;
+}
+
+at::Tensor box_overlap_bev_cpu(const at::Tensor& a, const at::Tensor& b) { return pairwise_cpu(a, b, 0); }
+at::Tensor box_iou_bev_cpu(const at::Tensor& a, const at::Tensor& b) { return pairwise_cpu(a, b, 1); }
+at::Tensor box_iou_3d_cpu(const at::Tensor& a, const at::Tensor& b) { return pairwise_cpu(a, b, 2); }
+
+// Descending score, then ascending index; -0.0 and 0.0 compare equal.
+std::vector<int64_t> score_order(const at::Tensor& scores_in) {
+  auto scores = scores_in.to(at::kDouble).contiguous();
+  const double* sc = scores.data_ptr<double>();
+  std::vector<int64_t> order(static_cast<size_t>(scores.numel()));
+  std::iota(order.begin(), order.end(), int64_t{0});
+  std::stable_sort(order.begin(), order.end(), [sc](int64_t i, int64_t j) { return sc[i] > sc[j]; });
+  return order;
+}
+
+at::Tensor nms_bev_cpu(const at::Tensor& boxes_in, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs,
+                       double iou_threshold, int64_t pre_max, int64_t post_max) {
+  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs);
+  const int64_t N = boxes_in.size(0);
+  std::vector<int64_t> order = score_order(scores);
+  if (pre_max >= 0 && pre_max < N) order.resize(static_cast<size_t>(pre_max));
+  const int64_t n = static_cast<int64_t>(order.size());
+  const int64_t max_keep = post_max >= 0 ? post_max : n;
+  std::vector<int64_t> keep;
+  if (n == 0 || max_keep == 0) return at::empty({0}, boxes_in.options().dtype(at::kLong));
+  auto sorted_boxes = boxes_in.index_select(0, at::from_blob(order.data(), {n}, at::kLong));
+  const auto g = geoms_of(sorted_boxes);
+  std::vector<int64_t> group(static_cast<size_t>(n), 0);
+  if (grouped) {
+    auto id = idxs->contiguous();
+    const int64_t* ip = id.data_ptr<int64_t>();
+    for (int64_t p = 0; p < n; ++p) group[p] = ip[order[p]];
+  }
+  std::vector<char> removed(static_cast<size_t>(n), 0);
+  for (int64_t p = 0; p < n; ++p) {
+    if (removed[p]) continue;
+    keep.push_back(order[p]);
+    if (static_cast<int64_t>(keep.size()) >= max_keep) break;
+    // the kept box is a: the same argument order as the CUDA bitmask, so the same bits
+    at::parallel_for(p + 1, n, 2048, [&](int64_t s, int64_t e) {
+      for (int64_t q = s; q < e; ++q)
+        if (!removed[q] && group[q] == group[p] && boxes::pair_value(g[p], g[q], 1) > iou_threshold) removed[q] = 1;
+    });
+  }
+  auto out = at::empty({static_cast<int64_t>(keep.size())}, boxes_in.options().dtype(at::kLong));
+  std::copy(keep.begin(), keep.end(), out.data_ptr<int64_t>());
+  return out;
+}
+
+at::Tensor points_in_boxes_cpu(const at::Tensor& points_in, const at::Tensor& boxes_in) {
+  boxes::check_points_args(points_in, boxes_in);
+  const int64_t P = points_in.size(0), M = boxes_in.size(0);
+  auto out = at::full({P}, -1, points_in.options().dtype(at::kLong));
+  if (P == 0 || M == 0) return out;
+  const auto g = geoms_of(boxes_in);
+  auto points = points_in.contiguous();
+  const int64_t C = points.size(1);
+  int64_t* o = out.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, points.scalar_type(), "lidarops_points_in_boxes", [&] {
+    const scalar_t* pp = points.data_ptr<scalar_t>();
+    at::parallel_for(0, P, std::max<int64_t>(1, 65536 / M), [&](int64_t s, int64_t e) {
+      for (int64_t i = s; i < e; ++i) {
+        const double x = static_cast<double>(pp[i * C]), y = static_cast<double>(pp[i * C + 1]),
+                     z = static_cast<double>(pp[i * C + 2]);
+        for (int64_t j = 0; j < M; ++j) {
+          if (boxes::point_in_box(x, y, z, g[j])) {
+            o[i] = j;
+            break;
+          }
+        }
+      }
+    });
+  });
+  return out;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
+  m.impl("box_overlap_bev", &box_overlap_bev_cpu);
+  m.impl("box_iou_bev", &box_iou_bev_cpu);
+  m.impl("box_iou_3d", &box_iou_3d_cpu);
+  m.impl("nms_bev", &nms_bev_cpu);
+  m.impl("points_in_boxes", &points_in_boxes_cpu);
+}
+
+}  // namespace lidarops

@@ -1,0 +1,274 @@
+// Rotated-box ops on CUDA: pairwise BEV overlap / IoU and 3D IoU, rotated NMS, points in boxes. The
+// geometry (include/lidarops/boxes.h) is the CPU kernels' own, so both devices give the same bits.
+//
+// NMS: one sort of the scores, a bitmask kernel (bit j of row i: box j, later in score order, overlaps
+// box i above the threshold; only the upper triangle is computed), and one warp that walks the mask in
+// blocks of 64 boxes: inside a block the kept boxes are resolved from the diagonal word in registers,
+// then the rows of the kept boxes are OR-ed into the suppression words of the later blocks. No host loop;
+// one device-to-host read of the number kept.
+#include <ATen/Dispatch.h>
+
+#include "lidarops/boxes.h"
+#include "lidarops/cuda_utils.cuh"
+
+namespace lidarops {
+namespace {
+
+using boxes::BoxGeom;
+constexpr int kGeomDoubles = sizeof(BoxGeom) / sizeof(double);
+static_assert(sizeof(BoxGeom) == kGeomDoubles * sizeof(double), "BoxGeom must be a plain array of doubles");
+
+
+template <typename scalar_t>
+__global__ void geom_kernel(const scalar_t* __restrict__ boxes, const int64_t* __restrict__ order, int64_t n,
+                            BoxGeom* __restrict__ out) {
+  for (int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; i < n;
+       i += static_cast<int64_t>(gridDim.x) * blockDim.x) {
+    const int64_t src = order != nullptr ? order[i] : i;
+    out[i] = boxes::make_geom(boxes + 7 * src);
+  }
+}
+
+// Geometry of boxes (in `order` when given) as an (n, kGeomDoubles) float64 tensor.
+at::Tensor geoms_of(const at::Tensor& boxes_in, const at::Tensor& order, cudaStream_t stream) {
+  auto b = boxes_in.contiguous();
+  const int64_t n = order.defined() ? order.size(0) : b.size(0);
+  auto out = at::empty({n, kGeomDoubles}, b.options().dtype(at::kDouble));
+  if (n == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, b.scalar_type(), "lidarops_box_geoms_cuda", [&] {
+    geom_kernel<scalar_t><<<gpu::stride_blocks(n, 128), 128, 0, stream>>>(
+        b.data_ptr<scalar_t>(), order.defined() ? order.data_ptr<int64_t>() : nullptr, n,
+        reinterpret_cast<BoxGeom*>(out.data_ptr<double>()));
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return out;
+}
+
+const BoxGeom* geom_ptr(const at::Tensor& g) { return reinterpret_cast<const BoxGeom*>(g.data_ptr<double>()); }
+
+constexpr int kPairCols = 32, kPairRows = 8;
+
+// Thread (y, x) of a block: pair (row tile * 8 + y, column tile * 32 + x); the tiles' boxes in shared memory.
+template <typename out_t>
+__global__ void __launch_bounds__(kPairCols* kPairRows)
+    pairwise_kernel(const BoxGeom* __restrict__ a, int64_t N, const BoxGeom* __restrict__ b, int64_t M, int mode,
+                    out_t* __restrict__ out) {
+  __shared__ BoxGeom sa[kPairRows], sb[kPairCols];
+  const int tx = threadIdx.x, ty = threadIdx.y, tid = ty * kPairCols + tx;
+  const int64_t j0 = static_cast<int64_t>(blockIdx.x) * kPairCols, j = j0 + tx;
+  if (tid < kPairCols && j0 + tid < M) sb[tid] = b[j0 + tid];
+  const int64_t row_tiles = (N + kPairRows - 1) / kPairRows;
+  for (int64_t tile = blockIdx.y; tile < row_tiles; tile += gridDim.y) {
+    const int64_t i0 = tile * kPairRows, i = i0 + ty;
+    __syncthreads();  // sb loaded; the previous tile's sa no longer read
+    if (tid < kPairRows && i0 + tid < N) sa[tid] = a[i0 + tid];
+    __syncthreads();
+    if (i < N && j < M) out[i * M + j] = static_cast<out_t>(boxes::pair_value(sa[ty], sb[tx], mode));
+  }
+}
+
+at::Tensor pairwise_cuda(const at::Tensor& a, const at::Tensor& b, int mode) {
+  boxes::check_pair_args(a, b);
+  c10::cuda::CUDAGuard guard(a.device());
+  const int64_t N = a.size(0), M = b.size(0);
+  auto out = at::empty({N, M}, a.options().dtype(a.scalar_type() == at::kDouble ? at::kDouble : at::kFloat));
+  if (out.numel() == 0) return out;
+  cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  auto ga = geoms_of(a, at::Tensor(), stream), gb = geoms_of(b, at::Tensor(), stream);
+  TORCH_CHECK(gpu::ceil_div(M, kPairCols) <= std::numeric_limits<int32_t>::max(), "b has too many boxes: ", M);
+  const dim3 grid(static_cast<unsigned>(gpu::ceil_div(M, kPairCols)),
+                  static_cast<unsigned>(std::min<int64_t>(gpu::ceil_div(N, kPairRows), 65535)));
+  AT_DISPATCH_FLOATING_TYPES(out.scalar_type(), "lidarops_box_pairwise_cuda", [&] {
+    pairwise_kernel<scalar_t><<<grid, dim3(kPairCols, kPairRows), 0, stream>>>(geom_ptr(ga), N, geom_ptr(gb), M,
+                                                                               mode, out.data_ptr<scalar_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return out;
+}
+
+at::Tensor box_overlap_bev_cuda(const at::Tensor& a, const at::Tensor& b) { return pairwise_cuda(a, b, 0); }
+at::Tensor box_iou_bev_cuda(const at::Tensor& a, const at::Tensor& b) { return pairwise_cuda(a, b, 1); }
+at::Tensor box_iou_3d_cuda(const at::Tensor& a, const at::Tensor& b) { return pairwise_cuda(a, b, 2); }
+
+// Block (column word c, row words r = blockIdx.y, +gridDim.y, ...): thread t writes word c of row 64 r + t,
+// for the rows r <= c (the upper triangle: only later boxes are ever suppressed).
+__global__ void __launch_bounds__(64)
+    nms_mask_kernel(const BoxGeom* __restrict__ g, const int64_t* __restrict__ group, int64_t n, int64_t nwords,
+                    double threshold, uint64_t* __restrict__ mask) {
+  __shared__ BoxGeom cols[64];
+  __shared__ int64_t col_group[64];
+  const int64_t c = blockIdx.x, c0 = c * 64;
+  const int ncols = static_cast<int>(std::min<int64_t>(64, n - c0));
+  const int t = threadIdx.x;
+  if (t < ncols) {
+    cols[t] = g[c0 + t];
+    col_group[t] = group != nullptr ? group[c0 + t] : 0;
+  }
+  __syncthreads();
+  for (int64_t r = blockIdx.y; r <= c; r += gridDim.y) {
+    const int64_t i = r * 64 + t;
+    if (i >= n) continue;
+    const BoxGeom a = g[i];
+    const int64_t ga = group != nullptr ? group[i] : 0;
+    uint64_t bits = 0;
+    for (int k = r == c ? t + 1 : 0; k < ncols; ++k)
+      if (col_group[k] == ga && boxes::pair_value(a, cols[k], 1) > threshold) bits |= 1ull << k;
+    mask[i * nwords + c] = bits;
+  }
+}
+
+// One warp. removed[w] (shared): boxes of block w suppressed by the kept boxes of earlier blocks.
+__global__ void __launch_bounds__(32)
+    nms_reduce_kernel(const uint64_t* __restrict__ mask, int64_t n, int64_t nwords, int64_t max_keep,
+                      int64_t* __restrict__ keep_pos, int64_t* __restrict__ num_kept) {
+  extern __shared__ uint64_t removed[];
+  const int lane = threadIdx.x;
+  for (int64_t w = lane; w < nwords; w += 32) removed[w] = 0;
+  __syncwarp();
+  int64_t count = 0;
+  for (int64_t c = 0; c < nwords && count < max_keep; ++c) {
+    const int64_t base = c * 64;
+    const int nb = static_cast<int>(std::min<int64_t>(64, n - base));
+    const uint64_t valid = nb == 64 ? ~0ull : ((1ull << nb) - 1);
+    const uint64_t d0 = lane < nb ? mask[(base + lane) * nwords + c] : 0;
+    const uint64_t d1 = lane + 32 < nb ? mask[(base + lane + 32) * nwords + c] : 0;
+    uint64_t word = removed[c], kept = 0;
+    uint64_t remaining = ~word & valid;
+    while (remaining) {  // warp-uniform: one iteration per kept box of the block
+      const int i = __ffsll(static_cast<long long>(remaining)) - 1;
+      kept |= 1ull << i;
+      word |= __shfl_sync(gpu::kFullMask, i < 32 ? d0 : d1, i & 31);
+      remaining = ~word & valid & (i == 63 ? 0ull : (~0ull << (i + 1)));
+    }
+    int64_t nk = __popcll(kept);
+    if (count + nk > max_keep) {  // keep the first max_keep - count of them
+      uint64_t trimmed = 0;
+      for (int64_t q = count; q < max_keep; ++q) {
+        const uint64_t low = kept & (~kept + 1);
+        trimmed |= low;
+        kept ^= low;
+      }
+      kept = trimmed;
+      nk = max_keep - count;
+    }
+    for (int p = lane; p < 64; p += 32)
+      if ((kept >> p) & 1) keep_pos[count + __popcll(kept & ((1ull << p) - 1))] = base + p;
+    count += nk;
+    if (kept != 0 && count < max_keep) {
+      for (int64_t w = c + 1 + lane; w < nwords; w += 32) {
+        uint64_t acc = 0, bits = kept;
+        while (bits) {  // four independent loads in flight per round
+          uint64_t v[4] = {0, 0, 0, 0};
+#pragma unroll
+          for (int u = 0; u < 4; ++u) {
+            if (bits) {
+              const int r = __ffsll(static_cast<long long>(bits)) - 1;
+              bits &= bits - 1;
+              v[u] = mask[(base + r) * nwords + w];
+            }
+          }
+          acc |= v[0] | v[1] | v[2] | v[3];
+        }
+        removed[w] |= acc;
+      }
+    }
+    __syncwarp();  // the next block's word may have been written by another lane
+  }
+  if (lane == 0) *num_kept = count;
+}
+
+at::Tensor nms_bev_cuda(const at::Tensor& boxes_in, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs,
+                        double iou_threshold, int64_t pre_max, int64_t post_max) {
+  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs);
+  const int64_t N = boxes_in.size(0);
+  c10::cuda::CUDAGuard guard(boxes_in.device());
+  auto empty = at::empty({0}, boxes_in.options().dtype(at::kLong));
+  if (N == 0) return empty;
+  cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  // + 0 turns -0.0 into 0.0, which the radix sort would otherwise order apart
+  auto key = scores.to(scores.scalar_type() == at::kDouble ? at::kDouble : at::kFloat).add(0.0);
+  auto order = std::get<1>(key.sort(/*stable=*/true, /*dim=*/0, /*descending=*/true));
+  if (pre_max >= 0 && pre_max < N) order = order.slice(0, 0, pre_max);
+  const int64_t n = order.size(0);
+  const int64_t max_keep = post_max >= 0 ? std::min(post_max, n) : n;
+  if (n == 0 || max_keep == 0) return empty;
+  const int64_t nwords = gpu::ceil_div(n, 64);
+  TORCH_CHECK(n * nwords * 8 <= (int64_t{1} << 31), "nms_bev on CUDA keeps an n x n/64 bitmask; n = ", n,
+              " boxes would need ", n * nwords * 8, " bytes (more than 2 GiB): lower pre_max");
+  auto g = geoms_of(boxes_in, order, stream);
+  at::Tensor group;
+  if (grouped) group = idxs->index_select(0, order).contiguous();
+  auto mask = at::empty({n * nwords}, boxes_in.options().dtype(at::kLong));
+  const dim3 grid(static_cast<unsigned>(nwords), static_cast<unsigned>(std::min<int64_t>(nwords, 65535)));
+  nms_mask_kernel<<<grid, 64, 0, stream>>>(geom_ptr(g), grouped ? group.data_ptr<int64_t>() : nullptr, n, nwords,
+                                           iou_threshold, reinterpret_cast<uint64_t*>(mask.data_ptr<int64_t>()));
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  auto keep_pos = at::empty({max_keep}, order.options());
+  auto num_kept = at::empty({1}, order.options());
+  nms_reduce_kernel<<<1, 32, nwords * sizeof(uint64_t), stream>>>(
+      reinterpret_cast<const uint64_t*>(mask.data_ptr<int64_t>()), n, nwords, max_keep, keep_pos.data_ptr<int64_t>(),
+      num_kept.data_ptr<int64_t>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  const int64_t k = num_kept.item<int64_t>();
+  return order.index_select(0, keep_pos.slice(0, 0, k));
+}
+
+constexpr int kPointThreads = 128;
+
+template <typename scalar_t>
+__global__ void __launch_bounds__(kPointThreads)
+    points_in_boxes_kernel(const scalar_t* __restrict__ points, int64_t P, int64_t C, const BoxGeom* __restrict__ g,
+                           int64_t M, int64_t* __restrict__ out) {
+  __shared__ BoxGeom tile[kPointThreads];
+  const int64_t i = blockIdx.x * static_cast<int64_t>(kPointThreads) + threadIdx.x;
+  double x = 0, y = 0, z = 0;
+  if (i < P) {
+    x = static_cast<double>(points[i * C]);
+    y = static_cast<double>(points[i * C + 1]);
+    z = static_cast<double>(points[i * C + 2]);
+  }
+  int64_t found = -1;
+  for (int64_t j0 = 0; j0 < M; j0 += kPointThreads) {
+    __syncthreads();
+    if (j0 + threadIdx.x < M) tile[threadIdx.x] = g[j0 + threadIdx.x];
+    __syncthreads();
+    if (found >= 0 || i >= P) continue;
+    const int nt = static_cast<int>(std::min<int64_t>(kPointThreads, M - j0));
+    for (int t = 0; t < nt; ++t)
+      if (boxes::point_in_box(x, y, z, tile[t])) {
+        found = j0 + t;
+        break;
+      }
+  }
+  if (i < P) out[i] = found;
+}
+
+at::Tensor points_in_boxes_cuda(const at::Tensor& points_in, const at::Tensor& boxes_in) {
+  boxes::check_points_args(points_in, boxes_in);
+  c10::cuda::CUDAGuard guard(points_in.device());
+  const int64_t P = points_in.size(0), M = boxes_in.size(0);
+  auto out = at::full({P}, -1, points_in.options().dtype(at::kLong));
+  if (P == 0 || M == 0) return out;
+  cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  auto g = geoms_of(boxes_in, at::Tensor(), stream);
+  auto points = points_in.contiguous();
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, points.scalar_type(), "lidarops_points_in_boxes_cuda", [&] {
+    points_in_boxes_kernel<scalar_t><<<static_cast<unsigned>(gpu::ceil_div(P, kPointThreads)), kPointThreads, 0,
+                                       stream>>>(points.data_ptr<scalar_t>(), P, points.size(1), geom_ptr(g), M,
+                                                 out.data_ptr<int64_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return out;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
+  m.impl("box_overlap_bev", &box_overlap_bev_cuda);
+  m.impl("box_iou_bev", &box_iou_bev_cuda);
+  m.impl("box_iou_3d", &box_iou_3d_cuda);
+  m.impl("nms_bev", &nms_bev_cuda);
+  m.impl("points_in_boxes", &points_in_boxes_cuda);
+}
+
+}  // namespace lidarops

@@ -1,0 +1,27 @@
+// Schemas of the rotated-box ops. Kernels: csrc/cpu/boxes_kernel.cpp, csrc/cuda/boxes_kernel.cu (geometry
+// in include/lidarops/boxes.h); fake kernels: lidarops/ops/_boxes_registrations.py; wrappers and float64
+// references: lidarops/ops/boxes.py.
+//
+// Boxes are (N, 7) x, y, z, dx, dy, dz, heading (LiDAR frame, z the box centre, heading counter-clockwise
+// from +x). Every op computes in float64 and returns float64 for float64 boxes, float32 otherwise.
+#include <torch/library.h>
+
+TORCH_LIBRARY_FRAGMENT(lidarops, m) {
+  // a (N, 7), b (M, 7) -> (N, M): intersection area of the bird's-eye-view rectangles.
+  m.def("box_overlap_bev(Tensor a, Tensor b) -> Tensor");
+  // a (N, 7), b (M, 7) -> (N, M): BEV intersection over union; 0 where the union is empty.
+  m.def("box_iou_bev(Tensor a, Tensor b) -> Tensor");
+  // a (N, 7), b (M, 7) -> (N, M): BEV intersection x z overlap / union of the volumes.
+  m.def("box_iou_3d(Tensor a, Tensor b) -> Tensor");
+  // Greedy rotated NMS on the BEV IoU. boxes (N, 7), scores (N,), idxs (N,) int64 or None (groups: boxes of
+  // different groups never suppress each other). Boxes are visited in descending score order, equal scores
+  // by ascending index; the first pre_max of that order take part (-1: all); a box is suppressed when its
+  // IoU with a kept box of its group is strictly greater than iou_threshold; at most post_max are kept
+  // (-1: all). Returns the kept indices (K,) int64 in visiting order (K data-dependent).
+  m.def(
+      "nms_bev(Tensor boxes, Tensor scores, Tensor? idxs, float iou_threshold, int pre_max=-1,"
+      " int post_max=-1) -> Tensor");
+  // points (P, C >= 3), boxes (M, 7) -> (P,) int64: the lowest index of the closed boxes holding each
+  // point, -1 when none does.
+  m.def("points_in_boxes(Tensor points, Tensor boxes) -> Tensor");
+}
