@@ -42,6 +42,8 @@ __all__ = [
     "KittiDataset",
     "read_kitti_frame",
     "write_kitti_frame",
+    "frame_to_kitti_labels",
+    "boxes_to_kitti_labels",
     "write_image_sets",
     "KITTI_IMAGE_SIZE",
 ]
@@ -415,31 +417,64 @@ def forward_fov_mask(points: np.ndarray, fov_deg: float = 90.0) -> np.ndarray:
 
 
 def _image_boxes(boxes: np.ndarray, calib: KittiCalib, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """2D boxes of 3D boxes (clipped to the image) and the truncation (fraction of the 2D box outside)."""
+    """2D boxes of 3D boxes (clipped to the image) and the truncation (fraction of the 2D box outside).
+
+    The 2D box spans the projections of the corners more than 0.1 m in front of the camera; a box with a
+    corner behind that plane is at least 0.5 truncated, one with none in front has the box (0, 0, 0, 0)
+    and truncation 1.
+    """
     m = boxes.shape[0]
     bbox = np.zeros((m, 4), np.float32)
-    truncated = np.zeros(m, np.float32)
+    truncated = np.ones(m, np.float32)
     if m == 0:
         return bbox, truncated
-    corners = box_corners(boxes).reshape(-1, 3)
-    uv, depth = calib.lidar_to_image(corners)
-    uv = uv.reshape(m, 8, 2)
-    depth = depth.reshape(m, 8)
+    uv, depth = calib.lidar_to_image(box_corners(boxes).reshape(-1, 3))
+    u, v = uv[:, 0].reshape(m, 8), uv[:, 1].reshape(m, 8)
+    front = depth.reshape(m, 8) > 0.1
+    seen = front.any(axis=1)
     w, h = image_size
-    for j in range(m):
-        front = depth[j] > 0.1
-        if not front.any():
-            truncated[j] = 1.0
-            continue
-        u, v = uv[j, front, 0], uv[j, front, 1]
-        full = np.array([u.min(), v.min(), u.max(), v.max()])
-        clipped = np.array([np.clip(full[0], 0, w - 1), np.clip(full[1], 0, h - 1), np.clip(full[2], 0, w - 1),
-                            np.clip(full[3], 0, h - 1)])
-        area = max((full[2] - full[0]) * (full[3] - full[1]), 1e-6)
-        inside = max(clipped[2] - clipped[0], 0) * max(clipped[3] - clipped[1], 0)
-        bbox[j] = clipped
-        truncated[j] = 1.0 - inside / area if front.all() else max(1.0 - inside / area, 0.5)
+    with np.errstate(invalid="ignore"):
+        full = np.stack([np.where(front, u, np.inf).min(1), np.where(front, v, np.inf).min(1),
+                         np.where(front, u, -np.inf).max(1), np.where(front, v, -np.inf).max(1)], axis=1)[seen]
+        clipped = np.clip(full, 0, [w - 1, h - 1, w - 1, h - 1])
+        area = np.maximum((full[:, 2] - full[:, 0]) * (full[:, 3] - full[:, 1]), 1e-6)
+        inside = np.maximum(clipped[:, 2] - clipped[:, 0], 0) * np.maximum(clipped[:, 3] - clipped[:, 1], 0)
+        outside = 1.0 - inside / area
+        bbox[seen] = clipped
+        truncated[seen] = np.where(front[seen].all(axis=1), outside, np.maximum(outside, 0.5))
     return bbox, np.clip(truncated, 0.0, 1.0)
+
+
+def boxes_to_kitti_labels(boxes: np.ndarray, names: Sequence[str], calib: KittiCalib | None = None,
+                          image_size: tuple[int, int] = KITTI_IMAGE_SIZE, visibility: np.ndarray | None = None,
+                          score: np.ndarray | None = None) -> KittiLabels:
+    """KITTI label rows of LiDAR boxes: the 3D fields, the 2D box, truncation, occlusion and alpha.
+
+    The 2D box is the box's corners projected with ``P2`` and clipped to the image; ``truncated`` is the
+    fraction of that projection outside the image; ``occluded`` is 0, 1 or 2 for a ``visibility``
+    (fraction of the sensor rays through the box that reach it) > 0.8, > 0.5 or lower, 3 where unknown;
+    ``alpha = rotation_y - arctan2(x, z)`` of the camera-frame location (KITTI's observation angle).
+
+    Args:
+        boxes (ndarray[M, 7]): LiDAR boxes ``x, y, z, dx, dy, dz, yaw``.
+        names (sequence of str): object type of each box.
+        calib (KittiCalib or None): calibration; default :meth:`KittiCalib.default`.
+        image_size (tuple[int, int]): image (width, height).
+        visibility (ndarray[M] or None): per-box visibility (NaN: unknown); ``None``: all unknown.
+        score (ndarray[M] or None): detection scores (result files).
+
+    Returns:
+        KittiLabels.
+    """
+    calib = calib or KittiCalib.default()
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    location, dimensions, rotation_y = lidar_to_camera_boxes(boxes, calib)
+    bbox, truncated = _image_boxes(boxes, calib, image_size)
+    vis = np.full(boxes.shape[0], np.nan, np.float32) if visibility is None else np.asarray(visibility)
+    occluded = np.where(np.isnan(vis), 3, np.where(vis > 0.8, 0, np.where(vis > 0.5, 1, 2))).astype(np.int64)
+    alpha = wrap_angle(rotation_y - np.arctan2(location[:, 0], location[:, 2]))
+    return KittiLabels(list(names), truncated, occluded, alpha.astype(np.float32), bbox, dimensions, location,
+                       rotation_y, score)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -568,10 +603,11 @@ def write_kitti_frame(
 ) -> str:
     """Writes a frame as KITTI ``velodyne``, ``label_2`` and ``calib`` files.
 
-    All points are written (KITTI scans are full 360 degree sweeps); like KITTI's labels, only boxes whose
-    centre projects into the image (``camera_fov_only``) and that hold at least ``min_points`` points
-    are written.  ``occluded`` comes from the frame's ``visibility`` when known (0: > 0.8, 1: > 0.5,
-    2: otherwise, 3: unknown) and ``truncated`` from the projected 3D box.
+    All points are written (KITTI scans are full 360 degree sweeps); the labels are those of
+    :func:`frame_to_kitti_labels`: like KITTI's, only boxes whose centre projects into the image
+    (``camera_fov_only``) and that hold at least ``min_points`` points are written.  ``occluded`` comes
+    from the frame's ``visibility`` when known (0: > 0.8, 1: > 0.5, 2: otherwise, 3: unknown) and
+    ``truncated`` from the projected 3D box.
 
     Args:
         root (str or Path): dataset root (the ``split`` directory is created inside).
@@ -592,21 +628,37 @@ def write_kitti_frame(
     split_dir = Path(root) / split
     write_velodyne(split_dir / "velodyne" / f"{frame_id}.bin", frame.points)
     write_calib(split_dir / "calib" / f"{frame_id}.txt", calib)
+    write_label(split_dir / "label_2" / f"{frame_id}.txt",
+                frame_to_kitti_labels(frame, calib, image_size, camera_fov_only, min_points), decimals=decimals)
+    return frame_id
+
+
+def frame_to_kitti_labels(frame: Frame, calib: KittiCalib | None = None, image_size: tuple[int, int] = KITTI_IMAGE_SIZE,
+                          camera_fov_only: bool = True, min_points: int = 1) -> KittiLabels:
+    """The KITTI labels of a frame, as :func:`write_kitti_frame` writes them (and
+    :func:`lidarops.eval.kitti.evaluate_lidar` scores them).
+
+    Like KITTI's labels, only boxes whose centre projects into the image (``camera_fov_only``) and that
+    hold at least ``min_points`` points get a row; the fields are those of :func:`boxes_to_kitti_labels`
+    with the frame's ``visibility``. Labels outside ``frame.class_names`` are named ``Misc``.
+
+    Args:
+        frame (Frame): the frame (boxes in the LiDAR frame).
+        calib (KittiCalib or None): calibration; default :meth:`KittiCalib.default`.
+        image_size (tuple[int, int]): image (width, height) for the 2D boxes and the field of view.
+        camera_fov_only (bool): only label boxes in the camera's field of view.
+        min_points (int): only label boxes with at least this many points.
+
+    Returns:
+        KittiLabels.
+    """
+    calib = calib or KittiCalib.default()
     keep = frame.num_points_in_box >= min_points
     if camera_fov_only and frame.num_boxes:
         keep &= kitti_fov_mask(frame.boxes[:, :3], calib, image_size)
     idx = np.flatnonzero(keep)
-    boxes = frame.boxes[idx].astype(np.float64)
-    location, dimensions, rotation_y = lidar_to_camera_boxes(boxes, calib)
-    bbox, truncated = _image_boxes(boxes, calib, image_size)
-    vis = frame.visibility[idx]
-    occluded = np.where(np.isnan(vis), 3, np.where(vis > 0.8, 0, np.where(vis > 0.5, 1, 2))).astype(np.int64)
-    alpha = wrap_angle(rotation_y - np.arctan2(location[:, 0], location[:, 2]))
     names = [frame.class_names[i] if 0 <= i < len(frame.class_names) else "Misc" for i in frame.labels[idx]]
-    write_label(split_dir / "label_2" / f"{frame_id}.txt",
-                KittiLabels(names, truncated, occluded, alpha.astype(np.float32), bbox, dimensions, location, rotation_y),
-                decimals=decimals)
-    return frame_id
+    return boxes_to_kitti_labels(frame.boxes[idx], names, calib, image_size, visibility=frame.visibility[idx])
 
 
 def write_image_sets(root: str | Path, ids: Sequence[str], val_fraction: float = 0.0, seed: int = 0) -> None:
