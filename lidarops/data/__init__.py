@@ -11,7 +11,8 @@ simulator, the formats, torch datasets (torch) and plotting (matplotlib) are imp
 
 Submodules: :mod:`~lidarops.data.synthetic` (``Simulator``), :mod:`~lidarops.data.sensors`,
 :mod:`~lidarops.data.scene`, :mod:`~lidarops.data.formats` (KITTI, PandaSet, nuScenes, ModelNet40),
-:mod:`~lidarops.data.objects`, :mod:`~lidarops.data.datasets` (torch), :mod:`~lidarops.data.viz`
+:mod:`~lidarops.data.objects`, :mod:`~lidarops.data.datasets` (torch), :mod:`~lidarops.data.detection`
+(OpenPCDet-style detection training data, torch), :mod:`~lidarops.data.viz`
 (matplotlib), :mod:`~lidarops.data.cli`.
 """
 from __future__ import annotations
@@ -52,6 +53,9 @@ __all__ = [
     "StreamDataset",
     "collate_detection",
     "collate_objects",
+    "KittiDetectionDataset",
+    "DetectionConfig",
+    "train_val_datasets",
     "save_bev",
 ]
 
@@ -77,6 +81,9 @@ _LAZY = {
     "StreamDataset": "lidarops.data.datasets",
     "collate_detection": "lidarops.data.datasets",
     "collate_objects": "lidarops.data.datasets",
+    "KittiDetectionDataset": "lidarops.data.detection",
+    "DetectionConfig": "lidarops.data.detection",
+    "train_val_datasets": "lidarops.data.detection",
     "save_bev": "lidarops.data.viz",
 }
 

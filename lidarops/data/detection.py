@@ -1,0 +1,916 @@
+"""Detection training data as OpenPCDet feeds it: KITTI-format folders (real KITTI, or what
+``lidarops data synth`` writes) turned into OpenPCDet-style items and batches, with OpenPCDet's data
+processing and augmentations (the ``DATA_CONFIG`` of ``tools/cfgs/kitti_models/pointpillar.yaml``).
+
+Example::
+
+    from torch.utils.data import DataLoader
+    from lidarops.data.detection import collate_batch, train_val_datasets
+
+    train, val = train_val_datasets("/data/kitti_synth")      # ImageSets/train.txt and val.txt
+    loader = DataLoader(train, batch_size=4, shuffle=True, num_workers=4, collate_fn=collate_batch)
+    for epoch in range(80):
+        train.set_epoch(epoch)                                 # before the epoch's iterator is created
+        for batch in loader:
+            ...                                                # batch["points"] (P, 5), batch["gt_boxes"] (B, M, 8)
+
+One item, in training (OpenPCDet's ``KittiDataset.__getitem__`` + ``prepare_data``):
+
+1. the scan, its calibration and labels; with ``fov_points_only`` the points that project into the image
+   (:func:`~lidarops.data.formats.kitti.kitti_fov_mask`; the image size is read from ``image_2/<id>.png``
+   when present, else KITTI's 1242 x 375, the size ``lidarops data synth`` assumes);
+2. the boxes of every labelled object but ``DontCare`` in the LiDAR frame;
+3. the augmentations of ``config.augmentations`` in their order (default OpenPCDet's: ``gt_sampling``,
+   ``random_world_flip``, ``random_world_rotation``, ``random_world_scaling``), then the headings wrapped to
+   ``[-pi, pi)``;
+4. the boxes of classes outside ``class_names`` dropped (before that they block gt sampling, as in
+   OpenPCDet), class ids 1..len(class_names) appended;
+5. ``mask_points_and_boxes_outside_range`` (:func:`mask_points_by_range`,
+   :func:`mask_boxes_outside_range`), then ``shuffle_points``;
+6. no box left: another index is drawn and its item returned (OpenPCDet's resampling).
+
+In evaluation only 1, 2, 4, the point-range crop and (if ``shuffle_test``) the shuffle run; every ground
+truth of the classes is kept.
+
+Determinism: every random draw of item ``index`` comes from ``np.random.default_rng((seed, epoch, index))``
+(in the order gt sampling, flip, rotation, scaling, shuffle, resampling), so an item is a function of
+``(seed, epoch, index)`` whatever the worker or the order of requests; :meth:`KittiDetectionDataset.set_epoch`
+sets the epoch (DataLoader workers copy the dataset when an epoch's iterator is created).
+
+Departures from OpenPCDet, all deliberate:
+
+* gt sampling draws its objects with ``rng.choice`` (uniform, without replacement within a call) instead of
+  walking a shuffled list with a pointer kept across calls: the pointer makes an item depend on the items a
+  worker produced before it;
+* ``USE_ROAD_PLANE`` is ignored: there are no road-plane files for simulated data (sampled objects keep
+  their z, right for the simulator's flat ground and one sensor height; ``pointpillar.yaml`` runs without
+  road planes too);
+* the ground-truth database is one ``.npz`` file (:class:`GtDatabase`) instead of ``gt_database/*.bin`` +
+  ``kitti_dbinfos_train.pkl``, built on demand;
+* voxelization (``transform_points_to_voxels``) is not done here: the model voxelizes on the device.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from lidarops.data.formats.kitti import (
+    KITTI_IMAGE_SIZE,
+    KittiCalib,
+    KittiDataset,
+    KittiLabels,
+    camera_to_lidar_boxes,
+    kitti_fov_mask,
+    read_calib,
+    read_label,
+    read_velodyne,
+)
+from lidarops.data.geometry import box_corners, wrap_angle
+
+__all__ = [
+    "DetectionConfig",
+    "KittiDetectionDataset",
+    "train_val_datasets",
+    "collate_batch",
+    "GtDatabase",
+    "GtSampler",
+    "build_gt_database",
+    "kitti_difficulty",
+    "mask_points_by_range",
+    "mask_boxes_outside_range",
+    "flip_along_x",
+    "flip_along_y",
+    "rotate_world",
+    "scale_world",
+    "AUGMENTATIONS",
+    "DEFAULT_CLASS_NAMES",
+]
+
+log = logging.getLogger(__name__)
+
+#: Class names of OpenPCDet's KITTI models (class id = position + 1).
+DEFAULT_CLASS_NAMES: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
+#: The augmentations supported, by their OpenPCDet ``AUG_CONFIG_LIST`` names (and pointpillar.yaml's order).
+AUGMENTATIONS: tuple[str, ...] = ("gt_sampling", "random_world_flip", "random_world_rotation", "random_world_scaling")
+_PROCESSORS = ("mask_points_and_boxes_outside_range", "shuffle_points", "transform_points_to_voxels")
+_MAX_RESAMPLES = 20  # OpenPCDet redraws without bound; a set without labels must not hang the trainer
+
+
+def _counts(entries: Mapping[str, int] | Sequence[str] | None, what: str) -> dict[str, int]:
+    """``{'Car': 15}`` from ``['Car:15', ...]`` (OpenPCDet's notation) or a mapping."""
+    if entries is None:
+        return {}
+    if isinstance(entries, Mapping):
+        items = list(entries.items())
+    else:
+        items = []
+        for entry in entries:
+            name, sep, num = str(entry).partition(":")
+            if not sep:
+                raise ValueError(f"{what} entries look like 'Car:15', got {entry!r}")
+            items.append((name.strip(), num))
+    out = {}
+    for name, num in items:
+        try:
+            value = int(num)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}: {name!r} needs an integer count, got {num!r}") from None
+        if value < 0:
+            raise ValueError(f"{what}: {name!r} needs a count >= 0, got {value}")
+        out[str(name)] = value
+    return out
+
+
+def _pair(value: Any, what: str) -> tuple[float, float]:
+    lo, hi = (float(v) for v in value)
+    if not lo <= hi:
+        raise ValueError(f"{what} must be [low, high] with low <= high, got {list(value)}")
+    return lo, hi
+
+
+@dataclass
+class DetectionConfig:
+    """Data processing and augmentation of detection training (OpenPCDet's ``DATA_CONFIG``).
+
+    Defaults are OpenPCDet's KITTI PointPillars (``pointpillar.yaml``). :meth:`from_openpcdet` reads the
+    OpenPCDet keys (given in brackets).
+
+    Attributes:
+        point_cloud_range (tuple of 6 float): ``x0, y0, z0, x1, y1, z1`` (``POINT_CLOUD_RANGE``).
+        fov_points_only (bool): keep only the points that project into the camera image (``FOV_POINTS_ONLY``).
+        augmentations (tuple of str): the training augmentations, in order (names of ``AUG_CONFIG_LIST``,
+            a subset of :data:`AUGMENTATIONS`; leave one out to disable it).
+        sample_groups (dict[str, int]): gt sampling, objects drawn per class (``SAMPLE_GROUPS``, 'Car:15').
+        min_points (dict[str, int]): gt sampling, database objects with fewer points are never drawn
+            (``PREPARE.filter_by_min_points``).
+        remove_difficulty (tuple of int): gt sampling, database objects of these difficulties are never drawn
+            (``PREPARE.filter_by_difficulty``; -1 is KITTI's "unknown": too small, occluded or truncated).
+        remove_extra_width (tuple of 3 float): scene points inside the sampled boxes grown by this much are
+            removed (``REMOVE_EXTRA_WIDTH``).
+        limit_whole_scene (bool): draw ``group - objects of the class already in the scene`` instead of
+            ``group`` (``LIMIT_WHOLE_SCENE``; False in pointpillar.yaml).
+        flip_axes (tuple of str): ``random_world_flip`` axes, ``"x"`` (y -> -y) and/or ``"y"`` (``ALONG_AXIS_LIST``).
+        rotation_range (tuple of 2 float): ``random_world_rotation`` angle range, radians (``WORLD_ROT_ANGLE``).
+        scale_range (tuple of 2 float): ``random_world_scaling`` factor range (``WORLD_SCALE_RANGE``).
+        mask_outside_range (bool): run ``mask_points_and_boxes_outside_range`` (points: x and y in the range).
+        remove_outside_boxes (bool): in training, drop boxes with fewer than ``min_num_corners`` corners in
+            the range (``REMOVE_OUTSIDE_BOXES``).
+        min_num_corners (int): see ``remove_outside_boxes``.
+        shuffle_train, shuffle_test (bool): ``shuffle_points`` (``SHUFFLE_ENABLED`` train / test).
+    """
+
+    point_cloud_range: tuple[float, ...] = (0.0, -39.68, -3.0, 69.12, 39.68, 1.0)
+    fov_points_only: bool = True
+    augmentations: tuple[str, ...] = AUGMENTATIONS
+    sample_groups: dict[str, int] = field(default_factory=lambda: {"Car": 15, "Pedestrian": 15, "Cyclist": 15})
+    min_points: dict[str, int] = field(default_factory=lambda: {"Car": 5, "Pedestrian": 5, "Cyclist": 5})
+    remove_difficulty: tuple[int, ...] = (-1,)
+    remove_extra_width: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    limit_whole_scene: bool = False
+    flip_axes: tuple[str, ...] = ("x",)
+    rotation_range: tuple[float, float] = (-math.pi / 4, math.pi / 4)
+    scale_range: tuple[float, float] = (0.95, 1.05)
+    mask_outside_range: bool = True
+    remove_outside_boxes: bool = True
+    min_num_corners: int = 1
+    shuffle_train: bool = True
+    shuffle_test: bool = False
+
+    def __post_init__(self) -> None:
+        r = tuple(float(v) for v in self.point_cloud_range)
+        if len(r) != 6 or not all(r[i] < r[i + 3] for i in range(3)):
+            raise ValueError(f"point_cloud_range must be [x0, y0, z0, x1, y1, z1] with x0 < x1 etc., got {list(r)}")
+        self.point_cloud_range = r
+        self.augmentations = tuple(self.augmentations)
+        unknown = [a for a in self.augmentations if a not in AUGMENTATIONS]
+        if unknown or len(set(self.augmentations)) != len(self.augmentations):
+            raise ValueError(f"augmentations must be distinct names from {list(AUGMENTATIONS)}, "
+                             f"got {list(self.augmentations)}")
+        self.sample_groups = _counts(self.sample_groups, "sample_groups")
+        self.min_points = _counts(self.min_points, "min_points")
+        self.remove_difficulty = tuple(int(v) for v in self.remove_difficulty)
+        self.remove_extra_width = tuple(float(v) for v in self.remove_extra_width)
+        if len(self.remove_extra_width) != 3:
+            raise ValueError(f"remove_extra_width must have 3 values (dx, dy, dz), got {list(self.remove_extra_width)}")
+        self.flip_axes = tuple(self.flip_axes)
+        if any(a not in ("x", "y") for a in self.flip_axes):
+            raise ValueError(f"flip_axes must hold 'x' and/or 'y', got {list(self.flip_axes)}")
+        self.rotation_range = _pair(self.rotation_range, "rotation_range")
+        self.scale_range = _pair(self.scale_range, "scale_range")
+        if self.scale_range[0] <= 0:
+            raise ValueError(f"scale_range must be positive, got {list(self.scale_range)}")
+        if int(self.min_num_corners) not in range(1, 9):
+            raise ValueError(f"min_num_corners must be 1..8, got {self.min_num_corners}")
+
+    @classmethod
+    def from_openpcdet(cls, cfg: Mapping[str, Any]) -> "DetectionConfig":
+        """A config from OpenPCDet's ``DATA_CONFIG`` (or a whole model config holding one).
+
+        Read: ``POINT_CLOUD_RANGE``, ``FOV_POINTS_ONLY``, ``DATA_AUGMENTOR`` (``AUG_CONFIG_LIST`` and
+        ``DISABLE_AUG_LIST``, or the older bare list) with the entries ``gt_sampling``, ``random_world_flip``,
+        ``random_world_rotation``, ``random_world_scaling``, and ``DATA_PROCESSOR`` with
+        ``mask_points_and_boxes_outside_range`` and ``shuffle_points``. Ignored: dataset paths and splits,
+        ``POINT_FEATURE_ENCODING`` (x, y, z, intensity), ``transform_points_to_voxels`` (the model
+        voxelizes), gt sampling's ``DB_INFO_PATH`` (see ``gt_database``) and ``USE_ROAD_PLANE``. Keys absent
+        keep the defaults; an augmentor or processor lidarops does not implement raises.
+
+        Raises:
+            ValueError: an unsupported augmentor, processor or option.
+        """
+        cfg = cfg.get("DATA_CONFIG", cfg)
+        kw: dict[str, Any] = {}
+        if "POINT_CLOUD_RANGE" in cfg:
+            kw["point_cloud_range"] = tuple(cfg["POINT_CLOUD_RANGE"])
+        if "FOV_POINTS_ONLY" in cfg:
+            kw["fov_points_only"] = bool(cfg["FOV_POINTS_ONLY"])
+        augmentor = cfg.get("DATA_AUGMENTOR")
+        if augmentor is not None:
+            if isinstance(augmentor, Mapping):
+                entries, disabled = augmentor.get("AUG_CONFIG_LIST", []), set(augmentor.get("DISABLE_AUG_LIST", []))
+            else:
+                entries, disabled = augmentor, set()
+            names = []
+            for entry in entries:
+                name = entry["NAME"]
+                if name in disabled:
+                    continue
+                kw.update(_augmentor_options(name, entry))
+                names.append(name)
+            kw["augmentations"] = tuple(names)
+        processors = cfg.get("DATA_PROCESSOR")
+        if processors is not None:
+            names = [entry["NAME"] for entry in processors]
+            for entry in processors:
+                if entry["NAME"] not in _PROCESSORS:
+                    raise ValueError(f"DATA_PROCESSOR {entry['NAME']!r} is not supported (supported: {list(_PROCESSORS)})")
+                if entry["NAME"] == "mask_points_and_boxes_outside_range":
+                    kw["remove_outside_boxes"] = bool(entry.get("REMOVE_OUTSIDE_BOXES", True))
+                    kw["min_num_corners"] = int(entry.get("min_num_corners", 1))
+                elif entry["NAME"] == "shuffle_points":
+                    enabled = entry.get("SHUFFLE_ENABLED", {"train": True, "test": False})
+                    kw["shuffle_train"], kw["shuffle_test"] = bool(enabled["train"]), bool(enabled["test"])
+            kw["mask_outside_range"] = "mask_points_and_boxes_outside_range" in names
+            if "shuffle_points" not in names:
+                kw["shuffle_train"] = kw["shuffle_test"] = False
+        return cls(**kw)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (for checkpoints and recipes)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+
+def _augmentor_options(name: str, entry: Mapping[str, Any]) -> dict[str, Any]:
+    if name == "gt_sampling":
+        prepare = dict(entry.get("PREPARE", {}) or {})
+        unknown = set(prepare) - {"filter_by_min_points", "filter_by_difficulty"}
+        if unknown:
+            raise ValueError(f"gt_sampling PREPARE {sorted(unknown)} is not supported")
+        if entry.get("DATABASE_WITH_FAKELIDAR", False):
+            raise ValueError("gt_sampling DATABASE_WITH_FAKELIDAR is not supported "
+                             "(databases are in the LiDAR box convention)")
+        if int(entry.get("NUM_POINT_FEATURES", 4)) != 4:
+            raise ValueError(f"gt_sampling NUM_POINT_FEATURES must be 4 (x, y, z, intensity), "
+                             f"got {entry['NUM_POINT_FEATURES']}")
+        return {
+            "sample_groups": _counts(entry.get("SAMPLE_GROUPS", []), "SAMPLE_GROUPS"),
+            "min_points": _counts(prepare.get("filter_by_min_points", []), "filter_by_min_points"),
+            "remove_difficulty": tuple(int(v) for v in prepare.get("filter_by_difficulty", [])),
+            "remove_extra_width": tuple(entry.get("REMOVE_EXTRA_WIDTH", (0.0, 0.0, 0.0))),
+            "limit_whole_scene": bool(entry.get("LIMIT_WHOLE_SCENE", False)),
+        }
+    if name == "random_world_flip":
+        return {"flip_axes": tuple(entry["ALONG_AXIS_LIST"])}
+    if name == "random_world_rotation":
+        angle = entry["WORLD_ROT_ANGLE"]
+        return {"rotation_range": tuple(angle) if isinstance(angle, (list, tuple)) else (-float(angle), float(angle))}
+    if name == "random_world_scaling":
+        return {"scale_range": tuple(entry["WORLD_SCALE_RANGE"])}
+    raise ValueError(f"augmentation {name!r} is not supported (supported: {list(AUGMENTATIONS)})")
+
+
+# ---------------------------------------------------------------------------------------------
+# processing and augmentation (NumPy; boxes are (M, 7 + C) x, y, z, dx, dy, dz, heading, ...)
+# ---------------------------------------------------------------------------------------------
+def mask_points_by_range(points: np.ndarray, point_cloud_range: Sequence[float]) -> np.ndarray:
+    """OpenPCDet's ``mask_points_by_range``: ``x0 <= x <= x1`` and ``y0 <= y <= y1``.
+
+    Like OpenPCDet, z is not checked (points outside ``z0..z1`` are left to the voxelizer) and both ends
+    are closed (a point at ``x1`` falls outside the voxel grid, and the voxelizer drops it).
+
+    Args:
+        points (ndarray[N, >=2]): points.
+        point_cloud_range (sequence of 6 float): ``x0, y0, z0, x1, y1, z1``.
+
+    Returns:
+        ndarray bool[N].
+    """
+    r = point_cloud_range
+    x, y = points[:, 0], points[:, 1]
+    return (x >= r[0]) & (x <= r[3]) & (y >= r[1]) & (y <= r[4])
+
+
+def mask_boxes_outside_range(boxes: np.ndarray, point_cloud_range: Sequence[float], min_num_corners: int = 1) -> np.ndarray:
+    """OpenPCDet's ``mask_boxes_outside_range_numpy``: boxes with at least ``min_num_corners`` of their
+    eight corners inside the closed range, in x, y *and* z (OpenPCDet's default ``filter_z=True``).
+
+    Args:
+        boxes (ndarray[M, >=7]): boxes.
+        point_cloud_range (sequence of 6 float): ``x0, y0, z0, x1, y1, z1``.
+        min_num_corners (int): corners required.
+
+    Returns:
+        ndarray bool[M].
+    """
+    r = np.asarray(point_cloud_range, dtype=np.float64)
+    corners = box_corners(np.asarray(boxes)[:, :7])  # (M, 8, 3)
+    inside = ((corners >= r[:3]) & (corners <= r[3:])).all(axis=2)
+    return inside.sum(axis=1) >= min_num_corners
+
+
+def flip_along_x(points: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mirror in the x axis (OpenPCDet's ``random_flip_along_x`` when it fires): ``y -> -y``,
+    ``heading -> -heading``. Returns new arrays."""
+    points, boxes = points.copy(), boxes.copy()
+    points[:, 1] = -points[:, 1]
+    boxes[:, 1] = -boxes[:, 1]
+    boxes[:, 6] = -boxes[:, 6]
+    return points, boxes
+
+
+def flip_along_y(points: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mirror in the y axis (``random_flip_along_y``): ``x -> -x``, ``heading -> -(heading + pi)``."""
+    points, boxes = points.copy(), boxes.copy()
+    points[:, 0] = -points[:, 0]
+    boxes[:, 0] = -boxes[:, 0]
+    boxes[:, 6] = -(boxes[:, 6] + np.pi)
+    return points, boxes
+
+
+def rotate_world(points: np.ndarray, boxes: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation about +z by ``angle`` (counter-clockwise seen from above, x towards y; OpenPCDet's
+    ``global_rotation``): points and box centres rotate, headings grow by ``angle`` (not wrapped).
+    Computed in float64. Returns new arrays of the input dtypes."""
+    c, s = math.cos(angle), math.sin(angle)
+
+    def turn(xy: np.ndarray) -> np.ndarray:
+        x, y = xy[:, 0].astype(np.float64), xy[:, 1].astype(np.float64)
+        return np.stack([c * x - s * y, s * x + c * y], axis=1)
+
+    points, boxes = points.copy(), boxes.copy()
+    points[:, :2] = turn(points)
+    boxes[:, :2] = turn(boxes)
+    boxes[:, 6] = boxes[:, 6].astype(np.float64) + angle
+    return points, boxes
+
+
+def scale_world(points: np.ndarray, boxes: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform scaling about the sensor (``global_scaling``): point coordinates, box centres and sizes."""
+    points, boxes = points.copy(), boxes.copy()
+    points[:, :3] = points[:, :3].astype(np.float64) * scale
+    boxes[:, :6] = boxes[:, :6].astype(np.float64) * scale
+    return points, boxes
+
+
+def kitti_difficulty(labels: KittiLabels) -> np.ndarray:
+    """KITTI's difficulty of each label (OpenPCDet's ``Object3d.get_kitti_obj_level``): 0 easy (2D box
+    >= 40 px high, truncation <= 0.15, fully visible), 1 moderate (>= 25 px, <= 0.3, occlusion <= 1),
+    2 hard (>= 25 px, <= 0.5, occlusion <= 2), -1 otherwise.
+
+    Returns:
+        ndarray int64[M].
+    """
+    height = labels.bbox[:, 3].astype(np.float64) - labels.bbox[:, 1] + 1
+    trunc, occ = labels.truncated, labels.occluded
+    out = np.full(len(labels), -1, dtype=np.int64)
+    for level, (min_h, max_t, max_o) in reversed(list(enumerate(((40, 0.15, 0), (25, 0.3, 1), (25, 0.5, 2))))):
+        out[(height >= min_h) & (trunc <= max_t) & (occ <= max_o)] = level
+    return out
+
+
+def _tensor(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+
+def _box_index(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """``lidarops.points_in_boxes``: the (lowest) box holding each point, -1 for none."""
+    from lidarops.ops.boxes import points_in_boxes
+
+    if points.shape[0] == 0 or boxes.shape[0] == 0:
+        return np.full(points.shape[0], -1, dtype=np.int64)
+    return points_in_boxes(_tensor(points[:, :3]), _tensor(boxes[:, :7])).numpy()
+
+
+def _iou_bev(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    from lidarops.ops.boxes import box_iou_bev
+
+    if a.shape[0] == 0 or b.shape[0] == 0:
+        return np.zeros((a.shape[0], b.shape[0]), dtype=np.float32)
+    return box_iou_bev(_tensor(a[:, :7]), _tensor(b[:, :7])).numpy()
+
+
+# ---------------------------------------------------------------------------------------------
+# ground-truth database and sampler
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class GtDatabase:
+    """The labelled objects of a set of frames with their points (OpenPCDet's ``gt_database`` +
+    ``kitti_dbinfos_*.pkl`` in one file).
+
+    Attributes:
+        points (ndarray float32[P, 4]): the points of every object, object after object, with x, y, z
+            relative to the box centre (as OpenPCDet stores them).
+        offsets (ndarray int64[K + 1]): object ``i`` owns ``points[offsets[i]:offsets[i + 1]]``.
+        boxes (ndarray float32[K, 7]): LiDAR boxes ``x, y, z, dx, dy, dz, heading`` in their frame.
+        names (ndarray str[K]): object types.
+        num_points (ndarray int64[K]): points of each object.
+        difficulty (ndarray int64[K]): :func:`kitti_difficulty` (-1: unknown).
+        frame_ids (ndarray str[K]): frame of each object.
+        gt_index (ndarray int64[K]): row of the object in its label file.
+        source_ids (ndarray str[F]): the frames the database was built from.
+    """
+
+    points: np.ndarray
+    offsets: np.ndarray
+    boxes: np.ndarray
+    names: np.ndarray
+    num_points: np.ndarray
+    difficulty: np.ndarray
+    frame_ids: np.ndarray
+    gt_index: np.ndarray
+    source_ids: np.ndarray
+
+    _FIELDS = ("points", "offsets", "boxes", "names", "num_points", "difficulty", "frame_ids", "gt_index", "source_ids")
+
+    def __len__(self) -> int:
+        return int(self.boxes.shape[0])
+
+    def object_points(self, i: int) -> np.ndarray:
+        """Points of object ``i`` back at its box centre (float32[n, 4])."""
+        pts = self.points[self.offsets[i]:self.offsets[i + 1]].copy()
+        pts[:, :3] += self.boxes[i, :3]
+        return pts
+
+    def save(self, path: str | Path) -> Path:
+        """Writes an uncompressed ``.npz`` (atomically: a temporary file renamed)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, **{name: getattr(self, name) for name in self._FIELDS})
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "GtDatabase":
+        """Reads a database written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"gt database not found: {path}")
+        with np.load(path, allow_pickle=False) as data:
+            missing = [name for name in cls._FIELDS if name not in data.files]
+            if missing:
+                raise ValueError(f"{path} is not a lidarops gt database (missing {missing})")
+            return cls(**{name: data[name] for name in cls._FIELDS})
+
+    def __repr__(self) -> str:
+        names, counts = np.unique(self.names, return_counts=True)
+        summary = ", ".join(f"{n}={c}" for n, c in zip(names, counts))
+        return f"GtDatabase({len(self)} objects [{summary}], {self.points.shape[0]} points, {len(self.source_ids)} frames)"
+
+
+def _frame_labels(split_dir: Path, frame_id: str) -> KittiLabels:
+    """The labels of a frame; none for a split without ``label_2`` (KITTI's testing set)."""
+    if not (split_dir / "label_2").is_dir():
+        return KittiLabels.empty()
+    return read_label(split_dir / "label_2" / f"{frame_id}.txt")
+
+
+def _care(labels: KittiLabels) -> np.ndarray:
+    return np.array([n != "DontCare" for n in labels.names], dtype=bool)
+
+
+def build_gt_database(source: "KittiDetectionDataset | str | Path", ids: str | Sequence[str] | None = None,
+                      class_names: Sequence[str] | None = DEFAULT_CLASS_NAMES,
+                      out_path: str | Path | None = None) -> GtDatabase:
+    """Extracts the labelled objects of KITTI-format frames with their points (OpenPCDet's
+    ``create_groundtruth_database``).
+
+    Each object's points are those of the whole scan (not only the camera's field of view; as OpenPCDet)
+    inside its box (``lidarops.points_in_boxes``; a point in two overlapping boxes goes to both), stored
+    relative to the box centre. ``DontCare`` labels are skipped. Building twice gives the same database.
+
+    Args:
+        source: a :class:`KittiDetectionDataset` (its folder and, by default, its ids), or a KITTI root /
+            split directory.
+        ids: frame ids, an ``ImageSets`` name (e.g. ``"train"``: build from the training frames only), or
+            ``None`` (the dataset's ids, or every scan of the folder).
+        class_names (sequence of str or None): object types to keep (``None``: all).
+        out_path (str or Path or None): where to save the ``.npz`` (not saved if ``None``).
+
+    Returns:
+        GtDatabase.
+    """
+    if isinstance(source, KittiDetectionDataset):
+        split_dir = source.split_dir
+        if ids is None:
+            ids = source.ids
+        elif isinstance(ids, str):
+            ids = KittiDataset(source.root, image_set=ids).ids
+    else:
+        kitti = KittiDataset(source, image_set=ids if isinstance(ids, str) else None)
+        split_dir = kitti.split_dir
+        if ids is None or isinstance(ids, str):
+            ids = kitti.ids
+    ids = [str(i) for i in ids]
+    keep_names = None if class_names is None else set(class_names)
+    parts: dict[str, list] = {name: [] for name in GtDatabase._FIELDS if name not in ("offsets", "source_ids")}
+    for frame_id in ids:
+        labels = _frame_labels(split_dir, frame_id)
+        wanted = _care(labels) & np.array([keep_names is None or n in keep_names for n in labels.names], bool)
+        rows = np.flatnonzero(wanted)
+        if rows.size == 0:
+            continue
+        labels = labels.select(wanted)  # a boolean mask: select() takes the nonzero entries
+        calib = read_calib(split_dir / "calib" / f"{frame_id}.txt")
+        points = read_velodyne(split_dir / "velodyne" / f"{frame_id}.bin")
+        boxes = camera_to_lidar_boxes(labels.location, labels.dimensions, labels.rotation_y, calib).astype(np.float32)
+        members = _object_members(points, boxes)
+        for j, idx in enumerate(members):
+            pts = points[idx].copy()
+            pts[:, :3] -= boxes[j, :3]
+            parts["points"].append(pts)
+            parts["num_points"].append(idx.size)
+        parts["boxes"].append(boxes)
+        parts["names"].extend(labels.names)
+        parts["difficulty"].append(kitti_difficulty(labels))
+        parts["frame_ids"].extend([frame_id] * rows.size)
+        parts["gt_index"].append(rows)
+    num_points = np.asarray(parts["num_points"], dtype=np.int64)
+    db = GtDatabase(
+        points=np.concatenate(parts["points"]) if parts["points"] else np.zeros((0, 4), np.float32),
+        offsets=np.concatenate([[0], np.cumsum(num_points)]).astype(np.int64),
+        boxes=np.concatenate(parts["boxes"]) if parts["boxes"] else np.zeros((0, 7), np.float32),
+        names=np.array(parts["names"], dtype=str),
+        num_points=num_points,
+        difficulty=np.concatenate(parts["difficulty"]) if parts["difficulty"] else np.zeros(0, np.int64),
+        frame_ids=np.array(parts["frame_ids"], dtype=str),
+        gt_index=np.concatenate(parts["gt_index"]).astype(np.int64) if parts["gt_index"] else np.zeros(0, np.int64),
+        source_ids=np.array(ids, dtype=str),
+    )
+    if out_path is not None:
+        db.save(out_path)
+    return db
+
+
+def _object_members(points: np.ndarray, boxes: np.ndarray) -> list[np.ndarray]:
+    """Indices of the points inside each box; a point in several (overlapping) boxes counts for each."""
+    owner = _box_index(points, boxes)
+    members = [np.flatnonzero(owner == j) for j in range(boxes.shape[0])]
+    iou = _iou_bev(boxes, boxes)
+    np.fill_diagonal(iou, 0.0)
+    for j in np.flatnonzero(iou.max(axis=1, initial=0.0) > 0):  # points_in_boxes gives the lowest box only
+        members[j] = np.flatnonzero(_box_index(points, boxes[j:j + 1]) == 0)
+    return members
+
+
+class GtSampler:
+    """OpenPCDet's ``gt_sampling`` (``DataBaseSampler``): pastes objects of a :class:`GtDatabase` into a scene.
+
+    For each class of ``sample_groups`` (in order), ``group`` database objects are drawn (``group - objects of
+    the class in the scene`` with ``limit_whole_scene``) uniformly without replacement (``rng.choice``; OpenPCDet
+    walks a shuffled list with a pointer kept across calls instead, which would tie an item to the items
+    drawn before it); drawn boxes overlapping (BEV IoU > 0) a scene box, an object pasted before or another
+    drawn box are dropped; the scene's points inside the kept boxes (grown by ``remove_extra_width``) are
+    removed and the objects' points put first. Objects keep their height (no road planes: OpenPCDet's
+    ``USE_ROAD_PLANE`` is not supported) and may come from the scene's own frame.
+
+    Args:
+        database (GtDatabase or path): the objects.
+        sample_groups (dict or list): objects per class, ``{"Car": 15}`` or ``["Car:15"]``.
+        min_points (dict or list or None): objects with fewer points are never drawn (``["Car:5"]``).
+        class_names (sequence of str or None): classes sampled (groups of other classes are ignored);
+            ``None``: those of ``sample_groups``.
+        rng (numpy Generator or None): default generator, when a call passes none.
+        remove_difficulty (sequence of int): objects of these difficulties are never drawn.
+        remove_extra_width (sequence of 3 float): growth of the boxes that clear the scene's points.
+        limit_whole_scene (bool): see above.
+    """
+
+    def __init__(self, database: "GtDatabase | str | Path", sample_groups: Mapping[str, int] | Sequence[str],
+                 min_points: Mapping[str, int] | Sequence[str] | None = None, class_names: Sequence[str] | None = None,
+                 rng: np.random.Generator | None = None, *, remove_difficulty: Sequence[int] = (-1,),
+                 remove_extra_width: Sequence[float] = (0.0, 0.0, 0.0), limit_whole_scene: bool = False) -> None:
+        self.database = database if isinstance(database, GtDatabase) else GtDatabase.load(database)
+        groups = _counts(sample_groups, "sample_groups")
+        class_names = tuple(groups) if class_names is None else tuple(class_names)
+        self.sample_groups = {name: n for name, n in groups.items() if name in class_names}
+        db = self.database
+        usable = ~np.isin(db.difficulty, np.asarray(list(remove_difficulty), dtype=np.int64))
+        for name, m in _counts(min_points, "min_points").items():
+            usable &= ~((db.names == name) & (db.num_points < m))
+        #: database rows each class draws from
+        self.pools = {name: np.flatnonzero(usable & (db.names == name)) for name in self.sample_groups}
+        self.remove_extra_width = np.asarray(remove_extra_width, dtype=np.float32).reshape(3)
+        self.limit_whole_scene = bool(limit_whole_scene)
+        self.rng = rng if rng is not None else np.random.default_rng()
+
+    def __call__(self, points: np.ndarray, boxes: np.ndarray, names: np.ndarray,
+                 rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pastes objects into a scene.
+
+        Args:
+            points (ndarray float32[N, 4]): the scene.
+            boxes (ndarray float32[M, 7]): its boxes (all of them: other classes block sampling too).
+            names (ndarray str[M]): their types.
+            rng (numpy Generator or None): the draws (default: the sampler's).
+
+        Returns:
+            points (float32[N', 4], the pasted objects' points first), boxes (float32[M + S, 7]),
+            names (str[M + S]).
+        """
+        rng = self.rng if rng is None else rng
+        db = self.database
+        names = np.asarray(names, dtype=str).reshape(-1)
+        existing = np.asarray(boxes, dtype=np.float32).reshape(-1, 7)
+        chosen: list[np.ndarray] = []
+        for name, group in self.sample_groups.items():
+            num = group - int(np.sum(names == name)) if self.limit_whole_scene else group
+            pool = self.pools[name]
+            if num <= 0 or pool.size == 0:
+                continue
+            drawn = pool[rng.choice(pool.size, size=min(num, pool.size), replace=False)]
+            cand = db.boxes[drawn]
+            among = _iou_bev(cand, cand)
+            np.fill_diagonal(among, 0.0)
+            blocked = _iou_bev(cand, existing).max(axis=1, initial=0.0) + among.max(axis=1, initial=0.0) > 0
+            valid = drawn[~blocked]
+            existing = np.concatenate([existing, db.boxes[valid]])
+            chosen.append(valid)
+        picked = np.concatenate(chosen) if chosen else np.zeros(0, np.int64)
+        if picked.size == 0:
+            return points, existing, names
+        grown = db.boxes[picked].copy()
+        grown[:, 3:6] += self.remove_extra_width
+        scene = points[_box_index(points, grown) < 0]
+        pasted = [db.object_points(i) for i in picked]
+        return (np.concatenate(pasted + [scene]).astype(np.float32, copy=False), existing,
+                np.concatenate([names, db.names[picked]]))
+
+
+# ---------------------------------------------------------------------------------------------
+# the dataset
+# ---------------------------------------------------------------------------------------------
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG header, without decoding the image."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _annos(labels: KittiLabels) -> dict[str, np.ndarray]:
+    """The label file's fields (DontCare included) for evaluation; ``dimensions_hwl`` in the file's h, w, l."""
+    annos = {
+        "name": np.array(labels.names, dtype=str).reshape(-1),
+        "truncated": np.asarray(labels.truncated, dtype=np.float32),
+        "occluded": np.asarray(labels.occluded, dtype=np.int64),
+        "alpha": np.asarray(labels.alpha, dtype=np.float32),
+        "bbox": np.asarray(labels.bbox, dtype=np.float32).reshape(-1, 4),
+        "dimensions_hwl": np.asarray(labels.dimensions, dtype=np.float64).reshape(-1, 3),
+        "location": np.asarray(labels.location, dtype=np.float64).reshape(-1, 3),
+        "rotation_y": np.asarray(labels.rotation_y, dtype=np.float64),
+        "difficulty": kitti_difficulty(labels),
+    }
+    if labels.score is not None:
+        annos["score"] = np.asarray(labels.score, dtype=np.float32)
+    return annos
+
+
+class KittiDetectionDataset(Dataset):
+    """KITTI-format frames as OpenPCDet-style training or evaluation items (see the module docstring).
+
+    Items are dicts:
+
+    * ``points`` (ndarray float32[N, 4]): ``x, y, z, intensity``;
+    * ``gt_boxes`` (ndarray float32[M, 8]): ``x, y, z, dx, dy, dz, heading, class id`` (1-based, the
+      position in ``class_names`` + 1), LiDAR frame, z the box centre;
+    * ``frame_id`` (str);
+    * ``annos`` (dict of ndarray): every object of the label file, ``DontCare`` included, for evaluation:
+      ``name``, ``truncated``, ``occluded``, ``alpha``, ``bbox``, ``dimensions_hwl`` (KITTI's h, w, l order,
+      not OpenPCDet's l, h, w), ``location``, ``rotation_y``, ``difficulty`` (:func:`kitti_difficulty`);
+    * ``calib`` (:class:`~lidarops.data.formats.kitti.KittiCalib`);
+    * in training, ``augmentation`` (dict): what was drawn: ``gt_sampled`` (objects pasted), ``flip_x``,
+      ``flip_y``, ``rotation`` (rad), ``scale``, ``resampled_from`` (the index asked for, when its frame
+      had no box left and another was drawn; else absent).
+
+    Args:
+        root (str or Path): KITTI root (holding ``training/`` and ``ImageSets/``) or a split directory.
+        split (str, sequence of str or None): an ``ImageSets`` name (``"train"``, ``"val"``; ``"test"``
+            reads ``testing/``), a list of frame ids, or ``None`` for every scan.
+        class_names (sequence of str): training classes, in class-id order.
+        config (DetectionConfig, OpenPCDet DATA_CONFIG dict or None): processing; default pointpillar.yaml's.
+        training (bool): augment, drop boxes outside the range, shuffle; else evaluation items.
+        seed (int): base of every random draw (>= 0).
+        gt_database (GtDatabase, path or None): objects for gt sampling (training only). ``None``: the file
+            ``gt_database_<split>.npz`` next to ``ImageSets``, (re)built from this split's frames when missing
+            or made from other frames (kept in memory where the folder is read-only); for an id list, a
+            database built in memory.
+    """
+
+    def __init__(self, root: str | Path, split: str | Sequence[str] | None = "train",
+                 class_names: Sequence[str] = DEFAULT_CLASS_NAMES, config: "DetectionConfig | Mapping | None" = None,
+                 training: bool = True, seed: int = 0, gt_database: "GtDatabase | str | Path | None" = None) -> None:
+        if config is None:
+            config = DetectionConfig()
+        elif not isinstance(config, DetectionConfig):
+            config = DetectionConfig.from_openpcdet(config)
+        self.config = config
+        self.class_names = tuple(class_names)
+        if not self.class_names or len(set(self.class_names)) != len(self.class_names):
+            raise ValueError(f"class_names must be distinct and not empty, got {list(class_names)}")
+        self.training = bool(training)
+        if int(seed) < 0:
+            raise ValueError(f"seed must be >= 0, got {seed}")
+        self.seed = int(seed)
+        self.epoch = 0
+        named = isinstance(split, str) or split is None
+        kitti = KittiDataset(root, split="testing" if split == "test" else "training", image_set=split if named else None)
+        self.split_dir = kitti.split_dir
+        self.split = split if named else None
+        self.ids = list(kitti.ids) if named else [str(i) for i in split]
+        top = self.split_dir.parent if self.split_dir.name in ("training", "testing") else self.split_dir
+        self.root = top
+        recipe = top / "recipe.json"
+        #: the ``lidarops data synth`` recipe of the folder (None for other folders)
+        self.recipe = json.loads(recipe.read_text()) if recipe.is_file() else None
+        self.sampler: GtSampler | None = None
+        if self.training and "gt_sampling" in config.augmentations and config.sample_groups:
+            db = self._database(gt_database)
+            self.sampler = GtSampler(db, config.sample_groups, config.min_points, self.class_names,
+                                     remove_difficulty=config.remove_difficulty,
+                                     remove_extra_width=config.remove_extra_width,
+                                     limit_whole_scene=config.limit_whole_scene)
+
+    def _database(self, gt_database: "GtDatabase | str | Path | None") -> GtDatabase:
+        if isinstance(gt_database, GtDatabase):
+            return gt_database
+        if gt_database is not None:
+            return GtDatabase.load(gt_database)
+        if self.split is None or not isinstance(self.split, str):
+            return build_gt_database(self, class_names=self.class_names)
+        path = self.root / f"gt_database_{self.split}.npz"
+        if path.is_file():
+            db = GtDatabase.load(path)
+            if list(db.source_ids) == self.ids:  # built from these frames (for every object type)
+                return db
+        log.info("building the gt database of %s (%d frames) at %s", self.split_dir, len(self.ids), path)
+        db = build_gt_database(self, class_names=None)
+        try:
+            db.save(path)
+        except OSError as e:  # a read-only copy of KITTI: keep it in memory
+            log.warning("could not save the gt database to %s (%s); pass gt_database=PATH to keep it", path, e)
+        return db
+
+    def set_epoch(self, epoch: int) -> None:
+        """Sets the epoch that seeds the augmentations (call before creating each epoch's iterator)."""
+        if int(epoch) < 0:
+            raise ValueError(f"epoch must be >= 0, got {epoch}")
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def image_size(self, index: int) -> tuple[int, int]:
+        """(width, height) of frame ``index``'s image: from ``image_2/<id>.png`` when present, else KITTI's."""
+        return _png_size(self.split_dir / "image_2" / f"{self.ids[index]}.png") or KITTI_IMAGE_SIZE
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        index = int(index)
+        if not 0 <= index < len(self):
+            raise IndexError(f"item {index} out of range ({len(self)} frames)")
+        first = index
+        for _ in range(_MAX_RESAMPLES):
+            rng = np.random.default_rng((self.seed, self.epoch, index))
+            item = self._item(index, rng)
+            if not self.training or item["gt_boxes"].shape[0] > 0:
+                break
+            index = int(rng.integers(len(self)))  # OpenPCDet: an item without boxes is replaced by a random one
+        if index != first and self.training:
+            item["augmentation"]["resampled_from"] = first
+        return item
+
+    def _item(self, index: int, rng: np.random.Generator) -> dict[str, Any]:
+        cfg = self.config
+        frame_id = self.ids[index]
+        points = read_velodyne(self.split_dir / "velodyne" / f"{frame_id}.bin")
+        calib = read_calib(self.split_dir / "calib" / f"{frame_id}.txt")
+        labels = _frame_labels(self.split_dir, frame_id)
+        if cfg.fov_points_only:
+            points = points[kitti_fov_mask(points, calib, self.image_size(index))]
+        care = labels.select(_care(labels))
+        boxes = camera_to_lidar_boxes(care.location, care.dimensions, care.rotation_y, calib).astype(np.float32)
+        names = np.array(care.names, dtype=str)
+        item: dict[str, Any] = {"frame_id": frame_id, "annos": _annos(labels), "calib": calib}
+        if self.training:
+            points, boxes, names, item["augmentation"] = self._augment(points, boxes, names, rng)
+        keep = np.isin(names, self.class_names)
+        class_id = np.array([self.class_names.index(n) + 1 for n in names[keep]], dtype=np.float32)
+        gt_boxes = np.concatenate([boxes[keep], class_id[:, None]], axis=1).astype(np.float32)
+        if cfg.mask_outside_range:
+            points = points[mask_points_by_range(points, cfg.point_cloud_range)]
+            if self.training and cfg.remove_outside_boxes:
+                gt_boxes = gt_boxes[mask_boxes_outside_range(gt_boxes, cfg.point_cloud_range, cfg.min_num_corners)]
+        if cfg.shuffle_train if self.training else cfg.shuffle_test:
+            points = points[rng.permutation(points.shape[0])]
+        item["points"] = np.ascontiguousarray(points, dtype=np.float32)
+        item["gt_boxes"] = gt_boxes
+        return item
+
+    def _augment(self, points: np.ndarray, boxes: np.ndarray, names: np.ndarray,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+        """OpenPCDet's ``DataAugmentor.forward``: the augmentations in config order, headings wrapped."""
+        cfg = self.config
+        info: dict[str, Any] = {"gt_sampled": 0, "flip_x": False, "flip_y": False, "rotation": 0.0, "scale": 1.0}
+        for name in cfg.augmentations:
+            if name == "gt_sampling" and self.sampler is not None:
+                before = boxes.shape[0]
+                points, boxes, names = self.sampler(points, boxes, names, rng)
+                info["gt_sampled"] = int(boxes.shape[0] - before)
+            elif name == "random_world_flip":
+                for axis in cfg.flip_axes:
+                    if rng.random() < 0.5:
+                        points, boxes = (flip_along_x if axis == "x" else flip_along_y)(points, boxes)
+                        info[f"flip_{axis}"] = True
+            elif name == "random_world_rotation":
+                info["rotation"] = float(rng.uniform(*cfg.rotation_range))
+                points, boxes = rotate_world(points, boxes, info["rotation"])
+            elif name == "random_world_scaling" and cfg.scale_range[1] - cfg.scale_range[0] >= 1e-3:  # OpenPCDet's test
+                info["scale"] = float(rng.uniform(*cfg.scale_range))
+                points, boxes = scale_world(points, boxes, info["scale"])
+        boxes = boxes.copy()
+        boxes[:, 6] = wrap_angle(boxes[:, 6].astype(np.float64))
+        return points, boxes, names, info
+
+    def __repr__(self) -> str:
+        mode = "training" if self.training else "evaluation"
+        return (f"KittiDetectionDataset({str(self.split_dir)!r}, split={self.split!r}, {len(self)} frames, {mode}, "
+                f"classes={list(self.class_names)})")
+
+
+def train_val_datasets(root: str | Path, class_names: Sequence[str] = DEFAULT_CLASS_NAMES,
+                       config: "DetectionConfig | Mapping | None" = None, seed: int = 0,
+                       gt_database: "GtDatabase | str | Path | None" = None, train_split: str = "train",
+                       val_split: str = "val") -> tuple[KittiDetectionDataset, KittiDetectionDataset]:
+    """The training and evaluation datasets of a KITTI folder (``lidarops data synth`` output or real KITTI):
+    ``ImageSets/<train_split>.txt`` augmented, ``ImageSets/<val_split>.txt`` for evaluation; the gt database
+    comes from the training frames only. The folder's ``recipe.json`` (if any) is on ``.recipe``."""
+    train = KittiDetectionDataset(root, train_split, class_names, config, training=True, seed=seed, gt_database=gt_database)
+    val = KittiDetectionDataset(root, val_split, class_names, train.config, training=False, seed=seed)
+    return train, val
+
+
+def collate_batch(items: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
+    """Batches items as OpenPCDet's ``collate_batch``.
+
+    Returns:
+        dict: ``points`` (Tensor float32[sum N, 5]: frame index in the batch, x, y, z, intensity),
+        ``gt_boxes`` (Tensor float32[B, M_max, 8], zero padded: class id 0 marks padding), ``batch_size``
+        (int), ``frame_id``, ``annos``, ``calib`` (lists); any other item key becomes a list too.
+    """
+    items = list(items)
+    batch_size = len(items)
+    points = [np.concatenate([np.full((it["points"].shape[0], 1), b, np.float32), it["points"]], axis=1)
+              for b, it in enumerate(items)]
+    m = max([it["gt_boxes"].shape[0] for it in items] + [0])
+    width = items[0]["gt_boxes"].shape[1] if items else 8
+    gt_boxes = np.zeros((batch_size, m, width), dtype=np.float32)
+    for b, it in enumerate(items):
+        gt_boxes[b, :it["gt_boxes"].shape[0]] = it["gt_boxes"]
+    out: dict[str, Any] = {
+        "points": torch.from_numpy(np.concatenate(points) if points else np.zeros((0, 5), np.float32)),
+        "gt_boxes": torch.from_numpy(gt_boxes),
+        "batch_size": batch_size,
+    }
+    for key in dict.fromkeys(k for it in items for k in it):
+        if key not in out:
+            out[key] = [it.get(key) for it in items]
+    return out
