@@ -13,6 +13,7 @@ _SUBCOMMAND_MODULES = (
     "lidarops.tour",  # lidarops tour: a short tour of the ops on synthetic clouds
     "lidarops.data.cli",  # lidarops data synth|show
     "lidarops.sscater.cli",  # lidarops stream: the simulator through SSCATeR PointPillars (make demo)
+    "lidarops.models.cli",  # lidarops train|detect|eval: the PointPillars detector
 )
 
 

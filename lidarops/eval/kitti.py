@@ -55,6 +55,7 @@ __all__ = [
     "detection_annos",
     "count_difficulties",
     "get_thresholds",
+    "KittiEvaluator",
     "DEFAULT_MIN_OVERLAPS",
     "METRICS",
     "DIFFICULTIES",
@@ -706,3 +707,51 @@ def count_difficulties(gt_annos: Sequence[Mapping], classes: Sequence[str] = ("C
             row[difficulty] = ev.ignored(c, d)[2]
         out[name] = row
     return out
+
+
+def _item_annos(anno: Mapping[str, Any], index: int) -> dict[str, np.ndarray]:
+    """An annotation dict from a dataset item's ``annos`` (``lidarops.data.detection``: ``dimensions_hwl``
+    in the label file's h, w, l order) or an already converted one (``dimensions`` l, h, w)."""
+    if "dimensions" in anno:
+        return dict(anno)
+    if "dimensions_hwl" not in anno:
+        raise ValueError(f"frame {index}: annotations need 'dimensions' (l, h, w) or 'dimensions_hwl' (h, w, l)")
+    out = {k: v for k, v in anno.items() if k != "dimensions_hwl"}
+    out["dimensions"] = np.asarray(anno["dimensions_hwl"], dtype=np.float64).reshape(-1, 3)[:, [2, 0, 1]]
+    return out
+
+
+class KittiEvaluator:
+    """The evaluator of a detection training run (``lidarops.train.fit(..., evaluator=...)``): model
+    predictions in the LiDAR frame against the ground-truth annotations the dataset items carry.
+
+    Args:
+        class_names (sequence of str): the model's classes; a prediction's label k (1-based) is
+            ``class_names[k - 1]``. All of them are evaluated.
+        image_size (tuple[int, int]): image (width, height) of frames whose metadata gives none.
+        metrics (sequence of str): as :func:`evaluate`.
+
+    Called as ``evaluator(predictions, metas) -> (results, text)``: ``predictions[i]`` a dict of ``boxes
+    (K, 7)``, ``scores (K,)``, ``labels (K,)`` (1-based); ``metas[i]`` a dict with the frame's ``annos``
+    and ``calib`` (and optionally ``image_size``).
+    """
+
+    def __init__(self, class_names: Sequence[str], image_size: tuple[int, int] = KITTI_IMAGE_SIZE,
+                 metrics: Sequence[str] = METRICS):
+        self.class_names = list(class_names)
+        self.image_size = tuple(image_size)
+        self.metrics = tuple(metrics)
+
+    def __call__(self, predictions: Sequence[Mapping[str, Any]], metas: Sequence[Mapping[str, Any]]
+                 ) -> tuple[dict[str, float], str]:
+        if len(predictions) != len(metas):
+            raise ValueError(f"{len(predictions)} predictions for {len(metas)} frames")
+        gt_annos, dt_annos = [], []
+        for i, (pred, meta) in enumerate(zip(predictions, metas)):
+            gt_annos.append(_item_annos(meta["annos"], i))
+            labels = _numpy(pred["labels"]).astype(np.int64) - 1
+            dt_annos.append(detection_annos({"boxes": pred["boxes"], "scores": pred["scores"], "labels": labels},
+                                            meta.get("calib"), tuple(meta.get("image_size") or self.image_size),
+                                            self.class_names, index=i))
+        text, results = evaluate(gt_annos, dt_annos, self.class_names, metrics=self.metrics)
+        return results, text

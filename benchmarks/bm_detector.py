@@ -1,0 +1,212 @@
+"""Benchmark PointPillars end to end on one frame already in device memory.
+
+    python benchmarks/bm_detector.py --device cuda --json      # GPU: dense/sparse x fp32/TF32/fp16, eager and graph
+    python benchmarks/bm_detector.py --device cpu               # CPU latency (fp32)
+
+The frame: a simulated ``driving_city`` sweep cropped to KITTI's camera field of view and PointPillars'
+range (about 20k points). Stages: voxelize -> PFN -> scatter -> backbone -> head -> decode -> NMS, with
+the shipped weights when present (``lidarops/weights``), else seeded random weights with BatchNorm
+statistics from a few frames (the time does not depend on the values, except NMS on the number of boxes).
+
+* **eager**: ``model.predict(batch)`` as a user writes it (validation, voxelization with its host read,
+  every launch, post-processing with its host reads), median over many calls, CUDA events.
+* **graph** (dense backbone, CUDA): voxelization with ``padded=True``, the network and the decode
+  captured in one CUDA graph and replayed; the score threshold and NMS run eagerly after it (their output
+  size depends on the data). The sparse backbone builds its kernel maps with host reads, so it has no
+  graph row.
+* **stages**: CUDA events between the stages of one eager call (their GPU time, not counting host gaps).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+
+import numpy as np
+import torch
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from benchmarks.common import env_meta, fmt_ms, print_table, time_call, write_results  # noqa: E402
+from lidarops import extension  # noqa: E402
+from lidarops.models.detector import PointPillars, postprocess  # noqa: E402
+
+PRECISIONS = ("fp32", "tf32", "fp16")
+
+
+def kitti_like_frame(seed: int = 0) -> torch.Tensor:
+    """A driving_city sweep in KITTI's camera field of view and the PointPillars range: (N, 4)."""
+    from lidarops.data.formats.kitti import KittiCalib, kitti_fov_mask
+    from lidarops.data.synthetic import Simulator
+
+    pts = Simulator("driving_city", seed=seed).sweep(0).points
+    keep = kitti_fov_mask(pts, KittiCalib.default())
+    keep &= (pts[:, 0] >= 0) & (pts[:, 0] < 69.12) & (np.abs(pts[:, 1]) < 39.68) & (pts[:, 2] >= -3) & (pts[:, 2] < 1)
+    return torch.from_numpy(pts[keep])
+
+
+def load_model(device: str, mode: str) -> PointPillars:
+    try:
+        from lidarops.models import weights
+
+        model = weights.load("pointpillars_synth", map_location=device)
+        if model.config.backbone_mode != mode:
+            cfg = model.config.to_dict()
+            cfg["backbone_mode"] = mode
+            state = model.state_dict()
+            model = PointPillars(cfg)
+            model.load_weights(state)
+    except (ImportError, FileNotFoundError, AttributeError):
+        torch.manual_seed(0)
+        cfg = PointPillars().config.to_dict()
+        cfg["backbone_mode"] = mode
+        model = PointPillars(cfg)
+    return model.to(device).eval()
+
+
+@contextlib.contextmanager
+def precision_mode(precision: str, device: str):
+    old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = precision == "tf32"
+    ctx = torch.autocast(device_type=torch.device(device).type, dtype=torch.float16) if precision == "fp16" \
+        else contextlib.nullcontext()
+    try:
+        with ctx:
+            yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+
+
+def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30) -> dict[str, float]:
+    """Median GPU time of each stage of one eager call (CUDA events between the stages)."""
+    from lidarops.sparse import SparseConvTensor
+
+    names = ("voxelize", "pfn", "scatter", "backbone", "head", "decode", "nms")
+    acc = {n: [] for n in names}
+    cfg = model.config
+    for _ in range(runs + 3):
+        ev = [torch.cuda.Event(enable_timing=True) for _ in range(len(names) + 1)]
+        with torch.no_grad(), precision_mode(precision, "cuda"):
+            ev[0].record()
+            voxels, num, coords = model.voxelize(batch["points"], 1)
+            ev[1].record()
+            feats = model.vfe(voxels, num, coords)
+            ev[2].record()
+            if cfg.backbone_mode == "dense":
+                x = model.map_to_bev(feats, coords, 1)
+            else:
+                nx, ny, _ = cfg.grid_size
+                x = SparseConvTensor(feats, coords[:, [0, 2, 3]].int().contiguous(), [ny, nx], 1)
+            ev[3].record()
+            x = model.backbone_2d(x)
+            ev[4].record()
+            raw = model.dense_head(x)
+            ev[5].record()
+            cls, boxes = model.dense_head.decode(raw)
+            ev[6].record()
+            postprocess(cls, boxes, cfg)
+            ev[7].record()
+        torch.cuda.synchronize()
+        for i, n in enumerate(names):
+            acc[n].append(ev[i].elapsed_time(ev[i + 1]))
+    return {n: float(np.median(v[3:])) for n, v in acc.items()}
+
+
+class GraphedNetwork:
+    """Padded voxelization, network and decode in one CUDA graph; threshold + NMS eager after it."""
+
+    def __init__(self, model: PointPillars, points: torch.Tensor, precision: str):
+        from lidarops.ops.voxelize import voxelize
+
+        self.model, self.precision = model, precision
+        cfg = model.config
+        self.static_points = points.clone()
+
+        def body():
+            with torch.no_grad(), precision_mode(precision, "cuda"):
+                v, c, n = voxelize(self.static_points, cfg.voxel_size, cfg.point_cloud_range,
+                                   cfg.max_points_per_voxel, cfg.max_voxels_test, overflow="drop", padded=True)
+                coords = torch.cat([torch.where(c[:, :1] >= 0, 0, -1), c], 1)
+                raw = model.network(v, n, coords, 1)
+                return model.dense_head.decode(raw)
+
+        stream = torch.cuda.Stream()
+        stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(stream):
+            for _ in range(3):
+                body()
+        torch.cuda.current_stream().wait_stream(stream)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self.out = body()
+
+    def __call__(self, points: torch.Tensor):
+        self.static_points.copy_(points)
+        self.graph.replay()
+        return postprocess(*self.out, self.model.config)
+
+
+def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS) -> list[dict]:
+    rows = []
+    frame = kitti_like_frame().to(device)
+    batch = {"points": torch.cat([frame.new_zeros(frame.shape[0], 1), frame], 1), "batch_size": 1}
+    for mode in modes:
+        model = load_model(device, mode)
+        for precision in (precisions if device == "cuda" else ("fp32",)):
+            def eager(b):
+                with precision_mode(precision, device):
+                    return model.predict(b)
+
+            t = time_call(eager, (batch,), torch.device(device), budget_s=2.0, rotate=False)
+            kept = len(eager(batch)[0]["scores"])
+            row = {"op": "pointpillars", "backbone": mode, "precision": precision, "impl": "eager",
+                   "points": int(frame.shape[0]), "boxes": kept, **t.as_dict()}
+            if device == "cuda":
+                row["stages_ms"] = stage_times(model, batch, precision)
+            rows.append(row)
+            if device == "cuda" and mode == "dense":
+                try:
+                    graphed = GraphedNetwork(model, frame, precision)
+                    t = time_call(graphed, (frame,), torch.device(device), budget_s=2.0, rotate=False)
+                    rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
+                                 "impl": "graph + eager NMS", "points": int(frame.shape[0]),
+                                 "boxes": len(graphed(frame)[0]["scores"]), **t.as_dict()})
+                except Exception as e:  # noqa: BLE001  (reported, not blanked)
+                    rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
+                                 "impl": "graph + eager NMS", "status": f"error: {type(e).__name__}: {e}"})
+    for r in rows:
+        r.setdefault("status", "ok")
+        r["device"] = device
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--json", action="store_true", help="merge results into benchmarks/results/<device>.json")
+    args = ap.parse_args(argv)
+    if args.device == "cuda" and not (torch.cuda.is_available() and extension.cuda_available()):
+        print("no CUDA device or lidarops without CUDA kernels")
+        return 1
+    rows = run(args.device)
+    table = []
+    for r in rows:
+        stages = r.get("stages_ms")
+        share = ""
+        if stages:
+            total = sum(stages.values())
+            share = "  ".join(f"{k} {100 * v / total:.0f}%" for k, v in stages.items())
+        table.append([r["backbone"], r["precision"], r["impl"], fmt_ms(r.get("median_ms")), r.get("boxes", ""),
+                      share if r["status"] == "ok" else r["status"]])
+    print_table(f"PointPillars end to end on {env_meta(args.device).get('device', args.device)}",
+                ["backbone", "precision", "call", "median ms", "boxes", "GPU time by stage / status"], table,
+                right=(3, 4))
+    if args.json:
+        print(f"wrote {write_results('detector', args.device, rows, env_meta(args.device), replace_by=None)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

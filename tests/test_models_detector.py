@@ -1,0 +1,380 @@
+"""lidarops.models.detector (PointPillars): OpenPCDet's state-dict layout and anchor order, the pillar
+features and losses against values computed here by hand, post-processing, configs, bad input, export,
+and an overfit run on simulated frames."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from lidarops.models.config import ConfigError, PointPillarsConfig, load_config
+from lidarops.models.detector import (
+    CheckpointMismatchError,
+    PillarVFE,
+    PointPillars,
+    postprocess,
+    sigmoid_focal_loss,
+)
+
+TINY = dict(
+    class_names=["Car"],
+    point_cloud_range=[0.0, -4.0, -3.0, 8.0, 4.0, 1.0],
+    voxel_size=[1.0, 1.0, 4.0],
+    vfe_num_filters=[8],
+    layer_nums=[1, 1, 1], layer_strides=[2, 2, 2], num_filters=[8, 8, 8],
+    upsample_strides=[1, 2, 4], num_upsample_filters=[4, 4, 4],
+    anchor_generator_config=[{"class_name": "Car", "anchor_sizes": [[2.0, 1.0, 1.5]], "anchor_rotations": [0, 1.57],
+                              "anchor_bottom_heights": [-1.78], "align_center": True, "feature_map_stride": 2,
+                              "matched_threshold": 0.6, "unmatched_threshold": 0.45}],
+)
+
+
+def openpcdet_pointpillar_keys() -> dict[str, tuple]:
+    """The state dict of OpenPCDet's PointPillar (pointpillar.yaml) written from its module tree:
+    Detector3DTemplate's global_step; PillarVFE's one PFNLayer (Linear 10 -> 64 without bias,
+    BatchNorm1d); BaseBEVBackbone blocks [ZeroPad2d, Conv, BN, ReLU] + [Conv, BN, ReLU] x n and deblocks
+    [ConvTranspose2d, BN, ReLU]; AnchorHeadSingle's three 1x1 convolutions over 6 anchors per location."""
+    keys = {"global_step": (1,)}
+
+    def bn(prefix, c):
+        keys.update({f"{prefix}.weight": (c,), f"{prefix}.bias": (c,), f"{prefix}.running_mean": (c,),
+                     f"{prefix}.running_var": (c,), f"{prefix}.num_batches_tracked": ()})
+
+    keys["vfe.pfn_layers.0.linear.weight"] = (64, 10)
+    bn("vfe.pfn_layers.0.norm", 64)
+    c_in = 64
+    for i, (c, n, cu, u) in enumerate(zip([64, 128, 256], [3, 5, 5], [128, 128, 128], [1, 2, 4])):
+        keys[f"backbone_2d.blocks.{i}.1.weight"] = (c, c_in, 3, 3)
+        bn(f"backbone_2d.blocks.{i}.2", c)
+        for j in range(n):
+            keys[f"backbone_2d.blocks.{i}.{4 + 3 * j}.weight"] = (c, c, 3, 3)
+            bn(f"backbone_2d.blocks.{i}.{5 + 3 * j}", c)
+        keys[f"backbone_2d.deblocks.{i}.0.weight"] = (c, cu, u, u)
+        bn(f"backbone_2d.deblocks.{i}.1", cu)
+        c_in = c
+    for name, out in (("conv_cls", 6 * 3), ("conv_box", 6 * 7), ("conv_dir_cls", 6 * 2)):
+        keys[f"dense_head.{name}.weight"] = (out, 384, 1, 1)
+        keys[f"dense_head.{name}.bias"] = (out,)
+    return keys
+
+
+def test_state_dict_is_openpcdet_pointpillar():
+    model = PointPillars()
+    got = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    assert got == openpcdet_pointpillar_keys()
+    assert sum(p.numel() for p in model.parameters()) == 4_834_888  # OpenPCDet reports 4.8 M
+
+
+def test_kitti_anchor_count_and_head_layout():
+    model = PointPillars()
+    head = model.dense_head
+    assert head.anchors_flat.shape == (216 * 248 * 6, 7) == (321_408, 7)
+    assert head.num_anchors_per_location == 6
+    raw = head(torch.zeros(1, 384, 248, 216))
+    assert raw["cls_preds"].shape == (1, 248, 216, 18) and raw["dir_cls_preds"].shape == (1, 248, 216, 12)
+    # location (y=0, x=1): anchors 6..11 are Car 0, Car pi/2, Ped 0, Ped pi/2, Cyc 0, Cyc pi/2
+    a = head.anchors_flat[6:12]
+    step = 69.12 / 215
+    assert torch.allclose(a[:, 0], torch.full((6,), step)) and torch.allclose(a[:, 1], torch.full((6,), -39.68))
+    assert torch.allclose(a[:, 3], torch.tensor([3.9, 3.9, 0.8, 0.8, 1.76, 1.76]))
+    assert torch.allclose(a[:, 6], torch.tensor([0, 1.57, 0, 1.57, 0, 1.57]))
+    assert torch.allclose(a[0, 2], torch.tensor(-1.78 + 1.56 / 2))
+
+
+def test_vfe_features_by_hand():
+    """Two points in pillar (x=2, y=1) of a 1 m grid starting at (0, -4): the 10 features, with the
+    linear layer an identity on them and BatchNorm an identity."""
+    vfe = PillarVFE(4, [1.0, 1.0, 4.0], [0.0, -4.0, -3.0, 8.0, 4.0, 1.0], num_filters=[10]).eval()
+    with torch.no_grad():
+        vfe.pfn_layers[0].linear.weight.copy_(torch.eye(10))
+        vfe.pfn_layers[0].norm.running_var.fill_(1 - 1e-3)  # with eps 1e-3: scale exactly 1
+    p = torch.tensor([[2.2, -2.9, -1.0, 0.5], [2.6, -2.3, -0.5, 0.25]])
+    voxels = torch.zeros(1, 4, 4)
+    voxels[0, :2] = p
+    out = vfe(voxels, torch.tensor([2]), torch.tensor([[0, 0, 1, 2]]))
+    mean = p[:, :3].mean(0)
+    centre = torch.tensor([2.5, -2.5, -1.0])  # (x + 0.5) m, -4 + (y + 0.5) m, z range centre
+    feats = torch.cat([p, p[:, :3] - mean, p[:, :3] - centre], 1)
+    expected = torch.relu(feats).amax(0)  # the two empty slots add zeros, below relu(.)
+    assert torch.allclose(out[0], expected, atol=1e-6), (out, expected)
+
+
+def test_vfe_empty_slots_take_part_like_openpcdet():
+    """OpenPCDet lets the zero-feature padding slots through BatchNorm and ReLU into the max: with a
+    positive BatchNorm shift a pillar of negative responses outputs relu(shift), not relu(x + shift)."""
+    vfe = PillarVFE(4, [1.0, 1.0, 4.0], [0.0, -4.0, -3.0, 8.0, 4.0, 1.0], num_filters=[1]).eval()
+    with torch.no_grad():
+        vfe.pfn_layers[0].linear.weight.zero_()
+        vfe.pfn_layers[0].linear.weight[0, 0] = -1.0  # -x
+        vfe.pfn_layers[0].norm.running_var.fill_(1 - 1e-3)
+        vfe.pfn_layers[0].norm.bias.fill_(0.5)
+    voxels = torch.zeros(2, 3, 4)
+    voxels[:, 0] = torch.tensor([[3.2, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])
+    out = vfe(voxels, torch.tensor([1, 3]), torch.tensor([[0, 0, 4, 3], [0, 0, 4, 0]]))
+    # pillar 0: one point (-3.2 + 0.5 < 0) and two empty slots giving relu(0.5)
+    # pillar 1: three "points" (the zeros count as points): max(relu(-0.2 + 0.5), relu(0.5)) = 0.5
+    assert torch.allclose(out[:, 0], torch.tensor([0.5, 0.5]))
+
+
+def test_focal_loss_formula():
+    logits = torch.tensor([-2.0, 0.0, 1.5, 3.0])
+    targets = torch.tensor([0.0, 1.0, 1.0, 0.0])
+    got = sigmoid_focal_loss(logits, targets)
+    for x, t, g in zip(logits.tolist(), targets.tolist(), got.tolist()):
+        p = 1 / (1 + math.exp(-x))
+        pt = p if t == 1 else 1 - p
+        alpha = 0.25 if t == 1 else 0.75
+        assert abs(g - alpha * (1 - pt) ** 2 * -math.log(pt)) < 1e-6
+
+
+def test_losses_by_hand():
+    """Tiny grid, one gt box equal to one anchor: the loss terms computed anchor by anchor here."""
+    torch.manual_seed(0)
+    model = PointPillars(TINY)
+    head = model.dense_head
+    anchors = head.anchors_flat  # (4 * 4 * 2, 7), align_center: x in {1, 3, 5, 7}, y in {-3, -1, 1, 3}
+    k = 2 * (4 * 1 + 2) + 1  # y index 1, x index 2, rotation pi/2
+    gt = anchors[k].clone()
+    gt[0] += 0.1
+    gt[6] += 0.2
+    gt_boxes = torch.cat([gt, torch.tensor([1.0])])[None, None]
+    g = torch.Generator().manual_seed(1)
+    preds = {"cls_preds": torch.randn(1, 4, 4, 2, generator=g), "box_preds": torch.randn(1, 4, 4, 14, generator=g) * 0.1,
+             "dir_cls_preds": torch.randn(1, 4, 4, 4, generator=g)}
+    out = head.loss(preds, gt_boxes)
+    labels = head.target_assigner.assign_targets(head.anchors, gt_boxes)["box_cls_labels"][0]
+    assert labels[k] == 1 and (labels == 1).sum() == 1  # the matched anchor; others ignored or background
+    cls = preds["cls_preds"].reshape(-1)
+    box = preds["box_preds"].reshape(-1, 7)
+    dirl = preds["dir_cls_preds"].reshape(-1, 2)
+    loss_cls = loss_box = loss_dir = 0.0
+    for i in range(anchors.shape[0]):
+        lab = int(labels[i])
+        if lab >= 0:
+            p = 1 / (1 + math.exp(-float(cls[i])))
+            t = 1.0 if lab == 1 else 0.0
+            pt = p if t else 1 - p
+            loss_cls += (0.25 if t else 0.75) * (1 - pt) ** 2 * -math.log(pt)
+        if lab == 1:
+            a = anchors[i].tolist()
+            diag = math.hypot(a[3], a[4])
+            target = [(gt[0] - a[0]) / diag, (gt[1] - a[1]) / diag, (gt[2] - a[2]) / a[5], math.log(gt[3] / a[3]),
+                      math.log(gt[4] / a[4]), math.log(gt[5] / a[5]), gt[6] - a[6]]
+            b = box[i].tolist()
+            for c in range(7):
+                bp, tp = (b[c], float(target[c])) if c < 6 else (math.sin(b[6]) * math.cos(target[6]),
+                                                                  math.cos(b[6]) * math.sin(target[6]))
+                d = abs(bp - tp)
+                loss_box += 0.5 * d * d * 9 if d < 1 / 9 else d - 0.5 / 9
+            rot = (float(gt[6]) - 0.78539) % (2 * math.pi)
+            bin_ = int(rot // math.pi)
+            z = dirl[i].tolist()
+            loss_dir += -(z[bin_] - math.log(math.exp(z[0]) + math.exp(z[1])))
+    assert abs(out["loss_cls"].item() - loss_cls) < 1e-5
+    assert abs(out["loss_box"].item() - 2.0 * loss_box) < 1e-5
+    assert abs(out["loss_dir"].item() - 0.2 * loss_dir) < 1e-5
+    assert abs(out["loss"].item() - (loss_cls + 2.0 * loss_box + 0.2 * loss_dir)) < 1e-5
+
+
+def test_postprocess_threshold_and_nms():
+    cfg = PointPillarsConfig(**{**TINY, "class_names": ["Car", "Pedestrian"],
+                                "anchor_generator_config": TINY["anchor_generator_config"] + [
+                                    {**TINY["anchor_generator_config"][0], "class_name": "Pedestrian"}]})
+    boxes = torch.tensor([[[1.0, 0, 0, 4, 2, 1.5, 0], [1.2, 0, 0, 4, 2, 1.5, 0], [10, 0, 0, 4, 2, 1.5, 0],
+                           [20, 0, 0, 1, 1, 1, 0]]])
+    logit = lambda p: math.log(p / (1 - p))  # noqa: E731
+    cls = torch.tensor([[[logit(0.9), logit(0.2)], [logit(0.95), logit(0.1)], [logit(0.05), logit(0.3)],
+                         [logit(0.01), logit(0.09)]]])
+    out = postprocess(cls, boxes, cfg)[0]
+    # box 1 (0.95) suppresses box 0 (IoU > 0.01); box 2 is a Pedestrian at 0.3; box 3 is below 0.1
+    assert out["labels"].tolist() == [1, 2] and torch.allclose(out["scores"], torch.tensor([0.95, 0.3]))
+    assert torch.equal(out["boxes"], boxes[0, [1, 2]])
+    multi = postprocess(cls, boxes, PointPillarsConfig(**{**cfg.to_dict(), "multi_classes_nms": True}))[0]
+    # per class, on each class's own scores: Car keeps box 1 (0.95; box 0 suppressed); Pedestrian keeps box 2
+    # (0.3) and box 0 (0.2, apart from box 2) and suppresses box 1 (0.1, overlapping box 0)
+    assert multi["labels"].tolist() == [1, 2, 2]
+    assert torch.allclose(multi["scores"], torch.tensor([0.95, 0.3, 0.2]))
+    assert torch.equal(multi["boxes"], boxes[0, [1, 2, 0]])
+
+
+def _batch(points_per_frame: list[torch.Tensor], gt: list[list[list[float]]] | None = None) -> dict:
+    pts = [torch.cat([torch.full((p.shape[0], 1), float(i)), p], 1) for i, p in enumerate(points_per_frame)]
+    batch = {"points": torch.cat(pts) if pts else torch.zeros(0, 5), "batch_size": len(points_per_frame)}
+    if gt is not None:
+        m = max(1, max(len(g) for g in gt))
+        boxes = torch.zeros(len(gt), m, 8)
+        for i, g in enumerate(gt):
+            if g:
+                boxes[i, :len(g)] = torch.tensor(g)
+        batch["gt_boxes"] = boxes
+    return batch
+
+
+def test_empty_and_out_of_range_clouds():
+    torch.manual_seed(0)
+    model = PointPillars(TINY)
+    far = torch.tensor([[100.0, 100.0, 0.0, 0.5], [-5.0, 0.0, 0.0, 0.1]])
+    for clouds in ([torch.zeros(0, 4)], [far], [torch.zeros(0, 4), far]):
+        preds = model.predict(_batch(clouds))
+        assert len(preds) == len(clouds) and all(p["boxes"].shape == (0, 7) for p in preds)
+    model.train()
+    out = model(_batch([torch.zeros(0, 4), far], gt=[[], [[3.0, 0.0, -1.0, 2.0, 1.0, 1.5, 0.0, 1.0]]]))
+    assert torch.isfinite(out["loss"]) and out["loss"].requires_grad
+
+
+def test_bad_batches_raise():
+    model = PointPillars(TINY)
+    with pytest.raises(ValueError, match="batch must be a dict"):
+        model([1, 2])
+    with pytest.raises(ValueError, match=r"batch\['points'\] must be a floating \(P, 1 \+ 4\)"):
+        model({"points": torch.zeros(5, 3), "batch_size": 1})
+    with pytest.raises(ValueError, match="batch_size"):
+        model({"points": torch.zeros(5, 5), "batch_size": 0})
+    with pytest.raises(ValueError, match=r"gt_boxes'\] must be \(batch_size=1, M, 8\)"):
+        model.train()({"points": torch.zeros(5, 5), "batch_size": 1, "gt_boxes": torch.zeros(1, 2, 7)})
+
+
+def test_checkpoint_of_another_config_names_the_keys(tmp_path):
+    three = PointPillars()
+    all_classes = PointPillars(load_config("configs/pointpillars_synth_all.yaml"))
+    torch.save({"model_state": all_classes.state_dict()}, tmp_path / "eight.pth")
+    with pytest.raises(CheckpointMismatchError, match=r"shape mismatch.*dense_head\.conv_cls\.weight"):
+        PointPillars.from_checkpoint(tmp_path / "eight.pth", config=three.config)
+    state = three.state_dict()
+    del state["vfe.pfn_layers.0.norm.weight"]
+    state["extra.weight"] = torch.zeros(1)
+    with pytest.raises(CheckpointMismatchError, match=r"missing \(1\): vfe\.pfn_layers\.0\.norm\.weight.*unexpected"):
+        three.load_weights(state)
+    # an OpenPCDet-style checkpoint of the right config loads strictly and gives the same outputs
+    torch.save({"model_state": three.state_dict(), "epoch": 80}, tmp_path / "pcdet.pth")
+    again = PointPillars.from_checkpoint(tmp_path / "pcdet.pth", config="configs/pointpillars_kitti.yaml")
+    assert all(torch.equal(a, b) for a, b in zip(three.state_dict().values(), again.state_dict().values()))
+
+
+def test_openpcdet_yaml_with_base_config(tmp_path):
+    """OpenPCDet's layout: tools/cfgs/kitti_models/pointpillar.yaml naming its base relative to tools/."""
+    import shutil
+    cfgs = tmp_path / "tools" / "cfgs"
+    (cfgs / "dataset_configs").mkdir(parents=True)
+    (cfgs / "kitti_models").mkdir()
+    shutil.copy("configs/dataset/kitti.yaml", cfgs / "dataset_configs" / "kitti_dataset.yaml")
+    text = open("configs/pointpillars_kitti.yaml").read().replace("_BASE_CONFIG_: dataset/kitti.yaml",
+                                                                  "_BASE_CONFIG_: cfgs/dataset_configs/kitti_dataset.yaml")
+    (cfgs / "kitti_models" / "pointpillar.yaml").write_text(text)
+    cfg = load_config(cfgs / "kitti_models" / "pointpillar.yaml")
+    assert cfg["DATA_CONFIG"]["FOV_POINTS_ONLY"] is True  # from the base
+    assert cfg["DATA_CONFIG"]["POINT_CLOUD_RANGE"] == [0, -39.68, -3, 69.12, 39.68, 1]  # overridden
+    assert PointPillarsConfig.from_openpcdet(cfg) == PointPillarsConfig()
+    (cfgs / "kitti_models" / "bad.yaml").write_text(text.replace("dataset_configs/kitti_dataset", "nowhere/x"))
+    with pytest.raises(ConfigError, match="_BASE_CONFIG_ 'cfgs/nowhere/x.yaml' not found"):
+        load_config(cfgs / "kitti_models" / "bad.yaml")
+
+
+@pytest.mark.parametrize("key,value,pattern", [
+    ("VFE", {"NAME": "DynamicPillarVFE"}, "MODEL.VFE.NAME = 'DynamicPillarVFE' is not supported"),
+    ("DENSE_HEAD", {"NAME": "AnchorHeadMulti"}, "MODEL.DENSE_HEAD.NAME"),
+])
+def test_unsupported_openpcdet_options(key, value, pattern):
+    cfg = load_config("configs/pointpillars_kitti.yaml")
+    cfg["MODEL"][key] = {**cfg["MODEL"][key], **value}
+    with pytest.raises(ConfigError, match=pattern):
+        PointPillarsConfig.from_openpcdet(cfg)
+
+
+def test_config_round_trip_and_checks():
+    cfg = PointPillarsConfig.from_openpcdet(load_config("configs/pointpillars_synth_all.yaml"))
+    assert PointPillarsConfig.from_dict(cfg.to_dict()) == cfg
+    assert len(cfg.class_names) == 8
+    with pytest.raises(ConfigError, match="whole number of VOXEL_SIZE cells"):
+        PointPillarsConfig(voxel_size=[0.17, 0.16, 4.0])
+    with pytest.raises(ConfigError, match="one entry per class"):
+        PointPillarsConfig(class_names=["Car"])
+
+
+def test_torch_export_of_the_network():
+    torch.manual_seed(0)
+    model = PointPillars(TINY).eval()
+
+    class Net(torch.nn.Module):
+        def __init__(self, m):
+            super().__init__()
+            self.m = m
+
+        def forward(self, voxels, num_points, coords):
+            out = self.m.network(voxels, num_points, coords, 1)
+            return out["cls_preds"], out["box_preds"], out["dir_cls_preds"]
+
+    pts = torch.tensor([[1.5, -2.5, -1.0, 0.3], [1.2, -2.1, -0.5, 0.1], [6.5, 3.5, 0.0, 0.9]])
+    voxels, num_points, coords = model.voxelize(torch.cat([torch.zeros(3, 1), pts], 1), 1)
+    ep = torch.export.export(Net(model), (voxels, num_points, coords))
+    for a, b in zip(ep.module()(voxels, num_points, coords), Net(model)(voxels, num_points, coords)):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_sparse_backbone_mode_runs():
+    torch.manual_seed(0)
+    dense = PointPillars(TINY).eval()
+    sparse = PointPillars({**TINY, "backbone_mode": "sparse"}).eval()
+    sparse.load_weights(dense.state_dict())
+    batch = _batch([torch.tensor([[1.5, -2.5, -1.0, 0.3], [6.5, 3.5, 0.0, 0.9]])])
+    with torch.no_grad():
+        a, b = dense(batch), sparse(batch)
+    assert all(a[k].shape == b[k].shape for k in a)
+
+
+def _synthetic_frames(n: int):
+    from lidarops.data.synthetic import SyntheticFrames
+
+    frames = SyntheticFrames("driving_city", num_frames=n, seed=5, object_counts={"Car": 8, "Pedestrian": 0,
+                                                                                   "Cyclist": 0})
+    out = []
+    for i in range(n):
+        f = frames[i]
+        keep = (f.labels == 0) & (f.num_points_in_box >= 20)
+        out.append((torch.from_numpy(f.points), torch.from_numpy(f.boxes[keep])))
+    return out
+
+
+@pytest.mark.slow
+def test_overfit_a_few_frames():
+    """A narrow PointPillars on 2 simulated frames: the loss falls and the cars come back (BEV IoU > 0.5)."""
+    cfg = dict(TINY, point_cloud_range=[0.0, -20.48, -3.0, 40.96, 20.48, 1.0], voxel_size=[0.32, 0.32, 4.0],
+               vfe_num_filters=[32], num_filters=[32, 32, 64], num_upsample_filters=[32, 32, 32],
+               anchor_generator_config=[{**TINY["anchor_generator_config"][0], "anchor_sizes": [[3.9, 1.6, 1.56]],
+                                         "align_center": False}])
+    torch.manual_seed(0)
+    model = PointPillars(cfg)
+    data = _synthetic_frames(2)
+    lo, hi = torch.tensor(cfg["point_cloud_range"][:3]), torch.tensor(cfg["point_cloud_range"][3:])
+    clouds, gts = [], []
+    for pts, boxes in data:
+        clouds.append(pts[((pts[:, :3] >= lo) & (pts[:, :3] < hi)).all(1)])
+        inside = ((boxes[:, :2] >= lo[:2] + 2) & (boxes[:, :2] < hi[:2] - 2)).all(1)
+        gts.append(torch.cat([boxes[inside], torch.ones(int(inside.sum()), 1)], 1).tolist())
+    assert sum(len(g) for g in gts) >= 4
+    batch = _batch(clouds, gts)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    model.train()
+    losses = []
+    for _ in range(120):
+        out = model(batch)
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+        losses.append(out["loss"].item())
+    assert np.mean(losses[-10:]) < 0.2 * np.mean(losses[:5]), losses[::20]
+    # BatchNorm's running statistics (momentum 0.01) lag 120 steps behind: take this batch's statistics
+    for m in model.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.reset_running_stats()
+            m.momentum = None
+    with torch.no_grad():
+        model(batch)
+    import lidarops
+
+    for pred, gt in zip(model.predict(batch), gts):
+        gt = torch.tensor(gt)[:, :7]
+        iou = lidarops.box_iou_bev(gt, pred["boxes"].float())
+        assert (iou.amax(1) > 0.5).float().mean() >= 0.75, iou.amax(1)
