@@ -67,11 +67,13 @@ def load_model(device: str, mode: str) -> PointPillars:
 
 
 @contextlib.contextmanager
-def precision_mode(precision: str, device: str):
+def precision_mode(precision: str, device: str, autocast: bool = True):
+    """TF32 switches, and fp16 autocast for the dense path (the sparse convolutions take float16 weights
+    instead: the model is converted with ``.half()``)."""
     old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = precision == "tf32"
-    ctx = torch.autocast(device_type=torch.device(device).type, dtype=torch.float16) if precision == "fp16" \
-        else contextlib.nullcontext()
+    ctx = torch.autocast(device_type=torch.device(device).type, dtype=torch.float16) \
+        if precision == "fp16" and autocast else contextlib.nullcontext()
     try:
         with ctx:
             yield
@@ -79,7 +81,8 @@ def precision_mode(precision: str, device: str):
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
 
 
-def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30) -> dict[str, float]:
+def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30, autocast: bool = True
+                ) -> dict[str, float]:
     """Median GPU time of each stage of one eager call (CUDA events between the stages)."""
     from lidarops.sparse import SparseConvTensor
 
@@ -88,7 +91,7 @@ def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30
     cfg = model.config
     for _ in range(runs + 3):
         ev = [torch.cuda.Event(enable_timing=True) for _ in range(len(names) + 1)]
-        with torch.no_grad(), precision_mode(precision, "cuda"):
+        with torch.no_grad(), precision_mode(precision, "cuda", autocast):
             ev[0].record()
             voxels, num, coords = model.voxelize(batch["points"], 1)
             ev[1].record()
@@ -151,12 +154,18 @@ class GraphedNetwork:
 def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS) -> list[dict]:
     rows = []
     frame = kitti_like_frame().to(device)
-    batch = {"points": torch.cat([frame.new_zeros(frame.shape[0], 1), frame], 1), "batch_size": 1}
     for mode in modes:
-        model = load_model(device, mode)
         for precision in (precisions if device == "cuda" else ("fp32",)):
+            model = load_model(device, mode)
+            half = mode == "sparse" and precision == "fp16"
+            if half:
+                model = model.half()
+            batch = {"points": torch.cat([frame.new_zeros(frame.shape[0], 1), frame], 1), "batch_size": 1}
+            if half:
+                batch["points"] = batch["points"].half()
+
             def eager(b):
-                with precision_mode(precision, device):
+                with precision_mode(precision, device, autocast=not half):
                     return model.predict(b)
 
             t = time_call(eager, (batch,), torch.device(device), budget_s=2.0, rotate=False)
@@ -164,7 +173,7 @@ def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS) -> list[d
             row = {"op": "pointpillars", "backbone": mode, "precision": precision, "impl": "eager",
                    "points": int(frame.shape[0]), "boxes": kept, **t.as_dict()}
             if device == "cuda":
-                row["stages_ms"] = stage_times(model, batch, precision)
+                row["stages_ms"] = stage_times(model, batch, precision, autocast=not half)
             rows.append(row)
             if device == "cuda" and mode == "dense":
                 try:

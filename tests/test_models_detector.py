@@ -378,3 +378,29 @@ def test_overfit_a_few_frames():
         gt = torch.tensor(gt)[:, :7]
         iou = lidarops.box_iou_bev(gt, pred["boxes"].float())
         assert (iou.amax(1) > 0.5).float().mean() >= 0.75, iou.amax(1)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.parametrize("mode", ["dense", "sparse"])
+def test_cuda_matches_cpu(mode):
+    """The whole model on CUDA against CPU: head outputs to float tolerance, losses, and detections."""
+    torch.manual_seed(0)
+    model = PointPillars(dict(TINY, backbone_mode=mode)).eval()
+    g = torch.Generator().manual_seed(3)
+    clouds = [torch.rand(300, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0])
+              for _ in range(2)]
+    batch = _batch(clouds, [[[3.0, 0.0, -1.0, 2.0, 1.0, 1.5, 0.3, 1.0]], []])
+    cuda_batch = {k: v.cuda() if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+    with torch.no_grad():
+        cpu, gpu = model(batch), model.cuda()(cuda_batch)
+        for k in cpu:
+            assert torch.allclose(cpu[k], gpu[k].cpu(), atol=1e-4, rtol=1e-4), k
+        model.cpu().train()
+        loss_cpu = model(batch)
+        loss_gpu = model.cuda()(cuda_batch)
+        for k in ("loss_cls", "loss_box", "loss_dir"):
+            assert abs(loss_cpu[k].item() - loss_gpu[k].item()) < 1e-4 * max(1.0, abs(loss_cpu[k].item())), k
+        model.eval()
+        cls_gpu, boxes_gpu = model.dense_head.decode(model(cuda_batch))
+        cls_cpu, boxes_cpu = model.cpu().dense_head.decode(model(batch))
+    assert torch.allclose(cls_cpu, cls_gpu.cpu(), atol=1e-4) and torch.allclose(boxes_cpu, boxes_gpu.cpu(), atol=1e-4)

@@ -60,7 +60,13 @@ def train(args: argparse.Namespace) -> int:
                        "make one with: lidarops data synth --out DIR ...")
     data_cfg = DetectionConfig.from_openpcdet(cfg.get("DATA_CONFIG", {}))
     names = model.config.class_names
-    train_set, val_set = train_val_datasets(data_root, names, data_cfg, seed=args.seed or 0)
+    gt_database = None
+    if args.gt_database_frames:  # OpenPCDet builds it from every training frame; a subset is quicker
+        from lidarops.data.detection import KittiDetectionDataset, build_gt_database
+
+        ids = KittiDetectionDataset(data_root, "train", names, data_cfg).ids[:args.gt_database_frames]
+        gt_database = build_gt_database(data_root, ids, names)
+    train_set, val_set = train_val_datasets(data_root, names, data_cfg, seed=args.seed or 0, gt_database=gt_database)
     if args.max_train_frames:
         train_set.ids = train_set.ids[:args.max_train_frames]
     if args.max_val_frames and val_set is not None:
@@ -300,6 +306,8 @@ def register(subparsers) -> None:
     t.add_argument("--max-steps", type=int, default=None, help="stop with a checkpoint after this many steps")
     t.add_argument("--max-train-frames", type=int, default=None, help="use only the first N training frames")
     t.add_argument("--max-val-frames", type=int, default=None, help="evaluate on the first N validation frames")
+    t.add_argument("--gt-database-frames", type=int, default=None,
+                   help="build the gt-sampling database from the first N training frames (default: all)")
     t.add_argument("--seed", type=int, default=None)
     t.add_argument("--device", default=None, help="auto (default), cpu, cuda")
     t.add_argument("--sync-bn", action="store_true", help="SyncBatchNorm under multi-GPU DDP")

@@ -16,7 +16,7 @@ from pathlib import Path
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 DEFAULT = "pointpillars_synth"
 
-__all__ = ["WEIGHTS_DIR", "DEFAULT", "available", "path", "info", "load"]
+__all__ = ["WEIGHTS_DIR", "DEFAULT", "available", "path", "info", "load", "export"]
 
 
 def available() -> list[str]:
@@ -45,3 +45,31 @@ def load(name: str = DEFAULT, map_location="cpu"):
     from lidarops.models.detector import PointPillars
 
     return PointPillars.from_checkpoint(path(name), map_location=map_location).eval()
+
+
+def export(checkpoint: "str | Path", out: "str | Path", **extra) -> Path:
+    """Writes a shippable file from a training checkpoint (``lidarops train``'s ``final.pth``): the model's
+    weights in float16, its config, class names, data recipe, training command and evaluation, without
+    the optimizer state. ``extra`` entries (e.g. ``evaluation=...``) are added."""
+    import torch
+
+    ckpt = torch.load(str(checkpoint), map_location="cpu", weights_only=False)
+    if "model_state" not in ckpt or "model_config" not in ckpt:
+        raise ValueError(f"{checkpoint}: not a lidarops training checkpoint of a detector (needs model_state and "
+                         f"model_config)")
+    state = {k: (v.half() if v.is_floating_point() else v) for k, v in ckpt["model_state"].items()}
+    keep = ("model_config", "class_names", "config_path", "data_recipe", "train_command", "lidarops_version",
+            "epoch", "it", "elapsed_s", "frames", "config")
+    shipped = {"model_state": state, **{k: ckpt[k] for k in keep if k in ckpt}, **extra}
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(shipped, str(out))
+    return out
+
+
+if __name__ == "__main__":  # python -m lidarops.models.weights CHECKPOINT OUT [EVAL_JSON]
+    import json
+    import sys
+
+    evaluation = json.loads(Path(sys.argv[3]).read_text()) if len(sys.argv) > 3 else None
+    print(export(sys.argv[1], sys.argv[2], **({"evaluation": evaluation} if evaluation else {})))
