@@ -485,3 +485,21 @@ def test_ops_are_registered_with_their_kernels():
         assert has(name, "CPU") and has(name, "Meta"), name
         if extension.cuda_available() and op != "kitti_match":  # the evaluator's matching is CPU-only
             assert has(name, "CUDA"), name
+
+
+@pytest.mark.parametrize("threshold", [0.001, 0.01, 0.05, 0.2])
+def test_nms_pair_decisions_equal_the_clipped_iou(device, threshold):
+    """NMS decides most overlapping pairs from a disk inside both boxes (a lower bound of the IoU) and
+    clips only the rest: every pair decision must be the one the clipped IoU gives, near the threshold too."""
+    g = torch.Generator().manual_seed(int(threshold * 1000))
+    a = lidar_boxes(400, seed=7)[:, :7]
+    b = a.clone()
+    b[:, :2] += (torch.rand(400, 2, generator=g, dtype=torch.float64) - 0.5) * 6  # from far apart to on top
+    b[:, 3:5] *= 0.3 + torch.rand(400, 2, generator=g, dtype=torch.float64) * 2
+    b[:, 6] += torch.rand(400, generator=g, dtype=torch.float64) * 3
+    iou = torch.stack([lidarops.box_iou_bev(a[i:i + 1], b[i:i + 1])[0, 0] for i in range(400)])
+    assert ((iou > threshold) & (iou < threshold + 0.05)).sum() >= 3  # pairs near the threshold exist
+    for i in range(400):
+        pair = torch.stack([a[i], b[i]]).to(device)
+        keep = lidarops.nms_bev(pair, torch.tensor([0.9, 0.8], dtype=torch.float64, device=device), threshold)
+        assert keep.tolist() == ([0] if iou[i] > threshold else [0, 1]), (i, float(iou[i]))

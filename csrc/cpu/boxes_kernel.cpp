@@ -85,7 +85,10 @@ at::Tensor nms_bev_cpu(const at::Tensor& boxes_in, const at::Tensor& scores, con
     // the kept box is a: the same argument order as the CUDA bitmask, so the same bits
     at::parallel_for(p + 1, n, 2048, [&](int64_t s, int64_t e) {
       for (int64_t q = s; q < e; ++q)
-        if (!removed[q] && group[q] == group[p] && boxes::pair_value(g[p], g[q], 1) > iou_threshold) removed[q] = 1;
+        if (!removed[q] && group[q] == group[p] && !boxes::circles_apart(g[p], g[q]) &&
+            (boxes::bev_iou_surely_above(g[p], g[q], iou_threshold) ||
+             boxes::pair_value(g[p], g[q], 1) > iou_threshold))
+          removed[q] = 1;
     });
   }
   auto out = at::empty({static_cast<int64_t>(keep.size())}, boxes_in.options().dtype(at::kLong));

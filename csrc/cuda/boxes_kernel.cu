@@ -91,29 +91,58 @@ at::Tensor box_iou_bev_cuda(const at::Tensor& a, const at::Tensor& b) { return p
 at::Tensor box_iou_3d_cuda(const at::Tensor& a, const at::Tensor& b) { return pairwise_cuda(a, b, 2); }
 
 // Block (column word c, row words r = blockIdx.y, +gridDim.y, ...): thread t writes word c of row 64 r + t,
-// for the rows r <= c (the upper triangle: only later boxes are ever suppressed).
+// for the rows r <= c (the upper triangle: only later boxes are ever suppressed). Each row first tests its
+// columns' circumscribed circles (apart: no overlap) and inscribed disks (overlapping enough: suppressed);
+// the pairs left undecided are queued per warp and clipped one pair per lane.
+// (A thread per row would run the float64 clipping with one lane busy and the rest of the warp waiting:
+// with boxes clustered on objects that made the kernel FP64-bound on idle lanes.)
 __global__ void __launch_bounds__(64)
     nms_mask_kernel(const BoxGeom* __restrict__ g, const int64_t* __restrict__ group, int64_t n, int64_t nwords,
                     double threshold, uint64_t* __restrict__ mask) {
-  __shared__ BoxGeom cols[64];
+  __shared__ BoxGeom cols[64], rows[64];
   __shared__ int64_t col_group[64];
+  __shared__ unsigned long long row_bits[64];
+  __shared__ uint16_t queue[2][32 * 64];  // per warp: (lane of the row << 6) | column
   const int64_t c = blockIdx.x, c0 = c * 64;
   const int ncols = static_cast<int>(std::min<int64_t>(64, n - c0));
-  const int t = threadIdx.x;
+  const int t = threadIdx.x, warp = t >> 5, lane = t & 31;
   if (t < ncols) {
     cols[t] = g[c0 + t];
     col_group[t] = group != nullptr ? group[c0 + t] : 0;
   }
-  __syncthreads();
   for (int64_t r = blockIdx.y; r <= c; r += gridDim.y) {
     const int64_t i = r * 64 + t;
-    if (i >= n) continue;
-    const BoxGeom a = g[i];
-    const int64_t ga = group != nullptr ? group[i] : 0;
-    uint64_t bits = 0;
-    for (int k = r == c ? t + 1 : 0; k < ncols; ++k)
-      if (col_group[k] == ga && boxes::pair_value(a, cols[k], 1) > threshold) bits |= 1ull << k;
-    mask[i * nwords + c] = bits;
+    __syncthreads();  // cols loaded; the previous row word's rows and bits no longer read
+    if (i < n) rows[t] = g[i];
+    __syncthreads();
+    uint64_t candidates = 0, surely = 0;
+    if (i < n) {
+      const int64_t gi = group != nullptr ? group[i] : 0;
+      for (int k = r == c ? t + 1 : 0; k < ncols; ++k) {
+        if (col_group[k] != gi || boxes::circles_apart(rows[t], cols[k])) continue;
+        if (boxes::bev_iou_surely_above(rows[t], cols[k], threshold)) surely |= 1ull << k;
+        else candidates |= 1ull << k;
+      }
+    }
+    row_bits[t] = surely;  // its warp's lanes OR the clipped pairs in below
+    // this lane's candidates go to [start, start + count) of the warp's queue
+    const int count = __popcll(candidates);
+    int end = count;
+    for (int d = 1; d < 32; d <<= 1) {
+      const int v = __shfl_up_sync(gpu::kFullMask, end, d);
+      if (lane >= d) end += v;
+    }
+    const int total = __shfl_sync(gpu::kFullMask, end, 31);
+    int pos = end - count;
+    for (uint64_t bits = candidates; bits; bits &= bits - 1)
+      queue[warp][pos++] = static_cast<uint16_t>((lane << 6) | (__ffsll(static_cast<long long>(bits)) - 1));
+    __syncwarp();  // the queue and this warp's row_bits written
+    for (int p = lane; p < total; p += 32) {
+      const int q = queue[warp][p], row = warp * 32 + (q >> 6), k = q & 63;
+      if (boxes::pair_value(rows[row], cols[k], 1) > threshold) atomicOr(&row_bits[row], 1ull << k);
+    }
+    __syncwarp();  // a warp's rows are set by its own lanes only
+    if (i < n) mask[i * nwords + c] = row_bits[t];
   }
 }
 
@@ -125,13 +154,21 @@ __global__ void __launch_bounds__(32)
   const int lane = threadIdx.x;
   for (int64_t w = lane; w < nwords; w += 32) removed[w] = 0;
   __syncwarp();
+  // the diagonal words of block c (each lane two rows); the next block's are fetched while this one's
+  // rows are OR-ed in, so their latency overlaps
+  auto diagonal = [&](int64_t c, uint64_t& d0, uint64_t& d1) {
+    const int64_t base = c * 64;
+    const int nb = static_cast<int>(std::min<int64_t>(64, n - base));
+    d0 = lane < nb ? mask[(base + lane) * nwords + c] : 0;
+    d1 = lane + 32 < nb ? mask[(base + lane + 32) * nwords + c] : 0;
+  };
+  uint64_t d0, d1;
+  diagonal(0, d0, d1);
   int64_t count = 0;
   for (int64_t c = 0; c < nwords && count < max_keep; ++c) {
     const int64_t base = c * 64;
     const int nb = static_cast<int>(std::min<int64_t>(64, n - base));
     const uint64_t valid = nb == 64 ? ~0ull : ((1ull << nb) - 1);
-    const uint64_t d0 = lane < nb ? mask[(base + lane) * nwords + c] : 0;
-    const uint64_t d1 = lane + 32 < nb ? mask[(base + lane + 32) * nwords + c] : 0;
     uint64_t word = removed[c], kept = 0;
     uint64_t remaining = ~word & valid;
     while (remaining) {  // warp-uniform: one iteration per kept box of the block
@@ -154,6 +191,8 @@ __global__ void __launch_bounds__(32)
     for (int p = lane; p < 64; p += 32)
       if ((kept >> p) & 1) keep_pos[count + __popcll(kept & ((1ull << p) - 1))] = base + p;
     count += nk;
+    uint64_t next0 = 0, next1 = 0;
+    if (c + 1 < nwords) diagonal(c + 1, next0, next1);
     if (kept != 0 && count < max_keep) {
       for (int64_t w = c + 1 + lane; w < nwords; w += 32) {
         uint64_t acc = 0, bits = kept;
@@ -173,6 +212,8 @@ __global__ void __launch_bounds__(32)
       }
     }
     __syncwarp();  // the next block's word may have been written by another lane
+    d0 = next0;
+    d1 = next1;
   }
   if (lane == 0) *num_kept = count;
 }

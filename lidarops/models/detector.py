@@ -106,8 +106,9 @@ class PillarVFE(nn.Module):
             for i in range(len(filters) - 1))
         self.out_channels = filters[-1]
         vs, pr = [float(v) for v in voxel_size], [float(v) for v in point_cloud_range]
-        self.voxel_size = vs
-        self.centre_offset = [vs[i] / 2 + pr[i] for i in range(3)]
+        # buffers, not Python lists: no host-to-device copy per call (CUDA-graph capturable); not saved
+        self.register_buffer("voxel_size", torch.tensor(vs), persistent=False)
+        self.register_buffer("centre_offset", torch.tensor([vs[i] / 2 + pr[i] for i in range(3)]), persistent=False)
 
     def forward(self, voxels: Tensor, num_points: Tensor, coords: Tensor) -> Tensor:
         V, N, _ = voxels.shape
@@ -115,9 +116,8 @@ class PillarVFE(nn.Module):
         count = num_points.to(voxels.dtype).clamp_min(1).view(-1, 1, 1)
         f_cluster = xyz - xyz.sum(dim=1, keepdim=True) / count
         # pillar centres from (z, y, x) indices: columns 3, 2, 1 of coords are x, y, z
-        size = voxels.new_tensor(self.voxel_size)
-        offset = voxels.new_tensor(self.centre_offset)
-        centre = coords[:, [3, 2, 1]].to(voxels.dtype) * size + offset
+        centre = coords[:, [3, 2, 1]].to(voxels.dtype) * self.voxel_size.to(voxels.dtype) \
+            + self.centre_offset.to(voxels.dtype)
         f_center = xyz - centre[:, None, :]
         parts = [voxels if self.use_absolute_xyz else voxels[:, :, 3:], f_cluster, f_center]
         if self.with_distance:
@@ -147,7 +147,8 @@ class PointPillarScatter(nn.Module):
         c = coords.long()
         cells = batch_size * self.ny * self.nx
         flat = (c[:, 0] * self.ny + c[:, 2]) * self.nx + c[:, 3]
-        flat = torch.where((c >= 0).all(1), flat, cells)  # padding goes to one spare row
+        # padding goes to one spare row (a full_like, not a Python scalar: nothing copied from the host)
+        flat = torch.where((c >= 0).all(1), flat, torch.full_like(flat, cells))
         canvas = features.new_zeros(cells + 1, self.num_bev_features)
         canvas.index_copy_(0, flat, features)
         return canvas[:cells].view(batch_size, self.ny, self.nx, -1).permute(0, 3, 1, 2).contiguous()
@@ -272,7 +273,7 @@ class AnchorHeadSingle(nn.Module):
         B = preds["cls_preds"].shape[0]
         cls = preds["cls_preds"].view(B, -1, self.num_class).float()
         boxes = self.box_coder.decode(preds["box_preds"].view(B, -1, self.box_coder.code_size).float(),
-                                      self.anchors_flat[None])
+                                      self.anchors_flat[None].float())  # float32 also in a .half() model
         if self.conv_dir_cls is not None:
             dir_labels = preds["dir_cls_preds"].view(B, -1, cfg.num_dir_bins).argmax(dim=-1)
             heading = decode_direction(boxes[..., 6], dir_labels, cfg.dir_offset, cfg.dir_limit_offset,
