@@ -171,5 +171,5 @@ class LidaropsBuildExtension(BuildExtension):
 setup(
     ext_modules=[make_extension()],
     cmdclass={"build_ext": LidaropsBuildExtension.with_options(use_ninja=True)},
-    package_data={"lidarops": ["_build_info.json"]},
+    package_data={"lidarops": ["_build_info.json", "weights/*.pth"]},
 )

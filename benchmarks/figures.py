@@ -1,6 +1,6 @@
 """Explanatory figures of docs/ that are drawn, not measured.
 
-    python benchmarks/figures.py        # docs/img/boxes_convention.png
+    python benchmarks/figures.py        # docs/img/boxes_convention.png, docs/img/detector_training.png
 """
 from __future__ import annotations
 
@@ -82,8 +82,49 @@ def boxes_convention(path: Path) -> None:
     print(f"wrote {path}")
 
 
+
+
+def detector_training(path: Path) -> None:
+    """The shipped PointPillars' training: loss terms per step and moderate AP (R40) per evaluation."""
+    import csv
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results = ROOT / "benchmarks" / "results"
+    rows = list(csv.DictReader(open(results / "pointpillars_synth_train_log.csv")))
+    prog = json.load(open(results / "pointpillars_synth_eval_progress.json"))["evaluations"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    step = [int(r["step"]) for r in rows]
+    for key, label in (("loss", "total"), ("loss_cls", "classification"), ("loss_box", "box"), ("loss_dir", "direction")):
+        axes[0].plot(step, [float(r[key]) for r in rows], label=label, lw=1)
+    axes[0].set_yscale("log")
+    axes[0].set_xlabel("optimisation step (2 GPUs x 8 frames)")
+    axes[0].set_ylabel("loss (per frame)")
+    axes[0].legend(fontsize=8)
+    axes[0].set_title("training loss")
+    epochs = [p["epoch"] for p in prog]
+    for cls, color in (("Car", "tab:blue"), ("Pedestrian", "tab:red"), ("Cyclist", "tab:orange")):
+        axes[1].plot(epochs, [p[f"{cls}_3d_moderate_R40"] for p in prog], marker="o", color=color, label=f"{cls} 3D")
+        axes[1].plot(epochs, [p[f"{cls}_bev_moderate_R40"] for p in prog], ls="--", color=color, label=f"{cls} BEV")
+    axes[1].axhline(75, color="gray", lw=0.8, ls=":")
+    axes[1].text(epochs[0], 76, "target: Car 3D 75", fontsize=7, color="gray")
+    axes[1].set_xlabel("epoch (3,100 frames)")
+    axes[1].set_ylabel("moderate AP, R40 (%)")
+    axes[1].set_ylim(0, 100)
+    axes[1].legend(fontsize=7, loc="lower right")
+    axes[1].set_title("validation (500 held-out frames)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
 def main() -> int:
     boxes_convention(ROOT / "docs" / "img" / "boxes_convention.png")
+    detector_training(ROOT / "docs" / "img" / "detector_training.png")
     return 0
 
 
