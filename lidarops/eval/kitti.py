@@ -56,6 +56,7 @@ __all__ = [
     "count_difficulties",
     "get_thresholds",
     "KittiEvaluator",
+    "iou_boxes",
     "DEFAULT_MIN_OVERLAPS",
     "METRICS",
     "DIFFICULTIES",
@@ -293,16 +294,22 @@ class _Objects:
         return int(self.offsets[-1])
 
 
-def _iou_boxes(obj: _Objects) -> torch.Tensor:
-    """Camera boxes (location, l h w dimensions, rotation_y) as lidarops boxes in an equivalent right-handed
-    frame: x = z_cam, y = -x_cam, z = -y_cam + h / 2 (box centre), dx, dy, dz = l, w, h,
-    heading = -rotation_y - pi / 2. A rigid motion, so BEV and 3D IoUs are those of the camera boxes."""
-    loc, dims = obj.location, obj.dimensions
-    out = np.empty((len(obj), 7))
+def iou_boxes(location: np.ndarray, dimensions: np.ndarray, rotation_y: np.ndarray) -> torch.Tensor:
+    """Camera boxes (annotation ``location``, ``dimensions`` l h w, ``rotation_y``) as lidarops boxes (float64
+    (K, 7)) in an equivalent right-handed frame: x = z_cam, y = -x_cam, z = -y_cam + h / 2 (box centre),
+    dx, dy, dz = l, w, h, heading = -rotation_y - pi / 2. A rigid motion, so :func:`lidarops.box_iou_bev` and
+    :func:`lidarops.box_iou_3d` of these are the camera boxes' BEV and 3D IoUs."""
+    loc = np.asarray(location, dtype=np.float64).reshape(-1, 3)
+    dims = np.asarray(dimensions, dtype=np.float64).reshape(-1, 3)
+    out = np.empty((loc.shape[0], 7))
     out[:, 0], out[:, 1], out[:, 2] = loc[:, 2], -loc[:, 0], dims[:, 1] / 2 - loc[:, 1]
     out[:, 3], out[:, 4], out[:, 5] = dims[:, 0], dims[:, 2], dims[:, 1]
-    out[:, 6] = -obj.rotation_y - math.pi / 2
+    out[:, 6] = -np.asarray(rotation_y, dtype=np.float64).reshape(-1) - math.pi / 2
     return torch.from_numpy(out)
+
+
+def _iou_boxes(obj: _Objects) -> torch.Tensor:
+    return iou_boxes(obj.location, obj.dimensions, obj.rotation_y)
 
 
 # ---------------------------------------------------------------------------------------------

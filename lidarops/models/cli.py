@@ -264,14 +264,11 @@ def _match_summary(gt_annos: list, dt_annos: list, names) -> str:
     """Found / labelled objects per class at KITTI's 3D overlap (0.7 Car, 0.5 others), every labelled
     object counted whatever its difficulty; the line a few frames are better read by than an AP (below 41
     objects of a class, R40 cannot reach 100)."""
-    import torch
-
     import lidarops
+    from lidarops.eval.kitti import iou_boxes
 
     def lidar_boxes(anno, keep):
-        loc, dims, ry = anno["location"][keep], anno["dimensions"][keep], anno["rotation_y"][keep]  # dims l, h, w
-        return torch.from_numpy(np.stack([loc[:, 2], -loc[:, 0], -loc[:, 1] + dims[:, 1] / 2, dims[:, 0], dims[:, 2],
-                                          dims[:, 1], -ry - np.pi / 2], 1).astype(np.float64))
+        return iou_boxes(anno["location"][keep], anno["dimensions"][keep], anno["rotation_y"][keep])
 
     parts = []
     for name in names:
