@@ -13,9 +13,9 @@ import sys
 
 TORCH = "torch==2.13.0"  # the CPU wheel on the development machines; never pulled when torch exists
 # torch ships the pybind11 headers the build needs; the pybind11 and wheel packages are for pip installs
-REQUIRED = {"numpy": "numpy", "pytest": "pytest", "setuptools": "setuptools>=64"}
+REQUIRED = {"numpy": "numpy", "pytest": "pytest", "setuptools": "setuptools>=64", "yaml": "pyyaml"}
 OPTIONAL = {"pybind11": "pybind11", "wheel": "wheel", "scipy": "scipy", "hypothesis": "hypothesis", "tqdm": "tqdm", "matplotlib": "matplotlib",
-            "h5py": "h5py", "pandas": "pandas", "fpsample": "fpsample", "shapely": "shapely", "yaml": "pyyaml"}
+            "h5py": "h5py", "pandas": "pandas", "fpsample": "fpsample", "shapely": "shapely"}
 
 
 def missing(mods: dict) -> list[str]:
