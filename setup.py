@@ -7,20 +7,35 @@ Environment:
     TORCH_CUDA_ARCH_LIST   e.g. "9.0" (honoured by torch.utils.cpp_extension; 9.0 is built as 9.0a, for wgmma)
     MAX_JOBS               parallel compile jobs (ninja)
     LIDAROPS_DEBUG=1       -O0 -g
+
+`make build` runs this through tools/build.py (quiet console, full log in build/build.log). Every
+build, `setup.py build_ext --inplace` and `pip install --no-build-isolation -e .` alike, compiles into
+build/temp.<platform>-<python>/ with ninja, which tracks headers and flags, so an install after a
+build compiles nothing (it links and copies the library, a second).
 """
 import glob
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
+import sysconfig
 
 import torch
+import torch.utils.cpp_extension as cpp_extension
 from setuptools import setup
 from torch.utils.cpp_extension import CUDA_HOME, BuildExtension, CppExtension, CUDAExtension
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
 CSRC = os.path.join("csrc")
+# The objects of every build, in place or by pip (whose editable and wheel builds otherwise compile
+# in a fresh temporary folder): distutils' own name for it, so `setup.py build_ext` finds them too.
+BUILD_TEMP = os.path.join(ROOT, "build", f"temp.{sysconfig.get_platform()}-{sys.implementation.cache_tag}")
+# Compile time of one file on one core when the ninja log has no earlier time for it: a C++ file on
+# the 2-core development machine (7.8 s on average, 2026-11-26; docs/notes/build.md); a CUDA file
+# costs far more (60 s is a guess, not measured).
+SECONDS_PER_FILE = {".cpp": 9.0, ".cu": 60.0}
 
 
 def _flag(name: str) -> bool:
@@ -81,9 +96,12 @@ def make_extension():
     with_cuda, why = want_cuda()
     debug = _flag("LIDAROPS_DEBUG")
     opt = ["-O0", "-g"] if debug else ["-O3"]
+    # -g0 undoes the -g of Python's CFLAGS: debug information for ATen's templates was half of
+    # every C++ file's compile time (docs/notes/build.md)
+    cxx = opt + ([] if debug else ["-g0"])
     # no contraction into fused multiply-adds (aarch64 compilers contract by default): the CPU kernels
     # round every operation, as the CUDA kernels do with their __*_rn intrinsics, so both give the same bits
-    cxx = opt + ["-fopenmp", "-Wno-unused-parameter", "-ffp-contract=off"]
+    cxx += ["-fopenmp", "-Wno-unused-parameter", "-ffp-contract=off"]
     define_macros = []
     extra = {"cxx": cxx}
     if with_cuda:
@@ -162,14 +180,73 @@ def _check_runtime_linkage(path: str) -> None:
     print(f"[lidarops] {os.path.basename(path)}: libstdc++ linked dynamically", flush=True)
 
 
+def _ninja_plan(build_directory: str) -> tuple[int, float]:
+    """Files that ninja will compile in ``build_directory`` (a dry run) and their expected compile
+    time on one core: each file's last time from the ninja log, else ``SECONDS_PER_FILE``."""
+    dry = subprocess.run(["ninja", "-n", "-C", build_directory], capture_output=True, text=True, check=True).stdout
+    planned = re.findall(r"^\[\d+/\d+\] .* -c (\S+) -o (\S+)", dry, flags=re.M)  # (source, object)
+    last = {}
+    try:
+        with open(os.path.join(build_directory, ".ninja_log")) as log:
+            for line in log:
+                f = line.rstrip("\n").split("\t")
+                if len(f) == 5 and f[0].isdigit() and f[1].isdigit():
+                    last[f[3]] = (int(f[1]) - int(f[0])) / 1000
+    except OSError:
+        pass
+    seconds = sum(last.get(obj, SECONDS_PER_FILE.get(os.path.splitext(src)[1], SECONDS_PER_FILE[".cpp"]))
+                  for src, obj in planned)
+    return len(planned), seconds
+
+
+def _run_ninja_build_counted(build_directory: str, *args, **kwargs):
+    """torch's ninja call, preceded by one line that says how many files it compiles and about how
+    long that takes (tools/build.py turns it into make's progress line)."""
+    try:
+        n, seconds = _ninja_plan(build_directory)
+        jobs = int(os.environ.get("MAX_JOBS") or 0) or len(os.sched_getaffinity(0))
+        print(f"[lidarops] compiling {n} files with {jobs} jobs, about {seconds / min(max(n, 1), jobs):.0f} s",
+              flush=True)
+    except (OSError, subprocess.SubprocessError, ValueError, AttributeError):
+        pass  # the count is a courtesy: never the reason a build fails
+    return _run_ninja_build(build_directory, *args, **kwargs)
+
+
+_run_ninja_build = getattr(cpp_extension, "_run_ninja_build", None)
+if _run_ninja_build is not None:
+    cpp_extension._run_ninja_build = _run_ninja_build_counted
+
+
 class LidaropsBuildExtension(BuildExtension):
+    def finalize_options(self):
+        super().finalize_options()
+        # pip's editable builds pass a fresh temporary folder, where ninja would compile everything
+        # again: reuse make build's objects (ninja still recompiles what changed: it tracks headers
+        # and flags)
+        self.build_temp = BUILD_TEMP
+
     def build_extension(self, ext):
         super().build_extension(ext)
         _check_runtime_linkage(self.get_ext_fullpath(ext.name))
+
+    def copy_extensions_to_source(self):
+        """Replace the in-place library atomically: a process that has it loaded keeps its copy
+        (setuptools rewrites the file in place, under any process that has it mapped)."""
+        for ext in self.extensions:
+            filename = self.get_ext_filename(self.get_ext_fullname(ext.name))
+            built = os.path.join(self.build_lib, filename)
+            inplace = os.path.join(ROOT, filename)
+            tmp = f"{inplace}.{os.getpid()}.tmp"
+            shutil.copy2(built, tmp)
+            os.replace(tmp, inplace)
 
 
 setup(
     ext_modules=[make_extension()],
     cmdclass={"build_ext": LidaropsBuildExtension.with_options(use_ninja=True)},
     package_data={"lidarops": ["_build_info.json", "weights/*.pth"]},
+    # An explicit root makes an editable install a plain .pth entry for this folder instead of an
+    # import hook that maps `lidarops.*` here: under the hook, a copy of the package elsewhere (one
+    # without a built library, say) imported this checkout's lidarops._C.
+    package_dir={"": "."},
 )

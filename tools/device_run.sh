@@ -23,8 +23,9 @@ if [ -n "${LIDAROPS_SKIP_BUILD:-}" ] && ls lidarops/_C*.so >/dev/null 2>&1; then
   echo "[device_run] reusing the built extension"
 else
   make build > /tmp/build.log 2>&1; rc=$?
-  grep -E "^\[lidarops\]|error|warning: .*lidarops" /tmp/build.log | head -60
-  [ $rc -ne 0 ] && { tail -60 /tmp/build.log; echo "[device_run] BUILD FAILED"; exit 1; }
+  grep -E "^\[make\]" /tmp/build.log | head -20   # the compiler's output is in build/build.log
+  grep -E "^\[lidarops\]|error|warning: .*lidarops" build/build.log 2>/dev/null | head -60
+  [ $rc -ne 0 ] && { tail -60 /tmp/build.log; tail -60 build/build.log; echo "[device_run] BUILD FAILED"; exit 1; }
 fi
 echo "[device_run] build: $(( $(date +%s) - start )) s"
 python3 -c "import lidarops.extension as e; e.load(); print('with_cuda', e.cuda_available())"

@@ -2,6 +2,7 @@
 // stops after k hits) for small clouds, the uniform grid with cell = radius for large ones.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/full.h>
 
 #include "lidarops/neighbors.h"
 

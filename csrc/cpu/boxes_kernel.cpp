@@ -2,6 +2,9 @@
 // The geometry (include/lidarops/boxes.h) is shared with the CUDA kernels, bit for bit.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/from_blob.h>
+#include <ATen/ops/full.h>
 
 #include <algorithm>
 #include <numeric>

@@ -1,6 +1,7 @@
 // value_flags on CPU: NaN/inf and range checks, parallel over chunks of each tensor.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/zeros.h>
 
 #include <atomic>
 #include <cmath>

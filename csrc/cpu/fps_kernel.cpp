@@ -8,6 +8,7 @@
 // index, and costs O(N/kLeaf) per step plus the leaves that really change. Parallel over clouds.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/empty.h>
 
 #include <algorithm>
 #include <numeric>

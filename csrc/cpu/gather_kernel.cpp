@@ -1,6 +1,8 @@
 // gather (grouping) and its adjoint, scatter-add, on CPU.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
 
 #include <cstring>
 

@@ -7,8 +7,10 @@
 // Frames are independent (parallel); sums over frames are taken in frame order, so results do not depend
 // on the thread count. A detection set depends on a threshold only through how many of the frame's
 // detections reach it, so each distinct set is matched once.
-#include <ATen/ATen.h>
+#include <ATen/core/Tensor.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/full.h>
+#include <ATen/ops/zeros.h>
 
 #include <algorithm>
 #include <cmath>

@@ -2,6 +2,7 @@
 // (grid.h, the structure the CUDA kernel uses) on request; parallel over all (cloud, query) pairs.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/full.h>
 
 #include <algorithm>
 #include <atomic>

@@ -4,6 +4,7 @@
 // pillars they touch, small per 10 ms slice).
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/zeros.h>
 
 #include <algorithm>
 #include <cstring>

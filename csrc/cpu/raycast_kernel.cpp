@@ -6,8 +6,10 @@
 // (its bounding vertical cylinder, grown by its motion over the batch and by the spread of the ray origins,
 // seen from the mean origin; for boxes that do not turn, narrowed to the corners of their footprint) is
 // entered into a grid of azimuth bins x elevation bands, and each ray tests the primitives of its cell.
-#include <ATen/ATen.h>
+#include <ATen/core/Tensor.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
 #include <torch/library.h>
 
 #include <algorithm>

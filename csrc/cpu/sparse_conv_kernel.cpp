@@ -11,6 +11,9 @@
 // shared, oversubscribed CPU every region costs a thread rendezvous.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/mm.h>
+#include <ATen/ops/zeros.h>
 
 #include <cstring>
 

@@ -4,6 +4,7 @@
 // (SparseConvTensor's contract), so rows never race.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/zeros.h>
 
 #include <vector>
 

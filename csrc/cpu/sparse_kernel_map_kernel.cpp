@@ -5,6 +5,8 @@
 // the grid is small, an open-addressing hash table (linear probing, capacity >= 2N) otherwise. Rows
 // are inserted in order, so a duplicate coordinate is reported as the first pair of rows that collide.
 #include <ATen/Parallel.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/full.h>
 
 #include <algorithm>
 #include <atomic>

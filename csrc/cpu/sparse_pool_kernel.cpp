@@ -3,6 +3,8 @@
 // runs over input rows through the transposed kernel map, so it needs no atomics and is deterministic.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/full.h>
+#include <ATen/ops/zeros.h>
 
 #include <cmath>
 

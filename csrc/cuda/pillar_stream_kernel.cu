@@ -22,6 +22,7 @@
 //     6. insert: one thread per segment takes a slot when its pillar was empty (atomic pop: pops and
 //        pushes are in different kernels) and merges its points into the queue from the back.
 //     7. log: the entering points, in t order, at [log_head, log_head + points_in).
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>

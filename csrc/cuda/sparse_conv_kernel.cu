@@ -21,6 +21,7 @@
 // Backward: the features gradient is this kernel over the transposed map (autograd in Python); the
 // weight gradient is a split-K reduction over output rows into per-split partial sums (float), added
 // in a fixed order: deterministic too.
+#include <ATen/ATen.h>
 #include <ATen/Context.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>

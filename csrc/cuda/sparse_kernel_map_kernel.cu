@@ -8,6 +8,7 @@
 // Validation (coordinates outside the grid, duplicates) is flagged on the device and costs one host
 // sync per map; when a flag is set, the message is produced by the CPU checks on a host copy, so it
 // names the same rows as on CPU.
+#include <ATen/ATen.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>

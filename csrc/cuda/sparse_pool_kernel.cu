@@ -1,6 +1,7 @@
 // Sparse max pooling on CUDA, same rules as the CPU kernel (csrc/cpu/sparse_pool_kernel.cpp): the
 // maximum over the present inputs of each window, ties to the first offset, NaN propagates. The
 // backward runs over input rows through the transposed kernel map: no atomics, deterministic.
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>

@@ -10,6 +10,7 @@
 // given one, so that a padded list whose length only the device knows costs no host synchronisation
 // and no work beyond its rows. A tile whose rows all miss (tap outside the grid, inactive output,
 // padding) is skipped.
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>

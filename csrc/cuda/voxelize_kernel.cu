@@ -15,6 +15,7 @@
 //      voxel's coords and num_points, and the stats, reduced per warp then added with integer atomics
 //      (order-independent, so deterministic).
 // voxelize_scatter: one thread per (point, channel) copies a feature into its (voxel, slot).
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAStream.h>
 #include <c10/cuda/CUDAException.h>

@@ -1,7 +1,7 @@
 // Argument checks of the value_flags op, shared by its CPU and CUDA kernels.
 #pragma once
 
-#include <ATen/ATen.h>
+#include <ATen/core/Tensor.h>
 
 namespace lidarops {
 

@@ -2,7 +2,9 @@
 // that gives bit-identical results on CPU and CUDA, so tie rules agree across devices.
 #pragma once
 
-#include <ATen/ATen.h>
+// The lean ATen headers (no ATen/ATen.h, which declares every ATen op): a kernel file includes the
+// <ATen/ops/*.h> of the functions it calls; the CUDA files include <ATen/ATen.h> themselves.
+#include <ATen/core/Tensor.h>
 #include <torch/library.h>
 
 #ifdef __CUDACC__
