@@ -114,7 +114,7 @@ def test_train_then_resume_then_detect(synth, tmp_path, capsys):
     (["detect", "/no/such.bin"], "/no/such.bin not found"),
     (["detect", "--scenario", "driving_city", "--device", "cuda:7"] if not torch.cuda.is_available()
      else ["detect", "--checkpoint", "/no/ckpt.pth", "--scenario", "driving_city"], "cuda|checkpoint"),
-    (["eval", "--results", "/no/dir", "--labels", "/no/dir"], "--results /no/dir is not a folder"),
+    (["eval", "--results", "/no/such/dir", "--labels", "/no/such/dir"], "--results /no/such/dir is not a folder"),
 ])
 def test_errors_are_one_line(argv, pattern, capsys):
     import re
@@ -127,3 +127,15 @@ def test_module_entry_point_help():
     proc = subprocess.run([sys.executable, "-m", "lidarops", "detect", "--help"], cwd=REPO, capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0 and "--checkpoint" in proc.stdout
+
+
+@pytest.mark.parametrize("argv,pattern", [
+    (["data", "show", "driving_city", "--index", "-1"], "--index must be >= 0"),
+    (["data", "synth", "--frames", "0", "--out", "/tmp/lidarops_no_frames"], "at least 1 in all"),
+    (["train", "--config", str(REPO / "README.md"), "--out", "x"], "not valid YAML"),
+])
+def test_more_errors_are_one_line(argv, pattern, capsys):
+    import re
+
+    code, _, err = _run(argv, capsys)
+    assert code == 2 and err.count("\n") == 1 and re.search(pattern, err), err

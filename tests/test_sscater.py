@@ -485,6 +485,7 @@ def run_identity(scenario, steps, dtype, device, refresh_every, check_every=1, s
     return worst, history
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["drone_bridge", "driving_city"])
 def test_sscater_stream_equals_full_recomputation_float32(scenario):
     """200 steps (2 s) on CPU, every step compared. drone_bridge runs with refresh_every=0: nothing is
@@ -497,6 +498,7 @@ def test_sscater_stream_equals_full_recomputation_float32(scenario):
     assert 0.0 < sum(changed) / len(changed) < 1.0  # pillars do change, and not all of them
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["drone_bridge", "driving_city"])
 def test_sscater_stream_equals_full_recomputation_float64(scenario):
     run_identity(scenario, 25, torch.float64, "cpu", refresh_every=10, check_every=1)

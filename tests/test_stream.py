@@ -267,6 +267,7 @@ def _check_step(stream: PillarStream, ref: _Reference, update: StreamUpdate, pre
     return ids
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario, grid, N, M", [
     ("drone_bridge", PillarGrid.drone(), 100, 12000),
     ("driving_city", DRIVING_AHEAD, 200, 8000),

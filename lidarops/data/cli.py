@@ -72,8 +72,8 @@ def _scenario_plan(args: argparse.Namespace) -> list[dict]:
         frames = [total // len(scenarios) + (k < total % len(scenarios)) for k in range(len(scenarios))]
     if len(frames) != len(scenarios):
         raise ValueError(f"--frames takes one total or one count per scenario ({len(scenarios)}), got {len(frames)} values")
-    if any(n < 0 for n in frames):
-        raise ValueError(f"--frames must be >= 0, got {frames}")
+    if any(n < 0 for n in frames) or sum(frames) == 0:
+        raise ValueError(f"--frames must be >= 0 per scenario and at least 1 in all, got {frames}")
     plan, first = [], 0
     for k, (name, n) in enumerate(zip(scenarios, frames)):
         plan.append({"scenario": name, "frames": n, "seed": args.seed + _SCENARIO_SEED_STRIDE * k, "first_id": first})
@@ -274,6 +274,8 @@ def show(args: argparse.Namespace) -> int:
 
     spec = args.path
     out = Path(args.out)
+    if args.index < 0:
+        raise ValueError(f"--index must be >= 0, got {args.index}")
     is_scenario = spec.startswith("synthetic:") or (spec in SCENARIOS and not Path(spec).exists())
     if not is_scenario and detect_format(spec) == "modelnet":
         from lidarops.data.formats.modelnet import ModelNet40

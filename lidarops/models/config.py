@@ -83,7 +83,7 @@ def load_config(path: str | Path) -> dict:
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML ({e})") from None
+        raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None  # one line
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
