@@ -9,28 +9,12 @@ Submodules are imported on first use (``import lidarops.eval`` loads nothing els
 """
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from lidarops._lazy import lazy_attributes
 
 __all__ = ["kitti", "evaluate_kitti", "evaluate_kitti_lidar"]
 
-_LAZY = {
+__getattr__, __dir__ = lazy_attributes(__name__, {
+    "kitti": "lidarops.eval.kitti",
     "evaluate_kitti": ("lidarops.eval.kitti", "evaluate"),
     "evaluate_kitti_lidar": ("lidarops.eval.kitti", "evaluate_lidar"),
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name == "kitti":
-        value = importlib.import_module("lidarops.eval.kitti")
-    elif name in _LAZY:
-        module, attr = _LAZY[name]
-        value = getattr(importlib.import_module(module), attr)
-    else:
-        raise AttributeError(f"module 'lidarops.eval' has no attribute {name!r}")
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+}, globals())

@@ -10,29 +10,13 @@ Submodules are imported on first use.
 """
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from lidarops._lazy import lazy_attributes
 
 __all__ = ["PointPillars", "PointPillarsConfig", "load_config", "weights"]
 
-_LAZY = {
+__getattr__, __dir__ = lazy_attributes(__name__, {
     "PointPillars": ("lidarops.models.detector", "PointPillars"),
     "PointPillarsConfig": ("lidarops.models.config", "PointPillarsConfig"),
     "load_config": ("lidarops.models.config", "load_config"),
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name == "weights":
-        value = importlib.import_module("lidarops.models.weights")
-    elif name in _LAZY:
-        module, attr = _LAZY[name]
-        value = getattr(importlib.import_module(module), attr)
-    else:
-        raise AttributeError(f"module 'lidarops.models' has no attribute {name!r}")
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+    "weights": "lidarops.models.weights",
+}, globals())
