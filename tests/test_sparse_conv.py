@@ -446,8 +446,9 @@ def test_out_of_range_coordinates_raise(device, bad_row, what):
 def test_bad_arguments_raise(device):
     idx = torch.tensor([[0, 1, 2], [0, 3, 3]], dtype=torch.int32, device=device)
     f = torch.randn(2, 2, device=device)
-    with pytest.raises(ValueError, match="indices must be int32"):
-        SparseConvTensor(f, idx.long(), [5, 5], 1)
+    with pytest.raises(ValueError, match="indices must be an integer tensor"):
+        SparseConvTensor(f, idx.float(), [5, 5], 1)
+    assert SparseConvTensor(f, idx.long(), [5, 5], 1).indices.dtype == torch.int32  # range-checked, then converted
     with pytest.raises(ValueError, match=r"indices must be \(N, 1 \+ D\)"):
         SparseConvTensor(f, idx[:, 0], [5, 5], 1)
     with pytest.raises(ValueError, match="spatial_shape must hold 2 positive ints"):

@@ -25,7 +25,6 @@ from torch import Tensor
 from lidarops import extension
 from lidarops.compat.pytorch3d import (
     _ball_query_filtered,
-    _finite_check,
     _check_positive_int,
     _compute_dtype,
     _dense_ball,
@@ -36,8 +35,8 @@ from lidarops.compat.pytorch3d import (
 )
 from lidarops.ops.neighbors import fps as _core_fps
 from lidarops.ops.neighbors import knn as _core_knn
-from lidarops.ops.validation import check_same_device, check_tensor, describe, run_value_checks, \
-    validation, value_checks_enabled
+from lidarops.ops.validation import check_output_size, check_same_device, check_tensor, coordinate_checks, describe, \
+    run_value_checks, validation, value_checks_enabled
 
 __all__ = ["fps", "knn", "radius"]
 
@@ -81,11 +80,15 @@ def _check_batch_vector(batch, n: int, name: str, like: Tensor) -> Optional[Tens
 
 def _batch_size(batches, batch_size: Optional[int]) -> int:
     if batch_size is not None:
-        return _check_positive_int(batch_size, "batch_size")
-    size = 1
-    for b in batches:
-        if b is not None and b.numel():
-            size = max(size, int(b.max()) + 1)
+        size = _check_positive_int(batch_size, "batch_size")
+        asked = f"batch_size={size}"
+    else:
+        size = 1
+        for b in batches:
+            if b is not None and b.numel():
+                size = max(size, int(b.max()) + 1)
+        asked = f"batch values up to {size - 1}"
+    check_output_size((size,), asked, "the per-example counts", "one example per batch value: renumber the examples")
     return size
 
 
@@ -104,6 +107,7 @@ def _to_padded(src: Tensor, batch: Optional[Tensor], B: int) -> Tuple[Tensor, Te
     ptr = torch.zeros(B + 1, dtype=torch.int64, device=device)
     torch.cumsum(counts, 0, out=ptr[1:])
     n_max = int(counts.max()) if B else 0
+    check_output_size((B, n_max, src.shape[1]), f"{B} examples of up to {n_max} rows", "the padded batch")
     padded = src.new_zeros(B, n_max, src.shape[1])
     if n:
         pos = torch.arange(n, device=device) - ptr[batch]
@@ -122,9 +126,9 @@ def _edges(idx: Tensor, ptr_x: Tensor, ptr_y: Tensor) -> Tensor:
 
 
 def _check_finite(*named) -> None:
-    """One host sync: finite coordinates (the core ops and the grid search need them)."""
+    """One host sync: finite coordinates within the core ops' bound (squared distances cannot overflow)."""
     if value_checks_enabled():
-        run_value_checks([_finite_check(t, name) for name, t in named])
+        run_value_checks(coordinate_checks(named))
 
 
 def _empty_edges(device) -> Tensor:
@@ -198,7 +202,7 @@ def fps(src: Tensor, batch: Optional[Tensor] = None, ratio: Union[float, Tensor]
             raise ValueError(f"ratio must be a float or a floating () or (B,) tensor with B = {B}, "
                              f"got {describe(ratio)}")
         r = ratio.to(device)
-        bad = ((r <= 0) | (r > 1)).any()
+        bad = ~((r > 0) & (r <= 1)).all()  # NaN fails both comparisons: refused here, not as "k" later
         if bool(bad):
             raise ValueError(f"ratio must lie in (0, 1], got {r.tolist()}")
     else:
@@ -296,6 +300,8 @@ def radius(x: Tensor, y: Tensor, r: float, batch_x: Optional[Tensor] = None, bat
         return _empty_edges(x.device)
     px, cx, ptr_x = _to_padded(x, batch_x, B)
     py, cy, ptr_y = _to_padded(y, batch_y, B)
+    check_output_size((B, py.shape[1], max_num_neighbors), f"max_num_neighbors={max_num_neighbors}",
+                      "the padded neighbour lists", "split the queries into chunks")
     ct = _compute_dtype(x.dtype)
     r2 = torch.tensor(float(r) * float(r), dtype=ct).item()  # double r*r rounded to the compute dtype
     _check_finite(("x", x), ("y", y))

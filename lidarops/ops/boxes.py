@@ -256,7 +256,11 @@ def _clip_reference(poly: list, a: tuple, b: tuple) -> list:
 
 
 def _polygon_area_reference(poly: list) -> float:
-    return 0.5 * sum(p[0] * q[1] - q[0] * p[1] for p, q in zip(poly, poly[1:] + poly[:1]))
+    # shoelace about the first vertex: in world coordinates (|x| ~ 1e6) the cross products would be
+    # ~1e12 and cancel to an error of ~1e-4 m^2
+    x0, y0 = poly[0]
+    rel = [(x - x0, y - y0) for x, y in poly]
+    return 0.5 * sum(p[0] * q[1] - q[0] * p[1] for p, q in zip(rel, rel[1:] + rel[:1]))
 
 
 def _box_overlap_bev_reference(a: Tensor, b: Tensor) -> Tensor:

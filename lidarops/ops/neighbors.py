@@ -7,6 +7,13 @@ CPU and CUDA, so the tie rules (lower index first) give the same answer on every
 
 float16 and bfloat16 inputs are accepted and computed in float32; the distances they return are
 float32 (a float16 squared distance overflows beyond 256 m). float64 stays float64.
+
+Bad input (``ValueError`` naming the argument): wrong shapes, dtypes or devices; ``k`` that is not a
+positive int or whose padded output would exceed 2^31 - 1 entries (refused before allocating);
+and, with the value checks on (:func:`lidarops.validation`), NaN or infinite coordinates, and
+coordinates beyond +-2^62 (float32, bfloat16) or +-2^510 (float64), where a squared distance could
+overflow to infinity (see :func:`lidarops.ops.validation.coordinate_bound`); lengths, start indices
+and gather indices out of range.
 """
 from __future__ import annotations
 
@@ -19,12 +26,13 @@ from torch import Tensor
 from lidarops import extension
 from lidarops.ops.validation import (
     check_cloud,
+    check_output_size,
     check_positive_int,
     check_same_device,
     check_tensor,
+    check_values,
     describe,
     lengths_or_full,
-    check_values,
     value_checks_enabled,
 )
 
@@ -38,14 +46,17 @@ _FPS_METHODS = {"auto": 0, "plain": 1, "leaves": 2}
 
 
 def _method(method: str, table: dict, name: str = "method") -> int:
-    if method not in table:
+    if not isinstance(method, str) or method not in table:
         raise ValueError(f"{name} must be one of {sorted(table)}, got {method!r}")
     return table[method]
 
 
-def _finite(t: Tensor, name: str):
-    # inf is rejected too: no point can be infinitely far, and the grid search needs finite bounds
-    return (t, lambda: f"{name} contains NaN or infinite coordinates ({describe(t)})")
+def _check_k(k, shape: tuple, n: int, what: str) -> int:
+    """k as a positive int whose padded output ``(*shape, k)`` fits (refused before allocating)."""
+    k = check_positive_int(k, "k")
+    check_output_size((*shape, k), f"k={k}", what, (f"k beyond the {n} points per cloud only adds -1 padding" if k > n
+                                                  else "split the queries into chunks"))
+    return k
 
 
 def _lengths_range(lengths: Tensor | None, full: Tensor, n: int, name: str) -> list:
@@ -74,24 +85,21 @@ def fps(points: Tensor, k: int, lengths: Tensor | None = None, start_idx: Tensor
     Returns:
         Tensor[B, k] int64: sample indices in selection order; -1 where ``lengths[b] < k``.
 
+    Raises:
+        ValueError: bad shapes, dtypes or devices; ``k`` not a positive int or ``B * k`` above 2^31 - 1;
+            with the value checks on, NaN, infinite or too large coordinates (beyond
+            :func:`~lidarops.ops.validation.coordinate_bound`), lengths or ``start_idx`` out of range.
+
     Follows PyTorch3D's ``sample_farthest_points`` (with ``random_start_point=False``) and the
     PointNet++ FPS; the tie rule is stated here so results are reproducible across devices.
     """
     check_cloud(points, "points")
     extension.check_device(points, "points")
-    k = check_positive_int(k, "k")
     B, N = points.shape[0], points.shape[1]
+    k = _check_k(k, (B,), N, "the sample indices")
     given_lengths = lengths
     lengths = lengths_or_full(lengths, points, "lengths")
-    if start_idx is None:
-        start = torch.zeros(B, dtype=torch.int64, device=points.device)
-    elif isinstance(start_idx, numbers.Integral) and not isinstance(start_idx, bool):
-        start = torch.full((B,), int(start_idx), dtype=torch.int64, device=points.device)
-    else:
-        check_tensor(start_idx, "start_idx")
-        if start_idx.shape != (B,) or start_idx.is_floating_point():
-            raise ValueError(f"start_idx must be an int or an integer (B,) tensor with B = {B}, got {describe(start_idx)}")
-        start = start_idx.to(device=points.device, dtype=torch.int64)
+    start = _start_indices(start_idx, B, N, points.device)
     m = _method(method, _FPS_METHODS)
     if value_checks_enabled():
         extra = []
@@ -99,9 +107,24 @@ def fps(points: Tensor, k: int, lengths: Tensor | None = None, start_idx: Tensor
             bad_start = (((start < 0) | (start >= lengths)) & (lengths > 0)).any()
             extra = [(bad_start, lambda: f"start_idx must lie in [0, lengths), got start_idx={start.tolist()}, "
                                          f"lengths={lengths.tolist()}")]
-        check_values(finite=[_finite(points, "points")],
-                     ranged=_lengths_range(given_lengths, lengths, N, "lengths"), extra=extra)
+        check_values(coords=[(points, "points")], ranged=_lengths_range(given_lengths, lengths, N, "lengths"),
+                     extra=extra)
     return torch.ops.lidarops.fps(points, lengths, start, k, m)
+
+
+def _start_indices(start_idx, B: int, N: int, device) -> Tensor:
+    """``start_idx`` of fps as an int64 (B,) tensor (its range is a value check)."""
+    expected = f"start_idx must be an int in [0, {N}) or an integer (B,) tensor with B = {B}"
+    if start_idx is None:
+        return torch.zeros(B, dtype=torch.int64, device=device)
+    if isinstance(start_idx, numbers.Integral) and not isinstance(start_idx, bool):
+        if not -2**63 <= int(start_idx) < 2**63:  # the range itself is a value check, as for tensors
+            raise ValueError(f"{expected}, got {int(start_idx)}")
+        return torch.full((B,), int(start_idx), dtype=torch.int64, device=device)
+    if not isinstance(start_idx, Tensor) or start_idx.shape != (B,) or start_idx.is_floating_point() \
+            or start_idx.is_complex() or start_idx.dtype == torch.bool:
+        raise ValueError(f"{expected}, got {describe(start_idx) if isinstance(start_idx, Tensor) else repr(start_idx)}")
+    return start_idx.to(device=device, dtype=torch.int64)
 
 
 def _pair_args(query, points, query_lengths, point_lengths, k):
@@ -111,11 +134,11 @@ def _pair_args(query, points, query_lengths, point_lengths, k):
     extension.check_device(query, "query")
     if query.dtype != points.dtype:
         raise ValueError(f"query and points must have the same dtype, got {query.dtype} and {points.dtype}")
-    k = check_positive_int(k, "k")
+    k = _check_k(k, tuple(query.shape[:2]), points.shape[1], "dist2 and idx")
     ql = lengths_or_full(query_lengths, query, "query_lengths")
     pl = lengths_or_full(point_lengths, points, "point_lengths")
     if value_checks_enabled():
-        check_values(finite=[_finite(query, "query"), _finite(points, "points")],
+        check_values(coords=[(query, "query"), (points, "points")],
                      ranged=_lengths_range(query_lengths, ql, query.shape[1], "query_lengths")
                      + _lengths_range(point_lengths, pl, points.shape[1], "point_lengths"))
     return ql, pl, k
@@ -139,10 +162,17 @@ def knn(query: Tensor, points: Tensor, k: int, query_lengths: Tensor | None = No
             (and for padded queries). Differentiable with respect to ``query`` and ``points``.
         idx (Tensor[B, M, k] int64): neighbour indices, ties to the lower index; -1 padding.
 
+    Raises:
+        ValueError: bad shapes, dtypes or devices; ``k`` not a positive int or ``B * M * k`` above
+            2^31 - 1; with the value checks on, NaN, infinite or too large coordinates (beyond
+            :func:`~lidarops.ops.validation.coordinate_bound`: 2^62 for float32, 2^510 for float64,
+            so that squared distances cannot overflow) and lengths out of range.
+
     Same convention as PyTorch3D's ``knn_points`` except the padding (-1/+inf here, 0/0 there; see
     ``lidarops.compat.pytorch3d``).
     """
     m = _method(method, _KNN_METHODS)
+    check_tensor(query, "query")
     if method == "tree" and query.device.type != "cpu":
         raise ValueError(f"method='tree' is CPU-only, got query on {query.device}; use 'auto' or 'grid'")
     ql, pl, k = _pair_args(query, points, query_lengths, point_lengths, k)
@@ -166,6 +196,10 @@ def ball_query(query: Tensor, points: Tensor, radius: float, k: int, query_lengt
     Returns:
         dist2 (Tensor[B, M, k]): squared distances of the hits, +inf padding; differentiable.
         idx (Tensor[B, M, k] int64): indices of the hits in increasing order, -1 padding.
+
+    Raises:
+        ValueError: as :func:`knn`, and ``radius`` that is not a finite real number >= 0 (a radius
+            whose square overflows the computation dtype is fine: every point is then inside).
     """
     if isinstance(radius, bool) or not isinstance(radius, numbers.Real) or not math.isfinite(radius) or radius < 0:
         raise ValueError(f"radius must be a finite number >= 0, got {radius!r}")
@@ -194,6 +228,7 @@ def gather(x: Tensor, idx: Tensor) -> Tensor:
         raise ValueError(f"idx must be an integer tensor, got {describe(idx)}")
     check_same_device([("x", x), ("idx", idx)])
     extension.check_device(x, "x")
+    check_output_size((*idx.shape, x.shape[2]), f"idx of shape {tuple(idx.shape)}", "the gathered rows")
     flat = idx.reshape(idx.shape[0], math.prod(idx.shape[1:])).to(torch.int64)  # not -1: B may be 0
     if value_checks_enabled() and flat.numel():
         n = x.shape[1]
@@ -281,7 +316,9 @@ def _ball_query_reference(query: Tensor, points: Tensor, radius: float, k: int, 
 def _gather_reference(x: Tensor, idx: Tensor) -> Tensor:
     B = x.shape[0]
     flat = idx.reshape(B, math.prod(idx.shape[1:]))
+    if B == 0 or x.shape[1] == 0:  # nothing to read: every index is -1 (others are errors)
+        return x.new_zeros(*idx.shape, x.shape[2])
     safe = flat.clamp_min(0)
-    out = torch.stack([x[b, safe[b]] for b in range(B)]) if B else x.new_zeros(0, flat.shape[1], x.shape[2])
+    out = torch.stack([x[b, safe[b]] for b in range(B)])
     out = out * (flat >= 0).unsqueeze(-1).to(out.dtype)
     return out.reshape(*idx.shape, x.shape[2])

@@ -1,39 +1,62 @@
 """Argument validation shared by the op wrappers.
 
-Shape, dtype and device checks are free. Checks that read tensor values (NaN coordinates, lengths
-and indices in range) cost one small kernel per tensor (the ``value_flags`` op) and one
-device-to-host copy per call on CUDA; they are on by default
-and skipped while ``torch.compile`` traces. Turn them off in a hot loop you have already validated::
+Shape, dtype, device and size checks are free and always on. Checks that read tensor values (NaN,
+infinite or too large coordinates, lengths and indices in range) cost one small kernel per tensor
+and one device-to-host copy per call on CUDA; they are on by default and skipped while
+``torch.compile`` traces. Turn them off in a hot loop you have already validated::
 
     with lidarops.validation(False):
         ...
+
+The switch is a context variable: it holds for the thread (or asyncio task) that entered the
+``with`` block and for nothing else, so a loop that turns validation off cannot turn it off in
+another thread.
 """
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import math
 import operator
 from typing import Iterator, Sequence
 
 import torch
 
-_enabled = True
+# A ContextVar rather than a module global: each thread (and asyncio task) sees its own value, and a
+# new thread starts with the default (checks on).
+_enabled: contextvars.ContextVar[bool] = contextvars.ContextVar("lidarops_validation", default=True)
+
+#: Most entries an op output may have (padded outputs included): a size beyond this is an argument
+#: that cannot be meant (``k = 2**31``), refused before anything is allocated.
+MAX_OUTPUT_ENTRIES = 2**31 - 1
 
 
 @contextlib.contextmanager
 def validation(enabled: bool = True) -> Iterator[None]:
-    """Context manager that enables or disables the value checks of the lidarops wrappers."""
-    global _enabled
-    old, _enabled = _enabled, bool(enabled)
+    """Context manager that enables or disables the value checks of the lidarops wrappers.
+
+    Thread-local: it affects only the thread (or asyncio task) that enters it; other threads keep
+    their own setting (on unless they turned it off themselves). Shape, dtype, device and size checks
+    stay on.
+
+    Args:
+        enabled (bool): ``False`` skips the value checks inside the block.
+    """
+    if enabled not in (True, False):  # bool, 0/1 and NumPy bools; not "no" or None
+        raise ValueError(f"enabled must be a bool, got {enabled!r}")
+    token = _enabled.set(bool(enabled))
     try:
         yield
     finally:
-        _enabled = old
+        _enabled.reset(token)
 
 
 def value_checks_enabled() -> bool:
-    if not _enabled:
+    """Whether the value checks run here: on unless this thread turned them off with
+    :func:`validation` or ``torch.compile`` is tracing."""
+    if torch.compiler.is_compiling():  # first: dynamo folds it and never reads the context variable
         return False
-    return not torch.compiler.is_compiling()
+    return _enabled.get()
 
 
 def describe(t) -> str:
@@ -88,7 +111,10 @@ def lengths_or_full(lengths, like: torch.Tensor, name: str) -> torch.Tensor:
     if lengths is None:
         return torch.full((B,), N, dtype=torch.int64, device=like.device)
     if not isinstance(lengths, torch.Tensor):
-        lengths = torch.as_tensor(lengths, device=like.device)
+        try:
+            lengths = torch.as_tensor(lengths, device=like.device)
+        except (TypeError, ValueError, RuntimeError, OverflowError):
+            raise ValueError(f"{name} must be an integer (B,) tensor with B = {B}, got {lengths!r}") from None
     if lengths.dim() != 1 or lengths.shape[0] != B:
         raise ValueError(f"{name} must be (B,) with B = {B}, got {describe(lengths)}")
     if lengths.is_floating_point() or lengths.is_complex() or lengths.dtype == torch.bool:
@@ -98,28 +124,91 @@ def lengths_or_full(lengths, like: torch.Tensor, name: str) -> torch.Tensor:
     return lengths.to(torch.int64)
 
 
-def check_values(finite: Sequence[tuple[torch.Tensor, object]] = (),
-                 ranged: Sequence[tuple[torch.Tensor, int, int, object]] = (),
-                 extra: Sequence[tuple[torch.Tensor, object]] = ()) -> None:
-    """Value checks with one registered op call and one host sync; raise ValueError for the first failure.
+def check_output_size(shape: Sequence[int], asked_by: str, what: str, hint: str = "") -> None:
+    """Refuse, before anything is allocated, an output of more than :data:`MAX_OUTPUT_ENTRIES` entries.
 
     Args:
+        shape: the output shape the arguments imply.
+        asked_by: the arguments that ask for it, as the user wrote them (``"k=2147483648"``).
+        what: the output, e.g. ``"dist2 and idx"``.
+        hint: what to do instead, appended to the message.
+    """
+    n = math.prod([int(s) for s in shape])  # a list: torch.compile traces no generator expressions
+    if n > MAX_OUTPUT_ENTRIES:
+        raise ValueError(f"{asked_by}: {what} of shape {tuple([int(s) for s in shape])} would hold {n:.3g} entries, "
+                         f"more than the 2^31 - 1 a lidarops output may hold" + (f"; {hint}" if hint else ""))
+
+
+def coordinate_bound(dtype: torch.dtype) -> float:
+    """Largest ``|coordinate|`` the neighbourhood ops accept: 2^510 for float64 points, 2^62 for
+    float32 and bfloat16 (computed in float32); for float16 (also computed in float32) every finite
+    value, 65504.
+
+    Why: a squared distance is ``(dx*dx + dy*dy) + dz*dz`` in the computation dtype. With every
+    coordinate within the bound B, a difference is at most 2B, so the sum is at most 12 B^2 = 0.75 * 2^128
+    (float32) or 0.75 * 2^1024 (float64): below the largest finite value, so it cannot overflow to
+    infinity (which would turn a real neighbour into "no neighbour").
+    """
+    if dtype == torch.float64:
+        return 2.0**510
+    # not 2^62 for float16: compared in float16 it would round to +inf, which would let +inf through
+    return min(2.0**62, torch.finfo(dtype).max)
+
+
+def _bound_text(dtype: torch.dtype) -> str:
+    return {torch.float64: "2^510 (about 3.4e153)", torch.float16: "65504"}.get(dtype, "2^62 (about 4.6e18)")
+
+
+def _coordinate_message(t: torch.Tensor, name: str) -> str:
+    if not bool(torch.isfinite(t).all()):
+        return f"{name} contains NaN or infinite coordinates ({describe(t)})"
+    largest = float(t.abs().amax())
+    computed = "" if t.dtype in (torch.float32, torch.float64) else ", computed in float32"
+    return (f"{name} has a coordinate of magnitude {largest:.3g}; coordinates must lie within "
+            f"+-{_bound_text(t.dtype)} for {t.dtype}{computed}, so that squared distances cannot overflow "
+            f"({describe(t)})")
+
+
+def coordinate_checks(named: Sequence[tuple[str, torch.Tensor]]) -> list:
+    """``(flag, message)`` pairs for :func:`run_value_checks`: each point tensor holds no NaN, no
+    infinity and no coordinate beyond :func:`coordinate_bound` (one max-abs reduction per tensor)."""
+    return [(t.abs().amax().le(coordinate_bound(t.dtype)).logical_not(),
+             lambda t=t, name=name: _coordinate_message(t, name)) for name, t in named if t.numel()]
+
+
+def check_values(finite: Sequence[tuple[torch.Tensor, object]] = (),
+                 ranged: Sequence[tuple[torch.Tensor, int, int, object]] = (),
+                 extra: Sequence[tuple[torch.Tensor, object]] = (),
+                 coords: Sequence[tuple[torch.Tensor, str]] = ()) -> None:
+    """Value checks with one host sync; raise ValueError for the first failure.
+
+    Args:
+        coords: ``(tensor, name)``: point coordinates: no NaN, no infinity and every ``|value|`` at most
+            :func:`coordinate_bound` of the tensor's dtype, so squared distances cannot overflow
+            (checked first; the message names the argument and the bound).
         finite: ``(tensor, message)``: the floating tensor must hold no NaN or infinity.
         ranged: ``(tensor, lo, hi, message)``: every value of the integer tensor lies in ``[lo, hi]``.
         extra: ``(bool 0-d tensor, message)``: any other check, True = bad.
     A message may be a callable, evaluated only on failure (it may read tensors to say more).
+    ``finite`` and ``ranged`` run in the registered ``value_flags`` op; ``coords`` is one max-abs
+    reduction per tensor; all flags come back to the host together.
     """
-    first = next((c[0] for group in (finite, ranged, extra) for c in group), None)
+    coords = [(t, name) for t, name in coords if t.numel()]
+    first = next((c[0] for group in (coords, finite, ranged, extra) for c in group), None)
     if first is None or first.device.type == "meta":  # meta tensors carry no values to check
         return
     parts = []
+    if coords:  # NaN propagates through amax, and NaN <= bound is False: one flag for NaN, inf and too large
+        ok = torch.stack([t.abs().amax().le(coordinate_bound(t.dtype)) for t, _ in coords])
+        parts.append(ok.logical_not().to(torch.int32))
     if finite or ranged:
         parts.append(torch.ops.lidarops.value_flags([t for t, _ in finite], [c[0] for c in ranged],
                                                     [int(c[1]) for c in ranged], [int(c[2]) for c in ranged]))
     if extra:
         parts.append(torch.stack([c.reshape(()).to(torch.int32) for c, _ in extra]))
     flags = parts[0] if len(parts) == 1 else torch.cat(parts)
-    messages = [m for _, m in finite] + [c[3] for c in ranged] + [m for _, m in extra]
+    messages = ([lambda t=t, name=name: _coordinate_message(t, name) for t, name in coords]
+                + [m for _, m in finite] + [c[3] for c in ranged] + [m for _, m in extra])
     for bad, message in zip(flags.tolist(), messages):
         if bad:
             raise ValueError(message() if callable(message) else message)

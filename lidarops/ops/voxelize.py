@@ -21,6 +21,11 @@ Conventions (identical on CPU and CUDA, deterministic):
   above, drops the rest, and reports how many in ``result.num_dropped`` and ``result.info``.
 - **Outputs.** ``voxels`` has the dtype of ``points`` and zeros in unused slots; ``coords`` and
   ``num_points`` are int32 (spconv's and OpenPCDet's dtypes).
+- **Bad input** raises ``ValueError`` naming the argument, before anything is allocated: sizes and
+  ranges that are not sequences of real numbers (strings, sets, bools), a grid of more than 2^24
+  cells along an axis or 2^62 in all, capacities that are not positive ints below 2^31, and
+  capacities whose output ``voxels [rows, max_points_per_voxel, C]`` would exceed 2^31 - 1 entries
+  (rows: ``max_voxels`` with ``padded=True``, else at most the number of points).
 
 Output size: V depends on the data. The registered ops are shape-static (the assignment's outputs
 are padded to ``max_voxels``; the scatter takes its row count as an argument), so they never read
@@ -33,6 +38,7 @@ read (CUDA-graph capturable, ``torch.compile(fullgraph=True)``-friendly): ``max_
 from __future__ import annotations
 
 import math
+import numbers
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -40,7 +46,7 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
-from lidarops.ops.validation import check_positive_int, check_tensor, describe
+from lidarops.ops.validation import check_output_size, check_positive_int, check_tensor, describe
 
 extension.load()
 from lidarops.ops import _voxelize_registrations  # noqa: E402,F401  (fake kernels, autograd)
@@ -49,6 +55,7 @@ __all__ = ["voxelize", "VoxelizeResult", "VoxelizeInfo", "VoxelOverflowError", "
 
 _METHODS = {"auto": 0, "dense": 1, "hash": 2}
 _MAX_DIM = 1 << 24
+_MAX_CELLS = 1 << 62  # voxel keys are int64 (csrc/include/lidarops/voxelize.h)
 _INT32_MAX = 2**31 - 1
 
 # indices into the stats output of lidarops::voxelize_assign (csrc/include/lidarops/voxelize.h)
@@ -112,17 +119,17 @@ class VoxelizeResult(_VoxelTriple):
 # ---- argument handling ----
 
 def _numbers(value, n: int, name: str) -> list[float]:
+    """``n`` real numbers from a list, tuple, array or tensor; strings, sets, dicts, bools and complex
+    numbers are refused (``float("0.5")`` or a set's arbitrary order would pass silently)."""
+    given = value
     if isinstance(value, Tensor):
         value = value.detach().cpu().reshape(-1).tolist()
     elif isinstance(value, np.ndarray):
         value = value.reshape(-1).tolist()
-    try:
-        out = [float(v) for v in value]
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a sequence of {n} numbers, got {value!r}") from None
-    if len(out) != n or any(isinstance(v, bool) for v in value):
-        raise ValueError(f"{name} must be a sequence of {n} numbers, got {value!r}")
-    return out
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != n \
+            or not all([isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) for v in value]):
+        raise ValueError(f"{name} must be a sequence of {n} numbers, got {given!r}")
+    return [float(v) for v in value]
 
 
 def _check_voxel_size(voxel_size) -> list[float]:
@@ -150,13 +157,17 @@ def _grid_size(voxel_size: list[float], point_range: list[float]) -> list[int]:
         extent = point_range[a + 3] - point_range[a]
         n = extent / voxel_size[a]
         d = round(n)
+        if d > _MAX_DIM:
+            raise ValueError(f"point_range / voxel_size make a grid of {n:.4g} cells along {axis} (extent {extent:g}, "
+                             f"voxel_size {voxel_size[a]:g}); at most 2^24 are supported")
         if d < 1 or abs(n - d) > 1e-3 + 1e-6 * d:
             raise ValueError(
                 f"point_range must hold a whole number of voxels per axis: the {axis} extent "
                 f"{extent:g} is {n:.6g} voxels of voxel_size {voxel_size[a]:g}; adjust point_range or voxel_size")
-        if d > _MAX_DIM:
-            raise ValueError(f"the grid has {d} cells along {axis}; at most 2^24 are supported")
         dims.append(int(d))
+    if math.prod(dims) >= _MAX_CELLS:
+        raise ValueError(f"point_range / voxel_size make a grid of {dims[0]} x {dims[1]} x {dims[2]} = "
+                         f"{math.prod(dims):.4g} cells; at most 2^62 are supported (larger voxels or a smaller range)")
     return dims
 
 
@@ -205,6 +216,11 @@ def _assign(points: Tensor, voxel_size: list[float], point_range: list[float], g
     asked. ``names`` = (what a voxel is called, the capacity arguments) for the messages."""
     # Without padding, at most N voxels can exist: a generous max_voxels costs no memory.
     rows = max_voxels if padded else max(1, min(max_voxels, points.shape[0]))
+    noun, points_arg, voxels_arg = names
+    asked = (f"{voxels_arg}={max_voxels} (padded=True) and {points_arg}={max_points}" if padded
+             else f"{points_arg}={max_points} (up to {rows} {noun}s)")
+    check_output_size((rows, max_points, points.shape[1]), asked, f"{noun}s",
+                      f"lower {points_arg}" + (f" or {voxels_arg}" if padded else ""))
     coords, num_points, point_voxel, point_slot, stats = torch.ops.lidarops.voxelize_assign(
         points, voxel_size, point_range, grid_size, max_points, rows, method)
     counts = stats.unbind(0) if padded else stats.tolist()
@@ -292,7 +308,9 @@ def voxelize(points: Tensor, voxel_size: Sequence[float], point_range: Sequence[
 
     Raises:
         ValueError: bad arguments (shape, dtype, device, non-positive voxel size, inverted range,
-            a range that is not a whole number of voxels).
+            a range that is not a whole number of voxels, a grid of more than 2^24 cells along an
+            axis or 2^62 in all, capacities that are not positive ints below 2^31 or whose output
+            would exceed 2^31 - 1 entries), raised before anything is allocated.
         VoxelOverflowError: with ``overflow="raise"``, when points would be dropped; the message
             says which capacity to raise and to what.
 
@@ -307,7 +325,7 @@ def voxelize(points: Tensor, voxel_size: Sequence[float], point_range: Sequence[
     P = _check_capacity(max_points_per_voxel, "max_points_per_voxel")
     M = _check_capacity(max_voxels, "max_voxels")
     _check_overflow(overflow, padded)
-    if method not in _METHODS:
+    if not isinstance(method, str) or method not in _METHODS:
         raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
     if points.device.type == "meta" and not padded:
         raise ValueError("points on the meta device: the voxel count is data, so meta tensors need padded=True")

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-import numbers
+import operator
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
@@ -89,15 +89,60 @@ class KernelMap:
         return list(self.kernel_size)
 
 
-def _spatial_shape(spatial_shape, ndim: int) -> tuple:
+_INT32_MAX = 2**31 - 1
+_MAX_SITES = 2**62  # batch_size * prod(spatial_shape): the kernel maps' int64 site keys
+
+
+def _int(v, name: str, lo: int, hi: int) -> int:
+    """An int in [lo, hi]: Python and NumPy ints and one-element integer tensors; not bools or floats
+    (a float would be truncated: 10.7 -> 10)."""
+    if isinstance(v, Tensor) and v.numel() == 1 and not (v.is_floating_point() or v.is_complex() or v.dtype == torch.bool):
+        v = v.reshape(()).item()
     try:
-        shape = tuple(int(v) for v in spatial_shape)
+        if isinstance(v, (bool, Tensor)):
+            raise TypeError
+        v = operator.index(v)
     except TypeError:
-        raise ValueError(f"spatial_shape must be a sequence of {ndim} ints, got {spatial_shape!r}") from None
-    if len(shape) != ndim or any(v < 1 for v in shape):
+        raise ValueError(f"{name} must be an int in [{lo}, {hi}], got {v!r}") from None
+    if not lo <= v <= hi:
+        raise ValueError(f"{name} must be an int in [{lo}, {hi}], got {v}")
+    return v
+
+
+def _spatial_shape(spatial_shape, ndim: int) -> tuple:
+    """``ndim`` ints in [1, 2^31 - 1] (coordinates are int32)."""
+    if isinstance(spatial_shape, (str, bytes)) or not hasattr(spatial_shape, "__len__"):
+        raise ValueError(f"spatial_shape must be a sequence of {ndim} ints, got {spatial_shape!r}")
+    if len(spatial_shape) != ndim:
         raise ValueError(f"spatial_shape must hold {ndim} positive ints (one per coordinate column of indices), "
                          f"got {list(spatial_shape)!r}")
-    return shape
+    return tuple(_int(v, f"spatial_shape[{d}]", 1, _INT32_MAX) for d, v in enumerate(spatial_shape))
+
+
+def _range_check(indices: Tensor, batch_size: int, spatial_shape: list) -> None:
+    """One host sync: every row of ``indices`` lies in ``[0, batch_size) x [0, spatial_shape)``."""
+    idx = indices.long()
+    bound = torch.tensor([batch_size] + spatial_shape, device=idx.device)
+    outside = (idx < 0) | (idx >= bound)
+
+    def message() -> str:
+        row = int(torch.nonzero(outside.any(1))[0, 0])
+        return (f"indices lie outside batch_size {batch_size} / spatial_shape {spatial_shape}: row {row} is "
+                f"{idx[row].tolist()} (batch, coordinates)")
+
+    run_value_checks([(outside.any(), message)])
+
+
+def _as_int32(indices: Tensor, batch_size: int, spatial_shape: list) -> Tensor:
+    """int32 indices; other integer dtypes are range-checked before the conversion (which would wrap)."""
+    if indices.dtype == torch.int32:
+        return indices
+    if value_checks_enabled() and indices.numel():
+        _range_check(indices, batch_size, spatial_shape)
+    out = indices.to(torch.int32)
+    if not out.is_inference() and indices.numel() and value_checks_enabled():
+        out._lidarops_checked = (out._version, batch_size, tuple(spatial_shape))  # dense() needs no second check
+    return out
 
 
 class SparseConvTensor:
@@ -107,10 +152,20 @@ class SparseConvTensor:
         features (Tensor[N, C]): one feature row per active site.
         indices (Tensor[N, 1 + D] int32): ``(batch, c_0, ..., c_{D-1})`` of each row, coordinates in
             the order of ``spatial_shape`` (``(z, y, x)`` for voxels, ``(y, x)`` for pillars). Sites must
-            be unique and inside the grid; the kernel-map construction checks both.
-        spatial_shape (Sequence[int]): the grid, D entries.
-        batch_size (int): number of samples; samples may have no sites.
+            be unique and inside the grid; the kernel-map construction checks both. Other integer
+            dtypes (int64 coordinates) are checked against ``batch_size`` and ``spatial_shape`` first
+            (one value check, skipped under ``lidarops.validation(False)``) and then converted to
+            int32, so that no out-of-range value wraps around (``.int()`` would wrap silently).
+        spatial_shape (Sequence[int]): the grid, D ints in [1, 2^31 - 1] (floats are refused, not
+            truncated).
+        batch_size (int): number of samples, in [0, 2^31 - 1]; samples may have no sites.
+            ``batch_size * prod(spatial_shape)`` must be below 2^62.
         indice_dict (dict, optional): kernel-map cache shared with the tensors this one derives from.
+
+    Raises:
+        ValueError: naming the argument: indices that are not an integer (N, 1 + D) tensor or hold
+            values outside the grid (non-int32 indices), a spatial_shape or batch_size that is not
+            made of ints in range, features that are not an (N, C) tensor on the indices' device.
 
     Attributes:
         indice_dict (dict[str, KernelMap]): kernel maps registered by the layers that produced this
@@ -124,19 +179,16 @@ class SparseConvTensor:
             raise ValueError(f"indices must be a torch.Tensor, got {type(indices).__name__}")
         if indices.dim() != 2 or indices.shape[1] < 2:
             raise ValueError(f"indices must be (N, 1 + D) int32 with the batch index in column 0, got {describe(indices)}")
-        if indices.dtype != torch.int32:
-            raise ValueError(f"indices must be int32 (spconv's layout; use indices.int()), got {describe(indices)}")
+        if indices.is_floating_point() or indices.is_complex() or indices.dtype == torch.bool:
+            raise ValueError(f"indices must be an integer tensor (int32, spconv's layout), got {describe(indices)}")
         ndim = indices.shape[1] - 1
         self.spatial_shape = list(_spatial_shape(spatial_shape, ndim))
-        if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral):
-            if isinstance(batch_size, Tensor) and batch_size.numel() == 1 and not batch_size.is_floating_point():
-                batch_size = int(batch_size)
-            else:
-                raise ValueError(f"batch_size must be an int, got {batch_size!r}")
-        if batch_size < 0:
-            raise ValueError(f"batch_size must be >= 0, got {batch_size}")
-        self.indices = indices
-        self.batch_size = int(batch_size)
+        batch_size = _int(batch_size, "batch_size", 0, _INT32_MAX)
+        if batch_size * math.prod(self.spatial_shape) >= _MAX_SITES:
+            raise ValueError(f"batch_size * prod(spatial_shape) must be below 2^62, got {batch_size} * "
+                             f"prod({self.spatial_shape}) = {batch_size * math.prod(self.spatial_shape):.4g}")
+        self.batch_size = batch_size
+        self.indices = _as_int32(indices, batch_size, self.spatial_shape)
         self.features = features
         self.indice_dict = {} if indice_dict is None else indice_dict
         self.grid = grid
@@ -255,11 +307,7 @@ class SparseConvTensor:
                                                          tuple(self.spatial_shape))
         if value_checks_enabled() and self.indices.numel() and (
                 key is None or getattr(self.indices, "_lidarops_checked", None) != key):
-            idx = self.indices.long()
-            bound = torch.tensor([self.batch_size] + self.spatial_shape, device=idx.device)
-            run_value_checks([(((idx < 0) | (idx >= bound)).any(),
-                               lambda: f"indices lie outside batch_size {self.batch_size} / spatial_shape "
-                                       f"{self.spatial_shape}")])
+            _range_check(self.indices, self.batch_size, self.spatial_shape)
             if key is not None:
                 self.indices._lidarops_checked = key
         if channels_first and self.features.is_floating_point():
