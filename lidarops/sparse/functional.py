@@ -17,6 +17,7 @@ with ``w' = w.permute(0, D + 1, 1, ..., D)`` (``[Cout, Cin, *k]``) and ``w'' = w
 from __future__ import annotations
 
 import math
+import weakref
 from typing import Optional, Sequence
 
 import torch
@@ -286,6 +287,7 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
             raise ValueError(f"the inverse convolution's input ({x.indices.shape[0]} sites on grid {x.spatial_shape}) "
                              f"is not the output of the convolution registered under {indice_key!r} "
                              f"({km.out_indices.shape[0]} sites on grid {list(km.out_spatial_shape)})")
+        _check_sites(km, "out", x.indices, indice_key)
         return km.inverse(), cache
     D = x.ndim
     if indice_key is not None and indice_key in cache:
@@ -301,12 +303,90 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
                 f"stride {km.stride}, dilation {km.dilation}, {km.indices.shape[0]} input sites on grid "
                 f"{list(km.spatial_shape)}) that does not fit this {kind} layer (kernel {tuple(ksize)}, "
                 f"{x.indices.shape[0]} input sites on grid {x.spatial_shape}); give this layer its own indice_key")
+        _check_sites(km, "in", x.indices, indice_key)
         return km, cache
     km = build_kernel_map(x, kind, ksize, stride, padding, dilation, output_padding, out_spatial_shape, method)
     if indice_key is not None:
+        _site_checks[km] = _MapSites(km)
         cache = dict(cache)
         cache[indice_key] = km
     return km, cache
+
+
+# A kernel map cached under an indice_key belongs to the sites it was built on: the same number of
+# sites elsewhere gives a map of the right size but the wrong pairs, so the fit check above cannot see
+# it. A reuse is accepted, with host-side tests only (no synchronisation, so a forward whose maps are
+# all cached stays CUDA-graph capturable), when the layer's indices tensor is the map's own, unchanged
+# in place since the map was built (identity and version counter; every layer with a cached map
+# returns the map's own output tensor, so a network's layers all pass this way), or a tensor already
+# found equal to it at its current version. Any other tensor is compared once on the device (one host
+# synchronisation), and remembered when equal.
+class _Sites:
+    """One side (input or output sites) of a cached map: the version of the map's own tensor when the
+    map was built, and the last other tensor found equal to it (a weak reference) with its version."""
+
+    __slots__ = ("version", "copy", "copy_version")
+
+    def __init__(self, t: Tensor):
+        self.version = _version(t)
+        self.copy = None
+        self.copy_version = None
+
+
+class _MapSites:
+    __slots__ = ("sides",)
+
+    def __init__(self, km: KernelMap):
+        self.sides = {"in": _Sites(km.indices), "out": _Sites(km.out_indices)}
+
+
+_site_checks: "weakref.WeakKeyDictionary[KernelMap, _MapSites]" = weakref.WeakKeyDictionary()
+
+
+def _version(t: Tensor) -> Optional[int]:
+    """The in-place version counter of ``t`` (None for an inference tensor, which keeps none)."""
+    return None if t.is_inference() else t._version
+
+
+def _check_sites(km: KernelMap, side: str, indices: Tensor, indice_key) -> None:
+    """Raise ValueError unless ``indices`` are the sites of ``km``'s ``side`` (``"in"``: ``km.indices``,
+    what a layer reusing the map reads; ``"out"``: ``km.out_indices``, what an inverse convolution reads)."""
+    own = km.indices if side == "in" else km.out_indices
+    if _compiling():  # dynamo guards the identity; version counters and weak references are not traceable
+        if indices is not own:
+            _compare_sites(indices, own, side, indice_key)  # a data-dependent branch: a graph break
+        return
+    state = _site_checks.get(km)
+    if state is None:  # a map put into an indice_dict by hand: its sites are what its tensors hold now
+        state = _site_checks[km] = _MapSites(km)
+    sites = state.sides[side]
+    if _version(own) != sites.version:
+        raise ValueError(f"the sites of the kernel map under indice_key {indice_key!r} were changed in place after "
+                         "the map was built, so its pairs are stale; build a new map (a fresh indice_dict or a new "
+                         "indice_key) after changing indices")
+    if indices is own:
+        return
+    copy = None if sites.copy is None else sites.copy()
+    if copy is indices and sites.copy_version == _version(indices):
+        return
+    if indices.is_cuda and torch.cuda.is_current_stream_capturing():
+        raise ValueError(f"indice_key {indice_key!r}: these indices are not the tensor its kernel map was built on, "
+                         "and comparing them needs a host synchronisation, which a CUDA graph capture forbids; run "
+                         "the forward once on this tensor before capturing (it is then checked once and remembered)")
+    _compare_sites(indices, own, side, indice_key)
+    sites.copy, sites.copy_version = weakref.ref(indices), _version(indices)
+
+
+def _compare_sites(indices: Tensor, own: Tensor, side: str, indice_key) -> None:
+    if indices.device != own.device:
+        raise ValueError(f"indices are on {indices.device} but the kernel map under indice_key {indice_key!r} was "
+                         f"built on {own.device}")
+    if not torch.equal(indices, own):
+        what = "output sites of the convolution it inverts" if side == "out" else "sites it was built on"
+        raise ValueError(f"indice_key {indice_key!r} holds a kernel map of other sites: this layer's "
+                         f"{indices.shape[0]} sites are not the {own.shape[0]} {what}, and reusing its pairs "
+                         "would put the result on the wrong sites; give this layer its own indice_key or start "
+                         "from a fresh indice_dict (a new SparseConvTensor without indice_dict)")
 
 
 def cached_by_version(owner, attr: str, tensors: Sequence[Optional[Tensor]], compute, extra: tuple = ()):
@@ -399,6 +479,12 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
     Returns:
         SparseConvTensor with features (N_out, Cout): same sites as x for ``"subm"``, the registered
         convolution's input sites for ``"inverse"``, else the reached output sites in linear order.
+
+    Raises:
+        ValueError: naming the argument: bad shapes, dtypes or devices; sites outside the grid or
+            duplicated (checked when a kernel map is built: a 1 x 1 ``"subm"`` convolution reads no
+            site, builds no map and so checks none); a reused ``indice_key`` whose map was built on
+            other sites.
     """
     if not isinstance(x, SparseConvTensor):
         raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
