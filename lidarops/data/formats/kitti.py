@@ -23,6 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
+from lidarops.data._checks import read_float32_records, read_text, require_file
 from lidarops.data.frame import Frame, class_index
 from lidarops.data.geometry import box_corners, wrap_angle
 
@@ -53,10 +54,7 @@ KITTI_IMAGE_SIZE = (1242, 375)
 
 
 def _require_file(path: str | Path, what: str) -> Path:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"KITTI {what} file not found: {path}")
-    return path
+    return require_file(path, f"KITTI {what}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -73,13 +71,11 @@ def read_velodyne(path: str | Path) -> np.ndarray:
 
     Raises:
         FileNotFoundError: missing file.
-        ValueError: size not a multiple of 16 bytes.
+        ValueError: a size in bytes that is not a multiple of 16 (a truncated scan, or another format),
+            or a NaN or infinite value (the file and the first bad point are named).
     """
     path = _require_file(path, "velodyne")
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 4:
-        raise ValueError(f"{path}: {path.stat().st_size} bytes is not a whole number of float32 x 4 points (16 bytes each)")
-    return raw.reshape(-1, 4)
+    return read_float32_records(path, 4, "float32 x, y, z, reflectance", "point")
 
 
 def write_velodyne(path: str | Path, points: np.ndarray) -> Path:
@@ -188,20 +184,27 @@ def read_calib(path: str | Path) -> KittiCalib:
 
     Raises:
         FileNotFoundError: missing file.
-        ValueError: a missing key or a wrong number of values.
+        ValueError: not UTF-8 text, a missing or repeated key, a wrong number of values, a non-numeric,
+            NaN or infinite value, or ``R0_rect @ Tr_velo_to_cam`` not invertible (boxes could not be
+            mapped to the LiDAR frame); the file (and line) are named.
     """
     path = _require_file(path, "calib")
     values: dict[str, np.ndarray] = {}
-    for line_no, line in enumerate(path.read_text().splitlines(), 1):
+    for line_no, line in enumerate(read_text(path, "KITTI calibration").splitlines(), 1):
         if not line.strip():
             continue
         key, sep, rest = line.partition(":")
         if not sep:
             raise ValueError(f"{path}:{line_no}: expected 'KEY: values', got {line[:60]!r}")
+        key = key.strip()
+        if key in values:
+            raise ValueError(f"{path}:{line_no}: {key!r} is given twice")
         try:
-            values[key.strip()] = np.array([float(v) for v in rest.split()], dtype=np.float64)
+            values[key] = np.array([float(v) for v in rest.split()], dtype=np.float64)
         except ValueError:
-            raise ValueError(f"{path}:{line_no}: non-numeric value in {key.strip()!r}") from None
+            raise ValueError(f"{path}:{line_no}: non-numeric value in {key!r}") from None
+        if not np.isfinite(values[key]).all():
+            raise ValueError(f"{path}:{line_no}: {key!r} holds a NaN or infinite value")
     if "R0_rect" not in values and "R_rect" in values:
         values["R0_rect"] = values["R_rect"]
     if "Tr_velo_to_cam" not in values and "Tr_velo_cam" in values:
@@ -215,7 +218,11 @@ def read_calib(path: str | Path) -> KittiCalib:
             raise ValueError(f"{path}: {key} has {values[key].size} values, expected {n}")
     P = np.stack([values.get(f"P{i}", values["P2"]).reshape(3, 4) for i in range(4)])
     imu = values.get("Tr_imu_to_velo", np.eye(3, 4).ravel()).reshape(3, 4)
-    return KittiCalib(P, values["R0_rect"].reshape(3, 3), values["Tr_velo_to_cam"].reshape(3, 4), imu)
+    calib = KittiCalib(P, values["R0_rect"].reshape(3, 3), values["Tr_velo_to_cam"].reshape(3, 4), imu)
+    if not np.linalg.cond(calib.velo_to_rect_matrix()) < 1e12:  # also catches NaN
+        raise ValueError(f"{path}: R0_rect @ Tr_velo_to_cam is singular (or nearly), so boxes cannot be mapped "
+                         "from the camera to the LiDAR frame")
+    return calib
 
 
 def write_calib(path: str | Path, calib: KittiCalib) -> Path:
@@ -268,25 +275,38 @@ class KittiLabels:
                            None if self.score is None else self.score[idx])
 
 
+_LABEL_FIELDS = ("truncated", "occluded", "alpha", "left", "top", "right", "bottom", "h", "w", "l", "x", "y", "z",
+                 "rotation_y", "score")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def read_label(path: str | Path) -> KittiLabels:
     """Reads a KITTI ``label_2`` file (15 fields per line, or 16 with a score).
 
     Raises:
         FileNotFoundError: missing file.
-        ValueError: a line with the wrong number of fields or a non-numeric field (file and line named).
+        ValueError: not UTF-8 text, a line with the wrong number of fields, a non-numeric, NaN or
+            infinite field (or one beyond float32), an ``occluded`` that is not an integer in [-1, 3]
+            (file, line and field named).
     """
     path = _require_file(path, "label")
     rows: list[list[str]] = []
-    for line_no, line in enumerate(path.read_text().splitlines(), 1):
+    for line_no, line in enumerate(read_text(path, "KITTI label").splitlines(), 1):
         fields = line.split()
         if not fields:
             continue
         if len(fields) not in (15, 16):
             raise ValueError(f"{path}:{line_no}: expected 15 or 16 fields, got {len(fields)}: {line[:80]!r}")
         try:
-            [float(v) for v in fields[1:]]
+            values = [float(v) for v in fields[1:]]
         except ValueError:
             raise ValueError(f"{path}:{line_no}: non-numeric field in {line[:80]!r}") from None
+        for name, v in zip(_LABEL_FIELDS, values):
+            if not abs(v) <= _FLOAT32_MAX:  # NaN too
+                raise ValueError(f"{path}:{line_no}: {name} is {v!r}; expected a finite number (float32 range)")
+        if values[1] not in (-1, 0, 1, 2, 3):
+            raise ValueError(f"{path}:{line_no}: occluded is {fields[2]!r}; expected an integer in [-1, 3] "
+                             "(0 visible, 1 partly, 2 largely occluded, 3 unknown; -1 in result files)")
         rows.append(fields)
     if not rows:
         return KittiLabels.empty()
@@ -486,6 +506,11 @@ def boxes_to_kitti_labels(boxes: np.ndarray, names: Sequence[str], calib: KittiC
 # ---------------------------------------------------------------------------------------------
 # frames and datasets
 # ---------------------------------------------------------------------------------------------
+def _plain_name(name: str) -> bool:
+    """A file name without directories (``000042``), not ``..`` or ``a/b``."""
+    return bool(name) and name not in (".", "..") and "/" not in name and "\\" not in name and "\0" not in name
+
+
 def _split_dir(root: str | Path, split: str) -> Path:
     root = Path(root)
     if not root.exists():
@@ -539,20 +564,30 @@ class KittiDataset:
 
     Raises:
         FileNotFoundError: a missing directory or id list.
+        ValueError: a bad option, or an id list that is not UTF-8 text or holds an id that is not a
+            plain file name (``../x`` would read outside the split).
     """
 
     def __init__(self, root: str | Path, split: str = "training", image_set: str | None = None,
                  unknown: str = "drop", fov: str | None = None) -> None:
+        for name, value in (("split", split), ("image_set", image_set)):
+            if value is not None and (not isinstance(value, str) or not _plain_name(value)):
+                raise ValueError(f"{name} must be a plain name such as 'training' or 'val', got {value!r}")
+        if unknown not in ("drop", "keep"):
+            raise ValueError(f"unknown must be 'drop' or 'keep', got {unknown!r}")
+        if fov not in (None, "camera"):
+            raise ValueError(f"fov must be None or 'camera', got {fov!r}")
         self.split_dir = _split_dir(root, split)
         self.unknown = unknown
-        if fov not in (None, "camera"):
-            raise ValueError("fov must be None or 'camera'")
         self.fov = fov
         if image_set is not None:
             candidates = [self.split_dir.parent / "ImageSets" / f"{image_set}.txt", self.split_dir / "ImageSets" / f"{image_set}.txt"]
             for c in candidates:
                 if c.is_file():
-                    self.ids = [line.strip() for line in c.read_text().splitlines() if line.strip()]
+                    self.ids = [line.strip() for line in read_text(c, "KITTI image set").splitlines() if line.strip()]
+                    bad = next((i for i in self.ids if not _plain_name(i)), None)
+                    if bad is not None:
+                        raise ValueError(f"{c}: {bad!r} is not a frame id (a plain file name such as 000042)")
                     break
             else:
                 raise FileNotFoundError(f"image set {image_set!r} not found (looked for {', '.join(map(str, candidates))})")

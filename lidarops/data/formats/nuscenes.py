@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lidarops.data._checks import flag, read_float32_records, require_file
 from lidarops.data.frame import Frame
 
 __all__ = ["read_nuscenes_bin", "write_nuscenes_bin", "NUSCENES_TO_LIDAROPS"]
@@ -37,16 +38,19 @@ def read_nuscenes_bin(path: str | Path, x_forward: bool = False, normalize_inten
 
     Raises:
         FileNotFoundError: missing file.
-        ValueError: a size that is not a whole number of 5-float records.
+        ValueError: a size in bytes that is not a whole number of 20-byte records (a truncated scan, or
+            another format), a NaN or infinite value, or a ring index that is not an integer in
+            [0, 32767] (the file and the first bad record are named).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"nuScenes scan not found: {path}")
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 5:
-        raise ValueError(f"{path}: {path.stat().st_size} bytes is not a whole number of float32 x 5 records "
-                         "(x, y, z, intensity, ring; 20 bytes each)")
-    raw = raw.reshape(-1, 5)
+    x_forward, normalize_intensity = flag(x_forward, "x_forward"), flag(normalize_intensity, "normalize_intensity")
+    path = require_file(path, "nuScenes scan")
+    raw = read_float32_records(path, 5, "float32 x, y, z, intensity, ring", "record")
+    ring = raw[:, 4]
+    bad = (ring != np.round(ring)) | (ring < 0) | (ring > np.iinfo(np.int16).max)
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{path}: record {row} has ring index {float(ring[row])!r}; expected an integer in [0, 32767] "
+                         "(is this a nuScenes .pcd.bin of 5 floats per point?)")
     points = raw[:, :4].copy()
     if x_forward:
         points[:, :3] = points[:, :3] @ NUSCENES_TO_LIDAROPS.T.astype(np.float32)

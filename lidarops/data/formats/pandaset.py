@@ -19,12 +19,16 @@ from the file: only open data you trust.
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import pickle
+import zlib
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from lidarops.data._checks import flag, integer, read_text
 from lidarops.data.frame import Frame, class_index
 from lidarops.data.geometry import wrap_angle
 
@@ -109,14 +113,23 @@ def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
 
 
 def pose_to_matrix(pose: dict) -> np.ndarray:
-    """4x4 world <- LiDAR transform of a PandaSet pose dict."""
+    """4x4 world <- LiDAR transform of a PandaSet pose dict.
+
+    Raises:
+        ValueError: a missing key, a value that is not a finite number, or a zero quaternion.
+    """
     try:
         h, p = pose["heading"], pose["position"]
-        out = np.eye(4)
-        out[:3, :3] = quaternion_to_matrix([h["w"], h["x"], h["y"], h["z"]])
-        out[:3, 3] = [p["x"], p["y"], p["z"]]
-    except (KeyError, TypeError) as e:
-        raise ValueError(f"malformed PandaSet pose {pose!r}: {e}") from None
+        q, t = [h["w"], h["x"], h["y"], h["z"]], [p["x"], p["y"], p["z"]]
+    except (KeyError, TypeError, IndexError) as e:
+        raise ValueError(f"malformed PandaSet pose {pose!r}: {type(e).__name__}: {e}") from None
+    if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in q + t):
+        raise ValueError(f"malformed PandaSet pose {pose!r}: position and heading must be finite numbers")
+    if not any(q):
+        raise ValueError(f"malformed PandaSet pose {pose!r}: the heading quaternion is zero")
+    out = np.eye(4)
+    out[:3, :3] = quaternion_to_matrix(q)
+    out[:3, 3] = t
     return out
 
 
@@ -153,7 +166,7 @@ def _read_pickle(path: Path, what: str):
     try:  # pandas' reader carries the compatibility shims for pickles of older pandas versions
         return pd.read_pickle(path, compression="gzip")
     except (OSError, EOFError, pickle.UnpicklingError, ValueError, AttributeError, ImportError, TypeError,
-            ModuleNotFoundError) as e:
+            ModuleNotFoundError, KeyError, IndexError, zlib.error) as e:
         raise ValueError(f"{path}: not a gzip-compressed pickled DataFrame ({type(e).__name__}: {e})") from None
 
 
@@ -161,12 +174,50 @@ def _read_json(path: Path) -> list:
     if not path.is_file():
         raise FileNotFoundError(f"PandaSet file not found: {path}")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_text(path, "JSON"))
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: malformed JSON ({e})") from None
     if not isinstance(data, list):
         raise ValueError(f"{path}: expected a JSON list, got {type(data).__name__}")
     return data
+
+
+def _poses(path: Path, n: int) -> list:
+    """The first ``n`` poses of ``poses.json``, each checked (a bad one names the file and its index)."""
+    poses = _read_json(path)
+    if len(poses) < n:
+        raise ValueError(f"{path}: {len(poses)} poses for {n} frames")
+    for i, pose in enumerate(poses[:n]):
+        try:
+            pose_to_matrix(pose)
+        except ValueError as e:
+            raise ValueError(f"{path}: pose {i}: {e}") from None
+    return poses
+
+
+def _timestamps(path: Path, n: int) -> list[float]:
+    """``timestamps.json``: a number per frame (NaN, as our writer stores an unknown time, is kept)."""
+    values = _read_json(path)
+    if len(values) < n:
+        raise ValueError(f"{path}: {len(values)} timestamps for {n} frames")
+    for i, v in enumerate(values):
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or math.isinf(v):
+            raise ValueError(f"{path}: timestamp {i} is {v!r}; expected a number of seconds")
+    return [float(v) for v in values]
+
+
+def _columns(df, columns: Sequence[str], path: Path) -> np.ndarray:
+    """float64[len(df), len(columns)] of numeric, finite columns (a bad one names the file and column)."""
+    out = np.empty((len(df), len(columns)))
+    for j, c in enumerate(columns):
+        try:
+            out[:, j] = df[c].to_numpy(dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{path}: column {c!r} is not numeric ({e})") from None
+        bad = np.flatnonzero(~np.isfinite(out[:, j]))
+        if bad.size:
+            raise ValueError(f"{path}: column {c!r} holds {bad.size} NaN or infinite value(s), first in row {int(bad[0])}")
+    return out
 
 
 _LIDAR_COLUMNS = ("x", "y", "z", "i", "t", "d")
@@ -187,6 +238,10 @@ class PandaSetSequence:
 
     Raises:
         FileNotFoundError: no ``lidar/`` directory or no frames.
+        ValueError: a bad option; ``poses.json`` or ``timestamps.json`` that is not UTF-8 JSON, has
+            fewer entries than frames, or a pose/timestamp that is not made of finite numbers; when a
+            frame is read, a file that is not a gzip-pickled DataFrame, a missing or non-numeric
+            column, or a NaN or infinite coordinate, intensity or time (the file and column named).
     """
 
     def __init__(self, path: str | Path, sensor_id: int | None = None, coordinates: str = "lidar",
@@ -201,16 +256,16 @@ class PandaSetSequence:
         if not self.files:
             raise FileNotFoundError(f"no lidar/*.pkl.gz frames in {self.path}")
         if coordinates not in ("lidar", "world"):
-            raise ValueError("coordinates must be 'lidar' or 'world'")
+            raise ValueError(f"coordinates must be 'lidar' or 'world', got {coordinates!r}")
         if unknown not in ("drop", "keep"):
-            raise ValueError("unknown must be 'drop' or 'keep'")
+            raise ValueError(f"unknown must be 'drop' or 'keep', got {unknown!r}")
+        if sensor_id is not None:
+            sensor_id = integer(sensor_id, "sensor_id", 0)
         self.sensor_id, self.coordinates, self.unknown = sensor_id, coordinates, unknown
-        self.normalize_intensity = normalize_intensity
-        self.poses = _read_json(lidar / "poses.json")
-        if len(self.poses) < len(self.files):
-            raise ValueError(f"{lidar / 'poses.json'}: {len(self.poses)} poses for {len(self.files)} frames")
+        self.normalize_intensity = flag(normalize_intensity, "normalize_intensity")
+        self.poses = _poses(lidar / "poses.json", len(self.files))
         ts = lidar / "timestamps.json"
-        self.timestamps = [float(v) for v in _read_json(ts)] if ts.is_file() else [float("nan")] * len(self.files)
+        self.timestamps = _timestamps(ts, len(self.files)) if ts.is_file() else [float("nan")] * len(self.files)
 
     def __len__(self) -> int:
         return len(self.files)
@@ -226,9 +281,8 @@ class PandaSetSequence:
             raise ValueError(f"{path}: missing column(s) {missing} (PandaSet lidar frames have {list(_LIDAR_COLUMNS)})")
         if self.sensor_id is not None:
             df = df[df["d"] == self.sensor_id]
-        xyz = df[["x", "y", "z"]].to_numpy(dtype=np.float64)
-        intensity = df["i"].to_numpy(dtype=np.float64)
-        t = df["t"].to_numpy(dtype=np.float64)
+        values = _columns(df, ("x", "y", "z", "i", "t"), path)
+        xyz, intensity, t = values[:, :3], values[:, 3], values[:, 4].copy()
         pose_ps = pose_to_matrix(self.poses[i])
         pose = pose_ps.copy()
         pose[:3, :3] = pose_ps[:3, :3] @ _OURS_TO_PS  # world <- our LiDAR frame
@@ -253,9 +307,8 @@ class PandaSetSequence:
         names = [str(n) for n in df["label"].tolist()]
         index = np.array([class_index(PANDASET_TO_CLASS.get(n, "")) for n in names], dtype=np.int64)
         keep = np.ones(len(names), bool) if self.unknown == "keep" else index >= 0
-        center = df[["position.x", "position.y", "position.z"]].to_numpy(dtype=np.float64)[keep]
-        dims = df[["dimensions.x", "dimensions.y", "dimensions.z"]].to_numpy(dtype=np.float64)[keep]
-        yaw = df["yaw"].to_numpy(dtype=np.float64)[keep]
+        values = _columns(df, _CUBOID_COLUMNS[1:], path)[keep]
+        yaw, center, dims = values[:, 0], values[:, 1:4], values[:, 4:7]
         boxes = np.empty((center.shape[0], 7))
         if self.coordinates == "lidar":
             boxes[:, :3] = (center - pose[:3, 3]) @ pose[:3, :3]

@@ -1,0 +1,118 @@
+"""Argument and file checks shared by :mod:`lidarops.data` (NumPy only, no torch).
+
+Every error is a ``ValueError`` (``FileNotFoundError`` for a missing file) that names the argument or
+the file and says what was expected, so a bad value is refused where it enters, not turned into a NaN,
+a truncated number, a hang or an exception from deep inside NumPy.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+import operator
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["real", "integer", "flag", "require_file", "read_text", "record_count", "finite_rows", "read_float32_records"]
+
+
+def _range_text(lo, hi, lo_open: bool, hi_open: bool) -> str:
+    if lo is None and hi is None:
+        return ""
+    if hi is None:
+        return f" {'>' if lo_open else '>='} {lo:g}"
+    if lo is None:
+        return f" {'<' if hi_open else '<='} {hi:g}"
+    return f" in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+
+
+def real(value, name: str, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+         hi_open: bool = False, unit: str = "") -> float:
+    """A finite real number in the given range, as a float.
+
+    Python and NumPy ints and floats pass; bools, strings, complex numbers, NaN and infinities do not.
+    """
+    expected = f"{name} must be a finite number{_range_text(lo, hi, lo_open, hi_open)}{unit}"
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{expected}, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)) \
+            or (hi is not None and (v >= hi if hi_open else v > hi)):
+        raise ValueError(f"{expected}, got {v!r}")
+    return v
+
+
+def integer(value, name: str, lo: int | None = None, hi: int | None = None) -> int:
+    """An int in ``[lo, hi]``: Python and NumPy integers; not bools, floats (1.7 would be truncated) or
+    strings."""
+    expected = f"{name} must be an int{_range_text(lo, hi, False, False)}"
+    if isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{expected}, got {value!r}")
+    try:
+        v = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{expected}, got {value!r}") from None
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise ValueError(f"{expected}, got {v}")
+    return v
+
+
+def flag(value, name: str) -> bool:
+    """A bool (or a NumPy bool)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+# ---------------------------------------------------------------------------------------------
+# files
+# ---------------------------------------------------------------------------------------------
+def require_file(path, what: str) -> Path:
+    """``path`` as a Path to an existing regular file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} file not found: {path}" + (" (a directory)" if path.is_dir() else ""))
+    return path
+
+
+def read_text(path: Path, what: str) -> str:
+    """A text file decoded as UTF-8; binary junk is a ValueError that names the file and the byte."""
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a {what} text file (byte {e.start} is {data[e.start:e.start + 1]!r}, "
+                         "not UTF-8 text)") from None
+
+
+def record_count(path: Path, record_bytes: int, layout: str) -> int:
+    """Number of fixed-size records in a binary file, from its size in bytes: a size that is not a
+    whole number of records (a truncated or foreign file) is a ValueError."""
+    size = path.stat().st_size
+    if size % record_bytes:
+        raise ValueError(f"{path}: {size} bytes is not a whole number of records of {record_bytes} bytes ({layout}); "
+                         f"the file is truncated or not in this format ({size // record_bytes} whole records, "
+                         f"{size % record_bytes} bytes left over)")
+    return size // record_bytes
+
+
+def finite_rows(values: np.ndarray, path: Path, what: str) -> None:
+    """ValueError naming the file and the first record that holds a NaN or an infinity."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        row = int(np.flatnonzero(bad.reshape(values.shape[0], -1).any(axis=1))[0])
+        raise ValueError(f"{path}: {what} {row} holds a NaN or infinite value ({values[row].tolist()}); "
+                         f"{int(bad.reshape(values.shape[0], -1).any(axis=1).sum())} such record(s) in the file")
+
+
+def read_float32_records(path: Path, columns: int, layout: str, what: str) -> np.ndarray:
+    """float32[n, columns] from a headerless binary file (KITTI, nuScenes scans): the size must be a
+    whole number of records and every value finite (errors name the file and the first bad record)."""
+    n = record_count(path, 4 * columns, layout)
+    values = np.fromfile(path, dtype=np.float32)
+    if values.size != columns * n:
+        raise ValueError(f"{path}: read {values.size} floats but the file size says {columns * n}; "
+                         "it changed while being read")
+    values = values.reshape(n, columns)
+    finite_rows(values, path, what)
+    return values
