@@ -9,7 +9,17 @@ import numpy as np
 import pytest
 import torch
 
-from lidarops.stream import PillarGrid, PillarOverflowError, Pillars, PillarStream, StreamUpdate, pillarize
+from lidarops.stream import (
+    MAX_ABS_INTENSITY,
+    MAX_ABS_TIME,
+    PillarGrid,
+    PillarOverflowError,
+    Pillars,
+    PillarStream,
+    StreamCounts,
+    StreamUpdate,
+    pillarize,
+)
 from lidarops.stream.pillars import _pillar_keys_reference, _pillarize_reference
 
 from conftest import assert_close_report, assert_equal_report, requires_cuda
@@ -52,7 +62,7 @@ def _check_against_reference(res: Pillars, points: torch.Tensor, grid: PillarGri
     assert_equal_report(got[..., :4], exp[..., :4].to(points.dtype).double(), f"{where}: raw features")
     rtol, atol = (1e-12, 1e-12) if points.dtype == torch.float64 else (F32_RTOL, F32_ATOL)
     assert_close_report(got, exp, rtol, atol, f"{where}: decorated features")
-    assert res.num_outside == ref["num_outside"], where
+    assert res.num_outside == ref["num_outside"] and res.num_invalid == ref["num_invalid"], where
     keys = _key_order(coords, grid)
     assert bool((keys[1:] > keys[:-1]).all()), f"{where}: pillars not sorted by key"
 
@@ -150,7 +160,7 @@ def test_pillarize_edge_cases(device):
     out = torch.tensor([[100.0, 0, 0, 1], [0, 0, 5, 1], [float("nan"), 0, 0, 1], [0, float("inf"), 0, 1],
                         [8.0, 0, 0, 1], [0, 0, 2.0, 1]], device=device)
     res = pillarize(out, SMALL)
-    assert res.coords.shape[0] == 0 and res.num_outside == 6
+    assert res.coords.shape[0] == 0 and res.num_outside == 6 and res.num_invalid == 0
     # duplicates: identical points share a pillar; their offsets to the mean are 0
     dup = torch.tensor([[0.5, 0.5, 0.0, 0.2]] * 7 + [[-7.5, 7.5, 1.0, 0.3]], device=device)
     res = pillarize(dup, SMALL, max_points_per_pillar=7, max_pillars=2)
@@ -214,8 +224,15 @@ def test_opcheck_non_mutating_ops(device):
 
 # ---- PillarStream: against pillarize of the window ----
 
+def _invalid_reference(points: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The input policy, written out for the tests: intensity or t NaN, infinite or beyond 1e6 / 1e10."""
+    with np.errstate(invalid="ignore"):
+        return ~(np.abs(points[:, 3].astype(np.float64)) <= 1e6) | ~(np.abs(t) <= 1e10)
+
+
 class _Reference:
-    """Every pushed point (arrival order) with its id; the window and its pillar keys on request."""
+    """Every pushed point (arrival order) with its id; the window and its pillar keys on request.
+    Points that the input policy drops never count (not in the window, not in ``newest``)."""
 
     def __init__(self, grid: PillarGrid, window: float):
         self.grid, self.window = grid, window
@@ -226,15 +243,17 @@ class _Reference:
     def push(self, points: np.ndarray, t: np.ndarray, now=None):
         self.points = np.concatenate([self.points, points])
         self.t = np.concatenate([self.t, t])
-        if t.size:
-            self.newest = max(self.newest, float(t.max()))
+        valid = ~_invalid_reference(points, t)
+        if valid.any():
+            self.newest = max(self.newest, float(t[valid].max()))
         if now is not None:
             self.newest = max(self.newest, float(now))
 
     def window_ids(self) -> np.ndarray:
         """Ids of the points in the window and in the grid, in (t, arrival) order."""
         keys = _pillar_keys_reference(self.points, self.grid)
-        ids = np.nonzero((self.t > self.newest - self.window) & (keys >= 0))[0]
+        valid = ~_invalid_reference(self.points, self.t)
+        ids = np.nonzero((self.t > self.newest - self.window) & (keys >= 0) & valid)[0]
         return ids[np.argsort(self.t[ids], kind="stable")]
 
 
@@ -466,10 +485,10 @@ def test_stream_bad_input(device):
         stream.push(p, t.float())
     with pytest.raises(ValueError, match=r"t must be float64 \(n,\) with n = 3"):
         stream.push(p, t[:2])
-    with pytest.raises(ValueError, match="t must be finite"):
-        stream.push(p, torch.tensor([0.0, float("nan"), 0.0], dtype=torch.float64, device=device))
     with pytest.raises(ValueError, match="now must be a finite"):
         stream.push(p, t, now=float("inf"))
+    with pytest.raises(ValueError, match=r"now must be a finite number of seconds with \|now\| <= 1e\+10"):
+        stream.push(p, t, now=2e10)  # e.g. a millisecond clock
     if device == "cuda":
         with pytest.raises(ValueError, match="points is on cpu but the stream is on cuda"):
             stream.push(p.cpu(), t)
@@ -512,3 +531,82 @@ def test_import_is_light():
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+# ---- the input policy (docs/stream.md, "Input policy") ----
+
+def _policy_rows():
+    """(x, y, z, intensity, t, fate) for every column's NaN / inf / huge value and the bounds."""
+    nan, inf = float("nan"), float("inf")
+    above = float(np.nextafter(np.float32(MAX_ABS_INTENSITY), np.float32(inf)))  # the next float32 above 1e6
+    return [
+        (0.5, 0.5, 0.0, 0.3, 0.0, "in"),
+        (0.5, 0.5, 0.0, nan, 0.0, "invalid"),
+        (0.5, 0.5, 0.0, inf, 0.0, "invalid"),
+        (0.5, 0.5, 0.0, -inf, 0.0, "invalid"),
+        (1.5, 0.5, 0.0, 1e30, 0.0, "invalid"),
+        (1.5, 0.5, 0.0, above, 0.0, "invalid"),
+        (1.5, 0.5, 0.0, MAX_ABS_INTENSITY, 0.0, "in"),  # the bounds themselves are valid
+        (2.5, 0.5, 0.0, -MAX_ABS_INTENSITY, 0.0, "in"),
+        (0.5, 1.5, 0.0, 0.2, nan, "invalid"),
+        (0.5, 1.5, 0.0, 0.2, inf, "invalid"),
+        (0.5, 1.5, 0.0, 0.2, -inf, "invalid"),
+        (0.5, 1.5, 0.0, 0.2, 1e30, "invalid"),  # would become t_newest and expire every later point
+        (0.5, 1.5, 0.0, 0.2, -1.5e10, "invalid"),
+        (nan, 0.5, 0.0, 0.2, 0.0, "outside"),
+        (0.5, inf, 0.0, 0.2, 0.0, "outside"),
+        (0.5, 0.5, 1e30, 0.2, 0.0, "outside"),
+        (-1e30, 0.5, 0.0, 0.2, 0.0, "outside"),
+        (nan, 0.5, 0.0, nan, 0.0, "invalid"),  # counted once, as invalid (the first rule)
+        (2.5, 2.5, 0.0, nan, nan, "invalid"),  # both columns bad: one point
+        (2.5, 2.5, 0.0, 0.7, -0.5, "late"),
+        (3.5, 2.5, 0.0, 0.1, -0.02, "in"),
+    ]
+
+
+def test_stream_and_pillarize_input_policy(device):
+    rows = _policy_rows()
+    p = np.array([r[:4] for r in rows], np.float32)
+    t = np.array([r[4] for r in rows], np.float64)
+    fate = np.array([r[5] for r in rows])
+    stream = PillarStream(SMALL, window=0.1, max_points_per_pillar=20, max_pillars=256, device=device)
+    u = stream.push(torch.from_numpy(p).to(device), torch.from_numpy(t).to(device))
+    assert u.t == 0.0  # not 1e30: an invalid t never moves t_newest
+    assert (u.points_in, u.points_outside, u.points_late, u.points_invalid) == tuple(
+        int((fate == f).sum()) for f in ("in", "outside", "late", "invalid"))
+    assert stream.counts == StreamCounts(points_pushed=21, points_in=4, points_out=0, points_outside=4,
+                                         points_late=1, points_invalid=12, invalid_intensity=7, invalid_t=6)
+    c = stream.counts
+    assert c.points_pushed == c.points_in + c.points_outside + c.points_late + c.points_invalid
+    # the stream holds exactly the valid points of the window: pillarize of them, in time order
+    keep = np.nonzero(fate == "in")[0]
+    keep = keep[np.argsort(t[keep], kind="stable")]
+    expected = pillarize(torch.from_numpy(p[keep]).to(device), SMALL, 20, 256)
+    _assert_same_pillars(stream.pillars(), expected, "policy")
+    assert torch.isfinite(stream.pillars().features).all()
+    # pillarize applies the same rule to the intensity (it has no timestamps): given the points whose t
+    # is in the window, invalid intensities and outside points included, it gives the stream's pillars
+    in_time = np.nonzero(np.abs(t) <= 0.05)[0]
+    in_time = in_time[np.argsort(t[in_time], kind="stable")]
+    res = pillarize(torch.from_numpy(p[in_time]).to(device), SMALL, 20, 256)
+    _assert_same_pillars(res, stream.pillars(), "pillarize vs stream")
+    assert (res.num_invalid, res.num_outside) == (int((fate[in_time] == "invalid").sum()), 4)
+    _check_against_reference(res, torch.from_numpy(p[in_time]).to(device), SMALL, 20, f"{device} policy reference")
+    # invalid points never expire either (they were never in): a later push only expires the valid ones
+    u = stream.push(np.zeros((0, 4), np.float32), np.zeros(0), now=1.0)
+    assert u.points_out == 4 and stream.num_points == 0 and stream.counts.points_out == 4
+    # the time bounds are valid; a slice of invalid points only changes nothing
+    u = stream.push(np.array([[0.5, 0.5, 0.0, 1.0]], np.float32), np.array([MAX_ABS_TIME]))
+    assert u.points_in == 1 and u.t == MAX_ABS_TIME
+    u = stream.push(p[fate == "invalid"], t[fate == "invalid"])
+    assert u.points_invalid == 12 and u.points_in == 0 and u.changed.shape == (0, 3) and u.t == MAX_ABS_TIME
+    stream.reset()
+    assert stream.counts == StreamCounts()
+
+
+def test_pillarize_policy_is_lazy_and_replace_drops_counts(device):
+    pts = torch.tensor([[0.5, 0.5, 0.0, float("nan")], [0.5, 0.5, 0.0, 1.0], [100.0, 0.0, 0.0, 1.0]], device=device)
+    res = pillarize(pts, SMALL)
+    assert isinstance(res._num_invalid, torch.Tensor)  # not read until asked for
+    assert (res.num_invalid, res.num_outside) == (1, 1) and res.num_points.tolist() == [1]
+    assert res._replace(coords=res.coords).num_invalid is None

@@ -29,6 +29,11 @@ their row counts from the device, so a step makes no host synchronisation betwee
 synchronisation per layer (free there) trims them.
 The changed sites it passes on are those whose post-ReLU value changed (a site that stays <= 0 is not
 passed on) plus those whose active status changed.
+
+State check: every layer's ``acc`` is a view of one flat buffer, so after each refresh and update one
+reduction gives ``state_max`` = max |acc| over all accumulators (NaN or inf when one is not finite),
+read with the step's figures (no extra host synchronisation). ``SSCATeRPointPillars`` refreshes the
+state when it is not finite or when its magnitude swings (its guard; docs/sscater.md).
 """
 from __future__ import annotations
 
@@ -121,6 +126,9 @@ class DeltaBackbone:
             and trimmed lists are smaller).
         cuda_graph (bool): run :meth:`update` as a CUDA graph (one per power-of-two input capacity,
             captured on first use); default: on CUDA with ``sync_free``. Not with ``profile=True``.
+        state_check (bool): after every refresh and update, measure ``state_max`` (max |acc| over every
+            accumulator; NaN or inf if one is not finite): one reduction over the accumulators, read
+            with the step's figures. Default on; ``state_max`` is None when off.
 
     ``refresh(sites, features)`` sets the whole input (a full recomputation through the sparse ops);
     ``update(change)`` applies one step's input change; both return the (1, C_out, H/2, W/2) map, which
@@ -129,7 +137,7 @@ class DeltaBackbone:
     """
 
     def __init__(self, backbone: PointPillarsBackbone, shape, dtype: torch.dtype = torch.float32, device=None,
-                 sync_free: Optional[bool] = None, cuda_graph: Optional[bool] = None):
+                 sync_free: Optional[bool] = None, cuda_graph: Optional[bool] = None, state_check: bool = True):
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         if backbone.training:
@@ -143,6 +151,7 @@ class DeltaBackbone:
         if self.cuda_graph and not (self.sync_free and self.device.type == "cuda"):
             raise ValueError(f"cuda_graph needs a CUDA device and sync_free=True, got {self.device} and "
                              f"sync_free={self.sync_free}")
+        self.state_check = bool(state_check)
         self.reload()
 
     # ---- construction ----------------------------------------------------------------------------
@@ -202,8 +211,16 @@ class DeltaBackbone:
             c0 += cu
         self.stats: list[LayerStats] = [layer.stats for layer in self.layers + self.up_layers]
         self.steps = 0
-        # every layer's stamp map in one buffer, zeroed once per step
         every = self.layers + self.up_layers
+        # every layer's accumulator in one buffer: the state check is one reduction over it
+        self._accs = torch.zeros(sum(lay.acc.numel() for lay in every), dtype=dt, device=dev)
+        off = 0
+        for lay in every:
+            n = lay.acc.numel()
+            lay.acc = self._accs[off:off + n].view(lay.acc.shape)
+            off += n
+        self.state_max: Optional[float] = 0.0 if self.state_check else None
+        # every layer's stamp map in one buffer, zeroed once per step
         self._stamps = torch.zeros(sum(lay.out_shape[0] * lay.out_shape[1] for lay in every), dtype=torch.int32,
                                    device=dev)
         off = 0
@@ -230,7 +247,7 @@ class DeltaBackbone:
         block_out = {}
         for i, layer in enumerate(self.layers):
             x = SparseConvTensor(x_feats, _batch0(x_sites), list(layer.in_shape), 1)
-            # acc everywhere = the regular convolution's outputs (the subm layer's padding keeps the grid)
+            # acc = the regular convolution's outputs (the subm layer's padding keeps the grid)
             y = Fs.conv(x, layer.weight, None, "conv", stride=layer.stride, padding=layer.padding)
             layer.acc.zero_()
             layer.acc.view(-1, layer.cout)[_keys(y.indices[:, 1:], layer.out_shape[1])] = y.features
@@ -241,6 +258,10 @@ class DeltaBackbone:
                 cover = torch.nn.functional.conv2d(act, ones, stride=layer.stride, padding=1)[0, 0]
                 self.block_cover[layer.block].copy_(cover.round().to(torch.int32))
                 layer.active.copy_(self.block_cover[layer.block] > 0)
+            # the regular convolution also reaches a subm layer's inactive neighbours: zero them, as a
+            # step keeps them (their acc is set in full when they become active); the state check
+            # then sees only the maintained sums
+            layer.acc.masked_fill_(~layer.active[..., None], 0)
             x_sites = torch.nonzero(layer.active).int()
             x_feats = self._evaluate(layer, x_sites)
             block_out[layer.block] = (x_sites, x_feats)
@@ -258,6 +279,8 @@ class DeltaBackbone:
         for st, layer in zip(self.stats, self.layers + self.up_layers):
             st.active = int(layer.active.sum())
             st.changed = st.touched = st.active
+        if self.state_check:
+            self.state_max = float(self._state_max())
         self.steps = 0
         return self.out
 
@@ -295,7 +318,14 @@ class DeltaBackbone:
             active, counts = self._replay(sites, features, removed)
         else:
             active, counts = self._step(sites, features, removed, profile)
-        figures = torch.cat([active[:, None], counts[:, 1:]], 1).tolist()  # the step's one device-to-host copy
+        figures = torch.cat([active[:, None], counts[:, 1:]], 1)
+        if self.state_check:  # exact in float64: the counts are far below 2^53
+            values = torch.cat([figures.flatten().to(torch.float64), self._state_max().view(1).to(torch.float64)])
+            values = values.tolist()  # the step's one device-to-host copy
+            self.state_max = values.pop()
+            figures = [values[i:i + 3] for i in range(0, len(values), 3)]
+        else:
+            figures = figures.tolist()  # the step's one device-to-host copy
         for st, (a, changed, touched) in zip(self.stats, figures):
             st.active, st.changed, st.touched = int(a), int(changed), int(touched)
             if self.cuda_graph and not profile:
@@ -420,6 +450,14 @@ class DeltaBackbone:
         return Change(sites[:n], delta[:n], added, removed), counts
 
     # ---- helpers ---------------------------------------------------------------------------------
+
+    def _state_max(self) -> Tensor:
+        """max |acc| over every accumulator, a 0-d tensor on the device: NaN if one holds a NaN, inf if
+        one is infinite (``aminmax`` propagates NaN; one pass over the flat buffer)."""
+        if self._accs.numel() == 0:
+            return self._accs.new_zeros(())
+        lo, hi = torch.aminmax(self._accs)
+        return torch.maximum(hi, -lo)
 
     def _check_input(self, sites: Tensor, features: Tensor) -> tuple[Tensor, Tensor]:
         if not isinstance(sites, Tensor) or sites.dim() != 2 or sites.shape[1] != 2 or sites.is_floating_point():

@@ -6,9 +6,18 @@ gained or lost points, and updates the backbone by delta convolution
 (:class:`lidarops.sscater.delta.DeltaBackbone`). The result equals ``backbone(mode="sparse")`` on the
 pillarized window with the same weights, up to float rounding; ``refresh_every`` full recomputations
 bound the drift of the recycled sums (docs/sscater.md measures it).
+
+Input policy: the stream's (``docs/stream.md``): points whose intensity or timestamp is NaN, infinite
+or beyond ``MAX_ABS_INTENSITY`` / ``MAX_ABS_TIME`` are dropped and counted (``stats.points_invalid``,
+``model.stream.counts``), so they never reach the recycled state; :meth:`recompute` (``pillarize``)
+applies the same rule. Guard: after every step the largest accumulator magnitude is checked (one
+reduction); a non-finite value, or a swing by more than ``guard_ratio`` (a value entered, or left and
+would leave its rounding residue behind), forces a full refresh within the same step, reported in
+``stats.guard`` and counted in ``stats.guard_refreshes``.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Optional
@@ -33,8 +42,16 @@ class StepStats:
         pillars_active, pillars_changed (int): non-empty pillars, and those that gained or lost points.
         pfn_points, pfn_points_full (int): points run through the PFN, and what a full recomputation
             would run (the PFN's work is proportional to its points).
-        ms_stream, ms_pfn, ms_backbone (float): wall time of each stage.
+        ms_stream, ms_pfn, ms_backbone (float): wall time of each stage (a guard refresh counts in
+            ``ms_backbone``).
         layers (list[LayerStats]): per-layer active / changed / touched sites and times.
+        points_invalid (int): points of the slice dropped by the stream's input policy (intensity or t
+            NaN, infinite or out of bounds); cumulative counts in ``model.stream.counts``.
+        state_max (float or None): max |acc| over the backbone's accumulators after the step (NaN or
+            inf if one is not finite); None with ``guard=False``.
+        guard (str): why the guard forced a full refresh in this step, or that even a full
+            recomputation is not finite (non-finite pillar features or weights); "" when all is well.
+        guard_refreshes (int): refreshes forced by the guard since :meth:`reset` (this step included).
     """
 
     step: int = 0
@@ -50,6 +67,10 @@ class StepStats:
     ms_pfn: float = 0.0
     ms_backbone: float = 0.0
     layers: list = field(default_factory=list)
+    points_invalid: int = 0
+    state_max: Optional[float] = None
+    guard: str = ""
+    guard_refreshes: int = 0
 
     @property
     def pfn_saved(self) -> float:
@@ -73,6 +94,15 @@ class SSCATeRPointPillars:
         dtype (torch.dtype): float32 or float64 state.
         device: where everything runs (default: the backbone's device).
         profile (bool): time each layer (synchronises CUDA between layers).
+        guard (bool): check the recycled state after every step (max |acc| over every accumulator:
+            one reduction, read with the step's figures) and refresh it in the same step when the
+            check trips: a non-finite value; a jump by more than ``guard_ratio`` in one step (a huge
+            value entered, or the state was corrupted); or a fall by more than ``guard_ratio`` from
+            its peak since the last refresh (what entered and left leaves float rounding residue of
+            about 2^-24 of the peak in float32, which a smaller state cannot absorb).
+        guard_ratio (float, optional): default 16 in float32 (a 16x swing leaves a residue of about
+            1e-6 of the output; on simulated streams the state's magnitude swings by at most 1.7x),
+            1024 in float64.
 
     ``step(points, t)`` returns Tensor[1, C, H/2, W/2] (C = 384 by default): the state itself, valid
     until the next step (clone it to keep it). ``stats`` describes the last step.
@@ -80,7 +110,8 @@ class SSCATeRPointPillars:
 
     def __init__(self, pfn: PillarFeatureNet, backbone: PointPillarsBackbone, grid, window: float = 0.1,
                  max_points_per_pillar: int = 100, max_pillars: int = 12000, refresh_every: int = 25,
-                 dtype: torch.dtype = torch.float32, device=None, profile: bool = False):
+                 dtype: torch.dtype = torch.float32, device=None, profile: bool = False, guard: bool = True,
+                 guard_ratio: Optional[float] = None):
         from lidarops.stream import PillarStream
         if pfn.training or backbone.training:
             raise ValueError("pfn and backbone must be in eval mode (call .eval()): SSCATeR folds BatchNorm's "
@@ -90,14 +121,20 @@ class SSCATeRPointPillars:
                              f"({backbone.in_channels})")
         if isinstance(refresh_every, bool) or not isinstance(refresh_every, int) or refresh_every < 0:
             raise ValueError(f"refresh_every must be an int >= 0, got {refresh_every!r}")
+        if guard_ratio is None:
+            guard_ratio = 1024.0 if dtype == torch.float64 else 16.0
+        if isinstance(guard_ratio, bool) or not isinstance(guard_ratio, (int, float)) or not 1 < guard_ratio < math.inf:
+            raise ValueError(f"guard_ratio must be a finite number > 1, got {guard_ratio!r}")
         backbone.output_shape(grid.shape)  # the grid must suit the backbone
         self.pfn, self.backbone, self.grid = pfn, backbone, grid
         self.device = torch.device(device) if device is not None else next(backbone.parameters()).device
         self.dtype, self.refresh_every, self.profile = dtype, refresh_every, profile
         self.stream = PillarStream(grid, window, max_points_per_pillar, max_pillars, device=self.device)
-        self.delta = DeltaBackbone(backbone, grid.shape, dtype, self.device)
+        self.delta = DeltaBackbone(backbone, grid.shape, dtype, self.device, state_check=guard)
+        self.guard, self.guard_ratio = bool(guard), float(guard_ratio)
         self.stats = StepStats()
         self._since_refresh: Optional[int] = None
+        self._state_peak = self._state_prev = 0.0  # max |acc|: largest since the last refresh, last step's
 
     @property
     def window(self) -> float:
@@ -109,6 +146,7 @@ class SSCATeRPointPillars:
         if reload:
             self.delta.reload()
         self._since_refresh = None
+        self._state_peak = self._state_prev = 0.0
         self.stats = StepStats()
 
     def _pfn(self, pillars) -> Tensor:
@@ -131,10 +169,11 @@ class SSCATeRPointPillars:
         """Consume one slice: ``points (Tensor[n, 4] float32)``, ``t (Tensor[n] float64)`` seconds (on
         the model's device, or NumPy arrays). ``now`` advances the window's end (e.g. the slice's end
         time) so that points expire during gaps in the stream."""
-        st = StepStats(step=self.stats.step + 1 if self._since_refresh is not None else 0)
+        st = StepStats(step=self.stats.step + 1 if self._since_refresh is not None else 0,
+                       guard_refreshes=self.stats.guard_refreshes if self._since_refresh is not None else 0)
         m0 = self._mark()
         upd = self.stream.push(points, t, now=now)  # its figures are read on the host: it synchronises
-        st.t, st.points_in, st.points_out = upd.t, upd.points_in, upd.points_out
+        st.t, st.points_in, st.points_out, st.points_invalid = upd.t, upd.points_in, upd.points_out, upd.points_invalid
         st.pillars_active, st.pillars_changed = int(upd.active.shape[0]), int(upd.changed.shape[0])
         m1 = self._mark()
         refresh = self._since_refresh is None or (self.refresh_every and self._since_refresh + 1 >= self.refresh_every)
@@ -155,6 +194,20 @@ class SSCATeRPointPillars:
                 m2 = self._mark()
                 out = self.delta._apply(changed.coords[:, 1:], feats, upd.removed, profile=self.profile)
                 self._since_refresh += 1
+            st.guard = self._check_state(refresh)
+            if st.guard and refresh:  # nothing to recycle from: the input or the weights are not finite
+                st.guard += " after a full recomputation: the pillar features or the weights hold NaN or inf"
+            elif st.guard:  # recompute everything from the window, within this step
+                pillars = self.stream._gather(upd.active)
+                feats = self._pfn(pillars)
+                pfn_points = pfn_points + pillars.num_points.sum()
+                out = self.delta.refresh(pillars.coords[:, 1:], feats)
+                self._since_refresh = 0
+                st.guard_refreshes += 1
+                refresh = True
+                if self._check_state(True):
+                    st.guard += ("; the full recomputation is not finite either: the pillar features or the "
+                                 "weights hold NaN or inf")
         m3 = self._mark()
         if self.device.type == "cuda":
             m3.synchronize()
@@ -162,8 +215,31 @@ class SSCATeRPointPillars:
         st.refreshed = bool(refresh)
         st.ms_stream, st.ms_pfn, st.ms_backbone = self._elapsed(m0, m1), self._elapsed(m1, m2), self._elapsed(m2, m3)
         st.layers = [LayerStats(s.name, s.active, s.changed, s.touched, s.ms) for s in self.delta.stats]
+        st.state_max = self.delta.state_max
         self.stats = st
         return out
+
+    def _check_state(self, refreshed: bool) -> str:
+        """The guard, on the host (``state_max`` came with the step's figures): why the state must be
+        recomputed, or "". After a refresh it restarts the peak and reports only a non-finite state."""
+        m = self.delta.state_max
+        if m is None:
+            return ""
+        if not math.isfinite(m):
+            self._state_peak = self._state_prev = 0.0
+            return f"max |acc| is {m}: an accumulator holds NaN or inf"
+        if refreshed or m == 0:  # exact zeros (an empty window) hold no rounding residue either
+            self._state_peak = self._state_prev = m
+            return ""
+        r, prev, peak = self.guard_ratio, self._state_prev, max(self._state_peak, m)
+        self._state_peak, self._state_prev = peak, m
+        if prev > 0 and m > r * prev:
+            return (f"max |acc| jumped from {prev:.3g} to {m:.3g} in one step (more than {r:g}x): a huge value "
+                    "entered or the state was corrupted")
+        if peak > r * m:
+            return (f"max |acc| fell from {peak:.3g} to {m:.3g} since the last refresh (more than {r:g}x): what "
+                    "left would leave float rounding residue behind")
+        return ""
 
     def recompute(self, points: Tensor, max_points_per_pillar: Optional[int] = None,
                   max_pillars: Optional[int] = None) -> Tensor:

@@ -9,7 +9,16 @@ Pillars are sorted by the linear key ``y * W + x``; coords are ``(batch=0, y, x)
 """
 from __future__ import annotations
 
-from lidarops.stream.pillars import PillarGrid, PillarOverflowError, Pillars, pillarize
-from lidarops.stream.stream import PillarStream, StreamUpdate
+from lidarops.stream.pillars import (
+    MAX_ABS_INTENSITY,
+    MAX_ABS_TIME,
+    PillarGrid,
+    PillarOverflowError,
+    Pillars,
+    invalid_points,
+    pillarize,
+)
+from lidarops.stream.stream import PillarStream, StreamCounts, StreamUpdate
 
-__all__ = ["PillarGrid", "Pillars", "pillarize", "PillarStream", "StreamUpdate", "PillarOverflowError"]
+__all__ = ["PillarGrid", "Pillars", "pillarize", "PillarStream", "StreamUpdate", "StreamCounts", "PillarOverflowError",
+           "invalid_points", "MAX_ABS_INTENSITY", "MAX_ABS_TIME"]

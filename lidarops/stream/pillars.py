@@ -19,6 +19,12 @@ Conventions (identical on CPU and CUDA, and identical for :func:`pillarize` and
   ``x - x_centre, y - y_centre`` to the pillar centre ``x0 + (ix + 0.5) vx`` (the PointPillars
   decoration). Each feature is computed in float64 from the stored points and rounded once; padding
   slots are zero in all 9 features.
+- **Invalid values** (the input policy, :func:`invalid_points`, shared by :func:`pillarize` and the
+  stream): a point whose intensity is not finite or has ``|intensity| > MAX_ABS_INTENSITY`` (1e6), or
+  (in a stream) whose timestamp is not finite or has ``|t| > MAX_ABS_TIME`` (1e10 s), is dropped and
+  counted (``Pillars.num_invalid``, ``StreamUpdate.points_invalid``), never an error: it never enters
+  a pillar, the window or ``t_newest``. A point is counted once, in the first of: invalid, outside,
+  late (stream), entered.
 - **Overflow** raises :class:`PillarOverflowError` (a :class:`ValueError`) naming the capacity and the
   count needed: no random sampling (a dropped point can be a missed drone).
 """
@@ -49,7 +55,45 @@ from lidarops.ops.voxelize import (
 
 extension.load()
 
-__all__ = ["PillarGrid", "Pillars", "pillarize", "PillarOverflowError"]
+__all__ = ["PillarGrid", "Pillars", "pillarize", "PillarOverflowError", "invalid_points", "MAX_ABS_INTENSITY",
+           "MAX_ABS_TIME"]
+
+# The input policy (docs/stream.md, "Input policy"), defined here once for pillarize and PillarStream.
+# Sensors report intensity as 8- or 16-bit counts (<= 65535) or normalised to [0, 1] or [0, 100]; no
+# driver produces 1e6, so a value beyond it (or NaN / inf: no return, saturation flags, a bad decode)
+# is a fault. It would also wreck SSCATeR's recycled float32 sums: a 1e30 intensity that enters and
+# leaves the window leaves a residue of about 1e30 * 2^-24 behind.
+MAX_ABS_INTENSITY = 1e6
+# Timestamps are seconds. 1e10 s is year 2286 in Unix time; a millisecond or nanosecond clock passed
+# as seconds lands beyond it (every point is then dropped and counted, which the counts show), and
+# so does garbage such as 1e30, which would otherwise become t_newest and expire every later point.
+MAX_ABS_TIME = 1e10
+
+
+def invalid_points(points: Tensor, t: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+    """The input policy, per point (elementwise on the points' device, no host synchronisation).
+
+    Args:
+        points (Tensor[n, 4]): ``x, y, z, intensity``.
+        t (Tensor[n], optional): timestamps in seconds.
+
+    Returns:
+        (bad_intensity, bad_t): bool Tensor[n], True where the intensity is NaN, infinite or
+        ``|i| > MAX_ABS_INTENSITY``; and the same for ``t`` against ``MAX_ABS_TIME`` (None without
+        ``t``). Such points are dropped and counted. Coordinates need no rule here: a NaN, infinite or
+        huge x, y or z is outside every grid (``points_outside``).
+    """
+    # NaN compares false, so "not (|v| <= bound)" catches NaN, inf and huge values in one comparison
+    bad_intensity = ~(points[:, 3].abs() <= MAX_ABS_INTENSITY)
+    return bad_intensity, (None if t is None else ~(t.abs() <= MAX_ABS_TIME))
+
+
+def _without_invalid(points: Tensor, invalid: Tensor) -> Tensor:
+    """The points with the invalid ones moved outside every grid (NaN coordinates and intensity), so
+    that the kernels skip them without a data-dependent compaction; the caller subtracts their count
+    from the kernels' outside count."""
+    return torch.where(invalid[:, None], torch.full((), float("nan"), dtype=points.dtype, device=points.device),
+                       points)
 
 
 class PillarOverflowError(VoxelOverflowError):
@@ -161,15 +205,31 @@ class Pillars(_PillarTriple):
     - coords (int32 Tensor[P, 3]): ``(batch=0, y, x)``, sorted by ``y * W + x``;
     - num_points (int32 Tensor[P]): points per pillar, in ``[1, max_points_per_pillar]``.
 
-    ``.num_outside`` (int or None): points of the input outside the grid (pillarize only).
+    ``.num_outside`` (int or None): valid points of the input outside the grid (pillarize only).
+    ``.num_invalid`` (int or None): points dropped by the input policy (:func:`invalid_points`;
+    pillarize only). Both are read from the device on first access (pillarize does not wait for them).
     """
 
-    num_outside: int | None = None  # tuple methods such as _replace() return Pillars without it
-
-    def __new__(cls, features: Tensor, coords: Tensor, num_points: Tensor, num_outside: int | None = None):
+    def __new__(cls, features: Tensor, coords: Tensor, num_points: Tensor, num_outside: int | Tensor | None = None,
+                num_invalid: int | Tensor | None = None):
         self = super().__new__(cls, features, coords, num_points)
-        self.num_outside = num_outside
+        self._num_outside, self._num_invalid = num_outside, num_invalid
         return self
+
+    # tuple methods such as _replace() return Pillars without the counts: None
+    @property
+    def num_outside(self) -> int | None:
+        v = getattr(self, "_num_outside", None)
+        if isinstance(v, Tensor):
+            v = self._num_outside = int(v)
+        return v
+
+    @property
+    def num_invalid(self) -> int | None:
+        v = getattr(self, "_num_invalid", None)
+        if isinstance(v, Tensor):
+            v = self._num_invalid = int(v)
+        return v
 
 
 def _check_grid(grid) -> PillarGrid:
@@ -219,7 +279,10 @@ def pillarize(points: Tensor, grid: PillarGrid, max_points_per_pillar: int = 100
     Returns:
         Pillars: ``features (P, N, 9)`` in the points' dtype, ``coords`` int32 ``(P, 3)`` = (0, y, x)
         sorted by ``y * W + x``, ``num_points`` int32 ``(P,)``; points of a pillar in input order;
-        ``.num_outside`` = points outside the grid (not an error).
+        ``.num_invalid`` = points dropped by the input policy (intensity NaN, infinite or beyond
+        ``MAX_ABS_INTENSITY``: :func:`invalid_points`), ``.num_outside`` = the other points outside the
+        grid (neither is an error). ``PillarStream`` applies the same policy, so ``pillarize`` of the
+        points pushed in a window equals the stream's pillars.
 
     Raises:
         ValueError: bad arguments.
@@ -234,6 +297,9 @@ def pillarize(points: Tensor, grid: PillarGrid, max_points_per_pillar: int = 100
     P = _check_capacity(max_points_per_pillar, "max_points_per_pillar")
     M = _check_capacity(max_pillars, "max_pillars")
     n = points.shape[0]
+    bad_intensity, _ = invalid_points(points)
+    num_invalid = bad_intensity.sum()
+    points = _without_invalid(points, bad_intensity)
     coords, num_points, point_voxel, point_slot, counts = _assign(
         points, list(grid.voxel_size), list(grid.point_range), grid.grid_size, P, M, "drop", False, 0,
         ("pillar", "max_points_per_pillar", "max_pillars"), "pillarize")
@@ -253,7 +319,8 @@ def pillarize(points: Tensor, grid: PillarGrid, max_points_per_pillar: int = 100
     coords = coords.index_select(0, perm)
     coords[:, 0] = 0  # z of the one-cell-high voxels is the batch index 0
     num_points = num_points.index_select(0, perm)
-    return Pillars(_decorate(raw, num_points, coords, grid), coords, num_points, n - counts[_S_IN_GRID])
+    return Pillars(_decorate(raw, num_points, coords, grid), coords, num_points, n - counts[_S_IN_GRID] - num_invalid,
+                   num_invalid)
 
 
 # ---- pure NumPy reference (float64 features), used by the tests ----
@@ -282,9 +349,11 @@ def _pillar_keys_reference(points: np.ndarray, grid: PillarGrid) -> np.ndarray:
 def _pillarize_reference(points, grid: PillarGrid, max_points_per_pillar: int) -> dict:
     """NumPy reference of pillarize (no capacity limit on the number of pillars; raises AssertionError
     if a pillar overflows). Returns float64 ``features`` (P, N, 9), ``coords`` (P, 3), ``num_points``
-    (P,) and ``num_outside``; points of a pillar in input order."""
+    (P,), ``num_outside`` and ``num_invalid``; points of a pillar in input order."""
     p = points.detach().cpu().numpy() if isinstance(points, Tensor) else np.asarray(points)
-    key = _pillar_keys_reference(p, grid)
+    with np.errstate(invalid="ignore"):
+        invalid = ~(np.abs(p[:, 3]) <= MAX_ABS_INTENSITY)
+    key = np.where(invalid, -1, _pillar_keys_reference(p, grid))
     inside = key >= 0
     idx = np.nonzero(inside)[0]
     order = idx[np.argsort(key[idx], kind="stable")]
@@ -311,4 +380,4 @@ def _pillarize_reference(points, grid: PillarGrid, max_points_per_pillar: int) -
     feats[pil, slot] = f
     coords = np.stack([np.zeros(P, dtype=np.int64), iy, ix], 1).astype(np.int32)
     return {"features": feats, "coords": coords, "num_points": counts.astype(np.int32),
-            "num_outside": int((~inside).sum())}
+            "num_outside": int((~inside).sum() - invalid.sum()), "num_invalid": int(invalid.sum())}

@@ -11,6 +11,13 @@ the pushed points that are inside the grid and have ``t`` in the window, and ``s
 equals ``pillarize`` of those points (same points per pillar, same decorated features up to float
 rounding of the mean; same pillar order, by key ``y * W + x``).
 
+Input policy (``docs/stream.md``, "Input policy"; the same as ``pillarize``'s, defined once in
+``lidarops.stream.pillars``): a point whose intensity or timestamp is NaN, infinite or beyond
+``MAX_ABS_INTENSITY`` / ``MAX_ABS_TIME`` is dropped and counted (``StreamUpdate.points_invalid``,
+``PillarStream.counts``): it never enters the window nor moves ``t_newest``. Non-finite coordinates
+are outside the grid (``points_outside``). Bad shapes, dtypes, devices and a bad ``now`` raise
+``ValueError``; nothing else does.
+
 Cost of a push: proportional to the points entering and leaving the window and the pillars they touch
 (plus sorting the entering points, and O(H W) to build the change map and the active list).
 """
@@ -24,20 +31,23 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
-from lidarops.ops.validation import describe, value_checks_enabled
+from lidarops.ops.validation import describe
 from lidarops.ops.voxelize import _check_capacity
 from lidarops.stream.pillars import (
+    MAX_ABS_TIME,
     PillarGrid,
     PillarOverflowError,
     Pillars,
     _check_grid,
     _decorate,
     _overflow_message,
+    _without_invalid,
+    invalid_points,
 )
 
 extension.load()
 
-__all__ = ["PillarStream", "StreamUpdate"]
+__all__ = ["PillarStream", "StreamUpdate", "StreamCounts"]
 
 # indices into the stats output of lidarops::pillar_stream_push (csrc/include/lidarops/pillar_stream.h)
 (_P_IN, _P_OUT, _P_OUTSIDE, _P_LATE, _P_OVERFLOW, _P_MAX_POINTS, _P_PILLARS, _P_NEW, _P_EMPTIED, _P_TOUCHED,
@@ -58,6 +68,11 @@ class StreamUpdate(NamedTuple):
         points_out (int): points that left the window.
         points_outside (int): pushed points outside the grid (never enter).
         points_late (int): pushed points inside the grid but already older than the window (never enter).
+        points_invalid (int): pushed points dropped by the input policy: intensity or t NaN, infinite
+            or beyond ``MAX_ABS_INTENSITY`` / ``MAX_ABS_TIME`` (never enter).
+
+    Each pushed point is counted once, in the first of ``points_invalid``, ``points_outside``,
+    ``points_late``, ``points_in``: they add up to the slice's size.
     """
 
     t: float
@@ -69,6 +84,25 @@ class StreamUpdate(NamedTuple):
     points_out: int
     points_outside: int
     points_late: int
+    points_invalid: int = 0
+
+
+class StreamCounts(NamedTuple):
+    """Cumulative point counts of a :class:`PillarStream` since its creation or :meth:`~PillarStream.reset`
+    (pushes that raised are not counted: they had no effect).
+
+    ``points_pushed == points_in + points_outside + points_late + points_invalid``;
+    ``points_invalid <= invalid_intensity + invalid_t`` (a point may fail both rules).
+    """
+
+    points_pushed: int = 0
+    points_in: int = 0
+    points_out: int = 0
+    points_outside: int = 0
+    points_late: int = 0
+    points_invalid: int = 0
+    invalid_intensity: int = 0  # intensity NaN, infinite or |i| > MAX_ABS_INTENSITY
+    invalid_t: int = 0  # t NaN, infinite or |t| > MAX_ABS_TIME
 
 
 def _as_tensor(x, name: str, device: torch.device) -> Tensor:
@@ -168,6 +202,11 @@ class PillarStream:
         """Points in the window."""
         return self._num_points
 
+    @property
+    def counts(self) -> StreamCounts:
+        """Cumulative point counts since creation or :meth:`reset`, invalid points included."""
+        return self._counts
+
     # ---- state ----
     def reset(self) -> None:
         """Forget every point: an empty window, ``t_newest = -inf``."""
@@ -187,6 +226,7 @@ class PillarStream:
         self._t = float("-inf")
         self._num_active = 0
         self._num_points = 0
+        self._counts = StreamCounts()
 
     def _alloc_log(self, length: int) -> None:
         self._log_cell = torch.full((length,), -1, dtype=torch.int32, device=self._device)
@@ -224,17 +264,20 @@ class PillarStream:
         Args:
             points (Tensor[n, 4] float32 or ndarray): ``x, y, z, intensity``; a tensor must be on the
                 stream's device (a NumPy array is copied there). n may be 0.
-            t (Tensor[n] float64, ndarray, or a float for all points): timestamps in seconds, finite,
-                in any order (equal and out-of-order timestamps are fine).
+            t (Tensor[n] float64, ndarray, or a float for all points): timestamps in seconds, in any
+                order (equal and out-of-order timestamps are fine).
             now (float, optional): advance ``t_newest`` to at least ``now`` (e.g. the end of the slice),
                 so that points expire during a gap in the stream even without new points.
 
         Returns:
             StreamUpdate (see its docstring). Points with ``t <= t_newest - window`` never enter
-            (``points_late``); points outside the grid never enter (``points_outside``).
+            (``points_late``); points outside the grid never enter (``points_outside``); points whose
+            intensity or ``t`` is NaN, infinite or beyond ``MAX_ABS_INTENSITY`` / ``MAX_ABS_TIME``
+            never enter and do not move ``t_newest`` (``points_invalid``).
 
         Raises:
-            ValueError: bad arguments.
+            ValueError: bad arguments (shapes, dtypes, devices; ``now`` not a finite number of
+                seconds within ``MAX_ABS_TIME``). Point values never raise.
             PillarOverflowError: a capacity would be exceeded; the push had no effect.
         """
         dev = self._device
@@ -249,13 +292,22 @@ class PillarStream:
             raise ValueError(f"t must be float64 (n,) with n = {n} (float32 cannot hold timestamps to the "
                              f"microsecond), got {describe(t)}")
         if now is not None:
-            if isinstance(now, bool) or not isinstance(now, (int, float)) or not np.isfinite(now):
-                raise ValueError(f"now must be a finite number of seconds, got {now!r}")
+            if isinstance(now, bool) or not isinstance(now, (int, float)) or not abs(now) <= MAX_ABS_TIME:
+                raise ValueError(f"now must be a finite number of seconds with |now| <= {MAX_ABS_TIME:g}, got {now!r}")
         newest = self._t
+        n_invalid = bad_i = bad_t = 0
         if n:
-            t_max, t_ok = torch.stack([t.max(), torch.isfinite(t).all().to(torch.float64)]).tolist()
-            if value_checks_enabled() and not t_ok:
-                raise ValueError("t must be finite (no NaN or infinite timestamps)")
+            # the input policy: invalid points are moved outside the grid (counted as outside by the
+            # op, subtracted below) and left out of t_newest; their counts come with the newest time
+            bad_intensity, bad_time = invalid_points(points, t)
+            invalid = bad_intensity | bad_time
+            t_max = torch.where(invalid, float("-inf"), t).max()
+            counts = torch.stack([invalid.sum(), bad_intensity.sum(), bad_time.sum()]).to(torch.float64)
+            t_max, n_invalid, bad_i, bad_t = torch.cat([t_max.view(1), counts]).tolist()  # exact below 2^53
+            n_invalid, bad_i, bad_t = int(n_invalid), int(bad_i), int(bad_t)
+            if n_invalid:
+                points = _without_invalid(points, invalid)
+                t = torch.where(invalid, 0.0, t)
             newest = max(newest, t_max)
         if now is not None:
             newest = max(newest, float(now))
@@ -288,12 +340,17 @@ class PillarStream:
             self._log_head += st[_P_IN]
         self._num_active = st[_P_PILLARS]
         self._num_points += st[_P_IN] - st[_P_OUT]
+        outside = st[_P_OUTSIDE] - n_invalid
+        c = self._counts
+        self._counts = StreamCounts(c.points_pushed + n, c.points_in + st[_P_IN], c.points_out + st[_P_OUT],
+                                    c.points_outside + outside, c.points_late + st[_P_LATE],
+                                    c.points_invalid + n_invalid, c.invalid_intensity + bad_i, c.invalid_t + bad_t)
         # the lengths are known on the host: nonzero_static does not wait for the device
         changed_yx = torch.nonzero_static(change_map, size=n_changed)
         keys = changed_yx[:, 0] * g.shape[1] + changed_yx[:, 1]
         removed = self._cell_slot.index_select(0, keys) < 0
         return StreamUpdate(self._t, self.active_coords(), _batch0(changed_yx), removed, change_map,
-                            st[_P_IN], st[_P_OUT], st[_P_OUTSIDE], st[_P_LATE])
+                            st[_P_IN], st[_P_OUT], outside, st[_P_LATE], n_invalid)
 
     # ---- reading the window ----
     def active_coords(self) -> Tensor:
