@@ -1,0 +1,153 @@
+"""Fuzz: sparse convolution and pooling (lidarops.sparse) against the dense float64 references
+(``Fs._conv_reference``, ``Fs._max_pool_reference``: F.convNd / F.conv_transposeNd / F.max_poolNd on
+``x.dense()``, read at the output sites).
+
+Sites may be duplicated or outside the grid or the batch: then the kernel-map construction must
+raise a ValueError naming the indices; otherwise the result must be the reference's.
+"""
+from __future__ import annotations
+
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+
+from lidarops.sparse import SparseConvTensor
+from lidarops.sparse import functional as Fs
+from fuzzing import Sites, assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome, sparse_sites
+
+
+def _tensor(s: Sites, device: str) -> SparseConvTensor:
+    return SparseConvTensor(s.features.to(device), s.indices.to(device), s.spatial_shape, s.batch_size)
+
+
+def _row_major(indices: torch.Tensor, features: torch.Tensor, shape) -> tuple:
+    idx = indices.long().cpu()
+    key = idx[:, 0]
+    for d, n in enumerate(shape):
+        key = key * n + idx[:, d + 1]
+    order = torch.argsort(key)
+    return idx[order], features.detach().cpu()[order]
+
+
+def _compare(y: SparseConvTensor, ref_i: torch.Tensor, ref_f: torch.Tensor, what: str) -> None:
+    got_i, got_f = _row_major(y.indices, y.features, y.spatial_shape)
+    want_i, want_f = _row_major(ref_i, ref_f, y.spatial_shape)
+    assert_same(got_i, want_i, what + " sites")
+    scale = max(1.0, float(want_f.abs().max())) if want_f.numel() else 1.0
+    assert_close(got_f, want_f, rtol=0, atol=1e-10 * scale, what=what + " features")
+
+
+def _geometry(data, D: int, kind: str) -> dict:
+    k = data.draw(st.lists(st.integers(1, 3), min_size=D, max_size=D), "kernel")
+    g = {"kernel": k, "dilation": data.draw(st.integers(1, 2), "dilation")}
+    if kind in ("conv", "transposed", "pool"):
+        g["stride"] = data.draw(st.integers(1, 3), "stride")
+        g["padding"] = data.draw(st.integers(0, 1), "padding")
+    return g
+
+
+@fuzz
+@given(data=st.data())
+def test_conv(device, data):
+    s = data.draw(sparse_sites(), "sites")
+    D = len(s.spatial_shape)
+    kind = data.draw(st.sampled_from(["subm", "conv", "transposed"]), "kind")
+    g = _geometry(data, D, kind)
+    cin, cout = s.features.shape[1], data.draw(st.integers(1, 3), "Cout")
+    w = torch.tensor(data.draw(st.lists(st.floats(-2, 2, width=32), min_size=cout * cin * _prod(g["kernel"]),
+                                        max_size=cout * cin * _prod(g["kernel"]))),
+                     dtype=torch.float64).reshape(cout, *g["kernel"], cin)
+    bias = torch.linspace(-1, 1, cout, dtype=torch.float64) if data.draw(st.booleans(), "bias") else None
+    what = f"conv({kind}, {g}, {tuple(s.indices.shape)} sites on {s.spatial_shape} x batch {s.batch_size})"
+    x = _tensor(s, device)
+    args = dict(stride=g.get("stride", 1), padding=g.get("padding", 0), dilation=g["dilation"])
+    res, err = outcome(Fs.conv, x, w.to(device), None if bias is None else bias.to(device), kind,
+                       method=data.draw(st.sampled_from(["auto", "dense", "hash"]), "method"), **args)
+    if s.indices.shape[0] and not (s.in_range() and s.unique()):
+        if kind == "subm" and _prod(g["kernel"]) == 1 and err is None:
+            # documented: a 1x1 submanifold convolution reads no site (a matrix product per row), so
+            # it builds no kernel map and checks no site; the next layer that reads them does
+            want = s.features @ w.reshape(cout, cin).t() + (0 if bias is None else bias)
+            return assert_close(res.features, want, rtol=0, atol=1e-12 * max(1.0, float(want.abs().max())),
+                                what=what)
+        if err is None and res.indices.shape[0] == 0:
+            # duplicates are found while pairing sites with outputs: with no site reaching an output
+            # (a strided 1x1 kernel on odd sites) there is nothing to pair, and the result is right
+            # for any sites: no output
+            uniq = Sites(torch.unique(s.indices.clamp_min(0), dim=0), None, s.spatial_shape, s.batch_size)
+            reach = Fs._conv_reference(_tensor(Sites(uniq.indices, torch.zeros(uniq.indices.shape[0], cin,
+                                                     dtype=torch.float64), s.spatial_shape, s.batch_size), "cpu"),
+                                       w, None, kind, **args) if uniq.in_range() else None
+            if reach is not None and reach[0].shape[0] == 0:
+                return
+        if err is not None and ("leaves no output site" in str(err) or "empty output grid" in str(err)):
+            return assert_clear_error(err, ValueError, ["kernel", "convolution"], what)  # checked first
+        return assert_clear_error(err, ValueError, ["indices"], what)
+    if err is not None and ("leaves no output site" in str(err) or "empty output grid" in str(err)):
+        return assert_clear_error(err, ValueError, ["kernel", "convolution"], what)
+    assert_no_error(err, what)
+    ref_i, ref_f = Fs._conv_reference(_tensor(s, "cpu"), w, bias, kind, **args)
+    _compare(res, ref_i, ref_f, what)
+
+
+@fuzz
+@given(data=st.data())
+def test_max_pool(device, data):
+    s = data.draw(sparse_sites(), "sites")
+    D = len(s.spatial_shape)
+    k = data.draw(st.lists(st.integers(1, 3), min_size=D, max_size=D), "kernel")
+    stride = data.draw(st.none() | st.integers(1, 3), "stride")
+    padding = data.draw(st.integers(0, 1), "padding")
+    what = f"max_pool(kernel {k}, stride {stride}, padding {padding}, {tuple(s.indices.shape)} sites on {s.spatial_shape})"
+    res, err = outcome(Fs.max_pool, _tensor(s, device), k, stride, padding)
+    if err is not None and "leaves no output site" in str(err):  # checked before the sites
+        return assert_clear_error(err, ValueError, ["kernel"], what)
+    if s.indices.shape[0] and not (s.in_range() and s.unique()):
+        if err is not None and padding * 2 > min(k):
+            return assert_clear_error(err, ValueError, ["padding", "kernel", "indices"], what)
+        return assert_clear_error(err, ValueError, ["indices"], what)
+    if err is not None and padding * 2 > min(k):  # PyTorch's own rule, which the reference follows
+        return assert_clear_error(err, ValueError, ["padding", "kernel"], what)
+    assert_no_error(err, what)
+    if padding * 2 > min(k):
+        return  # F.max_poolNd refuses this geometry: no reference
+    ref_i, ref_f = Fs._max_pool_reference(_tensor(s, "cpu"), k, stride, padding)
+    _compare(res, ref_i, ref_f, what)
+
+
+@fuzz
+@given(data=st.data())
+def test_dense_and_indice_key_reuse(device, data):
+    """dense() checks the sites; a cached kernel map is reused only for its own sites (issue 25)."""
+    s = data.draw(sparse_sites(D=2), "sites")
+    other = data.draw(sparse_sites(D=2, channels=s.features.shape[1]), "other sites")
+    x = _tensor(s, device)
+    res, err = outcome(x.dense)
+    if s.indices.shape[0] and not s.in_range():
+        return assert_clear_error(err, ValueError, ["indices"], "dense()")
+    assert_no_error(err, "dense()")
+    if not (s.unique() and s.indices.shape[0]):
+        return
+    w = torch.ones(2, 3, 3, s.features.shape[1], dtype=torch.float64, device=device)
+    y = Fs.conv(x, w, None, "subm", indice_key="k")
+    shape_ok = other.spatial_shape == s.spatial_shape and other.batch_size == s.batch_size
+    if not (shape_ok and other.in_range() and other.unique()):
+        return
+    z = SparseConvTensor(other.features.to(device), other.indices.to(device), other.spatial_shape, other.batch_size,
+                         indice_dict=y.indice_dict)
+    what = f"reuse of indice_key 'k' by {tuple(other.indices.shape)} sites (map built on {tuple(s.indices.shape)})"
+    res, err = outcome(Fs.conv, z, w, None, "subm", indice_key="k")
+    if other.indices.shape != s.indices.shape:
+        return assert_clear_error(err, ValueError, ["indice_key"], what)
+    if not torch.equal(other.indices, s.indices):
+        return assert_clear_error(err, ValueError, ["indice_key"], what)
+    assert_no_error(err, what)
+    ref_i, ref_f = Fs._conv_reference(_tensor(other, "cpu"), w.cpu(), None, "subm")
+    _compare(res, ref_i, ref_f, what)
+
+
+def _prod(v) -> int:
+    out = 1
+    for e in v:
+        out *= e
+    return out
