@@ -269,6 +269,11 @@ def test_three_nn_fewer_than_three_sources(device):
 
 def test_knn_bad_input():
     xyz = torch.rand(2, 10, 3)
+    for call, name in ((lambda: mmcv.knn(2, xyz * 1e20), "xyz"), (lambda: mmcv.three_nn(xyz, xyz * 1e20), "source"),
+                       (lambda: mmcv.furthest_point_sample(xyz * 1e20, 2), "points_xyz"),
+                       (lambda: mmcv.ball_query(0.0, 0.5, 2, xyz, xyz * 1e20), "center_xyz")):
+        with pytest.raises(ValueError, match=f"{name} has a coordinate of magnitude"):  # squares overflow float32
+            call()
     with pytest.raises(ValueError, match="k"):
         mmcv.knn(0, xyz)
     with pytest.raises(ValueError, match="transposed"):

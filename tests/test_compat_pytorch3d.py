@@ -378,6 +378,15 @@ def test_knn_gather_masks_by_slot(device):
 
 def test_knn_points_bad_input():
     a, b = torch.rand(2, 5, 3), torch.rand(2, 6, 3)
+    # squared distances of 1e20 coordinates overflow float32: refused, not returned as 0 or inf
+    with pytest.raises(ValueError, match="p2 has a coordinate of magnitude"):
+        p3.knn_points(a, b * 1e20, K=2)
+    with pytest.raises(ValueError, match="p1 has a coordinate of magnitude"):
+        p3.ball_query(a * 1e20, b, K=2, radius=0.5)
+    with pytest.raises(ValueError, match="points has a coordinate of magnitude"):
+        p3.sample_farthest_points(a * 1e20, K=2)
+    with pytest.raises(ValueError, match="random_start_point must be True or False"):
+        p3.sample_farthest_points(a, K=2, random_start_point="no")
     with pytest.raises(ValueError, match="Support for 1 or 2 norm"):
         p3.knn_points(a, b, norm=3)
     with pytest.raises(ValueError, match="batch"):

@@ -593,6 +593,8 @@ def test_count_difficulties():
 # ---------------------------------------------------------------------------------------------
 def test_bad_annotations():
     gts, dts = two_cars()
+    with pytest.raises(ValueError, match="hold no frames"):
+        kitti.evaluate([], [])
     with pytest.raises(ValueError, match="gt_annos has 1 frames but dt_annos has 2"):
         kitti.evaluate(gts, dts + dts)
     with pytest.raises(ValueError, match=r"dt_annos\[0\] has no 'score' field"):

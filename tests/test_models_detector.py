@@ -236,6 +236,57 @@ def test_bad_batches_raise():
         model.train()({"points": torch.zeros(5, 5), "batch_size": 1, "gt_boxes": torch.zeros(1, 2, 7)})
 
 
+def _points(n: int = 50, frames: int = 1) -> torch.Tensor:
+    g = torch.Generator().manual_seed(0)
+    p = torch.rand(n, 5, generator=g) * torch.tensor([0.0, 60.0, 60.0, 3.0, 1.0]) - torch.tensor([0.0, 0.0, 30.0, 2.0, 0.0])
+    p[:, 0] = torch.arange(n) % frames
+    return p
+
+
+@pytest.mark.parametrize("frame, why", [(3.0, "beyond batch_size"), (0.5, "fractional"), (-1.0, "negative"),
+                                        (math.nan, "NaN")])
+def test_points_of_no_frame_raise(frame, why):
+    """A point whose frame index names no frame of the batch was silently left out of every frame."""
+    points = _points()
+    points[7, 0] = frame
+    with pytest.raises(ValueError, match=r"batch\['points'\]\[:, 0\] \(frame index\) must be an integer in \[0, 1\).*row 7"):
+        PointPillars(TINY).eval()({"points": points, "batch_size": 1})
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, 1e30])
+def test_invalid_intensity_raises_before_it_poisons_a_pillar(value):
+    points = _points()
+    points[3, 4] = value
+    with pytest.raises(ValueError, match=r"batch\['points'\]\[:, 4:\].*first row 3"):
+        PointPillars(TINY).predict({"points": points, "batch_size": 1})
+    points[3, 1:4] = math.nan  # a no-return beam (NaN x, y, z) is outside the range: left out, as voxelize does
+    points[3, 4] = 0.0
+    assert len(PointPillars(TINY).predict({"points": points, "batch_size": 1})) == 1
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float16])
+def test_other_float_dtypes_run_as_float32(dtype):
+    model = PointPillars(TINY).eval()
+    points = _points(200, frames=2)
+    want = model({"points": points, "batch_size": 2})
+    got = model({"points": points.to(dtype), "batch_size": 2})
+    exact = points.to(dtype).float()
+    want = model({"points": exact, "batch_size": 2})  # the same float32 values
+    for k in want:
+        assert torch.equal(got[k], want[k]), k
+
+
+def test_gt_boxes_of_a_class_must_be_real_boxes():
+    model = PointPillars(TINY).train()
+    for bad in ([math.nan] * 7, [10.0, 0.0, -1.0, -3.9, 1.6, 1.5, 0.0], [10.0, 0.0, -1.0, 3.9, 0.0, 1.5, 0.0],
+                [10.0, 0.0, -1.0, 3.9, 1.6, 1.5, math.inf]):
+        gt = torch.tensor([[bad + [1.0], [0.0] * 8]])
+        with pytest.raises(ValueError, match=r"batch\['gt_boxes'\] rows with a class must hold finite boxes"):
+            model({"points": _points(), "batch_size": 1, "gt_boxes": gt})
+    pad = torch.tensor([[[math.nan] * 7 + [0.0]]] * 2)  # class 0 rows are padding: never read
+    assert torch.isfinite(model({"points": _points(frames=2), "batch_size": 2, "gt_boxes": pad})["loss"])
+
+
 def test_checkpoint_of_another_config_names_the_keys(tmp_path):
     three = PointPillars()
     all_classes = PointPillars(load_config("configs/pointpillars_synth_all.yaml"))

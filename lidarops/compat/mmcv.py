@@ -25,7 +25,6 @@ from torch import Tensor
 
 from lidarops.compat.pytorch3d import (
     _ball_query_filtered,
-    _finite_check,
     _check_positive_int,
     _compute_dtype,
     _f32_square,
@@ -35,8 +34,8 @@ from lidarops.ops.neighbors import ball_query as _core_ball_query
 from lidarops.ops.neighbors import fps as _core_fps
 from lidarops.ops.neighbors import gather as _core_gather
 from lidarops.ops.neighbors import knn as _core_knn
-from lidarops.ops.validation import check_cloud, check_same_device, check_tensor, describe, run_value_checks, \
-    validation, value_checks_enabled
+from lidarops.ops.validation import check_cloud, check_same_device, check_tensor, coordinate_checks, describe, \
+    run_value_checks, validation, value_checks_enabled
 
 __all__ = ["furthest_point_sample", "ball_query", "knn", "three_nn", "gather_points", "grouping_operation"]
 
@@ -51,9 +50,10 @@ def _check_pair(xyz: Tensor, xyz_name: str, centers: Tensor, centers_name: str) 
 
 
 def _check_finite_coordinates(*named: Tuple[str, Tensor]) -> None:
-    """One host sync: finite coordinates (messages in mmcv's argument names)."""
+    """One host sync: finite coordinates within the core ops' bound, so that squared distances cannot
+    overflow (messages in mmcv's argument names)."""
     if value_checks_enabled():
-        run_value_checks([_finite_check(t, name) for name, t in named])
+        run_value_checks(coordinate_checks(named))
 
 
 def _check_index(t, name: str) -> None:

@@ -40,6 +40,7 @@ from lidarops.ops.neighbors import gather as _core_gather
 from lidarops.ops.neighbors import knn as _core_knn
 from lidarops.ops.validation import (
     check_same_device,
+    coordinate_checks,
     check_tensor,
     describe,
     lengths_or_full,
@@ -99,23 +100,19 @@ def _check_radius(radius, name: str = "radius") -> float:
 
 
 def _nan_and_lengths_checks(items: Sequence[Tuple[str, Tensor, str, Tensor]]) -> None:
-    """One host sync for: finite coordinates (as the core ops require), every length in [0, P].
+    """One host sync for: finite coordinates within the core ops' bound (squared distances cannot
+    overflow; :func:`lidarops.ops.validation.coordinate_bound`), every length in [0, P].
     ``items`` holds (points name, points, lengths name, lengths)."""
     if not value_checks_enabled():
         return
     checks = []
     for name, pts, lname, lengths in items:
-        checks.append(_finite_check(pts, name))
+        checks.extend(coordinate_checks([(name, pts)]))
         n = pts.shape[1]
         checks.append((((lengths < 0) | (lengths > n)).any(),
                        (lambda lengths=lengths, n=n, lname=lname:
                         f"{lname} must lie in [0, {n}], got {lengths.tolist()}")))
     run_value_checks(checks)
-
-
-def _finite_check(t: Tensor, name: str):
-    """A (flag, message) pair for run_value_checks: NaN or infinite coordinates."""
-    return (~torch.isfinite(t).all(), f"{name} contains NaN or infinite coordinates ({describe(t)})")
 
 
 def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -192,6 +189,8 @@ def sample_farthest_points(
     if k_max == 0 or B == 0:
         return points.new_zeros(B, k_max, D), torch.full((B, k_max), -1, dtype=torch.int64, device=device)
 
+    if random_start_point not in (True, False):  # "no" or None would pass as truthy or falsy
+        raise ValueError(f"random_start_point must be True or False, got {random_start_point!r}")
     if random_start_point:
         # PyTorch3D draws one torch.randint per cloud on the default generator; do the same so a seed
         # gives the same starts. (An empty cloud, where PyTorch3D raises, starts at 0 without a draw.)

@@ -630,6 +630,8 @@ def evaluate(gt_annos: Sequence[Mapping], dt_annos: Sequence[Mapping],
     gt_annos, dt_annos = list(gt_annos), list(dt_annos)
     if len(gt_annos) != len(dt_annos):
         raise ValueError(f"gt_annos has {len(gt_annos)} frames but dt_annos has {len(dt_annos)}")
+    if not gt_annos:  # an AP of 0 would read as a measured result
+        raise ValueError("gt_annos and dt_annos hold no frames: there is nothing to evaluate")
     ev = _Evaluation(gt_annos, dt_annos, classes, metrics)
 
     ap: dict[tuple[str, int, int, int], tuple[float, float]] = {}

@@ -21,6 +21,7 @@ in the max: that is what its checkpoints were trained with.
 from __future__ import annotations
 
 import math
+import operator
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -38,7 +39,8 @@ from lidarops.models.boxes import (
 )
 from lidarops.models.config import ConfigError, PointPillarsConfig, load_config
 from lidarops.models.pointpillars import PointPillarsBackbone
-from lidarops.ops.validation import check_tensor, describe
+from lidarops.stream.pillars import MAX_ABS_INTENSITY
+from lidarops.ops.validation import check_tensor, describe, run_value_checks, value_checks_enabled
 
 __all__ = ["PointPillars", "PillarVFE", "PFNLayer", "PointPillarScatter", "AnchorHeadSingle", "postprocess",
            "CheckpointMismatchError", "sigmoid_focal_loss"]
@@ -469,14 +471,51 @@ def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bo
         raise ValueError(f"batch['points'] must be a floating (P, 1 + {c}) tensor (frame index, x, y, z, "
                          f"intensity), got {describe(points)}")
     batch_size = batch.get("batch_size")
-    if isinstance(batch_size, Tensor):
+    if isinstance(batch_size, Tensor) and batch_size.numel() == 1 and not batch_size.is_floating_point():
         batch_size = int(batch_size)
-    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+    try:
+        if isinstance(batch_size, bool):
+            raise TypeError
+        batch_size = operator.index(batch_size)  # ints and NumPy ints; not 1.0
+    except TypeError:
+        raise ValueError(f"batch['batch_size'] must be a positive int, got {batch_size!r}") from None
+    if batch_size < 1:
         raise ValueError(f"batch['batch_size'] must be a positive int, got {batch_size!r}")
+    if points.dtype != torch.float32:  # the voxelizer and the weights work in float32, as OpenPCDet's
+        points = points.float()
+    checks = []
+    if value_checks_enabled() and points.shape[0]:
+        frame, feats = points[:, 0], points[:, 4:1 + c]
+        # a point of another frame (or of none) would be silently left out of every frame
+        bad_frame = ~((frame >= 0) & (frame < batch_size) & (frame == frame.round()))
+        checks.append((bad_frame.any(), lambda: _bad_rows_message(
+            bad_frame, points[:, 0], f"batch['points'][:, 0] (frame index) must be an integer in [0, {batch_size})")))
+        if feats.shape[1]:
+            # non-finite x, y, z fall outside the point range (left out, as voxelize does); other
+            # features would enter a pillar and turn its features, then every box near it, into NaN
+            bad_feat = ~(feats.abs() <= MAX_ABS_INTENSITY).all(1)
+            checks.append((bad_feat.any(), lambda: _bad_rows_message(
+                bad_feat, feats, f"batch['points'][:, 4:] (intensity and other features) must be finite with "
+                f"|value| <= {MAX_ABS_INTENSITY:g}; drop such points first (lidarops.stream.invalid_points gives the "
+                "mask for intensity)")))
     if training:
         gt = batch.get("gt_boxes")
         check_tensor(gt, "batch['gt_boxes']")
         if gt.dim() != 3 or gt.shape[0] != batch_size or gt.shape[2] != 8:
             raise ValueError(f"batch['gt_boxes'] must be (batch_size={batch_size}, M, 8) (box, class id), "
                              f"got {describe(gt)}")
+        if value_checks_enabled() and gt.numel():
+            real = gt[..., 7] != 0  # class 0 rows are padding
+            box = gt[..., :7]
+            bad_box = real & ~(torch.isfinite(box).all(-1) & (box[..., 3:6] > 0).all(-1))
+            checks.append((bad_box.any(), lambda: _bad_rows_message(
+                bad_box.reshape(-1), gt.reshape(-1, 8), "batch['gt_boxes'] rows with a class must hold finite boxes "
+                "with sizes dx, dy, dz > 0")))
+    run_value_checks(checks)
     return points, batch_size
+
+
+def _bad_rows_message(bad: Tensor, values: Tensor, expected: str) -> str:
+    rows = torch.nonzero(bad).flatten()
+    return (f"{expected}; {rows.numel()} row(s) are not, first row {int(rows[0])}: "
+            f"{values[int(rows[0])].tolist()}")
