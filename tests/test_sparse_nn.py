@@ -202,6 +202,10 @@ def test_module_arguments_are_checked():
         spnn.SparseConv2d(0, 4, 3)
     with pytest.raises(ValueError, match="needs the indice_key"):
         spnn.SparseInverseConv3d(3, 4, 3, indice_key=None)
+    with pytest.raises(ValueError, match="bias must be True or False"):
+        spnn.SubMConv2d(3, 4, 3, bias="no")
+    with pytest.raises(ValueError, match="indice_key must be a str or None"):
+        spnn.SubMConv2d(3, 4, 3, indice_key=1)
     conv = spnn.SubMConv2d(3, 4, 3)
     x = random_tensor(1, (4, 4), 3, 5, seed=0, dtype=torch.float32)
     with pytest.raises(ValueError, match="expects 3 input channels"):

@@ -68,6 +68,10 @@ class SparseConvolution(SparseModule):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{n} must be a positive int, got {v!r}")
         Fs._method(method)
+        if bias not in (True, False):  # "no" would be truthy
+            raise ValueError(f"bias must be True or False, got {bias!r}")
+        if indice_key is not None and not isinstance(indice_key, str):
+            raise ValueError(f"indice_key must be a str or None, got {indice_key!r}")
         self.ndim = ndim
         self.in_channels = in_channels
         self.out_channels = out_channels
