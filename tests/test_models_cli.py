@@ -139,3 +139,24 @@ def test_more_errors_are_one_line(argv, pattern, capsys):
 
     code, _, err = _run(argv, capsys)
     assert code == 2 and err.count("\n") == 1 and re.search(pattern, err), err
+
+
+@pytest.mark.parametrize("content", [b"junk\n", None])
+def test_damaged_checkpoints_are_one_line_errors(content, tmp_path, capsys):
+    """A file that is not a checkpoint, or a truncated one, names the file (no pickle traceback)."""
+    import re
+
+    from lidarops.models import weights
+
+    bad = tmp_path / "bad.pth"
+    bad.write_bytes(content if content is not None else weights.path().read_bytes()[:100_000])
+    code, _, err = _run(["detect", "--checkpoint", str(bad), "--scenario", "driving_city", "--frames", "1",
+                         "--device", "cpu"], capsys)
+    assert code == 2 and err.count("\n") == 1 and re.search(r"bad\.pth: not a readable checkpoint", err), err
+
+
+@pytest.mark.parametrize("value", ["nan", "2", "-0.1"])
+def test_score_threshold_must_be_a_score(value, capsys):
+    code, _, err = _run(["detect", "--scenario", "driving_city", "--frames", "1", "--device", "cpu",
+                         "--score-thresh", value], capsys)
+    assert code == 2 and "--score-thresh must be in [0, 1)" in err, err

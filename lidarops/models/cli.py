@@ -111,6 +111,8 @@ def _load_model(args: argparse.Namespace):
         raise CliError(f"checkpoint {path} not found")
     model = PointPillars.from_checkpoint(path, config=args.config, map_location="cpu").to(device).eval()
     if args.score_thresh is not None:
+        if not 0 <= args.score_thresh < 1:  # NaN too
+            raise CliError(f"--score-thresh must be in [0, 1) (a sigmoid score), got {args.score_thresh}")
         model.config.score_thresh = float(args.score_thresh)
     return model, device, path
 

@@ -363,7 +363,7 @@ class PointPillars(nn.Module):
         """A model with weights from a lidarops checkpoint (it carries its config) or an OpenPCDet one
         (``model_state``; give its ``config``). A state dict that does not fit raises
         :class:`CheckpointMismatchError` naming the keys."""
-        ckpt = torch.load(str(path), map_location=map_location, weights_only=False)
+        ckpt = read_checkpoint(path, map_location)
         if not isinstance(ckpt, Mapping):
             raise CheckpointMismatchError(f"{path}: not a checkpoint (a {type(ckpt).__name__})")
         if config is None:
@@ -447,6 +447,28 @@ class PointPillars(nn.Module):
             return self.postprocess(self(batch), batch)
         finally:
             self.train(was_training)
+
+
+def read_checkpoint(path: "str | Path", map_location: "str | torch.device" = "cpu") -> Any:
+    """``torch.load`` of a checkpoint with ``weights_only=True`` (a pickle can run code; lidarops' and
+    OpenPCDet's checkpoints hold only tensors and plain values).
+
+    Raises:
+        FileNotFoundError: no such file.
+        CheckpointMismatchError: the file is not a readable checkpoint (truncated, not a torch file, or
+            holding objects ``weights_only`` refuses); the message names the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} not found")
+    try:
+        return torch.load(str(path), map_location=map_location, weights_only=True)
+    except Exception as e:  # noqa: BLE001  (torch.load raises many types for a damaged or foreign file)
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise CheckpointMismatchError(
+            f"{path}: not a readable checkpoint ({type(e).__name__}: {first[:200]}); if it is a checkpoint you "
+            "trust that holds other objects, load it with torch.load(..., weights_only=False) and pass its "
+            "state dict to model.load_weights") from None
 
 
 def _as_config(config) -> PointPillarsConfig:

@@ -34,9 +34,9 @@ def path(name: str = DEFAULT) -> Path:
 
 def info(name: str = DEFAULT) -> dict:
     """Everything a shipped checkpoint says about itself except the weights."""
-    import torch
+    from lidarops.models.detector import read_checkpoint
 
-    ckpt = torch.load(str(path(name)), map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(path(name))
     return {k: v for k, v in ckpt.items() if k != "model_state"}
 
 
@@ -53,8 +53,10 @@ def export(checkpoint: "str | Path", out: "str | Path", **extra) -> Path:
     the optimizer state. ``extra`` entries (e.g. ``evaluation=...``) are added."""
     import torch
 
-    ckpt = torch.load(str(checkpoint), map_location="cpu", weights_only=False)
-    if "model_state" not in ckpt or "model_config" not in ckpt:
+    from lidarops.models.detector import read_checkpoint
+
+    ckpt = read_checkpoint(checkpoint)
+    if not isinstance(ckpt, dict) or "model_state" not in ckpt or "model_config" not in ckpt:
         raise ValueError(f"{checkpoint}: not a lidarops training checkpoint of a detector (needs model_state and "
                          f"model_config)")
     state = {k: (v.half() if v.is_floating_point() else v) for k, v in ckpt["model_state"].items()}

@@ -320,7 +320,11 @@ class _Run:
         if self.ctx.is_main:
             report = {"epoch": self.epoch, "global_step": self.global_step, "metrics": self.metrics, "text": text}
             (self.out_dir / f"eval_epoch_{self.epoch}.json").write_text(json.dumps(report, indent=2) + "\n")
-            shown = ", ".join(f"{k} {v:.4g}" for k, v in self.metrics.items())
+            # the headline per class (KITTI's moderate 3D AP, R40); the whole table follows in ``text``
+            # and every metric is in the JSON and the scalars log
+            head = {k: v for k, v in self.metrics.items() if k.endswith("_3d_moderate_R40")} or \
+                dict(list(self.metrics.items())[:6])
+            shown = ", ".join(f"{k} {v:.4g}" for k, v in head.items())
             self.log.say(f"eval after epoch {self.epoch} (step {self.global_step}): {shown}"
                          + (f"\n{text}" if text else ""))
             self.log.scalars("eval", self.metrics, self.global_step)
