@@ -50,7 +50,7 @@ std::tuple<at::Tensor, at::Tensor> pillar_stream_gather_cpu(const at::Tensor& po
                                                             const at::Tensor& cells_in) {
   check_pillar_gather_args(pool_xyzi, head, count, cell_slot, cells_in);
   auto cells = cells_in.contiguous();
-  const int64_t P = cells.size(0), N = pool_xyzi.size(1), C = cell_slot.size(0);
+  const int64_t P = cells.size(0), M = pool_xyzi.size(0), N = pool_xyzi.size(1), C = cell_slot.size(0);
   auto raw = at::zeros({P, N, 4}, pool_xyzi.options());
   auto num_points = at::zeros({P}, pool_xyzi.options().dtype(at::kInt));
   if (P == 0) return {raw, num_points};
@@ -65,7 +65,12 @@ std::tuple<at::Tensor, at::Tensor> pillar_stream_gather_cpu(const at::Tensor& po
     for (int64_t p = s; p < e; ++p) {
       const int64_t cell = cl[p];
       const int32_t slot = cell >= 0 && cell < C ? cs[cell] : -1;
-      if (slot < 0) continue;
+      if (slot == -1) continue;
+      // a slot, head or count out of range is never used as an index: the pillar reports -1 points
+      if (slot < 0 || slot >= M || !ps_queue_ok(hd[slot], ct[slot], N)) {
+        np[p] = -1;
+        continue;
+      }
       const int64_t n = ct[slot], h = hd[slot];
       np[p] = static_cast<int32_t>(n);
       for (int64_t k = 0; k < n; ++k)
@@ -110,14 +115,21 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cpu(
   int64_t* rp = run_pops.data_ptr<int64_t>();
 
   // ---- plan (reads the state only) ----
+  // Every state value used as an index is checked here, before anything is written; a bad one is
+  // skipped and reported in `bad` (kPsBad* bits), and the push then changes nothing. The CUDA plan
+  // makes the same checks (csrc/cuda/pillar_stream_kernel.cu).
+  const int64_t C = a.H * a.W;
+  int64_t bad = 0;
   // Expiry: each run is sorted by t, so its expired entries are a prefix; one entry per point, so a
   // pillar loses as many points (its queue's first ones, the queue being sorted) as it has entries.
   std::vector<int32_t> pops(M, 0), gains(M, 0);
   std::vector<int32_t> touched;  // slots that lose points
   for (int64_t r = 0; r < R; ++r) {
     const int64_t start = rn[2 * r], end = rn[2 * r + 1];
-    TORCH_CHECK(0 <= start && start <= end && end - start <= L, "runs[", r, "] = [", start, ", ", end,
-                ") is not a run of a log of length ", L);
+    if (!(0 <= start && start <= end && end - start <= L)) {
+      bad |= kPsBadRuns;
+      continue;
+    }
     int64_t lo = start, hi = end;  // first position with t > cutoff
     while (lo < hi) {
       const int64_t mid = lo + (hi - lo) / 2;
@@ -127,8 +139,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cpu(
     rp[r] = lo - start;
     for (int64_t q = start; q < lo; ++q) {
       const int64_t cell = lc[q % L];
-      const int32_t slot = cell >= 0 && cell < a.H * a.W ? cs[cell] : -1;
-      TORCH_CHECK(slot >= 0, "pillar stream state is inconsistent: a log entry names the empty pillar ", cell);
+      const int32_t slot = cell >= 0 && cell < C ? cs[cell] : -1;
+      if (slot == -1) {
+        bad |= kPsBadLog;
+        continue;
+      }
+      if (slot < 0 || slot >= M || sc[slot] != cell) {
+        bad |= kPsBadCellSlot;
+        continue;
+      }
       if (pops[slot]++ == 0) touched.push_back(slot);
     }
   }
@@ -157,22 +176,45 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cpu(
   int64_t max_after = 0, new_pillars = 0, emptied = 0;
   for (int64_t s = 0; s < S; ++s) {
     const int64_t k = seg_begin[s + 1] - seg_begin[s];
-    const int32_t slot = cs[keys[by_cell[seg_begin[s]]]];
+    const int64_t key = keys[by_cell[seg_begin[s]]];
+    const int32_t slot = cs[key];
     int64_t after = k;
-    if (slot >= 0) {
+    if (slot == -1) {
+      ++new_pillars;
+    } else if (slot < 0 || slot >= M || sc[slot] != key) {
+      bad |= kPsBadCellSlot;
+      continue;
+    } else if (!ps_queue_ok(hd[slot], ct[slot], N)) {
+      bad |= kPsBadQueue;
+      continue;
+    } else {
       gains[slot] = static_cast<int32_t>(k);
       after += ct[slot] - pops[slot];
-    } else {
-      ++new_pillars;
     }
     max_after = std::max(max_after, after);
   }
   for (const int32_t slot : touched) {
-    TORCH_CHECK(pops[slot] <= ct[slot], "pillar stream state is inconsistent: pillar ", sc[slot], " holds ", ct[slot],
-                " points but ", pops[slot], " expire");
+    if (!ps_queue_ok(hd[slot], ct[slot], N) || pops[slot] < 0 || pops[slot] > ct[slot]) {
+      bad |= kPsBadQueue;
+      continue;
+    }
     if (pops[slot] == ct[slot] && gains[slot] == 0) ++emptied;
   }
-  const int64_t active = M - nf[0], active_after = active - emptied + new_pillars;
+  // The free stack: the frees push `emptied` slots, then the new pillars pop; the pops that reach
+  // below the freed slots take old entries, which must be free slots.
+  const int64_t nf0 = nf[0];
+  if (nf0 < 0 || nf0 > M || nf0 + emptied > M) {
+    bad |= kPsBadNumFree;
+  } else {
+    for (int64_t i = std::max<int64_t>(nf0 - (new_pillars - emptied), 0); i < nf0; ++i) {
+      const int32_t slot = fs[i];
+      if (slot < 0 || slot >= M || sc[slot] != -1) {
+        bad |= kPsBadFreeSlots;
+        break;
+      }
+    }
+  }
+  const int64_t active = M - nf0, active_after = active - emptied + new_pillars;
   st[kPsPointsIn] = n_in;
   st[kPsMaxPointsNeeded] = max_after;
   st[kPsPillarsNeeded] = active_after;
@@ -180,7 +222,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cpu(
   st[kPsEmptied] = emptied;
   st[kPsTouchedSlots] = static_cast<int64_t>(touched.size());
   st[kPsSegments] = S;
-  st[kPsOverflow] = (max_after > N ? kPsOverflowPoints : 0) | (active_after > M ? kPsOverflowPillars : 0);
+  st[kPsOverflow] = bad | (max_after > N ? kPsOverflowPoints : 0) | (active_after > M ? kPsOverflowPillars : 0);
   if (st[kPsOverflow]) {
     run_pops.zero_();
     return {change_map, stats, run_pops};

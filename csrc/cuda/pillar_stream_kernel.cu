@@ -15,7 +15,9 @@
 //     3. two stable sorts (ATen): the entering points by t (the log run), then by pillar key (the
 //        queues): (key, t, arrival) order, each pillar a segment.
 //     4. per segment: its pillar's length after the push; per touched slot: does it become empty;
-//        one thread then decides the overflow flags.
+//        the free-stack entries the new pillars will pop; one thread then decides the flags.
+//   Every state value used as an index is checked where the plan reads it (as the CPU plan does): a
+//   bad value is skipped and sets a kPsBad* bit of stats[kPsOverflow], so the apply does nothing.
 //   apply (every kernel returns at once when the plan overflowed, so an overflowing push changes nothing):
 //     5. expiry: advance each touched queue's head; free the slots that become empty (atomic push on
 //        the free stack).
@@ -107,13 +109,18 @@ at::Tensor pillar_decorate_cuda(const at::Tensor& raw_in, const at::Tensor& num_
 
 __global__ void pillar_gather_kernel(const float* __restrict__ pool, const int32_t* __restrict__ head,
                                      const int32_t* __restrict__ count, const int32_t* __restrict__ cell_slot,
-                                     const int64_t* __restrict__ cells, int64_t P, int64_t N, int64_t C,
+                                     const int64_t* __restrict__ cells, int64_t P, int64_t M, int64_t N, int64_t C,
                                      float* __restrict__ raw, int32_t* __restrict__ num_points) {
   LIDAROPS_GRID_STRIDE(i, P * N) {
     const int64_t p = i / N, k = i - p * N;
     const int64_t cell = cells[p];
     const int32_t slot = cell >= 0 && cell < C ? cell_slot[cell] : -1;
-    if (slot < 0) continue;
+    if (slot == -1) continue;
+    // a slot, head or count out of range is never used as an index: the pillar reports -1 points
+    if (slot < 0 || slot >= M || !ps_queue_ok(head[slot], count[slot], N)) {
+      if (k == 0) num_points[p] = -1;
+      continue;
+    }
     const int64_t n = count[slot];
     if (k == 0) num_points[p] = static_cast<int32_t>(n);
     if (k >= n) continue;
@@ -128,13 +135,13 @@ std::tuple<at::Tensor, at::Tensor> pillar_stream_gather_cuda(const at::Tensor& p
   check_pillar_gather_args(pool_xyzi, head, count, cell_slot, cells_in);
   const c10::cuda::CUDAGuard guard(pool_xyzi.device());
   auto cells = cells_in.contiguous();
-  const int64_t P = cells.size(0), N = pool_xyzi.size(1), C = cell_slot.size(0);
+  const int64_t P = cells.size(0), M = pool_xyzi.size(0), N = pool_xyzi.size(1), C = cell_slot.size(0);
   auto raw = at::zeros({P, N, 4}, pool_xyzi.options());
   auto num_points = at::zeros({P}, pool_xyzi.options().dtype(at::kInt));
-  if (P == 0) return {raw, num_points};
+  if (P * N == 0) return {raw, num_points};  // (N = 0: no slot holds a point)
   pillar_gather_kernel<<<num_blocks(P * N), kThreads, 0, c10::cuda::getCurrentCUDAStream()>>>(
       pool_xyzi.data_ptr<float>(), head.data_ptr<int32_t>(), count.data_ptr<int32_t>(), cell_slot.data_ptr<int32_t>(),
-      cells.data_ptr<int64_t>(), P, N, C, raw.data_ptr<float>(), num_points.data_ptr<int32_t>());
+      cells.data_ptr<int64_t>(), P, M, N, C, raw.data_ptr<float>(), num_points.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return {raw, num_points};
 }
@@ -160,14 +167,18 @@ __global__ void ps_keys_kernel(const float* __restrict__ points, const double* _
 // One block per run: the run's expired prefix (binary search: the run is sorted by t), then one
 // count per entry on its pillar's slot.
 __global__ void ps_expire_count_kernel(const int64_t* __restrict__ runs, const int32_t* __restrict__ log_cell,
-                                       const double* __restrict__ log_t, int64_t L, int64_t cells, double cutoff,
-                                       const int32_t* __restrict__ cell_slot, int32_t* __restrict__ pops,
+                                       const double* __restrict__ log_t, int64_t L, int64_t cells, int64_t M,
+                                       double cutoff, const int32_t* __restrict__ cell_slot,
+                                       const int32_t* __restrict__ slot_cell, int32_t* __restrict__ pops,
                                        int32_t* __restrict__ touched, int64_t* __restrict__ run_pops,
                                        int64_t* __restrict__ stats) {
   __shared__ int64_t expired;
   const int64_t r = blockIdx.x;
   const int64_t start = runs[2 * r], end = runs[2 * r + 1];
-  if (threadIdx.x == 0) {
+  if (threadIdx.x == 0 && !(0 <= start && start <= end && end - start <= L)) {
+    atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadRuns));
+    expired = 0;
+  } else if (threadIdx.x == 0) {
     int64_t lo = start, hi = end;  // first position with t > cutoff
     while (lo < hi) {
       const int64_t mid = lo + (hi - lo) / 2;
@@ -182,15 +193,24 @@ __global__ void ps_expire_count_kernel(const int64_t* __restrict__ runs, const i
   for (int64_t e = threadIdx.x; e < expired; e += blockDim.x) {
     const int64_t cell = log_cell[(start + e) % L];
     const int32_t slot = cell >= 0 && cell < cells ? cell_slot[cell] : -1;
-    if (slot < 0) continue;  // cannot happen in a consistent state
+    if (slot == -1) {
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadLog));
+      continue;
+    }
+    if (slot < 0 || slot >= M || slot_cell[slot] != cell) {
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadCellSlot));
+      continue;
+    }
     if (atomicAdd(pops + slot, 1) == 0)
       touched[atomicAdd(ull(stats + kPsTouchedSlots), 1ULL)] = slot;
   }
 }
 
 // One thread per segment head of the (key, t, arrival)-sorted entering points.
-__global__ void ps_segments_kernel(const int64_t* __restrict__ skeys, int64_t n, const int32_t* __restrict__ cell_slot,
-                                   const int32_t* __restrict__ count, const int32_t* __restrict__ pops,
+__global__ void ps_segments_kernel(const int64_t* __restrict__ skeys, int64_t n, int64_t M, int64_t N,
+                                   const int32_t* __restrict__ cell_slot, const int32_t* __restrict__ slot_cell,
+                                   const int32_t* __restrict__ head, const int32_t* __restrict__ count,
+                                   const int32_t* __restrict__ pops,
                                    int32_t* __restrict__ gains, int64_t* __restrict__ seg_start,
                                    int64_t* __restrict__ seg_len, int64_t* __restrict__ stats) {
   LIDAROPS_GRID_STRIDE(j, n) {
@@ -203,23 +223,53 @@ __global__ void ps_segments_kernel(const int64_t* __restrict__ skeys, int64_t n,
     seg_len[s] = k;
     const int32_t slot = cell_slot[key];
     int64_t after = k;
-    if (slot >= 0) {
+    if (slot == -1) {
+      atomicAdd(ull(stats + kPsNewPillars), 1ULL);
+    } else if (slot < 0 || slot >= M || slot_cell[slot] != key) {
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadCellSlot));
+      continue;
+    } else if (!ps_queue_ok(head[slot], count[slot], N)) {
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadQueue));
+      continue;
+    } else {
       gains[slot] = static_cast<int32_t>(k);
       after += count[slot] - pops[slot];
-    } else {
-      atomicAdd(ull(stats + kPsNewPillars), 1ULL);
     }
     atomicMax(reinterpret_cast<long long*>(stats + kPsMaxPointsNeeded), static_cast<long long>(after));
   }
 }
 
-__global__ void ps_touched_plan_kernel(const int32_t* __restrict__ touched, int64_t M, const int32_t* __restrict__ count,
+__global__ void ps_touched_plan_kernel(const int32_t* __restrict__ touched, int64_t M, int64_t N,
+                                       const int32_t* __restrict__ head, const int32_t* __restrict__ count,
                                        const int32_t* __restrict__ pops, const int32_t* __restrict__ gains,
                                        int64_t* __restrict__ stats) {
   const int64_t T = stats[kPsTouchedSlots];
   LIDAROPS_GRID_STRIDE(i, T < M ? T : M) {
     const int32_t slot = touched[i];
+    if (!ps_queue_ok(head[slot], count[slot], N) || pops[slot] < 0 || pops[slot] > count[slot]) {
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadQueue));
+      continue;
+    }
     if (pops[slot] == count[slot] && gains[slot] == 0) atomicAdd(ull(stats + kPsEmptied), 1ULL);
+  }
+}
+
+// The free stack: the frees push `emptied` slots, then the new pillars pop; the pops that reach
+// below the freed slots take old entries, which must be free slots.
+__global__ void ps_free_check_kernel(const int32_t* __restrict__ num_free, const int32_t* __restrict__ free_slots,
+                                     const int32_t* __restrict__ slot_cell, int64_t M, int64_t* __restrict__ stats) {
+  const int64_t nf0 = num_free[0], emptied = stats[kPsEmptied];
+  if (nf0 < 0 || nf0 > M || nf0 + emptied > M) {
+    if (blockIdx.x == 0 && threadIdx.x == 0)
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadNumFree));
+    return;
+  }
+  const int64_t from_old = stats[kPsNewPillars] - emptied;
+  const int64_t lo = nf0 - from_old > 0 ? nf0 - from_old : 0;
+  LIDAROPS_GRID_STRIDE(i, nf0 - lo) {
+    const int32_t slot = free_slots[lo + i];
+    if (slot < 0 || slot >= M || slot_cell[slot] != -1)
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadFreeSlots));
   }
 }
 
@@ -227,8 +277,8 @@ __global__ void ps_finalize_kernel(const int32_t* __restrict__ num_free, int64_t
                                    int64_t* __restrict__ stats) {
   const int64_t active_after = (M - num_free[0]) - stats[kPsEmptied] + stats[kPsNewPillars];
   stats[kPsPillarsNeeded] = active_after;
-  stats[kPsOverflow] = (stats[kPsMaxPointsNeeded] > N ? kPsOverflowPoints : 0) |
-                       (active_after > M ? kPsOverflowPillars : 0);
+  stats[kPsOverflow] |= (stats[kPsMaxPointsNeeded] > N ? kPsOverflowPoints : 0) |
+                        (active_after > M ? kPsOverflowPillars : 0);
 }
 
 // ---- pillar_stream_push: apply (no-ops when the plan overflowed) ----
@@ -238,8 +288,12 @@ __global__ void ps_apply_expiry_kernel(const int32_t* __restrict__ touched, int6
                                        int32_t* __restrict__ head, int32_t* __restrict__ count,
                                        int32_t* __restrict__ slot_cell, int32_t* __restrict__ cell_slot,
                                        int32_t* __restrict__ free_slots, int32_t* __restrict__ num_free,
-                                       bool* __restrict__ change_map, const int64_t* __restrict__ stats) {
-  if (stats[kPsOverflow]) return;
+                                       bool* __restrict__ change_map, int64_t* __restrict__ run_pops, int64_t R,
+                                       const int64_t* __restrict__ stats) {
+  if (stats[kPsOverflow]) {  // nothing expires: the push changes nothing
+    LIDAROPS_GRID_STRIDE(r, R) run_pops[r] = 0;
+    return;
+  }
   const int64_t T = stats[kPsTouchedSlots];
   LIDAROPS_GRID_STRIDE(i, T < M ? T : M) {
     const int32_t slot = touched[i];
@@ -355,9 +409,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
   }
   if (R > 0) {
     ps_expire_count_kernel<<<static_cast<unsigned int>(R), kThreads, 0, stream>>>(
-        runs.data_ptr<int64_t>(), log_cell.data_ptr<int32_t>(), log_t.data_ptr<double>(), L, a.H * a.W, cutoff,
-        cell_slot.data_ptr<int32_t>(), pops.data_ptr<int32_t>(), touched.data_ptr<int32_t>(),
-        run_pops.data_ptr<int64_t>(), st);
+        runs.data_ptr<int64_t>(), log_cell.data_ptr<int32_t>(), log_t.data_ptr<double>(), L, a.H * a.W, M, cutoff,
+        cell_slot.data_ptr<int32_t>(), slot_cell.data_ptr<int32_t>(), pops.data_ptr<int32_t>(),
+        touched.data_ptr<int32_t>(), run_pops.data_ptr<int64_t>(), st);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
   if (n > 0) {
@@ -366,14 +420,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
     std::tie(skeys, perm) = at::sort(ckey.index_select(0, order_t), /*stable=*/true, 0, false);
     order_c = order_t.index_select(0, perm);
     ps_segments_kernel<<<num_blocks(n), kThreads, 0, stream>>>(
-        skeys.data_ptr<int64_t>(), n, cell_slot.data_ptr<int32_t>(), count.data_ptr<int32_t>(),
-        pops.data_ptr<int32_t>(), gains.data_ptr<int32_t>(), seg_start.data_ptr<int64_t>(),
+        skeys.data_ptr<int64_t>(), n, M, N, cell_slot.data_ptr<int32_t>(), slot_cell.data_ptr<int32_t>(),
+        head.data_ptr<int32_t>(), count.data_ptr<int32_t>(), pops.data_ptr<int32_t>(), gains.data_ptr<int32_t>(),
+        seg_start.data_ptr<int64_t>(),
         seg_len.data_ptr<int64_t>(), st);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
-  ps_touched_plan_kernel<<<num_blocks(M), kThreads, 0, stream>>>(touched.data_ptr<int32_t>(), M,
-                                                                 count.data_ptr<int32_t>(), pops.data_ptr<int32_t>(),
-                                                                 gains.data_ptr<int32_t>(), st);
+  ps_touched_plan_kernel<<<num_blocks(M), kThreads, 0, stream>>>(
+      touched.data_ptr<int32_t>(), M, N, head.data_ptr<int32_t>(), count.data_ptr<int32_t>(),
+      pops.data_ptr<int32_t>(), gains.data_ptr<int32_t>(), st);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  ps_free_check_kernel<<<num_blocks(M), kThreads, 0, stream>>>(
+      num_free.data_ptr<int32_t>(), free_slots.data_ptr<int32_t>(), slot_cell.data_ptr<int32_t>(), M, st);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   ps_finalize_kernel<<<1, 1, 0, stream>>>(num_free.data_ptr<int32_t>(), M, N, st);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
@@ -383,7 +441,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
   ps_apply_expiry_kernel<<<num_blocks(M), kThreads, 0, stream>>>(
       touched.data_ptr<int32_t>(), M, N, pops.data_ptr<int32_t>(), gains.data_ptr<int32_t>(), head.data_ptr<int32_t>(),
       count.data_ptr<int32_t>(), slot_cell.data_ptr<int32_t>(), cell_slot.data_ptr<int32_t>(),
-      free_slots.data_ptr<int32_t>(), num_free.data_ptr<int32_t>(), cm, st);
+      free_slots.data_ptr<int32_t>(), num_free.data_ptr<int32_t>(), cm, run_pops.data_ptr<int64_t>(), R, st);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   if (n > 0) {
     ps_insert_kernel<<<num_blocks(n), kThreads, 0, stream>>>(

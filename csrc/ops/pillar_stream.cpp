@@ -15,7 +15,9 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   m.def("pillar_decorate(Tensor raw, Tensor num_points, Tensor coords, float[2] pillar_size, float[2] origin)"
         " -> Tensor");
   // The queues of the pillars with linear keys cells (P,) int64 (y * W + x), in queue order:
-  // raw (P, N, 4) float32, zeros beyond num_points (P,) int32. A pillar with no slot gives 0 points.
+  // raw (P, N, 4) float32, zeros beyond num_points (P,) int32. A pillar with no slot (or a key outside
+  // [0, H W)) gives 0 points; one whose slot, head or count is out of range gives -1 points and is
+  // never indexed with (the state is corrupt: PillarStream.pillars raises).
   m.def("pillar_stream_gather(Tensor pool_xyzi, Tensor head, Tensor count, Tensor cell_slot, Tensor cells)"
         " -> (Tensor raw, Tensor num_points)");
   // One push of a stream: expire the points with t <= cutoff (the first entries of each run of the
@@ -24,7 +26,9 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // keeping every queue sorted by t (ties in arrival order), and write them to the log as a new run
   // (sorted by t, ties in arrival order) at the absolute positions [log_head, log_head + points_in).
   // If the result would exceed a capacity (a queue longer than N, or more than M active pillars),
-  // nothing is changed and stats[kPsOverflow] says which (see PillarStreamStat).
+  // nothing is changed and stats[kPsOverflow] says which (see PillarStreamStat). State values are
+  // checked where they are read; a broken invariant sets a kPsBad* bit of stats[kPsOverflow] and
+  // nothing is changed either (csrc/include/lidarops/pillar_stream.h; docs/stream.md).
   // Returns change_map (H, W) bool (pillars that gained or lost a point), stats (kNumPillarStreamStats,)
   // int64, run_pops (R,) int64 (entries expired from the front of each run).
   m.def(

@@ -10,7 +10,10 @@ bound the drift of the recycled sums (docs/sscater.md measures it).
 Input policy: the stream's (``docs/stream.md``): points whose intensity or timestamp is NaN, infinite
 or beyond ``MAX_ABS_INTENSITY`` / ``MAX_ABS_TIME`` are dropped and counted (``stats.points_invalid``,
 ``model.stream.counts``), so they never reach the recycled state; :meth:`recompute` (``pillarize``)
-applies the same rule. Guard: after every step the largest accumulator magnitude is checked (one
+applies the same rule. Overflow: the stream's (``overflow="raise" | "drop"``, passed through): with
+"drop", the points that do not fit are dropped by the stream's documented rule and counted
+(``stats.points_dropped``), and the output equals :meth:`recompute` of the points actually kept.
+Guard: after every step the largest accumulator magnitude is checked (one
 reduction); a non-finite value, or a swing by more than ``guard_ratio`` (a value entered, or left and
 would leave its rounding residue behind), forces a full refresh within the same step, reported in
 ``stats.guard`` and counted in ``stats.guard_refreshes``.
@@ -47,6 +50,8 @@ class StepStats:
         layers (list[LayerStats]): per-layer active / changed / touched sites and times.
         points_invalid (int): points of the slice dropped by the stream's input policy (intensity or t
             NaN, infinite or out of bounds); cumulative counts in ``model.stream.counts``.
+        points_dropped (int): points of the slice that did not fit the stream's capacities
+            (``overflow="drop"``; always 0 with "raise").
         state_max (float or None): max |acc| over the backbone's accumulators after the step (NaN or
             inf if one is not finite); None with ``guard=False``.
         guard (str): why the guard forced a full refresh in this step, or that even a full
@@ -71,6 +76,7 @@ class StepStats:
     state_max: Optional[float] = None
     guard: str = ""
     guard_refreshes: int = 0
+    points_dropped: int = 0
 
     @property
     def pfn_saved(self) -> float:
@@ -86,7 +92,11 @@ class SSCATeRPointPillars:
             parameters are read at construction (call :meth:`reset` with ``reload=True`` after changing them).
         grid (lidarops.stream.PillarGrid): pillar grid; H and W divisible by 8 with the default backbone.
         window (float): window length in seconds (100 ms in the paper).
-        max_points_per_pillar, max_pillars (int): capacities of the stream (overflow raises).
+        max_points_per_pillar, max_pillars (int): capacities of the stream.
+        overflow (str): the stream's overflow policy: ``"raise"`` (default: a slice that does not fit
+            raises :class:`~lidarops.stream.PillarOverflowError` and the step has no effect) or
+            ``"drop"`` (the points that do not fit are dropped by the rule of
+            :class:`~lidarops.stream.PillarStream` and counted in ``stats.points_dropped``).
         refresh_every (int): full recomputation every N steps (0: never after the first). Bounds the
             float drift of the recycled sums: in float32 the difference to a full recomputation grows by
             about 1e-7 of max|output| per step on drone_bridge (1.1e-5 after 90 steps), so the default
@@ -111,7 +121,7 @@ class SSCATeRPointPillars:
     def __init__(self, pfn: PillarFeatureNet, backbone: PointPillarsBackbone, grid, window: float = 0.1,
                  max_points_per_pillar: int = 100, max_pillars: int = 12000, refresh_every: int = 25,
                  dtype: torch.dtype = torch.float32, device=None, profile: bool = False, guard: bool = True,
-                 guard_ratio: Optional[float] = None):
+                 guard_ratio: Optional[float] = None, overflow: str = "raise"):
         from lidarops.stream import PillarStream
         if pfn.training or backbone.training:
             raise ValueError("pfn and backbone must be in eval mode (call .eval()): SSCATeR folds BatchNorm's "
@@ -129,7 +139,8 @@ class SSCATeRPointPillars:
         self.pfn, self.backbone, self.grid = pfn, backbone, grid
         self.device = torch.device(device) if device is not None else next(backbone.parameters()).device
         self.dtype, self.refresh_every, self.profile = dtype, refresh_every, profile
-        self.stream = PillarStream(grid, window, max_points_per_pillar, max_pillars, device=self.device)
+        self.stream = PillarStream(grid, window, max_points_per_pillar, max_pillars, device=self.device,
+                                   overflow=overflow)
         self.delta = DeltaBackbone(backbone, grid.shape, dtype, self.device, state_check=guard)
         self.guard, self.guard_ratio = bool(guard), float(guard_ratio)
         self.stats = StepStats()
@@ -174,6 +185,7 @@ class SSCATeRPointPillars:
         m0 = self._mark()
         upd = self.stream.push(points, t, now=now)  # its figures are read on the host: it synchronises
         st.t, st.points_in, st.points_out, st.points_invalid = upd.t, upd.points_in, upd.points_out, upd.points_invalid
+        st.points_dropped = upd.points_dropped
         st.pillars_active, st.pillars_changed = int(upd.active.shape[0]), int(upd.changed.shape[0])
         m1 = self._mark()
         refresh = self._since_refresh is None or (self.refresh_every and self._since_refresh + 1 >= self.refresh_every)
@@ -244,7 +256,8 @@ class SSCATeRPointPillars:
     def recompute(self, points: Tensor, max_points_per_pillar: Optional[int] = None,
                   max_pillars: Optional[int] = None) -> Tensor:
         """The full recomputation SSCATeR must equal: ``pillarize`` the window's points, run the PFN on
-        every pillar and ``backbone(mode="sparse")``. ``points (Tensor[n, 4])`` = the current window."""
+        every pillar and ``backbone(mode="sparse")``. ``points (Tensor[n, 4])`` = the current window
+        (with ``overflow="drop"``: the points the stream kept)."""
         from lidarops.sparse import SparseConvTensor
         from lidarops.stream import pillarize
         p = pillarize(points.to(self.device), self.grid,

@@ -26,7 +26,9 @@ Conventions (identical on CPU and CUDA, and identical for :func:`pillarize` and
   a pillar, the window or ``t_newest``. A point is counted once, in the first of: invalid, outside,
   late (stream), entered.
 - **Overflow** raises :class:`PillarOverflowError` (a :class:`ValueError`) naming the capacity and the
-  count needed: no random sampling (a dropped point can be a missed drone).
+  count needed: no random sampling (a dropped point can be a missed drone). A stream may instead be
+  created with ``overflow="drop"``: a deterministic, documented rule drops the points that do not fit
+  and counts them (:class:`~lidarops.stream.PillarStream`; ``docs/stream.md``, "Overflow policy").
 """
 from __future__ import annotations
 
