@@ -155,37 +155,41 @@ class GraphedNetwork:
 def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS) -> list[dict]:
     rows = []
     frame = kitti_like_frame().to(device)
-    for mode in modes:
-        for precision in (precisions if device == "cuda" else ("fp32",)):
-            model = load_model(device, mode)
-            half = mode == "sparse" and precision == "fp16"
-            if half:
-                model = model.half()
-            batch = {"points": torch.cat([frame.new_zeros(frame.shape[0], 1), frame], 1), "batch_size": 1}
-            if half:
-                batch["points"] = batch["points"].half()
+    variants = [(mode, precision, fmt) for mode in modes for precision in (precisions if device == "cuda" else ("fp32",))
+                for fmt in (("contiguous", "channels_last") if device == "cuda" and mode == "dense" else ("contiguous",))]
+    for mode, precision, fmt in variants:
+        model = load_model(device, mode)
+        if fmt == "channels_last":  # cuDNN then runs its NHWC kernels (tensor cores without transposes)
+            model = model.to(memory_format=torch.channels_last)
+        half = mode == "sparse" and precision == "fp16"
+        if half:
+            model = model.half()
+        batch = {"points": torch.cat([frame.new_zeros(frame.shape[0], 1), frame], 1), "batch_size": 1}
+        if half:
+            batch["points"] = batch["points"].half()
 
-            def eager(b):
-                with precision_mode(precision, device, autocast=not half):
-                    return model.predict(b)
+        def eager(b):
+            with precision_mode(precision, device, autocast=not half):
+                return model.predict(b)
 
-            t = time_call(eager, (batch,), torch.device(device), budget_s=2.0, rotate=False)
-            kept = len(eager(batch)[0]["scores"])
-            row = {"op": "pointpillars", "backbone": mode, "precision": precision, "impl": "eager",
-                   "points": int(frame.shape[0]), "boxes": kept, **t.as_dict()}
-            if device == "cuda":
-                row["stages_ms"] = stage_times(model, batch, precision, autocast=not half)
-            rows.append(row)
-            if device == "cuda" and mode == "dense":
-                try:
-                    graphed = GraphedNetwork(model, frame, precision)
-                    t = time_call(graphed, (frame,), torch.device(device), budget_s=2.0, rotate=False)
-                    rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
-                                 "impl": "graph + eager NMS", "points": int(frame.shape[0]),
-                                 "boxes": len(graphed(frame)[0]["scores"]), **t.as_dict()})
-                except Exception as e:  # noqa: BLE001  (reported, not blanked)
-                    rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
-                                 "impl": "graph + eager NMS", "status": f"error: {type(e).__name__}: {e}"})
+        t = time_call(eager, (batch,), torch.device(device), budget_s=2.0, rotate=False)
+        kept = len(eager(batch)[0]["scores"])
+        row = {"op": "pointpillars", "backbone": mode, "precision": precision, "impl": "eager",
+               "memory_format": fmt,
+               "points": int(frame.shape[0]), "boxes": kept, **t.as_dict()}
+        if device == "cuda":
+            row["stages_ms"] = stage_times(model, batch, precision, autocast=not half)
+        rows.append(row)
+        if device == "cuda" and mode == "dense":
+            try:
+                graphed = GraphedNetwork(model, frame, precision)
+                t = time_call(graphed, (frame,), torch.device(device), budget_s=2.0, rotate=False)
+                rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
+                             "impl": "graph + eager NMS", "memory_format": fmt, "points": int(frame.shape[0]),
+                             "boxes": len(graphed(frame)[0]["scores"]), **t.as_dict()})
+            except Exception as e:  # noqa: BLE001  (reported, not blanked)
+                rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
+                             "impl": "graph + eager NMS", "memory_format": fmt, "status": f"error: {type(e).__name__}: {e}"})
     for r in rows:
         r.setdefault("status", "ok")
         r["device"] = device
@@ -208,11 +212,11 @@ def main(argv=None) -> int:
         if stages:
             total = sum(stages.values())
             share = "  ".join(f"{k} {100 * v / total:.0f}%" for k, v in stages.items())
-        table.append([r["backbone"], r["precision"], r["impl"], fmt_ms(r.get("median_ms")), r.get("boxes", ""),
+        table.append([r["backbone"], r["precision"], r.get("memory_format", ""), r["impl"], fmt_ms(r.get("median_ms")), r.get("boxes", ""),
                       share if r["status"] == "ok" else r["status"]])
     print_table(f"PointPillars end to end on {env_meta(args.device).get('device', args.device)}",
-                ["backbone", "precision", "call", "median ms", "boxes", "GPU time by stage / status"], table,
-                right=(3, 4))
+                ["backbone", "precision", "layout", "call", "median ms", "boxes", "GPU time by stage / status"],
+                table, right=(4, 5))
     if args.json:
         print(f"wrote {write_results('detector', args.device, rows, env_meta(args.device), replace_by=None)}")
     return 0
