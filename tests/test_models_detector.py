@@ -265,7 +265,7 @@ def test_invalid_intensity_raises_before_it_poisons_a_pillar(value):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float16])
-def test_other_float_dtypes_run_as_float32(dtype):
+def test_other_float_dtypes_run_in_the_weights_dtype(dtype):
     model = PointPillars(TINY).eval()
     points = _points(200, frames=2)
     want = model({"points": points, "batch_size": 2})

@@ -428,7 +428,8 @@ class PointPillars(nn.Module):
         return self.dense_head(bev)
 
     def forward(self, batch: Mapping[str, Any]) -> dict[str, Tensor]:
-        points, batch_size = _check_batch(batch, self.config, self.training)
+        weights = self.vfe.pfn_layers[0].linear.weight.dtype
+        points, batch_size = _check_batch(batch, self.config, self.training, weights)
         raw = self.network(*self.voxelize(points, batch_size), batch_size)
         if not self.training:
             return raw
@@ -483,7 +484,8 @@ def _as_config(config) -> PointPillarsConfig:
     raise ConfigError(f"config must be a PointPillarsConfig, a dict or a YAML path, got {type(config).__name__}")
 
 
-def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bool) -> tuple[Tensor, int]:
+def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bool,
+                 dtype: torch.dtype = torch.float32) -> tuple[Tensor, int]:
     if not isinstance(batch, Mapping) or "points" not in batch:
         raise ValueError("batch must be a dict with 'points' (P, 1 + C) and 'batch_size' (OpenPCDet's keys)")
     points = batch["points"]
@@ -503,8 +505,8 @@ def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bo
         raise ValueError(f"batch['batch_size'] must be a positive int, got {batch_size!r}") from None
     if batch_size < 1:
         raise ValueError(f"batch['batch_size'] must be a positive int, got {batch_size!r}")
-    if points.dtype != torch.float32:  # the voxelizer and the weights work in float32, as OpenPCDet's
-        points = points.float()
+    if points.dtype != dtype:  # the weights' dtype: float32 (OpenPCDet's), float16 after model.half()
+        points = points.to(dtype)
     checks = []
     if value_checks_enabled() and points.shape[0]:
         frame, feats = points[:, 0], points[:, 4:1 + c]
