@@ -117,8 +117,9 @@ class PillarVFE(nn.Module):
         xyz = voxels[:, :, :3]
         count = num_points.to(voxels.dtype).clamp_min(1).view(-1, 1, 1)
         f_cluster = xyz - xyz.sum(dim=1, keepdim=True) / count
-        # pillar centres from (z, y, x) indices: columns 3, 2, 1 of coords are x, y, z
-        centre = coords[:, [3, 2, 1]].to(voxels.dtype) * self.voxel_size.to(voxels.dtype) \
+        # pillar centres from (z, y, x) indices: columns 3, 2, 1 of coords are x, y, z (a flip, not a
+        # list index: that would copy an index tensor from the host, which a CUDA graph capture refuses)
+        centre = coords[:, 1:].flip(1).to(voxels.dtype) * self.voxel_size.to(voxels.dtype) \
             + self.centre_offset.to(voxels.dtype)
         f_center = xyz - centre[:, None, :]
         parts = [voxels if self.use_absolute_xyz else voxels[:, :, 3:], f_cluster, f_center]
