@@ -393,6 +393,8 @@ def _bad_cases():
         (lambda: lidarops.nms_bev(nan, scores, 0.5), "boxes contains NaN"),
         (lambda: lidarops.nms_bev(good, torch.tensor([0.1, float("nan"), 0, 0]), 0.5), "scores contains NaN"),
         (lambda: lidarops.nms_bev(good, scores, float("nan")), "iou_threshold must be a finite number"),
+        (lambda: lidarops.nms_bev(good, scores, -0.5), "iou_threshold must be a finite number >= 0"),
+        (lambda: torch.ops.lidarops.nms_bev(good, scores, None, -0.5), "iou_threshold must be a finite number >= 0"),
         (lambda: lidarops.nms_bev(good, scores, 0.5, pre_max=-3), "pre_max must be None or an int >= 0"),
         (lambda: lidarops.nms_bev(good, scores, 0.5, post_max=2.5), "post_max must be None or an int >= 0"),
         (lambda: lidarops.batched_nms_bev(good, scores, scores, 0.5), "idxs must be an integer \\(N,\\) tensor"),

@@ -331,7 +331,7 @@ def _op_args(n=4):
 def test_op_errors_name_the_argument(name, bad, message):
     args = _op_args()
     args[name] = bad(args[name])
-    with pytest.raises(RuntimeError, match=message):
+    with pytest.raises(ValueError, match=message):
         torch.ops.lidarops.raycast_scene(**args)
 
 
@@ -339,7 +339,7 @@ def test_op_rejects_object_index_out_of_range():
     args = _op_args()
     args["num_objects"] = 0
     args["box_object"] = torch.zeros_like(args["box_object"])
-    with pytest.raises(RuntimeError, match=r"box_object\[0\] = 0 but num_objects = 0"):
+    with pytest.raises(ValueError, match=r"box_object\[0\] = 0 but num_objects = 0"):
         torch.ops.lidarops.raycast_scene(**args)
 
 

@@ -88,19 +88,19 @@ def test_mixed_lists_and_noncontiguous(device):
 
 def test_bad_arguments_raise():
     x = torch.randn(3)
-    with pytest.raises(RuntimeError, match="lo and hi must have 1 entries"):
+    with pytest.raises(ValueError, match="lo and hi must have 1 entries"):
         torch.ops.lidarops.value_flags([], [torch.arange(3)], [0, 1], [2])
-    with pytest.raises(RuntimeError, match=r"finite\[0\] must be floating"):
+    with pytest.raises(ValueError, match=r"finite\[0\] must be floating"):
         torch.ops.lidarops.value_flags([torch.arange(3)], [], [], [])
-    with pytest.raises(RuntimeError, match=r"ranged\[0\] must be an integer tensor"):
+    with pytest.raises(ValueError, match=r"ranged\[0\] must be an integer tensor"):
         torch.ops.lidarops.value_flags([], [x], [0], [1])
-    with pytest.raises(RuntimeError, match=r"lo\[0\] = 2 > hi\[0\] = 1"):
+    with pytest.raises(ValueError, match=r"lo\[0\] = 2 > hi\[0\] = 1"):
         torch.ops.lidarops.value_flags([], [torch.arange(3)], [2], [1])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs two devices to mix")
 def test_mixed_devices_raise():
-    with pytest.raises(RuntimeError, match=r"finite\[1\] is on cpu"):
+    with pytest.raises(ValueError, match=r"finite\[1\] is on cpu"):
         torch.ops.lidarops.value_flags([torch.randn(3, device="cuda"), torch.randn(3)], [], [], [])
 
 

@@ -416,11 +416,11 @@ def test_cuda_points_on_cpu_only_build():
 
 def test_op_rejects_bad_arguments():
     pts = torch.zeros(4, 4)
-    with pytest.raises(RuntimeError, match="grid_size must lie in"):
+    with pytest.raises(ValueError, match="grid_size must lie in"):
         torch.ops.lidarops.voxelize_assign(pts, [1.0, 1.0, 1.0], [0.0, 0.0, 0.0, 1.0, 1.0, 1.0], [1, 0, 1], 1, 1, 0)
-    with pytest.raises(RuntimeError, match="voxel_size must be finite and positive"):
+    with pytest.raises(ValueError, match="voxel_size must be finite and positive"):
         torch.ops.lidarops.voxelize_assign(pts, [1.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0, 1.0, 1.0], [1, 1, 1], 1, 1, 0)
-    with pytest.raises(RuntimeError, match="point_slot must be int64"):
+    with pytest.raises(ValueError, match="point_slot must be int64"):
         torch.ops.lidarops.voxelize_scatter(pts, torch.zeros(4, dtype=torch.long), torch.zeros(3, dtype=torch.long), 1, 1)
 
 

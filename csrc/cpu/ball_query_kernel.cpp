@@ -21,9 +21,9 @@ std::tuple<at::Tensor, at::Tensor> ball_query_cpu(const at::Tensor& query_in, co
   check_pair(query_in, points_in);
   check_lengths(query_lengths, query_in, "query_lengths");
   check_lengths(point_lengths, points_in, "point_lengths");
-  TORCH_CHECK(k > 0, "k must be positive, got ", k);
-  TORCH_CHECK(radius >= 0 && std::isfinite(radius), "radius must be finite and >= 0, got ", radius);
-  TORCH_CHECK(method >= 0 && method <= 2, "method must be 0 (auto), 1 (brute) or 2 (grid), got ", method);
+  TORCH_CHECK_VALUE(k > 0, "k must be positive, got ", k);
+  TORCH_CHECK_VALUE(radius >= 0 && std::isfinite(radius), "radius must be finite and >= 0, got ", radius);
+  TORCH_CHECK_VALUE(method >= 0 && method <= 2, "method must be 0 (auto), 1 (brute) or 2 (grid), got ", method);
   auto query = query_in.contiguous();
   auto points = points_in.contiguous();
   auto qlen = query_lengths.contiguous();

@@ -64,7 +64,7 @@ std::vector<int64_t> score_order(const at::Tensor& scores_in) {
 
 at::Tensor nms_bev_cpu(const at::Tensor& boxes_in, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs,
                        double iou_threshold, int64_t pre_max, int64_t post_max) {
-  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs);
+  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs, iou_threshold);
   const int64_t N = boxes_in.size(0);
   std::vector<int64_t> order = score_order(scores);
   if (pre_max >= 0 && pre_max < N) order.resize(static_cast<size_t>(pre_max));

@@ -140,8 +140,8 @@ at::Tensor fps_cpu(const at::Tensor& points_in, const at::Tensor& lengths_in, co
   check_cloud(points_in, "points");
   check_lengths(lengths_in, points_in, "lengths");
   check_lengths(start_in, points_in, "start_idx");
-  TORCH_CHECK(k > 0, "k must be positive, got ", k);
-  TORCH_CHECK(method >= 0 && method <= 2, "method must be 0 (auto), 1 (plain loop) or 2 (leaves), got ", method);
+  TORCH_CHECK_VALUE(k > 0, "k must be positive, got ", k);
+  TORCH_CHECK_VALUE(method >= 0 && method <= 2, "method must be 0 (auto), 1 (plain loop) or 2 (leaves), got ", method);
   auto points = points_in.contiguous();
   auto lengths = lengths_in.contiguous();
   auto start = start_in.contiguous();
@@ -150,8 +150,8 @@ at::Tensor fps_cpu(const at::Tensor& points_in, const at::Tensor& lengths_in, co
   const int64_t* len = lengths.data_ptr<int64_t>();
   const int64_t* st = start.data_ptr<int64_t>();
   for (int64_t b = 0; b < B; ++b)
-    TORCH_CHECK(len[b] == 0 || (st[b] >= 0 && st[b] < len[b]), "start_idx[", b, "] = ", st[b],
-                " is outside [0, lengths[", b, "] = ", len[b], ")");
+    TORCH_CHECK_VALUE(len[b] == 0 || (st[b] >= 0 && st[b] < len[b]), "start_idx[", b, "] = ", st[b],
+                      " is outside [0, lengths[", b, "] = ", len[b], ")");
   auto out = at::empty({B, k}, points.options().dtype(at::kLong));
   const bool leaves = method != 1;
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, points.scalar_type(), "lidarops_fps_cpu", [&] {

@@ -12,11 +12,11 @@ namespace lidarops {
 namespace {
 
 void check_gather_args(const at::Tensor& x, const at::Tensor& idx, const char* xname) {
-  TORCH_CHECK(x.dim() == 3, xname, " must be (B, N, C), got shape ", x.sizes());
-  TORCH_CHECK(idx.dim() == 2 && idx.size(0) == x.size(0), "idx must be (B, L) with B = ", x.size(0),
-              ", got shape ", idx.sizes());
-  TORCH_CHECK(idx.scalar_type() == at::kLong, "idx must be int64, got ", idx.scalar_type());
-  TORCH_CHECK(idx.device() == x.device(), "idx is on ", idx.device(), " but ", xname, " is on ", x.device());
+  TORCH_CHECK_VALUE(x.dim() == 3, xname, " must be (B, N, C), got shape ", x.sizes());
+  TORCH_CHECK_VALUE(idx.dim() == 2 && idx.size(0) == x.size(0), "idx must be (B, L) with B = ", x.size(0),
+                    ", got shape ", idx.sizes());
+  TORCH_CHECK_VALUE(idx.scalar_type() == at::kLong, "idx must be int64, got ", idx.scalar_type());
+  TORCH_CHECK_VALUE(idx.device() == x.device(), "idx is on ", idx.device(), " but ", xname, " is on ", x.device());
 }
 
 void check_index_values(const at::Tensor& idx, int64_t n) {
@@ -25,7 +25,7 @@ void check_index_values(const at::Tensor& idx, int64_t n) {
   int64_t bad = -1;
   for (int64_t t = 0; t < total && bad < 0; ++t)
     if (ip[t] < -1 || ip[t] >= n) bad = t;
-  TORCH_CHECK(bad < 0, "idx must lie in [-1, ", n, "), got ", bad < 0 ? 0 : ip[bad], " at flat position ", bad);
+  TORCH_CHECK_VALUE(bad < 0, "idx must lie in [-1, ", n, "), got ", bad < 0 ? 0 : ip[bad], " at flat position ", bad);
 }
 
 at::Tensor gather_cpu(const at::Tensor& x_in, const at::Tensor& idx_in) {
@@ -53,10 +53,10 @@ at::Tensor gather_cpu(const at::Tensor& x_in, const at::Tensor& idx_in) {
 
 at::Tensor gather_backward_cpu(const at::Tensor& grad_in, const at::Tensor& idx_in, int64_t n) {
   check_gather_args(grad_in, idx_in, "grad");
-  TORCH_CHECK(grad_in.size(1) == idx_in.size(1), "grad must be (B, L, C) with L = ", idx_in.size(1),
-              ", got shape ", grad_in.sizes());
-  TORCH_CHECK(n >= 0, "n must be >= 0, got ", n);
-  TORCH_CHECK(at::isFloatingType(grad_in.scalar_type()), "grad must be floating, got ", grad_in.scalar_type());
+  TORCH_CHECK_VALUE(grad_in.size(1) == idx_in.size(1), "grad must be (B, L, C) with L = ", idx_in.size(1),
+                    ", got shape ", grad_in.sizes());
+  TORCH_CHECK_VALUE(n >= 0, "n must be >= 0, got ", n);
+  TORCH_CHECK_VALUE(at::isFloatingType(grad_in.scalar_type()), "grad must be floating, got ", grad_in.scalar_type());
   auto grad = grad_in.contiguous();
   auto idx = idx_in.contiguous();
   const int64_t B = grad.size(0), L = grad.size(1), C = grad.size(2);

@@ -90,18 +90,27 @@ Counts match_frame(const FrameView& f, const std::vector<int64_t>& gts, const st
 }
 
 void check_offsets(const at::Tensor& off, int64_t frames, int64_t total, const char* name) {
-  TORCH_CHECK(off.dim() == 1 && off.size(0) == frames + 1, name, " must be (F + 1,) = (", frames + 1, ",), got shape ",
-              off.sizes());
+  TORCH_CHECK_VALUE(off.dim() == 1 && off.size(0) == frames + 1, name, " must be (F + 1,) = (", frames + 1, ",), got shape ",
+                    off.sizes());
   const int64_t* p = off.data_ptr<int64_t>();
-  TORCH_CHECK(p[0] == 0 && p[frames] == total, name, " must start at 0 and end at ", total, ", got ", p[0], " and ",
-              p[frames]);
+  TORCH_CHECK_VALUE(p[0] == 0 && p[frames] == total, name, " must start at 0 and end at ", total, ", got ", p[0], " and ",
+                    p[frames]);
   for (int64_t f = 0; f < frames; ++f)
-    TORCH_CHECK(p[f] <= p[f + 1], name, " must be non-decreasing, got ", p[f], " > ", p[f + 1], " at frame ", f);
+    TORCH_CHECK_VALUE(p[f] <= p[f + 1], name, " must be non-decreasing, got ", p[f], " > ", p[f + 1], " at frame ", f);
 }
 
+// Integer tables (offsets, ignore flags) must have an integer dtype: a float offset would be truncated
+// silently. Real-valued arguments take any real dtype (computed in float64).
 at::Tensor contiguous_as(const at::Tensor& t, at::ScalarType dtype, const char* name) {
-  TORCH_CHECK(t.device().is_cpu(), "kitti_match: ", name, " must be on the CPU, got ", t.device());
-  TORCH_CHECK(t.dim() == 1, "kitti_match: ", name, " must be one-dimensional, got shape ", t.sizes());
+  TORCH_CHECK_VALUE(t.device().is_cpu(), "kitti_match: ", name, " must be on the CPU, got ", t.device());
+  TORCH_CHECK_VALUE(t.dim() == 1, "kitti_match: ", name, " must be one-dimensional, got shape ", t.sizes());
+  if (dtype == at::kLong) {
+    TORCH_CHECK_VALUE(at::isIntegralType(t.scalar_type(), /*includeBool=*/false), "kitti_match: ", name,
+                      " must be an integer tensor, got ", t.scalar_type());
+  } else {
+    TORCH_CHECK_VALUE(!t.is_complex() && t.scalar_type() != at::kBool, "kitti_match: ", name,
+                      " must be a real tensor, got ", t.scalar_type());
+  }
   return t.to(dtype).contiguous();
 }
 
@@ -124,32 +133,32 @@ std::tuple<at::Tensor, at::Tensor> kitti_match_cpu(const at::Tensor& overlaps_in
   auto dt_alpha = contiguous_as(dt_alpha_in, at::kDouble, "dt_alpha");
   auto thresholds = contiguous_as(thresholds_in, at::kDouble, "thresholds");
   const int64_t F = gt_offsets.size(0) - 1;
-  TORCH_CHECK(F >= 0, "kitti_match: gt_offsets must have at least one entry");
+  TORCH_CHECK_VALUE(F >= 0, "kitti_match: gt_offsets must have at least one entry");
   const int64_t G = ignored_gt.size(0), D = ignored_dt.size(0);
   check_offsets(gt_offsets, F, G, "kitti_match: gt_offsets");
   check_offsets(dt_offsets, F, D, "kitti_match: dt_offsets");
   check_offsets(overlap_offsets, F, overlaps.size(0), "kitti_match: overlap_offsets");
   for (const auto& [t, n, name] : {std::tuple{&scores, D, "dt_scores"}, std::tuple{&dontcare, D, "dt_dontcare"},
                                    std::tuple{&dt_alpha, D, "dt_alpha"}, std::tuple{&gt_alpha, G, "gt_alpha"}})
-    TORCH_CHECK(t->size(0) == n, "kitti_match: ", name, " must have ", n, " entries, got ", t->size(0));
+    TORCH_CHECK_VALUE(t->size(0) == n, "kitti_match: ", name, " must have ", n, " entries, got ", t->size(0));
   const int64_t* go = gt_offsets.data_ptr<int64_t>();
   const int64_t* dof = dt_offsets.data_ptr<int64_t>();
   const int64_t* oo = overlap_offsets.data_ptr<int64_t>();
   for (int64_t f = 0; f < F; ++f)
-    TORCH_CHECK(oo[f + 1] - oo[f] == (dof[f + 1] - dof[f]) * (go[f + 1] - go[f]), "kitti_match: frame ", f,
-                " has ", dof[f + 1] - dof[f], " detections and ", go[f + 1] - go[f], " gts but ", oo[f + 1] - oo[f],
-                " overlaps");
+    TORCH_CHECK_VALUE(oo[f + 1] - oo[f] == (dof[f + 1] - dof[f]) * (go[f + 1] - go[f]), "kitti_match: frame ", f,
+                      " has ", dof[f + 1] - dof[f], " detections and ", go[f + 1] - go[f], " gts but ", oo[f + 1] - oo[f],
+                      " overlaps");
   for (const auto& [t, name] : {std::pair{&ignored_gt, "ignored_gt"}, std::pair{&ignored_dt, "ignored_dt"}}) {
     const int64_t* p = t->data_ptr<int64_t>();
     for (int64_t i = 0; i < t->size(0); ++i)
-      TORCH_CHECK(p[i] >= -1 && p[i] <= 1, "kitti_match: ", name, " values must be -1, 0 or 1, got ", p[i],
-                  " at ", i);
+      TORCH_CHECK_VALUE(p[i] >= -1 && p[i] <= 1, "kitti_match: ", name, " values must be -1, 0 or 1, got ", p[i],
+                        " at ", i);
   }
   // NaN scores would break the matching's comparisons and the sort of each frame's scores
   for (const auto& [t, name] : {std::pair{&scores, "dt_scores"}, std::pair{&thresholds, "thresholds"}}) {
     const double* p = t->data_ptr<double>();
     for (int64_t i = 0; i < t->size(0); ++i)
-      TORCH_CHECK(!std::isnan(p[i]), "kitti_match: ", name, " must not hold NaN, got NaN at ", i);
+      TORCH_CHECK_VALUE(!std::isnan(p[i]), "kitti_match: ", name, " must not hold NaN, got NaN at ", i);
   }
   const int64_t T = compute_fp ? thresholds.size(0) : 0;
   auto matched = at::full({compute_fp ? 0 : G}, std::numeric_limits<double>::quiet_NaN(), overlaps.options());

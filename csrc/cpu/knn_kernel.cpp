@@ -26,8 +26,8 @@ std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at:
   check_pair(query_in, points_in);
   check_lengths(query_lengths, query_in, "query_lengths");
   check_lengths(point_lengths, points_in, "point_lengths");
-  TORCH_CHECK(k > 0, "k must be positive, got ", k);
-  TORCH_CHECK(method >= 0 && method <= 3, "method must be 0 (auto), 1 (brute), 2 (grid) or 3 (tree), got ", method);
+  TORCH_CHECK_VALUE(k > 0, "k must be positive, got ", k);
+  TORCH_CHECK_VALUE(method >= 0 && method <= 3, "method must be 0 (auto), 1 (brute), 2 (grid) or 3 (tree), got ", method);
   auto query = query_in.contiguous();
   auto points = points_in.contiguous();
   auto qlen = query_lengths.contiguous();

@@ -39,13 +39,13 @@ constexpr int64_t kGrain = 16384;  // rays; smaller batches run on one thread: w
 
 // ------------------------------------------------------------------------------------------- arguments
 void check_arg(const at::Tensor& t, const char* name, at::ScalarType dtype, std::initializer_list<int64_t> shape) {
-  TORCH_CHECK(t.scalar_type() == dtype, "raycast_scene: ", name, " must be ", dtype, ", got ", t.scalar_type());
-  TORCH_CHECK(t.dim() == static_cast<int64_t>(shape.size()), "raycast_scene: ", name, " must have ", shape.size(),
-              " dimension(s), got shape ", t.sizes());
+  TORCH_CHECK_VALUE(t.scalar_type() == dtype, "raycast_scene: ", name, " must be ", dtype, ", got ", t.scalar_type());
+  TORCH_CHECK_VALUE(t.dim() == static_cast<int64_t>(shape.size()), "raycast_scene: ", name, " must have ", shape.size(),
+                    " dimension(s), got shape ", t.sizes());
   int64_t d = 0;
   for (int64_t want : shape) {
-    TORCH_CHECK(want < 0 || t.size(d) == want, "raycast_scene: ", name, " must have size ", want, " in dimension ", d,
-                ", got shape ", t.sizes());
+    TORCH_CHECK_VALUE(want < 0 || t.size(d) == want, "raycast_scene: ", name, " must have size ", want, " in dimension ", d,
+                      ", got shape ", t.sizes());
     ++d;
   }
 }
@@ -426,7 +426,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   check_arg(dirs_in, "dirs", f64, {n, 3});
   check_arg(times_in, "times", f64, {n});
   check_arg(samples_in, "origin_samples", f64, {-1, 3});
-  TORCH_CHECK(n == 0 || samples_in.size(0) > 0, "raycast_scene: origin_samples must not be empty when there are rays");
+  TORCH_CHECK_VALUE(n == 0 || samples_in.size(0) > 0, "raycast_scene: origin_samples must not be empty when there are rays");
   check_arg(plane_in, "ground_plane", f64, {3});
   const int64_t nw = wave_amp_in.dim() == 1 ? wave_amp_in.size(0) : -1;
   check_arg(wave_amp_in, "wave_amp", f64, {-1});
@@ -453,9 +453,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   check_arg(ell_radii_in, "ell_radii", f64, {ne, 3});
   check_arg(ell_mfp_in, "ell_mean_free_path", f64, {ne});
   check_arg(ell_refl_in, "ell_reflectivity", f64, {ne});
-  TORCH_CHECK(num_objects >= 0, "raycast_scene: num_objects must be >= 0, got ", num_objects);
-  TORCH_CHECK(ground_iterations >= 0, "raycast_scene: ground_iterations must be >= 0, got ", ground_iterations);
-  TORCH_CHECK(nb + nc + ne < (int64_t{1} << 31), "raycast_scene: too many primitives");
+  TORCH_CHECK_VALUE(num_objects >= 0, "raycast_scene: num_objects must be >= 0, got ", num_objects);
+  TORCH_CHECK_VALUE(ground_iterations >= 0, "raycast_scene: ground_iterations must be >= 0, got ", ground_iterations);
+  TORCH_CHECK_VALUE(nb + nc + ne < (int64_t{1} << 31), "raycast_scene: too many primitives");
 
   auto origins = origins_in.contiguous(), dirs = dirs_in.contiguous(), times = times_in.contiguous();
   auto samples = samples_in.contiguous(), plane = plane_in.contiguous();
@@ -490,7 +490,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     boxes.cos_yaw[j] = std::cos(boxes.yaw[j]);
     boxes.sin_yaw[j] = std::sin(boxes.yaw[j]);
     const int32_t obj = boxes.object[j];
-    TORCH_CHECK(obj < num_objects, "raycast_scene: box_object[", j, "] = ", obj, " but num_objects = ", num_objects);
+    TORCH_CHECK_VALUE(obj < num_objects, "raycast_scene: box_object[", j, "] = ", obj, " but num_objects = ", num_objects);
   }
   const Cylinders cyl{nc, ptr<double>(cyl_center), ptr<double>(cyl_z_min), ptr<double>(cyl_z_max), ptr<double>(cyl_radius),
                       ptr<double>(cyl_refl), ptr<uint8_t>(cyl_kind)};

@@ -102,8 +102,8 @@ std::tuple<at::Tensor, at::Tensor> finalize_cpu(const at::Tensor& acc, at::Tenso
   auto scale = scale_in.contiguous(), shift = shift_in.contiguous();
   const int32_t* sp = sites.data_ptr<int32_t>();
   for (int64_t i = 0; i < m; ++i)
-    TORCH_CHECK(sp[2 * i] >= 0 && sp[2 * i] < Ho && sp[2 * i + 1] >= 0 && sp[2 * i + 1] < Wo, "sites[", i,
-                "] = (", sp[2 * i], ", ", sp[2 * i + 1], ") lies outside the (", Ho, ", ", Wo, ") grid");
+    TORCH_CHECK_VALUE(sp[2 * i] >= 0 && sp[2 * i] < Ho && sp[2 * i + 1] >= 0 && sp[2 * i + 1] < Wo, "sites[", i,
+                      "] = (", sp[2 * i], ", ", sp[2 * i + 1], ") lies outside the (", Ho, ", ", Wo, ") grid");
   const int64_t sy = out.stride(0), sx = out.stride(1), sc = out.stride(2);
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_finalize_cpu", [&] {
     const scalar_t* a = acc.data_ptr<scalar_t>();
@@ -134,6 +134,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> cover_update_cpu(at::Tensor& cove
                                                      const at::Tensor& removed_in, int64_t kh, int64_t kw,
                                                      int64_t stride, int64_t padding) {
   check_cover_update_args(cover, active, stamp, added_in, removed_in, kh, kw, stride, padding);
+  check_stamp_value(value, "value");
   const int64_t Ho = cover.size(0), Wo = cover.size(1), K = kh * kw;
   const int64_t a = added_in.size(0), r = removed_in.size(0), rows = std::min((a + r) * K, Ho * Wo);
   auto added_out = at::full({rows, 2}, -1, added_in.options());  // an output flips at most once
@@ -259,6 +260,7 @@ std::tuple<at::Tensor, at::Tensor> touch_cpu(at::Tensor& stamp, at::Tensor& acc,
                                              const at::Tensor& targets_in, const at::Tensor& added_in,
                                              const at::Tensor& removed_in) {
   check_touch_args(stamp, acc, targets_in, added_in, removed_in);
+  check_stamp_value(value, "value");
   const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2), HW = Ho * Wo;
   const int64_t R = targets_in.size(0), a = added_in.size(0), r = removed_in.size(0);
   auto cand = at::full({std::min(R + a + r, HW), 2}, -1, added_in.options());  // each site at most once
@@ -304,11 +306,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> finalize_compact_cpu(const at::Te
                                                                     const at::Tensor& count, const at::Tensor& stamp,
                                                                     int64_t status_value, const at::Tensor& scale,
                                                                     const at::Tensor& shift) {
-  TORCH_CHECK(count.numel() == 1 && count.scalar_type() == at::kLong, "count must be int64 (1,), got ", count.sizes());
-  check_map(stamp, "stamp", at::kInt, acc);
-  check_same_hw(stamp, acc, "stamp", "acc");
-  check_sites(cand, "cand", acc);
-  const int64_t m = std::min<int64_t>(count.item<int64_t>(), cand.size(0));
+  check_finalize_args(acc, out, active, cand, scale, shift, "cand");
+  check_finalize_compact_args(acc, cand, count, stamp, status_value);
+  // count is the caller's: clamped to the rows of cand (the CUDA kernel reads it on the device)
+  const int64_t m = std::clamp<int64_t>(count.item<int64_t>(), 0, cand.size(0));
   auto used = cand.narrow(0, 0, std::max<int64_t>(m, 0));
   auto [changed, delta] = finalize_cpu(acc, out, active, used, scale, shift);
   const int64_t C = acc.size(2), Wo = acc.size(1);

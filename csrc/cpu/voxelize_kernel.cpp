@@ -80,8 +80,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voxelize_
   check_voxelize_assign_args(points_in, voxel_size, point_range, grid_size, max_points_per_voxel, max_voxels,
                              method);
   const int64_t cells = grid_size[0] * grid_size[1] * grid_size[2];
-  TORCH_CHECK(method != kVoxMethodDense || cells <= std::numeric_limits<int32_t>::max(),
-              "method 1 (dense table) needs a grid of fewer than 2^31 cells, got ", cells);
+  TORCH_CHECK_VALUE(method != kVoxMethodDense || cells <= std::numeric_limits<int32_t>::max(),
+                    "method 1 (dense table) needs a grid of fewer than 2^31 cells, got ", cells);
   auto points = points_in.contiguous();
   const int64_t N = points.size(0), C = points.size(1), P = max_points_per_voxel;
   const auto i32 = points.options().dtype(at::kInt), i64 = points.options().dtype(at::kLong);

@@ -155,12 +155,12 @@ std::tuple<at::Tensor, at::Tensor> ball_query_cuda(const at::Tensor& query_in, c
   check_pair(query_in, points_in);
   check_lengths(query_lengths, query_in, "query_lengths");
   check_lengths(point_lengths, points_in, "point_lengths");
-  TORCH_CHECK(k > 0, "k must be positive, got ", k);
-  TORCH_CHECK(radius >= 0 && std::isfinite(radius), "radius must be finite and >= 0, got ", radius);
-  TORCH_CHECK(method >= 0 && method <= 2, "method must be 0 (auto), 1 (brute) or 2 (grid), got ", method);
+  TORCH_CHECK_VALUE(k > 0, "k must be positive, got ", k);
+  TORCH_CHECK_VALUE(radius >= 0 && std::isfinite(radius), "radius must be finite and >= 0, got ", radius);
+  TORCH_CHECK_VALUE(method >= 0 && method <= 2, "method must be 0 (auto), 1 (brute) or 2 (grid), got ", method);
   c10::cuda::CUDAGuard device_guard(query_in.device());
   const int64_t B = query_in.size(0), M = query_in.size(1), N = points_in.size(1);
-  TORCH_CHECK(N < std::numeric_limits<int32_t>::max(), "points: at most 2^31 - 2 points per cloud on CUDA, got ", N);
+  TORCH_CHECK_VALUE(N < std::numeric_limits<int32_t>::max(), "points: at most 2^31 - 2 points per cloud on CUDA, got ", N);
   auto dopt = query_in.options().dtype(dist_dtype(query_in.scalar_type()));
   auto iopt = query_in.options().dtype(at::kLong);
   if (B == 0 || M == 0 || N == 0 || radius == 0)

@@ -75,7 +75,7 @@ at::Tensor pairwise_cuda(const at::Tensor& a, const at::Tensor& b, int mode) {
   if (out.numel() == 0) return out;
   cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   auto ga = geoms_of(a, at::Tensor(), stream), gb = geoms_of(b, at::Tensor(), stream);
-  TORCH_CHECK(gpu::ceil_div(M, kPairCols) <= std::numeric_limits<int32_t>::max(), "b has too many boxes: ", M);
+  TORCH_CHECK_VALUE(gpu::ceil_div(M, kPairCols) <= std::numeric_limits<int32_t>::max(), "b has too many boxes: ", M);
   const dim3 grid(static_cast<unsigned>(gpu::ceil_div(M, kPairCols)),
                   static_cast<unsigned>(std::min<int64_t>(gpu::ceil_div(N, kPairRows), 65535)));
   AT_DISPATCH_FLOATING_TYPES(out.scalar_type(), "lidarops_box_pairwise_cuda", [&] {
@@ -220,7 +220,7 @@ __global__ void __launch_bounds__(32)
 
 at::Tensor nms_bev_cuda(const at::Tensor& boxes_in, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs,
                         double iou_threshold, int64_t pre_max, int64_t post_max) {
-  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs);
+  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs, iou_threshold);
   const int64_t N = boxes_in.size(0);
   c10::cuda::CUDAGuard guard(boxes_in.device());
   auto empty = at::empty({0}, boxes_in.options().dtype(at::kLong));
@@ -234,8 +234,8 @@ at::Tensor nms_bev_cuda(const at::Tensor& boxes_in, const at::Tensor& scores, co
   const int64_t max_keep = post_max >= 0 ? std::min(post_max, n) : n;
   if (n == 0 || max_keep == 0) return empty;
   const int64_t nwords = gpu::ceil_div(n, 64);
-  TORCH_CHECK(n * nwords * 8 <= (int64_t{1} << 31), "nms_bev on CUDA keeps an n x n/64 bitmask; n = ", n,
-              " boxes would need ", n * nwords * 8, " bytes (more than 2 GiB): lower pre_max");
+  TORCH_CHECK_VALUE(n * nwords * 8 <= (int64_t{1} << 31), "nms_bev on CUDA keeps an n x n/64 bitmask; n = ", n,
+                    " boxes would need ", n * nwords * 8, " bytes (more than 2 GiB): lower pre_max");
   auto g = geoms_of(boxes_in, order, stream);
   at::Tensor group;
   if (grouped) group = idxs->index_select(0, order).contiguous();

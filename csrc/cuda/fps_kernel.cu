@@ -700,12 +700,12 @@ at::Tensor fps_cuda(const at::Tensor& points_in, const at::Tensor& lengths_in, c
   check_cloud(points_in, "points");
   check_lengths(lengths_in, points_in, "lengths");
   check_lengths(start_in, points_in, "start_idx");
-  TORCH_CHECK(k > 0, "k must be positive, got ", k);
-  TORCH_CHECK(method >= 0 && method <= 2, "method must be 0 (auto), 1 (one block per cloud) or 2 (several blocks "
-              "per cloud), got ", method);
+  TORCH_CHECK_VALUE(k > 0, "k must be positive, got ", k);
+  TORCH_CHECK_VALUE(method >= 0 && method <= 2, "method must be 0 (auto), 1 (one block per cloud) or 2 (several blocks "
+                    "per cloud), got ", method);
   c10::cuda::CUDAGuard device_guard(points_in.device());
   const int64_t B = points_in.size(0), N = points_in.size(1);
-  TORCH_CHECK(N < std::numeric_limits<int32_t>::max(), "points: at most 2^31 - 2 points per cloud on CUDA, got ", N);
+  TORCH_CHECK_VALUE(N < std::numeric_limits<int32_t>::max(), "points: at most 2^31 - 2 points per cloud on CUDA, got ", N);
   auto out = at::empty({B, k}, points_in.options().dtype(at::kLong));
   if (B == 0) return out;
   if (N == 0) return out.fill_(-1);

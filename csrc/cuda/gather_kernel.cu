@@ -19,11 +19,11 @@ namespace {
 constexpr int kThreads = 256;
 
 void check_gather_args(const at::Tensor& x, const at::Tensor& idx, const char* xname) {
-  TORCH_CHECK(x.dim() == 3, xname, " must be (B, N, C), got shape ", x.sizes());
-  TORCH_CHECK(idx.dim() == 2 && idx.size(0) == x.size(0), "idx must be (B, L) with B = ", x.size(0),
-              ", got shape ", idx.sizes());
-  TORCH_CHECK(idx.scalar_type() == at::kLong, "idx must be int64, got ", idx.scalar_type());
-  TORCH_CHECK(idx.device() == x.device(), "idx is on ", idx.device(), " but ", xname, " is on ", x.device());
+  TORCH_CHECK_VALUE(x.dim() == 3, xname, " must be (B, N, C), got shape ", x.sizes());
+  TORCH_CHECK_VALUE(idx.dim() == 2 && idx.size(0) == x.size(0), "idx must be (B, L) with B = ", x.size(0),
+                    ", got shape ", idx.sizes());
+  TORCH_CHECK_VALUE(idx.scalar_type() == at::kLong, "idx must be int64, got ", idx.scalar_type());
+  TORCH_CHECK_VALUE(idx.device() == x.device(), "idx is on ", idx.device(), " but ", xname, " is on ", x.device());
 }
 
 // tpr threads per row (a power of two <= 32), kThreads / tpr rows per block, grid-stride over rows.
@@ -113,11 +113,11 @@ __global__ void backward_sum_kernel(const scalar_t* __restrict__ grad, const int
 
 at::Tensor gather_backward_cuda(const at::Tensor& grad_in, const at::Tensor& idx_in, int64_t n) {
   check_gather_args(grad_in, idx_in, "grad");
-  TORCH_CHECK(grad_in.size(1) == idx_in.size(1), "grad must be (B, L, C) with L = ", idx_in.size(1),
-              ", got shape ", grad_in.sizes());
-  TORCH_CHECK(n >= 0, "n must be >= 0, got ", n);
-  TORCH_CHECK(n < std::numeric_limits<int32_t>::max(), "n must be < 2^31 - 1 on CUDA, got ", n);
-  TORCH_CHECK(at::isFloatingType(grad_in.scalar_type()), "grad must be floating, got ", grad_in.scalar_type());
+  TORCH_CHECK_VALUE(grad_in.size(1) == idx_in.size(1), "grad must be (B, L, C) with L = ", idx_in.size(1),
+                    ", got shape ", grad_in.sizes());
+  TORCH_CHECK_VALUE(n >= 0, "n must be >= 0, got ", n);
+  TORCH_CHECK_VALUE(n < std::numeric_limits<int32_t>::max(), "n must be < 2^31 - 1 on CUDA, got ", n);
+  TORCH_CHECK_VALUE(at::isFloatingType(grad_in.scalar_type()), "grad must be floating, got ", grad_in.scalar_type());
   c10::cuda::CUDAGuard device_guard(grad_in.device());
   auto grad = grad_in.contiguous();
   auto idx = idx_in.contiguous();

@@ -78,7 +78,7 @@ template <typename T, int BM, int BN, int BK, int TM, int TN>
 __global__ void __launch_bounds__((BM / TM) * (BN / TN))
     conv_fwd_simt_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
                          const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int64_t cin,
-                         int64_t cout, int64_t K, ConvEpilogue epi) {
+                         int64_t cout, int64_t K, ConvEpilogue epi, int64_t n_in) {
   using A = acc_t<T>;
   constexpr int kThreads = (BM / TM) * (BN / TN);
   __shared__ A As[BK][BM + 1];  // +1: conflict-free transposed stores
@@ -101,7 +101,7 @@ __global__ void __launch_bounds__((BM / TM) * (BN / TN))
     int mine = 0;
     for (int m = tid; m < BM; m += kThreads) {
       const int64_t o = orow[m];
-      const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
+      const int32_t r = o >= 0 ? map_row(nbr[o * K + k], n_in) : -1;
       rows[m] = r;
       mine |= r >= 0;
     }
@@ -243,8 +243,8 @@ struct StepCopies {
 // the 16-row group g has an input at offset k. Called by the whole block; returns nk after a barrier.
 template <int BM, int kThreads>
 __device__ int tile_map_slice(const int32_t* __restrict__ nbr, const int32_t* __restrict__ order, int64_t n_out,
-                              int K, int64_t row0, int64_t* orow, int32_t* rows, int* klist, unsigned* present,
-                              int* nk, unsigned* groups = nullptr) {
+                              int64_t n_in, int K, int64_t row0, int64_t* orow, int32_t* rows, int* klist,
+                              unsigned* present, int* nk, unsigned* groups = nullptr) {
   static_assert(BM <= 16 * 32, "one bit per 16-row group");
   const int tid = threadIdx.x;
   for (int m = tid; m < BM; m += kThreads) orow[m] = output_row(order, row0 + m, n_out);
@@ -254,7 +254,7 @@ __device__ int tile_map_slice(const int32_t* __restrict__ nbr, const int32_t* __
   for (int e = tid; e < BM * K; e += kThreads) {  // row by row: coalesced reads of the map
     const int m = e / K, k = e % K;
     const int64_t o = orow[m];
-    const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
+    const int32_t r = o >= 0 ? map_row(nbr[o * K + k], n_in) : -1;
     rows[k * BM + m] = r;
     if (r >= 0) {
       atomicOr(present, 1u << k);
@@ -288,7 +288,7 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
     conv_fwd_f32_async_kernel(const float* __restrict__ x, const float* __restrict__ w,
                               const int32_t* __restrict__ nbr, const int32_t* __restrict__ order,
                               float* __restrict__ out, int64_t n_out, int cin, int cout, int K, ConvEpilogue epi,
-                              float* __restrict__ partial) {
+                              float* __restrict__ partial, int64_t n_in) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using Tile = AsyncTile<BM, BN, TM, TN, BK, STAGES>;
   constexpr int kThreads = Tile::kThreads, LDA = Tile::LDA, LDB = Tile::LDB;
@@ -306,7 +306,8 @@ __global__ void __launch_bounds__(AsyncTile<BM, BN, TM, TN, BK, STAGES>::kThread
   const int col0 = static_cast<int>(blockIdx.y) * BN;
   const int chunks = (cin + BK - 1) / BK;
   const OffsetSplit split = offset_split(
-      tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM, orow, rows, klist, &present, &nk));
+      tile_map_slice<BM, kThreads>(nbr, order, n_out, n_in, K, heavy_first_tile() * BM, orow, rows, klist, &present,
+                                   &nk));
   const int steps = (split.hi - split.lo) * chunks;
   // This thread's 16-byte chunks of a step: chunk c_t of the A rows r_t + u * RSTEP and of the B rows
   // (weight columns) likewise.
@@ -449,7 +450,7 @@ template <typename T, bool kVec>
 __global__ void __launch_bounds__(kWmmaThreads)
     conv_fwd_wmma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
                          const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int64_t cin,
-                         int64_t cout, int64_t K, ConvEpilogue epi) {
+                         int64_t cout, int64_t K, ConvEpilogue epi, int64_t n_in) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using namespace nvcuda;
   using S = typename MmaTraits<T>::S;
@@ -482,7 +483,7 @@ __global__ void __launch_bounds__(kWmmaThreads)
     int mine = 0;
     for (int m = tid; m < BM; m += kWmmaThreads) {
       const int64_t o = orow[m];
-      const int32_t r = o >= 0 ? nbr[o * K + k] : -1;
+      const int32_t r = o >= 0 ? map_row(nbr[o * K + k], n_in) : -1;
       rows[m] = r;
       mine |= r >= 0;
     }
@@ -690,7 +691,7 @@ template <typename T, Mma M, typename Tile>
 __global__ void __launch_bounds__(Tile::kThreads)
     conv_fwd_mma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
                         const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int cin, int cout,
-                        int K, ConvEpilogue epi, float* __restrict__ partial) {
+                        int K, ConvEpilogue epi, float* __restrict__ partial, int64_t n_in) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   using S = typename Tile::S;
   constexpr int V = Tile::V, BM = Tile::BM, BN = Tile::BN, BK = Tile::BK, KS = Tile::KS;
@@ -706,8 +707,8 @@ __global__ void __launch_bounds__(Tile::kThreads)
   const int m0 = (warp / Tile::WN) * 16 * MF, n0 = (warp % Tile::WN) * 8 * NF;
   const int col0 = static_cast<int>(blockIdx.y) * BN;
   const int chunks = (cin + BK - 1) / BK;
-  const OffsetSplit split = offset_split(tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM,
-                                                                      orow, rows, klist, &present, &nk, groups));
+  const OffsetSplit split = offset_split(tile_map_slice<BM, kThreads>(
+      nbr, order, n_out, n_in, K, heavy_first_tile() * BM, orow, rows, klist, &present, &nk, groups));
   const int steps = (split.hi - split.lo) * chunks;
   const S* xs = reinterpret_cast<const S*>(x);
   const S* ws = reinterpret_cast<const S*>(w);
@@ -913,7 +914,7 @@ template <typename T, Mma M, typename Tile>
 __global__ void __launch_bounds__(Tile::kThreads)
     conv_fwd_wgmma_kernel(const T* __restrict__ x, const T* __restrict__ w, const int32_t* __restrict__ nbr,
                           const int32_t* __restrict__ order, T* __restrict__ out, int64_t n_out, int cin, int cout,
-                          int K, ConvEpilogue epi, float* __restrict__ partial) {
+                          int K, ConvEpilogue epi, float* __restrict__ partial, int64_t n_in) {
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   using S = typename Tile::S;
   constexpr int V = Tile::V, BM = Tile::BM, BN = Tile::BN, BK = Tile::BK, NF = Tile::NF;
@@ -932,8 +933,8 @@ __global__ void __launch_bounds__(Tile::kThreads)
   const int tid = threadIdx.x, warp = tid / 32, lane = tid % 32;
   const int col0 = static_cast<int>(blockIdx.y) * BN;
   const int chunks = (cin + BK - 1) / BK;
-  const OffsetSplit split = offset_split(tile_map_slice<BM, kThreads>(nbr, order, n_out, K, heavy_first_tile() * BM,
-                                                                      orow, rows, klist, present, nk));
+  const OffsetSplit split = offset_split(tile_map_slice<BM, kThreads>(
+      nbr, order, n_out, n_in, K, heavy_first_tile() * BM, orow, rows, klist, present, nk));
   const int steps = (split.hi - split.lo) * chunks;
   const S* xs = reinterpret_cast<const S*>(x);
   const S* ws = reinterpret_cast<const S*>(w);
@@ -1007,7 +1008,7 @@ template <typename T, int BCO, int BCI, int BR, int TCO, int TCI>
 __global__ void __launch_bounds__((BCO / TCO) * (BCI / TCI))
     conv_wgrad_kernel(const T* __restrict__ x, const T* __restrict__ g, const int32_t* __restrict__ nbr,
                       acc_t<T>* __restrict__ partial, int64_t n_out, int64_t cin, int64_t cout, int64_t K,
-                      int64_t rows_per_split) {
+                      int64_t rows_per_split, int64_t n_in) {
   using A = acc_t<T>;
   constexpr int kThreads = (BCO / TCO) * (BCI / TCI);
   __shared__ A Gs[BR][BCO + 1];
@@ -1028,7 +1029,7 @@ __global__ void __launch_bounds__((BCO / TCO) * (BCI / TCI))
   for (int64_t r0 = r_begin; r0 < r_end; r0 += BR) {
     int mine = 0;
     for (int r = tid; r < BR; r += kThreads) {
-      const int32_t v = r0 + r < r_end ? nbr[(r0 + r) * K + k] : -1;
+      const int32_t v = r0 + r < r_end ? map_row(nbr[(r0 + r) * K + k], n_in) : -1;
       rows[r] = v;
       mine |= v >= 0;
     }
@@ -1237,7 +1238,7 @@ void launch_pipelined(Kernel kernel, int bm, int bn, int step_channels, double s
   kernel<<<grid, Tile::kThreads, smem, stream>>>(x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), order,
                                                  out.data_ptr<T>(), n_out, static_cast<int>(cin),
                                                  static_cast<int>(cout), static_cast<int>(K), epi,
-                                                 splits > 1 ? partial.data_ptr<float>() : nullptr);
+                                                 splits > 1 ? partial.data_ptr<float>() : nullptr, x.size(0));
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   if (splits == 1) return;
   const int64_t numel = out.numel();
@@ -1253,7 +1254,8 @@ void launch_simt(const at::Tensor& x, const at::Tensor& w, const at::Tensor& nbr
   const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
   const dim3 grid(static_cast<unsigned>(ceil_div(n_out, BM)), static_cast<unsigned>(ceil_div(cout, BN)));
   conv_fwd_simt_kernel<T, BM, BN, BK, TM, TN><<<grid, (BM / TM) * (BN / TN), 0, stream>>>(
-      x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<T>(), n_out, cin, cout, K, epi);
+      x.data_ptr<T>(), w.data_ptr<T>(), nbr.data_ptr<int32_t>(), order, out.data_ptr<T>(), n_out, cin, cout, K, epi,
+      x.size(0));
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
@@ -1367,7 +1369,7 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       using scalar_t = decltype(tag);
       auto kernel = vec_rows ? conv_fwd_wmma_kernel<scalar_t, true> : conv_fwd_wmma_kernel<scalar_t, false>;
       kernel<<<grid, kWmmaThreads, 0, stream>>>(x.data_ptr<scalar_t>(), w.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(),
-                                                order, out.data_ptr<scalar_t>(), n_out, cin, cout, K, epi);
+                                                order, out.data_ptr<scalar_t>(), n_out, cin, cout, K, epi, n_in);
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     };
     if (dtype == at::kHalf) launch(c10::Half{});
@@ -1437,7 +1439,7 @@ at::Tensor sparse_conv_weight_grad_cuda(const at::Tensor& features, const at::Te
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, dtype, "lidarops_sparse_conv_wgrad", [&] {
     conv_wgrad_kernel<scalar_t, BCO, BCI, BR, TCO, TCI><<<grid, (BCO / TCO) * (BCI / TCI), 0, stream>>>(
         x.data_ptr<scalar_t>(), g.data_ptr<scalar_t>(), nbr.data_ptr<int32_t>(), partial.data_ptr<acc_t<scalar_t>>(),
-        n_out, cin, cout, K, rows_per_split);
+        n_out, cin, cout, K, rows_per_split, n_in);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
   auto dw = splits == 1 ? partial.select(0, 0) : partial.sum(0);

@@ -346,6 +346,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> cover_update_cuda(at::Tensor& cov
                                                       const at::Tensor& removed_in, int64_t kh, int64_t kw,
                                                       int64_t stride, int64_t padding) {
   check_cover_update_args(cover, active, stamp, added_in, removed_in, kh, kw, stride, padding);
+  check_stamp_value(value, "value");
   c10::cuda::CUDAGuard guard(cover.device());
   const int64_t Ho = cover.size(0), Wo = cover.size(1), K = kh * kw;
   const int64_t a = added_in.size(0), r = removed_in.size(0), taps = (a + r) * K;
@@ -505,6 +506,7 @@ std::tuple<at::Tensor, at::Tensor> touch_cuda(at::Tensor& stamp, at::Tensor& acc
                                               const at::Tensor& targets_in, const at::Tensor& added_in,
                                               const at::Tensor& removed_in) {
   check_touch_args(stamp, acc, targets_in, added_in, removed_in);
+  check_stamp_value(value, "value");
   c10::cuda::CUDAGuard guard(acc.device());
   const int64_t R = targets_in.size(0), a = added_in.size(0), r = removed_in.size(0);
   auto cand = at::full({std::min(R + a + r, acc.size(0) * acc.size(1)), 2}, -1, added_in.options());  // each site once
@@ -543,7 +545,9 @@ __global__ void __launch_bounds__(kThreads) finalize_compact_kernel(
     unsigned long long* __restrict__ counts) {
   __shared__ int s_changed[kFinalizeWarps], s_flagged[kFinalizeWarps];
   __shared__ unsigned long long s_base;
-  const int64_t m = *count < rows ? *count : rows;
+  // count is the caller's: clamped to [0, rows], as on CPU; counts[2] = the rows evaluated
+  const int64_t m = *count < 0 ? 0 : (*count < rows ? *count : rows);
+  if (blockIdx.x == 0 && threadIdx.x == 0) counts[2] = static_cast<unsigned long long>(m);
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
   for (int64_t i0 = blockIdx.x * static_cast<int64_t>(kFinalizeWarps); i0 < m;
        i0 += static_cast<int64_t>(gridDim.x) * kFinalizeWarps) {
@@ -599,20 +603,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> finalize_compact_cuda(const at::T
                                                                      const at::Tensor& count, const at::Tensor& stamp,
                                                                      int64_t status_value, const at::Tensor& scale_in,
                                                                      const at::Tensor& shift_in) {
-  TORCH_CHECK(count.numel() == 1 && count.scalar_type() == at::kLong && count.device() == acc.device(),
-              "count must be int64 (1,) on acc's device, got ", count.sizes());
-  check_map(stamp, "stamp", at::kInt, acc);
-  check_same_hw(stamp, acc, "stamp", "acc");
-  check_finalize_args(acc, out, active, cand, scale_in, shift_in);
+  check_finalize_args(acc, out, active, cand, scale_in, shift_in, "cand");
+  check_finalize_compact_args(acc, cand, count, stamp, status_value);
   c10::cuda::CUDAGuard guard(acc.device());
   const int64_t rows = cand.size(0), C = acc.size(2);
   auto sites_out = at::full({rows, 2}, -1, cand.options());
   auto delta_out = at::empty({rows, C}, acc.options());  // padding rows: unspecified
   auto counts = at::zeros({3}, count.options());
   auto stream = c10::cuda::getCurrentCUDAStream();
-  // counts[2] = the rows evaluated
-  counts.narrow(0, 2, 1).copy_(count.view({1}));
-  if (rows == 0 || C == 0) return {sites_out, delta_out, counts};
+  if (rows == 0) return {sites_out, delta_out, counts};  // counts[2] = 0 rows evaluated
   auto cnd = cand.contiguous();
   auto scale = scale_in.contiguous(), shift = shift_in.contiguous();
   const unsigned blocks = blocks_for(rows * 32);

@@ -2,6 +2,9 @@
 // in include/lidarops/boxes.h); fake kernels: lidarops/ops/_boxes_registrations.py; wrappers and float64
 // references: lidarops/ops/boxes.py.
 //
+// Direct calls: shapes, dtypes and devices are checked at entry (ValueError); no op indexes with values
+// read from a tensor (nms_bev's idxs are only compared: any int64 values).
+//
 // Boxes are (N, 7) x, y, z, dx, dy, dz, heading (LiDAR frame, z the box centre, heading counter-clockwise
 // from +x). Every op computes in float64 and returns float64 for float64 boxes, float32 otherwise.
 #include <torch/library.h>

@@ -16,6 +16,9 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // compute_fp = true: for each threshold t (detections scoring below t are left out; the detection with
   //   the largest overlap wins), returns counts (T, 4) float64 = tp, fp, fn, AOS similarity summed over the
   //   frames, and an empty (0,) tensor.
+  // Direct calls: the tables are checked at entry (ValueError): offsets and ignore flags must be integer
+  // tensors, each offset table starts at 0, ends at its total and never decreases, frame f's overlap
+  // count is D_f * G_f, ignore flags are -1, 0 or 1, scores and thresholds hold no NaN.
   m.def(
       "kitti_match(Tensor overlaps, Tensor overlap_offsets, Tensor gt_offsets, Tensor dt_offsets,"
       " Tensor ignored_gt, Tensor ignored_dt, Tensor dt_scores, Tensor dt_dontcare, Tensor gt_alpha,"

@@ -12,6 +12,8 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // Returns distance (f64[N], inf: no hit), surface (u8[N]: 0 none, 1 ground, box/cylinder kind, 4
   // vegetation), object_index (i32[N], -1), cos_incidence (f64[N]), reflectivity (f64[N], 0 for ground:
   // the caller's material map fills it), object_rays and object_visible (i64[num_objects]).
+  // Direct calls: dtypes and shapes are checked at entry, and box_object entries must be < num_objects
+  // (negative: not an object) (ValueError).
   m.def(
       "raycast_scene(Tensor origins, Tensor dirs, Tensor times, Tensor origin_samples, Tensor ground_plane, "
       "Tensor wave_amp, Tensor wave_k, Tensor wave_phase, Tensor box_center, Tensor box_half, Tensor box_yaw, "

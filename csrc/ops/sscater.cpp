@@ -2,6 +2,14 @@
 // csrc/cuda/sscater_kernel.cu; fake kernels: lidarops/sscater/_registrations.py; the streaming
 // backbone that drives them: lidarops/sscater/delta.py. Geometry and state layout:
 // csrc/include/lidarops/sscater.h.
+// Direct calls (torch.ops.lidarops.*): every kernel checks shapes, dtypes and devices at entry (ValueError);
+// values used as indices are never read out of bounds: the CPU kernels check them (ValueError), the CUDA
+// kernels clamp or skip them as each op says below (docs/ops.md, "Calling the registered ops directly").
+// Site lists: rows outside the grid (or negative: padding) are skipped wherever a kernel indexes with
+// them, except sscater_finalize_ / sscater_finalize_compact_ on CPU, which raise for a listed site
+// outside the grid (CUDA skips it). A count is clamped to [0, rows] on both devices. Stamp values:
+// value (and status_value) must lie in [-2^31, 2^31 - 1), kh * kw <= 2^20, stride and padding
+// <= 2^24 (ValueError): a wrapped stamp would list a site twice and overflow the candidate list.
 #include <torch/library.h>
 
 TORCH_LIBRARY_FRAGMENT(lidarops, m) {
@@ -20,7 +28,8 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       " bool transposed, Tensor? out_active=None, Tensor? count=None) -> Tensor");
   // For each site (m, 2) int32 of the output grid: y = active ? relu(acc * scale + shift) : 0, written
   // into out (Ho, Wo, C), any strides. Returns (changed (m,) bool: y differs from out's previous
-  // value in some channel, delta (m, C) = y - previous).
+  // value in some channel, delta (m, C) = y - previous). Sites outside the grid: CPU ValueError, CUDA
+  // skipped; sites must be unique (of duplicates, one writer wins).
   m.def(
       "sscater_finalize_(Tensor acc, Tensor(a!) out, Tensor active, Tensor sites, Tensor scale, Tensor shift)"
       " -> (Tensor, Tensor)");
@@ -59,7 +68,8 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // delta (m, C)) of the sites whose value changed, in their first rows (then (-1, -1) rows, whose
   // delta is unspecified),
   // and counts (3,) int64:
-  // changed sites, sites changed or with a status change (stamp == status_value), sites evaluated.
+  // changed sites, sites changed or with a status change (stamp == status_value), sites evaluated
+  // (count clamped to [0, rows of cand]).
   m.def(
       "sscater_finalize_compact_(Tensor acc, Tensor(a!) out, Tensor active, Tensor cand, Tensor count,"
       " Tensor stamp, int status_value, Tensor scale, Tensor shift) -> (Tensor, Tensor, Tensor)");

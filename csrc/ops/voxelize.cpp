@@ -29,7 +29,9 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       " -> (Tensor coords, Tensor num_points, Tensor point_voxel, Tensor point_slot, Tensor stats)");
   // features (N, C) -> voxels (num_voxels, max_points_per_voxel, C), zeros where no point was stored:
   // voxels[point_voxel[i], point_slot[i]] = features[i] for point_voxel[i] in [0, num_voxels) and
-  // point_slot[i] in [0, max_points_per_voxel). (voxel, slot) pairs must be unique (as assigned).
+  // point_slot[i] in [0, max_points_per_voxel); other entries are skipped (both devices), so a direct
+  // call never writes out of bounds. (voxel, slot) pairs must be unique (as assigned; of duplicates, one
+  // writer wins). Shapes, dtypes and devices: ValueError.
   m.def(
       "voxelize_scatter(Tensor features, Tensor point_voxel, Tensor point_slot, int num_voxels,"
       " int max_points_per_voxel) -> Tensor");

@@ -124,8 +124,10 @@ def _nms_args(boxes, scores, iou_threshold, idxs=None) -> float:
             raise ValueError(f"idxs must be an integer (N,) tensor with N = {n}, got {describe(idxs)}")
         if idxs.device != boxes.device:
             raise ValueError(f"idxs is on {idxs.device} but boxes is on {boxes.device}")
-    if isinstance(iou_threshold, bool) or not isinstance(iou_threshold, numbers.Real) or not math.isfinite(iou_threshold):
-        raise ValueError(f"iou_threshold must be a finite number, got {iou_threshold!r}")
+    if isinstance(iou_threshold, bool) or not isinstance(iou_threshold, numbers.Real) \
+            or not (math.isfinite(iou_threshold) and iou_threshold >= 0):
+        # an IoU lies in [0, 1]: below 0 even boxes that do not touch would suppress each other
+        raise ValueError(f"iou_threshold must be a finite number >= 0, got {iou_threshold!r}")
     if value_checks_enabled():
         finite, extra = _box_value_checks(boxes, "boxes")
         finite.append((scores, lambda: f"scores contains NaN or infinite values ({describe(scores)})"))

@@ -211,42 +211,46 @@ LIDAROPS_HD bool point_in_box(double px, double py, double pz, const BoxGeom& g)
 
 // Argument checks shared by the CPU and CUDA kernels (host code).
 inline void check_boxes(const at::Tensor& b, const char* name) {
-  TORCH_CHECK(b.dim() == 2 && b.size(1) == 7, name, " must be (N, 7) boxes (x, y, z, dx, dy, dz, heading), got shape ",
-              b.sizes());
-  TORCH_CHECK(at::isFloatingType(b.scalar_type()), name, " must be floating, got ", b.scalar_type());
+  TORCH_CHECK_VALUE(b.dim() == 2 && b.size(1) == 7, name, " must be (N, 7) boxes (x, y, z, dx, dy, dz, heading), got shape ",
+                    b.sizes());
+  TORCH_CHECK_VALUE(at::isFloatingType(b.scalar_type()), name, " must be floating, got ", b.scalar_type());
 }
 
 inline void check_pair_args(const at::Tensor& a, const at::Tensor& b) {
   check_boxes(a, "a");
   check_boxes(b, "b");
-  TORCH_CHECK(a.scalar_type() == b.scalar_type(), "a and b must have the same dtype, got ", a.scalar_type(), " and ",
-              b.scalar_type());
-  TORCH_CHECK(a.device() == b.device(), "b is on ", b.device(), " but a is on ", a.device());
+  TORCH_CHECK_VALUE(a.scalar_type() == b.scalar_type(), "a and b must have the same dtype, got ", a.scalar_type(), " and ",
+                    b.scalar_type());
+  TORCH_CHECK_VALUE(a.device() == b.device(), "b is on ", b.device(), " but a is on ", a.device());
 }
 
 // Returns whether idxs (groups) is given.
-inline bool check_nms_args(const at::Tensor& boxes, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs) {
+inline bool check_nms_args(const at::Tensor& boxes, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs,
+                           double iou_threshold) {
   check_boxes(boxes, "boxes");
+  // an IoU lies in [0, 1]; below 0 boxes that do not touch would count as overlapping (NaN: no order)
+  TORCH_CHECK_VALUE(iou_threshold >= 0 && iou_threshold < INFINITY, "iou_threshold must be a finite number >= 0, got ",
+                    iou_threshold);
   const int64_t N = boxes.size(0);
-  TORCH_CHECK(scores.dim() == 1 && scores.size(0) == N, "scores must be (N,) with N = ", N, ", got shape ",
-              scores.sizes());
-  TORCH_CHECK(at::isFloatingType(scores.scalar_type()), "scores must be floating, got ", scores.scalar_type());
-  TORCH_CHECK(scores.device() == boxes.device(), "scores is on ", scores.device(), " but boxes is on ", boxes.device());
+  TORCH_CHECK_VALUE(scores.dim() == 1 && scores.size(0) == N, "scores must be (N,) with N = ", N, ", got shape ",
+                    scores.sizes());
+  TORCH_CHECK_VALUE(at::isFloatingType(scores.scalar_type()), "scores must be floating, got ", scores.scalar_type());
+  TORCH_CHECK_VALUE(scores.device() == boxes.device(), "scores is on ", scores.device(), " but boxes is on ", boxes.device());
   const bool grouped = idxs.has_value() && idxs->defined();
   if (grouped) {
-    TORCH_CHECK(idxs->dim() == 1 && idxs->size(0) == N, "idxs must be (N,) with N = ", N, ", got shape ",
-                idxs->sizes());
-    TORCH_CHECK(idxs->scalar_type() == at::kLong, "idxs must be int64, got ", idxs->scalar_type());
-    TORCH_CHECK(idxs->device() == boxes.device(), "idxs is on ", idxs->device(), " but boxes is on ", boxes.device());
+    TORCH_CHECK_VALUE(idxs->dim() == 1 && idxs->size(0) == N, "idxs must be (N,) with N = ", N, ", got shape ",
+                      idxs->sizes());
+    TORCH_CHECK_VALUE(idxs->scalar_type() == at::kLong, "idxs must be int64, got ", idxs->scalar_type());
+    TORCH_CHECK_VALUE(idxs->device() == boxes.device(), "idxs is on ", idxs->device(), " but boxes is on ", boxes.device());
   }
   return grouped;
 }
 
 inline void check_points_args(const at::Tensor& points, const at::Tensor& boxes) {
-  TORCH_CHECK(points.dim() == 2 && points.size(1) >= 3, "points must be (P, C >= 3), got shape ", points.sizes());
-  TORCH_CHECK(at::isFloatingType(points.scalar_type()), "points must be floating, got ", points.scalar_type());
+  TORCH_CHECK_VALUE(points.dim() == 2 && points.size(1) >= 3, "points must be (P, C >= 3), got shape ", points.sizes());
+  TORCH_CHECK_VALUE(at::isFloatingType(points.scalar_type()), "points must be floating, got ", points.scalar_type());
   check_boxes(boxes, "boxes");
-  TORCH_CHECK(points.device() == boxes.device(), "boxes is on ", boxes.device(), " but points is on ", points.device());
+  TORCH_CHECK_VALUE(points.device() == boxes.device(), "boxes is on ", boxes.device(), " but points is on ", points.device());
 }
 
 }  // namespace boxes

@@ -16,7 +16,7 @@
 namespace lidarops {
 
 #define LIDAROPS_CHECK_DIM(t, d, name) \
-  TORCH_CHECK((t).dim() == (d), name " must have ", d, " dimensions, got shape ", (t).sizes())
+  TORCH_CHECK_VALUE((t).dim() == (d), name " must have ", d, " dimensions, got shape ", (t).sizes())
 
 // Multiply and add with rounding after each operation (no fused multiply-add), so the CPU and
 // the CUDA kernels produce the same bits for the same inputs.

@@ -121,8 +121,8 @@ void kd_build(KdNode<T>* nodes, KdPoint<T>* pts, int64_t cloud, int32_t id, int3
 // clouds, and over the subtrees below the top levels when there are fewer clouds than threads.
 template <typename T, typename S>
 std::vector<KdTree<T>> build_kd_trees(const S* points, int64_t B, int64_t N, const int64_t* lengths) {
-  TORCH_CHECK(N < std::numeric_limits<int32_t>::max(), "the k-d tree takes clouds of fewer than 2^31 points, got ",
-              N);
+  TORCH_CHECK_VALUE(N < std::numeric_limits<int32_t>::max(), "the k-d tree takes clouds of fewer than 2^31 points, got ",
+                    N);
   using detail::KdPoint;
   using detail::KdTask;
   std::vector<KdTree<T>> trees(B);

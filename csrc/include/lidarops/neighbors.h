@@ -174,34 +174,34 @@ LIDAROPS_HD void ball_brute_search(const S* pts, int64_t n, T qx, T qy, T qz, T 
 // ---- argument checks shared by the CPU and CUDA kernels (shapes, dtypes, devices only: value
 // checks that need the data live in the Python wrappers and the CPU kernels) ----
 inline void check_cloud(const at::Tensor& t, const char* name) {
-  TORCH_CHECK(t.dim() == 3 && t.size(2) == 3, name, " must be (B, N, 3), got shape ", t.sizes());
-  TORCH_CHECK(at::isFloatingType(t.scalar_type()), name, " must be a floating tensor, got ", t.scalar_type());
+  TORCH_CHECK_VALUE(t.dim() == 3 && t.size(2) == 3, name, " must be (B, N, 3), got shape ", t.sizes());
+  TORCH_CHECK_VALUE(at::isFloatingType(t.scalar_type()), name, " must be a floating tensor, got ", t.scalar_type());
 }
 
 inline void check_lengths(const at::Tensor& lengths, const at::Tensor& cloud, const char* name) {
-  TORCH_CHECK(lengths.dim() == 1 && lengths.size(0) == cloud.size(0), name, " must be (B,) with B = ",
-              cloud.size(0), ", got shape ", lengths.sizes());
-  TORCH_CHECK(lengths.scalar_type() == at::kLong, name, " must be int64, got ", lengths.scalar_type());
-  TORCH_CHECK(lengths.device() == cloud.device(), name, " is on ", lengths.device(), " but the points are on ",
-              cloud.device());
+  TORCH_CHECK_VALUE(lengths.dim() == 1 && lengths.size(0) == cloud.size(0), name, " must be (B,) with B = ",
+                    cloud.size(0), ", got shape ", lengths.sizes());
+  TORCH_CHECK_VALUE(lengths.scalar_type() == at::kLong, name, " must be int64, got ", lengths.scalar_type());
+  TORCH_CHECK_VALUE(lengths.device() == cloud.device(), name, " is on ", lengths.device(), " but the points are on ",
+                    cloud.device());
 }
 
 inline void check_pair(const at::Tensor& query, const at::Tensor& points) {
   check_cloud(query, "query");
   check_cloud(points, "points");
-  TORCH_CHECK(query.size(0) == points.size(0), "query and points must have the same batch size, got ",
-              query.size(0), " and ", points.size(0));
-  TORCH_CHECK(query.scalar_type() == points.scalar_type(), "query and points must have the same dtype, got ",
-              query.scalar_type(), " and ", points.scalar_type());
-  TORCH_CHECK(query.device() == points.device(), "query and points must be on the same device, got ",
-              query.device(), " and ", points.device());
+  TORCH_CHECK_VALUE(query.size(0) == points.size(0), "query and points must have the same batch size, got ",
+                    query.size(0), " and ", points.size(0));
+  TORCH_CHECK_VALUE(query.scalar_type() == points.scalar_type(), "query and points must have the same dtype, got ",
+                    query.scalar_type(), " and ", points.scalar_type());
+  TORCH_CHECK_VALUE(query.device() == points.device(), "query and points must be on the same device, got ",
+                    query.device(), " and ", points.device());
 }
 
 // Lengths must lie in [0, n]; only callable on CPU tensors.
 inline void check_lengths_values_cpu(const at::Tensor& lengths, int64_t n, const char* name) {
   const int64_t* l = lengths.data_ptr<int64_t>();
   for (int64_t b = 0; b < lengths.numel(); ++b)
-    TORCH_CHECK(l[b] >= 0 && l[b] <= n, name, "[", b, "] = ", l[b], " is outside [0, ", n, "]");
+    TORCH_CHECK_VALUE(l[b] >= 0 && l[b] <= n, name, "[", b, "] = ", l[b], " is outside [0, ", n, "]");
 }
 
 // dtype of the distances returned: the computation dtype (float for half/bfloat16).

@@ -303,6 +303,11 @@ inline ConvEpilogue make_epilogue(const at::Tensor& scale, const at::Tensor& shi
                       shift.defined() ? shift.data_ptr<float>() : nullptr, relu};
 }
 
+// A kernel-map entry as the kernels use it: the input row, or -1 (no input) for an entry outside
+// [0, n_in). The CPU kernels raise for such entries; the CUDA kernels skip them, as reporting would
+// need a host sync, so a map that does not belong to the features can never read out of bounds.
+LIDAROPS_HD int32_t map_row(int32_t r, int64_t n_in) { return r >= 0 && r < n_in ? r : -1; }
+
 // Sort key of a kernel-map row: bit k set when offset k (< 63) has an input.
 LIDAROPS_HD int64_t row_mask(const int32_t* row, int64_t K) {
   int64_t mask = 0;

@@ -97,59 +97,59 @@ enum VoxelStat : int64_t {
 inline void check_voxelize_assign_args(const at::Tensor& points, at::ArrayRef<double> voxel_size,
                                        at::ArrayRef<double> point_range, at::IntArrayRef grid_size,
                                        int64_t max_points_per_voxel, int64_t max_voxels, int64_t method) {
-  TORCH_CHECK(points.dim() == 2 && points.size(1) >= 3, "points must be (N, C) with C >= 3, got shape ",
-              points.sizes());
-  TORCH_CHECK(at::isFloatingType(points.scalar_type()), "points must be a floating tensor, got ",
-              points.scalar_type());
-  TORCH_CHECK(voxel_size.size() == 3, "voxel_size must have 3 values (x, y, z), got ", voxel_size.size());
-  TORCH_CHECK(point_range.size() == 6, "point_range must have 6 values (x0, y0, z0, x1, y1, z1), got ",
-              point_range.size());
-  TORCH_CHECK(grid_size.size() == 3, "grid_size must have 3 values (x, y, z), got ", grid_size.size());
+  TORCH_CHECK_VALUE(points.dim() == 2 && points.size(1) >= 3, "points must be (N, C) with C >= 3, got shape ",
+                    points.sizes());
+  TORCH_CHECK_VALUE(at::isFloatingType(points.scalar_type()), "points must be a floating tensor, got ",
+                    points.scalar_type());
+  TORCH_CHECK_VALUE(voxel_size.size() == 3, "voxel_size must have 3 values (x, y, z), got ", voxel_size.size());
+  TORCH_CHECK_VALUE(point_range.size() == 6, "point_range must have 6 values (x0, y0, z0, x1, y1, z1), got ",
+                    point_range.size());
+  TORCH_CHECK_VALUE(grid_size.size() == 3, "grid_size must have 3 values (x, y, z), got ", grid_size.size());
   double cells = 1.0;
   for (int a = 0; a < 3; ++a) {
-    TORCH_CHECK(std::isfinite(voxel_size[a]) && voxel_size[a] > 0.0, "voxel_size must be finite and positive, got ",
-                voxel_size);
-    TORCH_CHECK(std::isfinite(point_range[a]) && !std::isnan(point_range[a + 3]) &&
-                    point_range[a + 3] > point_range[a],
-                "point_range must be (x0, y0, z0, x1, y1, z1) with finite lower bounds below the upper ones, got ",
-                point_range);
-    TORCH_CHECK(grid_size[a] >= 1 && grid_size[a] <= kMaxVoxelDim, "grid_size must lie in [1, 2^24] per axis, got ",
-                grid_size);
+    TORCH_CHECK_VALUE(std::isfinite(voxel_size[a]) && voxel_size[a] > 0.0, "voxel_size must be finite and positive, got ",
+                      voxel_size);
+    TORCH_CHECK_VALUE(std::isfinite(point_range[a]) && !std::isnan(point_range[a + 3]) &&
+                          point_range[a + 3] > point_range[a],
+                      "point_range must be (x0, y0, z0, x1, y1, z1) with finite lower bounds below the upper ones, got ",
+                      point_range);
+    TORCH_CHECK_VALUE(grid_size[a] >= 1 && grid_size[a] <= kMaxVoxelDim, "grid_size must lie in [1, 2^24] per axis, got ",
+                      grid_size);
     cells *= static_cast<double>(grid_size[a]);
   }
-  TORCH_CHECK(cells < 4.6e18, "grid of ", grid_size, " cells is too large for int64 keys");
-  TORCH_CHECK(max_points_per_voxel >= 1 && max_points_per_voxel <= std::numeric_limits<int32_t>::max(),
-              "max_points_per_voxel must lie in [1, 2^31), got ", max_points_per_voxel);
-  TORCH_CHECK(max_voxels >= 1 && max_voxels <= std::numeric_limits<int32_t>::max(),
-              "max_voxels must lie in [1, 2^31), got ", max_voxels);
-  TORCH_CHECK(method >= 0 && method <= 2, "method must be 0 (auto), 1 (dense table) or 2 (hash table), got ", method);
+  TORCH_CHECK_VALUE(cells < 4.6e18, "grid of ", grid_size, " cells is too large for int64 keys");
+  TORCH_CHECK_VALUE(max_points_per_voxel >= 1 && max_points_per_voxel <= std::numeric_limits<int32_t>::max(),
+                    "max_points_per_voxel must lie in [1, 2^31), got ", max_points_per_voxel);
+  TORCH_CHECK_VALUE(max_voxels >= 1 && max_voxels <= std::numeric_limits<int32_t>::max(),
+                    "max_voxels must lie in [1, 2^31), got ", max_voxels);
+  TORCH_CHECK_VALUE(method >= 0 && method <= 2, "method must be 0 (auto), 1 (dense table) or 2 (hash table), got ", method);
 }
 
 template <typename T>
 void check_voxel_grid_in_type(const VoxelGrid<T>& g) {
   for (int a = 0; a < 3; ++a)
-    TORCH_CHECK(std::isfinite(static_cast<double>(g.size[a])) && g.size[a] > T(0) &&
-                    std::isfinite(static_cast<double>(g.lo[a])),
-                "voxel_size and point_range must stay finite and positive in the computation dtype");
+    TORCH_CHECK_VALUE(std::isfinite(static_cast<double>(g.size[a])) && g.size[a] > T(0) &&
+                          std::isfinite(static_cast<double>(g.lo[a])),
+                      "voxel_size and point_range must stay finite and positive in the computation dtype");
 }
 
 inline void check_voxelize_scatter_args(const at::Tensor& features, const at::Tensor& point_voxel,
                                         const at::Tensor& point_slot, int64_t num_voxels,
                                         int64_t max_points_per_voxel) {
-  TORCH_CHECK(features.dim() == 2, "features must be (N, C), got shape ", features.sizes());
-  TORCH_CHECK(at::isFloatingType(features.scalar_type()), "features must be a floating tensor, got ",
-              features.scalar_type());
+  TORCH_CHECK_VALUE(features.dim() == 2, "features must be (N, C), got shape ", features.sizes());
+  TORCH_CHECK_VALUE(at::isFloatingType(features.scalar_type()), "features must be a floating tensor, got ",
+                    features.scalar_type());
   const int64_t N = features.size(0);
-  TORCH_CHECK(point_voxel.dim() == 1 && point_voxel.size(0) == N && point_voxel.scalar_type() == at::kLong,
-              "point_voxel must be int64 (N,) with N = ", N, ", got shape ", point_voxel.sizes(), " dtype ",
-              point_voxel.scalar_type());
-  TORCH_CHECK(point_slot.dim() == 1 && point_slot.size(0) == N && point_slot.scalar_type() == at::kLong,
-              "point_slot must be int64 (N,) with N = ", N, ", got shape ", point_slot.sizes(), " dtype ",
-              point_slot.scalar_type());
-  TORCH_CHECK(point_voxel.device() == features.device() && point_slot.device() == features.device(),
-              "point_voxel and point_slot must be on the device of features (", features.device(), ")");
-  TORCH_CHECK(num_voxels >= 0, "num_voxels must be >= 0, got ", num_voxels);
-  TORCH_CHECK(max_points_per_voxel >= 1, "max_points_per_voxel must be >= 1, got ", max_points_per_voxel);
+  TORCH_CHECK_VALUE(point_voxel.dim() == 1 && point_voxel.size(0) == N && point_voxel.scalar_type() == at::kLong,
+                    "point_voxel must be int64 (N,) with N = ", N, ", got shape ", point_voxel.sizes(), " dtype ",
+                    point_voxel.scalar_type());
+  TORCH_CHECK_VALUE(point_slot.dim() == 1 && point_slot.size(0) == N && point_slot.scalar_type() == at::kLong,
+                    "point_slot must be int64 (N,) with N = ", N, ", got shape ", point_slot.sizes(), " dtype ",
+                    point_slot.scalar_type());
+  TORCH_CHECK_VALUE(point_voxel.device() == features.device() && point_slot.device() == features.device(),
+                    "point_voxel and point_slot must be on the device of features (", features.device(), ")");
+  TORCH_CHECK_VALUE(num_voxels >= 0, "num_voxels must be >= 0, got ", num_voxels);
+  TORCH_CHECK_VALUE(max_points_per_voxel >= 1, "max_points_per_voxel must be >= 1, got ", max_points_per_voxel);
 }
 
 }  // namespace lidarops
