@@ -233,3 +233,13 @@ def assert_close_report(actual: torch.Tensor, expected: torch.Tensor, rtol: floa
         w = tuple(torch.nonzero(excess == excess.max())[0].tolist())
         raise AssertionError(f"{what}: max difference {diff.max().item():.3e} (rtol {rtol:.1e}, atol {atol:.1e}); "
                              f"worst at {w}: got {a[w].item()!r} expected {e[w].item()!r}")
+
+
+@pytest.fixture
+def one_thread():
+    """Run the test with one intra-op thread (restored after): for tests of tiny tensors, where
+    OpenMP wake-ups on a shared machine cost more than the work."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
