@@ -11,6 +11,9 @@
 # make test        build, then the whole test suite, one progress line per test file (what CI runs;
 #                  about 7 min)
 # make test-fast   build, then the suite without the tests marked slow (-m "not slow"; about 1.5 min)
+# make fuzz        build, then the fuzz suite tests/fuzz with its long profile (HYPOTHESIS_PROFILE=long:
+#                  2,000 random examples per test, each test once per device; about 25 min on 2 CPU cores,
+#                  more with CUDA); failures are kept in .hypothesis/ and replayed first (docs/testing.md)
 # make tour        the short tour of the neighbourhood ops (lidarops tour)
 # make bench       the neighbourhood-op benchmarks (benchmarks/bm_neighbors.py)
 # make train-demo  simulate a small KITTI-format set and train a small PointPillars on it (CPU, minutes)
@@ -27,7 +30,7 @@ PY := $(shell if $(PYTHON) -c "import torch" >/dev/null 2>&1; then command -v $(
 PYTEST_ARGS ?=
 .DEFAULT_GOAL := build
 
-.PHONY: help env build test test-fast demo tour bench clean train-demo
+.PHONY: help env build test test-fast fuzz demo tour bench clean train-demo
 
 help:
 	@awk '/^#/ { sub(/^# ?/, ""); print; next } { exit }' $(firstword $(MAKEFILE_LIST))
@@ -46,6 +49,10 @@ test: build
 test-fast: build
 	@echo "[make] tests: pytest -m \"not slow\" $(if $(PYTEST_ARGS),$(PYTEST_ARGS) )tests (a line per file)"
 	@$(PY) -m pytest -m "not slow" $(PYTEST_ARGS) tests
+
+fuzz: build
+	@echo "[make] fuzz: HYPOTHESIS_PROFILE=long pytest $(if $(PYTEST_ARGS),$(PYTEST_ARGS) )tests/fuzz"
+	@HYPOTHESIS_PROFILE=long $(PY) -m pytest $(PYTEST_ARGS) tests/fuzz
 
 # about a minute on 2 CPU cores after the build: three short SSCATeR streams (each run explains what it
 # shows), then the shipped detector on three unseen frames

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["real", "integer", "flag", "require_file", "read_text", "record_count", "finite_rows", "read_float32_records"]
+__all__ = ["real", "integer", "flag", "require_file", "read_text", "record_count", "finite_rows", "read_float32_records",
+           "read_npz"]
 
 
 def _range_text(lo, hi, lo_open: bool, hi_open: bool) -> str:
@@ -116,3 +117,32 @@ def read_float32_records(path: Path, columns: int, layout: str, what: str) -> np
     values = values.reshape(n, columns)
     finite_rows(values, path, what)
     return values
+
+
+def read_npz(path: Path, fields, what: str) -> dict:
+    """The named arrays of a NumPy ``.npz`` archive, read whole (no pickles); ``what`` with its article
+    (``"an object set"``).
+
+    A damaged archive fails inside ``zipfile``/``zlib``/NumPy with a dozen exception types depending on
+    the byte hit (BadZipFile, EOFError, zlib.error, a bad CRC, a bad ``.npy`` header, NotImplementedError
+    for an unknown zip version, RuntimeError for an "encrypted" member...); each becomes a
+    ValueError that names the file, and so does a missing array.
+    """
+    import tokenize
+    import zipfile
+    import zlib
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = sorted(set(fields) - set(z.files))
+            if missing:
+                raise ValueError(f"{path}: not {what} (missing {missing})")
+            return {name: z[name] for name in fields}
+    except ValueError as e:
+        if str(path) in str(e):
+            raise
+        raise ValueError(f"{path}: not a readable .npz archive, so not {what} ({e})") from None
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, KeyError, IndexError, TypeError, SyntaxError,
+            tokenize.TokenError, MemoryError, OverflowError, RecursionError, UnicodeDecodeError,
+            NotImplementedError, RuntimeError) as e:  # zipfile: an unknown version or method, an "encrypted" flag
+        raise ValueError(f"{path}: not a readable .npz archive, so not {what} ({type(e).__name__}: {e})") from None

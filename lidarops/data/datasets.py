@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from lidarops.data._checks import integer, real
 from lidarops.data.frame import Frame
 
 __all__ = [
@@ -69,7 +70,7 @@ class DetectionDataset(Dataset):
 
     def __init__(self, source, min_points: int = 0, transform: Callable[[dict], dict] | None = None, **source_options) -> None:
         self.source = as_frame_source(source, **source_options)
-        self.min_points = int(min_points)
+        self.min_points = integer(min_points, "min_points", 0)
         self.transform = transform
 
     def __len__(self) -> int:
@@ -141,7 +142,8 @@ class ObjectDataset(Dataset):
                  canonical: bool = True, test_fraction: float = 0.2, seed: int = 0, **source_options) -> None:
         from lidarops.data.objects import ObjectSet
 
-        self.num_points = num_points
+        self.num_points = None if num_points is None else integer(num_points, "num_points", 1)
+        min_points, seed = integer(min_points, "min_points", 0), integer(seed, "seed", 0)
         self.seed = seed
         self._rng = np.random.default_rng(seed)
         text = str(source) if isinstance(source, (str, Path)) else ""
@@ -213,12 +215,14 @@ class StreamDataset(Dataset):
                  **source_options) -> None:
         from lidarops.data.synthetic import Simulator
 
-        if slice_duration <= 0:
-            raise ValueError("slice_duration must be positive")
-        self.slice_duration = float(slice_duration)
+        slice_duration = self.slice_duration = real(slice_duration, "slice_duration", 0, lo_open=True, unit=" s")
+        if t0 is not None:
+            t0 = real(t0, "t0", unit=" s")
+        if num_slices is not None:
+            num_slices = integer(num_slices, "num_slices", 0)
         if isinstance(source, Simulator):
             self.simulator = source
-            self.t0 = 0.0 if t0 is None else float(t0)
+            self.t0 = 0.0 if t0 is None else real(t0, "t0", 0, unit=" s (a simulator starts at 0)")
             n = num_slices if num_slices is not None else int(round(source.frame_period / slice_duration))
             self.num_slices = int(n)
             self._points = self._t = None

@@ -65,6 +65,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from lidarops.data._checks import read_npz, read_text
 from lidarops.data.formats.kitti import (
     KITTI_IMAGE_SIZE,
     KittiCalib,
@@ -477,15 +478,34 @@ class GtDatabase:
 
     @classmethod
     def load(cls, path: str | Path) -> "GtDatabase":
-        """Reads a database written by :meth:`save`."""
+        """Reads a database written by :meth:`save`.
+
+        Raises:
+            FileNotFoundError: missing file.
+            ValueError: a damaged or truncated ``.npz``, missing arrays, or arrays that do not describe
+                the same objects (the file is named).
+        """
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"gt database not found: {path}")
-        with np.load(path, allow_pickle=False) as data:
-            missing = [name for name in cls._FIELDS if name not in data.files]
-            if missing:
-                raise ValueError(f"{path} is not a lidarops gt database (missing {missing})")
-            return cls(**{name: data[name] for name in cls._FIELDS})
+        data = read_npz(path, cls._FIELDS, "a lidarops gt database")
+        m = data["boxes"].shape[0] if data["boxes"].ndim == 2 else -1
+        off = data["offsets"]
+        problem = None
+        if m < 0 or data["boxes"].shape[1] != 7 or data["boxes"].dtype.kind != "f":
+            problem = f"boxes must be float [M, 7], got {data['boxes'].dtype} {data['boxes'].shape}"
+        elif data["points"].ndim != 2 or data["points"].shape[1] != 4 or data["points"].dtype.kind != "f":
+            problem = f"points must be float [P, 4], got {data['points'].dtype} {data['points'].shape}"
+        elif any(data[k].shape != (m,) for k in ("names", "num_points", "difficulty", "frame_ids", "gt_index")):
+            problem = f"names, num_points, difficulty, frame_ids and gt_index must hold one entry per box ({m})"
+        elif off.shape != (m + 1,) or off.dtype.kind not in "iu" or (m >= 0 and (off[0] != 0 or (np.diff(off) < 0).any()
+                                                                             or off[-1] != data["points"].shape[0])):
+            problem = f"offsets must rise from 0 to the {data['points'].shape[0]} points in {m + 1} steps"
+        elif data["source_ids"].ndim != 1:
+            problem = "source_ids must be 1-D"
+        if problem:
+            raise ValueError(f"{path}: not a gt database written by GtDatabase.save ({problem})")
+        return cls(**data)
 
     def __repr__(self) -> str:
         names, counts = np.unique(self.names, return_counts=True)
@@ -675,6 +695,17 @@ class GtSampler:
 # ---------------------------------------------------------------------------------------------
 # the dataset
 # ---------------------------------------------------------------------------------------------
+def _read_recipe(path: Path) -> dict:
+    """The ``recipe.json`` a ``lidarops data synth`` folder carries: a JSON object (errors name the file)."""
+    try:
+        recipe = json.loads(read_text(path, "JSON"))
+    except (json.JSONDecodeError, RecursionError) as e:
+        raise ValueError(f"{path}: malformed JSON ({type(e).__name__}: {e})") from None
+    if not isinstance(recipe, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(recipe).__name__}")
+    return recipe
+
+
 def _png_size(path: Path) -> tuple[int, int] | None:
     """(width, height) from a PNG header, without decoding the image."""
     try:
@@ -761,7 +792,7 @@ class KittiDetectionDataset(Dataset):
         self.root = top
         recipe = top / "recipe.json"
         #: the ``lidarops data synth`` recipe of the folder (None for other folders)
-        self.recipe = json.loads(recipe.read_text()) if recipe.is_file() else None
+        self.recipe = _read_recipe(recipe) if recipe.is_file() else None
         self.sampler: GtSampler | None = None
         if self.training and "gt_sampling" in config.augmentations and config.sample_groups:
             db = self._database(gt_database)

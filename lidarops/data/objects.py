@@ -13,6 +13,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from lidarops.data._checks import read_npz
 from lidarops.data.frame import CLASSES, Frame
 from lidarops.data.geometry import points_in_boxes_mask
 
@@ -180,21 +181,31 @@ class ObjectSet:
 
         Raises:
             FileNotFoundError: missing file.
-            ValueError: not an object-set archive.
+            ValueError: not an object-set archive (a damaged or truncated ``.npz``, missing arrays, or
+                arrays that do not describe the same objects); the file is named.
         """
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"object set not found: {path}")
-        try:
-            z = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"{path}: not a .npz archive ({e})") from None
-        with z:
-            need = {"points", "sizes", "labels", "boxes", "frame_index", "object_id", "train_index", "test_index", "class_names"}
-            missing = need - set(z.files)
-            if missing:
-                raise ValueError(f"{path}: not an object set (missing {sorted(missing)})")
-            offsets = np.concatenate([[0], np.cumsum(z["sizes"])])
-            samples = [ObjectSample(z["points"][offsets[i]:offsets[i + 1]], int(z["labels"][i]), z["boxes"][i],
-                                    int(z["frame_index"][i]), int(z["object_id"][i])) for i in range(len(z["sizes"]))]
-            return ObjectSet(samples, tuple(str(n) for n in z["class_names"]), z["train_index"], z["test_index"])
+        need = ("points", "sizes", "labels", "boxes", "frame_index", "object_id", "train_index", "test_index", "class_names")
+        z = read_npz(path, need, "an object set")
+        n = z["sizes"].shape[0] if z["sizes"].ndim == 1 else -1
+        ints = ("sizes", "labels", "frame_index", "object_id", "train_index", "test_index")
+        problem = None
+        if n < 0 or any(z[k].ndim != 1 or z[k].dtype.kind not in "iu" for k in ints):
+            problem = f"{', '.join(ints)} must be 1-D integer arrays"
+        elif any(z[k].shape[0] != n for k in ("labels", "frame_index", "object_id")) or z["boxes"].shape != (n, 7):
+            problem = f"sizes, labels, frame_index, object_id and boxes must describe the same {n} objects"
+        elif z["points"].ndim != 2 or z["points"].dtype.kind != "f" or (z["sizes"] < 0).any() \
+                or int(z["sizes"].sum()) != z["points"].shape[0]:
+            problem = "the object sizes do not add up to the rows of points"
+        elif any(((z[k] < 0) | (z[k] >= n)).any() for k in ("train_index", "test_index")):
+            problem = f"train_index/test_index out of range [0, {n})"
+        elif z["class_names"].ndim != 1 or (z["class_names"].size and z["class_names"].dtype.kind not in "US"):
+            problem = "class_names must be a 1-D array of strings"
+        if problem:
+            raise ValueError(f"{path}: not an object set written by ObjectSet.save ({problem})")
+        offsets = np.concatenate([[0], np.cumsum(z["sizes"])])
+        samples = [ObjectSample(z["points"][offsets[i]:offsets[i + 1]], int(z["labels"][i]), z["boxes"][i],
+                                int(z["frame_index"][i]), int(z["object_id"][i])) for i in range(n)]
+        return ObjectSet(samples, tuple(str(c) for c in z["class_names"]), z["train_index"], z["test_index"])

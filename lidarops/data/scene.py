@@ -17,6 +17,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from lidarops.data._checks import integer, real
 from lidarops.data.frame import CLASSES
 from lidarops.data.geometry import euler_to_matrix
 
@@ -504,6 +505,9 @@ def _rng(seed: int, *keys: object) -> np.random.Generator:
 # ---------------------------------------------------------------------------------------------
 CountSpec = "int | tuple[int, int] | Callable[[np.random.Generator], int]"
 
+#: Most objects of one class a scene can be asked for (placement tries every one of them).
+MAX_OBJECTS = 1000
+
 
 def sample_object_counts(
     rng: np.random.Generator,
@@ -525,7 +529,8 @@ def sample_object_counts(
         dict[str, int]: a count for every class of :data:`CLASSES`.
 
     Raises:
-        ValueError: an unknown class name, preset or a negative count.
+        ValueError: an unknown class name or preset, or a count that is not an int in [0, MAX_OBJECTS]
+            (bools and floats are refused, not truncated).
     """
     specs: dict[str, object] = {name: 0 for name in CLASSES}
     specs.update(defaults)
@@ -546,20 +551,28 @@ def sample_object_counts(
     counts: dict[str, int] = {}
     for name in CLASSES:
         spec = specs.get(name, 0)
+        what = f"object_counts[{name!r}]"
         if callable(spec):
-            n = int(spec(rng))
+            n = integer(spec(rng), f"the count returned for {what}", 0, MAX_OBJECTS)
         elif isinstance(spec, (tuple, list)):
-            lo, hi = spec
-            n = int(rng.integers(int(lo), int(hi) + 1))
+            if len(spec) != 2:
+                raise ValueError(f"{what} must be an int or a (low, high) pair, got {spec!r}")
+            lo, hi = integer(spec[0], f"{what} low", 0, MAX_OBJECTS), integer(spec[1], f"{what} high", 0, MAX_OBJECTS)
+            if hi < lo:
+                raise ValueError(f"{what} must be (low, high) with low <= high, got {spec!r}")
+            n = int(rng.integers(lo, hi + 1))
         else:
-            n = int(spec)
-        if n < 0:
-            raise ValueError(f"object count for {name} is negative ({n})")
+            n = integer(spec, what, 0, MAX_OBJECTS)
         counts[name] = n
     unknown = set(specs) - set(CLASSES)
     if unknown:
         raise ValueError(f"unknown class name(s) in object_counts: {sorted(unknown)}; classes are {CLASSES}")
     return counts
+
+
+def _ego_speed(value) -> float:
+    # forward along the road, at most 100 m/s (360 km/h): a NaN or huge speed would move every tile away
+    return real(value, "ego_speed", 0, 100, unit=" m/s")
 
 
 def _sample_size(rng: np.random.Generator, name: str) -> np.ndarray:
@@ -761,7 +774,7 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
     _no_unused(unused, "driving_city")
     rng = _rng(seed, "driving_city", "scene")
     ground = Ground.random(rng, material=_city_material)
-    speed = float(rng.uniform(3.0, 12.0) if ego_speed is None else ego_speed)
+    speed = float(rng.uniform(3.0, 12.0)) if ego_speed is None else _ego_speed(ego_speed)
     ego_y = -1.75
     height = 1.73
     g0 = float(ground.height(np.array([0.0]), np.array([ego_y]))[0])
@@ -875,7 +888,7 @@ def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = No
     rng = _rng(seed, "driving_highway", "scene")
     ground = Ground.random(rng, max_slope=0.02, roughness=0.02, material=_highway_material)
     speeds = rng.uniform([24.0, 27.0, 30.0], [26.0, 30.0, 34.0])  # right, middle, left lane
-    speed = float(speeds[1] if ego_speed is None else ego_speed)
+    speed = float(speeds[1]) if ego_speed is None else _ego_speed(ego_speed)
     ego_y = -5.55
     g0 = float(ground.height(np.array([0.0]), np.array([ego_y]))[0])
     ego = EgoMotion(np.array([0.0, ego_y, g0 + 1.73]), np.array([speed, 0.0, speed * ground.slope[0]]))
@@ -1062,10 +1075,9 @@ def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> S
         Scenario.
 
     Raises:
-        ValueError: unknown scenario name.
+        ValueError: unknown scenario name, a seed that is not an int >= 0, an ``ego_speed`` that is not
+            a finite number in [0, 100] m/s.
     """
-    try:
-        builder = SCENARIOS[name]
-    except KeyError:
-        raise ValueError(f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)}") from None
-    return builder(int(seed), object_counts=object_counts, **options)
+    if not isinstance(name, str) or name not in SCENARIOS:
+        raise ValueError(f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)}")
+    return SCENARIOS[name](integer(seed, "seed", 0), object_counts=object_counts, **options)

@@ -24,6 +24,8 @@ from fractions import Fraction
 
 import numpy as np
 
+from lidarops.data._checks import integer, real
+
 __all__ = [
     "LidarSensor",
     "SpinningLidar",
@@ -62,6 +64,25 @@ class LidarSensor:
     reference_reflectivity: float = 0.8
     intensity_range_scale: float = 250.0
     frame_period: float = 0.1
+
+    def __post_init__(self) -> None:
+        # a NaN or negative parameter would not fail here but deep in the ray caster (or never: a NaN
+        # range silently drops every return), so each is checked where the sensor is made
+        if not isinstance(self.name, str):
+            raise ValueError(f"name must be a str, got {self.name!r}")
+        real(self.max_range, "max_range", 0, lo_open=True, unit=" m")
+        real(self.min_range, "min_range", 0, self.max_range, hi_open=True, unit=" m (below max_range)")
+        real(self.range_noise_std, "range_noise_std", 0, unit=" m")
+        real(self.dropout, "dropout", 0, 1, hi_open=True)
+        real(self.intensity_noise_std, "intensity_noise_std", 0)
+        real(self.reference_reflectivity, "reference_reflectivity", 0, 1, lo_open=True)
+        real(self.intensity_range_scale, "intensity_range_scale", 0, lo_open=True, unit=" m")
+        real(self.frame_period, "frame_period", 0, 3600, lo_open=True, unit=" s")
+
+    def _check_firings_per_frame(self) -> None:
+        if self.firings_per_frame < 1:
+            raise ValueError(f"a frame must hold at least one firing: firing_rate * frame_period is "
+                             f"{self.firing_rate * self.frame_period:g}")
 
     # -- firing schedule (implemented by subclasses) -----------------------------------------
     @property
@@ -131,9 +152,15 @@ class SpinningLidar(LidarSensor):
     rotation_hz: float = 10.0
 
     def __post_init__(self) -> None:
-        if not self.elevations_deg:
-            raise ValueError("SpinningLidar needs at least one beam elevation")
+        if isinstance(self.elevations_deg, (str, bytes)) or not hasattr(self.elevations_deg, "__len__") \
+                or not len(self.elevations_deg):
+            raise ValueError(f"elevations_deg must be a non-empty sequence of angles in degrees, got {self.elevations_deg!r}")
+        for i, e in enumerate(self.elevations_deg):
+            real(e, f"elevations_deg[{i}]", -90, 90, unit=" degrees")
+        integer(self.columns_per_rev, "columns_per_rev", 1, 10**6)
+        real(self.rotation_hz, "rotation_hz", 0, 1000, lo_open=True, unit=" Hz")
         object.__setattr__(self, "frame_period", 1.0 / self.rotation_hz)
+        super().__post_init__()
         el = np.deg2rad(np.asarray(self.elevations_deg, dtype=np.float64))
         object.__setattr__(self, "_cos_el", np.cos(el))
         object.__setattr__(self, "_sin_el", np.sin(el))
@@ -201,6 +228,18 @@ class RisleyLidar(LidarSensor):
     points_per_s: float = 240_000.0
     channels: int = 6
     prism_hz: tuple[float, float] = (121.57, -77.73)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        real(self.fov_h_deg, "fov_h_deg", 0, 180, lo_open=True, hi_open=True, unit=" degrees")
+        real(self.fov_v_deg, "fov_v_deg", 0, 180, lo_open=True, hi_open=True, unit=" degrees")
+        integer(self.channels, "channels", 1, 1024)
+        real(self.points_per_s, "points_per_s", 0, 1e8, lo_open=True)
+        if isinstance(self.prism_hz, (str, bytes)) or not hasattr(self.prism_hz, "__len__") or len(self.prism_hz) != 2:
+            raise ValueError(f"prism_hz must be two rotation rates (Hz), got {self.prism_hz!r}")
+        for i, hz in enumerate(self.prism_hz):
+            real(hz, f"prism_hz[{i}]", -1e5, 1e5, unit=" Hz")
+        self._check_firings_per_frame()
 
     @property
     def firing_rate(self) -> float:

@@ -27,6 +27,7 @@ from typing import Iterator
 
 import numpy as np
 
+from lidarops.data._checks import integer, real
 from lidarops.data._raycast import cast_rays
 from lidarops.data.frame import CLASSES, Frame
 from lidarops.data.geometry import count_points_in_boxes, pose_matrix, wrap_angle
@@ -59,6 +60,26 @@ __all__ = [
 def crop_forward(frame: Frame, fov_deg: float = 90.0) -> Frame:
     """KITTI-like forward crop of a frame (see :meth:`Frame.crop_forward`)."""
     return frame.crop_forward(fov_deg)
+
+
+#: Latest time (s) the simulator generates: a day and more of simulated time, far below where firing
+#: indices (``t * firing_rate``) would leave int64 or lose their exactness in float64.
+MAX_TIME = 1e6
+
+
+def _time(value, name: str) -> float:
+    return real(value, name, 0, MAX_TIME, unit=" s")
+
+
+def _times(t, name: str) -> np.ndarray:
+    """float64 times, all finite (NaN would give a NaN pose and silently empty casts)."""
+    try:
+        arr = np.asarray(t, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or an array of numbers (s), got {t!r}") from None
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} must be finite times (s), got a NaN or infinite value")
+    return arr
 
 
 def _rotate_per_firing(rot: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -113,14 +134,19 @@ class Simulator:
                  **scenario_options) -> None:
         self._init_args = dict(scenario=scenario, seed=seed, sensor=sensor, object_counts=object_counts,
                                block_duration=block_duration, cache_blocks=cache_blocks, **scenario_options)
-        self.seed = int(seed)
+        if not isinstance(scenario, str) or scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {scenario!r}: scenario must be one of {sorted(SCENARIOS)}")
+        self.seed = integer(seed, "seed", 0)
+        cache_blocks = integer(cache_blocks, "cache_blocks", 0)
         self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)
         self.sensor: LidarSensor = make_sensor(sensor if sensor is not None else self.scenario.default_sensor)
         if block_duration is None:  # batch sizes that run fastest: spinning 20 ms (72 deg of azimuth), Risley 50 ms
             block_duration = 0.05 if isinstance(self.sensor, RisleyLidar) else 0.02
-        if block_duration <= 0:
-            raise ValueError("block_duration must be positive")
-        self.block_duration = float(block_duration)
+        # a block is generated whole: more than a second of rays at once is a memory blow-up, not a setting
+        self.block_duration = real(block_duration, "block_duration", 0, 1, lo_open=True, unit=" s")
+        if self.block_duration * self.sensor.firing_rate < 1:
+            raise ValueError(f"block_duration must hold at least one firing (>= {1 / self.sensor.firing_rate:g} s "
+                             f"for {self.sensor.name}), got {self.block_duration!r}")
         self._rate = self.sensor.firing_rate_fraction()
         self._rate_float = float(self.sensor.firing_rate)
         per_block = self._rate * Fraction(repr(self.block_duration)).limit_denominator(10**6)
@@ -160,8 +186,12 @@ class Simulator:
     def _block_of(self, k: int) -> int:
         return (k * self._block_den) // self._block_num
 
+    def _frame_index(self, i, name: str = "i") -> int:
+        return integer(i, name, 0, int(MAX_TIME / self.frame_period))
+
     def frame_span(self, i: int) -> tuple[float, float]:
         """Start and end time of frame ``i`` (end exclusive)."""
+        i = self._frame_index(i)
         fpf = self.sensor.firings_per_frame
         return float(self.firing_time(i * fpf)), float(self.firing_time((i + 1) * fpf))
 
@@ -175,7 +205,7 @@ class Simulator:
         Returns:
             ndarray float64[4, 4] or [K, 4, 4].
         """
-        rot, pos = self.scenario.ego.pose(np.asarray(t, dtype=np.float64))
+        rot, pos = self.scenario.ego.pose(_times(t, "t"))
         return pose_matrix(rot, pos)
 
     def points_to_world(self, points: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -188,7 +218,7 @@ class Simulator:
         Returns:
             ndarray float64[N, 3].
         """
-        rot, pos = self.scenario.ego.pose(np.asarray(t, dtype=np.float64))
+        rot, pos = self.scenario.ego.pose(_times(t, "t"))
         xyz = np.asarray(points, dtype=np.float64)[:, :3]
         return np.einsum("nij,nj->ni", rot, xyz) + pos
 
@@ -203,7 +233,8 @@ class Simulator:
         Returns:
             ndarray float64[K, 7].
         """
-        boxes = self.scenario.objects.at(float(t))
+        t = real(t, "t", unit=" of seconds")
+        boxes = self.scenario.objects.at(t)
         if object_index is not None:
             boxes = boxes[np.asarray(object_index, dtype=np.int64)]
         if frame == "world":
@@ -323,8 +354,9 @@ class Simulator:
             points (ndarray float32[n, 4]): ``x, y, z, intensity``, each in the sensor frame at its time.
             t (ndarray float64[n]): timestamps (non-decreasing).
         """
-        if t0 < 0 or t1 < t0:
-            raise ValueError(f"need 0 <= t0 <= t1, got t0={t0}, t1={t1}")
+        t0, t1 = _time(t0, "t0"), _time(t1, "t1")
+        if t1 < t0:
+            raise ValueError(f"t1 must be >= t0 (the span [t0, t1)), got t0={t0!r}, t1={t1!r}")
         data = self._span(self._first_firing_at_or_after(t0), self._first_firing_at_or_after(t1))
         return data["points"], data["t"]
 
@@ -334,8 +366,10 @@ class Simulator:
         Yields:
             (points float32[n, 4], t float64[n]) per slice.
         """
-        if dt <= 0:
-            raise ValueError("dt must be positive")
+        t0, t1 = _time(t0, "t0"), _time(t1, "t1")
+        if t1 < t0:
+            raise ValueError(f"t1 must be >= t0 (the span [t0, t1)), got t0={t0!r}, t1={t1!r}")
+        dt = real(dt, "dt", 0, lo_open=True, unit=" s")
         n = int(np.ceil((t1 - t0) / dt - 1e-9))
         for i in range(n):
             yield self.stream(t0 + i * dt, min(t0 + (i + 1) * dt, t1))
@@ -351,9 +385,7 @@ class Simulator:
             ``num_points_in_box``, ``object_ids``, ``velocities``, ``yaw_rates``, ``visibility``,
             ``instance``, ``surface``, ``ring`` and ``sensor_pose``.
         """
-        i = int(i)
-        if i < 0:
-            raise ValueError(f"frame index must be >= 0, got {i}")
+        i = self._frame_index(i)
         fpf = self.sensor.firings_per_frame
         k0, k1 = i * fpf, (i + 1) * fpf
         data = self._span(k0, k1)
@@ -399,6 +431,7 @@ class Simulator:
 
     def frames(self, n: int, start: int = 0) -> Iterator[Frame]:
         """Yields sweeps ``start, ..., start + n - 1``."""
+        n, start = integer(n, "n", 0), self._frame_index(start, "start")
         for i in range(start, start + n):
             yield self.sweep(i)
 
@@ -428,11 +461,13 @@ class SyntheticFrames:
     def __init__(self, scenario: str = "driving_city", num_frames: int = 100, seed: int = 0, frames_per_scene: int = 1,
                  sensor: "str | LidarSensor | None" = None, object_counts=None, fov_deg: float | None = None,
                  **scenario_options) -> None:
-        if scenario not in SCENARIOS:
-            raise ValueError(f"unknown scenario {scenario!r}; choose one of {sorted(SCENARIOS)}")
-        if num_frames < 0 or frames_per_scene < 1:
-            raise ValueError("need num_frames >= 0 and frames_per_scene >= 1")
-        self.scenario, self.num_frames, self.seed = scenario, int(num_frames), int(seed)
+        if not isinstance(scenario, str) or scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {scenario!r}: scenario must be one of {sorted(SCENARIOS)}")
+        num_frames, seed = integer(num_frames, "num_frames", 0), integer(seed, "seed", 0)
+        frames_per_scene = integer(frames_per_scene, "frames_per_scene", 1)
+        if fov_deg is not None:
+            fov_deg = real(fov_deg, "fov_deg", 0, 360, lo_open=True, unit=" degrees")
+        self.scenario, self.num_frames, self.seed = scenario, num_frames, seed
         self.frames_per_scene, self.sensor, self.object_counts = int(frames_per_scene), sensor, object_counts
         self.fov_deg, self.options = fov_deg, scenario_options
         self._sim: Simulator | None = None

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lidarops.data._checks import finite_rows, read_text, require_file
+
 __all__ = ["MODELNET40_CLASSES", "read_modelnet_h5", "write_modelnet_h5", "ModelNet40"]
 
 #: The 40 ModelNet40 categories in label order.
@@ -36,27 +38,42 @@ def read_modelnet_h5(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
     Raises:
         FileNotFoundError: missing file.
-        ValueError: not HDF5, missing ``data``/``label`` datasets, or inconsistent shapes.
+        ValueError: not HDF5 (or a damaged one: h5py's errors are reported with the file name),
+            missing ``data``/``label`` datasets, non-numeric, NaN or infinite values, labels that are
+            not integers >= 0, or inconsistent shapes.
     """
     h5py = _h5py()
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ModelNet40 file not found: {path}")
+    path = require_file(path, "ModelNet40")
+    # a damaged HDF5 file fails in h5py with OSError, KeyError or RuntimeError depending on the byte hit
     try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise ValueError(f"{path}: not a readable HDF5 file ({e})") from None
-    with f:
-        missing = [k for k in ("data", "label") if k not in f]
-        if missing:
-            raise ValueError(f"{path}: missing HDF5 dataset(s) {missing} (found {sorted(f.keys())})")
-        data = np.asarray(f["data"][...], dtype=np.float32)
-        label = np.asarray(f["label"][...]).reshape(-1).astype(np.int64)
-    if data.ndim != 3 or data.shape[2] < 3:
-        raise ValueError(f"{path}: 'data' has shape {data.shape}, expected [shapes, points, 3]")
-    if label.shape[0] != data.shape[0]:
-        raise ValueError(f"{path}: {data.shape[0]} shapes but {label.shape[0]} labels")
-    return data[:, :, :3], label
+        with h5py.File(path, "r") as f:
+            missing = [k for k in ("data", "label") if k not in f]
+            if missing:
+                raise ValueError(f"{path}: missing HDF5 dataset(s) {missing} (found {sorted(f.keys())})")
+            data, label = f["data"], f["label"]
+            if not isinstance(data, h5py.Dataset) or not isinstance(label, h5py.Dataset):
+                raise ValueError(f"{path}: 'data' and 'label' must be HDF5 datasets")
+            if data.dtype.kind not in "fiu" or label.dtype.kind not in "iuf":
+                raise ValueError(f"{path}: 'data' ({data.dtype}) and 'label' ({label.dtype}) must be numeric")
+            if data.ndim != 3 or data.shape[2] < 3:
+                raise ValueError(f"{path}: 'data' has shape {data.shape}, expected [shapes, points, 3]")
+            if label.size != data.shape[0]:
+                raise ValueError(f"{path}: {data.shape[0]} shapes but {label.size} labels")
+            data = np.asarray(data[...], dtype=np.float64)[:, :, :3]
+            label = np.asarray(label[...], dtype=np.float64).reshape(-1)
+    except ValueError as e:
+        if str(path) in str(e):
+            raise
+        raise ValueError(f"{path}: not a readable ModelNet40 HDF5 file ({e})") from None
+    except (OSError, KeyError, RuntimeError, TypeError, IndexError, MemoryError) as e:
+        raise ValueError(f"{path}: not a readable HDF5 file ({type(e).__name__}: {e})") from None
+    finite_rows(data.reshape(data.shape[0], -1), path, "shape")
+    if data.size and not np.abs(data).max() <= np.finfo(np.float32).max:
+        raise ValueError(f"{path}: 'data' holds values beyond the float32 range")
+    bad = np.flatnonzero(~((label >= 0) & (label == np.round(label)) & (label < 2**31)))
+    if bad.size:
+        raise ValueError(f"{path}: label {int(bad[0])} is {label[bad[0]]!r}; expected an integer class index >= 0")
+    return data.astype(np.float32), label.astype(np.int64)
 
 
 def write_modelnet_h5(path: str | Path, points: np.ndarray, labels: np.ndarray) -> Path:
@@ -82,6 +99,8 @@ class ModelNet40:
 
     Raises:
         FileNotFoundError: no matching files.
+        ValueError: a file :func:`read_modelnet_h5` refuses, a ``shape_names.txt`` that is not UTF-8
+            text, or a label without a class name (the file is named).
     """
 
     def __init__(self, path: str | Path, split: str = "train") -> None:
@@ -100,9 +119,13 @@ class ModelNet40:
         self.labels = np.concatenate([lab for _, lab in parts])
         self.files = files
         if names_file.is_file():
-            self.class_names = tuple(n.strip() for n in names_file.read_text().splitlines() if n.strip())
+            self.class_names = tuple(n.strip() for n in read_text(names_file, "class name").splitlines() if n.strip())
+            where = names_file
         else:
-            self.class_names = MODELNET40_CLASSES
+            self.class_names, where = MODELNET40_CLASSES, "ModelNet40's 40 classes"
+        for f, (_, lab) in zip(files, parts):
+            if lab.size and lab.max() >= len(self.class_names):
+                raise ValueError(f"{f}: label {int(lab.max())} has no class name ({len(self.class_names)} in {where})")
 
     def __len__(self) -> int:
         return int(self.points.shape[0])

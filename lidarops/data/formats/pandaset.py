@@ -18,6 +18,8 @@ from the file: only open data you trust.
 """
 from __future__ import annotations
 
+import gzip
+import io
 import json
 import math
 import numbers
@@ -159,15 +161,46 @@ def _zrot_world_to_ego(pose_ps: np.ndarray) -> float:
     return float(np.arctan2(-y_axis[0], y_axis[1]))
 
 
+#: Largest decompressed ``.pkl.gz`` accepted (a PandaSet frame is about 10 MB).
+MAX_PICKLE_BYTES = 1 << 30
+
+
+def _gunzip(path: Path) -> bytes:
+    """The whole decompressed content of a gzip file, CRC-checked, at most :data:`MAX_PICKLE_BYTES`.
+
+    Decompressed whole before unpickling: unpickling straight from the gzip stream stops at the
+    pickle's end and never reaches the CRC, so a damaged byte becomes a damaged DataFrame (a row count
+    of billions, found when a column is touched) instead of an error.
+    """
+    out, total = [], 0
+    with gzip.GzipFile(fileobj=io.BytesIO(path.read_bytes())) as f:
+        while True:
+            chunk = f.read(1 << 20)  # chunks: a read(n) would allocate n bytes up front
+            if not chunk:
+                return b"".join(out)
+            total += len(chunk)
+            if total > MAX_PICKLE_BYTES:
+                raise ValueError(f"{path}: decompresses to more than {MAX_PICKLE_BYTES} bytes; not a PandaSet frame")
+            out.append(chunk)
+
+
 def _read_pickle(path: Path, what: str):
     if not path.is_file():
         raise FileNotFoundError(f"PandaSet {what} file not found: {path}")
     pd = _pandas()
+    try:
+        data = _gunzip(path)
+    except (OSError, EOFError, zlib.error) as e:  # gzip.BadGzipFile is an OSError
+        raise ValueError(f"{path}: not a gzip file, or a truncated or damaged one ({type(e).__name__}: {e})") from None
     try:  # pandas' reader carries the compatibility shims for pickles of older pandas versions
-        return pd.read_pickle(path, compression="gzip")
+        df = pd.read_pickle(io.BytesIO(data), compression=None)
     except (OSError, EOFError, pickle.UnpicklingError, ValueError, AttributeError, ImportError, TypeError,
-            ModuleNotFoundError, KeyError, IndexError, zlib.error) as e:
-        raise ValueError(f"{path}: not a gzip-compressed pickled DataFrame ({type(e).__name__}: {e})") from None
+            ModuleNotFoundError, KeyError, IndexError, MemoryError, OverflowError, RecursionError,
+            UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: not a pickled DataFrame ({type(e).__name__}: {e})") from None
+    if not isinstance(df, pd.DataFrame):
+        raise ValueError(f"{path}: holds a pickled {type(df).__name__}, not a DataFrame")
+    return df
 
 
 def _read_json(path: Path) -> list:
@@ -175,8 +208,8 @@ def _read_json(path: Path) -> list:
         raise FileNotFoundError(f"PandaSet file not found: {path}")
     try:
         data = json.loads(read_text(path, "JSON"))
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: malformed JSON ({e})") from None
+    except (json.JSONDecodeError, RecursionError) as e:  # RecursionError: '[' nested thousands deep
+        raise ValueError(f"{path}: malformed JSON ({type(e).__name__}: {e})") from None
     if not isinstance(data, list):
         raise ValueError(f"{path}: expected a JSON list, got {type(data).__name__}")
     return data
@@ -240,8 +273,11 @@ class PandaSetSequence:
         FileNotFoundError: no ``lidar/`` directory or no frames.
         ValueError: a bad option; ``poses.json`` or ``timestamps.json`` that is not UTF-8 JSON, has
             fewer entries than frames, or a pose/timestamp that is not made of finite numbers; when a
-            frame is read, a file that is not a gzip-pickled DataFrame, a missing or non-numeric
-            column, or a NaN or infinite coordinate, intensity or time (the file and column named).
+            frame is read, a file that is not a gzip-pickled DataFrame (the whole file is decompressed
+            and its CRC checked before unpickling, so a damaged byte is an error, not other values), a
+            missing or non-numeric column, a NaN or infinite coordinate, intensity or time, a value
+            beyond float32 once in the LiDAR frame, or a negative cuboid dimension (the file and column
+            named).
     """
 
     def __init__(self, path: str | Path, sensor_id: int | None = None, coordinates: str = "lidar",
@@ -289,8 +325,13 @@ class PandaSetSequence:
         if self.coordinates == "lidar":
             xyz = (xyz - pose[:3, 3]) @ pose[:3, :3]
         points = np.empty((xyz.shape[0], 4), np.float32)
-        points[:, :3] = xyz
-        points[:, 3] = intensity / 255.0 if self.normalize_intensity else intensity
+        with np.errstate(over="ignore"):  # refused just below, naming the file
+            points[:, :3] = xyz
+            points[:, 3] = intensity / 255.0 if self.normalize_intensity else intensity
+        if not np.isfinite(points).all():
+            row = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
+            raise ValueError(f"{path}: row {row} lies beyond the float32 range once in the "
+                             f"{self.coordinates} frame ({values[row, :4].tolist()})")
         boxes, labels, extra = self._cuboids(i, pose_ps, pose)
         return Frame(points=points, t=t, boxes=boxes, labels=labels, frame_index=i, timestamp=self.timestamps[i],
                      sensor_pose=pose, object_ids=extra.get("ids"), source=str(path),
@@ -309,6 +350,9 @@ class PandaSetSequence:
         keep = np.ones(len(names), bool) if self.unknown == "keep" else index >= 0
         values = _columns(df, _CUBOID_COLUMNS[1:], path)[keep]
         yaw, center, dims = values[:, 0], values[:, 1:4], values[:, 4:7]
+        if (dims < 0).any():
+            row = int(np.flatnonzero((dims < 0).any(axis=1))[0])
+            raise ValueError(f"{path}: cuboid {row} has a negative dimension ({dims[row].tolist()})")
         boxes = np.empty((center.shape[0], 7))
         if self.coordinates == "lidar":
             boxes[:, :3] = (center - pose[:3, 3]) @ pose[:3, :3]
@@ -321,7 +365,11 @@ class PandaSetSequence:
         if "uuid" in df.columns:
             uuids = df["uuid"].to_numpy()[keep]
             ids = np.array([int(u) if str(u).lstrip("-").isdigit() else -1 for u in uuids], dtype=np.int64)
-        return boxes.astype(np.float32), index[keep], {"ids": ids, "meta": {"pandaset_labels": [n for n, k in zip(names, keep) if k]}}
+        with np.errstate(over="ignore"):
+            boxes32 = boxes.astype(np.float32)
+        if not np.isfinite(boxes32).all():
+            raise ValueError(f"{path}: a cuboid lies beyond the float32 range once in the {self.coordinates} frame")
+        return boxes32, index[keep], {"ids": ids, "meta": {"pandaset_labels": [n for n, k in zip(names, keep) if k]}}
 
     def __repr__(self) -> str:
         return f"PandaSetSequence({str(self.path)!r}, {len(self)} frames)"
