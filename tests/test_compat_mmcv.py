@@ -364,7 +364,43 @@ def test_gather_bad_input():
         mmcv.grouping_operation(torch.rand(5, 3), torch.zeros(2, 4, dtype=torch.int32),
                                 torch.tensor([4], dtype=torch.int32), torch.tensor([2], dtype=torch.int32))
     with pytest.raises(ValueError, match="stacked"):
-        mmcv.grouping_operation(torch.rand(5, 3), torch.full((2, 4), 5, dtype=torch.int32),
+        mmcv.grouping_operation(torch.rand(5, 3), torch.full((2, 4), -2, dtype=torch.int32),
                                 torch.tensor([5], dtype=torch.int32), torch.tensor([2], dtype=torch.int32))
     with pytest.raises(ValueError, match="num_points"):
         mmcv.furthest_point_sample(torch.rand(2, 5, 3), -1)
+
+
+def _fps_on_matrix_reference(d: np.ndarray, k: int) -> list:
+    """Plain-Python F-FPS: start at 0, then the point farthest (min over the chosen) from the chosen set."""
+    out = []
+    for b in range(d.shape[0]):
+        chosen, near = [0], [1e10] * d.shape[1]
+        for _ in range(1, k):
+            near = [min(a, float(d[b, chosen[-1], j])) for j, a in enumerate(near)]
+            best = max(near)
+            chosen.append(near.index(best))
+        out.append(chosen[:k])
+    return out
+
+
+@pytest.mark.parametrize("k", [1, 3, 6, 9])
+def test_furthest_point_sample_with_dist(device, k):
+    g = torch.Generator().manual_seed(k)
+    xyz = torch.rand(2, 6, 3, generator=g)
+    xyz[1, 4] = xyz[1, 2]  # a duplicate: distance 0 to a chosen point
+    d = ((xyz[:, :, None] - xyz[:, None]) ** 2).sum(-1)
+    idx = mmcv.furthest_point_sample_with_dist(d.to(device), k)
+    assert idx.dtype == torch.int32 and idx.shape == (2, k)
+    assert idx.cpu().tolist() == _fps_on_matrix_reference(d.double().numpy(), k)
+    # on Euclidean squared distances it picks what furthest_point_sample picks while points remain
+    same = mmcv.furthest_point_sample(xyz.to(device), min(k, 5))
+    assert torch.equal(idx[0, :min(k, 5)].cpu(), same[0].cpu())
+
+
+def test_furthest_point_sample_with_dist_bad_input():
+    with pytest.raises(ValueError, match=r"points_dist must be a floating \(B, N, N\)"):
+        mmcv.furthest_point_sample_with_dist(torch.rand(2, 3, 4), 2)
+    with pytest.raises(ValueError, match="num_points must be an int >= 0"):
+        mmcv.furthest_point_sample_with_dist(torch.rand(2, 3, 3), -1)
+    with pytest.raises(ValueError, match="points_dist contains NaN"):
+        mmcv.furthest_point_sample_with_dist(torch.full((1, 3, 3), float("nan")), 2)

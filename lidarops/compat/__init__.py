@@ -6,7 +6,7 @@ it imitates, so code written against that library can switch its import::
     from lidarops.compat.pytorch3d import knn_points, ball_query, sample_farthest_points, knn_gather
     from lidarops.compat.mmcv import furthest_point_sample, ball_query, knn, three_nn, \\
         gather_points, grouping_operation
-    from lidarops.compat.torch_cluster import fps, knn, radius
+    from lidarops.compat.torch_cluster import fps, knn, radius, knn_graph, radius_graph  # TorchScript-able
     from lidarops.compat.spconv_utils import PointToVoxel
     import lidarops.compat.spconv as spconv   # SparseConvTensor, SubMConv3d, ... (spconv 2.x)
 
@@ -14,8 +14,8 @@ it imitates, so code written against that library can switch its import::
 face                convention
 ==================  ==========================================================================
 ``pytorch3d``       padded ``(N, P, D)`` + lengths; knn pads idx 0 / dists 0; ball query pads -1 / 0
-``mmcv``            ``(B, N, 3)``, int32 indices padded with valid indices (0 or the first hit)
-``torch_cluster``   flat ``(N, F)`` + sorted batch vector; edge index ``(2, E)`` [row = y, col = x]
+``mmcv``            ``(B, N, 3)`` or stacked + counts, int32 indices padded with valid indices
+``torch_cluster``   flat ``(N, F)`` + sorted batch vector; edge index ``(2, E)`` [row = y, col = x]; scripts
 ==================  ==========================================================================
 
 The full table, with every known deviation, is ``docs/compat.md``. Importing this package is light:

@@ -1,0 +1,1 @@
+from lidarops.compat.pytorch3d import ball_query  # noqa: F401

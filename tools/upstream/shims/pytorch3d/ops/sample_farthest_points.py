@@ -1,0 +1,1 @@
+from lidarops.compat.pytorch3d import sample_farthest_points  # noqa: F401
