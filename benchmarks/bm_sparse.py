@@ -10,10 +10,12 @@ Sections (times are medians in ms; the JSON has IQRs and run counts):
 * ``layer``: one layer, Cin = Cout = C in {16, 32, 64, 128}, kernel 3x3, submanifold (``subm``) and
   strided (``conv``, stride 2, padding 1), on BEV grids: ``drone`` 504 x 504 with ~2k active sites,
   ``kitti`` 496 x 432 with ~15k, ``dense`` 504 x 504 with ~30k (range-weighted random sites: denser
-  near the sensor, as LiDAR pillars). lidarops is timed with its kernel map cached (the registered op
-  ``sparse_conv`` alone, as every layer after the first with the same ``indice_key``); spconv likewise
-  (its layer called on a tensor whose ``indice_dict`` already holds the pairs); dense cuDNN is
-  ``F.conv2d`` on the dense (1, C, H, W) map.
+  near the sensor, as LiDAR pillars). Like is compared with like: lidarops' registered op
+  ``sparse_conv`` alone (kernel map cached) against dense cuDNN's ``F.conv2d`` on the dense
+  (1, C, H, W) map; lidarops' layer module (``lidarops.compat.spconv``, called on a tensor whose
+  ``indice_dict`` already holds the map, as every layer after the first with the same ``indice_key``)
+  against spconv's layer module called the same way. A peer that fails has "error: ..." in its cell
+  and row.
 * ``map``: kernel-map construction alone (output sites + map, with validation), per grid and kind.
 * ``pillars``: PointPillars' backbone made sparse (strided sparse conv at the start of each block,
   then 3/5/5 submanifold convs, channels 64/128/256, transposed upsampling x1/x2/x4 to 128 channels,
@@ -32,9 +34,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import statistics
 import sys
-import time
 from functools import partial
 from pathlib import Path
 
@@ -45,49 +45,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-try:
-    from benchmarks.common import env_meta, fmt_ms, fmt_ratio, print_table, time_call, write_results
-except ImportError:  # standalone fallback (the shared helpers live in benchmarks/common.py)
-    def time_call(fn, args, device, budget_s=0.3, **_):
-        cuda = torch.device(device).type == "cuda"
-        sync = torch.cuda.synchronize if cuda else (lambda: None)
-        fn(*args)
-        sync()
-        times = []
-        t_end = time.perf_counter() + budget_s
-        while len(times) < 3 or (time.perf_counter() < t_end and len(times) < 200):
-            t0 = time.perf_counter()
-            fn(*args)
-            sync()
-            times.append((time.perf_counter() - t0) * 1e3)
-
-        class _T:
-            median = statistics.median(times)
-            def as_dict(self):
-                return {"median_ms": self.median, "runs": len(times)}
-        return _T()
-
-    def env_meta(device):
-        return {"device": str(device), "torch": torch.__version__}
-
-    def fmt_ms(ms):
-        return "-" if ms is None else f"{ms:.3f}"
-
-    def fmt_ratio(r):
-        return "" if r is None else f"{r:.2f}x"
-
-    def print_table(title, headers, rows, right=()):
-        print(title)
-        print("  ".join(headers))
-        for r in rows:
-            print("  ".join(str(c) for c in r))
-        print()
-
-    write_results = None
-
 import lidarops.compat.spconv as lspconv
 from lidarops.sparse import SparseConvTensor
 from lidarops.sparse import functional as Fs
+
+from benchmarks.common import env_meta, fmt_ms, fmt_ratio, print_table, short_status, time_call, write_results
 
 ops = torch.ops.lidarops
 
@@ -274,17 +236,50 @@ def precision(mode: str):
 
 
 def _ms(t):
-    return None if t is None else t.median
+    """Median ms of a Timing; None for a status (skipped, error) or a measurement not taken."""
+    return t.median if hasattr(t, "median") else None
+
+
+def _error(e: BaseException) -> str:
+    msg = str(e).strip().splitlines()[0][:160] if str(e).strip() else ""
+    return f"error: {type(e).__name__}: {msg}"
 
 
 def _try(fn, args, device, **kw):
+    """The Timing of ``fn(*args)``, or a status string when it cannot be measured: "skipped (memory: out
+    of memory)" or "error: <type>: <message>" (reported in the row and the table, never blank)."""
     try:
         return time_call(fn, args, device, **kw)
     except torch.cuda.OutOfMemoryError:
         torch.cuda.empty_cache()
-        return None
-    except RuntimeError as e:  # noqa: F841
-        return None
+        return "skipped (memory: out of memory)"
+    except Exception as e:  # noqa: BLE001  (reported)
+        return _error(e)
+
+
+def _cell(t) -> str:
+    """Table cell: the median, the short status, or "-" for a measurement not taken."""
+    if isinstance(t, str):
+        return short_status(t)
+    return fmt_ms(_ms(t))
+
+
+def _row(t):
+    """JSON value: the timing's dict, {"status": ...} for a status, None for a measurement not taken."""
+    if isinstance(t, str):
+        return {"status": t, "median_ms": None}
+    return t.as_dict() if t is not None else None
+
+
+def _ratio(a, b) -> str:
+    return fmt_ratio(_ms(a) / _ms(b)) if _ms(a) and _ms(b) else ""
+
+
+def _report_errors(rows: list[dict]) -> None:
+    for r in rows:
+        for k, v in r.items():
+            if isinstance(v, dict) and str(v.get("status", "")).startswith(("error", "skipped")):
+                print(f"  {r['op']}, {k}: {v['status']}")
 
 
 # ---------------------------------------------------------------- sections
@@ -294,6 +289,7 @@ def bench_layers(device, modes, quick, rows_out):
     grids = {"drone": GRIDS["drone"]} if quick else GRIDS
     chans = (16, 64) if quick else CHANNELS
     table = []
+    first = len(rows_out)
     for gname, (shape, n) in grids.items():
         idx = bev_sites(shape, n).to(device)
         for kind in ("subm", "conv"):
@@ -305,29 +301,32 @@ def bench_layers(device, modes, quick, rows_out):
                         w = torch.randn(C, 3, 3, C, device=device, dtype=dtype) / (3 * math.sqrt(C))
                         km = Fs.build_kernel_map(x, kind, 3, 2 if kind == "conv" else 1, 1, 1)
                         w3 = w.reshape(C, 9, C)
-                        t_ours = _try(ops.sparse_conv, (x.features, w3, km.neighbors, km.order), device)
+                        t_op = _try(ops.sparse_conv, (x.features, w3, km.neighbors, km.order), device)
+                        t_mod = _module_layer_time(lspconv, kind, x, w, device)
                         dense = x.dense()
                         wd = w.permute(0, 3, 1, 2).contiguous()
                         s = 2 if kind == "conv" else 1
                         t_dense = _try(lambda d, ww: F.conv2d(d, ww, None, s, 1), (dense, wd), device)
-                        t_sp = None
-                        if sp is not None:
-                            t_sp = _spconv_layer_time(sp, kind, x, w, device)
-                        table.append([gname, idx.shape[0], kind, mode, C, fmt_ms(_ms(t_ours)), fmt_ms(_ms(t_dense)),
-                                      fmt_ratio(_ms(t_dense) / _ms(t_ours)) if t_dense and t_ours else "",
-                                      fmt_ms(_ms(t_sp)),
-                                      fmt_ratio(_ms(t_sp) / _ms(t_ours)) if t_sp and t_ours else ""])
+                        t_sp = _module_layer_time(sp, kind, x, w, device) if sp is not None else None
+                        table.append([gname, idx.shape[0], kind, mode, C, _cell(t_op), _cell(t_mod), _cell(t_dense),
+                                      _ratio(t_dense, t_op), _cell(t_sp), _ratio(t_sp, t_mod)])
                         rows_out.append({"section": "layer", "op": f"layer/{gname}/{kind}/{mode}/C{C}", "grid": gname,
                                          "sites": int(idx.shape[0]), "kind": kind, "precision": mode, "channels": C,
-                                         "lidarops": t_ours.as_dict() if t_ours else None,
-                                         "dense_cudnn": t_dense.as_dict() if t_dense else None,
-                                         "spconv": t_sp.as_dict() if t_sp else None})
-    print_table(f"single layers, 3x3, kernel map cached ({device})",
-                ["grid", "sites", "kind", "prec", "C", "lidarops", "dense", "dense/ours", "spconv", "spconv/ours"],
-                table, right=(1, 4, 5, 6, 7, 8, 9))
+                                         "lidarops": _row(t_op), "lidarops_module": _row(t_mod),
+                                         "dense_cudnn": _row(t_dense), "spconv": _row(t_sp)})
+    # like with like: the raw op against dense cuDNN's F.conv2d; the module call (kernel map cached under
+    # its indice_key) against spconv's module call, cached the same way
+    print_table(f"single layers, 3x3, kernel map cached ({device}); op: torch.ops.lidarops.sparse_conv, module: "
+                "lidarops.compat.spconv layer (as spconv's)",
+                ["grid", "sites", "kind", "prec", "C", "lidarops op", "lidarops module", "dense", "dense/op",
+                 "spconv module", "spconv/module"],
+                table, right=(1, 4, 5, 6, 7, 8, 9, 10))
+    _report_errors(rows_out[first:])
 
 
-def _spconv_layer_time(sp, kind, x, w, device):
+def _module_layer_time(sp, kind, x, w, device):
+    """One spconv-style layer module (``sp``: spconv.pytorch or lidarops.compat.spconv) called on a tensor
+    whose ``indice_dict`` already holds its kernel map: a Timing, or an "error: ..." status."""
     C = w.shape[0]
     try:
         if kind == "subm":
@@ -346,13 +345,14 @@ def _spconv_layer_time(sp, kind, x, w, device):
                 cached_in = cached.replace_feature(f)
                 return layer(cached_in)
             return _try(run, (x.features,), device)
-    except Exception:  # noqa: BLE001
-        return None
+    except Exception as e:  # noqa: BLE001  (e.g. spconv's strided layers: reported, not blanked)
+        return _error(e)
 
 
 def bench_maps(device, quick, rows_out):
     grids = {"drone": GRIDS["drone"]} if quick else GRIDS
     table = []
+    first = len(rows_out)
     for gname, (shape, n) in grids.items():
         idx = bev_sites(shape, n).to(device)
         x = SparseConvTensor(torch.zeros(idx.shape[0], 1, device=device), idx, list(shape), 1)
@@ -360,12 +360,13 @@ def bench_maps(device, quick, rows_out):
             for method in ("auto", "dense", "hash"):
                 s = 2 if kind != "subm" else 1
                 t = _try(lambda: Fs.build_kernel_map(x, kind, 3, s, 1, 1, method=method), (), device)
-                table.append([gname, idx.shape[0], kind, method, fmt_ms(_ms(t))])
+                table.append([gname, idx.shape[0], kind, method, _cell(t)])
                 rows_out.append({"section": "map", "op": f"map/{gname}/{kind}/{method}", "grid": gname,
                                  "sites": int(idx.shape[0]), "kind": kind, "method": method,
-                                 "lidarops": t.as_dict() if t else None})
+                                 "lidarops": _row(t)})
     print_table(f"kernel-map construction, 3x3 (stride 2 for conv/transposed) ({device})",
                 ["grid", "sites", "kind", "table", "ms"], table, right=(1, 4))
+    _report_errors(rows_out[first:])
 
 
 def pillars_input(device, dtype, quick=False):
@@ -385,6 +386,7 @@ def bench_pillars(device, modes, quick, rows_out):
     sp = _spconv() if torch.device(device).type == "cuda" else None
     shape = (128, 128) if quick else GRIDS["kitti"][0]
     table = []
+    first = len(rows_out)
     for mode in modes:
         with precision(mode) as dtype, torch.no_grad():
             net, x, cached = pillars_input(device, dtype, quick)
@@ -399,21 +401,21 @@ def bench_pillars(device, modes, quick, rows_out):
                 try:
                     snet = sparse_pointpillars(sp).to(device=device, dtype=dtype).eval()
                     t_sp = _try(lambda f: snet(sp.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
-                except Exception:  # noqa: BLE001
-                    t_sp = None
-            ratio = lambda a, b: fmt_ratio(_ms(a) / _ms(b)) if a and b else ""  # noqa: E731
-            table.append([mode, idx.shape[0], fmt_ms(_ms(t_full)), fmt_ms(_ms(t_cached)), fmt_ms(_ms(t_graph)),
-                          fmt_ms(_ms(t_dense)), ratio(t_dense, t_full), fmt_ms(_ms(t_sp)), ratio(t_sp, t_full)])
+                except Exception as e:  # noqa: BLE001  (reported in the row)
+                    t_sp = _error(e)
+            table.append([mode, idx.shape[0], _cell(t_full), _cell(t_cached), _cell(t_graph),
+                          _cell(t_dense), _ratio(t_dense, t_full), _cell(t_sp), _ratio(t_sp, t_full)])
             rows_out.append({"section": "pillars", "op": f"pillars/{mode}", "precision": mode,
                              "sites": int(idx.shape[0]), "grid": list(shape),
-                             "lidarops_full": t_full.as_dict() if t_full else None,
-                             "lidarops_cached_maps": t_cached.as_dict() if t_cached else None,
-                             "lidarops_cached_maps_cuda_graph": t_graph.as_dict() if t_graph else None,
-                             "dense_cudnn": t_dense.as_dict() if t_dense else None,
-                             "spconv": t_sp.as_dict() if t_sp else None})
+                             "lidarops_full": _row(t_full),
+                             "lidarops_cached_maps": _row(t_cached),
+                             "lidarops_cached_maps_cuda_graph": _row(t_graph),
+                             "dense_cudnn": _row(t_dense),
+                             "spconv": _row(t_sp)})
     print_table(f"Sparse-PointPillars backbone, grid {shape[0]} x {shape[1]} ({device})",
                 ["prec", "pillars", "lidarops", "maps cached", "+ CUDA graph", "dense", "dense/ours", "spconv",
                  "spconv/ours"], table, right=(1, 2, 3, 4, 5, 6, 7, 8))
+    _report_errors(rows_out[first:])
 
 
 def _graphed(net, cached, feats):
@@ -433,7 +435,7 @@ def _graphed(net, cached, feats):
             net(x)
     except RuntimeError as e:  # a host synchronisation in the forward cannot be captured
         print(f"  (CUDA graph capture of the cached-map forward failed: {str(e).splitlines()[0]})")
-        return None
+        return _error(e)
     return _try(lambda f: (static.copy_(f), graph.replay()), (feats,), feats.device)
 
 
@@ -442,6 +444,7 @@ def bench_voxels(device, modes, quick, rows_out):
     shape = (41, 400, 352) if quick else (41, 1600, 1408)
     counts = (5000,) if quick else ((40000, 120000) if torch.device(device).type == "cuda" else (40000,))
     table = []
+    first = len(rows_out)
     for n in counts:
         idx = voxel_sites(n, shape).to(device)
         for mode in modes:
@@ -454,15 +457,14 @@ def bench_voxels(device, modes, quick, rows_out):
                     try:
                         snet = voxel_backbone_8x(sp).to(device=device, dtype=dtype).eval()
                         t_sp = _try(lambda f: snet(sp.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
-                    except Exception:  # noqa: BLE001
-                        t_sp = None
-                table.append([n, mode, fmt_ms(_ms(t_ours)), fmt_ms(_ms(t_sp)),
-                              fmt_ratio(_ms(t_sp) / _ms(t_ours)) if t_sp and t_ours else ""])
+                    except Exception as e:  # noqa: BLE001  (reported in the row)
+                        t_sp = _error(e)
+                table.append([n, mode, _cell(t_ours), _cell(t_sp), _ratio(t_sp, t_ours)])
                 rows_out.append({"section": "voxel", "op": f"voxel/{n}/{mode}", "voxels": n, "precision": mode,
-                                 "grid": list(shape), "lidarops": t_ours.as_dict() if t_ours else None,
-                                 "spconv": t_sp.as_dict() if t_sp else None})
+                                 "grid": list(shape), "lidarops": _row(t_ours), "spconv": _row(t_sp)})
     print_table(f"VoxelBackBone8x, grid {shape} ({device})", ["voxels", "prec", "lidarops", "spconv", "spconv/ours"],
                 table, right=(0, 2, 3, 4))
+    _report_errors(rows_out[first:])
 
 
 def main(argv=None):
@@ -487,7 +489,7 @@ def main(argv=None):
             bench_pillars(device, modes, args.quick, rows)
         if "voxel" in only:
             bench_voxels(device, modes, args.quick, rows)
-        if args.json and write_results is not None:
+        if args.json:
             path = write_results("sparse", device, rows, env_meta(device))
             print(f"wrote {path}")
 

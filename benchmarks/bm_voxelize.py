@@ -4,18 +4,21 @@ PointToVoxel when it is installed: the CUDA machine's spconv bundle).
 
     python benchmarks/bm_voxelize.py                 # CPU, and CUDA when available
     python benchmarks/bm_voxelize.py --device cuda --json
+    python benchmarks/bm_voxelize.py --device cpu --quick   # smoke test (20k points, short budget)
 
-Times are medians (torch.utils.benchmark on CPU, CUDA events on GPU) of the whole call, host sync
-included (the wrapper reads the voxel count once). ``--json`` merges the table into
-``benchmarks/results/<device>.json`` under the key ``"voxelize"``.
+Times are medians of the whole call, host sync included (the wrapper reads the voxel count once;
+``padded=True`` does not), with the timers of ``benchmarks/common.py``: on CPU every implementation's
+calls interleaved, each with the same warm-up and run count; on CUDA CUDA events, the same warm-up and
+a fixed run count for each. Like is compared with like: spconv's ``PointToVoxel`` module call against
+lidarops' ``PointToVoxel`` face (``lidarops.compat.spconv_utils``, the same call shape), the pure-PyTorch
+baseline against ``lidarops.voxelize``. ``--json`` merges the rows into
+``benchmarks/results/<device>.json``, section ``"voxelize"``; an implementation that fails has its
+error in ``status``, not a blank.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
-import statistics
 import sys
 
 import torch
@@ -25,7 +28,12 @@ sys.path.insert(0, os.path.join(ROOT, "tests"))
 sys.path.insert(0, ROOT)
 
 import lidarops  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    env_meta, fmt_ms, fmt_ratio, print_table, short_status, time_cpu_interleaved, time_cuda, write_results)
 from voxelize_data import KITTI_PILLARS, KITTI_SECOND, lidar_sweep  # noqa: E402
+
+SECTION = "voxelize"
+CUDA_RUNS = 50  # every implementation gets this many timed calls on CUDA
 
 CONFIGS = {
     # name: (grid, max_points_per_voxel, max_voxels); capacities of OpenPCDet's KITTI configs (test)
@@ -92,25 +100,27 @@ def same_voxel_sets(ours, theirs) -> bool:
     return all(x.shape == y.shape and torch.equal(x, y) for x, y in zip(a, b))
 
 
-def time_fn(fn, device, reps=30):
-    for _ in range(3):
-        fn()
+def _error(e: BaseException) -> str:
+    msg = str(e).strip().splitlines()[0][:160] if str(e).strip() else ""
+    return f"error: {type(e).__name__}: {msg}"
+
+
+def _time_all(entries: dict, device: str, budget_s: float) -> dict:
+    """Timing (or an "error: ..." status) per implementation: the same warm-up and run count for each."""
     if device == "cuda":
-        times = []
-        for _ in range(reps):
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            fn()
-            b.record()
-            torch.cuda.synchronize()
-            times.append(a.elapsed_time(b))
-        return statistics.median(times)
-    from torch.utils.benchmark import Timer
-    m = Timer("fn()", globals={"fn": fn}, num_threads=torch.get_num_threads()).blocked_autorange(min_run_time=1.0)
-    return m.median * 1e3
+        out = {}
+        for k, f in entries.items():
+            try:
+                out[k] = time_cuda(f, (), min_runs=CUDA_RUNS, max_runs=CUDA_RUNS, budget_s=budget_s, rotate=False)
+            except Exception as e:  # noqa: BLE001  (reported in the row)
+                out[k] = _error(e)
+        return out
+    timings = time_cpu_interleaved([(f, ()) for f in entries.values()], budget_s=budget_s)
+    return {k: (_error(t) if isinstance(t, BaseException) else t) for k, t in zip(entries, timings)}
 
 
-def run(device: str, n: int):
+def run(device: str, n: int, budget_s: float = 1.0) -> list[dict]:
+    """The rows of one device: per config and implementation, its timing or its error."""
     pts = torch.from_numpy(lidar_sweep(n, seed=0)).to(device)
     rows = []
     for name, (cfg, P, M) in CONFIGS.items():
@@ -118,7 +128,7 @@ def run(device: str, n: int):
         res = lidarops.voxelize(pts, vs, pr, P, M, overflow="drop")
         ours = res.voxels, res.coords, res.num_points
         base = torch_voxelize(pts, vs, pr, P, M)
-        same = all(torch.equal(a, b) for a, b in zip(ours, base))
+        same = {"pure PyTorch": all(torch.equal(a, b) for a, b in zip(ours, base))}
         entries = {
             "lidarops.voxelize": lambda: lidarops.voxelize(pts, vs, pr, P, M, overflow="drop"),
             "pure PyTorch": lambda: torch_voxelize(pts, vs, pr, P, M),
@@ -130,62 +140,78 @@ def run(device: str, n: int):
         else:
             entries["lidarops.voxelize padded=True"] = (
                 lambda: lidarops.voxelize(pts, vs, pr, P, M, overflow="drop", padded=True))
+        from lidarops.compat.spconv_utils import PointToVoxel as LidaropsPointToVoxel
+        face = LidaropsPointToVoxel(list(vs), list(pr), 4, M, P, device=torch.device(device), overflow="drop")
+        entries["lidarops PointToVoxel (compat face)"] = lambda: face(pts)
         peer = spconv_peer(device, cfg, P, M)
-        same_spconv = None
         if peer is not None:
             entries["spconv PointToVoxel"] = lambda: peer(pts)
-            from lidarops.compat.spconv_utils import PointToVoxel as LidaropsPointToVoxel
-            face = LidaropsPointToVoxel(list(vs), list(pr), 4, M, P, device=torch.device(device), overflow="drop")
-            same_spconv = same_voxel_sets(face(pts), peer(pts))  # the face reproduces spconv's range rule
-        times = {k: time_fn(f, device) for k, f in entries.items()}
-        ref = times["lidarops.voxelize"]
+            try:  # the face reproduces spconv's range rule
+                same["spconv PointToVoxel"] = same_voxel_sets(face(pts), peer(pts))
+            except Exception:  # noqa: BLE001  (the timing reports the error)
+                same["spconv PointToVoxel"] = None
+        times = _time_all(entries, device, budget_s)
+        # each row's reference: the lidarops call of the same shape
+        refs = {"spconv PointToVoxel": "lidarops PointToVoxel (compat face)"}
         for k, t in times.items():
-            rows.append({"config": name, "impl": k, "ms": t, "ratio_vs_lidarops": t / ref, "points": n,
-                         "voxels": res.info.num_voxels, "dropped": res.num_dropped,
-                         "same_as_lidarops": {"pure PyTorch": same, "spconv PointToVoxel": same_spconv}.get(k)})
+            ref = times.get(refs.get(k, "lidarops.voxelize"))
+            row = {"op": f"{name}/{k}", "config": name, "impl": k, "points": n, "voxels": res.info.num_voxels,
+                   "dropped": res.num_dropped, "same_as_lidarops": same.get(k),
+                   "ratio_vs": refs.get(k, "lidarops.voxelize")}
+            if isinstance(t, str):
+                row.update(status=t, median_ms=None, ratio=None)
+            else:
+                row.update(status="ok", **t.as_dict())
+                row["ratio"] = t.median / ref.median if not isinstance(ref, (str, type(None))) else None
+            rows.append(row)
     return rows
 
 
-def device_name(device: str) -> str:
-    if device == "cuda":
-        return torch.cuda.get_device_name().replace(" ", "_")
-    return f"cpu-{platform.machine()}-{torch.get_num_threads()}threads"
+def print_rows(rows: list[dict], title: str) -> None:
+    table = []
+    for r in rows:
+        note = ""
+        if r["same_as_lidarops"] is not None:
+            note = "same output" if r["same_as_lidarops"] else "DIFFERENT"
+            if r["impl"] == "spconv PointToVoxel":
+                note = "same voxels and counts" if r["same_as_lidarops"] else "DIFFERENT voxels or counts"
+        time_cell = fmt_ms(r["median_ms"]) if r["median_ms"] is not None else short_status(r["status"])
+        table.append([r["config"], r["impl"], time_cell, r.get("runs", ""), fmt_ratio(r["ratio"]),
+                      r["ratio_vs"] if r["impl"] not in ("lidarops.voxelize",) else "", note])
+    print_table(title, ["config", "implementation", "ms", "runs", "ratio", "ratio against", "output"], table,
+                right=(2, 3, 4))
+    for r in rows:
+        if r["status"].startswith("error"):
+            print(f"  {r['config']}, {r['impl']}: {r['status']}")
+    print("voxels / dropped: " + ", ".join(f"{r['config']}: {r['voxels']} / {r['dropped']}"
+                                          for r in rows if r["impl"] == "lidarops.voxelize"))
 
 
-def main():
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", choices=["cpu", "cuda", "all"], default="all")
-    ap.add_argument("--points", type=int, default=120_000)
+    ap.add_argument("--points", type=int, default=None, help="points per sweep (default 120,000; 20,000 with --quick)")
+    ap.add_argument("--quick", action="store_true", help="smoke test: a small sweep and a short budget")
     ap.add_argument("--threads", type=int, default=0, help="CPU threads (default: torch's choice)")
-    ap.add_argument("--json", action="store_true")
-    args = ap.parse_args()
+    ap.add_argument("--json", action="store_true", help="merge the rows into benchmarks/results/<device>.json")
+    ap.add_argument("--results-dir", default=None, help="folder of the result files (default benchmarks/results)")
+    args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    points = args.points or (20_000 if args.quick else 120_000)
+    budget_s = 0.1 if args.quick else 1.0
     devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
     devices = [d for d in devices if d == "cpu" or torch.cuda.is_available()]
     for device in devices:
-        rows = run(device, args.points)
-        print(f"\n{device_name(device)}: {args.points} points, torch {torch.__version__}")
-        print(f"{'config':34s} {'implementation':36s} {'ms':>9s} {'x lidarops':>10s}")
-        for r in rows:
-            note = "" if r["same_as_lidarops"] is None else ("  (same output)" if r["same_as_lidarops"] else "  (DIFFERENT)")
-            if r["impl"] == "spconv PointToVoxel" and r["same_as_lidarops"] is not None:
-                note = "  (same voxels and counts)" if r["same_as_lidarops"] else "  (DIFFERENT voxels or counts)"
-            print(f"{r['config']:34s} {r['impl']:36s} {r['ms']:9.3f} {r['ratio_vs_lidarops']:10.2f}{note}")
-        print("voxels / dropped: " + ", ".join(f"{r['config']}: {r['voxels']} / {r['dropped']}"
-                                              for r in rows if r["impl"] == "lidarops.voxelize"))
+        rows = run(device, points, budget_s)
+        meta = env_meta(device)
+        print_rows(rows, f"\n{meta['device']}: {points} points, torch {torch.__version__} (ratio: impl / reference)")
         if args.json:
-            path = os.path.join(ROOT, "benchmarks", "results", f"{device_name(device)}.json")
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            data = {}
-            if os.path.exists(path):
-                with open(path) as f:
-                    data = json.load(f)
-            data["voxelize"] = {"torch": torch.__version__, "rows": rows}
-            with open(path, "w") as f:
-                json.dump(data, f, indent=1)
+            meta["points"] = points
+            path = write_results(SECTION, device, rows, meta, replace_by=None, results_dir=args.results_dir)
             print(f"wrote {path}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -6,8 +6,11 @@ Timing rules (every ``bm_*.py`` uses them):
   the interquartile range are reported. When one input set fits in the L2 cache, calls rotate over
   enough copies of it (up to ``2 x L2`` bytes) that every call reads its inputs from memory, as a
   call inside a network would.
-* CPU: ``time.perf_counter`` around each call after a warm-up call, median and IQR over as many
-  calls as fit in a time budget (at least 3). A call slower than ``slow_single_s`` is measured once.
+* CPU: ``time.perf_counter`` around each call after an untimed warm-up call, median and IQR over as
+  many calls as fit in a time budget (at least ``min_runs``). A warm call slower than
+  ``slow_single_s`` is measured once.
+* The run count is sized from a warm call, never from the first (cold) one: a slow first call (lazy
+  initialisation, allocator growth, a kernel's first launch) cannot cut the timed runs short.
   The implementations of one case are timed with their calls interleaved
   (:func:`time_cpu_interleaved`), so that load drifting on a shared machine hits them alike.
 
@@ -106,32 +109,31 @@ def time_cuda(fn: Callable[..., Any], args: Sequence[Any], *, warmup: int = 3, m
               rotate: bool = True) -> Timing:
     """Median of CUDA-event times of ``fn(*args)``; rotates over copies of ``args`` that fit in L2.
 
-    The first call is a timed warm-up: a call slower than ``slow_single_s`` counts alone, one
-    slower than 50 ms is measured ``max(3, budget_s / time)`` times, the others ``min_runs`` to
-    ``max_runs`` times within ``budget_s``.
+    One untimed cold call, then ``warmup`` warm-up calls whose mean sets the run count:
+    ``clamp(budget_s / warm time, min_runs, max_runs)``. A call still slower than ``slow_single_s``
+    when warm counts alone.
     """
     dev = next((a.device for a in args if isinstance(a, torch.Tensor) and a.is_cuda), torch.device("cuda"))
+    torch.cuda.synchronize(dev)
+    fn(*args)  # cold: not timed, and not used to size the run count
     torch.cuda.synchronize(dev)
     t0 = time.perf_counter()
     fn(*args)
     torch.cuda.synchronize(dev)
-    first = time.perf_counter() - t0
-    if first >= slow_single_s:
-        return Timing([first * 1e3])
+    warm = time.perf_counter() - t0
+    if warm >= slow_single_s:
+        return Timing([warm * 1e3])
     sets = [tuple(args)]
     nbytes = _nbytes(args)
     if rotate and nbytes > 0:
         want = min(1024, math.ceil(2 * l2_cache_bytes(dev) / nbytes))
         sets += [_clone(tuple(args)) for _ in range(want - 1)]
-    if first > 0.05:
-        runs = int(max(3, min(max_runs, budget_s / first)))
-    else:
-        t0 = time.perf_counter()
-        for i in range(warmup):
-            fn(*sets[i % len(sets)])
-        torch.cuda.synchronize(dev)
-        per_call = (time.perf_counter() - t0) / max(warmup, 1)
-        runs = int(max(min_runs, min(max_runs, budget_s / max(per_call, 1e-6))))
+    t0 = time.perf_counter()
+    for i in range(warmup):
+        fn(*sets[i % len(sets)])
+    torch.cuda.synchronize(dev)
+    per_call = (time.perf_counter() - t0) / warmup if warmup > 0 else warm
+    runs = _run_count(per_call, min_runs, max_runs, budget_s)
     start = [torch.cuda.Event(enable_timing=True) for _ in range(runs)]
     end = [torch.cuda.Event(enable_timing=True) for _ in range(runs)]
     for i in range(runs):
@@ -143,17 +145,29 @@ def time_cuda(fn: Callable[..., Any], args: Sequence[Any], *, warmup: int = 3, m
     return Timing([s.elapsed_time(e) for s, e in zip(start, end)], n_sets=len(sets))
 
 
-def time_cpu(fn: Callable[..., Any], args: Sequence[Any], *, min_runs: int = 3, max_runs: int = 30,
-             budget_s: float = 1.0, slow_single_s: float = 2.0) -> Timing:
-    """Median wall time of ``fn(*args)`` after one warm-up call (which counts alone if slow)."""
+def _run_count(per_call_s: float, min_runs: int, max_runs: int, budget_s: float) -> int:
+    """Timed runs for a warm call of ``per_call_s`` seconds: as many as fit in ``budget_s``, clamped."""
+    return int(max(min_runs, min(max_runs, budget_s / max(per_call_s, 1e-7))))
+
+
+def _warm_time(fn: Callable[..., Any], args: Sequence[Any]) -> float:
+    """Seconds of one warm call: an untimed cold call first, then a timed one."""
+    fn(*args)
     t0 = time.perf_counter()
     fn(*args)
-    first = time.perf_counter() - t0
-    if first >= slow_single_s:
-        return Timing([first * 1e3])
-    runs = int(max(min_runs, min(max_runs, budget_s / max(first, 1e-7))))
-    times = []
-    for _ in range(runs):
+    return time.perf_counter() - t0
+
+
+def time_cpu(fn: Callable[..., Any], args: Sequence[Any], *, min_runs: int = 3, max_runs: int = 30,
+             budget_s: float = 1.0, slow_single_s: float = 2.0) -> Timing:
+    """Median wall time of ``fn(*args)``: an untimed cold call, then a timed warm call that sizes the run
+    count (``clamp(budget_s / warm time, min_runs, max_runs)``, the warm call being the first run; a
+    warm call slower than ``slow_single_s`` counts alone)."""
+    warm = _warm_time(fn, args)
+    times = [warm * 1e3]
+    if warm >= slow_single_s:
+        return Timing(times)
+    for _ in range(_run_count(warm, min_runs, max_runs, budget_s) - 1):
         t0 = time.perf_counter()
         fn(*args)
         times.append((time.perf_counter() - t0) * 1e3)
@@ -167,29 +181,29 @@ def time_cpu_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]
 
     On a shared machine the load drifts during a measurement; interleaving the calls (each
     implementation's runs spread evenly over the whole window) makes the ratios between them far
-    less sensitive to that drift than timing one implementation after the other. Each gets one
-    timed warm-up call (a call slower than ``slow_single_s`` counts alone) and then
-    ``clamp(budget_s / warm-up time, min_runs, max_runs)`` runs. A call that raises gives its
-    exception in place of a Timing.
+    less sensitive to that drift than timing one implementation after the other. Each gets the same
+    warm-up (an untimed cold call, then a timed warm call, which is its first run) and the same run
+    count, ``clamp(budget_s / mean warm time, min_runs, max_runs)``; only an
+    implementation whose warm call is slower than ``slow_single_s`` counts that call alone. A call
+    that raises gives its exception in place of a Timing.
     """
     out: list[Timing | BaseException] = [Timing() for _ in calls]
-    want = [0] * len(calls)
+    warm: dict[int, float] = {}
     for i, (fn, args) in enumerate(calls):
         try:
-            t0 = time.perf_counter()
-            fn(*args)
-            first = time.perf_counter() - t0
+            t = _warm_time(fn, args)
         except Exception as e:  # noqa: BLE001  (reported by the caller)
             out[i] = e
             continue
-        if first >= slow_single_s:
-            out[i].times_ms.append(first * 1e3)
-        else:
-            want[i] = int(max(min_runs, min(max_runs, budget_s / max(first, 1e-7))))
-    rounds = max(want, default=0)
-    for r in range(rounds):
+        out[i].times_ms.append(t * 1e3)
+        if t < slow_single_s:
+            warm[i] = t
+    if not warm:
+        return out
+    runs = _run_count(sum(warm.values()) / len(warm), min_runs, max_runs, budget_s)
+    for _ in range(runs - 1):
         for i, (fn, args) in enumerate(calls):
-            if want[i] and (r + 1) * want[i] // rounds > r * want[i] // rounds:  # spread evenly
+            if i in warm:
                 t0 = time.perf_counter()
                 fn(*args)
                 out[i].times_ms.append((time.perf_counter() - t0) * 1e3)
@@ -307,8 +321,11 @@ def env_meta(device: str | torch.device) -> dict:
 
 # ---------------------------------------------------------------- result files
 
-def results_path(device: str | torch.device) -> Path:
-    return RESULTS_DIR / f"{device_slug(device)}.json"
+def results_path(device: str | torch.device, results_dir: str | Path | None = None) -> Path:
+    """``<results_dir>/<device-slug>.json``; the folder defaults to ``$LIDAROPS_RESULTS_DIR``, else
+    ``benchmarks/results``."""
+    folder = results_dir or os.environ.get("LIDAROPS_RESULTS_DIR") or RESULTS_DIR
+    return Path(folder) / f"{device_slug(device)}.json"
 
 
 def read_results(path: str | Path) -> dict:
@@ -317,13 +334,14 @@ def read_results(path: str | Path) -> dict:
 
 
 def write_results(section: str, device: str | torch.device, rows: list[dict], meta: dict,
-                  replace_by: str | None = "op") -> Path:
+                  replace_by: str | None = "op", results_dir: str | Path | None = None) -> Path:
     """Write ``rows`` as ``section`` of the device's result file and return its path.
 
     Other sections are kept. Within the section, old rows are kept unless their ``replace_by``
     value (e.g. the op) occurs among the new rows; ``replace_by=None`` replaces the whole section.
+    ``results_dir`` as in :func:`results_path`.
     """
-    path = results_path(device)
+    path = results_path(device, results_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     data: dict = {}
     if path.exists():

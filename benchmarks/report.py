@@ -1,10 +1,15 @@
 """Plots and markdown tables from ``benchmarks/results/*.json``.
 
     python benchmarks/report.py                 # draw docs/img/neighbors_<op>.png and docs/img/sparse_*.png
-    python benchmarks/report.py --markdown      # also print the tables used in docs/ops.md
+    python benchmarks/report.py --markdown      # also print the tables: neighbors (docs/ops.md), then every
+                                                # other section (sparse, voxelize, sscater, boxes, ...)
+    python benchmarks/report.py --markdown --sections voxelize,sparse
 
-One figure per op: a row of panels per cloud kind, a column per device (each result file), grouped
-bars of median time per case (log scale), one bar per implementation; skipped peers are marked.
+Plots: one figure per neighbourhood op (a row of panels per cloud kind, a column per device, grouped
+bars of median time per case, log scale, one bar per implementation; skipped peers are marked), and
+per CUDA device the sparse-convolution single layers and backbone. Tables: the neighbourhood ops'
+per op; any other section as one table per device, a column per field, a timing cell per
+implementation (its median, or its status when it was skipped or failed).
 """
 from __future__ import annotations
 
@@ -144,8 +149,9 @@ def plot_sparse(devices, out_dir: Path) -> list[Path]:
                     sel = [r for r in layers if r["grid"] == grid and r["kind"] == kind]
                     for prec in dict.fromkeys(r["precision"] for r in sel):
                         pr = sorted((r for r in sel if r["precision"] == prec), key=lambda r: r["channels"])
-                        for impl, style, label in (("lidarops", "-o", "lidarops"), ("spconv", "--s", "spconv"),
-                                                   ("dense_cudnn", ":^", "dense")):
+                        for impl, style, label in (("lidarops", "-o", "lidarops op"),
+                                                   ("lidarops_module", "-.d", "lidarops module"),
+                                                   ("spconv", "--s", "spconv module"), ("dense_cudnn", ":^", "dense")):
                             pts = [(r["channels"], r[impl]["median_ms"]) for r in pr
                                    if isinstance(r.get(impl), dict) and r[impl].get("median_ms")]
                             if pts:
@@ -265,26 +271,103 @@ def markdown(devices, ops=OPS) -> str:
     return "\n".join(lines)
 
 
+#: fields left out of the generic tables (in every row, or bookkeeping)
+_SKIP_FIELDS = ("commit", "device", "iqr_ms", "input_sets", "section")
+
+
+def _timing_cell(v: dict) -> str:
+    if v.get("median_ms") is not None:
+        return fmt_ms(v["median_ms"])
+    return short_status(str(v.get("status", "skipped")))
+
+
+def section_markdown(section: str, devices) -> str:
+    """One markdown table per device for any result section: a column per scalar field, a timing cell per
+    nested timing (``{"median_ms": ...}`` or ``{"status": ...}``); a row's own ``median_ms`` shows with its
+    ``status`` when it has none. Rows are grouped by their ``section`` field when they have one."""
+    lines = []
+    for dev, meta, rows in devices:
+        groups: dict = {}
+        for r in rows:
+            groups.setdefault(r.get("section", ""), []).append(r)
+        for group, grows in groups.items():
+            cols: list = []
+            for r in grows:
+                for k, v in r.items():
+                    if k in _SKIP_FIELDS or k in cols:
+                        continue
+                    if isinstance(v, dict) and not ("median_ms" in v or "status" in v):
+                        continue
+                    if isinstance(v, list):
+                        continue
+                    cols.append(k)
+            title = f"{section}" + (f" / {group}" if group else "")
+            lines.append(f"#### {dev}: {title}")
+            lines.append("")
+            lines.append(f"torch {meta.get('torch')}, {meta.get('threads')} threads, commit {meta.get('commit')}, "
+                         f"{meta.get('date')}." if meta else "(no run metadata in the result file)")
+            lines.append("")
+            lines.append("| " + " | ".join(cols) + " |")
+            lines.append("|" + "|".join("---" for _ in cols) + "|")
+            for r in grows:
+                cells = []
+                for k in cols:
+                    v = r.get(k)
+                    if isinstance(v, dict):
+                        cells.append(_timing_cell(v))
+                    elif k == "median_ms" and v is None:
+                        cells.append(short_status(str(r.get("status", "skipped"))))
+                    elif isinstance(v, float):
+                        cells.append(fmt_ratio(v) if "ratio" in k or "speedup" in k else fmt_ms(v))
+                    else:
+                        cells.append("" if v is None else str(v))
+                lines.append("| " + " | ".join(cells) + " |")
+            lines.append("")
+    return "\n".join(lines)
+
+
+def sections_in(results_dir: Path) -> list[str]:
+    """Every section name in the result files, in first-seen order."""
+    names: dict = {}
+    for path in sorted(results_dir.glob("*.json")):
+        with open(path) as f:
+            names.update(dict.fromkeys(json.load(f).get("sections", {})))
+    return list(names)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--results", default=str(RESULTS_DIR), help="folder of result files")
     ap.add_argument("--out", default=str(IMG_DIR), help="folder for the plots")
-    ap.add_argument("--markdown", action="store_true", help="print markdown tables for docs/ops.md")
+    ap.add_argument("--markdown", action="store_true", help="print markdown tables (neighbors: docs/ops.md)")
+    ap.add_argument("--sections", default="all", help="comma-separated sections for --markdown (default: all)")
+    ap.add_argument("--no-plots", action="store_true", help="tables only")
     a = ap.parse_args(argv)
-    devices = load(Path(a.results))
-    if not devices:
-        print(f"no neighbors results in {a.results}; run benchmarks/bm_neighbors.py --json first", file=sys.stderr)
+    results = Path(a.results)
+    found = sections_in(results)
+    if not found:
+        print(f"no results in {a.results}; run a benchmark with --json first (benchmarks/bm_*.py)", file=sys.stderr)
         return 1
-    for op in OPS:
-        path = Path(a.out) / f"neighbors_{op}.png"
-        if plot(devices, op, path):
+    devices = load(results)
+    if not a.no_plots:
+        if not devices:
+            print(f"no neighbors results in {a.results} (benchmarks/bm_neighbors.py --json): no neighbors plots",
+                  file=sys.stderr)
+        for op in OPS:
+            path = Path(a.out) / f"neighbors_{op}.png"
+            if devices and plot(devices, op, path):
+                print(f"wrote {path}")
+        for path in plot_sparse([d for d in load(results, "sparse") if d[1].get("device_type") == "cuda"],
+                                Path(a.out)):
             print(f"wrote {path}")
-    for path in plot_sparse([d for d in load(Path(a.results), "sparse") if d[1].get("device_type") == "cuda"],
-                            Path(a.out)):
-        print(f"wrote {path}")
     if a.markdown:
-        print()
-        print(markdown(devices))
+        wanted = found if a.sections == "all" else [x for x in a.sections.split(",") if x]
+        for name in wanted:
+            print()
+            if name == "neighbors":
+                print(markdown(devices))
+            else:
+                print(section_markdown(name, load(results, name)))
     return 0
 
 

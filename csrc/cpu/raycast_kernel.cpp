@@ -409,6 +409,242 @@ void fill_grid(Grid& grid, const std::vector<Window>& windows, const std::vector
   }
 }
 
+// ------------------------------------------------------------------------------------------- the op's phases
+// The scene's tensors by primitive family (references to the op's arguments).
+struct GroundArgs {
+  const at::Tensor &plane, &wave_amp, &wave_k, &wave_phase;
+};
+struct BoxArgs {
+  const at::Tensor &center, &half, &yaw, &velocity, &yaw_rate, &reflectivity, &kind, &object;
+};
+struct CylinderArgs {
+  const at::Tensor &center_xy, &z_min, &z_max, &radius, &reflectivity, &kind;
+};
+struct EllipsoidArgs {
+  const at::Tensor &center, &radii, &mean_free_path, &reflectivity;
+};
+
+// Phase 1: the dtype and shape of every argument, then the counts; returns the number of rays.
+int64_t check_args(const at::Tensor& origins, const at::Tensor& dirs, const at::Tensor& times, const at::Tensor& samples,
+                   const GroundArgs& g, const BoxArgs& b, const CylinderArgs& cy, const EllipsoidArgs& el,
+                   int64_t num_objects, int64_t ground_iterations) {
+  const auto f64 = at::kDouble;
+  const int64_t n = origins.dim() == 2 ? origins.size(0) : -1;
+  check_arg(origins, "origins", f64, {-1, 3});
+  check_arg(dirs, "dirs", f64, {n, 3});
+  check_arg(times, "times", f64, {n});
+  check_arg(samples, "origin_samples", f64, {-1, 3});
+  TORCH_CHECK_VALUE(n == 0 || samples.size(0) > 0, "raycast_scene: origin_samples must not be empty when there are rays");
+  check_arg(g.plane, "ground_plane", f64, {3});
+  const int64_t nw = g.wave_amp.dim() == 1 ? g.wave_amp.size(0) : -1;
+  check_arg(g.wave_amp, "wave_amp", f64, {-1});
+  check_arg(g.wave_k, "wave_k", f64, {nw, 2});
+  check_arg(g.wave_phase, "wave_phase", f64, {nw});
+  const int64_t nb = b.center.dim() == 2 ? b.center.size(0) : -1;
+  check_arg(b.center, "box_center", f64, {-1, 3});
+  check_arg(b.half, "box_half", f64, {nb, 3});
+  check_arg(b.yaw, "box_yaw", f64, {nb});
+  check_arg(b.velocity, "box_velocity", f64, {nb, 3});
+  check_arg(b.yaw_rate, "box_yaw_rate", f64, {nb});
+  check_arg(b.reflectivity, "box_reflectivity", f64, {nb});
+  check_arg(b.kind, "box_kind", at::kByte, {nb});
+  check_arg(b.object, "box_object", at::kInt, {nb});
+  const int64_t nc = cy.center_xy.dim() == 2 ? cy.center_xy.size(0) : -1;
+  check_arg(cy.center_xy, "cyl_center_xy", f64, {-1, 2});
+  check_arg(cy.z_min, "cyl_z_min", f64, {nc});
+  check_arg(cy.z_max, "cyl_z_max", f64, {nc});
+  check_arg(cy.radius, "cyl_radius", f64, {nc});
+  check_arg(cy.reflectivity, "cyl_reflectivity", f64, {nc});
+  check_arg(cy.kind, "cyl_kind", at::kByte, {nc});
+  const int64_t ne = el.center.dim() == 2 ? el.center.size(0) : -1;
+  check_arg(el.center, "ell_center", f64, {-1, 3});
+  check_arg(el.radii, "ell_radii", f64, {ne, 3});
+  check_arg(el.mean_free_path, "ell_mean_free_path", f64, {ne});
+  check_arg(el.reflectivity, "ell_reflectivity", f64, {ne});
+  TORCH_CHECK_VALUE(num_objects >= 0, "raycast_scene: num_objects must be >= 0, got ", num_objects);
+  TORCH_CHECK_VALUE(ground_iterations >= 0, "raycast_scene: ground_iterations must be >= 0, got ", ground_iterations);
+  TORCH_CHECK_VALUE(nb + nc + ne < (int64_t{1} << 31), "raycast_scene: too many primitives");
+  return n;
+}
+
+// Phase 2: views of the scene. The contiguous tensors they point into are kept alive in ``keep``.
+template <typename T>
+const T* kept(std::vector<at::Tensor>& keep, const at::Tensor& t) {
+  keep.push_back(t.contiguous());
+  return ptr<T>(keep.back());
+}
+
+GroundField ground_view(const GroundArgs& g, std::vector<at::Tensor>& keep) {
+  const double* pl = kept<double>(keep, g.plane);
+  return GroundField{pl[0], pl[1], pl[2], g.wave_amp.size(0), kept<double>(keep, g.wave_amp),
+                     kept<double>(keep, g.wave_k), kept<double>(keep, g.wave_phase)};
+}
+
+// The boxes, with the cosine and sine of their yaws; checks that every object index is < num_objects.
+Boxes box_view(const BoxArgs& b, int64_t num_objects, std::vector<at::Tensor>& keep) {
+  const int64_t nb = b.center.size(0);
+  Boxes boxes{nb, kept<double>(keep, b.center), kept<double>(keep, b.half), kept<double>(keep, b.yaw),
+              kept<double>(keep, b.velocity), kept<double>(keep, b.yaw_rate), kept<double>(keep, b.reflectivity),
+              kept<uint8_t>(keep, b.kind), kept<int32_t>(keep, b.object), {}, {}};
+  boxes.cos_yaw.resize(nb);
+  boxes.sin_yaw.resize(nb);
+  for (int64_t j = 0; j < nb; ++j) {
+    boxes.cos_yaw[j] = std::cos(boxes.yaw[j]);
+    boxes.sin_yaw[j] = std::sin(boxes.yaw[j]);
+    const int32_t obj = boxes.object[j];
+    TORCH_CHECK_VALUE(obj < num_objects, "raycast_scene: box_object[", j, "] = ", obj, " but num_objects = ", num_objects);
+  }
+  return boxes;
+}
+
+Cylinders cylinder_view(const CylinderArgs& c, std::vector<at::Tensor>& keep) {
+  return Cylinders{c.center_xy.size(0), kept<double>(keep, c.center_xy), kept<double>(keep, c.z_min),
+                   kept<double>(keep, c.z_max), kept<double>(keep, c.radius), kept<double>(keep, c.reflectivity),
+                   kept<uint8_t>(keep, c.kind)};
+}
+
+Ellipsoids ellipsoid_view(const EllipsoidArgs& e, int64_t foliage_key, std::vector<at::Tensor>& keep) {
+  return Ellipsoids{e.center.size(0), kept<double>(keep, e.center), kept<double>(keep, e.radii),
+                    kept<double>(keep, e.mean_free_path), kept<double>(keep, e.reflectivity),
+                    static_cast<uint64_t>(foliage_key)};
+}
+
+// Phase 3: the batch as seen from its mean origin: spread of the origins, time span, elevation range of the rays.
+struct BatchFrame {
+  double origin[3] = {0, 0, 0};
+  double spread_xy = 0, spread_z = 0, t_mid = 0, half_span = 0, dz_lo = kInf, dz_hi = -kInf;
+};
+
+BatchFrame batch_frame(const double* smp, int64_t ns, const double* tm, const double* dir, int64_t n) {
+  BatchFrame f;
+  for (int64_t i = 0; i < ns; ++i)
+    for (int c = 0; c < 3; ++c) f.origin[c] += smp[3 * i + c];
+  for (int c = 0; c < 3; ++c) f.origin[c] /= static_cast<double>(ns);
+  for (int64_t i = 0; i < ns; ++i) {
+    f.spread_xy = std::max(f.spread_xy, std::hypot(smp[3 * i] - f.origin[0], smp[3 * i + 1] - f.origin[1]));
+    f.spread_z = std::max(f.spread_z, std::fabs(smp[3 * i + 2] - f.origin[2]));
+  }
+  f.spread_xy += 1e-6;
+  f.spread_z += 1e-6;
+  double t_lo = kInf, t_hi = -kInf;
+  for (int64_t i = 0; i < n; ++i) {
+    t_lo = std::min(t_lo, tm[i]);
+    t_hi = std::max(t_hi, tm[i]);
+    f.dz_lo = std::min(f.dz_lo, dir[3 * i + 2]);
+    f.dz_hi = std::max(f.dz_hi, dir[3 * i + 2]);
+  }
+  f.t_mid = 0.5 * (t_lo + t_hi);
+  f.half_span = 0.5 * (t_hi - t_lo);
+  return f;
+}
+
+// Phase 4: every primitive's window (boxes, then cylinders, then ellipsoids: the primitive ids).
+std::vector<Window> primitive_windows(const BatchFrame& f, const Boxes& boxes, const Cylinders& cyl,
+                                      const Ellipsoids& ell, double max_distance) {
+  const int64_t nb = boxes.n, nc = cyl.n, ne = ell.n;
+  std::vector<Window> windows(nb + nc + ne);
+  for (int64_t j = 0; j < nb; ++j) {
+    const double* c = boxes.center + 3 * j;
+    const double* v = boxes.velocity + 3 * j;
+    const double* h = boxes.half + 3 * j;
+    const double grow_xy = std::hypot(v[0], v[1]) * f.half_span + f.spread_xy;
+    const double grow_z = std::fabs(v[2]) * f.half_span + f.spread_z;
+    const double cz = c[2] + v[2] * f.t_mid;
+    const double rect[3] = {h[0] + grow_xy, h[1] + grow_xy, boxes.yaw[j]};
+    windows[j] = window(f.origin, c[0] + v[0] * f.t_mid, c[1] + v[1] * f.t_mid, std::hypot(h[0], h[1]) + grow_xy,
+                        cz - h[2] - grow_z, cz + h[2] + grow_z, max_distance, boxes.yaw_rate[j] == 0.0 ? rect : nullptr);
+  }
+  for (int64_t j = 0; j < nc; ++j)
+    windows[nb + j] = window(f.origin, cyl.center_xy[2 * j], cyl.center_xy[2 * j + 1], cyl.radius[j] + f.spread_xy,
+                             cyl.z_min[j] - f.spread_z, cyl.z_max[j] + f.spread_z, max_distance, nullptr);
+  for (int64_t j = 0; j < ne; ++j) {
+    const double* c = ell.center + 3 * j;
+    const double* r = ell.radii + 3 * j;
+    windows[nb + nc + j] = window(f.origin, c[0], c[1], std::max(r[0], r[1]) + f.spread_xy, c[2] - r[2] - f.spread_z,
+                                  c[2] + r[2] + f.spread_z, max_distance, nullptr);
+  }
+  return windows;
+}
+
+// Phase 5: the culling grid. Labelled objects first (every crossing is counted), then the rest nearest first:
+// a ray stops at the first primitive that is farther than its nearest hit so far.
+Grid build_grid(const BatchFrame& f, const std::vector<Window>& windows, const Boxes& boxes) {
+  Grid grid;
+  grid.dz0 = f.dz_lo;
+  grid.band_scale = kElevationBands / std::max(f.dz_hi - f.dz_lo, 1e-9);
+  const int64_t nb = boxes.n;
+  std::vector<int32_t> order(windows.size());
+  for (size_t i = 0; i < order.size(); ++i) order[i] = static_cast<int32_t>(i);
+  auto is_object = [&](int32_t id) { return id < nb && boxes.object[id] >= 0; };
+  std::stable_sort(order.begin(), order.end(), [&](int32_t x, int32_t y) {
+    if (is_object(x) != is_object(y)) return is_object(x);
+    return !is_object(x) && windows[x].dmin < windows[y].dmin;
+  });
+  fill_grid(grid, windows, order);
+  grid.dmin.resize(windows.size());
+  for (size_t i = 0; i < windows.size(); ++i) grid.dmin[i] = windows[i].dmin;
+  return grid;
+}
+
+// Phase 6, one ray: the nearest of its ground hit and the primitives of its grid cell; counts the ray in
+// ``rays`` for every labelled object it crosses within max_distance.
+struct Hit {
+  double s;     // distance; infinite for none
+  int64_t id;   // -1 none or ground, else a primitive id; equal distances go to the larger id
+  double cos;   // cosine of the incidence angle
+};
+
+Hit nearest_hit(const Grid& grid, const Boxes& boxes, const Cylinders& cyl, const Ellipsoids& ell, int64_t i,
+                const double* ro, const double* rd, double t, double ground_s, double ground_cos, double max_distance,
+                int64_t* rays) {
+  const int64_t first_cyl = boxes.n, first_ell = boxes.n + cyl.n;
+  Hit best{ground_s, -1, ground_cos};
+  double limit = std::min(best.s, max_distance);  // a primitive farther than this from every origin cannot win
+  const int cell = grid.cell(rd);
+  for (int32_t e = grid.offsets[cell]; e < grid.offsets[cell + 1]; ++e) {
+    const int64_t id = grid.ids[e];
+    double c = 0.0, s;
+    if (id < first_cyl) {
+      const int32_t obj = boxes.object[id];
+      if (obj < 0 && grid.dmin[id] > limit) break;
+      s = boxes.intersect(id, ro, rd, t, c);
+      if (obj >= 0 && s <= max_distance) ++rays[obj];
+    } else if (grid.dmin[id] > limit) {
+      break;
+    } else if (id < first_ell) {
+      s = cyl.intersect(id - first_cyl, ro, rd, c);
+    } else {
+      s = ell.intersect(id - first_ell, i, ro, rd, c);
+    }
+    if (s <= limit && (s < best.s || (s == best.s && id > best.id))) {
+      best = {s, id, c};
+      limit = s;
+    }
+  }
+  return best;
+}
+
+// Phase 7, one ray: the surface kind, reflectivity and object of its hit; counts a visible labelled object.
+void classify_hit(const Hit& hit, const Boxes& boxes, const Cylinders& cyl, const Ellipsoids& ell, uint8_t& kind,
+                  double& refl, int32_t& obj, int64_t* visible) {
+  const int64_t first_cyl = boxes.n, first_ell = boxes.n + cyl.n;
+  refl = 0.0;
+  kind = std::isfinite(hit.s) ? kSurfaceGround : kSurfaceNone;
+  obj = -1;
+  if (hit.id >= first_ell) {
+    kind = kSurfaceVegetation;
+    refl = ell.reflectivity[hit.id - first_ell];
+  } else if (hit.id >= first_cyl) {
+    kind = cyl.kind[hit.id - first_cyl];
+    refl = cyl.reflectivity[hit.id - first_cyl];
+  } else if (hit.id >= 0) {
+    kind = boxes.kind[hit.id];
+    refl = boxes.reflectivity[hit.id];
+    obj = boxes.object[hit.id];
+    if (obj >= 0) ++visible[obj];
+  }
+}
+
 // ------------------------------------------------------------------------------------------- the op
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> raycast_scene_cpu(
     const at::Tensor& origins_in, const at::Tensor& dirs_in, const at::Tensor& times_in, const at::Tensor& samples_in,
@@ -420,54 +656,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor& cyl_refl_in, const at::Tensor& cyl_kind_in, const at::Tensor& ell_center_in,
     const at::Tensor& ell_radii_in, const at::Tensor& ell_mfp_in, const at::Tensor& ell_refl_in, double max_distance,
     int64_t foliage_key, int64_t num_objects, int64_t ground_iterations, double ground_tolerance) {
+  const GroundArgs ground_args{plane_in, wave_amp_in, wave_k_in, wave_phase_in};
+  const BoxArgs box_args{box_center_in, box_half_in, box_yaw_in, box_velocity_in,
+                         box_yaw_rate_in, box_refl_in, box_kind_in, box_object_in};
+  const CylinderArgs cyl_args{cyl_center_in, cyl_z_min_in, cyl_z_max_in, cyl_radius_in, cyl_refl_in, cyl_kind_in};
+  const EllipsoidArgs ell_args{ell_center_in, ell_radii_in, ell_mfp_in, ell_refl_in};
+  const int64_t n = check_args(origins_in, dirs_in, times_in, samples_in, ground_args, box_args, cyl_args, ell_args,
+                               num_objects, ground_iterations);
+
   const auto f64 = at::kDouble;
-  const int64_t n = origins_in.dim() == 2 ? origins_in.size(0) : -1;
-  check_arg(origins_in, "origins", f64, {-1, 3});
-  check_arg(dirs_in, "dirs", f64, {n, 3});
-  check_arg(times_in, "times", f64, {n});
-  check_arg(samples_in, "origin_samples", f64, {-1, 3});
-  TORCH_CHECK_VALUE(n == 0 || samples_in.size(0) > 0, "raycast_scene: origin_samples must not be empty when there are rays");
-  check_arg(plane_in, "ground_plane", f64, {3});
-  const int64_t nw = wave_amp_in.dim() == 1 ? wave_amp_in.size(0) : -1;
-  check_arg(wave_amp_in, "wave_amp", f64, {-1});
-  check_arg(wave_k_in, "wave_k", f64, {nw, 2});
-  check_arg(wave_phase_in, "wave_phase", f64, {nw});
-  const int64_t nb = box_center_in.dim() == 2 ? box_center_in.size(0) : -1;
-  check_arg(box_center_in, "box_center", f64, {-1, 3});
-  check_arg(box_half_in, "box_half", f64, {nb, 3});
-  check_arg(box_yaw_in, "box_yaw", f64, {nb});
-  check_arg(box_velocity_in, "box_velocity", f64, {nb, 3});
-  check_arg(box_yaw_rate_in, "box_yaw_rate", f64, {nb});
-  check_arg(box_refl_in, "box_reflectivity", f64, {nb});
-  check_arg(box_kind_in, "box_kind", at::kByte, {nb});
-  check_arg(box_object_in, "box_object", at::kInt, {nb});
-  const int64_t nc = cyl_center_in.dim() == 2 ? cyl_center_in.size(0) : -1;
-  check_arg(cyl_center_in, "cyl_center_xy", f64, {-1, 2});
-  check_arg(cyl_z_min_in, "cyl_z_min", f64, {nc});
-  check_arg(cyl_z_max_in, "cyl_z_max", f64, {nc});
-  check_arg(cyl_radius_in, "cyl_radius", f64, {nc});
-  check_arg(cyl_refl_in, "cyl_reflectivity", f64, {nc});
-  check_arg(cyl_kind_in, "cyl_kind", at::kByte, {nc});
-  const int64_t ne = ell_center_in.dim() == 2 ? ell_center_in.size(0) : -1;
-  check_arg(ell_center_in, "ell_center", f64, {-1, 3});
-  check_arg(ell_radii_in, "ell_radii", f64, {ne, 3});
-  check_arg(ell_mfp_in, "ell_mean_free_path", f64, {ne});
-  check_arg(ell_refl_in, "ell_reflectivity", f64, {ne});
-  TORCH_CHECK_VALUE(num_objects >= 0, "raycast_scene: num_objects must be >= 0, got ", num_objects);
-  TORCH_CHECK_VALUE(ground_iterations >= 0, "raycast_scene: ground_iterations must be >= 0, got ", ground_iterations);
-  TORCH_CHECK_VALUE(nb + nc + ne < (int64_t{1} << 31), "raycast_scene: too many primitives");
-
-  auto origins = origins_in.contiguous(), dirs = dirs_in.contiguous(), times = times_in.contiguous();
-  auto samples = samples_in.contiguous(), plane = plane_in.contiguous();
-  auto wave_amp = wave_amp_in.contiguous(), wave_k = wave_k_in.contiguous(), wave_phase = wave_phase_in.contiguous();
-  auto box_center = box_center_in.contiguous(), box_half = box_half_in.contiguous(), box_yaw = box_yaw_in.contiguous();
-  auto box_velocity = box_velocity_in.contiguous(), box_yaw_rate = box_yaw_rate_in.contiguous();
-  auto box_refl = box_refl_in.contiguous(), box_kind = box_kind_in.contiguous(), box_object = box_object_in.contiguous();
-  auto cyl_center = cyl_center_in.contiguous(), cyl_z_min = cyl_z_min_in.contiguous(), cyl_z_max = cyl_z_max_in.contiguous();
-  auto cyl_radius = cyl_radius_in.contiguous(), cyl_refl = cyl_refl_in.contiguous(), cyl_kind = cyl_kind_in.contiguous();
-  auto ell_center = ell_center_in.contiguous(), ell_radii = ell_radii_in.contiguous();
-  auto ell_mfp = ell_mfp_in.contiguous(), ell_refl = ell_refl_in.contiguous();
-
   auto distance = at::empty({n}, at::dtype(f64));
   auto surface = at::empty({n}, at::dtype(at::kByte));
   auto object_index = at::empty({n}, at::dtype(at::kInt));
@@ -477,85 +674,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   auto object_visible = at::zeros({num_objects}, at::dtype(at::kLong));
   if (n == 0) return {distance, surface, object_index, cos_incidence, reflectivity, object_rays, object_visible};
 
-  const double* o = ptr<double>(origins);
-  const double* dir = ptr<double>(dirs);
-  const double* tm = ptr<double>(times);
-  const double* pl = ptr<double>(plane);
-  const GroundField ground{pl[0], pl[1], pl[2], nw, ptr<double>(wave_amp), ptr<double>(wave_k), ptr<double>(wave_phase)};
-  Boxes boxes{nb, ptr<double>(box_center), ptr<double>(box_half), ptr<double>(box_yaw), ptr<double>(box_velocity),
-              ptr<double>(box_yaw_rate), ptr<double>(box_refl), ptr<uint8_t>(box_kind), ptr<int32_t>(box_object), {}, {}};
-  boxes.cos_yaw.resize(nb);
-  boxes.sin_yaw.resize(nb);
-  for (int64_t j = 0; j < nb; ++j) {
-    boxes.cos_yaw[j] = std::cos(boxes.yaw[j]);
-    boxes.sin_yaw[j] = std::sin(boxes.yaw[j]);
-    const int32_t obj = boxes.object[j];
-    TORCH_CHECK_VALUE(obj < num_objects, "raycast_scene: box_object[", j, "] = ", obj, " but num_objects = ", num_objects);
-  }
-  const Cylinders cyl{nc, ptr<double>(cyl_center), ptr<double>(cyl_z_min), ptr<double>(cyl_z_max), ptr<double>(cyl_radius),
-                      ptr<double>(cyl_refl), ptr<uint8_t>(cyl_kind)};
-  const Ellipsoids ell{ne, ptr<double>(ell_center), ptr<double>(ell_radii), ptr<double>(ell_mfp), ptr<double>(ell_refl),
-                       static_cast<uint64_t>(foliage_key)};
+  std::vector<at::Tensor> keep;
+  const double* o = kept<double>(keep, origins_in);
+  const double* dir = kept<double>(keep, dirs_in);
+  const double* tm = kept<double>(keep, times_in);
+  const GroundField ground = ground_view(ground_args, keep);
+  const Boxes boxes = box_view(box_args, num_objects, keep);
+  const Cylinders cyl = cylinder_view(cyl_args, keep);
+  const Ellipsoids ell = ellipsoid_view(ell_args, foliage_key, keep);
 
-  // the batch as seen from its mean origin: spread of the origins, time span, elevation range of the rays
-  const int64_t ns = samples.size(0);
-  const double* smp = ptr<double>(samples);
-  double origin[3] = {0, 0, 0};
-  for (int64_t i = 0; i < ns; ++i)
-    for (int c = 0; c < 3; ++c) origin[c] += smp[3 * i + c];
-  for (int c = 0; c < 3; ++c) origin[c] /= static_cast<double>(ns);
-  double spread_xy = 0, spread_z = 0;
-  for (int64_t i = 0; i < ns; ++i) {
-    spread_xy = std::max(spread_xy, std::hypot(smp[3 * i] - origin[0], smp[3 * i + 1] - origin[1]));
-    spread_z = std::max(spread_z, std::fabs(smp[3 * i + 2] - origin[2]));
-  }
-  spread_xy += 1e-6;
-  spread_z += 1e-6;
-  double t_lo = kInf, t_hi = -kInf, dz_lo = kInf, dz_hi = -kInf;
-  for (int64_t i = 0; i < n; ++i) {
-    t_lo = std::min(t_lo, tm[i]);
-    t_hi = std::max(t_hi, tm[i]);
-    dz_lo = std::min(dz_lo, dir[3 * i + 2]);
-    dz_hi = std::max(dz_hi, dir[3 * i + 2]);
-  }
-  const double t_mid = 0.5 * (t_lo + t_hi), half_span = 0.5 * (t_hi - t_lo);
-
-  Grid grid;
-  grid.dz0 = dz_lo;
-  grid.band_scale = kElevationBands / std::max(dz_hi - dz_lo, 1e-9);
-  std::vector<Window> windows(nb + nc + ne);
-  for (int64_t j = 0; j < nb; ++j) {
-    const double* c = boxes.center + 3 * j;
-    const double* v = boxes.velocity + 3 * j;
-    const double* h = boxes.half + 3 * j;
-    const double grow_xy = std::hypot(v[0], v[1]) * half_span + spread_xy;
-    const double grow_z = std::fabs(v[2]) * half_span + spread_z;
-    const double cz = c[2] + v[2] * t_mid;
-    const double rect[3] = {h[0] + grow_xy, h[1] + grow_xy, boxes.yaw[j]};
-    windows[j] = window(origin, c[0] + v[0] * t_mid, c[1] + v[1] * t_mid, std::hypot(h[0], h[1]) + grow_xy,
-                        cz - h[2] - grow_z, cz + h[2] + grow_z, max_distance, boxes.yaw_rate[j] == 0.0 ? rect : nullptr);
-  }
-  for (int64_t j = 0; j < nc; ++j)
-    windows[nb + j] = window(origin, cyl.center_xy[2 * j], cyl.center_xy[2 * j + 1], cyl.radius[j] + spread_xy,
-                             cyl.z_min[j] - spread_z, cyl.z_max[j] + spread_z, max_distance, nullptr);
-  for (int64_t j = 0; j < ne; ++j) {
-    const double* c = ell.center + 3 * j;
-    const double* r = ell.radii + 3 * j;
-    windows[nb + nc + j] = window(origin, c[0], c[1], std::max(r[0], r[1]) + spread_xy, c[2] - r[2] - spread_z,
-                                  c[2] + r[2] + spread_z, max_distance, nullptr);
-  }
-  // labelled objects first (every crossing is counted), then the rest nearest first: a ray stops at the first
-  // primitive that is farther than its nearest hit so far
-  std::vector<int32_t> order(windows.size());
-  for (size_t i = 0; i < order.size(); ++i) order[i] = static_cast<int32_t>(i);
-  auto is_object = [&](int32_t id) { return id < nb && boxes.object[id] >= 0; };
-  std::stable_sort(order.begin(), order.end(), [&](int32_t x, int32_t y) {
-    if (is_object(x) != is_object(y)) return is_object(x);
-    return !is_object(x) && windows[x].dmin < windows[y].dmin;
-  });
-  fill_grid(grid, windows, order);
-  grid.dmin.resize(windows.size());
-  for (size_t i = 0; i < windows.size(); ++i) grid.dmin[i] = windows[i].dmin;
+  const BatchFrame frame = batch_frame(kept<double>(keep, samples_in), samples_in.size(0), tm, dir, n);
+  const Grid grid = build_grid(frame, primitive_windows(frame, boxes, cyl, ell, max_distance), boxes);
 
   double* out_s = distance.data_ptr<double>();
   uint8_t* out_surface = surface.data_ptr<uint8_t>();
@@ -565,7 +694,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   int64_t* rays_total = object_rays.data_ptr<int64_t>();
   int64_t* visible_total = object_visible.data_ptr<int64_t>();
   std::mutex merge;
-  const int64_t first_cyl = nb, first_ell = nb + nc;
 
   at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
     std::vector<int64_t> rays_local(num_objects, 0), visible_local(num_objects, 0);
@@ -574,57 +702,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
       if ((i - begin) % kBatch == 0)
         ground.intersect(o + 3 * i, dir + 3 * i, static_cast<int>(std::min<int64_t>(kBatch, end - i)), max_distance,
                          ground_iterations, ground_tolerance, ground_s, ground_cos);
-      const double* ro = o + 3 * i;
-      const double* rd = dir + 3 * i;
-      const double cos_g = ground_cos[(i - begin) % kBatch];
-      double best = ground_s[(i - begin) % kBatch];
-      // the nearest hit so far: -1 none or ground, else a primitive id; equal distances go to the larger id
-      int64_t best_id = -1;
-      double best_cos = cos_g;
-      double limit = std::min(best, max_distance);  // a primitive farther than this from every origin cannot win
-      const int cell = grid.cell(rd);
-      for (int32_t e = grid.offsets[cell]; e < grid.offsets[cell + 1]; ++e) {
-        const int64_t id = grid.ids[e];
-        double c = 0.0, s;
-        if (id < first_cyl) {
-          const int32_t obj = boxes.object[id];
-          if (obj < 0 && grid.dmin[id] > limit) break;
-          s = boxes.intersect(id, ro, rd, tm[i], c);
-          if (obj >= 0 && s <= max_distance) ++rays_local[obj];
-        } else if (grid.dmin[id] > limit) {
-          break;
-        } else if (id < first_ell) {
-          s = cyl.intersect(id - first_cyl, ro, rd, c);
-        } else {
-          s = ell.intersect(id - first_ell, i, ro, rd, c);
-        }
-        if (s <= limit && (s < best || (s == best && id > best_id))) {
-          best = s;
-          best_id = id;
-          best_cos = c;
-          limit = s;
-        }
-      }
-      double refl = 0.0;
-      uint8_t kind = std::isfinite(best) ? kSurfaceGround : kSurfaceNone;
-      int32_t obj = -1;
-      if (best_id >= first_ell) {
-        kind = kSurfaceVegetation;
-        refl = ell.reflectivity[best_id - first_ell];
-      } else if (best_id >= first_cyl) {
-        kind = cyl.kind[best_id - first_cyl];
-        refl = cyl.reflectivity[best_id - first_cyl];
-      } else if (best_id >= 0) {
-        kind = boxes.kind[best_id];
-        refl = boxes.reflectivity[best_id];
-        obj = boxes.object[best_id];
-        if (obj >= 0) ++visible_local[obj];
-      }
-      out_s[i] = best;
-      out_surface[i] = kind;
-      out_object[i] = obj;
-      out_cos[i] = std::isfinite(best) ? best_cos : 0.0;
-      out_refl[i] = refl;
+      const Hit hit = nearest_hit(grid, boxes, cyl, ell, i, o + 3 * i, dir + 3 * i, tm[i], ground_s[(i - begin) % kBatch],
+                                  ground_cos[(i - begin) % kBatch], max_distance, rays_local.data());
+      classify_hit(hit, boxes, cyl, ell, out_surface[i], out_refl[i], out_object[i], visible_local.data());
+      out_s[i] = hit.s;
+      out_cos[i] = std::isfinite(hit.s) ? hit.cos : 0.0;
     }
     if (num_objects > 0) {
       std::lock_guard<std::mutex> lock(merge);

@@ -62,7 +62,7 @@ __all__ = [
 _LAZY = {
     "Simulator": "lidarops.data.synthetic",
     "SyntheticFrames": "lidarops.data.synthetic",
-    "SCENARIOS": "lidarops.data.scene",
+    "SCENARIOS": "lidarops.data.scenarios",
     "SpinningLidar": "lidarops.data.sensors",
     "RisleyLidar": "lidarops.data.sensors",
     "hdl64": "lidarops.data.sensors",

@@ -269,7 +269,7 @@ def synth(args: argparse.Namespace) -> int:
 def show(args: argparse.Namespace) -> int:
     """Writes a bird's-eye view of one frame (or a three-view picture of one ModelNet40 object)."""
     from lidarops.data.formats import detect_format, read_frame
-    from lidarops.data.scene import SCENARIOS
+    from lidarops.data.scenarios import SCENARIOS
     from lidarops.data.viz import save_bev, save_object
 
     spec = args.path
@@ -313,7 +313,7 @@ def _guarded(fn):
 
 def register(subparsers) -> None:
     """Adds ``data`` with its ``synth`` and ``show`` subcommands to the ``lidarops`` parser."""
-    from lidarops.data.scene import SCENARIOS
+    from lidarops.data.scenarios import SCENARIOS
 
     data = subparsers.add_parser("data", help="simulate LiDAR data, write and view dataset files",
                                  description="Synthetic LiDAR data and dataset files (KITTI, PandaSet, nuScenes, ModelNet40).")

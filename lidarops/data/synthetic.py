@@ -31,14 +31,8 @@ from lidarops.data._checks import integer, real
 from lidarops.data._raycast import cast_rays
 from lidarops.data.frame import CLASSES, Frame
 from lidarops.data.geometry import count_points_in_boxes, pose_matrix, wrap_angle
-from lidarops.data.scene import (
-    SCENARIOS,
-    SURFACE_KINDS,
-    BoxSet,
-    Scenario,
-    _rng,
-    build_scenario,
-)
+from lidarops.data.scenarios import SCENARIOS, build_scenario
+from lidarops.data.scene import SURFACE_KINDS, BoxSet, Scenario, _rng
 from lidarops.data.sensors import LidarSensor, RisleyLidar, SpinningLidar, avia, hdl64, make_sensor, pandar64
 
 __all__ = [

@@ -162,7 +162,7 @@ def open_frames(spec: str | Path, **kwargs):
     Raises:
         FileNotFoundError, ValueError: unknown path or format.
     """
-    from lidarops.data.scene import SCENARIOS
+    from lidarops.data.scenarios import SCENARIOS
 
     text = str(spec)
     name = text[len("synthetic:"):] if text.startswith("synthetic:") else text

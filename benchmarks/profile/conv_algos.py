@@ -1,6 +1,6 @@
 """Kernel time and accuracy of the CUDA sparse-convolution algorithms for float32 and float16.
 
-    python tools/bench_conv_algos.py [--grids kitti,dense] [--channels 64,128] [--pillars] [--splits auto,1,2]
+    python benchmarks/profile/conv_algos.py [--grids kitti,dense] [--channels 64,128] [--pillars] [--splits auto,1,2]
 
 For each BEV grid of benchmarks/bm_sparse.py, kind (SubM 3x3, strided 3x3 s2) and C = Cin = Cout, the
 registered op ``sparse_conv`` with its cached map and order, per algorithm:
@@ -30,7 +30,7 @@ import statistics
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 
@@ -159,7 +159,7 @@ def main(argv=None) -> int:
 
 def run(a) -> None:
     if not torch.cuda.is_available():
-        print("bench_conv_algos: needs a GPU")
+        print("conv_algos: needs a GPU")
         return
     from benchmarks.bm_sparse import GRIDS, bev_sites, pillars_input
     from benchmarks.common import time_cuda

@@ -1,6 +1,6 @@
 """Where the Sparse-PointPillars backbone of benchmarks/bm_sparse.py spends its GPU time (maps cached).
 
-    python tools/profile_sparse.py [--precision fp32|tf32|fp16] [--calls 10] [--host]
+    python benchmarks/profile/sparse.py [--precision fp32|tf32|fp16] [--calls 10] [--host]
 
 Prints the top kernels by device time per forward (torch.profiler), on the KITTI grid with 15,000
 pillars, every kernel map cached, as the benchmark's "maps cached" column runs it. ``--host`` also
@@ -13,7 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 
@@ -25,7 +25,7 @@ def main(argv=None) -> int:
     ap.add_argument("--host", action="store_true")
     a = ap.parse_args(argv)
     if not torch.cuda.is_available():
-        print("profile_sparse: needs a GPU")
+        print("profile/sparse: needs a GPU")
         return 0
     from benchmarks.bm_sparse import pillars_input, precision
     dev = torch.device("cuda")

@@ -1,10 +1,10 @@
 """One sparse-convolution layer per algorithm, for Nsight Compute (ncu) to profile.
 
-    ncu --clock-control none --kernel-name regex:conv_fwd -o report python tools/ncu_conv.py \
+    ncu --clock-control none --kernel-name regex:conv_fwd -o report python benchmarks/profile/ncu_conv.py \
         [--grid dense] [--kind subm] [--channels 128] [--algos fp32,3xtf32,tf32,fp16]
 
 Each algorithm's layer runs twice (warm-up, then the profiled call); the switches are those of
-tools/bench_conv_algos.py.
+benchmarks/profile/conv_algos.py.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import math
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 
@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     from benchmarks.bm_sparse import GRIDS, bev_sites
     from lidarops.sparse import SparseConvTensor
     from lidarops.sparse import functional as Fs
-    from tools.bench_conv_algos import use_algo
+    from benchmarks.profile.conv_algos import use_algo
     dev = torch.device("cuda")
     shape, n = GRIDS[a.grid]
     idx = bev_sites(shape, n).to(dev)

@@ -1,6 +1,6 @@
 """Where an SSCATeR step spends its time: torch.profiler over steps of the drone_bridge stream.
 
-    python tools/profile_sscater.py [--device cuda] [--steps 20] [--scenario drone_bridge]
+    python benchmarks/profile/sscater.py [--device cuda] [--steps 20] [--scenario drone_bridge]
 
 Prints the top ops by self device time and by self CPU time, the host-device synchronisations, and
 the per-layer times of one profiled step (``SSCATeRPointPillars(profile=True)``).
@@ -12,7 +12,7 @@ import statistics
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 

@@ -1,7 +1,7 @@
 """Where do the host synchronisations of a step happen? (CUDA only.)
 
-    python tools/sync_audit.py                 # SSCATeR step on drone_bridge + sparse PointPillars (maps cached)
-    python tools/sync_audit.py --steps 20
+    python benchmarks/profile/sync_audit.py       # SSCATeR step on drone_bridge + sparse PointPillars (maps cached)
+    python benchmarks/profile/sync_audit.py --steps 20
 
 Runs the calls under ``torch.cuda.set_sync_debug_mode("warn")`` and prints, per Python source line,
 how many synchronising CUDA calls it made per step (``.item()``, ``.tolist()``, ``nonzero``, blocking
@@ -15,7 +15,7 @@ import sys
 import warnings
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch
 
@@ -30,7 +30,7 @@ def audit(fn, calls: int, title: str) -> None:
                 fn(i)
         finally:
             torch.cuda.set_sync_debug_mode("default")
-    root = str(Path(__file__).resolve().parents[1]) + "/"
+    root = str(Path(__file__).resolve().parents[2]) + "/"
     for w in caught:
         if "synchroniz" in str(w.message):
             seen[f"{w.filename.replace(root, '')}:{w.lineno}"] += 1

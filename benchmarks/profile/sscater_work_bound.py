@@ -1,7 +1,7 @@
 """How much faster than a full recomputation can SSCATeR be on a stream? The bound set by the work.
 
-    python tools/sscater_work_bound.py                         # drone_bridge, 30 steps, CPU
-    python tools/sscater_work_bound.py --steps 60 --relu-zeros 0.5 --scenario driving_city
+    python benchmarks/profile/sscater_work_bound.py       # drone_bridge, 30 steps, CPU
+    python benchmarks/profile/sscater_work_bound.py --steps 60 --relu-zeros 0.5 --scenario driving_city
 
 Runs the recycling backbone of ``benchmarks/bm_sscater.py`` (same seeded weights, BatchNorm calibrated
 to the same share of ReLU zeros) and counts, per convolution and step, the multiply-adds:
@@ -21,7 +21,7 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402

@@ -1,0 +1,617 @@
+"""The simulator's scenario presets: ``driving_city``, ``driving_highway``, ``drone_bridge`` and
+``drone_lock``, built from the primitives of :mod:`lidarops.data.scene` (NumPy only).
+
+Each preset is a pure function of its seed: object counts (:func:`sample_object_counts`), object
+placement in lanes or flight regions, the static structure of each tile along x (buildings, poles,
+vegetation, bridges, water) and the ego motion. :func:`build_scenario` builds one by name.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from lidarops.data._checks import integer, real
+from lidarops.data.frame import CLASSES
+from lidarops.data.scene import (
+    CLASS_REFLECTIVITY,
+    CLASS_SIZE_STATS,
+    SURFACE_OBJECT,
+    SURFACE_POLE,
+    SURFACE_STRUCTURE,
+    BoxSet,
+    EgoMotion,
+    Ground,
+    MaterialFn,
+    Scenario,
+    StaticPrimitives,
+    _rng,
+    _StaticBuilder,
+    _uniform_material,
+)
+
+__all__ = ["SCENARIOS", "MAX_OBJECTS", "build_scenario", "sample_object_counts"]
+
+
+# ---------------------------------------------------------------------------------------------
+# object counts and placement
+# ---------------------------------------------------------------------------------------------
+CountSpec = "int | tuple[int, int] | Callable[[np.random.Generator], int]"
+
+#: Most objects of one class a scene can be asked for (placement tries every one of them).
+MAX_OBJECTS = 1000
+
+
+def sample_object_counts(
+    rng: np.random.Generator,
+    defaults: Mapping[str, object],
+    object_counts: "Mapping[str, object] | Callable[[np.random.Generator], Mapping[str, int]] | str | None",
+) -> dict[str, int]:
+    """Draws how many objects of each class a scene gets.
+
+    Args:
+        rng (Generator): random generator.
+        defaults (mapping class -> spec): the scenario's defaults.
+        object_counts: ``None`` (the defaults), ``"empty"`` (no objects), ``"dense"`` (30-45 cars in
+            driving scenes, 3 drones in drone scenes), a mapping from class name to a spec, or a callable
+            ``rng -> mapping`` whose result is used as the mapping.  A spec is an ``int``, an inclusive
+            ``(low, high)`` range drawn uniformly, or a callable ``rng -> int``.  Classes missing from a
+            mapping keep their default spec.
+
+    Returns:
+        dict[str, int]: a count for every class of :data:`CLASSES`.
+
+    Raises:
+        ValueError: an unknown class name or preset, or a count that is not an int in [0, MAX_OBJECTS]
+            (bools and floats are refused, not truncated).
+    """
+    specs: dict[str, object] = {name: 0 for name in CLASSES}
+    specs.update(defaults)
+    if isinstance(object_counts, str):
+        if object_counts == "empty":
+            specs = {name: 0 for name in CLASSES}
+        elif object_counts == "dense":
+            if specs.get("Drone", 0) and not specs.get("Car", 0):
+                specs["Drone"] = 3
+            else:
+                specs["Car"] = (30, 45)
+        else:
+            raise ValueError(f"unknown object_counts preset {object_counts!r} (use 'empty', 'dense' or a dict)")
+    elif callable(object_counts):
+        specs.update(dict(object_counts(rng)))
+    elif object_counts is not None:
+        specs.update(dict(object_counts))
+    counts: dict[str, int] = {}
+    for name in CLASSES:
+        spec = specs.get(name, 0)
+        what = f"object_counts[{name!r}]"
+        if callable(spec):
+            n = integer(spec(rng), f"the count returned for {what}", 0, MAX_OBJECTS)
+        elif isinstance(spec, (tuple, list)):
+            if len(spec) != 2:
+                raise ValueError(f"{what} must be an int or a (low, high) pair, got {spec!r}")
+            lo, hi = integer(spec[0], f"{what} low", 0, MAX_OBJECTS), integer(spec[1], f"{what} high", 0, MAX_OBJECTS)
+            if hi < lo:
+                raise ValueError(f"{what} must be (low, high) with low <= high, got {spec!r}")
+            n = int(rng.integers(lo, hi + 1))
+        else:
+            n = integer(spec, what, 0, MAX_OBJECTS)
+        counts[name] = n
+    unknown = set(specs) - set(CLASSES)
+    if unknown:
+        raise ValueError(f"unknown class name(s) in object_counts: {sorted(unknown)}; classes are {CLASSES}")
+    return counts
+
+
+def _ego_speed(value) -> float:
+    # forward along the road, at most 100 m/s (360 km/h): a NaN or huge speed would move every tile away
+    return real(value, "ego_speed", 0, 100, unit=" m/s")
+
+
+def _sample_size(rng: np.random.Generator, name: str) -> np.ndarray:
+    mean, std = CLASS_SIZE_STATS[name]
+    z = np.clip(rng.normal(size=3), -2.0, 2.0)
+    return np.maximum(np.asarray(mean) + z * np.asarray(std), 0.1)
+
+
+@dataclass
+class Lane:
+    """A 1D slot along x where objects of some classes drive (or stand) at one common speed, so they
+    never run into each other.
+
+    Attributes:
+        y (float): lateral position of the lane centre.
+        heading (float): yaw of objects in the lane (0 = +x, pi = -x).
+        speed (float): speed along the heading (m/s, >= 0).
+        x_range (tuple[float, float]): where objects may start.
+        classes (tuple[str, ...]): classes allowed.
+        gap (float): minimum free space between objects (m).
+        jitter (float): lateral jitter (m).
+    """
+
+    y: float
+    heading: float
+    speed: float
+    x_range: tuple[float, float]
+    classes: tuple[str, ...]
+    gap: float = 2.0
+    jitter: float = 0.15
+
+
+@dataclass
+class _Placed:
+    center: list = field(default_factory=list)
+    half: list = field(default_factory=list)
+    yaw: list = field(default_factory=list)
+    velocity: list = field(default_factory=list)
+    yaw_rate: list = field(default_factory=list)
+    refl: list = field(default_factory=list)
+    label: list = field(default_factory=list)
+
+    def add(self, name, center, size, yaw, velocity, yaw_rate, rng) -> None:
+        self.center.append(center)
+        self.half.append(np.asarray(size) / 2)
+        self.yaw.append(yaw)
+        self.velocity.append(velocity)
+        self.yaw_rate.append(yaw_rate)
+        lo, hi = CLASS_REFLECTIVITY[name]
+        self.refl.append(rng.uniform(lo, hi))
+        self.label.append(CLASSES.index(name))
+
+    def build(self) -> tuple[BoxSet, np.ndarray]:
+        k = len(self.center)
+        if k == 0:
+            return BoxSet.empty(), np.zeros(0, np.int64)
+        boxes = BoxSet(
+            np.asarray(self.center, np.float64).reshape(k, 3),
+            np.asarray(self.half, np.float64).reshape(k, 3),
+            np.asarray(self.yaw, np.float64),
+            np.asarray(self.velocity, np.float64).reshape(k, 3),
+            np.asarray(self.yaw_rate, np.float64),
+            np.asarray(self.refl, np.float64),
+            np.full(k, SURFACE_OBJECT, np.uint8),
+            np.arange(k, dtype=np.int32),
+        )
+        return boxes, np.asarray(self.label, np.int64)
+
+
+_PLACEMENT_ORDER = ("Bus", "Truck", "Car", "Cyclist", "Pedestrian", "Barrier", "TrafficCone")
+
+
+def _place_in_lanes(rng: np.random.Generator, ground: Ground, lanes: Sequence[Lane], counts: Mapping[str, int],
+                    placed: _Placed, reserved: Sequence[tuple[int, float, float]] = ()) -> dict[str, int]:
+    """Places ground objects into lanes without overlaps; returns how many of each class fit."""
+    occupied: list[list[tuple[float, float]]] = [[] for _ in lanes]
+    for lane_index, lo, hi in reserved:
+        occupied[lane_index].append((lo, hi))
+    done: dict[str, int] = {name: 0 for name in CLASSES}
+    for name in _PLACEMENT_ORDER:
+        want = counts.get(name, 0)
+        allowed = [i for i, lane in enumerate(lanes) if name in lane.classes]
+        n_ok = 0
+        if want and allowed:
+            weights = np.array([lanes[i].x_range[1] - lanes[i].x_range[0] for i in allowed], dtype=np.float64)
+            weights /= weights.sum()
+            for _ in range(want):
+                for _attempt in range(60):
+                    li = allowed[int(rng.choice(len(allowed), p=weights))]
+                    lane = lanes[li]
+                    size = _sample_size(rng, name)
+                    x = rng.uniform(*lane.x_range)
+                    half_len = size[0] / 2 + lane.gap / 2
+                    if any(x - half_len < b and a < x + half_len for a, b in occupied[li]):
+                        continue
+                    occupied[li].append((x - half_len, x + half_len))
+                    y = lane.y + rng.uniform(-lane.jitter, lane.jitter)
+                    yaw = lane.heading + rng.normal(0, 0.02 if lane.speed > 0 else 0.05)
+                    vx = lane.speed * np.cos(lane.heading)
+                    vy = lane.speed * np.sin(lane.heading)
+                    z = float(ground.height(np.array([x]), np.array([y]))[0]) + size[2] / 2
+                    vz = ground.slope[0] * vx + ground.slope[1] * vy  # follow the mean slope
+                    placed.add(name, (x, y, z), size, yaw, (vx, vy, vz), 0.0, rng)
+                    n_ok += 1
+                    break
+        done[name] = n_ok
+    return done
+
+
+def _place_drones(rng: np.random.Generator, n: int, region: tuple[tuple[float, float], ...], speed: tuple[float, float],
+                  placed: _Placed, avoid: Sequence[np.ndarray] = ()) -> int:
+    """Drones at random 3D positions (at least 3 m apart), flying with random 3D velocity and yaw rate."""
+    centers: list[np.ndarray] = [np.asarray(a, dtype=np.float64) for a in avoid]
+    n_ok = 0
+    for _ in range(n):
+        for _attempt in range(60):
+            c = np.array([rng.uniform(*region[0]), rng.uniform(*region[1]), rng.uniform(*region[2])])
+            if any(np.linalg.norm(c - o) < 3.0 for o in centers):
+                continue
+            centers.append(c)
+            heading = rng.uniform(-np.pi, np.pi)
+            climb = rng.uniform(-0.3, 0.3)
+            v = rng.uniform(*speed) * np.array([np.cos(heading) * np.cos(climb), np.sin(heading) * np.cos(climb),
+                                                 np.sin(climb)])
+            placed.add("Drone", c, _sample_size(rng, "Drone"), rng.uniform(-np.pi, np.pi), v, rng.uniform(-0.8, 0.8), rng)
+            n_ok += 1
+            break
+    return n_ok
+
+
+# ---------------------------------------------------------------------------------------------
+# driving_city
+# ---------------------------------------------------------------------------------------------
+def _city_material(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ay = np.abs(y)
+    refl = np.where(ay < 10.7, 0.12, 0.28)  # asphalt road, concrete sidewalk
+    dashed = (np.abs(ay - 3.5) < 0.075) & (np.mod(x, 9.0) < 3.0)  # lane dividers
+    solid = (ay < 0.15) | (np.abs(ay - 7.0) < 0.075)  # centre line and bike-lane lines
+    refl = np.where(dashed | solid, 0.6, refl)
+    return refl, np.zeros_like(refl)
+
+
+def _city_tile(ground: Ground, tile_length: float) -> Callable[[int, np.random.Generator], StaticPrimitives]:
+    def build(k: int, rng: np.random.Generator) -> StaticPrimitives:
+        b = _StaticBuilder(ground)
+        x0, x1 = k * tile_length, (k + 1) * tile_length
+        cross = None
+        if rng.random() < 0.3:  # a cross street in this tile
+            cx = rng.uniform(x0 + 10, x1 - 10)
+            cross = (cx - 8.0, cx + 8.0)
+        for side in (-1.0, 1.0):
+            # building facades from |y| = 16 outwards, alleys between them
+            x = x0 + rng.uniform(0, 3)
+            while x < x1 - 3:
+                length = min(rng.uniform(8, 30), x1 - x)
+                if cross and x < cross[1] and x + length > cross[0]:
+                    if x < cross[0] - 3:
+                        length = cross[0] - x
+                    else:
+                        x = cross[1] + rng.uniform(0, 2)
+                        continue
+                if length >= 3:
+                    depth = rng.uniform(8, 20)
+                    setback = rng.uniform(0, 2.0)
+                    b.box_on_ground(x + length / 2, side * (16 + setback + depth / 2), length, depth,
+                                    rng.uniform(6, 30), refl=rng.uniform(0.2, 0.45))
+                    if rng.random() < 0.4:  # hedge along the facade
+                        b.ellipsoid(x + length / 2, side * 15.2, float(ground.height(np.array([x]), np.array([side * 15.2]))[0]) + 0.5,
+                                    length / 2 * 0.9, 0.45, 0.75, refl=rng.uniform(0.4, 0.6), mean_free_path=0.25)
+                gap = rng.uniform(0.5, 5.0)
+                if gap > 2.5 and rng.random() < 0.6:  # fence closing the alley
+                    b.box_on_ground(x + length + gap / 2, side * 16.0, gap, 0.06, rng.uniform(1.2, 2.0),
+                                    refl=rng.uniform(0.2, 0.5), bury=0.1)
+                x += length + gap
+            # poles and trees along the curb
+            x = x0 + rng.uniform(0, 6)
+            while x < x1 - 1:
+                if not (cross and cross[0] - 1 < x < cross[1] + 1):
+                    r = rng.random()
+                    if r < 0.35:
+                        height = rng.uniform(5.0, 9.0)
+                        b.cylinder(x, side * 11.0, rng.uniform(0.1, 0.18), height, refl=rng.uniform(0.3, 0.6))
+                        if rng.random() < 0.7:  # lamp arm over the road
+                            g = float(ground.height(np.array([x]), np.array([side * 11.0]))[0])
+                            b.box(x, side * 9.9, g + height - 0.15, 0.25, 2.2, 0.18, refl=0.4, kind=SURFACE_POLE)
+                    elif r < 0.5:  # traffic sign
+                        b.cylinder(x, side * 11.0, 0.04, 2.2, refl=0.4)
+                        g = float(ground.height(np.array([x]), np.array([side * 11.0]))[0])
+                        b.box(x, side * 11.0, g + 2.5, 0.04, 0.7, 0.6, refl=0.9, kind=SURFACE_POLE)
+                    else:
+                        b.tree(rng, x, side * 11.2)
+                x += rng.uniform(6, 18)
+        return b.build()
+
+    return build
+
+
+def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, **unused) -> Scenario:
+    _no_unused(unused, "driving_city")
+    rng = _rng(seed, "driving_city", "scene")
+    ground = Ground.random(rng, material=_city_material)
+    speed = float(rng.uniform(3.0, 12.0)) if ego_speed is None else _ego_speed(ego_speed)
+    ego_y = -1.75
+    height = 1.73
+    g0 = float(ground.height(np.array([0.0]), np.array([ego_y]))[0])
+    ego = EgoMotion(np.array([0.0, ego_y, g0 + height]), np.array([speed, 0.0, speed * ground.slope[0]]))
+    defaults = {"Car": (8, 30), "Pedestrian": (2, 15), "Cyclist": (0, 5), "Truck": (0, 2), "Bus": (0, 2),
+                "Barrier": (0, 4), "TrafficCone": (0, 6)}
+    counts = sample_object_counts(rng, defaults, object_counts)
+    xr = (-50.0, 100.0)
+    lane_speed_fwd = rng.uniform(6, 13)
+    lane_speed_back = rng.uniform(6, 13), rng.uniform(6, 13)
+    bike = rng.uniform(3.5, 6.5, size=2)
+    walk = rng.uniform(1.0, 1.6, size=4)
+    vehicles = ("Car", "Truck", "Bus")
+    lanes = [
+        Lane(-1.75, 0.0, speed, xr, ("Car", "Truck"), gap=6.0),  # ego lane at the ego's speed
+        Lane(-5.25, 0.0, lane_speed_fwd, xr, vehicles, gap=6.0),
+        Lane(1.75, np.pi, lane_speed_back[0], xr, ("Car", "Truck"), gap=6.0),
+        Lane(5.25, np.pi, lane_speed_back[1], xr, vehicles, gap=6.0),
+        Lane(-7.75, 0.0, bike[0], xr, ("Cyclist",), gap=2.0, jitter=0.2),
+        Lane(7.75, np.pi, bike[1], xr, ("Cyclist",), gap=2.0, jitter=0.2),
+        Lane(-9.6, 0.0, 0.0, xr, ("Car", "Truck", "Bus", "Barrier", "TrafficCone"), gap=1.0, jitter=0.1),
+        Lane(9.6, np.pi, 0.0, xr, ("Car", "Truck", "Bus", "Barrier", "TrafficCone"), gap=1.0, jitter=0.1),
+    ]
+    for side, (w1, w2) in ((-1, walk[:2]), (1, walk[2:])):
+        lanes += [
+            Lane(side * 11.6, 0.0, w1, (-40.0, 70.0), ("Pedestrian",), gap=0.6, jitter=0.05),
+            Lane(side * 12.8, np.pi, w2, (-40.0, 70.0), ("Pedestrian",), gap=0.6, jitter=0.05),
+            Lane(side * 14.0, rng.choice([0.0, np.pi]), 0.0, (-40.0, 70.0), ("Pedestrian",), gap=0.4, jitter=0.1),
+        ]
+    placed = _Placed()
+    # the ego car occupies its lane around x = 0
+    done = _place_in_lanes(rng, ground, lanes, counts, placed, reserved=[(0, -3.5, 3.5)])
+    z0 = float(ground.z0)
+    done["Drone"] = _place_drones(rng, counts["Drone"], ((-30.0, 70.0), (-9.0, 9.0), (z0 + 6.0, z0 + 15.0)), (1.0, 8.0),
+                                  placed, avoid=[ego.position0])
+    objects, labels = placed.build()
+    tile_length = 40.0
+    return Scenario("driving_city", seed, "hdl64", ground, ego, objects, labels, 80.0, tile_length,
+                    _city_tile(ground, tile_length), done)
+
+
+# ---------------------------------------------------------------------------------------------
+# driving_highway
+# ---------------------------------------------------------------------------------------------
+def _highway_material(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    refl = np.where((y > -11.1) & (y < 14.1), 0.12, 0.35)  # asphalt; grass/gravel outside
+    lines = (np.abs(y + 3.7) < 0.08) | (np.abs(y + 7.4) < 0.08) | (np.abs(y - 6.7) < 0.08) | (np.abs(y - 10.4) < 0.08)
+    dashed = lines & (np.mod(x, 12.0) < 4.0)
+    edge = (np.abs(y + 11.1) < 0.1) | (np.abs(y - 14.1) < 0.1) | (np.abs(y - 0.9) < 0.08) | (np.abs(y - 2.1) < 0.08)
+    refl = np.where(dashed | edge, 0.6, refl)
+    return refl, np.zeros_like(refl)
+
+
+def _highway_tile(ground: Ground, tile_length: float) -> Callable[[int, np.random.Generator], StaticPrimitives]:
+    def build(k: int, rng: np.random.Generator) -> StaticPrimitives:
+        b = _StaticBuilder(ground)
+        x0, x1 = k * tile_length, (k + 1) * tile_length
+        xm = (x0 + x1) / 2
+        # median concrete wall, in two halves so it follows the slope
+        for xa in (x0, xm):
+            b.box_on_ground(xa + tile_length / 4, 1.5, tile_length / 2, 0.6, 0.9, refl=0.35, bury=0.3)
+        # guard rails on posts
+        for y_rail in (-13.0, 16.0):
+            for xa in (x0, xm):
+                b.box_on_ground(xa + tile_length / 4, y_rail, tile_length / 2, 0.08, 0.35, refl=0.45,
+                                lift=0.45, kind=SURFACE_STRUCTURE)
+            for xp in np.arange(x0 + 2.0, x1, 4.0):
+                b.cylinder(xp, y_rail + np.sign(y_rail) * 0.1, 0.06, 0.8, refl=0.4)
+        # lamp posts on the median wall
+        for xp in np.arange(x0 + rng.uniform(0, 20), x1, 40.0):
+            g = float(ground.height(np.array([xp]), np.array([1.5]))[0])
+            b.cylinder(xp, 1.5, 0.12, 9.0, refl=0.45, base=g + 0.5)
+        # embankment vegetation and trees
+        for side, y_lo in ((-1, 17.0), (1, 20.0)):
+            for _ in range(int(rng.integers(3, 9))):
+                x = rng.uniform(x0 + 2, x1 - 2)
+                y = side * rng.uniform(y_lo, y_lo + 15)
+                if rng.random() < 0.5:
+                    b.tree(rng, x, y)
+                else:
+                    g = float(ground.height(np.array([x]), np.array([y]))[0])
+                    r = rng.uniform(1.0, 2.5)
+                    b.ellipsoid(x, y, g + r * 0.4, r, r * rng.uniform(0.6, 1.4), r * 0.6, refl=rng.uniform(0.4, 0.6))
+        if rng.random() < 0.25:  # noise barrier wall
+            side_y = -20.0 if rng.random() < 0.5 else 24.0
+            b.box_on_ground(xm, side_y, tile_length * rng.uniform(0.4, 0.9), 0.3, rng.uniform(3.0, 5.0), refl=0.3)
+        if rng.random() < 0.15:  # overpass: deck, girders, pillars
+            xc = rng.uniform(x0 + 8, x1 - 8)
+            g = float(ground.height(np.array([xc]), np.array([0.0]))[0])
+            clearance = rng.uniform(5.2, 6.5)
+            b.box(xc, 2.5, g + clearance + 0.9 + 0.6, 12.0, 90.0, 1.2, refl=0.3)
+            for dx in (-4.5, -1.5, 1.5, 4.5):
+                b.box(xc + dx, 2.5, g + clearance + 0.45, 0.5, 90.0, 0.9, refl=0.35)
+            for yp in (-17.0, 1.5, 20.0):
+                for dx in (-3.0, 3.0):
+                    b.cylinder(xc + dx, yp, 0.7, clearance + 0.5, refl=0.3, kind=SURFACE_STRUCTURE)
+        elif rng.random() < 0.1:  # sign gantry
+            xc = rng.uniform(x0 + 5, x1 - 5)
+            g = float(ground.height(np.array([xc]), np.array([0.0]))[0])
+            for yp in (-12.5, 15.5):
+                b.cylinder(xc, yp, 0.25, 7.0, refl=0.4)
+            b.box(xc, 1.5, g + 6.8, 0.4, 28.5, 0.4, refl=0.45, kind=SURFACE_POLE)
+            b.box(xc + 0.25, -6.0, g + 5.6, 0.05, 7.0, 2.0, refl=0.85, kind=SURFACE_POLE)
+        return b.build()
+
+    return build
+
+
+def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = None, **unused) -> Scenario:
+    _no_unused(unused, "driving_highway")
+    rng = _rng(seed, "driving_highway", "scene")
+    ground = Ground.random(rng, max_slope=0.02, roughness=0.02, material=_highway_material)
+    speeds = rng.uniform([24.0, 27.0, 30.0], [26.0, 30.0, 34.0])  # right, middle, left lane
+    speed = float(speeds[1]) if ego_speed is None else _ego_speed(ego_speed)
+    ego_y = -5.55
+    g0 = float(ground.height(np.array([0.0]), np.array([ego_y]))[0])
+    ego = EgoMotion(np.array([0.0, ego_y, g0 + 1.73]), np.array([speed, 0.0, speed * ground.slope[0]]))
+    defaults = {"Car": (10, 30), "Truck": (2, 8), "Bus": (0, 2), "Barrier": (0, 8), "TrafficCone": (0, 10)}
+    counts = sample_object_counts(rng, defaults, object_counts)
+    xr = (-80.0, 150.0)
+    back = rng.uniform([22.0, 26.0, 29.0], [25.0, 29.0, 34.0])
+    lanes = [
+        Lane(-9.25, 0.0, speeds[0], xr, ("Car", "Truck", "Bus"), gap=10.0),
+        Lane(-5.55, 0.0, speed, xr, ("Car", "Truck", "Bus"), gap=12.0),
+        Lane(-1.85, 0.0, speeds[2], xr, ("Car",), gap=12.0),
+        Lane(4.85, np.pi, back[2], xr, ("Car",), gap=12.0),
+        Lane(8.55, np.pi, back[1], xr, ("Car", "Truck", "Bus"), gap=12.0),
+        Lane(12.25, np.pi, back[0], xr, ("Car", "Truck", "Bus"), gap=10.0),
+        Lane(-12.1, 0.0, 0.0, (-40.0, 120.0), ("Barrier", "TrafficCone"), gap=0.8, jitter=0.1),
+    ]
+    placed = _Placed()
+    done = _place_in_lanes(rng, ground, lanes, counts, placed, reserved=[(1, -3.5, 3.5)])
+    z0 = float(ground.z0)
+    done["Drone"] = _place_drones(rng, counts["Drone"], ((-30.0, 100.0), (-12.0, 15.0), (z0 + 8.0, z0 + 18.0)),
+                                  (5.0, 20.0), placed, avoid=[ego.position0])
+    objects, labels = placed.build()
+    tile_length = 50.0
+    return Scenario("driving_highway", seed, "hdl64", ground, ego, objects, labels, 100.0, tile_length,
+                    _highway_tile(ground, tile_length), done)
+
+
+# ---------------------------------------------------------------------------------------------
+# drone_bridge
+# ---------------------------------------------------------------------------------------------
+def _water_material(reflectivity: float = 0.05, dropout: float = 0.85) -> MaterialFn:
+    return _uniform_material(reflectivity, dropout)
+
+
+def _single_tile(build_static: Callable[[np.random.Generator], StaticPrimitives]) -> Callable[[int, np.random.Generator], StaticPrimitives]:
+    def build(k: int, rng: np.random.Generator) -> StaticPrimitives:
+        return build_static(rng) if k == 0 else StaticPrimitives()
+
+    return build
+
+
+def _drone_bridge(seed: int, object_counts=None, **unused) -> Scenario:
+    _no_unused(unused, "drone_bridge")
+    rng = _rng(seed, "drone_bridge", "scene")
+    ground = Ground(0.0, np.zeros(2), np.array([0.02, 0.01]), np.array([[0.9, 0.3], [-0.4, 1.7]]),
+                    rng.uniform(0, 2 * np.pi, 2), _water_material())
+    bridge_x = rng.uniform(48.0, 62.0)
+    deck_top = rng.uniform(11.0, 13.0)
+    ego_z = deck_top - rng.uniform(1.5, 4.5)
+    ego = EgoMotion.hover(rng, (0.0, rng.uniform(-3, 3), ego_z), yaw=rng.normal(0, 0.05))
+    bank = rng.uniform(28.0, 36.0)
+
+    def static(rng: np.random.Generator) -> StaticPrimitives:
+        b = _StaticBuilder(ground)
+        bank_top = 2.5
+        for side in (-1, 1):  # river banks / quays: big boxes whose tops are the land
+            b.box(100.0, side * (bank + 85.0), (bank_top - 4.0) / 2, 300.0, 170.0, bank_top + 4.0, refl=0.3, piece=30.0)
+        # deck, girders, railings, lamp posts
+        deck_w = rng.uniform(10.0, 14.0)
+        span = 2 * bank + 120.0
+        b.box(bridge_x, 0.0, deck_top - 0.6, deck_w, span, 1.2, refl=0.3)
+        for gx in np.linspace(bridge_x - deck_w / 2 + 0.8, bridge_x + deck_w / 2 - 0.8, 4):
+            b.box(gx, 0.0, deck_top - 1.2 - 0.8, 0.5, span, 1.6, refl=0.35)
+        for rx in (bridge_x - deck_w / 2 + 0.05, bridge_x + deck_w / 2 - 0.05):
+            b.box(rx, 0.0, deck_top + 0.55, 0.1, span, 1.1, refl=0.45)
+            for yl in np.arange(-span / 2 + 5, span / 2, 25.0):
+                b.cylinder(rx, yl, 0.1, 7.0, refl=0.4, base=deck_top)
+        # pillars in the water and on the banks
+        for yp in (-bank + 4.0, -bank / 3, bank / 3, bank - 4.0):
+            for dx in (-deck_w / 4, deck_w / 4):
+                b.cylinder(bridge_x + dx, yp, rng.uniform(0.8, 1.2), deck_top - 2.0 + 2.0, refl=0.3,
+                           kind=SURFACE_STRUCTURE, base=-2.0)
+        # an arch over the deck (Tyne-bridge-like), in steps, with hangers
+        arch_h = rng.uniform(15.0, 25.0)
+        n_seg = 24
+        ys = np.linspace(-bank - 10, bank + 10, n_seg + 1)
+        for xa in (bridge_x - deck_w / 2 - 0.6, bridge_x + deck_w / 2 + 0.6):
+            for y_a, y_b in zip(ys[:-1], ys[1:]):
+                ym = (y_a + y_b) / 2
+                h = arch_h * (1.0 - (ym / (bank + 10)) ** 2)
+                b.box(xa, ym, deck_top - 1.5 + h, 1.0, y_b - y_a, 1.2, refl=0.35)
+                if abs(ym) < bank and h > 3.0:
+                    b.cylinder(xa, ym, 0.08, h - 1.5, refl=0.4, base=deck_top)
+        # trees and buildings on the banks
+        for _ in range(int(rng.integers(10, 25))):
+            side = rng.choice([-1, 1])
+            x, y = rng.uniform(-10, 150), side * rng.uniform(bank + 3, bank + 40)
+            if abs(x - bridge_x) < deck_w:
+                continue
+            b.cylinder(x, y, rng.uniform(0.15, 0.3), rng.uniform(2.5, 4.0), refl=0.3, base=bank_top - 0.2)
+            r = rng.uniform(1.5, 3.5)
+            b.ellipsoid(x, y, bank_top + 3.0 + r * 0.8, r, r, r * 1.1, refl=rng.uniform(0.4, 0.6))
+        for _ in range(int(rng.integers(4, 10))):
+            side = rng.choice([-1, 1])
+            x, y = rng.uniform(20, 200), side * rng.uniform(bank + 45, bank + 100)
+            h = rng.uniform(8, 35)
+            b.box(x, y, bank_top + (h - 1) / 2, rng.uniform(10, 30), rng.uniform(10, 25), h + 1, refl=rng.uniform(0.2, 0.45))
+        return b.build()
+
+    counts = sample_object_counts(rng, {"Drone": (1, 3)}, object_counts)
+    placed = _Placed()
+    n = _place_drones(rng, counts["Drone"], ((10.0, bridge_x - 8.0), (-20.0, 20.0), (ego_z - 5.0, ego_z + 6.0)),
+                      (0.5, 4.0), placed, avoid=[ego.position0])
+    objects, labels = placed.build()
+    done = {name: 0 for name in CLASSES}
+    done["Drone"] = n
+    return Scenario("drone_bridge", seed, "avia", ground, ego, objects, labels, 120.0, 1e4, _single_tile(static), done)
+
+
+# ---------------------------------------------------------------------------------------------
+# drone_lock
+# ---------------------------------------------------------------------------------------------
+def _drone_lock(seed: int, object_counts=None, **unused) -> Scenario:
+    _no_unused(unused, "drone_lock")
+    rng = _rng(seed, "drone_lock", "scene")
+    ground = Ground(0.0, np.zeros(2), np.array([0.015]), np.array([[1.1, 0.4]]), rng.uniform(0, 2 * np.pi, 1),
+                    _water_material(0.05, 0.8))
+    half_width = rng.uniform(5.0, 7.0)
+    wall_top = rng.uniform(6.0, 9.0)
+    gate_x = rng.uniform(50.0, 75.0)
+    ego = EgoMotion.hover(rng, (0.0, rng.uniform(-1.0, 1.0), rng.uniform(2.5, 4.5)), yaw=rng.normal(0, 0.03))
+
+    def static(rng: np.random.Generator) -> StaticPrimitives:
+        b = _StaticBuilder(ground)
+        for side in (-1, 1):
+            # lock wall + quay as one block whose inner face is the wall
+            b.box(55.0, side * (half_width + 30.0), (wall_top - 5.0) / 2, 200.0, 60.0, wall_top + 5.0, refl=0.35,
+                  piece=20.0)
+            for xl in np.arange(-40.0 + rng.uniform(0, 15), 150.0, 15.0):  # ladders
+                b.box(xl, side * (half_width - 0.1), wall_top / 2 - 1.0, 0.5, 0.2, wall_top + 2.0, refl=0.5,
+                      kind=SURFACE_POLE)
+            for xl in np.arange(-40.0, 150.0, 10.0):  # bollards and railing posts
+                b.cylinder(xl, side * (half_width + 0.6), 0.25, 0.6, refl=0.4, base=wall_top)
+                b.cylinder(xl + 5.0, side * (half_width + 1.5), 0.04, 1.1, refl=0.45, base=wall_top)
+            b.box(55.0, side * (half_width + 1.5), wall_top + 1.05, 190.0, 0.05, 0.08, refl=0.5)
+            # a hut and trees on the quay
+            b.box(gate_x + rng.uniform(-8, 8), side * (half_width + rng.uniform(8, 14)), wall_top + 1.5,
+                  rng.uniform(4, 8), rng.uniform(3, 6), 3.0, refl=0.3)
+            for _ in range(int(rng.integers(2, 6))):
+                x, y = rng.uniform(10, 120), side * rng.uniform(half_width + 5, half_width + 25)
+                b.cylinder(x, y, 0.2, 3.0, refl=0.3, base=wall_top - 0.2)
+                r = rng.uniform(1.5, 3.0)
+                b.ellipsoid(x, y, wall_top + 2.8 + r * 0.8, r, r, r * 1.1, refl=rng.uniform(0.4, 0.6))
+        # gates: the closed downstream gate ahead, the upstream one behind
+        b.box(gate_x, 0.0, (wall_top + 1.0 - 3.0) / 2, 1.0, 2 * half_width, wall_top + 4.0, refl=0.3)
+        b.box(gate_x + 0.3, 0.0, wall_top + 0.9, 0.1, 2 * half_width, 1.0, refl=0.5)  # walkway rail
+        b.box(-25.0, 0.0, (wall_top + 1.0 - 3.0) / 2, 1.0, 2 * half_width, wall_top + 4.0, refl=0.3)
+        return b.build()
+
+    counts = sample_object_counts(rng, {"Drone": (0, 2)}, object_counts)
+    placed = _Placed()
+    n = _place_drones(rng, counts["Drone"], ((8.0, gate_x - 6.0), (-half_width + 1.5, half_width - 1.5), (1.5, wall_top)),
+                      (0.3, 2.5), placed, avoid=[ego.position0])
+    objects, labels = placed.build()
+    done = {name: 0 for name in CLASSES}
+    done["Drone"] = n
+    return Scenario("drone_lock", seed, "avia", ground, ego, objects, labels, 100.0, 1e4, _single_tile(static), done)
+
+
+def _no_unused(unused: dict, name: str) -> None:
+    if unused:
+        raise TypeError(f"scenario {name!r} got unexpected option(s) {sorted(unused)}")
+
+
+#: Scenario builders by name: ``builder(seed, object_counts=None, **options) -> Scenario``.
+SCENARIOS: dict[str, Callable[..., Scenario]] = {
+    "driving_city": _driving_city,
+    "driving_highway": _driving_highway,
+    "drone_bridge": _drone_bridge,
+    "drone_lock": _drone_lock,
+}
+
+
+def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> Scenario:
+    """Builds a scenario preset.
+
+    Args:
+        name (str): one of :data:`SCENARIOS`.
+        seed (int): random seed.
+        object_counts: see :func:`sample_object_counts`.
+        **options: scenario options (``ego_speed`` for the driving scenarios).
+
+    Returns:
+        Scenario.
+
+    Raises:
+        ValueError: unknown scenario name, a seed that is not an int >= 0, an ``ego_speed`` that is not
+            a finite number in [0, 100] m/s.
+    """
+    if not isinstance(name, str) or name not in SCENARIOS:
+        raise ValueError(f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)}")
+    return SCENARIOS[name](integer(seed, "seed", 0), object_counts=object_counts, **options)

@@ -1,0 +1,168 @@
+"""The benchmark machinery (benchmarks/common.py) and the benchmarks' result rows, on CPU: run counts that a
+slow first call cannot cut short, result files that merge and keep errors, errors reported instead of blanked."""
+from __future__ import annotations
+
+import json
+import sys
+import time
+import types
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks import common  # noqa: E402
+
+
+class SlowFirstCall:
+    """A function whose first (cold) call sleeps ``first_s``; the later ones return at once."""
+
+    def __init__(self, first_s: float):
+        self.first_s, self.calls = first_s, 0
+
+    def __call__(self):
+        self.calls += 1
+        if self.calls == 1:
+            time.sleep(self.first_s)
+
+
+KW = dict(min_runs=3, max_runs=12, budget_s=0.05, slow_single_s=2.0)
+
+
+def test_time_cpu_run_count_does_not_depend_on_a_slow_first_call():
+    warm = common.time_cpu(SlowFirstCall(0.0), (), **KW)
+    cold = common.time_cpu(SlowFirstCall(0.3), (), **KW)
+    assert warm.runs == KW["max_runs"]
+    assert cold.runs == warm.runs, f"a slow first call cut the runs to {cold.runs}"
+    assert max(cold.times_ms) < 300, "the cold call must not be among the timed runs"
+
+
+def test_time_call_on_cpu_run_count_does_not_depend_on_a_slow_first_call():
+    t = common.time_call(SlowFirstCall(0.3), (), "cpu", **KW)
+    assert t.runs == KW["max_runs"]
+
+
+def test_time_cpu_interleaved_gives_every_implementation_the_same_runs():
+    fast, cold = SlowFirstCall(0.0), SlowFirstCall(0.3)
+    timings = common.time_cpu_interleaved([(fast, ()), (cold, ())], **KW)
+    assert [t.runs for t in timings] == [KW["max_runs"]] * 2
+    assert fast.calls == cold.calls  # the same warm-up and run count
+
+
+def test_time_cpu_interleaved_reports_an_error_in_place_of_a_timing():
+    def boom():
+        raise RuntimeError("not implemented for this device")
+
+    timings = common.time_cpu_interleaved([(SlowFirstCall(0.0), ()), (boom, ())], **KW)
+    assert isinstance(timings[0], common.Timing) and timings[0].runs == KW["max_runs"]
+    assert isinstance(timings[1], RuntimeError)
+
+
+def test_a_warm_call_slower_than_slow_single_counts_alone():
+    t = common.time_cpu(lambda: time.sleep(0.02), (), min_runs=3, max_runs=10, budget_s=1.0, slow_single_s=0.01)
+    assert t.runs == 1
+
+
+def test_run_count_floor_and_ceiling():
+    assert common._run_count(10.0, 3, 30, 1.0) == 3
+    assert common._run_count(1e-9, 3, 30, 1.0) == 30
+    assert common._run_count(0.1, 3, 30, 1.0) == 10
+
+
+def test_write_results_merges_sections_and_keeps_errors(tmp_path):
+    meta = {"device": "test cpu", "commit": "abc"}
+    rows = [{"op": "a", "median_ms": 1.0, "status": "ok"},
+            {"op": "b", "median_ms": None, "status": "error: RuntimeError: strided layers fail"}]
+    path = common.write_results("one", "cpu", rows, meta, results_dir=tmp_path)
+    assert path.parent == tmp_path
+    common.write_results("two", "cpu", [{"op": "x", "median_ms": 2.0, "status": "ok"}], meta, results_dir=tmp_path)
+    # a rerun of op "a" only: the row of op "b" (an error) stays
+    common.write_results("one", "cpu", [{"op": "a", "median_ms": 0.5, "status": "ok"}], {"commit": "def"},
+                         results_dir=tmp_path)
+    data = json.loads(path.read_text())
+    assert set(data["sections"]) == {"one", "two"}
+    one = {r["op"]: r for r in data["sections"]["one"]["rows"]}
+    assert one["a"]["median_ms"] == 0.5 and one["a"]["commit"] == "def"
+    assert one["b"]["status"].startswith("error: RuntimeError") and one["b"]["commit"] == "abc"
+    assert data["sections"]["two"]["rows"][0]["median_ms"] == 2.0
+
+
+def test_results_dir_from_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv("LIDAROPS_RESULTS_DIR", str(tmp_path))
+    assert common.results_path("cpu").parent == tmp_path
+
+
+def test_bm_voxelize_quick_cpu_writes_result_rows(tmp_path, capsys):
+    from benchmarks import bm_voxelize
+
+    assert bm_voxelize.main(["--device", "cpu", "--quick", "--points", "3000", "--json",
+                             "--results-dir", str(tmp_path)]) == 0
+    files = list(tmp_path.glob("*.json"))
+    assert [f.name for f in files] == [common.results_path("cpu").name]
+    data = json.loads(files[0].read_text())
+    section = data["sections"]["voxelize"]
+    assert section["meta"]["device_type"] == "cpu" and section["meta"]["points"] == 3000
+    rows = section["rows"]
+    impls = {r["impl"] for r in rows}
+    assert {"lidarops.voxelize", "pure PyTorch", "lidarops PointToVoxel (compat face)"} <= impls
+    for r in rows:
+        assert r["status"] == "ok", r
+        assert r["median_ms"] > 0 and r["runs"] >= 3
+    # every implementation of a config gets the same run count (interleaved timing)
+    for config in {r["config"] for r in rows}:
+        assert len({r["runs"] for r in rows if r["config"] == config}) == 1
+    assert all(r["same_as_lidarops"] for r in rows if r["impl"] == "pure PyTorch")
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_bm_sparse_reports_errors_instead_of_blank_cells():
+    from benchmarks import bm_sparse
+
+    def boom(*_, **__):
+        raise RuntimeError("spconv: stride 2 is not supported here\nmore lines")
+
+    t = bm_sparse._try(boom, (), "cpu")
+    assert t == "error: RuntimeError: spconv: stride 2 is not supported here"
+    assert bm_sparse._cell(t) == "error"
+    assert bm_sparse._row(t) == {"status": t, "median_ms": None}
+    assert bm_sparse._cell(None) == "-" and bm_sparse._row(None) is None
+
+    # a peer whose strided layer cannot even be built: the error, not None
+    broken = types.SimpleNamespace(SparseConv2d=boom, SubMConv2d=boom)
+    idx = bm_sparse.bev_sites((32, 32), 50)
+    x = bm_sparse.SparseConvTensor(torch.randn(idx.shape[0], 4), idx, [32, 32], 1)
+    status = bm_sparse._module_layer_time(broken, "conv", x, torch.randn(4, 3, 3, 4), "cpu")
+    assert isinstance(status, str) and status.startswith("error: RuntimeError")
+
+
+@pytest.mark.parametrize("kind", ["subm", "conv"])
+def test_bm_sparse_lidarops_module_row_is_timed(kind):
+    from benchmarks import bm_sparse
+
+    idx = bm_sparse.bev_sites((32, 32), 50)
+    x = bm_sparse.SparseConvTensor(torch.randn(idx.shape[0], 4), idx, [32, 32], 1)
+    t = bm_sparse._module_layer_time(bm_sparse.lspconv, kind, x, torch.randn(4, 3, 3, 4), "cpu")
+    assert isinstance(t, common.Timing) and t.median > 0
+
+
+def test_report_reads_every_section_and_shows_errors(tmp_path):
+    from benchmarks import report
+
+    meta = {"device": "test cpu", "device_type": "cpu", "commit": "abc"}
+    common.write_results("sparse", "cpu", [
+        {"section": "layer", "op": "layer/x", "grid": "drone", "lidarops": {"median_ms": 0.5},
+         "spconv": {"status": "error: RuntimeError: strided", "median_ms": None}, "dense_cudnn": None}],
+        meta, results_dir=tmp_path)
+    common.write_results("voxelize", "cpu", [
+        {"op": "p/a", "config": "p", "impl": "a", "status": "ok", "median_ms": 1.5, "ratio": 1.0},
+        {"op": "p/b", "config": "p", "impl": "b", "status": "error: ValueError: no", "median_ms": None}],
+        meta, results_dir=tmp_path)
+    assert report.sections_in(tmp_path) == ["sparse", "voxelize"]
+    text = report.section_markdown("sparse", report.load(tmp_path, "sparse"))
+    assert "| drone | 0.500 | error |" in text
+    text = report.section_markdown("voxelize", report.load(tmp_path, "voxelize"))
+    assert "| p | a | ok | 1.50 | 1.0x |" in text and "| p | b | error: ValueError: no | error |" in text
