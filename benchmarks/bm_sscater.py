@@ -17,11 +17,14 @@ Sections (``--only``):
   Cin in {16, 32, 64, 128} x Cout in {8, 16, 32, 64, 128}; SSCATeR's update for one step's changed
   sites against the full sparse layer (kernel map cached) and the dense layer (cuDNN).
 
-No trained checkpoint exists, so the weights are seeded random ones whose BatchNorm shifts are
-calibrated on the first window to unit spread, and so that a chosen share of each layer's
-pre-activations is negative
-(``--relu-zeros``, default 0.5): a trained network's ReLU sparsity, which is what stops changes from
-spreading through the layers. The share actually reached is reported.
+No trained checkpoint exists, so the weights are seeded random ones (``lidarops.sscater.models``, as
+in ``lidarops stream``) whose BatchNorms are calibrated on the first window so that each layer's
+pre-activations have unit spread and a chosen share of them is negative (``--relu-zeros``, default
+0.5): a trained network's ReLU sparsity, which is what stops changes from spreading through the layers.
+The share actually reached is reported.
+
+Step times are reported as median, mean and p95 over the steps: many steps of a spinning sensor's
+stream change nothing and cost little, so the median alone overstates the saving.
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ import torch
 import torch.nn.functional as F
 
 from benchmarks.common import env_meta, fmt_ms, fmt_ratio, print_table, time_call, write_results
+from lidarops.sscater.models import calibrate_on_window
 
 _SCENARIOS = ("drone_bridge", "driving_city")
 
@@ -54,53 +58,29 @@ def _sync(device):
         torch.cuda.synchronize(device)
 
 
-def calibrate_relu_zeros(model, zeros: float) -> list[float]:
-    """Set each BatchNorm's shift so that a share ``zeros`` of its layer's pre-activations at the
-    active sites of the current window is negative (layer by layer, front to back). Returns the
-    share of zero outputs reached per layer."""
-    from lidarops.models.pointpillars import backbone_layers
-    delta = model.delta
-    pillars = model.stream.pillars()
-    with torch.no_grad():
-        feats = model._pfn(pillars)
-        specs = backbone_layers(model.backbone)
-        for i, spec in enumerate(specs):
-            delta.reload()
-            delta.refresh(pillars.coords[:, 1:], feats)
-            layer = (delta.layers + delta.up_layers)[i]
-            act = layer.active.view(-1).nonzero().flatten()
-            if act.numel() == 0:
-                continue
-            n = spec.norm
-            raw = layer.acc.view(-1, layer.cout)[act].to(n.weight.dtype)
-            # unit spread after BatchNorm (as a trained network's statistics give), then the shift
-            scale = 1.0 / raw.std(0).clamp_min(1e-6) if raw.shape[0] > 1 else torch.ones_like(n.weight)
-            n.weight.copy_(scale * torch.sqrt(n.running_var + n.eps))
-            q = torch.quantile((raw * scale).float(), zeros, dim=0).to(scale.dtype)
-            n.bias.copy_(-q + n.running_mean * scale)
-        delta.reload()
-        delta.refresh(pillars.coords[:, 1:], feats)
-        reached = []
-        for layer in delta.layers + delta.up_layers:
-            act = layer.active.view(-1).nonzero().flatten()
-            v = layer.feats.reshape(-1, layer.cout)[act]
-            reached.append(float((v == 0).float().mean()) if act.numel() else 0.0)
-    model.reset(reload=True)
-    return reached
-
-
 def _model(scenario: str, device, zeros: float, seed: int = 0):
-    from lidarops.models.pointpillars import PillarFeatureNet, PointPillarsBackbone
+    """The default-size PointPillars front of :func:`lidarops.sscater.models.build_model` (seeded random
+    weights) in an :class:`~lidarops.sscater.SSCATeRPointPillars` on ``scenario``'s grid, and its pillar
+    capacity. Calibrate it with :func:`lidarops.sscater.models.calibrate_on_window` once its window is full."""
     from lidarops.sscater import SSCATeRPointPillars
-    torch.manual_seed(seed)
-    pfn, bb = PillarFeatureNet(9, 64), PointPillarsBackbone()
-    for m in list(pfn.modules()) + list(bb.modules()):
-        if isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)):
-            m.running_var.uniform_(0.5, 2.0)
-            m.weight.data.uniform_(0.5, 1.5)
-    pfn, bb = pfn.eval().to(device), bb.eval().to(device)
+    from lidarops.sscater.models import build_model
+    pfn, bb = build_model(False, seed, torch.float32, device)
     grid, N = _grid(scenario)
     return SSCATeRPointPillars(pfn, bb, grid, max_points_per_pillar=N, refresh_every=0, device=device), N
+
+
+# benchmarks/profile/* import it under this name (they should import calibrate_on_window from
+# lidarops.sscater.models instead)
+calibrate_relu_zeros = calibrate_on_window
+
+
+def _quantile(xs: list, q: float) -> float:
+    """Linear interpolation between the closest ranks (numpy's default)."""
+    v = sorted(xs)
+    pos = q * (len(v) - 1)
+    lo = int(pos)
+    hi = min(lo + 1, len(v) - 1)
+    return v[lo] + (v[hi] - v[lo]) * (pos - lo)
 
 
 def bench_stream(device, steps: int, every: int, zeros: float, rows: list, traces: dict, scenarios=_SCENARIOS):
@@ -115,7 +95,7 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
         # calibrate on the first full window
         for i, (p, t) in enumerate(slices[:10]):
             model.step(torch.from_numpy(p).to(device), torch.from_numpy(t).to(device), now=0.01 * (i + 1))
-        reached = calibrate_relu_zeros(model, zeros)
+        shares = calibrate_on_window(model, zeros)
         pushed_p, pushed_t = [], []
         ss, full, full_bb, dense, rel, stats = [], [], [], [], [], []
         for i, (p, t) in enumerate(slices):
@@ -160,13 +140,20 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
         ss_run = ss[10:]
         med = statistics.median
         layer_names = [l.name for l in run[0].layers]
+        reached = [shares.get(n, 0.0) for n in layer_names]
         active = [med([s.layers[j].active for s in run]) for j in range(len(layer_names))]
         changed = [med([s.layers[j].changed for s in run]) for j in range(len(layer_names))]
         share = [c / a if a else 0.0 for c, a in zip(changed, active)]
         row = {
             "op": "sscater_stream", "scenario": scenario, "device": str(device), "steps": len(run),
-            "relu_zeros_target": zeros, "relu_zeros_reached": reached,
+            "relu_zeros_target": zeros, "relu_zeros_reached": reached, "relu_zeros_reached_pfn": shares.get("pfn"),
             "ms_sscater": med(ss_run), "ms_full_sparse": med(full) if full else None,
+            # the step time's spread: medians over steps of which many change nothing flatter SSCATeR
+            "ms_sscater_mean": statistics.fmean(ss_run), "ms_sscater_p95": _quantile(ss_run, 0.95),
+            "ms_full_sparse_mean": statistics.fmean(full) if full else None,
+            "ms_full_sparse_p95": _quantile(full, 0.95) if full else None,
+            "ms_dense_mean": statistics.fmean(dense) if dense else None,
+            "ms_dense_p95": _quantile(dense, 0.95) if dense else None,
             "ms_dense": med(dense) if dense else None,
             "speedup_vs_full": med(full) / med(ss_run) if full else None,
             "speedup_vs_dense": med(dense) / med(ss_run) if dense else None,
@@ -180,6 +167,8 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
             "changed_share_mean": statistics.mean(share), "max_rel_diff": max(rel) if rel else None,
             "checks": len(rel),
         }
+        row["speedup_vs_full_mean"] = row["ms_full_sparse_mean"] / row["ms_sscater_mean"] if full else None
+        row["speedup_vs_dense_mean"] = row["ms_dense_mean"] / row["ms_sscater_mean"] if dense else None
         row["backbone_speedup_vs_full"] = (row["ms_full_backbone"] / row["ms_sscater_stages"]["ms_backbone"]
                                            if full_bb else None)
         rows.append(row)
@@ -188,7 +177,12 @@ def bench_stream(device, steps: int, every: int, zeros: float, rows: list, trace
         print_table(f"\nSSCATeR stream {scenario} on {device}: {len(run)} steps, ReLU zeros {zeros:.0%} targeted",
                     ["stage", "SSCATeR ms", "full sparse ms", "dense ms", "vs full", "vs dense"],
                     [["step (median)", fmt_ms(row["ms_sscater"]), fmt_ms(row["ms_full_sparse"]), fmt_ms(row["ms_dense"]),
-                      fmt_ratio(row["speedup_vs_full"]), fmt_ratio(row["speedup_vs_dense"])]]
+                      fmt_ratio(row["speedup_vs_full"]), fmt_ratio(row["speedup_vs_dense"])],
+                     ["step (mean)", fmt_ms(row["ms_sscater_mean"]), fmt_ms(row["ms_full_sparse_mean"]),
+                      fmt_ms(row["ms_dense_mean"]), fmt_ratio(row["speedup_vs_full_mean"]),
+                      fmt_ratio(row["speedup_vs_dense_mean"])],
+                     ["step (p95)", fmt_ms(row["ms_sscater_p95"]), fmt_ms(row["ms_full_sparse_p95"]),
+                      fmt_ms(row["ms_dense_p95"]), "", ""]]
                     + [[f"  {k[3:]}", fmt_ms(v), "", "", "", ""] for k, v in row["ms_sscater_stages"].items()
                        if k != "ms_backbone"]
                     + [["  backbone", fmt_ms(row["ms_sscater_stages"]["ms_backbone"]), fmt_ms(row["ms_full_backbone"]),

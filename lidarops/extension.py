@@ -18,12 +18,11 @@ __all__ = ["load", "cuda_available", "check_device", "build_info", "LidaropsBuil
 _lock = threading.RLock()
 _lib = None
 _HERE = os.path.dirname(os.path.abspath(__file__))
-# Python-side kernels of every op family: fake (meta) kernels and autograd formulas.
+# One <package>/_registrations.py per package of wrappers: its ops' fake (meta) kernels and Python
+# autograd formulas.
 _REGISTRATION_MODULES = (
-    "lidarops._meta_registrations",
-    "lidarops._autograd_registrations",
-    "lidarops.ops._voxelize_registrations",
-    "lidarops.ops._boxes_registrations",
+    "lidarops.ops._registrations",
+    "lidarops.data._registrations",
     "lidarops.eval._registrations",
     "lidarops.sparse._registrations",
     "lidarops.stream._registrations",

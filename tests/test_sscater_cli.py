@@ -7,6 +7,7 @@ import torch
 
 from lidarops.cli import main
 from lidarops.sscater import cli as stream_cli
+from lidarops.sscater import models
 
 
 def test_stream_cli_short_run(tmp_path, capsys):
@@ -65,8 +66,8 @@ def test_stream_cli_shorter_than_the_window(tmp_path, capsys):
 
 
 def test_layer_labels():
-    pfn, backbone = stream_cli.build_model(True, 0, torch.float32, "cpu")
-    labels = stream_cli.layer_labels(backbone)
+    pfn, backbone = models.build_model(True, 0, torch.float32, "cpu")
+    labels = models.layer_labels(backbone)
     assert len(labels) == 19
     assert labels["block0.down0"] == "block 1 conv 1 (3x3, stride 2)"
     assert labels["block0.subm3"] == "block 1 conv 4 (3x3)"
@@ -74,6 +75,23 @@ def test_layer_labels():
     assert labels["block2.subm15"] == "block 3 conv 6 (3x3)"
     assert [labels[f"up{b}"] for b in range(3)] == ["upsampling of block 1 (x1)", "upsampling of block 2 (x2)",
                                                     "upsampling of block 3 (x4)"]
+
+
+@pytest.mark.parametrize("share", [0.5, 0.8])
+def test_calibrate_on_window_reaches_the_relu_zero_share(share):
+    """The calibration the CLI, the benchmark and the profiles share: on the window it was calibrated on,
+    each layer's share of zero ReLU outputs is the target (up to ties and rounding); the model is reset."""
+    from lidarops.data.synthetic import Simulator
+    from lidarops.sscater import SSCATeRPointPillars
+    from lidarops.stream import PillarGrid
+    pfn, backbone = models.build_model(True, 0, torch.float32, "cpu")
+    model = SSCATeRPointPillars(pfn, backbone, PillarGrid.drone(), max_points_per_pillar=100, device="cpu")
+    for i, (p, t) in enumerate(Simulator("drone_bridge", seed=0).slices(0.0, 0.1, 0.01)):
+        model.step(torch.from_numpy(p), torch.from_numpy(t), now=0.01 * (i + 1))
+    shares = models.calibrate_on_window(model, share)
+    assert set(models.layer_labels(backbone)) | {"pfn"} == set(shares)
+    assert all(abs(v - share) < 0.05 for v in shares.values()), shares
+    assert model.stream.num_points == 0 and model.stats.step == 0
 
 
 # ---- errors: one line on stderr, exit code 2, before anything runs ------------------------------------

@@ -1,4 +1,5 @@
-"""Fake (meta) kernel of ``lidarops::kitti_match`` (schema in csrc/ops/kitti_eval.cpp)."""
+"""Fake (meta) kernel of ``lidarops::kitti_match`` (schema in csrc/ops/kitti_eval.cpp); imported by
+:func:`lidarops.extension.load`. Not differentiable: no autograd formula, Python or C++ (``csrc/ops/autograd``)."""
 from __future__ import annotations
 
 import torch

@@ -49,7 +49,7 @@ from lidarops import extension
 from lidarops.ops.validation import check_output_size, check_positive_int, check_tensor, describe
 
 extension.load()
-from lidarops.ops import _voxelize_registrations  # noqa: E402,F401  (fake kernels, autograd)
+from lidarops.ops import _registrations  # noqa: E402,F401  (fake kernels, autograd)
 
 __all__ = ["voxelize", "VoxelizeResult", "VoxelizeInfo", "VoxelOverflowError", "voxel_grid_shape"]
 

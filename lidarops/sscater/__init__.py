@@ -3,6 +3,10 @@
 - :class:`lidarops.sscater.delta.DeltaBackbone`: the recycling state of a PointPillars backbone.
 - :class:`lidarops.sscater.pointpillars.SSCATeRPointPillars`: stream -> pillars -> PFN -> backbone,
   recomputing only what changed.
+- :mod:`lidarops.sscater.ops`: validated wrappers of the ``torch.ops.lidarops.sscater_*`` ops and their
+  float64 references.
+- :mod:`lidarops.sscater.models`: seeded PointPillars fronts and the BatchNorm calibration for a ReLU zero
+  share (used by ``lidarops stream``, ``benchmarks/bm_sscater.py`` and ``benchmarks/profile/``).
 
 Imports are lazy so that loading the extension (which imports this package's fake kernels) stays light.
 """

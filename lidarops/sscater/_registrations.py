@@ -1,6 +1,8 @@
-"""Fake kernels of the SSCATeR ops (``torch.ops.lidarops.sscater_*``); imported by
+"""Fake kernels of the SSCATeR ops (``torch.ops.lidarops.sscater_*``, schemas in csrc/ops/sscater.cpp;
+wrappers in :mod:`lidarops.sscater.ops`); imported by
 :func:`lidarops.extension.load`. The ops mutate their state arguments and have no autograd: SSCATeR is
-an inference-time method (the streaming backbone runs in eval mode)."""
+an inference-time method (the streaming backbone runs in eval mode), so there is no autograd formula,
+Python or C++ (``csrc/ops/autograd``)."""
 from __future__ import annotations
 
 import torch

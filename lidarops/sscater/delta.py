@@ -296,7 +296,8 @@ class DeltaBackbone:
 
     # ---- recycling step --------------------------------------------------------------------------
 
-    def update(self, sites: Tensor, features: Tensor, removed: Tensor, profile: bool = False) -> Tensor:
+    def update(self, sites: Tensor, features: Tensor, removed: Tensor, profile: bool = False,
+               check: bool = True) -> Tensor:
         """Apply one step's input change and return the output map.
 
         Args:
@@ -305,15 +306,17 @@ class DeltaBackbone:
             features (Tensor[n, Cin]): their new features (ignored where ``removed``).
             removed (Tensor[n] bool): pillars that became empty (inactive).
             profile (bool): time each layer (synchronises CUDA after each layer; no CUDA graph).
+            check (bool): validate and convert the input (which reads the sites on the host). ``False``
+                is for input that is already right (int32 sites inside the grid, each once, features in
+                the state's dtype, everything on its device, e.g. from a :class:`~lidarops.stream.PillarStream`):
+                the step then makes no host synchronisation before its figures are read.
         """
-        sites, features = self._check_input(sites, features)
-        if removed.shape != (sites.shape[0],) or removed.dtype != torch.bool:
-            raise ValueError(f"removed must be bool ({sites.shape[0]},), got {removed.dtype} {tuple(removed.shape)}")
-        return self._apply(sites, features, removed.to(self.device), profile)
-
-    def _apply(self, sites: Tensor, features: Tensor, removed: Tensor, profile: bool = False) -> Tensor:
-        """:meth:`update` on checked input (int32 sites inside the grid, features in the state's dtype,
-        all on its device): no host synchronisation before the step's figures are read."""
+        if check:
+            sites, features = self._check_input(sites, features)
+            if removed.shape != (sites.shape[0],) or removed.dtype != torch.bool:
+                raise ValueError(f"removed must be bool ({sites.shape[0]},), got {removed.dtype} "
+                                 f"{tuple(removed.shape)}")
+            removed = removed.to(self.device)
         if self.cuda_graph and not profile:
             active, counts = self._replay(sites, features, removed)
         else:

@@ -204,7 +204,7 @@ class SSCATeRPointPillars:
                 feats = self._pfn(changed)
                 pfn_points, pfn_points_full = changed.num_points.sum(), self.stream.num_points
                 m2 = self._mark()
-                out = self.delta._apply(changed.coords[:, 1:], feats, upd.removed, profile=self.profile)
+                out = self.delta.update(changed.coords[:, 1:], feats, upd.removed, profile=self.profile, check=False)
                 self._since_refresh += 1
             st.guard = self._check_state(refresh)
             if st.guard and refresh:  # nothing to recycle from: the input or the weights are not finite

@@ -4,7 +4,8 @@ Every op is shape-static: ``pillar_decorate`` keeps the (P, N) of its input, ``p
 returns one row per requested pillar, and ``pillar_stream_push`` returns an (H, W) change map, a fixed
 stats vector and one count per run. The data-dependent parts (which pillars are active or changed)
 are read by the wrapper (``lidarops.stream.stream``). No op is differentiable (the features are the
-network's input). Imported by ``lidarops.extension.load()``.
+network's input), so there is no autograd formula, Python or C++ (``csrc/ops/autograd``). Imported by
+``lidarops.extension.load()``.
 """
 from __future__ import annotations
 
