@@ -14,12 +14,11 @@
 //   4096 double points).
 // - fps_push_kernel<P> (float, sm_90+): a thread-block cluster of C blocks per cloud (C <= 16),
 //   block r owning points [r 256 P, (r + 1) 256 P); candidates exchanged by one-sided st.async
-//   messages counted on mbarriers (see the comment above the kernel). About 1.0 us per step for
-//   N = 16384 (C = 8) and 1.6 us for N = 120000 (C = 16) on an H200.
+//   messages counted on mbarriers (see the comment above the kernel): no cluster barrier per step.
 // - fps_reg_kernel<T, P, true> (double, or float if the push kernel cannot be scheduled; sm_90+):
 //   the same split, but per step: update, warp argmax, block argmax by warp 0, publish the block's
 //   candidate in shared memory, ONE cluster barrier, and every warp reads the C candidates through
-//   distributed shared memory and takes the same winner (1.5-1.8 us per step with C = 4-8).
+//   distributed shared memory and takes the same winner.
 // - fps_global_kernel<T>: one block of 1024 threads per cloud, any n, distances in global memory
 //   (clouds too large for the registers of 16 blocks, or of one block without clusters).
 //
@@ -649,14 +648,13 @@ void fps_launch(const at::Tensor& points, const at::Tensor& lengths, const at::T
   const auto info = gpu::device_info(points.device().index());
 
   // Several blocks per cloud (thread-block clusters, sm_90+). Auto: only when one block would need
-  // more than 16 points per thread; below that one block per cloud takes less time per step
-  // (measured on H200: 0.81 vs 0.93 ms for B = 32, N = 4096, K = 1024).
+  // more than 16 points per thread; below that one block per cloud takes less time per step.
   if ((method == 2 || (method == 0 && N > kFpsThreads * 16)) && info.cc_major >= 9) {
     const int64_t need = gpu::pow2_ceil(gpu::ceil_div(N, block_cap));  // blocks to hold the cloud
     const int64_t fill = gpu::pow2_floor(std::max<int64_t>(1, info.sm_count / std::max<int64_t>(B, 1)));
     int64_t pref = gpu::pow2_ceil(gpu::ceil_div(N, kFpsThreads * 8));  // ~8 points per thread
-    // The cluster barrier of fps_reg_kernel (double) costs more with more blocks (H200, per step:
-    // 1.5 us with 4 blocks, 1.8 with 8, 5.2 with 16); the messages of fps_push_kernel (float) less.
+    // The cluster barrier of fps_reg_kernel (double) grows costly beyond 4 blocks; the messages of
+    // fps_push_kernel (float) do not.
     if (!std::is_same_v<T, float>) pref = std::min<int64_t>(pref, 4);
     int64_t csize = std::max(need, std::min({fill, pref, static_cast<int64_t>(kMaxCluster)}));
     if (method == 2) csize = std::max<int64_t>(csize, 2);

@@ -189,8 +189,8 @@ __global__ void __launch_bounds__(kGridThreads)
 
 bool use_grid_cuda(int64_t method, int64_t B, int64_t M, int64_t N) {
   if (method != kMethodAuto) return method == kMethodGrid;
-  // Brute force costs B*M*N distances; the grid costs a few launches and a counting sort. H200, B = 1,
-  // M = N = 4096 (2^24): grid 0.081 / 0.121 ms, brute 0.148 / 0.125 ms (uniform / LiDAR, k = 16).
+  // Brute force costs B*M*N distances; the grid costs a few launches and a counting sort, which pays
+  // from about 2^24 distances on (tuning in docs/notes/ops.md).
   return N >= 2048 && static_cast<double>(B) * static_cast<double>(M) * static_cast<double>(N) >= 16777216.0;
 }
 
@@ -237,10 +237,8 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
       const auto* grids = reinterpret_cast<const gpu::DGrid*>(g.params.data_ptr());
       by_capacity([&](auto cap_c) {
         constexpr int C = decltype(cap_c)::value;
-        // Threads per query: up to 4 while the queries alone give fewer than 256 threads per SM.
-        // Measured on an H200 (raw op, M = N = 16384, k = 16; uniform / LiDAR-like): one thread
-        // 0.113 / 0.400 ms, two 0.106 / 0.319, four 0.112 / 0.267, eight 0.154 / 0.321; with
-        // 131k queries or more, more than one thread per query is slower (0.29 -> 0.36 ms uniform).
+        // Threads per query: up to 4 while the queries alone give fewer than 256 threads per SM; once
+        // the queries fill the GPU, more than one thread per query is slower (docs/notes/ops.md).
         int S = 1;
         const int64_t want = static_cast<int64_t>(info.sm_count) * 256;
         if (C > 0 && C <= 32)

@@ -158,8 +158,8 @@ constexpr int kAsyncMaxK = 32;  // offsets a float32 tile kernel lists in one 32
 //     with no vote in between.
 //   - The gathered rows and the weights go straight from global to shared memory with cp.async through
 //     a ring of STAGES buffers: STAGES - 1 steps are in flight while one is multiplied. On LiDAR-sized
-//     maps a block's steps form a chain of dependent gathers whose latency, not the arithmetic, set the
-//     time (H200, session 5: a register-prefetched version with one step in flight was 1.2-1.4x slower).
+//     maps a block's steps form a chain of dependent gathers whose latency, not the arithmetic, sets the
+//     time, so one step in flight (register prefetch) is not enough.
 //   - Tiles are stored row-major, B rows with a 4-float pad (a quarter-warp's float4 reads of 8
 //     consecutive B rows hit 8 different bank groups; its A reads are one broadcast row, unpadded: see
 //     AsyncTile); a thread owns the rows ty + i * (BM / TM) and the columns tx + j * (BN / TN) and reads
@@ -203,8 +203,8 @@ struct StepCursor {
 // The 16-byte chunks one thread of a pipelined kernel copies in every step: one chunk column of the
 // gathered A rows r + u * RSTEP (u < AU) and of the weight rows (output columns) col0 + r + u * RSTEP
 // (u < BU). The weight-row offsets and which columns exist are fixed for the block, so a step costs a
-// map read and an address per chunk (H100, session 12: recomputing them with divisions on every step
-// had kept the tensor-core kernel issue-bound).
+// map read and an address per chunk (recomputing them with divisions on every step makes the
+// tensor-core kernel issue-bound).
 template <typename S, int AU, int BU, int RSTEP>
 struct StepCopies {
   int64_t w_row[BU];
@@ -623,8 +623,8 @@ __device__ __forceinline__ void mma_16x8(float (&d)[4], const unsigned (&a)[4], 
   }
 }
 
-// The tensor core reads a float32 operand as TF32 by dropping its low 13 bits (truncation; measured on
-// the H100: a plain-truncation variant was 7.6e-4 of the output range off, against 2.9e-4 rounded).
+// The tensor core reads a float32 operand as TF32 by dropping its low 13 bits (truncation, about 2.5x
+// the error of rounding).
 // Rounding to nearest is then one fused multiply-add: x + sign(x) 2^(exponent - 11), half a TF32 ulp,
 // computed from x's sign and exponent bits. inf and NaN stay as they are; subnormal numbers are
 // truncated (their exponent bits give 0). Two instructions per
@@ -642,7 +642,7 @@ __device__ __forceinline__ void round_tf32(unsigned (&r)[N]) {
 // NaN x give the rest NaN, 0x7fffffff, which that addition turns into -0: big carries the inf or NaN;
 // an inf can still end as NaN, times a weight whose small part is 0). Four instructions per register,
 // against seven with cvt.rna; the dropped small*small term and the truncated big leave about 3.5x the
-// error of FFMA float32, with two accumulator sets (docs/sparse.md).
+// error of FFMA float32, with two accumulator sets (docs/notes/sparse.md).
 template <int N>
 __device__ __forceinline__ void split_tf32(const unsigned (&big)[N], unsigned (&small)[N]) {
 #pragma unroll
@@ -730,9 +730,8 @@ __global__ void __launch_bounds__(Tile::kThreads)
   };
 
   // CHAINS accumulator sets: k-step ks adds into set ks % CHAINS, and the sets are added in a
-  // fixed order at the end. 3xTF32 chains three mma.sync per fragment and k-step; with two sets (H100,
-  // session 12) it was 3-7 % faster on the single layers and its error fell from 8.7e-6 to 4.7e-6 of
-  // the output range (shorter sums). TF32 and 16-bit types gained nothing from a second set.
+  // fixed order at the end. 3xTF32 chains three mma.sync per fragment and k-step, so two sets shorten
+  // its dependency chains and its sums (faster and more accurate); other types gain nothing from two.
   constexpr int CHAINS = M == Mma::k3xTF32 && MF * NF <= 8 ? 2 : 1;
   float acc[CHAINS][MF][NF][4];
 #pragma unroll
@@ -1109,8 +1108,8 @@ DeviceProps device_props(c10::DeviceIndex dev) {
 bool aligned16(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 15) == 0; }
 
 // LIDAROPS_CONV_FP32=3xtf32 (read at each call; docs/sparse.md): float32 without TF32 runs on the
-// tensor cores as three TF32 products (experimental, off by default: on the H100 1.14 against 1.40 ms
-// of Sparse-PointPillars convolutions with the FFMA tiles, with about 3.5x their error; session 12)
+// tensor cores as three TF32 products (experimental, off by default: faster than the FFMA tiles but
+// with about 3.5x their error).
 bool env_is(const char* name, const char* value) {
   const char* v = std::getenv(name);
   return v != nullptr && std::strcmp(v, value) == 0;
@@ -1129,12 +1128,10 @@ void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
   mask |= bit;
 }
 
-// Tile of the tensor-core kernel. H100 kernel times (session 10, docs/sparse.md):
-//   - 32 x 64 tiles (4 warps of 16 x 32) beat 64 x 64 on most layers with Cout > 32: KITTI SubM C = 128
-//     TF32 0.062 -> 0.051 ms, fp16 0.032 -> 0.027; dense SubM C = 64 TF32 0.036 -> 0.027. Twice the
+// Tile of the tensor-core kernel (measurements in docs/notes/sparse.md):
+//   - 32 x 64 tiles (4 warps of 16 x 32) beat 64 x 64 on most layers with Cout > 32: twice the
 //     blocks, each with half the rows waiting on gathers, hide the gathers' latency better;
-//   - 64 x 64 stays ahead when a layer already has about seven 64 x 64 tiles per multiprocessor
-//     (dense SubM C = 128: TF32 0.078 vs 0.087 ms);
+//   - 64 x 64 stays ahead when a layer already has about seven 64 x 64 tiles per multiprocessor;
 //   - with Cout <= 32, or too few rows for two 32 x 64 tiles per multiprocessor, 64-row tiles with
 //     fewer columns (tile_columns). Larger tiles (128 x 64, 128 x 128, 64 x 128), 2 or 4 stages and 8 warps
 //     per block were slower on the benchmark layers.
@@ -1143,14 +1140,11 @@ struct MmaShape {
 };
 // Columns of the wgmma tile (conv_fwd_wgmma_kernel) for a tensor-core layer, or 0 for the mma.sync
 // tiles: wgmma needs an sm_90a build running on compute capability 9.0; LIDAROPS_CONV_MMA=sync (read at
-// each call) keeps mma.sync, for the tests and for comparisons. H100 kernel time (session 13,
-// docs/sparse.md), against the mma.sync tiles:
+// each call) keeps mma.sync, for the tests and for comparisons. Against the mma.sync tiles:
 //   - Cout <= 64: mma.sync's 32 x 64 tiles, which skip the 16-row fragments without an input at an
-//     offset, stay as fast or faster (KITTI and dense C = 64);
-//   - TF32: 64 x 128, each gathered row read once for 128 columns: dense SubM C = 128 0.059 -> 0.044 ms,
-//     conv 0.062 -> 0.047, subm1 0.048 -> 0.043;
-//   - 16-bit: 64 x 64 with four stages: subm1 0.022 -> 0.019 ms, subm2 0.028 -> 0.025, dense SubM
-//     C = 128 0.032 -> 0.029.
+//     offset, stay as fast or faster;
+//   - TF32: 64 x 128, each gathered row read once for 128 columns;
+//   - 16-bit: 64 x 64 with four stages.
 int wgmma_columns(int64_t cout, bool tf32, const DeviceProps& p) {
 #ifdef LIDAROPS_SM90A
   if (p.cc_major != 9 || p.cc_minor != 0 || cout <= 64 || env_is("LIDAROPS_CONV_MMA", "sync")) return 0;
@@ -1160,9 +1154,8 @@ int wgmma_columns(int64_t cout, bool tf32, const DeviceProps& p) {
 #endif
 }
 // Output columns per 64-row tile: 64, or fewer when Cout is small, or when the layer has fewer than two
-// 64 x 64 tiles per multiprocessor (the deep layers of a backbone: few sites, many channels). H100,
-// Sparse-PointPillars subm2 (2,358 rows, 256 channels): TF32 0.125 -> 0.109 ms, fp16 0.054 -> 0.048 ms
-// (session 9); aiming for four tiles per multiprocessor was slower, and the FFMA tiles gained nothing.
+// 64 x 64 tiles per multiprocessor (the deep layers of a backbone: few sites, many channels), to fill
+// the GPU; aiming for four tiles per multiprocessor was slower, and the FFMA tiles gain nothing.
 int tile_columns(int64_t n_out, int64_t cout, int sms) {
   int bn = cout <= 16 ? 16 : cout <= 32 ? 32 : 64;
   const int64_t want = 2 * static_cast<int64_t>(sms);
@@ -1181,13 +1174,9 @@ MmaShape mma_tile_shape(int64_t n_out, int64_t cout, int sms) {
 // tiles take `steps` pipeline steps (offsets x input-channel chunks) without splits. None when a tile
 // has fewer than 32 steps (its kernel is short: the second launch would cost the host more than the
 // splits save) or when the tiles already fill more than `split_below` of one wave; otherwise as many as
-// keep the launch within 1.6 waves, at most four and 8 steps per split. H100, kernel time (session 11,
-// docs/sparse.md), Sparse-PointPillars convolutions:
-//   - FFMA tiles (8 warps, split_below 1): subm2 (2,358 rows, 256 channels) 0.167 -> 0.113 ms with 4
-//     splits, down2 0.086 -> 0.062, subm1 (8,782 rows, 128 channels) 0.119 -> 0.102 with 3;
-//   - tensor-core tiles (4 warps, split_below 0.6): subm2 TF32 0.103 -> 0.076 ms, fp16 0.048 -> 0.039
-//     with 4; layers that fill three quarters of a wave (down0, subm0: 19,319 rows, 64 channels, 32 x 64
-//     tiles) were 25 % slower with 2.
+// keep the launch within 1.6 waves, at most four and 8 steps per split. split_below is 1 for the FFMA
+// tiles (8 warps) and 0.6 for the tensor-core tiles (4 warps), which lose from splits once they fill
+// three quarters of a wave (measurements in docs/notes/sparse.md).
 // LIDAROPS_CONV_SPLITS=n (read at each call) forces n, for the tests and for tuning.
 int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, int64_t steps, double split_below,
                   const DeviceProps& p, int64_t static_smem) {
@@ -1331,11 +1320,9 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
         // 64 x 128 tiles (TF32): three blocks with three stages fit in a multiprocessor (WgTile). Layers
         // with a full wave of those tiles or more run two per multiprocessor instead, for fewer waves with
         // less of a tail: four stages, whose shared memory (96 KB of ring) lets exactly two blocks fit, with
-        // two steps' gathers and one step's wgmma in flight while the next is multiplied. H100 kernel time (sessions 13 and 14): dense SubM
-        // C = 128 (469 tiles, 1.2 waves of three, 1.8 of two) 0.050 -> 0.045 ms with two blocks, 0.044 ->
-        // 0.043 with the fourth stage (dense conv C = 128 0.046 -> 0.045, up1 0.029 -> 0.028); subm2 (74
-        // tiles, 4 offset splits: 0.75 waves of three, 1.1 of two) takes 0.042 with three blocks against
-        // 0.056 with two. LIDAROPS_CONV_WG_BLOCKS=2 or 3 (read at each call) forces either, for the tests.
+        // two steps' gathers and one step's wgmma in flight while the next is multiplied. Layers under a
+        // wave keep three blocks, which a fourth stage would cost them. LIDAROPS_CONV_WG_BLOCKS=2 or 3
+        // (read at each call) forces either, for the tests.
         auto go_wg = [&](auto tile) {
           using Tile = decltype(tile);
           launch_pipelined<scalar_t, Tile>(conv_fwd_wgmma_kernel<scalar_t, M, Tile>, Tile::BM, Tile::BN, Tile::BK, 0.6,
@@ -1383,7 +1370,7 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       launch_pipelined<float, Tile>(kernel, bm, bn, Tile::kStepChannels, 1.0, x, w, nbr, order, out, epi, props,
                                     stream);
     };
-    // 64-row tiles, 32 channels per step, 3 stages: the best of the tiles tried on the H200 (docs/sparse.md)
+    // 64-row tiles, 32 channels per step, 3 stages: the best of the tiles tried (docs/notes/sparse.md)
     if (cout <= 16) launch(conv_fwd_f32_async_kernel<64, 16, 4, 2, 32, 3>, AsyncTile<64, 16, 4, 2, 32, 3>{}, 64, 16);
     else if (cout <= 32) launch(conv_fwd_f32_async_kernel<64, 32, 4, 2, 32, 3>, AsyncTile<64, 32, 4, 2, 32, 3>{}, 64, 32);
     else launch(conv_fwd_f32_async_kernel<64, 64, 4, 4, 32, 3>, AsyncTile<64, 64, 4, 4, 32, 3>{}, 64, 64);

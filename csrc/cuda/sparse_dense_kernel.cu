@@ -1,10 +1,8 @@
 // Dense map of a sparse tensor and its adjoint on CUDA. A block moves a tile of 32 rows x 32 channels
 // through shared memory: it reads the features row by row (32 consecutive channels per warp) and writes
 // the map channel by channel (32 consecutive rows per warp). Rows come in linear site order from every
-// lidarops layer, so consecutive rows mostly sit at consecutive sites and the writes coalesce. A plain
-// index_put_ into the channels-first map wrote one 4-byte element per channel plane per thread. H100,
-// 37,500 rows of 128 float32 channels at 70 % of a 248 x 216 grid, with the zero fill: 0.22 ms then,
-// 0.11 ms now; the Sparse-PointPillars forward writes three such maps.
+// lidarops layer, so consecutive rows mostly sit at consecutive sites and the writes coalesce (a plain
+// index_put_ writes one scattered element per channel plane per thread, about twice as slow).
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>

@@ -59,11 +59,9 @@ __global__ void targets_kernel(const int32_t* __restrict__ sites, const bool* __
 // Each tile lists its rows' source offsets and destinations once in shared memory, so the inner
 // loads are a shared-memory read and an add.
 
-// kChunk: input channels per tile. Measured on the H200 (drone_bridge backbone step, session 6):
-// 64 -> 2.82 ms, 128 -> 2.91, 256 -> 3.06, 16 -> 3.09.
-// kGatherChunk: the gather's (a step adds 45-250 sites per layer: few rows, so smaller chunks give
-// more tiles and shorter dependency chains): backbone step 2.48 ms with 64, 2.40 with 32, 2.39 with 16
-// (H200, session 7).
+// kChunk: input channels per tile, the fastest of 16-256 on the drone_bridge step (docs/notes/sscater.md).
+// kGatherChunk: the gather's; a step adds only 45-250 sites per layer, so smaller chunks give more
+// tiles and shorter dependency chains.
 constexpr int kBM = 64, kBN = 64, kBK = 16, kChunk = 64, kGatherChunk = 16, kGemmThreads = 256;
 
 template <typename T>
@@ -443,8 +441,7 @@ void gather_cuda(at::Tensor& acc, const at::Tensor& input, const at::Tensor& wei
 
 // Slot for an append to a list whose length is *n, taken by the lanes of a warp with `take` set:
 // one atomic per warp (a ballot counts the lanes). Every lane of the warp must call it. Per-lane
-// atomics on one counter serialise there (finalize_compact, which appends per block, went from 65 to
-// 22 µs on the 16k rows of the x4 upsampling layer, H200).
+// atomics on one counter would serialise there.
 __device__ __forceinline__ unsigned long long warp_append(bool take, unsigned long long* n) {
   const unsigned mask = __ballot_sync(0xffffffffu, take);
   if (mask == 0) return 0;
@@ -470,9 +467,8 @@ __global__ void zero_rows_kernel(T* __restrict__ acc, const int32_t* __restrict_
 }
 
 // One thread per entry of targets ++ added ++ removed: raise the stamp; the first touch appends.
-// The removed sites' accumulators are zeroed first by zero_rows_kernel, a warp per site: when one
-// thread here looped over the site's channels, this kernel took 17-36 µs per layer instead of 2-3
-// (H200, session 7). The loop bounds are block-uniform (blockDim is a multiple of 32), so whole warps
+// The removed sites' accumulators are zeroed first by zero_rows_kernel, a warp per site, because one
+// thread looping over a site's 64-256 channels here made this kernel several times slower. The loop bounds are block-uniform (blockDim is a multiple of 32), so whole warps
 // reach the append.
 __global__ void touch_kernel(int32_t* __restrict__ stamp, int32_t value, const int64_t* __restrict__ targets,
                              int64_t R, const int32_t* __restrict__ added, int64_t a,

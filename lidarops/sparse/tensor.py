@@ -312,8 +312,7 @@ class SparseConvTensor:
                 self.indices._lidarops_checked = key
         if channels_first and self.features.is_floating_point():
             # the registered op moves 32 x 32 tiles through shared memory on CUDA: coalesced writes into
-            # the channel planes (index_put_ through a channels-last view: 0.22 against 0.11 ms for
-            # 37,500 x 128 float32 on an H100, zero fill included)
+            # the channel planes, about twice as fast as index_put_ through a channels-last view
             return torch.ops.lidarops.sparse_to_dense(self.features, self.indices, self.batch_size,
                                                       self.spatial_shape)
         out = self.features.new_zeros([self.batch_size] + self.spatial_shape + [C])

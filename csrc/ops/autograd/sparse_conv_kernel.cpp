@@ -1,9 +1,7 @@
 // Autograd kernel of lidarops::sparse_conv, in C++ (torchvision's csrc/ops/autograd pattern).
 //
-// Registered with torch.library.register_autograd in Python, every call of the op went through a
-// Python autograd kernel and a Python redispatch, gradients or not: about 20 us of host time per call,
-// as much as the GPU kernel of a small layer (docs/sparse.md, session 14). Here the forward redispatches
-// below autograd in C++.
+// In C++ because a Python autograd kernel (torch.library.register_autograd) puts a Python redispatch in
+// front of every call, gradients or not, costing as much host time as a small layer's GPU kernel.
 //
 //   out[o] = sum_k W[:, k, :] @ x[map[o, k]]
 //   d x = sparse_conv(d out, W^T, map^T)   (W^T[ci, k, co] = W[co, k, ci]; map^T from sparse_kernel_map_transpose)
