@@ -69,10 +69,6 @@ def _model(scenario: str, device, zeros: float, seed: int = 0):
     return SSCATeRPointPillars(pfn, bb, grid, max_points_per_pillar=N, refresh_every=0, device=device), N
 
 
-# benchmarks/profile/* import it under this name (they should import calibrate_on_window from
-# lidarops.sscater.models instead)
-calibrate_relu_zeros = calibrate_on_window
-
 
 def _quantile(xs: list, q: float) -> float:
     """Linear interpolation between the closest ranks (numpy's default)."""

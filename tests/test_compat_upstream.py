@@ -18,6 +18,10 @@ import torch
 from lidarops.compat import mmcv
 from lidarops.compat import torch_cluster as tc
 
+# scripting is what this file tests; torch deprecates torch.jit in favour of torch.compile/export,
+# which torch_cluster users do not deploy with yet
+pytestmark = pytest.mark.filterwarnings(r"ignore:`torch\.jit\.:DeprecationWarning")
+
 _NAMES = ["fps", "knn", "radius", "knn_graph", "radius_graph"]
 
 

@@ -16,7 +16,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 
-from benchmarks.bm_sscater import _model, calibrate_relu_zeros  # noqa: E402
+from benchmarks.bm_sscater import _model  # noqa: E402
+from lidarops.sscater.models import calibrate_on_window  # noqa: E402
 
 
 def main() -> None:
@@ -34,7 +35,7 @@ def main() -> None:
     feed = [(torch.from_numpy(p).to(dev), torch.from_numpy(t).to(dev)) for p, t in slices]
     for i, (p, t) in enumerate(feed[:10]):
         model.step(p, t, now=0.01 * (i + 1))
-    calibrate_relu_zeros(model, 0.5)
+    calibrate_on_window(model, 0.5)
     for i in range(10, 40):
         model.step(*feed[i], now=0.01 * (i + 1))
     acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if dev.type == "cuda" else [])

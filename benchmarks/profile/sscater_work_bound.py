@@ -50,7 +50,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--relu-zeros", type=float, default=0.5)
     a = ap.parse_args(argv)
-    from benchmarks.bm_sscater import _model, calibrate_relu_zeros
+    from benchmarks.bm_sscater import _model
+    from lidarops.sscater.models import calibrate_on_window
     from lidarops.data.synthetic import Simulator
     from lidarops.sscater.delta import DeltaBackbone
 
@@ -90,7 +91,7 @@ def main(argv=None) -> int:
     slices = list(Simulator(a.scenario, seed=0).slices(0.0, 0.01 * (20 + a.steps), 0.01))
     for i, (p, t) in enumerate(slices[:10]):
         model.step(torch.from_numpy(p), torch.from_numpy(t), now=0.01 * (i + 1))
-    calibrate_relu_zeros(model, a.relu_zeros)
+    calibrate_on_window(model, a.relu_zeros)
     for i, (p, t) in enumerate(slices):
         recording[0] = i >= 20 and not (model._since_refresh is not None and model.refresh_every
                                         and model._since_refresh + 1 >= model.refresh_every)

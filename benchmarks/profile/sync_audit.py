@@ -48,7 +48,8 @@ def main(argv=None) -> int:
         print("sync_audit: needs a GPU")
         return 0
     from benchmarks.bm_sparse import pillars_input
-    from benchmarks.bm_sscater import _model, calibrate_relu_zeros
+    from benchmarks.bm_sscater import _model
+    from lidarops.sscater.models import calibrate_on_window
     from lidarops.data.synthetic import Simulator
 
     dev = torch.device("cuda")
@@ -57,7 +58,7 @@ def main(argv=None) -> int:
               for p, t in Simulator("drone_bridge", seed=0).slices(0.0, 0.05 + 0.01 * (args.steps + 20), 0.01)]
     for i, (p, t) in enumerate(slices[:10]):
         model.step(p, t, now=0.01 * (i + 1))
-    calibrate_relu_zeros(model, 0.5)
+    calibrate_on_window(model, 0.5)
     for i, (p, t) in enumerate(slices[:20]):  # warm-up: graphs captured, refresh done
         model.step(p, t, now=0.01 * (i + 1))
 

@@ -191,7 +191,7 @@ class SSCATeRPointPillars:
         refresh = self._since_refresh is None or (self.refresh_every and self._since_refresh + 1 >= self.refresh_every)
         with torch.no_grad():
             if refresh:
-                pillars = self.stream._gather(upd.active)
+                pillars = self.stream.pillars(upd.active, check=False)
                 feats = self._pfn(pillars)
                 pfn_points = pfn_points_full = pillars.num_points.sum()
                 m2 = self._mark()
@@ -200,7 +200,7 @@ class SSCATeRPointPillars:
             else:
                 # the PFN on every changed pillar, the emptied ones included (zero points: their rows
                 # are ignored by the update), so that nothing waits for the device to pick them out
-                changed = self.stream._gather(upd.changed)
+                changed = self.stream.pillars(upd.changed, check=False)
                 feats = self._pfn(changed)
                 pfn_points, pfn_points_full = changed.num_points.sum(), self.stream.num_points
                 m2 = self._mark()
@@ -210,7 +210,7 @@ class SSCATeRPointPillars:
             if st.guard and refresh:  # nothing to recycle from: the input or the weights are not finite
                 st.guard += " after a full recomputation: the pillar features or the weights hold NaN or inf"
             elif st.guard:  # recompute everything from the window, within this step
-                pillars = self.stream._gather(upd.active)
+                pillars = self.stream.pillars(upd.active, check=False)
                 feats = self._pfn(pillars)
                 pfn_points = pfn_points + pillars.num_points.sum()
                 out = self.delta.refresh(pillars.coords[:, 1:], feats)

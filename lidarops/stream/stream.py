@@ -498,12 +498,16 @@ class PillarStream:
         yx = torch.nonzero_static(self._cell_slot.view(self._grid.shape) >= 0, size=self._num_active)
         return _batch0(yx)
 
-    def pillars(self, coords: Tensor | None = None) -> Pillars:
+    def pillars(self, coords: Tensor | None = None, check: bool = True) -> Pillars:
         """Decorated features of active pillars, in the given order.
 
         Args:
             coords (int Tensor[P, 3] or None): ``(batch=0, y, x)`` of active pillars (e.g.
                 ``update.changed[~update.removed]``); default: every active pillar, sorted by key.
+            check (bool): check the coords and the state (one wait for the device). ``False`` is for
+                coords the stream itself returned (``StreamUpdate.active`` / ``changed``, int32): no
+                host synchronisation; a pillar that is empty then gives zero points and features, and
+                one whose state is out of range -1 points (the op never indexes with it).
 
         Returns:
             Pillars: features (P, max_points_per_pillar, 9) float32 (points in time order, ties in
@@ -513,6 +517,10 @@ class PillarStream:
             ValueError: coords of the wrong shape, dtype or device, outside the grid, or of a pillar
                 that is not active.
         """
+        if check not in (True, False):
+            raise ValueError(f"check must be True or False, got {check!r}")
+        if not check and coords is not None:
+            return self._gather(coords)
         H, W = self._grid.shape
         if coords is None:
             coords = self.active_coords()
