@@ -1,4 +1,4 @@
-"""The behaviours the upstream libraries' own test files rely on (issue 26), checked here against
+"""The behaviours the upstream libraries' own test files rely on, checked here against
 hand-written references, so they hold in CI without the upstream files:
 
 * every torch_cluster face function scripts with ``torch.jit.script`` and the scripted function

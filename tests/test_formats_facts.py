@@ -1,4 +1,4 @@
-"""The dataset readers and writers against facts that do not come from lidarops (issue 25).
+"""The dataset readers and writers against facts that do not come from lidarops.
 
 tests/test_data_formats.py checks readers against lidarops' own writers, so a mistake made the same
 way on both sides passes it: KITTI dimensions written *and* read as ``l w h``, or a PandaSet yaw

@@ -1,5 +1,5 @@
-"""Regression tests of issue 25 (hardening), one explicit hand-written input per class of bug: each
-input reproduces a bug the issue reported (a silent wrong answer, an allocation before the refusal, an
+"""Hardening regression tests, one explicit hand-written input per class of bug. Each
+input reproduces a reported bug (a silent wrong answer, an allocation before the refusal, an
 unclear error), so each test fails if its guard is removed. The fuzz suite (tests/fuzz) covers the
 same ground with generated inputs.
 """

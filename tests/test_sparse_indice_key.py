@@ -1,4 +1,4 @@
-"""A kernel map cached under an indice_key is reused only for the sites it was built on (issue 25).
+"""A kernel map cached under an indice_key is reused only for the sites it was built on.
 
 Before the check, a layer given the same key and the same number of *other* sites reused the old
 map: the result came back on the old map's sites with wrong values. Each test below compares with

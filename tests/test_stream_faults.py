@@ -1,4 +1,4 @@
-"""Fault injection into a streamed SSCATeR front (issue 25): long streams with NaN / infinite / huge
+"""Fault injection into a streamed SSCATeR front: long streams with NaN / infinite / huge
 intensities and timestamps, non-finite coordinates, duplicate and out-of-order timestamps, late
 points, empty slices and gaps. After every step SSCATeR's output must equal the full recomputation of
 the window as the stream's policy defines it, computed here independently from the points pushed:

@@ -118,7 +118,7 @@ def test_max_pool(device, data):
 @fuzz
 @given(data=st.data())
 def test_dense_and_indice_key_reuse(device, data):
-    """dense() checks the sites; a cached kernel map is reused only for its own sites (issue 25)."""
+    """dense() checks the sites; a cached kernel map is reused only for its own sites."""
     s = data.draw(sparse_sites(D=2), "sites")
     other = data.draw(sparse_sites(D=2, channels=s.features.shape[1]), "other sites")
     x = _tensor(s, device)
