@@ -10,16 +10,15 @@ statistics from a few frames (the time does not depend on the values, except NMS
 
 * **eager**: ``model.predict(batch)`` as a user writes it (validation, voxelization with its host read,
   every launch, post-processing with its host reads), median over many calls, CUDA events.
-* **graph** (dense backbone, CUDA): voxelization with ``padded=True``, the network and the decode
-  captured in one CUDA graph and replayed; the score threshold and NMS run eagerly after it (their output
-  size depends on the data). The sparse backbone builds its kernel maps with host reads, so it has no
-  graph row.
+* **graph** (dense backbone, CUDA): :class:`lidarops.models.GraphedPointPillars` as a user calls it:
+  the frame copied into the graph's input, one replay of padded voxelization, network, decode, score
+  threshold and NMS (``postprocess_padded``), the number of boxes read back and the detections sliced.
+  The sparse backbone builds its kernel maps with host reads, so it has no graph row.
 * **stages**: CUDA events between the stages of one eager call (their GPU time, not counting host gaps).
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
 
@@ -33,6 +32,7 @@ from benchmarks.common import env_meta, fmt_ms, print_table, time_call, write_re
 import lidarops  # noqa: E402
 from lidarops import extension  # noqa: E402
 from lidarops.models.detector import PointPillars, postprocess  # noqa: E402
+from lidarops.models.graph import GraphedPointPillars, precision_mode  # noqa: E402
 
 PRECISIONS = ("fp32", "tf32", "fp16")
 
@@ -67,21 +67,6 @@ def load_model(device: str, mode: str) -> PointPillars:
     return model.to(device).eval()
 
 
-@contextlib.contextmanager
-def precision_mode(precision: str, device: str, autocast: bool = True):
-    """TF32 switches, and fp16 autocast for the dense path (the sparse convolutions take float16 weights
-    instead: the model is converted with ``.half()``)."""
-    old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = precision == "tf32"
-    ctx = torch.autocast(device_type=torch.device(device).type, dtype=torch.float16) \
-        if precision == "fp16" and autocast else contextlib.nullcontext()
-    try:
-        with ctx:
-            yield
-    finally:
-        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
-
-
 def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30, autocast: bool = True
                 ) -> dict[str, float]:
     """Median GPU time of each stage of one eager call (CUDA events between the stages)."""
@@ -92,7 +77,7 @@ def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30
     cfg = model.config
     for _ in range(runs + 3):
         ev = [torch.cuda.Event(enable_timing=True) for _ in range(len(names) + 1)]
-        with torch.no_grad(), precision_mode(precision, "cuda", autocast):
+        with torch.no_grad(), precision_mode(precision, "cuda", autocast=autocast):
             ev[0].record()
             voxels, num, coords = model.voxelize(batch["points"], 1)
             ev[1].record()
@@ -118,49 +103,14 @@ def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30
     return {n: float(np.median(v[3:])) for n, v in acc.items()}
 
 
-class GraphedNetwork:
-    """Padded voxelization, network and decode in one CUDA graph; threshold + NMS eager after it."""
-
-    def __init__(self, model: PointPillars, points: torch.Tensor, precision: str):
-        from lidarops.ops.voxelize import voxelize
-
-        self.model, self.precision = model, precision
-        cfg = model.config
-        self.static_points = points.clone()
-
-        def body():  # no value checks (they read back to the host), no host-to-device copies
-            with torch.no_grad(), precision_mode(precision, "cuda"), lidarops.validation(False):
-                v, c, n = voxelize(self.static_points, cfg.voxel_size, cfg.point_cloud_range,
-                                   cfg.max_points_per_voxel, cfg.max_voxels_test, overflow="drop", padded=True)
-                coords = torch.cat([(c[:, :1] >= 0).to(c.dtype) - 1, c], 1)  # batch 0, padding -1
-                raw = model.network(v, n, coords, 1)
-                return model.dense_head.decode(raw)
-
-        stream = torch.cuda.Stream()
-        stream.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(stream):
-            for _ in range(3):
-                body()
-        torch.cuda.current_stream().wait_stream(stream)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self.out = body()
-
-    def __call__(self, points: torch.Tensor):
-        self.static_points.copy_(points)
-        self.graph.replay()
-        return postprocess(*self.out, self.model.config)
-
-
 def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS) -> list[dict]:
     rows = []
     frame = kitti_like_frame().to(device)
-    variants = [(mode, precision, fmt) for mode in modes for precision in (precisions if device == "cuda" else ("fp32",))
-                for fmt in (("contiguous", "channels_last") if device == "cuda" and mode == "dense" else ("contiguous",))]
+    # channels_last was slower than the default layout on the H200 (docs/notes/boxes-and-detector.md)
+    variants = [(mode, precision, "contiguous") for mode in modes
+                for precision in (precisions if device == "cuda" else ("fp32",))]
     for mode, precision, fmt in variants:
         model = load_model(device, mode)
-        if fmt == "channels_last":  # cuDNN then runs its NHWC kernels (tensor cores without transposes)
-            model = model.to(memory_format=torch.channels_last)
         half = mode == "sparse" and precision == "fp16"
         if half:
             model = model.half()
@@ -182,14 +132,16 @@ def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS) -> list[d
         rows.append(row)
         if device == "cuda" and mode == "dense":
             try:
-                graphed = GraphedNetwork(model, frame, precision)
+                graphed = GraphedPointPillars(model, capacity=int(frame.shape[0]), precision=precision)
                 t = time_call(graphed, (frame,), torch.device(device), budget_s=2.0, rotate=False)
+                got = graphed(frame)
+                same = torch.equal(got["labels"], eager(batch)[0]["labels"])
                 rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
-                             "impl": "graph + eager NMS", "memory_format": fmt, "points": int(frame.shape[0]),
-                             "boxes": len(graphed(frame)[0]["scores"]), **t.as_dict()})
+                             "impl": "graph", "memory_format": fmt, "points": int(frame.shape[0]),
+                             "boxes": len(got["scores"]), "same_labels_as_eager": same, **t.as_dict()})
             except Exception as e:  # noqa: BLE001  (reported, not blanked)
                 rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
-                             "impl": "graph + eager NMS", "memory_format": fmt, "status": f"error: {type(e).__name__}: {e}"})
+                             "impl": "graph", "memory_format": fmt, "status": f"error: {type(e).__name__}: {e}"})
     for r in rows:
         r.setdefault("status", "ok")
         r["device"] = device

@@ -298,6 +298,94 @@ def test_nms_many_boxes_against_iou_matrix(device):
     assert_equal_report(keep, torch.tensor(expected), "700 boxes")
 
 
+def _padded_expected(boxes, scores, iou_thr, score_thr, pre, post, idxs=None):
+    """Threshold first, then the reference greedy NMS, then the global pre/post caps (nms_bev_padded's
+    definition, written the straightforward way)."""
+    n = boxes.shape[0]
+    order = sorted(range(n), key=lambda i: (-float(scores[i]), i))
+    if pre is not None:
+        order = order[:pre]
+    cand = torch.tensor([i for i in order if float(scores[i]) >= score_thr], dtype=torch.int64)
+    if cand.numel() == 0:
+        return cand
+    keep = cand[_nms_bev_reference(boxes[cand], scores[cand], iou_thr,
+                                   idxs=None if idxs is None else idxs[cand])]
+    return keep if post is None else keep[:post]
+
+
+@pytest.mark.parametrize("score_thr,pre,post", [(-math.inf, None, None), (0.5, None, None), (0.5, 40, 6),
+                                                (0.3, 70, None), (0.99, None, 10), (2.0, 50, 50), (0.0, 0, 5)])
+@pytest.mark.parametrize("grouped", [False, True])
+def test_nms_padded_is_threshold_then_nms(device, score_thr, pre, post, grouped):
+    boxes = lidar_boxes(120, seed=11)
+    g = torch.Generator().manual_seed(11)
+    scores = (torch.rand(120, generator=g) * 20).round() / 20  # ties, some exactly at the thresholds
+    idxs = torch.randint(0, 3, (120,), generator=g) if grouped else None
+    keep, count = torch.ops.lidarops.nms_bev_padded(boxes.to(device), scores.to(device),
+                                                    None if idxs is None else idxs.to(device), 0.1, score_thr,
+                                                    -1 if pre is None else pre, -1 if post is None else post)
+    expected = _padded_expected(boxes, scores, 0.1, score_thr, pre, post, idxs)
+    size = min(120, 120 if pre is None else pre, 120 if post is None else post)
+    assert keep.shape == (size,) and count.shape == () and count.dtype == torch.int64
+    assert int(count) == expected.numel()
+    assert_equal_report(keep[:int(count)].cpu(), expected, f"thr={score_thr} pre={pre} post={post}")
+    assert (keep[int(count):] == -1).all()
+    if not grouped:  # the wrapper: padded and unpadded forms agree with thresholding first
+        k2 = lidarops.nms_bev(boxes.to(device), scores.to(device), 0.1, pre_max=pre, post_max=post,
+                              score_threshold=None if score_thr == -math.inf else score_thr)
+        assert_equal_report(k2.cpu(), expected, "wrapper")
+
+
+def test_nms_padded_equals_threshold_first_on_detector_like_scores(device):
+    """What PointPillars' post-processing relies on: top pre_max of all scores, then NMS among those above
+    the threshold, equals NMS of the top pre_max among the boxes above the threshold."""
+    boxes = lidar_boxes(600, seed=12)
+    scores = torch.rand(600, generator=torch.Generator().manual_seed(12)) ** 4
+    above = torch.nonzero(scores >= 0.1).squeeze(1)
+    for pre, post in ((50, 20), (200, 500), (None, None)):
+        expected = above[lidarops.nms_bev(boxes[above], scores[above], 0.01, pre_max=pre, post_max=post)]
+        keep, count = lidarops.nms_bev(boxes.to(device), scores.to(device), 0.01, pre_max=pre, post_max=post,
+                                       score_threshold=0.1, padded=True)
+        assert 0 < int(count) < above.numel()
+        assert_equal_report(keep[:int(count)].cpu(), expected, f"pre={pre} post={post}")
+
+
+def test_nms_nan_scores_with_checks_off(device):
+    """With the value checks off, NaN scores are visited last (after -inf) and never pass a score
+    threshold; the NaN boxes stand apart, so they are kept whenever they take part."""
+    boxes = lidar_boxes(80, seed=13)
+    scores = torch.rand(80, generator=torch.Generator().manual_seed(13))
+    nan = torch.zeros(80, dtype=torch.bool)
+    nan[::9] = True
+    scores[nan] = float("nan")
+    scores[5] = -math.inf
+    boxes[5, 0] = 400.0
+    boxes[nan, 0] = 500.0 + 20.0 * torch.arange(int(nan.sum()), dtype=boxes.dtype)
+    ok = torch.nonzero(~nan).squeeze(1)
+    b, s = boxes.to(device), scores.to(device)
+    with lidarops.validation(False):  # -inf scores are refused too when the checks are on
+        plain = ok[_nms_bev_reference(boxes[ok], scores[ok], 0.1)]
+        assert plain[-1] == 5
+        keep = lidarops.nms_bev(b, s, 0.1)
+        assert_equal_report(keep.cpu(), torch.cat([plain, torch.nonzero(nan).squeeze(1)]), "NaN last")
+        keep, count = lidarops.nms_bev(b, s, 0.1, score_threshold=-math.inf, padded=True)
+        assert_equal_report(keep[:int(count)].cpu(), plain, "NaN never a candidate")
+        assert keep.shape == (80,) and (keep[int(count):] == -1).all()
+        keep = torch.ops.lidarops.nms_bev(b, s, None, 0.1)
+        assert_equal_report(keep.cpu(), torch.cat([plain, torch.nonzero(nan).squeeze(1)]), "the op: NaN last")
+
+
+def test_nms_padded_empty_shapes(device):
+    z = torch.zeros(0, 7, device=device)
+    keep, count = lidarops.nms_bev(z, torch.zeros(0, device=device), 0.5, padded=True)
+    assert keep.shape == (0,) and int(count) == 0
+    boxes = lidar_boxes(10, seed=1).to(device)
+    for pre, post, size in ((0, None, 0), (None, 0, 0), (3, 7, 3), (20, 4, 4)):
+        keep, count = lidarops.nms_bev(boxes, torch.rand(10, device=device), 0.5, pre_max=pre, post_max=post,
+                                       padded=True)
+        assert keep.shape == (size,) and int(count) <= size
+
+
 @pytest.mark.skipif(not LIDAROPS_CUDA, reason="needs a GPU and lidarops built with CUDA kernels")
 @pytest.mark.parametrize("n", [1, 63, 64, 65, 4096, 5000])
 def test_nms_cuda_equals_cpu(n):
@@ -311,6 +399,33 @@ def test_nms_cuda_equals_cpu(n):
     idxs = torch.randint(0, 3, (n,), generator=torch.Generator().manual_seed(1))
     assert_equal_report(lidarops.batched_nms_bev(boxes.cuda(), scores.cuda(), idxs.cuda(), 0.1).cpu(),
                         lidarops.batched_nms_bev(boxes, scores, idxs, 0.1), f"batched n={n}")
+
+
+@pytest.mark.skipif(not LIDAROPS_CUDA, reason="needs a GPU and lidarops built with CUDA kernels")
+@pytest.mark.parametrize("n", [1, 64, 65, 4096, 5000])
+def test_nms_padded_cuda_equals_cpu_and_replays_in_a_graph(n):
+    boxes = lidar_boxes(n, seed=n)
+    scores = torch.rand(n, generator=torch.Generator().manual_seed(n))
+    scores[::7] = 0.5
+    for st, pre, post in ((0.1, 4096, 500), (0.5, -1, 100), (-math.inf, 100, -1), (0.95, 4096, 500)):
+        cpu = torch.ops.lidarops.nms_bev_padded(boxes, scores, None, 0.01, st, pre, post)
+        cuda = torch.ops.lidarops.nms_bev_padded(boxes.cuda(), scores.cuda(), None, 0.01, st, pre, post)
+        assert_equal_report(cuda[0].cpu(), cpu[0], f"n={n} st={st}")
+        assert int(cuda[1]) == int(cpu[1])
+    # captured once, replayed on other scores: the candidates and the kept count change inside the graph
+    sb, ss = boxes.cuda(), scores.cuda()
+    torch.ops.lidarops.nms_bev_padded(sb, ss, None, 0.01, 0.3, 4096, 500)  # warm-up outside the capture
+    torch.cuda.synchronize()
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out = torch.ops.lidarops.nms_bev_padded(sb, ss, None, 0.01, 0.3, 4096, 500)
+    for seed in (1, 2, 3):
+        new = torch.rand(n, generator=torch.Generator().manual_seed(seed)) ** (seed + 1)
+        ss.copy_(new)
+        graph.replay()
+        ref = torch.ops.lidarops.nms_bev_padded(boxes, new, None, 0.01, 0.3, 4096, 500)
+        assert_equal_report(out[0].cpu(), ref[0], f"graph replay seed={seed}")
+        assert int(out[1]) == int(ref[1])
 
 
 @pytest.mark.skipif(not LIDAROPS_CUDA, reason="needs a GPU and lidarops built with CUDA kernels")
@@ -398,6 +513,11 @@ def _bad_cases():
         (lambda: lidarops.nms_bev(good, scores, 0.5, pre_max=-3), "pre_max must be None or an int >= 0"),
         (lambda: lidarops.nms_bev(good, scores, 0.5, post_max=2.5), "post_max must be None or an int >= 0"),
         (lambda: lidarops.batched_nms_bev(good, scores, scores, 0.5), "idxs must be an integer \\(N,\\) tensor"),
+        (lambda: lidarops.nms_bev(good, scores, 0.5, score_threshold=float("nan")), "score_threshold must be"),
+        (lambda: lidarops.nms_bev(good, scores, 0.5, score_threshold=True), "score_threshold must be"),
+        (lambda: torch.ops.lidarops.nms_bev_padded(good, scores, None, 0.5, float("nan")),
+         "score_threshold must be a number or None"),
+        (lambda: torch.ops.lidarops.nms_bev_padded(good, scores[:2], None, 0.5, 0.0), "scores must be \\(N,\\)"),
         (lambda: lidarops.points_in_boxes(good[:, :2], good), "points must be a floating \\(P, C >= 3\\)"),
         (lambda: lidarops.points_in_boxes(good[:, :3], nan), "boxes contains NaN"),
         (lambda: lidarops.box_iou_bev([1, 2], good), "a must be a torch.Tensor"),
@@ -428,6 +548,9 @@ def _op_samples(device):
     yield "points_in_boxes", (torch.rand(30, 4, device=device) * 6 - 3, b)
     yield "nms_bev", (a, torch.rand(9, device=device), None, 0.1, -1, 3)
     yield "nms_bev", (b, torch.rand(5, device=device), torch.tensor([0, 1, 0, 1, 1], device=device), 0.1, 4, -1)
+    yield "nms_bev_padded", (a, torch.rand(9, device=device), None, 0.1, 0.3, 6, 4)
+    yield "nms_bev_padded", (b, torch.rand(5, device=device), torch.tensor([0, 1, 0, 1, 1], device=device), 0.1,
+                             -math.inf, -1, -1)
 
 
 def test_opcheck(device):
@@ -470,19 +593,36 @@ def test_compile_nms_with_dynamic_output(device):
         assert_equal_report(compiled(boxes, scores), nms(boxes, scores), "compiled nms")
 
 
+def test_compile_padded_nms_needs_no_dynamic_sizes(device):
+    def post(boxes, scores):
+        keep, count = lidarops.nms_bev(boxes, scores, 0.1, pre_max=30, post_max=10, score_threshold=0.2, padded=True)
+        valid = torch.arange(keep.shape[0], device=keep.device) < count
+        return torch.where(valid[:, None], boxes[keep.clamp(min=0)], 0), count
+
+    boxes = lidar_boxes(40, seed=2).float().to(device)
+    scores = torch.rand(40, device=device)
+    torch._dynamo.reset()
+    compiled = torch.compile(post, fullgraph=True, backend="aot_eager")
+    for a, b in zip(compiled(boxes, scores), post(boxes, scores)):
+        assert_equal_report(a, b, "compiled padded nms")
+
+
 def test_meta_tensors_give_shapes():
     a = torch.empty(6, 7, device="meta")
     b = torch.empty(4, 7, device="meta", dtype=torch.float64)
     assert torch.ops.lidarops.box_iou_bev(a, a).shape == (6, 6)
     assert torch.ops.lidarops.box_iou_3d(b, b).dtype == torch.float64
     assert torch.ops.lidarops.points_in_boxes(torch.empty(9, 4, device="meta"), a).shape == (9,)
+    keep, count = torch.ops.lidarops.nms_bev_padded(a, torch.empty(6, device="meta"), None, 0.1, 0.0, 4, 9)
+    assert keep.shape == (4,) and count.shape == ()
 
 
 def test_ops_are_registered_with_their_kernels():
     from lidarops import extension
 
     has = torch._C._dispatch_has_kernel_for_dispatch_key
-    for op in ("box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "points_in_boxes", "kitti_match"):
+    for op in ("box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "nms_bev_padded", "points_in_boxes",
+               "kitti_match"):
         name = f"lidarops::{op}"
         assert has(name, "CPU") and has(name, "Meta"), name
         if extension.cuda_available() and op != "kitti_match":  # the evaluator's matching is CPU-only

@@ -16,6 +16,7 @@ from lidarops.models.detector import (
     PillarVFE,
     PointPillars,
     postprocess,
+    postprocess_padded,
     sigmoid_focal_loss,
 )
 
@@ -179,7 +180,8 @@ def test_losses_by_hand():
     assert abs(out["loss"].item() - (loss_cls + 2.0 * loss_box + 0.2 * loss_dir)) < 1e-5
 
 
-def test_postprocess_threshold_and_nms():
+def _hand_case():
+    """Two classes, four decoded anchors: two overlapping cars, a pedestrian apart, one below threshold."""
     cfg = PointPillarsConfig(**{**TINY, "class_names": ["Car", "Pedestrian"],
                                 "anchor_generator_config": TINY["anchor_generator_config"] + [
                                     {**TINY["anchor_generator_config"][0], "class_name": "Pedestrian"}]})
@@ -188,6 +190,11 @@ def test_postprocess_threshold_and_nms():
     logit = lambda p: math.log(p / (1 - p))  # noqa: E731
     cls = torch.tensor([[[logit(0.9), logit(0.2)], [logit(0.95), logit(0.1)], [logit(0.05), logit(0.3)],
                          [logit(0.01), logit(0.09)]]])
+    return cfg, boxes, cls
+
+
+def test_postprocess_threshold_and_nms():
+    cfg, boxes, cls = _hand_case()
     out = postprocess(cls, boxes, cfg)[0]
     # box 1 (0.95) suppresses box 0 (IoU > 0.01); box 2 is a Pedestrian at 0.3; box 3 is below 0.1
     assert out["labels"].tolist() == [1, 2] and torch.allclose(out["scores"], torch.tensor([0.95, 0.3]))
@@ -198,6 +205,47 @@ def test_postprocess_threshold_and_nms():
     assert multi["labels"].tolist() == [1, 2, 2]
     assert torch.allclose(multi["scores"], torch.tensor([0.95, 0.3, 0.2]))
     assert torch.equal(multi["boxes"], boxes[0, [1, 2, 0]])
+
+
+def _assert_padded_equals(padded: dict, eager: list[dict], what: str) -> None:
+    for b, want in enumerate(eager):
+        n = int(padded["count"][b])
+        assert n == want["scores"].numel(), f"{what} frame {b}: {n} boxes, eager {want['scores'].numel()}"
+        assert torch.equal(padded["labels"][b, :n], want["labels"]), what
+        assert torch.equal(padded["scores"][b, :n], want["scores"]), what
+        assert torch.equal(padded["boxes"][b, :n], want["boxes"]), what
+        assert not padded["labels"][b, n:].any() and not padded["boxes"][b, n:].any(), f"{what}: padding rows"
+
+
+@pytest.mark.parametrize("multi", [False, True])
+@pytest.mark.parametrize("pre,post", [(4096, 500), (30, 8), (5, 500)])
+def test_postprocess_padded_equals_postprocess(device, multi, pre, post):
+    """Random decoded anchors of 2 frames and 3 classes, with tied scores (logits on a coarse grid) and
+    boxes clustered so NMS suppresses: the fixed-size post-processing keeps postprocess's boxes, in its order."""
+    cfg = PointPillarsConfig(**{**TINY, "multi_classes_nms": multi, "nms_pre_maxsize": pre, "nms_post_maxsize": post,
+                                "nms_thresh": 0.1})
+    g = torch.Generator().manual_seed(pre + post + multi)
+    B, A, C = 2, 300, 3
+    cls = ((torch.randn(B, A, C, generator=g) * 2 - 1) * 4).round() / 4
+    boxes = torch.cat([torch.rand(B, A, 2, generator=g) * 12, torch.zeros(B, A, 1),
+                       1 + torch.rand(B, A, 3, generator=g) * 3, torch.rand(B, A, 1, generator=g) * 6], -1)
+    cls, boxes = cls.to(device), boxes.to(device)
+    eager = postprocess(cls, boxes, cfg)
+    assert all(0 < e["scores"].numel() for e in eager)
+    padded = postprocess_padded(cls, boxes, cfg)
+    k = min(A, pre, post) * (C if multi else 1)
+    assert padded["boxes"].shape == (B, k, 7) and padded["count"].shape == (B,)
+    _assert_padded_equals(padded, eager, f"multi={multi} pre={pre} post={post}")
+
+
+def test_postprocess_padded_hand_case():
+    """The hand-made case of test_postprocess_threshold_and_nms through the padded path."""
+    cfg, boxes, cls = _hand_case()
+    out = postprocess_padded(cls, boxes, cfg)
+    assert int(out["count"][0]) == 2 and out["labels"][0].tolist() == [1, 2, 0, 0]
+    multi = postprocess_padded(cls, boxes, PointPillarsConfig(**{**cfg.to_dict(), "multi_classes_nms": True}))
+    assert int(multi["count"][0]) == 3 and multi["labels"][0, :3].tolist() == [1, 2, 2]
+    assert torch.equal(multi["boxes"][0, :3], boxes[0, [1, 2, 0]])
 
 
 def _batch(points_per_frame: list[torch.Tensor], gt: list[list[list[float]]] | None = None) -> dict:
@@ -492,3 +540,35 @@ def test_padded_network_captures_in_a_cuda_graph():
     want = body(frames[1])
     for got, ref in zip(out, want):
         assert torch.allclose(got, ref, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
+                    reason="needs a GPU and lidarops built with CUDA kernels")
+def test_graphed_pointpillars_equals_predict():
+    """The whole inference (voxelization to NMS) replayed as one CUDA graph gives predict's detections on
+    frames of other sizes, an empty one included; bad frames get the eager call's errors."""
+    from lidarops.models.graph import GraphedPointPillars
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1}).cuda().eval()
+    g = torch.Generator().manual_seed(7)
+    frames = [(torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0])
+               + torch.tensor([0, -4.0, -3, 0])).cuda() for n in (400, 1000, 0, 37)]
+    graphed = GraphedPointPillars(model, capacity=1000)
+    kept = 0
+    for i, f in enumerate(frames):
+        got = graphed(f)
+        want = model.predict({"points": torch.nn.functional.pad(f, (1, 0)), "batch_size": 1})[0]
+        assert got["labels"].tolist() == want["labels"].tolist(), f"frame {i}"
+        assert torch.allclose(got["scores"], want["scores"], atol=1e-5), f"frame {i}"
+        assert torch.allclose(got["boxes"], want["boxes"], atol=1e-4), f"frame {i}"
+        kept += len(want["labels"])
+    assert kept > 0, "the case must keep boxes"
+    with pytest.raises(ValueError, match="more than capacity=1000"):
+        graphed(torch.zeros(1001, 4, device="cuda"))
+    bad = frames[0].clone()
+    bad[3, 3] = float("nan")
+    with pytest.raises(ValueError, match="intensity"):
+        graphed(bad)
+    with pytest.raises(ValueError, match="backbone_mode='dense'"):
+        GraphedPointPillars(PointPillars({**TINY, "backbone_mode": "sparse"}).cuda())

@@ -5,9 +5,11 @@
 #include <ATen/ops/empty.h>
 #include <ATen/ops/from_blob.h>
 #include <ATen/ops/full.h>
+#include <ATen/ops/zeros.h>
 
 #include <algorithm>
 #include <numeric>
+#include <tuple>
 #include <vector>
 
 #include "lidarops/boxes.h"
@@ -52,27 +54,24 @@ at::Tensor box_overlap_bev_cpu(const at::Tensor& a, const at::Tensor& b) { retur
 at::Tensor box_iou_bev_cpu(const at::Tensor& a, const at::Tensor& b) { return pairwise_cpu(a, b, 1); }
 at::Tensor box_iou_3d_cpu(const at::Tensor& a, const at::Tensor& b) { return pairwise_cpu(a, b, 2); }
 
-// Descending score, then ascending index; -0.0 and 0.0 compare equal.
-std::vector<int64_t> score_order(const at::Tensor& scores_in) {
-  auto scores = scores_in.to(at::kDouble).contiguous();
+// Descending score, then ascending index; -0.0 and 0.0 compare equal; NaN last (as the CUDA sort).
+std::vector<int64_t> score_order(const at::Tensor& scores) {
   const double* sc = scores.data_ptr<double>();
   std::vector<int64_t> order(static_cast<size_t>(scores.numel()));
   std::iota(order.begin(), order.end(), int64_t{0});
-  std::stable_sort(order.begin(), order.end(), [sc](int64_t i, int64_t j) { return sc[i] > sc[j]; });
+  std::stable_sort(order.begin(), order.end(), [sc](int64_t i, int64_t j) {
+    return sc[i] > sc[j] || (std::isnan(sc[j]) && !std::isnan(sc[i]));
+  });
   return order;
 }
 
-at::Tensor nms_bev_cpu(const at::Tensor& boxes_in, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs,
-                       double iou_threshold, int64_t pre_max, int64_t post_max) {
-  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs, iou_threshold);
-  const int64_t N = boxes_in.size(0);
-  std::vector<int64_t> order = score_order(scores);
-  if (pre_max >= 0 && pre_max < N) order.resize(static_cast<size_t>(pre_max));
-  const int64_t n = static_cast<int64_t>(order.size());
-  const int64_t max_keep = post_max >= 0 ? post_max : n;
+// Greedy NMS over the first n boxes of `order`: the kept entries of `order`, at most max_keep.
+std::vector<int64_t> greedy_nms(const at::Tensor& boxes_in, const std::vector<int64_t>& order, int64_t n,
+                                const c10::optional<at::Tensor>& idxs, bool grouped, double iou_threshold,
+                                int64_t max_keep) {
   std::vector<int64_t> keep;
-  if (n == 0 || max_keep == 0) return at::empty({0}, boxes_in.options().dtype(at::kLong));
-  auto sorted_boxes = boxes_in.index_select(0, at::from_blob(order.data(), {n}, at::kLong));
+  if (n == 0 || max_keep == 0) return keep;
+  auto sorted_boxes = boxes_in.index_select(0, at::from_blob(const_cast<int64_t*>(order.data()), {n}, at::kLong));
   const auto g = geoms_of(sorted_boxes);
   std::vector<int64_t> group(static_cast<size_t>(n), 0);
   if (grouped) {
@@ -94,9 +93,47 @@ at::Tensor nms_bev_cpu(const at::Tensor& boxes_in, const at::Tensor& scores, con
           removed[q] = 1;
     });
   }
+  return keep;
+}
+
+at::Tensor nms_bev_cpu(const at::Tensor& boxes_in, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs,
+                       double iou_threshold, int64_t pre_max, int64_t post_max) {
+  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs, iou_threshold);
+  const int64_t N = boxes_in.size(0);
+  std::vector<int64_t> order = score_order(scores.to(at::kDouble).contiguous());
+  if (pre_max >= 0 && pre_max < N) order.resize(static_cast<size_t>(pre_max));
+  const int64_t n = static_cast<int64_t>(order.size());
+  const int64_t max_keep = post_max >= 0 ? post_max : n;
+  const auto keep = greedy_nms(boxes_in, order, n, idxs, grouped, iou_threshold, max_keep);
   auto out = at::empty({static_cast<int64_t>(keep.size())}, boxes_in.options().dtype(at::kLong));
   std::copy(keep.begin(), keep.end(), out.data_ptr<int64_t>());
   return out;
+}
+
+std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cpu(const at::Tensor& boxes_in, const at::Tensor& scores,
+                                                      const c10::optional<at::Tensor>& idxs, double iou_threshold,
+                                                      c10::optional<double> score_threshold, int64_t pre_max,
+                                                      int64_t post_max) {
+  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs, iou_threshold);
+  boxes::check_score_threshold(score_threshold);
+  const int64_t N = boxes_in.size(0);
+  const int64_t n = pre_max >= 0 ? std::min(pre_max, N) : N;
+  const int64_t K = post_max >= 0 ? std::min(post_max, n) : n;
+  auto keep = at::full({K}, -1, boxes_in.options().dtype(at::kLong));
+  auto count = at::zeros({}, boxes_in.options().dtype(at::kLong));
+  if (K == 0) return {keep, count};
+  // the boxes scoring >= score_threshold (never NaN, which sorts last) are a prefix of the order
+  auto key = scores.to(at::kDouble).contiguous();
+  std::vector<int64_t> order = score_order(key);
+  order.resize(static_cast<size_t>(n));
+  const double* kp = key.data_ptr<double>();
+  int64_t n_valid = score_threshold.has_value() ? 0 : n;
+  if (score_threshold.has_value())
+    while (n_valid < n && kp[order[n_valid]] >= *score_threshold) ++n_valid;
+  const auto kept = greedy_nms(boxes_in, order, n_valid, idxs, grouped, iou_threshold, K);
+  std::copy(kept.begin(), kept.end(), keep.data_ptr<int64_t>());
+  count.fill_(static_cast<int64_t>(kept.size()));
+  return {keep, count};
 }
 
 at::Tensor points_in_boxes_cpu(const at::Tensor& points_in, const at::Tensor& boxes_in) {
@@ -133,6 +170,7 @@ TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
   m.impl("box_iou_bev", &box_iou_bev_cpu);
   m.impl("box_iou_3d", &box_iou_3d_cpu);
   m.impl("nms_bev", &nms_bev_cpu);
+  m.impl("nms_bev_padded", &nms_bev_padded_cpu);
   m.impl("points_in_boxes", &points_in_boxes_cpu);
 }
 

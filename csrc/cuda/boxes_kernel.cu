@@ -1,11 +1,12 @@
 // Rotated-box ops on CUDA: pairwise BEV overlap / IoU and 3D IoU, rotated NMS, points in boxes. The
 // geometry (include/lidarops/boxes.h) is the CPU kernels' own, so both devices give the same bits.
 //
-// NMS: one sort of the scores, a bitmask kernel (bit j of row i: box j, later in score order, overlaps
+// NMS: one sort of the negated scores, a bitmask kernel (bit j of row i: box j, later in score order, overlaps
 // box i above the threshold; only the upper triangle is computed), and one warp that walks the mask in
 // blocks of 64 boxes: inside a block the kept boxes are resolved from the diagonal word in registers,
 // then the rows of the kept boxes are OR-ed into the suppression words of the later blocks. No host loop;
-// one device-to-host read of the number kept.
+// one device-to-host read of the number kept (none in nms_bev_padded: the number of candidates and the
+// number kept stay on the device, so the whole op can be captured in a CUDA graph).
 #include <ATen/Dispatch.h>
 
 #include "lidarops/boxes.h"
@@ -97,13 +98,16 @@ at::Tensor box_iou_3d_cuda(const at::Tensor& a, const at::Tensor& b) { return pa
 // (A thread per row would run the float64 clipping with one lane busy and the rest of the warp waiting:
 // with boxes clustered on objects that made the kernel FP64-bound on idle lanes.)
 __global__ void __launch_bounds__(64)
-    nms_mask_kernel(const BoxGeom* __restrict__ g, const int64_t* __restrict__ group, int64_t n, int64_t nwords,
-                    double threshold, uint64_t* __restrict__ mask) {
+    nms_mask_kernel(const BoxGeom* __restrict__ g, const int64_t* __restrict__ group, int64_t n,
+                    const int64_t* __restrict__ n_valid, int64_t nwords, double threshold,
+                    uint64_t* __restrict__ mask) {
   __shared__ BoxGeom cols[64], rows[64];
   __shared__ int64_t col_group[64];
   __shared__ unsigned long long row_bits[64];
   __shared__ uint16_t queue[2][32 * 64];  // per warp: (lane of the row << 6) | column
+  if (n_valid != nullptr) n = std::min(n, *n_valid);  // the padded variant: the grid is sized for all n
   const int64_t c = blockIdx.x, c0 = c * 64;
+  if (c0 >= n) return;  // block-uniform
   const int ncols = static_cast<int>(std::min<int64_t>(64, n - c0));
   const int t = threadIdx.x, warp = t >> 5, lane = t & 31;
   if (t < ncols) {
@@ -146,12 +150,17 @@ __global__ void __launch_bounds__(64)
   }
 }
 
-// One warp. removed[w] (shared): boxes of block w suppressed by the kept boxes of earlier blocks.
+// One warp. removed[w] (shared): boxes of block w suppressed by the kept boxes of earlier blocks. With
+// n_valid, only the first *n_valid boxes take part (the words past them were not written). Writes
+// keep[:num_kept] = the kept boxes' indices (through `order`) and -1 up to max_keep.
 __global__ void __launch_bounds__(32)
-    nms_reduce_kernel(const uint64_t* __restrict__ mask, int64_t n, int64_t nwords, int64_t max_keep,
-                      int64_t* __restrict__ keep_pos, int64_t* __restrict__ num_kept) {
+    nms_reduce_kernel(const uint64_t* __restrict__ mask, int64_t n, const int64_t* __restrict__ n_valid,
+                      int64_t stride, const int64_t* __restrict__ order, int64_t max_keep,
+                      int64_t* __restrict__ keep, int64_t* __restrict__ num_kept) {
   extern __shared__ uint64_t removed[];
   const int lane = threadIdx.x;
+  if (n_valid != nullptr) n = std::min(n, *n_valid);
+  const int64_t nwords = (n + 63) / 64;  // row stride: `stride` words
   for (int64_t w = lane; w < nwords; w += 32) removed[w] = 0;
   __syncwarp();
   // the diagonal words of block c (each lane two rows); the next block's are fetched while this one's
@@ -159,8 +168,8 @@ __global__ void __launch_bounds__(32)
   auto diagonal = [&](int64_t c, uint64_t& d0, uint64_t& d1) {
     const int64_t base = c * 64;
     const int nb = static_cast<int>(std::min<int64_t>(64, n - base));
-    d0 = lane < nb ? mask[(base + lane) * nwords + c] : 0;
-    d1 = lane + 32 < nb ? mask[(base + lane + 32) * nwords + c] : 0;
+    d0 = lane < nb ? mask[(base + lane) * stride + c] : 0;
+    d1 = lane + 32 < nb ? mask[(base + lane + 32) * stride + c] : 0;
   };
   uint64_t d0, d1;
   diagonal(0, d0, d1);
@@ -189,7 +198,7 @@ __global__ void __launch_bounds__(32)
       nk = max_keep - count;
     }
     for (int p = lane; p < 64; p += 32)
-      if ((kept >> p) & 1) keep_pos[count + __popcll(kept & ((1ull << p) - 1))] = base + p;
+      if ((kept >> p) & 1) keep[count + __popcll(kept & ((1ull << p) - 1))] = order[base + p];
     count += nk;
     uint64_t next0 = 0, next1 = 0;
     if (c + 1 < nwords) diagonal(c + 1, next0, next1);
@@ -203,7 +212,7 @@ __global__ void __launch_bounds__(32)
             if (bits) {
               const int r = __ffsll(static_cast<long long>(bits)) - 1;
               bits &= bits - 1;
-              v[u] = mask[(base + r) * nwords + w];
+              v[u] = mask[(base + r) * stride + w];
             }
           }
           acc |= v[0] | v[1] | v[2] | v[3];
@@ -215,43 +224,107 @@ __global__ void __launch_bounds__(32)
     d0 = next0;
     d1 = next1;
   }
+  for (int64_t q = count + lane; q < max_keep; q += 32) keep[q] = -1;
   if (lane == 0) *num_kept = count;
+}
+
+// key = 0 - score (float32; float64 for float64 scores): its ascending stable sort visits the boxes in
+// descending score order, equal scores (-0.0 and 0.0 too) by index, NaN last. With `count`, the number
+// of scores >= threshold (never NaN) is added to *count: the candidates are that many first boxes.
+template <typename scalar_t, typename key_t>
+__global__ void nms_key_kernel(const scalar_t* __restrict__ scores, int64_t N, double threshold,
+                               key_t* __restrict__ key, unsigned long long* __restrict__ count) {
+  unsigned local = 0;
+  for (int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; i < N;
+       i += static_cast<int64_t>(gridDim.x) * blockDim.x) {
+    const key_t v = static_cast<key_t>(scores[i]);
+    key[i] = key_t(0) - v;
+    local += static_cast<double>(v) >= threshold;
+  }
+  if (count == nullptr) return;
+  local = __reduce_add_sync(gpu::kFullMask, local);
+  if ((threadIdx.x & 31) == 0 && local) atomicAdd(count, static_cast<unsigned long long>(local));
+}
+
+// The visiting order of the boxes: (N,) int64; with `count` (int64, zeroed), the candidates counted in it.
+at::Tensor nms_order(const at::Tensor& scores, double threshold, const at::Tensor& count, cudaStream_t stream) {
+  const int64_t N = scores.size(0);
+  auto key = at::empty({N}, scores.options().dtype(scores.scalar_type() == at::kDouble ? at::kDouble : at::kFloat));
+  auto s = scores.contiguous();
+  auto* cnt = count.defined() ? reinterpret_cast<unsigned long long*>(count.data_ptr<int64_t>()) : nullptr;
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, s.scalar_type(), "lidarops_nms_key_cuda", [&] {
+    if (key.scalar_type() == at::kDouble)
+      nms_key_kernel<scalar_t, double><<<gpu::stride_blocks(N, 256, 1024), 256, 0, stream>>>(
+          s.data_ptr<scalar_t>(), N, threshold, key.data_ptr<double>(), cnt);
+    else
+      nms_key_kernel<scalar_t, float><<<gpu::stride_blocks(N, 256, 1024), 256, 0, stream>>>(
+          s.data_ptr<scalar_t>(), N, threshold, key.data_ptr<float>(), cnt);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return std::get<1>(key.sort(/*stable=*/true, /*dim=*/0, /*descending=*/false));
+}
+
+// NMS of the first n boxes of `order` (the first min(n, *n_valid) with n_valid): keep (max_keep,) gets
+// the kept indices then -1, num_kept (int64) their number.
+void nms_launch(const at::Tensor& boxes, const at::Tensor& order, const c10::optional<at::Tensor>& idxs, int64_t n,
+                const int64_t* n_valid, double iou_threshold, const at::Tensor& keep, const at::Tensor& num_kept,
+                cudaStream_t stream) {
+  const int64_t nwords = gpu::ceil_div(n, 64);
+  TORCH_CHECK_VALUE(n * nwords * 8 <= (int64_t{1} << 31), "nms_bev on CUDA keeps an n x n/64 bitmask; n = ", n,
+                    " boxes would need ", n * nwords * 8, " bytes (more than 2 GiB): lower pre_max");
+  auto g = geoms_of(boxes, order, stream);
+  at::Tensor group;
+  if (idxs.has_value() && idxs->defined()) group = idxs->index_select(0, order).contiguous();
+  auto mask = at::empty({n * nwords}, boxes.options().dtype(at::kLong));
+  const dim3 grid(static_cast<unsigned>(nwords), static_cast<unsigned>(std::min<int64_t>(nwords, 65535)));
+  nms_mask_kernel<<<grid, 64, 0, stream>>>(geom_ptr(g), group.defined() ? group.data_ptr<int64_t>() : nullptr, n,
+                                           n_valid, nwords, iou_threshold,
+                                           reinterpret_cast<uint64_t*>(mask.data_ptr<int64_t>()));
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  nms_reduce_kernel<<<1, 32, nwords * sizeof(uint64_t), stream>>>(
+      reinterpret_cast<const uint64_t*>(mask.data_ptr<int64_t>()), n, n_valid, nwords, order.data_ptr<int64_t>(),
+      keep.size(0), keep.data_ptr<int64_t>(), num_kept.data_ptr<int64_t>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
 at::Tensor nms_bev_cuda(const at::Tensor& boxes_in, const at::Tensor& scores, const c10::optional<at::Tensor>& idxs,
                         double iou_threshold, int64_t pre_max, int64_t post_max) {
-  const bool grouped = boxes::check_nms_args(boxes_in, scores, idxs, iou_threshold);
+  boxes::check_nms_args(boxes_in, scores, idxs, iou_threshold);
   const int64_t N = boxes_in.size(0);
-  c10::cuda::CUDAGuard guard(boxes_in.device());
-  auto empty = at::empty({0}, boxes_in.options().dtype(at::kLong));
-  if (N == 0) return empty;
-  cudaStream_t stream = at::cuda::getCurrentCUDAStream();
-  // + 0 turns -0.0 into 0.0, which the radix sort would otherwise order apart
-  auto key = scores.to(scores.scalar_type() == at::kDouble ? at::kDouble : at::kFloat).add(0.0);
-  auto order = std::get<1>(key.sort(/*stable=*/true, /*dim=*/0, /*descending=*/true));
-  if (pre_max >= 0 && pre_max < N) order = order.slice(0, 0, pre_max);
-  const int64_t n = order.size(0);
+  const int64_t n = pre_max >= 0 ? std::min(pre_max, N) : N;
   const int64_t max_keep = post_max >= 0 ? std::min(post_max, n) : n;
-  if (n == 0 || max_keep == 0) return empty;
-  const int64_t nwords = gpu::ceil_div(n, 64);
-  TORCH_CHECK_VALUE(n * nwords * 8 <= (int64_t{1} << 31), "nms_bev on CUDA keeps an n x n/64 bitmask; n = ", n,
-                    " boxes would need ", n * nwords * 8, " bytes (more than 2 GiB): lower pre_max");
-  auto g = geoms_of(boxes_in, order, stream);
-  at::Tensor group;
-  if (grouped) group = idxs->index_select(0, order).contiguous();
-  auto mask = at::empty({n * nwords}, boxes_in.options().dtype(at::kLong));
-  const dim3 grid(static_cast<unsigned>(nwords), static_cast<unsigned>(std::min<int64_t>(nwords, 65535)));
-  nms_mask_kernel<<<grid, 64, 0, stream>>>(geom_ptr(g), grouped ? group.data_ptr<int64_t>() : nullptr, n, nwords,
-                                           iou_threshold, reinterpret_cast<uint64_t*>(mask.data_ptr<int64_t>()));
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  auto keep_pos = at::empty({max_keep}, order.options());
-  auto num_kept = at::empty({1}, order.options());
-  nms_reduce_kernel<<<1, 32, nwords * sizeof(uint64_t), stream>>>(
-      reinterpret_cast<const uint64_t*>(mask.data_ptr<int64_t>()), n, nwords, max_keep, keep_pos.data_ptr<int64_t>(),
-      num_kept.data_ptr<int64_t>());
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  const int64_t k = num_kept.item<int64_t>();
-  return order.index_select(0, keep_pos.slice(0, 0, k));
+  c10::cuda::CUDAGuard guard(boxes_in.device());
+  if (max_keep == 0) return at::empty({0}, boxes_in.options().dtype(at::kLong));
+  cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  auto order = nms_order(scores, 0.0, at::Tensor(), stream).slice(0, 0, n);
+  auto keep = at::empty({max_keep}, order.options());
+  auto num_kept = at::empty({}, order.options());
+  nms_launch(boxes_in, order, idxs, n, nullptr, iou_threshold, keep, num_kept, stream);
+  return keep.slice(0, 0, num_kept.item<int64_t>());
+}
+
+std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cuda(const at::Tensor& boxes_in, const at::Tensor& scores,
+                                                       const c10::optional<at::Tensor>& idxs, double iou_threshold,
+                                                       c10::optional<double> score_threshold, int64_t pre_max,
+                                                       int64_t post_max) {
+  boxes::check_nms_args(boxes_in, scores, idxs, iou_threshold);
+  boxes::check_score_threshold(score_threshold);
+  const int64_t N = boxes_in.size(0);
+  const int64_t n = pre_max >= 0 ? std::min(pre_max, N) : N;
+  const int64_t K = post_max >= 0 ? std::min(post_max, n) : n;
+  c10::cuda::CUDAGuard guard(boxes_in.device());
+  const auto longs = boxes_in.options().dtype(at::kLong);
+  if (K == 0) return {at::empty({0}, longs), at::zeros({}, longs)};
+  auto count = at::empty({}, longs);  // written by the reduction
+  cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  // counted on the device and never read back: the candidates are the first min(n, n_valid) of the order
+  at::Tensor n_valid;
+  if (score_threshold.has_value()) n_valid = at::zeros({}, longs);
+  auto order = nms_order(scores, score_threshold.value_or(0.0), n_valid, stream).slice(0, 0, n);
+  auto keep = at::empty({K}, longs);
+  nms_launch(boxes_in, order, idxs, n, n_valid.defined() ? n_valid.data_ptr<int64_t>() : nullptr, iou_threshold,
+             keep, count, stream);
+  return {keep, count};
 }
 
 constexpr int kPointThreads = 128;
@@ -309,6 +382,7 @@ TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("box_iou_bev", &box_iou_bev_cuda);
   m.impl("box_iou_3d", &box_iou_3d_cuda);
   m.impl("nms_bev", &nms_bev_cuda);
+  m.impl("nms_bev_padded", &nms_bev_padded_cuda);
   m.impl("points_in_boxes", &points_in_boxes_cuda);
 }
 

@@ -1,5 +1,5 @@
 // Schemas of the rotated-box ops. Kernels: csrc/cpu/boxes_kernel.cpp, csrc/cuda/boxes_kernel.cu (geometry
-// in include/lidarops/boxes.h); fake kernels: lidarops/ops/_boxes_registrations.py; wrappers and float64
+// in include/lidarops/boxes.h); fake kernels: lidarops/ops/_registrations.py; wrappers and float64
 // references: lidarops/ops/boxes.py.
 //
 // Direct calls: shapes, dtypes and devices are checked at entry (ValueError); no op indexes with values
@@ -20,10 +20,19 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // different groups never suppress each other). Boxes are visited in descending score order, equal scores
   // by ascending index; the first pre_max of that order take part (-1: all); a box is suppressed when its
   // IoU with a kept box of its group is strictly greater than iou_threshold; at most post_max are kept
-  // (-1: all). Returns the kept indices (K,) int64 in visiting order (K data-dependent).
+  // (-1: all). Returns the kept indices (K,) int64 in visiting order (K data-dependent). NaN scores
+  // are visited last.
   m.def(
       "nms_bev(Tensor boxes, Tensor scores, Tensor? idxs, float iou_threshold, int pre_max=-1,"
       " int post_max=-1) -> Tensor");
+  // nms_bev with outputs of a size fixed by the shapes (no device-to-host read: CUDA-graph capturable).
+  // With a score_threshold, the candidates are those of the first pre_max boxes of the visiting order
+  // whose score is >= score_threshold (NaN scores never are); None: all of them, as nms_bev. Returns
+  // (keep (K,) int64, count () int64) with K = min(post_max, pre_max, N) (-1 arguments: no limit):
+  // keep[:count] the kept indices in visiting order, keep[count:] = -1.
+  m.def(
+      "nms_bev_padded(Tensor boxes, Tensor scores, Tensor? idxs, float iou_threshold, float? score_threshold=None,"
+      " int pre_max=-1, int post_max=-1) -> (Tensor, Tensor)");
   // points (P, C >= 3), boxes (M, 7) -> (P,) int64: the lowest index of the closed boxes holding each
   // point, -1 when none does.
   m.def("points_in_boxes(Tensor points, Tensor boxes) -> Tensor");

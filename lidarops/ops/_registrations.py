@@ -2,8 +2,8 @@
 
 Schemas: ``csrc/ops/neighbors.cpp`` (fps, knn, ball_query, gather, gather_backward), ``checks.cpp``
 (value_flags), ``voxelize.cpp`` (voxelize_assign, voxelize_scatter), ``boxes.cpp`` (box_overlap_bev,
-box_iou_bev, box_iou_3d, nms_bev, points_in_boxes). No op of this package has a C++ autograd kernel
-(``csrc/ops/autograd``): every formula is here, and every backward is made of registered ops (gather /
+box_iou_bev, box_iou_3d, nms_bev, nms_bev_padded, points_in_boxes). No op of this package has a C++
+autograd kernel (``csrc/ops/autograd``): every formula is here, and every backward is made of registered ops (gather /
 gather_backward) or ATen ops, so it works on every device, under torch.compile, and twice (double backward).
 
 The voxelization ops are shape-static, so their fake kernels need no dynamic sizes: ``voxelize_assign``
@@ -11,7 +11,8 @@ pads its per-voxel outputs to ``max_voxels`` and returns the data-dependent voxe
 ``voxelize_scatter`` takes its row count as an argument. The data dependence lives in the wrapper
 (``lidarops.ops.voxelize``), which reads ``stats`` once and slices; under ``torch.compile`` that read is a
 graph break (or an unbacked size with ``capture_scalar_outputs``) unless ``padded=True``. The box ops are
-not differentiable; ``nms_bev`` keeps a data-dependent number of boxes (an unbacked size).
+not differentiable; ``nms_bev`` keeps a data-dependent number of boxes (an unbacked size),
+``nms_bev_padded`` pads its kept list to a size fixed by the shapes and counts on the device.
 
 Imported by :func:`lidarops.extension.load` (and by :mod:`lidarops.ops.voxelize`).
 """
@@ -112,6 +113,17 @@ def _nms_bev_fake(boxes, scores, idxs, iou_threshold, pre_max=-1, post_max=-1):
     # the number kept depends on the values: an unbacked size
     kept = torch.library.get_ctx().new_dynamic_size()
     return boxes.new_empty((kept,), dtype=torch.int64)
+
+
+@torch.library.register_fake("lidarops::nms_bev_padded")
+def _nms_bev_padded_fake(boxes, scores, idxs, iou_threshold, score_threshold=None, pre_max=-1, post_max=-1):
+    # sizes fixed by the shapes: K = min(N, pre_max, post_max)
+    k = boxes.shape[0]
+    if pre_max >= 0:
+        k = torch.sym_min(k, pre_max)
+    if post_max >= 0:
+        k = torch.sym_min(k, post_max)
+    return boxes.new_empty((k,), dtype=torch.int64), boxes.new_empty((), dtype=torch.int64)
 
 
 @torch.library.register_fake("lidarops::points_in_boxes")

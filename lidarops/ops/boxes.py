@@ -20,7 +20,8 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
-from lidarops.ops.validation import check_tensor, check_values, describe, value_checks_enabled
+from lidarops.ops.validation import DeferredChecks, check_tensor, check_values, deferred_value_checks, describe, \
+    value_checks_enabled
 
 extension.load()
 
@@ -110,7 +111,9 @@ def _optional_count(v, name: str) -> int:
     return int(v)
 
 
-def _nms_args(boxes, scores, iou_threshold, idxs=None) -> float:
+def _nms_args(boxes, scores, iou_threshold, idxs=None) -> tuple[float, DeferredChecks]:
+    """The threshold as a float, and the value checks computed but not read (the caller reads them with
+    the op's result, one host sync for both)."""
     _check_boxes(boxes, "boxes")
     check_tensor(scores, "scores")
     n = boxes.shape[0]
@@ -128,22 +131,33 @@ def _nms_args(boxes, scores, iou_threshold, idxs=None) -> float:
             or not (math.isfinite(iou_threshold) and iou_threshold >= 0):
         # an IoU lies in [0, 1]: below 0 even boxes that do not touch would suppress each other
         raise ValueError(f"iou_threshold must be a finite number >= 0, got {iou_threshold!r}")
+    checks = DeferredChecks(None, [])
     if value_checks_enabled():
         finite, extra = _box_value_checks(boxes, "boxes")
         finite.append((scores, lambda: f"scores contains NaN or infinite values ({describe(scores)})"))
-        check_values(finite=finite, extra=extra)
-    return float(iou_threshold)
+        checks = deferred_value_checks(finite=finite, extra=extra)
+    return float(iou_threshold), checks
+
+
+def _score_threshold(v) -> float | None:
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or math.isnan(v):
+        raise ValueError(f"score_threshold must be None or a number (not NaN), got {v!r}")
+    return float(v)
 
 
 def nms_bev(boxes: Tensor, scores: Tensor, iou_threshold: float, pre_max: int | None = None,
-            post_max: int | None = None) -> Tensor:
+            post_max: int | None = None, *, score_threshold: float | None = None, padded: bool = False):
     """Rotated non-maximum suppression on the bird's-eye-view IoU (OpenPCDet's ``nms_gpu``).
 
     Boxes are visited in descending score order (equal scores: lower index first); the first
-    ``pre_max`` of that order take part; a box is suppressed when its BEV IoU with an already kept box
-    is **strictly greater** than ``iou_threshold`` (PointPillars runs 0.01); at most ``post_max`` boxes
-    are kept. On CUDA: a bitmask kernel and one warp-level reduction, no per-box host loop; the kept
-    list is read back once.
+    ``pre_max`` of that order whose score is at least ``score_threshold`` take part; a box is suppressed
+    when its BEV IoU with an already kept box is **strictly greater** than ``iou_threshold``
+    (PointPillars runs 0.01); at most ``post_max`` boxes are kept. On CUDA: a bitmask kernel and one
+    warp-level reduction, no per-box host loop; one read back to the host (the number kept, with the
+    value checks' flags), none with ``padded=True``. With the value checks off, NaN scores are visited
+    last and never pass a ``score_threshold``.
 
     Args:
         boxes (Tensor[N, 7]): boxes.
@@ -151,13 +165,33 @@ def nms_bev(boxes: Tensor, scores: Tensor, iou_threshold: float, pre_max: int | 
         iou_threshold (float): suppression threshold.
         pre_max (int, optional): boxes taking part, highest scores first (OpenPCDet's ``NMS_PRE_MAXSIZE``).
         post_max (int, optional): boxes kept at most (``NMS_POST_MAXSIZE``).
+        score_threshold (float, optional): only boxes scoring at least this take part (OpenPCDet's
+            ``SCORE_THRESH``). The same as thresholding first: boxes below it would come after every box
+            above it in the visiting order, where they cannot suppress anything.
+        padded (bool): return ``(keep, count)`` of sizes fixed by the shapes instead, with nothing read
+            back to the host (the call can be captured in a CUDA graph, and ``torch.compile`` needs no
+            dynamic size; the value checks, when on, read back once before the op: turn them off with
+            ``lidarops.validation(False)`` inside a capture): ``keep (Tensor[K])`` with
+            ``K = min(N, pre_max, post_max)``, its first ``count`` entries the kept indices and the rest
+            -1; ``count (Tensor[])`` int64.
 
     Returns:
-        Tensor[K] int64: indices of the kept boxes, in descending score order.
+        Tensor[K] int64: indices of the kept boxes, in descending score order (``padded=False``).
     """
-    threshold = _nms_args(boxes, scores, iou_threshold)
-    return torch.ops.lidarops.nms_bev(boxes, scores, None, threshold, _optional_count(pre_max, "pre_max"),
-                                      _optional_count(post_max, "post_max"))
+    threshold, checks = _nms_args(boxes, scores, iou_threshold)
+    pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
+    if padded:
+        checks.run()
+    keep, count = torch.ops.lidarops.nms_bev_padded(boxes, scores, None, threshold,
+                                                    _score_threshold(score_threshold), pre, post)
+    if padded:
+        return keep, count
+    if checks.flags is None:
+        return keep[:int(count)]
+    # the number kept and the value flags come back in one read; the kernels are safe on any values
+    host = torch.cat([count.view(1), checks.flags.to(torch.int64)]).tolist()
+    checks.raise_first(host[1:])
+    return keep[:host[0]]
 
 
 def _rank_in_group(groups: Tensor) -> Tensor:
@@ -188,7 +222,8 @@ def batched_nms_bev(boxes: Tensor, scores: Tensor, idxs: Tensor, iou_threshold: 
     Returns:
         Tensor[K] int64: kept indices in descending score order (equal scores: lower index first).
     """
-    threshold = _nms_args(boxes, scores, iou_threshold, idxs)
+    threshold, checks = _nms_args(boxes, scores, iou_threshold, idxs)
+    checks.run()
     pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
     idxs = idxs.to(torch.int64)
     if pre < 0:

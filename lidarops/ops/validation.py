@@ -176,6 +176,49 @@ def coordinate_checks(named: Sequence[tuple[str, torch.Tensor]]) -> list:
              lambda t=t, name=name: _coordinate_message(t, name)) for name, t in named if t.numel()]
 
 
+class DeferredChecks:
+    """Value flags computed on the device and not yet read: read :attr:`flags` together with an op's own
+    results (one host sync for both), then :meth:`raise_first` with the values read."""
+
+    def __init__(self, flags: "torch.Tensor | None", messages: list):
+        self.flags = flags  # int32 (k,), nonzero = bad; None: nothing to check
+        self.messages = messages
+
+    def raise_first(self, values: Sequence[int]) -> None:
+        for bad, message in zip(values, self.messages):
+            if bad:
+                raise ValueError(message() if callable(message) else message)
+
+    def run(self) -> None:
+        """Read the flags now and raise for the first failure."""
+        if self.flags is not None:
+            self.raise_first(self.flags.tolist())
+
+
+def deferred_value_checks(finite: Sequence[tuple[torch.Tensor, object]] = (),
+                          ranged: Sequence[tuple[torch.Tensor, int, int, object]] = (),
+                          extra: Sequence[tuple[torch.Tensor, object]] = (),
+                          coords: Sequence[tuple[torch.Tensor, str]] = ()) -> DeferredChecks:
+    """:func:`check_values`' flags without reading them (the same arguments)."""
+    coords = [(t, name) for t, name in coords if t.numel()]
+    first = next((c[0] for group in (coords, finite, ranged, extra) for c in group), None)
+    if first is None or first.device.type == "meta":  # meta tensors carry no values to check
+        return DeferredChecks(None, [])
+    parts = []
+    if coords:  # NaN propagates through amax, and NaN <= bound is False: one flag for NaN, inf and too large
+        ok = torch.stack([t.abs().amax().le(coordinate_bound(t.dtype)) for t, _ in coords])
+        parts.append(ok.logical_not().to(torch.int32))
+    if finite or ranged:
+        parts.append(torch.ops.lidarops.value_flags([t for t, _ in finite], [c[0] for c in ranged],
+                                                    [int(c[1]) for c in ranged], [int(c[2]) for c in ranged]))
+    if extra:
+        parts.append(torch.stack([c.reshape(()).to(torch.int32) for c, _ in extra]))
+    flags = parts[0] if len(parts) == 1 else torch.cat(parts)
+    messages = ([lambda t=t, name=name: _coordinate_message(t, name) for t, name in coords]
+                + [m for _, m in finite] + [c[3] for c in ranged] + [m for _, m in extra])
+    return DeferredChecks(flags, messages)
+
+
 def check_values(finite: Sequence[tuple[torch.Tensor, object]] = (),
                  ranged: Sequence[tuple[torch.Tensor, int, int, object]] = (),
                  extra: Sequence[tuple[torch.Tensor, object]] = (),
@@ -191,27 +234,10 @@ def check_values(finite: Sequence[tuple[torch.Tensor, object]] = (),
         extra: ``(bool 0-d tensor, message)``: any other check, True = bad.
     A message may be a callable, evaluated only on failure (it may read tensors to say more).
     ``finite`` and ``ranged`` run in the registered ``value_flags`` op; ``coords`` is one max-abs
-    reduction per tensor; all flags come back to the host together.
+    reduction per tensor; all flags come back to the host together (:func:`deferred_value_checks`
+    leaves the read to the caller).
     """
-    coords = [(t, name) for t, name in coords if t.numel()]
-    first = next((c[0] for group in (coords, finite, ranged, extra) for c in group), None)
-    if first is None or first.device.type == "meta":  # meta tensors carry no values to check
-        return
-    parts = []
-    if coords:  # NaN propagates through amax, and NaN <= bound is False: one flag for NaN, inf and too large
-        ok = torch.stack([t.abs().amax().le(coordinate_bound(t.dtype)) for t, _ in coords])
-        parts.append(ok.logical_not().to(torch.int32))
-    if finite or ranged:
-        parts.append(torch.ops.lidarops.value_flags([t for t, _ in finite], [c[0] for c in ranged],
-                                                    [int(c[1]) for c in ranged], [int(c[2]) for c in ranged]))
-    if extra:
-        parts.append(torch.stack([c.reshape(()).to(torch.int32) for c, _ in extra]))
-    flags = parts[0] if len(parts) == 1 else torch.cat(parts)
-    messages = ([lambda t=t, name=name: _coordinate_message(t, name) for t, name in coords]
-                + [m for _, m in finite] + [c[3] for c in ranged] + [m for _, m in extra])
-    for bad, message in zip(flags.tolist(), messages):
-        if bad:
-            raise ValueError(message() if callable(message) else message)
+    deferred_value_checks(finite, ranged, extra, coords).run()
 
 
 def run_value_checks(checks: Sequence[tuple[torch.Tensor, object]]) -> None:

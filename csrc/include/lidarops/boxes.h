@@ -246,6 +246,12 @@ inline bool check_nms_args(const at::Tensor& boxes, const at::Tensor& scores, co
   return grouped;
 }
 
+// Candidates are boxes with score >= score_threshold: NaN would make none a candidate silently.
+inline void check_score_threshold(const c10::optional<double>& score_threshold) {
+  TORCH_CHECK_VALUE(!score_threshold.has_value() || !std::isnan(*score_threshold),
+                    "score_threshold must be a number or None, got nan");
+}
+
 inline void check_points_args(const at::Tensor& points, const at::Tensor& boxes) {
   TORCH_CHECK_VALUE(points.dim() == 2 && points.size(1) >= 3, "points must be (P, C >= 3), got shape ", points.sizes());
   TORCH_CHECK_VALUE(at::isFloatingType(points.scalar_type()), "points must be floating, got ", points.scalar_type());
