@@ -37,7 +37,7 @@ SHORTER = [
 ]
 
 #: optional packages (tools/ensure_env.py): a block that needs a missing one skips, as their tests do
-OPTIONAL = ("h5py", "matplotlib", "scipy", "shapely", "pandas", "tqdm")
+OPTIONAL = ("h5py", "matplotlib", "scipy", "shapely", "pandas", "tqdm", "onnxscript", "onnxruntime")
 
 _FENCE = re.compile(r"^```(\w*)[^\n]*\n(.*?)^```\s*$", re.S | re.M)
 

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from torch.nn import functional as F
 
 import lidarops
 from lidarops.models.config import ConfigError, PointPillarsConfig, load_config
@@ -118,6 +119,27 @@ def test_vfe_empty_slots_take_part_like_openpcdet():
     # pillar 0: one point (-3.2 + 0.5 < 0) and two empty slots giving relu(0.5)
     # pillar 1: three "points" (the zeros count as points): max(relu(-0.2 + 0.5), relu(0.5)) = 0.5
     assert torch.allclose(out[:, 0], torch.tensor([0.5, 0.5]))
+
+
+def test_pfn_inference_folds_batchnorm_exactly_enough():
+    """In eval mode the last PFN layer folds BatchNorm into the linear map and takes the max before the
+    ReLU; against Linear -> BatchNorm (running statistics, some scales negative) -> ReLU -> max in float64."""
+    from lidarops.models.detector import PFNLayer
+
+    g = torch.Generator().manual_seed(3)
+    layer = PFNLayer(10, 16, use_norm=True, last_layer=True).double()
+    with torch.no_grad():
+        layer.norm.weight.copy_(torch.randn(16, generator=g, dtype=torch.float64))
+        layer.norm.bias.copy_(torch.randn(16, generator=g, dtype=torch.float64))
+        layer.norm.running_mean.copy_(torch.randn(16, generator=g, dtype=torch.float64))
+        layer.norm.running_var.copy_(torch.rand(16, generator=g, dtype=torch.float64) + 0.1)
+    x = torch.randn(50, 7, 10, generator=g, dtype=torch.float64)
+    n = layer.norm
+    y = F.linear(x, layer.linear.weight)
+    y = (y - n.running_mean) / torch.sqrt(n.running_var + n.eps) * n.weight + n.bias
+    expected = torch.relu(y).amax(dim=1, keepdim=True)
+    assert (n.weight < 0).any()
+    assert torch.allclose(layer.eval()(x), expected, rtol=1e-12, atol=1e-12)
 
 
 def test_focal_loss_formula():
@@ -393,24 +415,55 @@ def test_config_round_trip_and_checks():
         PointPillarsConfig(class_names=["Car"])
 
 
+class _Network(torch.nn.Module):
+    """PointPillars' exportable part: pillars -> the head's three outputs."""
+
+    def __init__(self, m):
+        super().__init__()
+        self.m = m
+
+    def forward(self, voxels, num_points, coords):
+        out = self.m.network(voxels, num_points, coords, 1)
+        return out["cls_preds"], out["box_preds"], out["dir_cls_preds"]
+
+
+def _pillars_of(model, n, seed):
+    pts = torch.rand(n, 4, generator=torch.Generator().manual_seed(seed)) * torch.tensor([8.0, 8.0, 4.0, 1.0]) \
+        + torch.tensor([0, -4.0, -3, 0])
+    return model.voxelize(torch.cat([torch.zeros(n, 1), pts], 1), 1)
+
+
 def test_torch_export_of_the_network():
     torch.manual_seed(0)
     model = PointPillars(TINY).eval()
-
-    class Net(torch.nn.Module):
-        def __init__(self, m):
-            super().__init__()
-            self.m = m
-
-        def forward(self, voxels, num_points, coords):
-            out = self.m.network(voxels, num_points, coords, 1)
-            return out["cls_preds"], out["box_preds"], out["dir_cls_preds"]
-
     pts = torch.tensor([[1.5, -2.5, -1.0, 0.3], [1.2, -2.1, -0.5, 0.1], [6.5, 3.5, 0.0, 0.9]])
     voxels, num_points, coords = model.voxelize(torch.cat([torch.zeros(3, 1), pts], 1), 1)
-    ep = torch.export.export(Net(model), (voxels, num_points, coords))
-    for a, b in zip(ep.module()(voxels, num_points, coords), Net(model)(voxels, num_points, coords)):
+    ep = torch.export.export(_Network(model), (voxels, num_points, coords))
+    for a, b in zip(ep.module()(voxels, num_points, coords), _Network(model)(voxels, num_points, coords)):
         assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_onnx_export_of_the_network(tmp_path):
+    """ONNX (torch.onnx's dynamo exporter) of the network with a dynamic number of pillars, run in
+    onnxruntime on frames with other pillar counts than the exported one."""
+    pytest.importorskip("onnxscript")
+    ort = pytest.importorskip("onnxruntime")
+    torch.manual_seed(0)
+    model = PointPillars(TINY).eval()
+    net = _Network(model)
+    program = torch.onnx.export(net, _pillars_of(model, 300, 0), dynamo=True, verbose=False,
+                                dynamic_shapes=({0: "pillars"}, {0: "pillars"}, {0: "pillars"}))
+    program.save(str(tmp_path / "pointpillars.onnx"))
+    session = ort.InferenceSession(str(tmp_path / "pointpillars.onnx"))
+    counts = set()
+    for n, seed in ((300, 1), (40, 2)):
+        inputs = _pillars_of(model, n, seed)
+        counts.add(inputs[0].shape[0])
+        got = session.run(None, {i.name: x.numpy() for i, x in zip(session.get_inputs(), inputs)})
+        for g, want in zip(got, net(*inputs)):
+            assert g.shape == tuple(want.shape)
+            assert torch.allclose(torch.from_numpy(g), want, atol=1e-5)
+    assert len(counts) == 2
 
 
 def test_sparse_backbone_mode_runs():
@@ -551,6 +604,8 @@ def test_graphed_pointpillars_equals_predict():
 
     torch.manual_seed(0)
     model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1}).cuda().eval()
+    with torch.no_grad():  # scores around 0.5 instead of the prior's 0.01, so that boxes pass 0.3
+        model.dense_head.conv_cls.bias.zero_()
     g = torch.Generator().manual_seed(7)
     frames = [(torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0])
                + torch.tensor([0, -4.0, -3, 0])).cuda() for n in (400, 1000, 0, 37)]

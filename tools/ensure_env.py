@@ -16,7 +16,8 @@ TORCH = "torch==2.13.0"  # the CPU wheel on the development machines; never pull
 # torch ships the pybind11 headers the build needs; the pybind11 and wheel packages are for pip installs
 REQUIRED = {"numpy": "numpy", "pytest": "pytest", "setuptools": "setuptools>=64", "yaml": "pyyaml"}
 OPTIONAL = {"pybind11": "pybind11", "wheel": "wheel", "scipy": "scipy", "hypothesis": "hypothesis", "tqdm": "tqdm", "matplotlib": "matplotlib",
-            "h5py": "h5py", "pandas": "pandas", "fpsample": "fpsample", "shapely": "shapely"}
+            "h5py": "h5py", "pandas": "pandas", "fpsample": "fpsample", "shapely": "shapely",
+            "onnxscript": "onnxscript", "onnxruntime": "onnxruntime"}
 
 
 def missing(mods: dict) -> list[str]:

@@ -9,6 +9,8 @@
 // number kept stay on the device, so the whole op can be captured in a CUDA graph).
 #include <ATen/Dispatch.h>
 
+#include <cub/block/block_radix_sort.cuh>
+
 #include "lidarops/boxes.h"
 #include "lidarops/cuda_utils.cuh"
 
@@ -246,9 +248,71 @@ __global__ void nms_key_kernel(const scalar_t* __restrict__ scores, int64_t N, d
   if ((threadIdx.x & 31) == 0 && local) atomicAdd(count, static_cast<unsigned long long>(local));
 }
 
-// The visiting order of the boxes: (N,) int64; with `count` (int64, zeroed), the candidates counted in it.
+// Up to kBlockSortItems float32-keyed boxes are ordered by one block (key, count and a stable radix sort
+// in one launch): torch's sort costs several launches and allocations, the larger part of a small
+// NMS call's host time.
+constexpr int kBlockSortThreads = 256, kBlockSortPerThread = 16;
+constexpr int64_t kBlockSortItems = kBlockSortThreads * kBlockSortPerThread;
+
+// The float key 0 - score as an unsigned radix key whose ascending order is the key's, NaN last.
+__device__ __forceinline__ uint32_t radix_key(float v) {
+  const float k = 0.0f - v;  // -0.0 and 0.0 both become 0.0
+  if (k != k) return 0xffffffffu;
+  const uint32_t u = __float_as_uint(k);
+  return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+}
+
+template <typename scalar_t>
+__global__ void __launch_bounds__(kBlockSortThreads)
+    nms_block_order_kernel(const scalar_t* __restrict__ scores, int64_t N, double threshold,
+                           int64_t* __restrict__ order, int64_t* __restrict__ count) {
+  using Sort = cub::BlockRadixSort<uint32_t, kBlockSortThreads, kBlockSortPerThread, int32_t>;
+  __shared__ typename Sort::TempStorage temp;
+  __shared__ unsigned warp_counts[kBlockSortThreads / 32];
+  uint32_t keys[kBlockSortPerThread];
+  int32_t vals[kBlockSortPerThread];
+  unsigned local = 0;
+#pragma unroll
+  for (int j = 0; j < kBlockSortPerThread; ++j) {  // blocked: thread t holds items t * 16 + j, in index order
+    const int32_t i = threadIdx.x * kBlockSortPerThread + j;
+    const float v = i < N ? static_cast<float>(scores[i]) : NAN;
+    keys[j] = radix_key(v);  // padding sorts after every box, NaN boxes included (the sort is stable)
+    vals[j] = i;
+    local += i < N && static_cast<double>(v) >= threshold;
+  }
+  if (count != nullptr) {
+    local = __reduce_add_sync(gpu::kFullMask, local);
+    if ((threadIdx.x & 31) == 0) warp_counts[threadIdx.x >> 5] = local;
+  }
+  Sort(temp).Sort(keys, vals);
+#pragma unroll
+  for (int j = 0; j < kBlockSortPerThread; ++j) {
+    const int64_t p = threadIdx.x * kBlockSortPerThread + j;
+    if (p < N) order[p] = vals[j];
+  }
+  if (count != nullptr && threadIdx.x == 0) {  // the sort's barriers ordered the warp counts' writes
+    unsigned total = 0;
+    for (int w = 0; w < kBlockSortThreads / 32; ++w) total += warp_counts[w];
+    *count = total;
+  }
+}
+
+// The visiting order of the boxes: (N,) int64; with `count` (int64), the candidates counted in it.
 at::Tensor nms_order(const at::Tensor& scores, double threshold, const at::Tensor& count, cudaStream_t stream) {
   const int64_t N = scores.size(0);
+  if (N <= kBlockSortItems && scores.scalar_type() != at::kDouble) {
+    auto s = scores.contiguous();
+    auto order = at::empty({N}, s.options().dtype(at::kLong));
+    if (N == 0) return order;
+    AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, s.scalar_type(), "lidarops_nms_block_order_cuda", [&] {
+      nms_block_order_kernel<scalar_t><<<1, kBlockSortThreads, 0, stream>>>(
+          s.data_ptr<scalar_t>(), N, threshold, order.data_ptr<int64_t>(),
+          count.defined() ? count.data_ptr<int64_t>() : nullptr);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
+    return order;
+  }
+  if (count.defined()) count.zero_();
   auto key = at::empty({N}, scores.options().dtype(scores.scalar_type() == at::kDouble ? at::kDouble : at::kFloat));
   auto s = scores.contiguous();
   auto* cnt = count.defined() ? reinterpret_cast<unsigned long long*>(count.data_ptr<int64_t>()) : nullptr;
@@ -319,7 +383,7 @@ std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cuda(const at::Tensor& boxes_i
   cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   // counted on the device and never read back: the candidates are the first min(n, n_valid) of the order
   at::Tensor n_valid;
-  if (score_threshold.has_value()) n_valid = at::zeros({}, longs);
+  if (score_threshold.has_value()) n_valid = at::empty({}, longs);
   auto order = nms_order(scores, score_threshold.value_or(0.0), n_valid, stream).slice(0, 0, n);
   auto keep = at::empty({K}, longs);
   nms_launch(boxes_in, order, idxs, n, n_valid.defined() ? n_valid.data_ptr<int64_t>() : nullptr, iou_threshold,

@@ -25,6 +25,7 @@ from torch import Tensor
 
 import lidarops
 from lidarops.models.detector import PointPillars, _check_batch, postprocess_padded
+from lidarops.stream.pillars import MAX_ABS_INTENSITY
 from lidarops.ops.validation import check_tensor, describe, value_checks_enabled
 
 __all__ = ["GraphedPointPillars", "PRECISIONS"]
@@ -62,8 +63,9 @@ class GraphedPointPillars:
     Calling it with ``points (Tensor[P, C])`` (``C >= config.num_point_features``: x, y, z, intensity;
     more columns are ignored; ``P <= capacity``; the model's device) returns one dict of ``boxes (K, 7)``,
     ``scores (K,)``, ``labels (K,)`` (1-based into ``config.class_names``), as :meth:`PointPillars.predict`
-    gives for that frame. With ``lidarops.validation`` on (the default) the points are checked as the
-    eager call checks them (that reads back to the host once).
+    gives for that frame. The graph also checks the points' features as the eager call does; with
+    ``lidarops.validation`` on (the default) a bad frame raises the eager call's ``ValueError`` (the flag
+    comes back with the number of boxes: still one host read).
     """
 
     def __init__(self, model: PointPillars, capacity: int = 150_000, precision: str = "fp32"):
@@ -87,16 +89,25 @@ class GraphedPointPillars:
         self._pad = torch.zeros(c, device=self.device, dtype=self.dtype)
         self._pad[0] = cfg.point_cloud_range[3] + 1000.0
         self._points = self._pad.expand(capacity, c).clone()
+        self._filled = 0  # rows holding the last frame's points
         half_model = self.dtype == torch.float16
+        # a frame cannot have more pillars than points: the padded tensors need no more rows
+        max_voxels = min(cfg.max_voxels_test, capacity)
 
         def body():
             from lidarops.ops.voxelize import voxelize
 
             with torch.no_grad(), precision_mode(precision, autocast=not half_model), lidarops.validation(False):
                 v, co, n = voxelize(self._points, cfg.voxel_size, cfg.point_cloud_range, cfg.max_points_per_voxel,
-                                    cfg.max_voxels_test, overflow="drop", padded=True)
+                                    max_voxels, overflow="drop", padded=True)
                 coords = torch.cat([(co[:, :1] >= 0).to(co.dtype) - 1, co], 1)  # frame 0; padding rows -1
-                return postprocess_padded(*model.dense_head.decode(model.network(v, n, coords, 1)), cfg)
+                out = postprocess_padded(*model.dense_head.decode(model.network(v, n, coords, 1)), cfg)
+                # the eager call's value check, read back with the number of boxes
+                feats = self._points[:, 3:c]
+                bad = ~(feats.abs() <= MAX_ABS_INTENSITY).all() if feats.shape[1] else torch.zeros((), dtype=torch.bool,
+                                                                                                   device=self.device)
+                out["read"] = torch.stack([out["count"][0], bad.to(torch.int64)])
+                return out
 
         with torch.cuda.device(self.device):
             side = torch.cuda.Stream()
@@ -120,13 +131,14 @@ class GraphedPointPillars:
             raise ValueError(f"points has {points.shape[0]} rows, more than capacity={self.capacity}: build a "
                              "GraphedPointPillars with a larger capacity")
         p = points.shape[0]
-        frame = points[:, :c].to(self.dtype)
-        if value_checks_enabled():  # the eager call's checks
-            _check_batch({"points": torch.nn.functional.pad(frame, (1, 0)), "batch_size": 1}, self.model.config,
-                         False, self.dtype)
-        self._points[:p].copy_(frame)
-        self._points[p:].copy_(self._pad.expand(self.capacity - p, c))
+        self._points[:p].copy_(points[:, :c])
+        if self._filled > p:  # the rows of a larger previous frame become padding again
+            self._points[p:self._filled].copy_(self._pad.expand(self._filled - p, c))
+        self._filled = p
         self._graph.replay()
-        k = int(self._out["count"][0])  # the one host read
+        k, bad = self._out["read"].tolist()  # the one host read
+        if bad and value_checks_enabled():  # the eager call's check and message
+            _check_batch({"points": torch.nn.functional.pad(points[:, :c], (1, 0)), "batch_size": 1},
+                         self.model.config, False, self.dtype)
         return {"boxes": self._out["boxes"][0, :k].clone(), "scores": self._out["scores"][0, :k].clone(),
                 "labels": self._out["labels"][0, :k].clone()}
