@@ -6,10 +6,13 @@
 // blocks of 64 boxes: inside a block the kept boxes are resolved from the diagonal word in registers,
 // then the rows of the kept boxes are OR-ed into the suppression words of the later blocks. No host loop;
 // one device-to-host read of the number kept.
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
 
 #include "lidarops/boxes.h"
-#include "lidarops/cuda_utils.cuh"
+#include "lidarops/cuda_launch.cuh"
 
 namespace lidarops {
 namespace {
