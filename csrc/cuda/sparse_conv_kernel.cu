@@ -13,7 +13,7 @@
 //     vector and K <= 32: mma.sync fed by a cp.async pipeline, or, on Hopper (compute capability 9.0,
 //     sm_90a builds) for Cout > 64, wgmma fed by the same pipeline; otherwise WMMA 16x16x16 (TF32 16x16x8).
 //   - float32 otherwise (sm_80+, Cin a multiple of 4, K <= 32): SIMT (FFMA) tiles fed by cp.async
-//     pipelines, or, with LIDAROPS_CONV_FP32=3xtf32 (experimental), the mma.sync kernel as 3xTF32;
+//     pipelines, or, with algo="3xtf32" (experimental), the mma.sync kernel as 3xTF32;
 //   - otherwise general SIMT tiles in float (float64 in float64).
 // The pipelined kernels start with the tiles of the rows with the most offsets (heavy_first_tile).
 // Rows are processed in the order given by sparse_kernel_map_order (grouped by their offset masks),
@@ -21,6 +21,7 @@
 // Backward: the features gradient is this kernel over the transposed map (autograd in Python); the
 // weight gradient is a split-K reduction over output rows into per-split partial sums (float), added
 // in a fixed order: deterministic too.
+// The ops' algo and splits arguments override the kernel choices (sparse.h, ConvAlgo).
 #include <ATen/ATen.h>
 #include <ATen/Context.h>
 #include <ATen/Dispatch.h>
@@ -33,8 +34,6 @@
 
 #include <algorithm>
 #include <cstdint>
-#include <cstdlib>
-#include <cstring>
 #include <mutex>
 #include <type_traits>
 #include <unordered_map>
@@ -1107,14 +1106,6 @@ DeviceProps device_props(c10::DeviceIndex dev) {
 
 bool aligned16(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 15) == 0; }
 
-// LIDAROPS_CONV_FP32=3xtf32 (read at each call; docs/sparse.md): float32 without TF32 runs on the
-// tensor cores as three TF32 products (experimental, off by default: faster than the FFMA tiles but
-// with about 3.5x their error).
-bool env_is(const char* name, const char* value) {
-  const char* v = std::getenv(name);
-  return v != nullptr && std::strcmp(v, value) == 0;
-}
-
 // Raises a kernel's dynamic shared-memory limit once per (kernel, device): a driver call per launch
 // showed in the host time of small layers.
 void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
@@ -1139,15 +1130,15 @@ struct MmaShape {
   int rows, cols;
 };
 // Columns of the wgmma tile (conv_fwd_wgmma_kernel) for a tensor-core layer, or 0 for the mma.sync
-// tiles: wgmma needs an sm_90a build running on compute capability 9.0; LIDAROPS_CONV_MMA=sync (read at
-// each call) keeps mma.sync, for the tests and for comparisons. Against the mma.sync tiles:
+// tiles: wgmma needs an sm_90a build running on compute capability 9.0; algo "mma_sync" keeps mma.sync,
+// for the tests and for comparisons. Against the mma.sync tiles:
 //   - Cout <= 64: mma.sync's 32 x 64 tiles, which skip the 16-row fragments without an input at an
 //     offset, stay as fast or faster;
 //   - TF32: 64 x 128, each gathered row read once for 128 columns;
 //   - 16-bit: 64 x 64 with four stages.
-int wgmma_columns(int64_t cout, bool tf32, const DeviceProps& p) {
+int wgmma_columns(int64_t cout, bool tf32, const DeviceProps& p, ConvAlgo algo) {
 #ifdef LIDAROPS_SM90A
-  if (p.cc_major != 9 || p.cc_minor != 0 || cout <= 64 || env_is("LIDAROPS_CONV_MMA", "sync")) return 0;
+  if (p.cc_major != 9 || p.cc_minor != 0 || cout <= 64 || algo == ConvAlgo::kMmaSync) return 0;
   return tf32 ? 128 : 64;
 #else
   return 0;
@@ -1177,14 +1168,11 @@ MmaShape mma_tile_shape(int64_t n_out, int64_t cout, int sms) {
 // keep the launch within 1.6 waves, at most four and 8 steps per split. split_below is 1 for the FFMA
 // tiles (8 warps) and 0.6 for the tensor-core tiles (4 warps), which lose from splits once they fill
 // three quarters of a wave (measurements in docs/notes/sparse.md).
-// LIDAROPS_CONV_SPLITS=n (read at each call) forces n, for the tests and for tuning.
+// forced >= 1 (the ops' `splits`) forces that many, at most K: for the tests and for tuning.
 int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, int64_t steps, double split_below,
-                  const DeviceProps& p, int64_t static_smem) {
+                  const DeviceProps& p, int64_t static_smem, int64_t forced) {
   constexpr int kMaxSplits = 4;
-  if (const char* v = std::getenv("LIDAROPS_CONV_SPLITS")) {
-    const int forced = std::atoi(v);
-    if (forced >= 1) return static_cast<int>(std::min<int64_t>(forced, std::max<int64_t>(K, 1)));
-  }
+  if (forced >= 1) return static_cast<int>(std::min<int64_t>(forced, std::max<int64_t>(K, 1)));
   if (steps < 32) return 1;
   const int64_t per_sm = std::max<int64_t>(
       1, std::min<int64_t>(2048 / threads,
@@ -1209,18 +1197,19 @@ constexpr int64_t static_smem(const WgTile<M, BN, STAGES, LOOKAHEAD>*) {
 
 // Launches a pipelined forward kernel (the FFMA tiles or the tensor-core kernel: the same parameters) on
 // tiles of bm x bn, step_channels input channels per step, with the offset splits offset_splits picks:
-// one launch writing `out`, or the float partial sums of every split and reduce_splits_kernel.
+// one launch writing `out`, or the float partial sums of every split and reduce_splits_kernel;
+// forced_splits >= 1 forces the splits.
 template <typename T, typename Tile, typename Kernel>
 void launch_pipelined(Kernel kernel, int bm, int bn, int step_channels, double split_below, const at::Tensor& x,
                       const at::Tensor& w, const at::Tensor& nbr, const int32_t* order, at::Tensor& out,
-                      const ConvEpilogue& epi, const DeviceProps& props, cudaStream_t stream) {
+                      const ConvEpilogue& epi, const DeviceProps& props, cudaStream_t stream, int64_t forced_splits) {
   const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
   raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
   const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
   const size_t smem = Tile::smem(static_cast<int>(K));
   const int64_t steps = K * ceil_div(cin, step_channels);  // of a tile, without splits
   const int splits = offset_splits(row_tiles * col_tiles, Tile::kThreads, smem, K, steps, split_below, props,
-                                   static_smem(static_cast<const Tile*>(nullptr)));
+                                   static_smem(static_cast<const Tile*>(nullptr)), forced_splits);
   at::Tensor partial;
   if (splits > 1) partial = at::empty({splits, out.numel()}, out.options().dtype(at::kFloat));
   const dim3 grid(static_cast<unsigned>(row_tiles), static_cast<unsigned>(col_tiles), static_cast<unsigned>(splits));
@@ -1279,7 +1268,7 @@ at::Tensor conv_without_inputs(at::Tensor& out, const ConvEpilogue& epi, const a
 
 at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr_in,
                                  const c10::optional<at::Tensor>& order_in, const at::Tensor& scale,
-                                 const at::Tensor& shift, bool relu) {
+                                 const at::Tensor& shift, bool relu, ConvAlgo algo, int64_t splits) {
   const c10::cuda::OptionalCUDAGuard guard(features.device());
   const ConvEpilogue epi = make_epilogue(scale, shift, relu);
   auto x = features.contiguous();
@@ -1299,7 +1288,7 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
   const bool half_type = dtype == at::kHalf || dtype == at::kBFloat16;
   // float32 follows torch.backends.cuda.matmul.allow_tf32 (off by default: float32 accuracy)
   const bool tf32 = dtype == at::kFloat && at::globalContext().allowTF32CuBLAS();
-  const bool x3 = dtype == at::kFloat && !tf32 && env_is("LIDAROPS_CONV_FP32", "3xtf32");
+  const bool x3 = dtype == at::kFloat && !tf32 && algo == ConvAlgo::k3xTF32;
   const DeviceProps props = device_props(x.get_device());
   const bool sm80 = props.cc_major >= 8;
   const bool tensor_cores = (half_type || tf32 || x3) && cin >= 16 && cout >= 16 && sm80;
@@ -1313,7 +1302,7 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
       auto go = [&](auto tile) {
         using Tile = decltype(tile);
         launch_pipelined<scalar_t, Tile>(conv_fwd_mma_kernel<scalar_t, M, Tile>, Tile::BM, Tile::BN, Tile::BK, 0.6, x,
-                                         w, nbr, order, out, epi, props, stream);
+                                         w, nbr, order, out, epi, props, stream, splits);
       };
       const MmaShape shape = mma_tile_shape(n_out, cout, props.sms);
       if constexpr (M != Mma::k3xTF32) {
@@ -1321,19 +1310,19 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
         // with a full wave of those tiles or more run two per multiprocessor instead, for fewer waves with
         // less of a tail: four stages, whose shared memory (96 KB of ring) lets exactly two blocks fit, with
         // two steps' gathers and one step's wgmma in flight while the next is multiplied. Layers under a
-        // wave keep three blocks, which a fourth stage would cost them. LIDAROPS_CONV_WG_BLOCKS=2 or 3
-        // (read at each call) forces either, for the tests.
+        // wave keep three blocks, which a fourth stage would cost them. algo "wgmma_2blocks" or
+        // "wgmma_3blocks" forces either, for the tests.
         auto go_wg = [&](auto tile) {
           using Tile = decltype(tile);
           launch_pipelined<scalar_t, Tile>(conv_fwd_wgmma_kernel<scalar_t, M, Tile>, Tile::BM, Tile::BN, Tile::BK, 0.6,
-                                           x, w, nbr, order, out, epi, props, stream);
+                                           x, w, nbr, order, out, epi, props, stream, splits);
         };
-        const int wg = wgmma_columns(cout, M == Mma::kTF32, props);
+        const int wg = wgmma_columns(cout, M == Mma::kTF32, props, algo);
         if constexpr (M == Mma::kTF32) {  // 16-bit types take 64 columns
           if (wg == 128) {
             bool two = ceil_div(n_out, 64) * ceil_div(cout, 128) >= 3 * props.sms;
-            if (env_is("LIDAROPS_CONV_WG_BLOCKS", "2")) two = true;
-            if (env_is("LIDAROPS_CONV_WG_BLOCKS", "3")) two = false;
+            if (algo == ConvAlgo::kWgmma2Blocks) two = true;
+            if (algo == ConvAlgo::kWgmma3Blocks) two = false;
             return two ? go_wg(WgTile<M, 128, 4, 2>{}) : go_wg(WgTile<M, 128, 3>{});
           }
         }
@@ -1368,7 +1357,7 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
     auto launch = [&](auto kernel, auto tile, int bm, int bn) {
       using Tile = decltype(tile);
       launch_pipelined<float, Tile>(kernel, bm, bn, Tile::kStepChannels, 1.0, x, w, nbr, order, out, epi, props,
-                                    stream);
+                                    stream, splits);
     };
     // 64-row tiles, 32 channels per step, 3 stages: the best of the tiles tried (docs/notes/sparse.md)
     if (cout <= 16) launch(conv_fwd_f32_async_kernel<64, 16, 4, 2, 32, 3>, AsyncTile<64, 16, 4, 2, 32, 3>{}, 64, 16);
@@ -1385,20 +1374,23 @@ at::Tensor sparse_conv_cuda_impl(const at::Tensor& features, const at::Tensor& w
 }
 
 at::Tensor sparse_conv_cuda(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr,
-                            const c10::optional<at::Tensor>& order) {
+                            const c10::optional<at::Tensor>& order, c10::string_view algo, int64_t splits) {
   check_conv_args(features, weight, nbr);
   check_order(order, nbr);
-  return sparse_conv_cuda_impl(features, weight, nbr, order, at::Tensor(), at::Tensor(), false);
+  const ConvAlgo choice = check_conv_algo(algo, splits);
+  return sparse_conv_cuda_impl(features, weight, nbr, order, at::Tensor(), at::Tensor(), false, choice, splits);
 }
 
 at::Tensor sparse_conv_affine_cuda(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr,
                                    const c10::optional<at::Tensor>& order, const c10::optional<at::Tensor>& scale,
-                                   const c10::optional<at::Tensor>& shift, bool relu) {
+                                   const c10::optional<at::Tensor>& shift, bool relu, c10::string_view algo,
+                                   int64_t splits) {
   check_conv_args(features, weight, nbr);
   check_order(order, nbr);
   const auto scale_c = epilogue_operand(scale, "scale", weight.size(0), features);  // checked in this order
   const auto shift_c = epilogue_operand(shift, "shift", weight.size(0), features);
-  return sparse_conv_cuda_impl(features, weight, nbr, order, scale_c, shift_c, relu);
+  const ConvAlgo choice = check_conv_algo(algo, splits);
+  return sparse_conv_cuda_impl(features, weight, nbr, order, scale_c, shift_c, relu, choice, splits);
 }
 
 at::Tensor sparse_conv_weight_grad_cuda(const at::Tensor& features, const at::Tensor& grad_in, const at::Tensor& nbr_in) {
