@@ -15,6 +15,7 @@ import torch
 
 from lidarops.sparse import SparseConvTensor
 from lidarops.sparse import functional as Fs
+from lidarops.sparse import nn as spnn
 from sparse_helpers import (CUDA_OK, DEVICES, TOL, assert_same_sites_and_features, linear_order, random_sites, random_tensor,
                             random_weight)
 
@@ -326,6 +327,7 @@ def test_opcheck_all_sparse_ops(device):
         (ops.sparse_kernel_map_order, (km.neighbors,)),
         (ops.sparse_conv, (f, w, km.neighbors)),
         (ops.sparse_conv, (f, w, km.neighbors, ops.sparse_kernel_map_order(km.neighbors))),
+        (ops.sparse_conv, (f, w, km.neighbors, None, "mma_sync", 2)),
         (ops.sparse_conv_weight_grad, (f, g.requires_grad_(), km.neighbors)),
         (ops.sparse_max_pool, (f, km.neighbors)),
         (ops.sparse_to_dense, (f, x.indices, 2, shape)),
@@ -486,6 +488,65 @@ def test_bad_arguments_raise(device):
         ops.sparse_conv(f, torch.randn(3, 2, 3, device=device), nbr.clamp_max(1))
 
 
+def test_bad_algo_raises(device):
+    x = random_tensor(1, (8, 8), 20, 2, seed=0, dtype=torch.float32, device=device)
+    w = torch.randn(3, 3, 3, 2, device=device)
+    km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+    w3 = w.reshape(3, 9, 2)
+    allowed = r"algo must be one of \('auto', 'mma_sync', 'wgmma_2blocks', 'wgmma_3blocks', '3xtf32'\), got 'fast'"
+    with pytest.raises(ValueError, match=allowed):
+        Fs.conv(x, w, kind="subm", algo="fast")
+    with pytest.raises(ValueError, match=allowed):
+        Fs.sparse_conv(x.features, w3, km.neighbors, algo="fast")
+    with pytest.raises(ValueError, match=allowed):
+        spnn.SubMConv2d(2, 3, 3, algo="fast")
+    with pytest.raises(ValueError, match="algo must be one of"):
+        spnn.SparseConv2d(2, 3, 3, algo=None)
+    for bad in (-1, True, 1.5):
+        with pytest.raises(ValueError, match=r"splits must be an int >= 0 \(0: chosen per layer\), got"):
+            Fs.sparse_conv(x.features, w3, km.neighbors, splits=bad)
+    # the raw ops check them on every device (ValueError from C++), after the tensors
+    with pytest.raises(ValueError, match="algo must be one of 'auto', 'mma_sync', 'wgmma_2blocks', 'wgmma_3blocks', "
+                                         "'3xtf32', got 'fast'"):
+        ops.sparse_conv(x.features, w3, km.neighbors, None, "fast")
+    with pytest.raises(ValueError, match=r"splits must be >= 0 \(0: chosen per layer\), got -1"):
+        ops.sparse_conv_affine(x.features, w3, km.neighbors, None, None, None, False, "auto", -1)
+    with pytest.raises(ValueError, match="weight expects Cin = 1"):
+        ops.sparse_conv(x.features, w3[:, :, :1].contiguous(), km.neighbors, None, "fast")
+
+
+@pytest.mark.parametrize("algo", Fs.CONV_ALGOS)
+def test_every_algo_gives_the_same_convolution(device, algo):
+    """Every kernel choice (and forced offset splits) computes the same sums: bit for bit on the CPU,
+    which has one algorithm; to float32's tolerance on CUDA (TF32 is off, so "3xtf32" picks the 3xTF32
+    kernel there). The modules pass their ``algo`` on, and the features gradient (a convolution over the
+    transposed map) takes it too."""
+    x = random_tensor(2, (40, 40), 300, 32, seed=4, dtype=torch.float32, device=device)
+    w = (random_weight(48, (3, 3), 32, seed=4, dtype=torch.float32, device=device) / 8)
+    ref = Fs.conv(x, w, None, "subm")
+    scale = max(1.0, ref.features.abs().max().item())
+    exact = device == "cpu"
+    for splits in (0, 2):
+        km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+        got = Fs.sparse_conv(x.features, w, km.neighbors, km.order, algo=algo, splits=splits)
+        diff = (got.double() - ref.features.double()).abs().max().item()
+        assert diff == 0 if exact else diff <= 2e-5 * scale, (splits, diff)
+    layer = spnn.SubMConv2d(32, 48, 3, bias=False, algo=algo).to(device)
+    assert layer.algo == algo and ("algo=" in repr(layer)) == (algo != "auto")
+    with torch.no_grad():
+        layer.weight.copy_(w)
+    f = x.features.clone().requires_grad_()
+    y = layer(x.replace_feature(f))
+    diff = (y.features.double() - ref.features.double()).abs().max().item()
+    assert diff == 0 if exact else diff <= 2e-5 * scale
+    y.features.square().sum().backward()
+    f_ref = x.features.clone().requires_grad_()
+    Fs.conv(x.replace_feature(f_ref), w, None, "subm").features.square().sum().backward()
+    gscale = max(1.0, f_ref.grad.abs().max().item())
+    gdiff = (f.grad - f_ref.grad).abs().max().item()
+    assert gdiff == 0 if exact else gdiff <= 1e-4 * gscale
+
+
 def test_indice_key_reuse_rules(device):
     x = random_tensor(1, SHAPES[3], 40, 3, seed=0, device=device)
     w = random_weight(3, (3, 3, 3), 3, device=device)
@@ -573,25 +634,24 @@ def test_cuda_float32_tiles_match_float64(cin, cout, D, ksize, sites, ordered):
 
 
 @_cuda
-@pytest.mark.parametrize("mma", ["auto", "sync", "wg2"])
+@pytest.mark.parametrize("mma", ["auto", "mma_sync", "wgmma_2blocks"])
 @pytest.mark.parametrize("dtype", ["f16", "bf16", "tf32", "3xtf32"])
 @pytest.mark.parametrize("cin,cout,D,sites", [(24, 100, 2, 20000), (64, 64, 2, 3000), (16, 32, 3, 4000),
                                               (32, 16, 2, 3000), (40, 17, 2, 5000), (128, 128, 2, 8000),
                                               (128, 128, 2, 2000), (32, 256, 2, 16000), (128, 72, 3, 3000)])
-def test_cuda_tensor_core_pipeline_matches_float64(mma, dtype, cin, cout, D, sites, monkeypatch):
+def test_cuda_tensor_core_pipeline_matches_float64(mma, dtype, cin, cout, D, sites):
     """The cp.async-fed tensor-core kernels (float16, bfloat16, TF32, and float32 as 3xTF32) against the
     float64 product of the same (rounded) inputs: several blocks, Cout not a multiple of the tile (and
-    odd), Cin not a multiple of the 128-byte step, rows with no input. ``sync`` forces the mma.sync
+    odd), Cin not a multiple of the 128-byte step, rows with no input. ``mma_sync`` forces the mma.sync
     kernel, which then takes every tile shape on a 132-multiprocessor GPU: 32 x 64 (20000 rows of 100
     channels, 8000 of 128), 64 x 64 (16000 rows of 256 channels), and 64 rows by 32 or 16 columns
     (Cout <= 32; 2000 rows of 128 channels). ``auto`` on an sm_90a build on a Hopper GPU gives the
     layers with Cout > 64 to the wgmma kernel (64 x 128 tiles in TF32, 64 x 64 in 16 bits; 72 columns:
-    a partial second tile, K = 27), the others as ``sync``. ``wg2`` is ``auto`` with the TF32 64 x 128
-    tiles in the configuration of layers with a full wave of them (two blocks per multiprocessor, four
-    stages, one wgmma group in flight across steps). 3xTF32 must be as accurate as float32."""
-    monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if dtype == "3xtf32" else "ffma")
-    monkeypatch.setenv("LIDAROPS_CONV_MMA", "auto" if mma == "wg2" else mma)
-    monkeypatch.setenv("LIDAROPS_CONV_WG_BLOCKS", "2" if mma == "wg2" else "")
+    a partial second tile, K = 27), the others as ``mma_sync``. ``wgmma_2blocks`` is ``auto`` with the
+    TF32 64 x 128 tiles in the configuration of layers with a full wave of them (two blocks per
+    multiprocessor, four stages, one wgmma group in flight across steps). 3xTF32 (always on mma.sync)
+    must be as accurate as float32."""
+    algo = "3xtf32" if dtype == "3xtf32" else mma
     shape = (400, 400) if D == 2 else (40, 40, 40)
     dt = {"f16": torch.float16, "bf16": torch.bfloat16, "tf32": torch.float32, "3xtf32": torch.float32}[dtype]
     x = random_tensor(2, shape, sites // 2, cin, seed=sites + cin, dtype=dt, device="cuda")
@@ -603,7 +663,7 @@ def test_cuda_tensor_core_pipeline_matches_float64(mma, dtype, cin, cout, D, sit
     old = torch.backends.cuda.matmul.allow_tf32
     try:
         torch.backends.cuda.matmul.allow_tf32 = dtype == "tf32"
-        got = ops.sparse_conv(x.features, w, nbr, ops.sparse_kernel_map_order(nbr)).double().cpu()
+        got = ops.sparse_conv(x.features, w, nbr, ops.sparse_kernel_map_order(nbr), algo).double().cpu()
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old
     assert torch.all(got[::7] == 0)
@@ -614,9 +674,9 @@ def test_cuda_tensor_core_pipeline_matches_float64(mma, dtype, cin, cout, D, sit
 
 @_cuda
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32], ids=["f16", "bf16", "tf32"])
-def test_cuda_hopper_builds_use_wgmma(dtype, monkeypatch):
+def test_cuda_hopper_builds_use_wgmma(dtype):
     """On a compute capability 9.0 GPU with an sm_90a build (setup.py builds 9.0 as 9.0a), tensor-core
-    layers with Cout > 64 launch the wgmma kernel, and LIDAROPS_CONV_MMA=sync the mma.sync kernel: the
+    layers with Cout > 64 launch the wgmma kernel, and algo="mma_sync" the mma.sync kernel: the
     Hopper path cannot go dead unnoticed. The two give the same answer to the tolerance of the type."""
     import json
     from pathlib import Path
@@ -629,10 +689,9 @@ def test_cuda_hopper_builds_use_wgmma(dtype, monkeypatch):
     w = (random_weight(128, (3, 3), 128, seed=5, dtype=dtype, device="cuda") / 8).reshape(128, -1, 128)
     order = ops.sparse_kernel_map_order(km.neighbors)
 
-    def kernels(mma):
-        monkeypatch.setenv("LIDAROPS_CONV_MMA", mma)
+    def kernels(algo):
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA], acc_events=True) as prof:
-            y = ops.sparse_conv(x.features, w, km.neighbors, order)
+            y = ops.sparse_conv(x.features, w, km.neighbors, order, algo)
             torch.cuda.synchronize()
         names = {e.name for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA}
         if not names:  # no kernel at all: CUPTI is unavailable (compute-sanitizer, another profiler)
@@ -643,7 +702,7 @@ def test_cuda_hopper_builds_use_wgmma(dtype, monkeypatch):
     try:
         torch.backends.cuda.matmul.allow_tf32 = True
         y_wg, names_wg = kernels("auto")
-        y_sync, names_sync = kernels("sync")
+        y_sync, names_sync = kernels("mma_sync")
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old
     assert any("conv_fwd_wgmma_kernel" in n for n in names_wg), names_wg
@@ -658,22 +717,18 @@ _SPLIT_ALGOS = {"fp32": torch.float32, "tf32": torch.float32, "3xtf32": torch.fl
 
 
 @_cuda
-@pytest.mark.parametrize("algo", list(_SPLIT_ALGOS))
-@pytest.mark.parametrize("splits", ["auto", "1", "2", "3", "9"])
+@pytest.mark.parametrize("precision", list(_SPLIT_ALGOS))
+@pytest.mark.parametrize("splits", [0, 1, 2, 3, 9])
 @pytest.mark.parametrize("cin,cout,D,sites", [(128, 128, 2, 1200), (32, 64, 3, 3000)])
-def test_cuda_offset_splits_match_float64(algo, splits, cin, cout, D, sites, monkeypatch):
+def test_cuda_offset_splits_match_float64(precision, splits, cin, cout, D, sites):
     """Offset splits (split-K over the kernel offsets, for layers with too few tiles to fill the GPU)
-    against the float64 product followed by the epilogue: the automatic choice (on an H100 it splits
-    the 2D layer's float32 kernels), forced 1, 2, 3 and 9 (more splits than most tiles have offsets:
+    against the float64 product followed by the epilogue: the automatic choice (splits=0; on an H100 it
+    splits the 2D layer's float32 kernels), forced 1, 2, 3 and 9 (more splits than most tiles have offsets:
     empty splits add zeros), 2D and 3D (K = 27), every pipelined kernel (FFMA tiles, TF32, 3xTF32,
     float16, bfloat16), with the fused scale, shift and ReLU applied once after the splits are added,
     and rows with no input at epi(0) exactly. Two calls give the same bits."""
-    monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if algo == "3xtf32" else "ffma")
-    if splits == "auto":
-        monkeypatch.delenv("LIDAROPS_CONV_SPLITS", raising=False)
-    else:
-        monkeypatch.setenv("LIDAROPS_CONV_SPLITS", splits)
-    dt = _SPLIT_ALGOS[algo]
+    algo = "3xtf32" if precision == "3xtf32" else "auto"
+    dt = _SPLIT_ALGOS[precision]
     shape = (48, 48) if D == 2 else (40, 40, 40)
     x = random_tensor(2, shape, sites // 2, cin, seed=sites + cin, dtype=dt, device="cuda")
     km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
@@ -687,17 +742,17 @@ def test_cuda_offset_splits_match_float64(algo, splits, cin, cout, D, sites, mon
     ref = (ref * scale.double().cpu() + shift.double().cpu()).clamp_min(0)
     old = torch.backends.cuda.matmul.allow_tf32
     try:
-        torch.backends.cuda.matmul.allow_tf32 = algo == "tf32"
+        torch.backends.cuda.matmul.allow_tf32 = precision == "tf32"
         order = ops.sparse_kernel_map_order(nbr)
-        got = ops.sparse_conv_affine(x.features, w, nbr, order, scale, shift, True)
-        again = ops.sparse_conv_affine(x.features, w, nbr, order, scale, shift, True)
+        got = ops.sparse_conv_affine(x.features, w, nbr, order, scale, shift, True, algo, splits)
+        again = ops.sparse_conv_affine(x.features, w, nbr, order, scale, shift, True, algo, splits)
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old
     assert got.dtype == dt and torch.equal(got, again)
     got = got.double().cpu()
     empty = shift.double().cpu().clamp_min(0).to(dt).double()
     assert torch.equal(got[::7], empty.expand(got[::7].shape[0], cout))
-    tol = {"fp32": 2e-5, "tf32": 5e-3, "3xtf32": 2e-5, "f16": 4e-3, "bf16": 3e-2}[algo]
+    tol = {"fp32": 2e-5, "tf32": 5e-3, "3xtf32": 2e-5, "f16": 4e-3, "bf16": 3e-2}[precision]
     assert (got - ref).abs().max().item() <= tol * max(1.0, ref.abs().max().item())
 
 
@@ -706,16 +761,15 @@ _NONFINITE = ([pytest.param("cpu", a, id=f"cpu-{a}") for a in ("f64", "f32", "f1
                  for a in ("f64", "f32", "tf32", "3xtf32", "f16", "bf16")])
 
 
-@pytest.mark.parametrize("dev,algo", _NONFINITE)
-def test_conv_propagates_nan_and_inf(dev, algo, monkeypatch):
+@pytest.mark.parametrize("dev,precision", _NONFINITE)
+def test_conv_propagates_nan_and_inf(dev, precision):
     """Non-finite inputs against the dense float64 reference: NaN inputs (CUDA's own bit pattern
     0x7fff..., whose low bits a TF32 rounding by integer addition would carry into the sign, and a
     negative NaN) give NaN wherever their window reaches, a +inf input with positive weights gives
     +inf, every other output stays finite. The experimental 3xTF32 mode may give NaN where float32
     gives inf (it also multiplies inf by each weight's small part, which can be 0)."""
-    monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if algo == "3xtf32" else "ffma")
     dt = {"f64": torch.float64, "f32": torch.float32, "tf32": torch.float32, "3xtf32": torch.float32,
-          "f16": torch.float16, "bf16": torch.bfloat16}[algo]
+          "f16": torch.float16, "bf16": torch.bfloat16}[precision]
     bits, nan = {torch.float64: (torch.int64, 0x7FFFFFFFFFFFFFFF), torch.float32: (torch.int32, 0x7FFFFFFF),
                  torch.float16: (torch.int16, 0x7FFF), torch.bfloat16: (torch.int16, 0x7FFF)}[dt]
     shape = (40, 36)
@@ -728,8 +782,8 @@ def test_conv_propagates_nan_and_inf(dev, algo, monkeypatch):
     xd = SparseConvTensor(feats.to(dev), x.indices.to(dev), list(shape), 2)
     old = torch.backends.cuda.matmul.allow_tf32
     try:
-        torch.backends.cuda.matmul.allow_tf32 = algo == "tf32"
-        y = Fs.conv(xd, w.to(dev), None, "subm")
+        torch.backends.cuda.matmul.allow_tf32 = precision == "tf32"
+        y = Fs.conv(xd, w.to(dev), None, "subm", algo="3xtf32" if precision == "3xtf32" else "auto")
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old
     got = y.features.double().cpu()[linear_order(y.indices, shape)]
@@ -740,7 +794,7 @@ def test_conv_propagates_nan_and_inf(dev, algo, monkeypatch):
     assert ref.isnan().any() and (ref == inf).any() and ref.isfinite().any(), "the data must hold all three"
     assert got[ref.isfinite()].isfinite().all(), "finite outputs must stay finite"
     assert got[ref.isnan()].isnan().all(), "NaN must propagate"
-    if algo == "3xtf32":
+    if precision == "3xtf32":
         assert not got[ref == inf].isfinite().any()
     else:
         assert (got[ref == inf] == inf).all(), "+inf must stay +inf"

@@ -43,10 +43,10 @@ CASES = [(6, 10, torch.float32), (24, 100, torch.float32), (32, 64, torch.float1
 
 @pytest.mark.parametrize("cin,cout,dtype", CASES, ids=[f"{a}-{b}-{c}".replace("torch.", "") for a, b, c in CASES])
 @pytest.mark.parametrize("parts", ["scale+shift+relu", "shift+relu", "scale", "relu"])
-def test_sparse_conv_affine_matches_float64(device, cin, cout, dtype, parts, monkeypatch):
+def test_sparse_conv_affine_matches_float64(device, cin, cout, dtype, parts):
     if dtype in ("tf32", "3xtf32") and device == "cpu":
         pytest.skip("TF32 is a CUDA mode")
-    monkeypatch.setenv("LIDAROPS_CONV_FP32", "3xtf32" if dtype == "3xtf32" else "ffma")
+    algo = "3xtf32" if dtype == "3xtf32" else "auto"
     dt = torch.float32 if dtype in ("tf32", "3xtf32") else dtype
     x = random_tensor(2, (40, 40), 300, cin, seed=cin + cout, dtype=dt, device=device)
     km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
@@ -60,7 +60,7 @@ def test_sparse_conv_affine_matches_float64(device, cin, cout, dtype, parts, mon
     old = torch.backends.cuda.matmul.allow_tf32
     try:
         torch.backends.cuda.matmul.allow_tf32 = dtype == "tf32"
-        got = ops.sparse_conv_affine(x.features, w, nbr, km.order, scale, shift, relu)
+        got = ops.sparse_conv_affine(x.features, w, nbr, km.order, scale, shift, relu, algo)
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old
     ref = _reference(x.features, w, nbr, scale, shift, relu)

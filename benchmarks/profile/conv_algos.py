@@ -6,7 +6,7 @@ For each BEV grid of benchmarks/bm_sparse.py, kind (SubM 3x3, strided 3x3 s2) an
 registered op ``sparse_conv`` with its cached map and order, per algorithm:
 
 * ``fp32``: float32 FFMA tiles (exact float32);
-* ``3xtf32``: float32 as three TF32 tensor-core products (``LIDAROPS_CONV_FP32=3xtf32``);
+* ``3xtf32``: float32 as three TF32 tensor-core products (the op's ``algo="3xtf32"``);
 * ``tf32``: one TF32 product (``allow_tf32``);
 * ``fp16``: float16 operands, float32 accumulation.
 
@@ -16,8 +16,9 @@ GPU time alone (20 calls on the same inputs captured in a CUDA graph, replayed; 
 max |out - ref| / max |ref| against the float64 product of the same float32 inputs. ``--pillars`` also times the
 Sparse-PointPillars backbone (maps cached, and in a CUDA graph) per precision; ``--layers`` times each
 of its convolutions alone (kernel time, on the backbone's own maps and channels) and their sum
-weighted by how often each occurs. ``--ceiling`` adds, per layer (the single layers, and the backbone's
-with ``--layers``), cuBLAS on the dense GEMM of the same useful work (rows x (pairs per row x Cin)
+weighted by how often each occurs. ``--splits`` forces the offset splits of the single layers and of
+``--layers`` (the op's ``splits``; the backbone of ``--pillars`` keeps its own). ``--ceiling`` adds, per
+layer (the single layers, and the backbone's with ``--layers``), cuBLAS on the dense GEMM of the same useful work (rows x (pairs per row x Cin)
 times (. x Cout), operands already gathered) in float32 and in TF32: what the vendor's GEMM takes on
 that work with no gather at all.
 """
@@ -25,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import statistics
 import sys
 from pathlib import Path
@@ -71,11 +71,18 @@ def call_ms(fn, runs: int = 200) -> float:
     return statistics.median(a.elapsed_time(b) for a, b in ev)
 
 
-def use_algo(algo: str) -> torch.dtype:
-    """Sets the switches of one algorithm; returns the operands' dtype."""
+def use_algo(algo: str) -> tuple:
+    """Sets torch's TF32 switch for one algorithm; returns the operands' dtype and the op's ``algo``."""
     torch.backends.cuda.matmul.allow_tf32 = algo == "tf32"
-    os.environ["LIDAROPS_CONV_FP32"] = "3xtf32" if algo == "3xtf32" else "ffma"
-    return torch.float16 if algo == "fp16" else torch.float32
+    return (torch.float16 if algo == "fp16" else torch.float32), ("3xtf32" if algo == "3xtf32" else "auto")
+
+
+def set_algo(net: torch.nn.Module, algo: str) -> None:
+    """The kernel choice of every sparse convolution of a network."""
+    from lidarops.sparse.nn import SparseConvolution
+    for m in net.modules():
+        if isinstance(m, SparseConvolution):
+            m.algo = algo
 
 
 # the Sparse-PointPillars backbone's convolutions: map key, Cin, Cout, how many use that map and channels
@@ -98,7 +105,7 @@ def dense_gemm_ms(rows: int, pairs: int, cin: int, cout: int, tf32: bool) -> flo
         torch.backends.cuda.matmul.allow_tf32 = old
 
 
-def backbone_layers(algos, dev, ceiling: bool = False) -> None:
+def backbone_layers(algos, dev, ceiling: bool = False, splits: int = 0) -> None:
     from benchmarks.bm_sparse import pillars_input
     with torch.no_grad():
         _, _, cached = pillars_input(dev, torch.float32)
@@ -120,9 +127,9 @@ def backbone_layers(algos, dev, ceiling: bool = False) -> None:
         w32 = (torch.randn(cout, nbr.shape[1], cin, generator=g) / math.sqrt(9 * cin)).to(dev)
         cells = []
         for algo in algos:
-            dt = use_algo(algo)
+            dt, op_algo = use_algo(algo)
             xf, wf = x32.to(dt), w32.to(dt)
-            t = graph_ms(lambda: torch.ops.lidarops.sparse_conv(xf, wf, nbr, order))  # noqa: B023
+            t = graph_ms(lambda: torch.ops.lidarops.sparse_conv(xf, wf, nbr, order, op_algo, splits))  # noqa: B023
             total[algo] += count * t
             cells.append(f"{t:9.3f}")
         for col in extra:
@@ -143,21 +150,16 @@ def main(argv=None) -> int:
     ap.add_argument("--ceiling", action="store_true", help="cuBLAS on each layer's dense GEMM (mm_fp32, mm_tf32)")
     ap.add_argument("--splits", default="auto",
                     help="offset splits to time, comma-separated: auto (the library's choice) or a number "
-                         "(LIDAROPS_CONV_SPLITS)")
+                         "(the op's splits)")
     a = ap.parse_args(argv)
     for sp in a.splits.split(","):
-        if sp == "auto":
-            os.environ.pop("LIDAROPS_CONV_SPLITS", None)
-        else:
-            os.environ["LIDAROPS_CONV_SPLITS"] = sp
         if len(a.splits.split(",")) > 1:
             print(f"--- offset splits: {sp}", flush=True)
-        run(a)
-    os.environ.pop("LIDAROPS_CONV_SPLITS", None)
+        run(a, 0 if sp == "auto" else int(sp))
     return 0
 
 
-def run(a) -> None:
+def run(a, splits: int = 0) -> None:
     if not torch.cuda.is_available():
         print("conv_algos: needs a GPU")
         return
@@ -186,11 +188,12 @@ def run(a) -> None:
                     ref = ops.sparse_conv(f32.double().cpu(), w.double().cpu(), nbr.cpu())
                     scale = ref.abs().max().item()
                     for algo in a.algos.split(","):
-                        dt = use_algo(algo)
+                        dt, op_algo = use_algo(algo)
                         xf, wf = f32.to(dt), w.to(dt)
-                        fn = lambda: ops.sparse_conv(xf, wf, nbr, order)  # noqa: E731
+                        fn = lambda: ops.sparse_conv(xf, wf, nbr, order, op_algo, splits)  # noqa: E731
                         err = (fn().double().cpu() - ref).abs().max().item() / scale
-                        t_call = time_cuda(lambda *args: ops.sparse_conv(*args), (xf, wf, nbr, order)).median
+                        t_call = time_cuda(lambda *args: ops.sparse_conv(*args),
+                                           (xf, wf, nbr, order, op_algo, splits)).median
                         t_kernel = graph_ms(fn)
                         print(f"{gname:6s} {kind:4s} {C:4d} {algo:9s} {t_call:7.3f} {t_kernel:7.3f} "
                               f"{flop / t_kernel / 1e9:8.1f} {err:9.2e}", flush=True)
@@ -200,18 +203,18 @@ def run(a) -> None:
                         print(f"{gname:6s} {kind:4s} {C:4d} {name:9s} {'':>7s} {t_kernel:7.3f} "
                               f"{flop / t_kernel / 1e9:8.1f}", flush=True)
         if a.layers:
-            backbone_layers(a.algos.split(","), dev, a.ceiling)
+            backbone_layers(a.algos.split(","), dev, a.ceiling, splits)
         if a.pillars:
             for algo in a.algos.split(","):
-                dtype = use_algo(algo)
+                dtype, op_algo = use_algo(algo)
                 with torch.no_grad():
                     net, _, cached = pillars_input(dev, dtype)
+                    set_algo(net, op_algo)
                     t_call = call_ms(lambda: net(cached), runs=50)
                     t_graph = graph_ms(lambda: net(cached), reps=1, replays=50)
                 print(f"pillars {algo:9s} maps cached {t_call:6.3f} ms, in a CUDA graph {t_graph:6.3f} ms", flush=True)
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old
-        os.environ.pop("LIDAROPS_CONV_FP32", None)
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ at::Tensor sparse_kernel_map_order_cpu(const at::Tensor& nbr_in) {
 }
 
 // The CPU kernel lists the pairs of each offset, so it never touches absent pairs; `order` (a GPU
-// tiling hint) is checked and ignored.
+// tiling hint) and `algo` / `splits` (the CUDA kernel choice) are checked and ignored.
 at::Tensor sparse_conv_cpu_impl(const at::Tensor& features_in, const at::Tensor& weight_in, const at::Tensor& nbr_in,
                                 const ConvEpilogue& epi) {
   const auto dtype = features_in.scalar_type();
@@ -154,19 +154,22 @@ at::Tensor sparse_conv_cpu_impl(const at::Tensor& features_in, const at::Tensor&
 }
 
 at::Tensor sparse_conv_cpu(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr,
-                           const c10::optional<at::Tensor>& order) {
+                           const c10::optional<at::Tensor>& order, c10::string_view algo, int64_t splits) {
   check_conv_args(features, weight, nbr);
   check_order(order, nbr);
+  check_conv_algo(algo, splits);
   return sparse_conv_cpu_impl(features, weight, nbr, ConvEpilogue{});
 }
 
 at::Tensor sparse_conv_affine_cpu(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& nbr,
                                   const c10::optional<at::Tensor>& order, const c10::optional<at::Tensor>& scale_in,
-                                  const c10::optional<at::Tensor>& shift_in, bool relu) {
+                                  const c10::optional<at::Tensor>& shift_in, bool relu, c10::string_view algo,
+                                  int64_t splits) {
   check_conv_args(features, weight, nbr);
   check_order(order, nbr);
   const auto scale = epilogue_operand(scale_in, "scale", weight.size(0), features);
   const auto shift = epilogue_operand(shift_in, "shift", weight.size(0), features);
+  check_conv_algo(algo, splits);
   return sparse_conv_cpu_impl(features, weight, nbr, make_epilogue(scale, shift, relu));
 }
 

@@ -7,13 +7,13 @@
 // its rank among the group's hits, so the hits are written straight to the output in index order;
 // a group stops once it has k hits (the block once all its groups have).
 //
-// Grid (large clouds): the device grid of cuda_utils.cuh (cells of edge `radius`), one thread per
+// Grid (large clouds): the device grid of knn_grid.cuh (cells of edge `radius`), one thread per
 // query, queries in grid-cell order, the cells of ball_grid_search(), and a register list of the C
 // lowest indices (k <= 128) or BallList in the output row (k > 128). Distances of the register
 // list are recomputed on output with the same formula, hence the same bits.
 #include <ATen/Dispatch.h>
 
-#include "lidarops/cuda_utils.cuh"
+#include "lidarops/knn_grid.cuh"
 
 namespace lidarops {
 namespace {
@@ -172,7 +172,7 @@ std::tuple<at::Tensor, at::Tensor> ball_query_cuda(const at::Tensor& query_in, c
   auto qlen = query_lengths.contiguous();
   auto plen = point_lengths.contiguous();
   const bool grid = use_grid_cuda(method, B, M, N);
-  const auto info = gpu::device_info(query_in.device().index());
+  const auto info = gpu::device_props(query_in.device().index());
   cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, query_in.scalar_type(), "lidarops_ball_query_cuda", [&] {
     using T = acc_t<scalar_t>;
@@ -196,7 +196,7 @@ std::tuple<at::Tensor, at::Tensor> ball_query_cuda(const at::Tensor& query_in, c
     } else {
       // Threads per query: fill the GPU, but give each thread at least 128 points.
       int S = 1;
-      const int64_t want = static_cast<int64_t>(info.sm_count) * 2048;
+      const int64_t want = static_cast<int64_t>(info.sms) * 2048;
       while (S < 32 && B * M * S < want && static_cast<int64_t>(S) * 128 <= N) S <<= 1;
       const int64_t mblocks = gpu::ceil_div(M, kBruteThreads / S);
       ball_brute_kernel<T><<<static_cast<unsigned>(B * mblocks), kBruteThreads, 0, stream>>>(

@@ -7,12 +7,15 @@
 // then the rows of the kept boxes are OR-ed into the suppression words of the later blocks. No host loop;
 // one device-to-host read of the number kept (none in nms_bev_padded: the number of candidates and the
 // number kept stay on the device, so the whole op can be captured in a CUDA graph).
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
 
 #include <cub/block/block_radix_sort.cuh>
 
 #include "lidarops/boxes.h"
-#include "lidarops/cuda_utils.cuh"
+#include "lidarops/cuda_launch.cuh"
 
 namespace lidarops {
 namespace {

@@ -2,10 +2,13 @@
 // (zeroed by a memset). A block that finds a bad value stores 1 into its tensor's flag; several
 // blocks may store the same 1, which is benign. No host synchronisation here: the wrapper reads
 // all the flags with one copy.
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
 
 #include "lidarops/checks.h"
-#include "lidarops/cuda_utils.cuh"
+#include "lidarops/cuda_launch.cuh"
 
 namespace lidarops {
 namespace {
@@ -52,7 +55,7 @@ at::Tensor value_flags_cuda(at::TensorList finite, at::TensorList ranged, at::In
   const c10::cuda::CUDAGuard guard(device);
   auto flags = at::zeros({static_cast<int64_t>(finite.size() + ranged.size())}, at::dtype(at::kInt).device(device));
   if (flags.numel() == 0) return flags;
-  const int sms = gpu::device_info(device.index()).sm_count;
+  const int sms = gpu::device_props(device.index()).sms;
   auto stream = at::cuda::getCurrentCUDAStream();
   int32_t* f = flags.data_ptr<int32_t>();
   for (size_t i = 0; i < finite.size(); ++i) {

@@ -36,7 +36,10 @@
 // The non-cluster variant uses the same double buffer with the block barrier: all warps read
 // wslot[s&1] after the barrier of step s and reach the barrier of step s + 1 before anyone can
 // write wslot[s&1] again in step s + 2.
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
 
 #include <cooperative_groups.h>
 
@@ -44,7 +47,7 @@
 #include <mutex>
 #include <utility>
 
-#include "lidarops/cuda_utils.cuh"
+#include "lidarops/neighbors.cuh"
 
 namespace lidarops {
 namespace {
@@ -645,13 +648,13 @@ void fps_launch(const at::Tensor& points, const at::Tensor& lengths, const at::T
   constexpr int64_t pmax = fps_pmax<T>();
   const int64_t block_cap = kFpsThreads * pmax;  // points one block holds in registers
   const int device = points.device().index();
-  const auto info = gpu::device_info(points.device().index());
+  const auto info = gpu::device_props(points.device().index());
 
   // Several blocks per cloud (thread-block clusters, sm_90+). Auto: only when one block would need
   // more than 16 points per thread; below that one block per cloud takes less time per step.
   if ((method == 2 || (method == 0 && N > kFpsThreads * 16)) && info.cc_major >= 9) {
     const int64_t need = gpu::pow2_ceil(gpu::ceil_div(N, block_cap));  // blocks to hold the cloud
-    const int64_t fill = gpu::pow2_floor(std::max<int64_t>(1, info.sm_count / std::max<int64_t>(B, 1)));
+    const int64_t fill = gpu::pow2_floor(std::max<int64_t>(1, info.sms / std::max<int64_t>(B, 1)));
     int64_t pref = gpu::pow2_ceil(gpu::ceil_div(N, kFpsThreads * 8));  // ~8 points per thread
     // The cluster barrier of fps_reg_kernel (double) grows costly beyond 4 blocks; the messages of
     // fps_push_kernel (float) do not.

@@ -9,9 +9,12 @@
 // increasing position order, starting from 0, in float (half/bfloat16/float) or double, then cast
 // back: exactly the CPU's `acc[j] += grad[l]` sequence. No atomics, so results do not depend on
 // scheduling (and torch.use_deterministic_algorithms holds). Indices outside [0, n) are ignored.
+#include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
 
-#include "lidarops/cuda_utils.cuh"
+#include "lidarops/cuda_launch.cuh"
 
 namespace lidarops {
 namespace {

@@ -8,14 +8,14 @@
 // shuffles, k rounds each taking the smallest head by closer(). Since C >= k, the k smallest of the
 // cloud are among the per-thread lists, and the merge emits them in order.
 //
-// Grid (large clouds): the device grid of cuda_utils.cuh, one thread per query, queries taken in
+// Grid (large clouds): the device grid of knn_grid.cuh, one thread per query, queries taken in
 // the order of their grid cell (neighbouring threads search the same cells), a register list, and
 // the exact ring search of knn_grid_search() (neighbors.h).
 //
 // k > 64 (k > 32 for double): the lists live in the output rows (KnnList), one thread per query.
 #include <ATen/Dispatch.h>
 
-#include "lidarops/cuda_utils.cuh"
+#include "lidarops/knn_grid.cuh"
 
 namespace lidarops {
 namespace {
@@ -218,7 +218,7 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
   auto qlen = query_lengths.contiguous();
   auto plen = point_lengths.contiguous();
   const bool grid = use_grid_cuda(method, B, M, N);
-  const auto info = gpu::device_info(query_in.device().index());
+  const auto info = gpu::device_props(query_in.device().index());
   cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, query_in.scalar_type(), "lidarops_knn_cuda", [&] {
     using T = acc_t<scalar_t>;
@@ -240,7 +240,7 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
         // Threads per query: up to 4 while the queries alone give fewer than 256 threads per SM; once
         // the queries fill the GPU, more than one thread per query is slower (docs/notes/ops.md).
         int S = 1;
-        const int64_t want = static_cast<int64_t>(info.sm_count) * 256;
+        const int64_t want = static_cast<int64_t>(info.sms) * 256;
         if (C > 0 && C <= 32)
           while (S < 4 && B * M * S < want) S <<= 1;
         const unsigned blocks = static_cast<unsigned>(gpu::ceil_div(B * M * S, kGridThreads));
@@ -264,7 +264,7 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
         // Threads per query: fill the GPU, but give each thread at least 128 points; one thread
         // per query for lists in the output rows (C = 0) and for C > 32 (no merge).
         int S = 1;
-        const int64_t want = static_cast<int64_t>(info.sm_count) * 2048;
+        const int64_t want = static_cast<int64_t>(info.sms) * 2048;
         if (C > 0 && C <= 32)
           while (S < 32 && B * M * S < want && static_cast<int64_t>(S) * 128 <= N) S <<= 1;
         const int64_t mblocks = gpu::ceil_div(M, kBruteThreads / S);

@@ -34,6 +34,7 @@
 #include <cstdint>
 #include <limits>
 
+#include "lidarops/cuda_launch.cuh"
 #include "lidarops/pillar_stream.h"
 
 namespace lidarops {
@@ -42,13 +43,7 @@ namespace {
 constexpr int kThreads = 256;
 constexpr int64_t kSortLast = std::numeric_limits<int64_t>::max();
 
-inline unsigned int num_blocks(int64_t n) {
-  return static_cast<unsigned int>(std::max<int64_t>(1, std::min<int64_t>((n + kThreads - 1) / kThreads, 65536)));
-}
-
-#define LIDAROPS_GRID_STRIDE(i, n) \
-  for (int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; i < (n); \
-       i += static_cast<int64_t>(blockDim.x) * gridDim.x)
+inline unsigned int num_blocks(int64_t n) { return gpu::stride_blocks(n, kThreads); }
 
 __device__ __forceinline__ unsigned long long* ull(int64_t* p) { return reinterpret_cast<unsigned long long*>(p); }
 

@@ -11,6 +11,7 @@
 
 #include <vector>
 
+#include "lidarops/cuda_launch.cuh"
 #include "lidarops/sparse.h"
 
 namespace lidarops {
@@ -19,7 +20,7 @@ namespace {
 
 constexpr int kTile = 32, kRowsPerPass = 8;  // blocks of 32 x 8 threads
 
-int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
+using gpu::ceil_div;
 
 // kToDense: features (n, C) -> map; else map -> features (rows outside the grid get zeros)
 template <typename T, bool kToDense>

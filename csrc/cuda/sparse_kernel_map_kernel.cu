@@ -13,6 +13,7 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
+#include "lidarops/cuda_launch.cuh"
 #include "lidarops/sparse.h"
 
 namespace lidarops {
@@ -21,7 +22,7 @@ namespace {
 
 constexpr int kThreads = 256;
 
-inline int64_t blocks_for(int64_t n) { return std::max<int64_t>(1, (n + kThreads - 1) / kThreads); }
+inline int64_t blocks_for(int64_t n) { return std::max<int64_t>(1, gpu::ceil_div(n, kThreads)); }
 
 __device__ __forceinline__ bool row_in_range(const int32_t* r, const ConvGeometry& g) {
   if (r[0] < 0 || r[0] >= g.batch) return false;

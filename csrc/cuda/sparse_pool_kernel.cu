@@ -7,6 +7,7 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
+#include "lidarops/cuda_launch.cuh"
 #include "lidarops/sparse.h"
 
 namespace lidarops {
@@ -15,10 +16,7 @@ namespace {
 
 constexpr int kThreads = 256;
 
-inline unsigned blocks_for(int64_t n) {
-  const int64_t b = (n + kThreads - 1) / kThreads;
-  return static_cast<unsigned>(b < 1 ? 1 : (b > 1048576 ? 1048576 : b));
-}
+inline unsigned blocks_for(int64_t n) { return gpu::stride_blocks(n, kThreads, 1048576); }
 
 // One thread per (output row, channel), grid-stride.
 template <typename T>

@@ -16,6 +16,7 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
+#include "lidarops/cuda_launch.cuh"
 #include "lidarops/sscater.h"
 
 namespace lidarops {
@@ -26,10 +27,7 @@ constexpr int kThreads = 256;
 
 // Every kernel here loops grid-stride, and many read their length on the device (a padded list): a
 // bounded grid keeps the launch of a mostly empty list cheap.
-inline unsigned blocks_for(int64_t n) {
-  const int64_t b = (n + kThreads - 1) / kThreads;
-  return static_cast<unsigned>(b < 1 ? 1 : (b > 2048 ? 2048 : b));
-}
+inline unsigned blocks_for(int64_t n) { return gpu::stride_blocks(n, kThreads, 2048); }
 
 // One thread per (row, tap): the reached output site, -1 outside the grid, on an inactive site, on a
 // padding row or past the row count.
@@ -193,9 +191,7 @@ __global__ void __launch_bounds__(kGemmThreads) tap_gemm_kernel(T* __restrict__ 
 }
 
 inline unsigned gemm_blocks(int64_t tiles, const at::Tensor& on) {
-  int sms = 0;
-  C10_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, on.get_device()));
-  const int64_t cap = 8 * static_cast<int64_t>(sms);
+  const int64_t cap = 8 * static_cast<int64_t>(gpu::device_props(on.get_device()).sms);
   return static_cast<unsigned>(tiles < 1 ? 1 : (tiles < cap ? tiles : cap));
 }
 

@@ -23,6 +23,7 @@
 
 #include <algorithm>
 
+#include "lidarops/cuda_launch.cuh"
 #include "lidarops/voxelize.h"
 
 namespace lidarops {
@@ -31,13 +32,7 @@ namespace {
 constexpr int kThreads = 256;
 constexpr int64_t kSortLast = std::numeric_limits<int64_t>::max();
 
-inline unsigned int num_blocks(int64_t n) {
-  return static_cast<unsigned int>(std::max<int64_t>(1, std::min<int64_t>((n + kThreads - 1) / kThreads, 65536)));
-}
-
-#define LIDAROPS_GRID_STRIDE(i, n) \
-  for (int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; i < (n); \
-       i += static_cast<int64_t>(blockDim.x) * gridDim.x)
+inline unsigned int num_blocks(int64_t n) { return gpu::stride_blocks(n, kThreads); }
 
 template <typename scalar_t>
 __global__ void voxel_keys_kernel(const scalar_t* __restrict__ points, int64_t N, int64_t C,

@@ -40,12 +40,16 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // (float64 for float64). order (optional, from sparse_kernel_map_order) only changes the speed.
   // order must be a permutation of [0, N_out): only its shape is checked; the CPU kernel ignores it, the
   // CUDA kernels skip entries outside [0, N_out) and leave the rows it misses unspecified.
-  m.def("sparse_conv(Tensor features, Tensor weight, Tensor kernel_map, Tensor? order=None) -> Tensor");
+  // algo, splits: the CUDA kernel choice, "auto" / 0 or forced (sparse.h, ConvAlgo); every choice gives
+  // the same sums in the dtype's precision. Checked on both devices (ValueError); the CPU ignores them.
+  m.def(
+      "sparse_conv(Tensor features, Tensor weight, Tensor kernel_map, Tensor? order=None, str algo=\"auto\","
+      " int splits=0) -> Tensor");
   // Inference form with a fused per-channel epilogue on the float accumulator:
   // relu?(sparse_conv(...) * scale + shift), scale / shift float32 (Cout,) or None (BatchNorm in eval
   // mode folded to an affine map, then ReLU). No autograd formula: for use without gradients.
   m.def("sparse_conv_affine(Tensor features, Tensor weight, Tensor kernel_map, Tensor? order, Tensor? scale, "
-        "Tensor? shift, bool relu=False) -> Tensor");
+        "Tensor? shift, bool relu=False, str algo=\"auto\", int splits=0) -> Tensor");
   // Gradient of sparse_conv with respect to weight: (Cout, K, Cin), sum over o of
   // grad_out[o] (x) features[kernel_map[o, k]].
   m.def("sparse_conv_weight_grad(Tensor features, Tensor grad_out, Tensor kernel_map) -> Tensor");

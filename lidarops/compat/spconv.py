@@ -9,12 +9,13 @@
         spconv.SubMConv3d(4, 16, 3, padding=1, bias=False, indice_key="subm1"),
         nn.BatchNorm1d(16, eps=1e-3, momentum=0.01), nn.ReLU())
 
-Same classes, constructor arguments (``indice_key``, ``bias``, ``algo`` accepted and ignored,
-``groups`` must be 1) and weight layout ``[Cout, *kernel, Cin]``, so OpenPCDet / mmdet3d backbones and
-spconv state_dicts run unchanged. Reuse rules of ``indice_key``: a convolution whose key is already
-in the input's ``indice_dict`` reuses that kernel map (lidarops checks that it fits the layer and
-raises ValueError where spconv would silently use a map of another geometry); a new map is
-registered in the output's dict; ``SparseInverseConvNd`` inverts the map of its key.
+Same classes, constructor arguments (``indice_key``, ``bias``; ``algo``: spconv's ``ConvAlgo`` accepted
+and ignored, one of lidarops' ``CONV_ALGOS`` used; ``groups`` must be 1) and weight layout
+``[Cout, *kernel, Cin]``, so OpenPCDet / mmdet3d backbones and spconv state_dicts run unchanged. Reuse
+rules of ``indice_key``: a convolution whose key is already in the input's ``indice_dict`` reuses that
+kernel map (lidarops checks that it fits the layer and raises ValueError where spconv would silently
+use a map of another geometry); a new map is registered in the output's dict; ``SparseInverseConvNd``
+inverts the map of its key.
 
 Differences from lidarops.sparse's own modules, reproducing what spconv 2.3.8 computes:
 
@@ -53,7 +54,7 @@ __all__ = [
 
 
 class ConvAlgo(enum.Enum):
-    """spconv's algorithm choice; accepted for compatibility, lidarops has one algorithm per device."""
+    """spconv's algorithm choice; accepted for compatibility, lidarops picks its own kernels (``algo="auto"``)."""
 
     Native = 0
     MaskImplicitGemm = 1
@@ -80,11 +81,12 @@ class SparseConvolution(spnn.SparseConvolution):
         kind = "subm" if subm else "inverse" if inverse else "transposed" if transposed else "conv"
         ks = _as_list(kernel_size, ndim)
         st = _as_list(stride, ndim)
-        # spconv's submanifold layers ignore stride and padding
+        # spconv's submanifold layers ignore stride and padding; spconv's ConvAlgo names spconv's kernels:
+        # lidarops chooses its own, unless given one of its CONV_ALGOS
         super().__init__(ndim, in_channels, out_channels, ks, 1 if subm else st, 0 if subm else padding, dilation,
-                         bias, kind, output_padding, indice_key, name=name)
+                         bias, kind, output_padding, indice_key, name=name,
+                         algo=algo if isinstance(algo, str) else "auto")
         self.groups = 1
-        self.algo = algo
         self.fused_bn = fused_bn
         self.conv1x1 = math.prod(ks) == 1 and (subm or math.prod(st) == 1)
 

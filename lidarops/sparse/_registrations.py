@@ -44,14 +44,15 @@ def _kernel_map_order_fake(kernel_map):
 
 
 @torch.library.register_fake("lidarops::sparse_conv")
-def _conv_fake(features, weight, kernel_map, order=None):
+def _conv_fake(features, weight, kernel_map, order=None, algo="auto", splits=0):
     torch._check(weight.shape[1] == kernel_map.shape[1], lambda: "weight and kernel_map disagree on K")
     torch._check(weight.shape[2] == features.shape[1], lambda: "weight and features disagree on Cin")
     return features.new_empty((kernel_map.shape[0], weight.shape[0]))
 
 
 @torch.library.register_fake("lidarops::sparse_conv_affine")
-def _conv_affine_fake(features, weight, kernel_map, order=None, scale=None, shift=None, relu=False):
+def _conv_affine_fake(features, weight, kernel_map, order=None, scale=None, shift=None, relu=False, algo="auto",
+                      splits=0):
     return _conv_fake(features, weight, kernel_map, order)
 
 

@@ -35,10 +35,18 @@ _compiling = torch.compiler.is_compiling
 
 __all__ = [
     "conv_output_shape", "conv_transpose_output_shape", "conv_out_indices", "kernel_map", "build_kernel_map",
-    "sparse_conv", "conv", "max_pool", "norm_affine",
+    "sparse_conv", "conv", "max_pool", "norm_affine", "CONV_ALGOS",
 ]
 
 _METHODS = {"auto": 0, "dense": 1, "hash": 2}
+#: The convolution's kernel choices (``algo=``), CUDA tuning that gives the same sums in the dtype's
+#: precision: ``"auto"`` (the library's choice per layer), ``"mma_sync"`` (tensor-core layers on mma.sync,
+#: never Hopper's wgmma), ``"wgmma_2blocks"`` / ``"wgmma_3blocks"`` (Hopper TF32 layers with Cout > 64:
+#: two or three wgmma blocks per multiprocessor, whatever the layer's size) and ``"3xtf32"``
+#: (experimental: float32 without TF32 on the tensor cores as three TF32 products, about 3.5x the error
+#: of the FFMA tiles; an infinite input may give NaN). Where a choice does not apply (CPU, other GPUs,
+#: other dtypes), it is ``"auto"``.
+CONV_ALGOS = ("auto", "mma_sync", "wgmma_2blocks", "wgmma_3blocks", "3xtf32")
 _KINDS = ("subm", "conv", "transposed", "inverse")
 
 
@@ -65,6 +73,12 @@ def _method(method: str) -> int:
     if method not in _METHODS:
         raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
     return _METHODS[method]
+
+
+def _conv_algo(algo: str) -> str:
+    if not isinstance(algo, str) or algo not in CONV_ALGOS:
+        raise ValueError(f"algo must be one of {CONV_ALGOS}, got {algo!r}")
+    return algo
 
 
 def conv_output_shape(spatial_shape: Sequence[int], kernel_size, stride=1, padding=0, dilation=1) -> tuple:
@@ -218,7 +232,8 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     return km
 
 
-def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Optional[Tensor] = None) -> Tensor:
+def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Optional[Tensor] = None,
+                algo: str = "auto", splits: int = 0) -> Tensor:
     """Gather-GEMM-scatter convolution over a kernel map.
 
     Args:
@@ -228,6 +243,9 @@ def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Opti
         order (Tensor[N_out] int32, optional): processing order of the output rows for the CUDA kernel
             (``torch.ops.lidarops.sparse_kernel_map_order(neighbors)``, cached as ``KernelMap.order``);
             it changes only the speed.
+        algo (str): the CUDA kernel choice, one of :data:`CONV_ALGOS` (default ``"auto"``).
+        splits (int): offset splits of the CUDA pipelined kernels (split-K over the kernel offsets),
+            forced, at most K; 0 (default): chosen per layer. For tests and tuning.
 
     Returns:
         Tensor[N_out, Cout]: ``out[o] = sum_k weight[:, k, :] @ features[neighbors[o, k]]``,
@@ -237,6 +255,9 @@ def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Opti
     check_tensor(features, "features")
     check_tensor(weight, "weight")
     check_tensor(neighbors, "neighbors")
+    _conv_algo(algo)
+    if isinstance(splits, bool) or not isinstance(splits, int) or splits < 0:
+        raise ValueError(f"splits must be an int >= 0 (0: chosen per layer), got {splits!r}")
     if features.dim() != 2 or not features.is_floating_point():
         raise ValueError(f"features must be a floating (N_in, Cin) tensor, got {describe(features)}")
     if weight.dim() < 3 or weight.dtype != features.dtype:
@@ -261,7 +282,7 @@ def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Opti
                               or order.device != neighbors.device):
         raise ValueError(f"order must be an ({neighbors.shape[0]},) int32 permutation on {neighbors.device}, "
                          f"got {describe(order)}")
-    return torch.ops.lidarops.sparse_conv(features, w, neighbors, order)
+    return torch.ops.lidarops.sparse_conv(features, w, neighbors, order, algo, splits)
 
 
 # ---- layer-level functions on SparseConvTensor ----------------------------------------------------
@@ -456,7 +477,8 @@ def _affine_torch(out: Tensor, scale: Optional[Tensor], shift: Optional[Tensor],
 def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kind: str = "conv", stride=1,
          padding=0, dilation=1, output_padding=0, indice_key: Optional[str] = None,
          out_spatial_shape: Optional[Sequence[int]] = None, method: str = "auto", *,
-         scale: Optional[Tensor] = None, shift: Optional[Tensor] = None, relu: bool = False) -> SparseConvTensor:
+         scale: Optional[Tensor] = None, shift: Optional[Tensor] = None, relu: bool = False,
+         algo: str = "auto") -> SparseConvTensor:
     """Sparse convolution of one layer.
 
     Args:
@@ -475,6 +497,7 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
             bias) * scale + shift)`` (a BatchNorm in eval mode and a ReLU: :func:`norm_affine`). Without
             gradients it runs inside the convolution kernel on its float accumulator
             (``torch.ops.lidarops.sparse_conv_affine``): no separate BatchNorm and ReLU kernels.
+        algo (str): the CUDA kernel choice, one of :data:`CONV_ALGOS` (default ``"auto"``).
 
     Returns:
         SparseConvTensor with features (N_out, Cout): same sites as x for ``"subm"``, the registered
@@ -490,6 +513,7 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
         raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
     if kind not in _KINDS:
         raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
+    _conv_algo(algo)
     D = x.ndim
     check_tensor(weight, "weight")
     cin = x.features.shape[1]
@@ -523,7 +547,7 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
     grad = torch.is_grad_enabled() and (x.features.requires_grad or w.requires_grad
                                         or (bias is not None and bias.requires_grad))
     if grad or _compiling() or (epilogue and x.features.dtype == torch.float64):  # float64: the float32
-        out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order)  # epilogue would round
+        out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order, algo)  # epilogue would round
         if bias is not None:
             out = out + bias
         if epilogue:
@@ -535,9 +559,9 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
                     b = bias.float() if scale is None else bias.float() * scale
                     shift = b if shift is None else shift + b
                 out = torch.ops.lidarops.sparse_conv_affine(x.features, w, km.neighbors, km.order, scale, shift,
-                                                            bool(relu))
+                                                            bool(relu), algo)
             else:
-                out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order)
+                out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order, algo)
                 if bias is not None:
                     out = out + bias
     return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)

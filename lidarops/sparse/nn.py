@@ -50,6 +50,8 @@ class SparseConvolution(SparseModule):
             :mod:`lidarops.sparse.functional`).
         indice_key (str, optional): kernel-map cache key (spconv's reuse rule).
         method (str): coordinate table for new kernel maps: ``"auto"``, ``"dense"`` or ``"hash"``.
+        algo (str): the CUDA kernel choice, one of :data:`lidarops.sparse.functional.CONV_ALGOS`
+            (default ``"auto"``; spconv's ``algo``).
 
     Attributes:
         weight (Parameter[Cout, *kernel, Cin]), bias (Parameter[Cout] or None).
@@ -60,7 +62,8 @@ class SparseConvolution(SparseModule):
 
     def __init__(self, ndim: int, in_channels: int, out_channels: int, kernel_size=3, stride=1, padding=0,
                  dilation=1, bias: bool = True, kind: str = "conv", output_padding=0,
-                 indice_key: Optional[str] = None, method: str = "auto", name: Optional[str] = None):
+                 indice_key: Optional[str] = None, method: str = "auto", name: Optional[str] = None,
+                 algo: str = "auto"):
         super().__init__(name=name)
         if kind not in Fs._KINDS:
             raise ValueError(f"kind must be one of {Fs._KINDS}, got {kind!r}")
@@ -68,6 +71,7 @@ class SparseConvolution(SparseModule):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{n} must be a positive int, got {v!r}")
         Fs._method(method)
+        Fs._conv_algo(algo)
         if bias not in (True, False):  # "no" would be truthy
             raise ValueError(f"bias must be True or False, got {bias!r}")
         if indice_key is not None and not isinstance(indice_key, str):
@@ -83,6 +87,7 @@ class SparseConvolution(SparseModule):
         self.kind = kind
         self.indice_key = indice_key
         self.method = method
+        self.algo = algo
         self.weight = nn.Parameter(torch.empty(out_channels, *self.kernel_size, in_channels))
         if bias:
             self.bias = nn.Parameter(torch.empty(out_channels))
@@ -120,6 +125,8 @@ class SparseConvolution(SparseModule):
             s += ", bias=False"
         if self.indice_key is not None:
             s += f", indice_key={self.indice_key!r}"
+        if self.algo != "auto":
+            s += f", algo={self.algo!r}"
         return s
 
     def _out_spatial_shape(self, x: SparseConvTensor):
@@ -140,7 +147,7 @@ class SparseConvolution(SparseModule):
                              f"{tuple(x.features.shape)}")
         return Fs.conv(x, self.weight, self.bias if with_bias else None, self.kind, self.stride, self.padding,
                        self.dilation, self.output_padding, self.indice_key, self._out_spatial_shape(x), self.method,
-                       scale=scale, shift=shift, relu=relu)
+                       scale=scale, shift=shift, relu=relu, algo=self.algo)
 
 
 def _subm(ndim):
@@ -150,11 +157,11 @@ def _subm(ndim):
         ``padding`` is ignored (accepted for spconv's signature)."""
 
         def __init__(self, in_channels, out_channels, kernel_size, stride=1, padding=0, dilation=1, bias=True,
-                     indice_key=None, method="auto", name=None):
+                     indice_key=None, method="auto", name=None, algo="auto"):
             if any(s != 1 for s in _expand(stride, ndim, "stride", 1)):
                 raise ValueError(f"a submanifold convolution has stride 1, got stride={stride!r}")
             super().__init__(ndim, in_channels, out_channels, kernel_size, 1, 0, dilation, bias, "subm",
-                             indice_key=indice_key, method=method, name=name)
+                             indice_key=indice_key, method=method, name=name, algo=algo)
     _SubM.__name__ = _SubM.__qualname__ = f"SubMConv{ndim}d"
     return _SubM
 
@@ -165,9 +172,9 @@ def _regular(ndim):
         field; equals ``F.conv{ndim}d`` on the dense tensor at those sites."""
 
         def __init__(self, in_channels, out_channels, kernel_size, stride=1, padding=0, dilation=1, bias=True,
-                     indice_key=None, method="auto", name=None):
+                     indice_key=None, method="auto", name=None, algo="auto"):
             super().__init__(ndim, in_channels, out_channels, kernel_size, stride, padding, dilation, bias, "conv",
-                             indice_key=indice_key, method=method, name=name)
+                             indice_key=indice_key, method=method, name=name, algo=algo)
     _Conv.__name__ = _Conv.__qualname__ = f"SparseConv{ndim}d"
     return _Conv
 
@@ -178,10 +185,10 @@ def _transposed(ndim):
         ``F.conv_transpose{ndim}d`` (weight ``w.permute(D + 1, 0, 1..D)``) at every site an input reaches."""
 
         def __init__(self, in_channels, out_channels, kernel_size, stride=1, padding=0, dilation=1, bias=True,
-                     indice_key=None, output_padding=0, method="auto", name=None):
+                     indice_key=None, output_padding=0, method="auto", name=None, algo="auto"):
             super().__init__(ndim, in_channels, out_channels, kernel_size, stride, padding, dilation, bias,
                              "transposed", output_padding=output_padding, indice_key=indice_key, method=method,
-                             name=name)
+                             name=name, algo=algo)
     _ConvT.__name__ = _ConvT.__qualname__ = f"SparseConvTranspose{ndim}d"
     return _ConvT
 
@@ -191,11 +198,12 @@ def _inverse(ndim):
         __doc__ = f"""Inverse sparse {ndim}D convolution: back to the input sites of the strided convolution
         registered under ``indice_key`` (same kernel size), by its swapped kernel map."""
 
-        def __init__(self, in_channels, out_channels, kernel_size, indice_key, bias=True, method="auto", name=None):
+        def __init__(self, in_channels, out_channels, kernel_size, indice_key, bias=True, method="auto", name=None,
+                     algo="auto"):
             if indice_key is None:
                 raise ValueError("SparseInverseConv needs the indice_key of the convolution it inverts")
             super().__init__(ndim, in_channels, out_channels, kernel_size, bias=bias, kind="inverse",
-                             indice_key=indice_key, method=method, name=name)
+                             indice_key=indice_key, method=method, name=name, algo=algo)
     _Inv.__name__ = _Inv.__qualname__ = f"SparseInverseConv{ndim}d"
     return _Inv
 

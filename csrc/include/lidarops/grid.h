@@ -35,7 +35,7 @@ struct Grid {
 // CPU builders (csrc/cpu/grid_cpu.cpp), O(N) by counting sort, with the dense offsets table when the
 // grid has at most about 4 cells per point. kNN cells hold about k/2 points at the mean density of the
 // cloud's bounding box (extents floored at 1% of the largest); ball-query cells have edge = radius.
-// The CUDA kernels build the same cells on the device (cuda_utils.cuh).
+// The CUDA kernels build the same cells on the device (knn_grid.cuh).
 Grid build_knn_grid_cpu(const at::Tensor& points, const at::Tensor& lengths, int64_t k);
 Grid build_ball_grid_cpu(const at::Tensor& points, const at::Tensor& lengths, double radius);
 

@@ -14,6 +14,7 @@
 #pragma once
 
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "lidarops/common.h"
@@ -268,6 +269,28 @@ inline void check_order(const c10::optional<at::Tensor>& order, const at::Tensor
                     " and dtype ", order->scalar_type());
   TORCH_CHECK_VALUE(order->device() == nbr.device(), "order is on ", order->device(), " but kernel_map is on ",
                     nbr.device());
+}
+
+// Kernel choice of sparse_conv / sparse_conv_affine (the ops' `algo` and `splits`; docs/sparse.md).
+// CUDA tuning: every choice computes the same sums in the dtype's precision ("3xtf32", experimental,
+// excepted). The CPU kernels have one algorithm: they check the arguments and ignore them.
+//   auto            the library's choice per layer
+//   mma_sync        tensor-core layers on mma.sync, never wgmma
+//   wgmma_2blocks   Hopper TF32 layers with Cout > 64: the 64 x 128 wgmma tiles with two blocks per
+//   wgmma_3blocks   multiprocessor (four stages) or three (three stages), whatever the layer's size
+//   3xtf32          float32 without TF32 on the tensor cores as three TF32 products
+// splits: offset splits of the pipelined kernels, forced (clamped to K); 0: chosen per layer.
+enum class ConvAlgo { kAuto, kMmaSync, kWgmma2Blocks, kWgmma3Blocks, k3xTF32 };
+
+inline ConvAlgo check_conv_algo(c10::string_view algo, int64_t splits) {
+  TORCH_CHECK_VALUE(splits >= 0, "splits must be >= 0 (0: chosen per layer), got ", splits);
+  if (algo == "auto") return ConvAlgo::kAuto;
+  if (algo == "mma_sync") return ConvAlgo::kMmaSync;
+  if (algo == "wgmma_2blocks") return ConvAlgo::kWgmma2Blocks;
+  if (algo == "wgmma_3blocks") return ConvAlgo::kWgmma3Blocks;
+  TORCH_CHECK_VALUE(algo == "3xtf32", "algo must be one of 'auto', 'mma_sync', 'wgmma_2blocks', 'wgmma_3blocks', "
+                    "'3xtf32', got '", std::string(algo), "'");
+  return ConvAlgo::k3xTF32;
 }
 
 // Per-output-channel epilogue of the fused inference convolution (sparse_conv_affine):

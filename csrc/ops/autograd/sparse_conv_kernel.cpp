@@ -13,17 +13,19 @@
 #include <torch/autograd.h>
 #include <torch/library.h>
 
+#include <string>
+
 namespace lidarops {
 namespace sparse {
 namespace {
 
 at::Tensor conv_op(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& kernel_map,
-                   const c10::optional<at::Tensor>& order) {
+                   const c10::optional<at::Tensor>& order, c10::string_view algo, int64_t splits) {
   static auto op = c10::Dispatcher::singleton()
                        .findSchemaOrThrow("lidarops::sparse_conv", "")
                        .typed<at::Tensor(const at::Tensor&, const at::Tensor&, const at::Tensor&,
-                                         const c10::optional<at::Tensor>&)>();
-  return op.call(features, weight, kernel_map, order);
+                                         const c10::optional<at::Tensor>&, c10::string_view, int64_t)>();
+  return op.call(features, weight, kernel_map, order, algo, splits);
 }
 
 at::Tensor transpose_map_op(const at::Tensor& kernel_map, int64_t n_in) {
@@ -51,13 +53,16 @@ class SparseConvFunction : public torch::autograd::Function<SparseConvFunction> 
  public:
   static at::Tensor forward(torch::autograd::AutogradContext* ctx, const at::Tensor& features,
                             const at::Tensor& weight, const at::Tensor& kernel_map,
-                            const c10::optional<at::Tensor>& order) {
+                            const c10::optional<at::Tensor>& order, c10::string_view algo, int64_t splits) {
     at::Tensor out;
     {
       at::AutoDispatchBelowADInplaceOrView below;
-      out = conv_op(features, weight, kernel_map, order);
+      out = conv_op(features, weight, kernel_map, order, algo, splits);
     }
     ctx->save_for_backward({features, weight, kernel_map});
+    // the features gradient is the same convolution: it takes the same kernel choice
+    ctx->saved_data["algo"] = std::string(algo);
+    ctx->saved_data["splits"] = splits;
     return out;
   }
 
@@ -73,16 +78,17 @@ class SparseConvFunction : public torch::autograd::Function<SparseConvFunction> 
       // kernel has no use for an order
       c10::optional<at::Tensor> order_t;
       if (map_t.is_cuda()) order_t = order_op(map_t);
-      grad_x = conv_op(grad, weight.permute({2, 1, 0}).contiguous(), map_t, order_t);
+      grad_x = conv_op(grad, weight.permute({2, 1, 0}).contiguous(), map_t, order_t,
+                       ctx->saved_data["algo"].toStringRef(), ctx->saved_data["splits"].toInt());
     }
     if (ctx->needs_input_grad(1)) grad_w = weight_grad_op(features, grad, kernel_map);
-    return {grad_x, grad_w, at::Tensor(), at::Tensor()};
+    return {grad_x, grad_w, at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor()};
   }
 };
 
 at::Tensor sparse_conv_autograd(const at::Tensor& features, const at::Tensor& weight, const at::Tensor& kernel_map,
-                                const c10::optional<at::Tensor>& order) {
-  return SparseConvFunction::apply(features, weight, kernel_map, order);
+                                const c10::optional<at::Tensor>& order, c10::string_view algo, int64_t splits) {
+  return SparseConvFunction::apply(features, weight, kernel_map, order, algo, splits);
 }
 
 }  // namespace
