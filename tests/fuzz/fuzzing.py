@@ -45,6 +45,13 @@ PROFILE = os.environ.get("HYPOTHESIS_PROFILE", "ci")
 if PROFILE not in ("ci", "dev", "long"):
     raise ValueError(f"HYPOTHESIS_PROFILE must be ci, dev or long for tests/fuzz, got {PROFILE!r}")
 _BASE = settings.get_profile("fuzz-" + PROFILE)
+# FUZZ_SHARDS=n: each process runs 1/n of the profile's examples (tools/fuzz_cuda.sh runs n processes of
+# one test with different --hypothesis-seed values: the long profile's 2,000 examples in parallel)
+_SHARDS = int(os.environ.get("FUZZ_SHARDS", "1"))
+if _SHARDS < 1:
+    raise ValueError(f"FUZZ_SHARDS must be an int >= 1, got {_SHARDS}")
+if _SHARDS > 1:
+    _BASE = settings(_BASE, max_examples=-(-_BASE.max_examples // _SHARDS))
 
 #: the decorator of every fuzz test: the profile's settings
 fuzz = settings(_BASE)
