@@ -160,3 +160,13 @@ def test_fence_parser_finds_blocks():
     assert langs.count("python") >= 1 and langs.count("bash") >= 2
     lines = _bash_lines("a \\\n  b  # note\n# only a comment\nmake demo\npip install x\nc")
     assert [" ".join(x.split()) for x in lines] == ["a b", "c"]
+
+
+def test_index_lists_every_registered_op():
+    """docs/index.md's op table has one row per op that csrc/ops/*.cpp defines, and no other."""
+    defined = set()
+    for path in sorted((REPO / "csrc" / "ops").glob("*.cpp")):
+        defined |= set(re.findall(r'm\.def\(\s*"(\w+)\(', path.read_text()))
+    rows = set(re.findall(r"^\| `(\w+)` \|", (REPO / "docs" / "index.md").read_text(), re.M))
+    assert len(defined) > 30, "the schema pattern stopped matching csrc/ops"
+    assert defined == rows, f"missing from docs/index.md: {sorted(defined - rows)}; not ops: {sorted(rows - defined)}"
