@@ -402,6 +402,53 @@ def test_nms_cuda_equals_cpu(n):
 
 
 @pytest.mark.skipif(not LIDAROPS_CUDA, reason="needs a GPU and lidarops built with CUDA kernels")
+@pytest.mark.parametrize("n", [130, 2500, 4096, 4097])
+def test_nms_cuda_keeps_many_boxes_and_stops_at_post_max(n):
+    """Spread boxes: most are kept, so the reduction ORs many rows per step and post_max stops it inside
+    a block of 64 (4,096 boxes and fewer take the shared-memory ring, 4,097 the one-warp kernel)."""
+    boxes = random_boxes(n, seed=n, extent=float(n) ** 0.5 * 4).float()
+    scores = torch.rand(n, generator=torch.Generator().manual_seed(n))
+    full = lidarops.nms_bev(boxes, scores, 0.05)
+    assert full.numel() > n // 2  # the case tests what it says: many kept boxes
+    for post in (1, 37, 64, 65, n // 2 + 3, None):
+        for st in (None, 0.25):
+            cpu = lidarops.nms_bev(boxes, scores, 0.05, post_max=post, score_threshold=st)
+            cuda = lidarops.nms_bev(boxes.cuda(), scores.cuda(), 0.05, post_max=post, score_threshold=st)
+            assert_equal_report(cuda.cpu(), cpu, f"n={n} post={post} st={st}")
+
+
+def test_nms_checked_status_is_count_and_value_flags(device):
+    boxes = lidar_boxes(50, seed=3).float().to(device)
+    scores = torch.rand(50, device=device)
+    keep, count = torch.ops.lidarops.nms_bev_padded(boxes, scores, None, 0.1, 0.2, 40, 30)
+    keep2, status = torch.ops.lidarops.nms_bev_checked(boxes, scores, None, 0.1, 0.2, 40, 30)
+    assert_equal_report(keep2, keep, "checked keep")
+    assert status.tolist() == [int(count), 0, 0, 0]
+    # [non-finite box value, non-finite score, negative size]; post_max=0 keeps nothing but still checks
+    for col, value, expected in ((0, math.nan, [1, 0, 0]), (6, math.inf, [1, 0, 0]), (4, -0.5, [0, 0, 1]),
+                                 (3, -math.inf, [1, 0, 1]), (5, math.nan, [1, 0, 0])):
+        bad = boxes.clone()
+        bad[17, col] = value
+        flags = torch.ops.lidarops.nms_bev_checked(bad, scores, None, 0.1, None, -1, 0)[1].tolist()[1:]
+        assert flags == expected, (col, value, flags)
+    bad_scores = scores.clone()
+    bad_scores[49] = math.nan
+    assert torch.ops.lidarops.nms_bev_checked(boxes, bad_scores, None, 0.1, None, -1, -1)[1].tolist()[1:] == [0, 1, 0]
+    assert torch.ops.lidarops.nms_bev_checked(boxes[:0], scores[:0], None, 0.1, None, -1, -1)[1].tolist() == [0] * 4
+    # -0.0 is not negative
+    zero = boxes.clone()
+    zero[5, 3:6] = -0.0
+    assert torch.ops.lidarops.nms_bev_checked(zero, scores, None, 0.1, None, -1, -1)[1].tolist()[1:] == [0, 0, 0]
+    # values are checked in their own dtype: 1e300 is finite in float64, float16 boxes and scores widen exactly
+    huge, big_scores = boxes.double(), scores.double()
+    huge[3, 0], big_scores[7] = 1e300, -1e300
+    assert torch.ops.lidarops.nms_bev_checked(huge, big_scores, None, 0.1, None, -1, -1)[1].tolist()[1:] == [0, 0, 0]
+    half = boxes.half()
+    half[2, 1] = math.inf
+    assert torch.ops.lidarops.nms_bev_checked(half, scores.half(), None, 0.1, None, -1, -1)[1].tolist()[1:] == [1, 0, 0]
+
+
+@pytest.mark.skipif(not LIDAROPS_CUDA, reason="needs a GPU and lidarops built with CUDA kernels")
 @pytest.mark.parametrize("n", [1, 64, 65, 4096, 5000])
 def test_nms_padded_cuda_equals_cpu_and_replays_in_a_graph(n):
     boxes = lidar_boxes(n, seed=n)
@@ -507,6 +554,8 @@ def _bad_cases():
         (lambda: lidarops.nms_bev(good, scores[:3], 0.5), "scores must be a floating \\(N,\\) tensor with N = 4"),
         (lambda: lidarops.nms_bev(nan, scores, 0.5), "boxes contains NaN"),
         (lambda: lidarops.nms_bev(good, torch.tensor([0.1, float("nan"), 0, 0]), 0.5), "scores contains NaN"),
+        (lambda: lidarops.nms_bev(neg, scores, 0.5, post_max=0), "boxes must have sizes dx, dy, dz >= 0.*rows \\[2\\]"),
+        (lambda: lidarops.nms_bev(nan, scores, 0.5, padded=True), "boxes contains NaN"),
         (lambda: lidarops.nms_bev(good, scores, float("nan")), "iou_threshold must be a finite number"),
         (lambda: lidarops.nms_bev(good, scores, -0.5), "iou_threshold must be a finite number >= 0"),
         (lambda: torch.ops.lidarops.nms_bev(good, scores, None, -0.5), "iou_threshold must be a finite number >= 0"),
@@ -551,6 +600,9 @@ def _op_samples(device):
     yield "nms_bev_padded", (a, torch.rand(9, device=device), None, 0.1, 0.3, 6, 4)
     yield "nms_bev_padded", (b, torch.rand(5, device=device), torch.tensor([0, 1, 0, 1, 1], device=device), 0.1,
                              -math.inf, -1, -1)
+    yield "nms_bev_checked", (a, torch.rand(9, device=device), None, 0.1, 0.3, 6, 4)
+    yield "nms_bev_checked", (b, torch.rand(5, device=device), torch.tensor([0, 1, 0, 1, 1], device=device), 0.1,
+                              None, -1, -1)
 
 
 def test_opcheck(device):
@@ -615,14 +667,16 @@ def test_meta_tensors_give_shapes():
     assert torch.ops.lidarops.points_in_boxes(torch.empty(9, 4, device="meta"), a).shape == (9,)
     keep, count = torch.ops.lidarops.nms_bev_padded(a, torch.empty(6, device="meta"), None, 0.1, 0.0, 4, 9)
     assert keep.shape == (4,) and count.shape == ()
+    keep, status = torch.ops.lidarops.nms_bev_checked(a, torch.empty(6, device="meta"), None, 0.1, None, 5, -1)
+    assert keep.shape == (5,) and status.shape == (4,)
 
 
 def test_ops_are_registered_with_their_kernels():
     from lidarops import extension
 
     has = torch._C._dispatch_has_kernel_for_dispatch_key
-    for op in ("box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "nms_bev_padded", "points_in_boxes",
-               "kitti_match"):
+    for op in ("box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "nms_bev_padded", "nms_bev_checked",
+               "points_in_boxes", "kitti_match"):
         name = f"lidarops::{op}"
         assert has(name, "CPU") and has(name, "Meta"), name
         if extension.cuda_available() and op != "kitti_match":  # the evaluator's matching is CPU-only

@@ -5,6 +5,7 @@
 #include <ATen/ops/empty.h>
 #include <ATen/ops/from_blob.h>
 #include <ATen/ops/full.h>
+#include <ATen/ops/isfinite.h>
 #include <ATen/ops/zeros.h>
 
 #include <algorithm>
@@ -136,6 +137,20 @@ std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cpu(const at::Tensor& boxes_in
   return {keep, count};
 }
 
+std::tuple<at::Tensor, at::Tensor> nms_bev_checked_cpu(const at::Tensor& boxes_in, const at::Tensor& scores,
+                                                       const c10::optional<at::Tensor>& idxs, double iou_threshold,
+                                                       c10::optional<double> score_threshold, int64_t pre_max,
+                                                       int64_t post_max) {
+  auto [keep, count] = nms_bev_padded_cpu(boxes_in, scores, idxs, iou_threshold, score_threshold, pre_max, post_max);
+  auto status = at::zeros({4}, keep.options());
+  auto* st = status.data_ptr<int64_t>();
+  st[0] = count.item<int64_t>();
+  st[1] = !at::isfinite(boxes_in).all().item<bool>();
+  st[2] = !at::isfinite(scores).all().item<bool>();
+  st[3] = boxes_in.slice(1, 3, 6).lt(0).any().item<bool>();
+  return {keep, status};
+}
+
 at::Tensor points_in_boxes_cpu(const at::Tensor& points_in, const at::Tensor& boxes_in) {
   boxes::check_points_args(points_in, boxes_in);
   const int64_t P = points_in.size(0), M = boxes_in.size(0);
@@ -171,6 +186,7 @@ TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
   m.impl("box_iou_3d", &box_iou_3d_cpu);
   m.impl("nms_bev", &nms_bev_cpu);
   m.impl("nms_bev_padded", &nms_bev_padded_cpu);
+  m.impl("nms_bev_checked", &nms_bev_checked_cpu);
   m.impl("points_in_boxes", &points_in_boxes_cpu);
 }
 

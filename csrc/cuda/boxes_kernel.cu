@@ -2,19 +2,22 @@
 // geometry (include/lidarops/boxes.h) is the CPU kernels' own, so both devices give the same bits.
 //
 // NMS: one sort of the negated scores, a bitmask kernel (bit j of row i: box j, later in score order, overlaps
-// box i above the threshold; only the upper triangle is computed), and one warp that walks the mask in
-// blocks of 64 boxes: inside a block the kept boxes are resolved from the diagonal word in registers,
-// then the rows of the kept boxes are OR-ed into the suppression words of the later blocks. No host loop;
-// one device-to-host read of the number kept (none in nms_bev_padded: the number of candidates and the
-// number kept stay on the device, so the whole op can be captured in a CUDA graph).
+// box i above the threshold; only the upper triangle is computed), and one block that walks the mask in
+// blocks of 64 boxes: inside a block the kept boxes are resolved from the diagonal word by one warp, then
+// the rows of the kept boxes are OR-ed into the suppression words of the later blocks. No host loop.
+// nms_bev reads the number kept back; nms_bev_padded and nms_bev_checked read nothing back (the number
+// of candidates and the number kept stay on the device, so the op can be captured in a CUDA graph), and
+// nms_bev_checked flags bad input values beside the number kept, for a wrapper that reads both at once.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
 #include <cub/block/block_radix_sort.cuh>
+#include <type_traits>
 
 #include "lidarops/boxes.h"
+#include "lidarops/cp_async.cuh"
 #include "lidarops/cuda_launch.cuh"
 
 namespace lidarops {
@@ -155,82 +158,86 @@ __global__ void __launch_bounds__(64)
   }
 }
 
-// One warp. removed[w] (shared): boxes of block w suppressed by the kept boxes of earlier blocks. With
-// n_valid, only the first *n_valid boxes take part (the words past them were not written). Writes
-// keep[:num_kept] = the kept boxes' indices (through `order`) and -1 up to max_keep.
-__global__ void __launch_bounds__(32)
+// The reduction: one block walks the mask 64 boxes at a time. removed[w] (shared): boxes of block w
+// suppressed by the kept boxes of earlier blocks. At step c, warp 0 resolves the kept boxes of block c
+// from removed[c] and the diagonal words (one iteration per kept box), then the block ORs the kept rows
+// into the later words (thread t: word c + 1 + t % 64 and every 64th after it, every fourth kept row).
+// The diagonal words arrive through a cp.async ring kReduceDepth - 1 blocks ahead: most steps keep no
+// box and would otherwise wait for an L2 round trip each. With n_valid, only the first *n_valid boxes
+// take part (the words past them were not written). Writes keep[:num_kept] = the kept boxes' indices
+// (through `order`) and -1 up to max_keep.
+constexpr int kReduceThreads = 256, kReduceDepth = 8;
+
+__global__ void __launch_bounds__(kReduceThreads)
     nms_reduce_kernel(const uint64_t* __restrict__ mask, int64_t n, const int64_t* __restrict__ n_valid,
                       int64_t stride, const int64_t* __restrict__ order, int64_t max_keep,
                       int64_t* __restrict__ keep, int64_t* __restrict__ num_kept) {
-  extern __shared__ uint64_t removed[];
-  const int lane = threadIdx.x;
+  extern __shared__ uint64_t removed[];  // stride words
+  __shared__ uint64_t diag[kReduceDepth][64];
+  __shared__ uint64_t kept_shared;
   if (n_valid != nullptr) n = std::min(n, *n_valid);
-  const int64_t nwords = (n + 63) / 64;  // row stride: `stride` words
-  for (int64_t w = lane; w < nwords; w += 32) removed[w] = 0;
-  __syncwarp();
-  // the diagonal words of block c (each lane two rows); the next block's are fetched while this one's
-  // rows are OR-ed in, so their latency overlaps
-  auto diagonal = [&](int64_t c, uint64_t& d0, uint64_t& d1) {
-    const int64_t base = c * 64;
-    const int nb = static_cast<int>(std::min<int64_t>(64, n - base));
-    d0 = lane < nb ? mask[(base + lane) * stride + c] : 0;
-    d1 = lane + 32 < nb ? mask[(base + lane + 32) * stride + c] : 0;
+  const int64_t nwords = (n + 63) / 64;
+  const int t = threadIdx.x;
+  for (int64_t w = t; w < nwords; w += kReduceThreads) removed[w] = 0;
+  auto prefetch = [&](int64_t b) {  // the diagonal words of block b's rows
+    if (b < nwords && t < 64 && b * 64 + t < n)
+      gpu::cp_async8(&diag[b % kReduceDepth][t], mask + (b * 64 + t) * stride + b);
+    gpu::cp_async_commit();  // a group per block, empty ones too: the wait counts stay uniform
   };
-  uint64_t d0, d1;
-  diagonal(0, d0, d1);
-  int64_t count = 0;
+  for (int b = 0; b < kReduceDepth - 1; ++b) prefetch(b);
+  int64_t count = 0;  // the same in every thread
   for (int64_t c = 0; c < nwords && count < max_keep; ++c) {
+    gpu::cp_async_wait<kReduceDepth - 2>();  // this thread's copy of block c's diagonal has landed
+    __syncthreads();  // everyone's has; the previous step's ORs are done and its slot is free
+    prefetch(c + kReduceDepth - 1);
     const int64_t base = c * 64;
     const int nb = static_cast<int>(std::min<int64_t>(64, n - base));
-    const uint64_t valid = nb == 64 ? ~0ull : ((1ull << nb) - 1);
-    uint64_t word = removed[c], kept = 0;
-    uint64_t remaining = ~word & valid;
-    while (remaining) {  // warp-uniform: one iteration per kept box of the block
-      const int i = __ffsll(static_cast<long long>(remaining)) - 1;
-      kept |= 1ull << i;
-      word |= __shfl_sync(gpu::kFullMask, i < 32 ? d0 : d1, i & 31);
-      remaining = ~word & valid & (i == 63 ? 0ull : (~0ull << (i + 1)));
-    }
-    int64_t nk = __popcll(kept);
-    if (count + nk > max_keep) {  // keep the first max_keep - count of them
-      uint64_t trimmed = 0;
-      for (int64_t q = count; q < max_keep; ++q) {
-        const uint64_t low = kept & (~kept + 1);
-        trimmed |= low;
-        kept ^= low;
+    if (t < 32) {  // warp 0: the greedy pass inside block c, each lane holding two rows' diagonal words
+      const int lane = t;
+      const uint64_t* d = diag[c % kReduceDepth];
+      const uint64_t d0 = lane < nb ? d[lane] : 0, d1 = lane + 32 < nb ? d[lane + 32] : 0;
+      const uint64_t valid = nb == 64 ? ~0ull : ((1ull << nb) - 1);
+      uint64_t word = removed[c], kept = 0;
+      uint64_t remaining = ~word & valid;
+      while (remaining) {  // warp-uniform: one iteration per kept box of the block
+        const int i = __ffsll(static_cast<long long>(remaining)) - 1;
+        kept |= 1ull << i;
+        word |= __shfl_sync(gpu::kFullMask, i < 32 ? d0 : d1, i & 31);
+        remaining = ~word & valid & (i == 63 ? 0ull : (~0ull << (i + 1)));
       }
-      kept = trimmed;
-      nk = max_keep - count;
+      for (int64_t q = count + __popcll(kept); q > max_keep; --q) kept &= ~(1ull << (63 - __clzll(kept)));
+      for (int p = lane; p < 64; p += 32)
+        if ((kept >> p) & 1) keep[count + __popcll(kept & ((1ull << p) - 1))] = order[base + p];
+      if (lane == 0) kept_shared = kept;
     }
-    for (int p = lane; p < 64; p += 32)
-      if ((kept >> p) & 1) keep[count + __popcll(kept & ((1ull << p) - 1))] = order[base + p];
-    count += nk;
-    uint64_t next0 = 0, next1 = 0;
-    if (c + 1 < nwords) diagonal(c + 1, next0, next1);
-    if (kept != 0 && count < max_keep) {
-      for (int64_t w = c + 1 + lane; w < nwords; w += 32) {
-        uint64_t acc = 0, bits = kept;
-        while (bits) {  // four independent loads in flight per round
-          uint64_t v[4] = {0, 0, 0, 0};
+    __syncthreads();
+    const uint64_t kept = kept_shared;
+    count += __popcll(kept);
+    if (kept == 0 || count >= max_keep) continue;
+    uint64_t mine = 0;  // this thread's share of the kept rows: every fourth, from the (t / 64)-th
+    int q = 0;
+    for (uint64_t bits = kept; bits; bits &= bits - 1, ++q)
+      if ((q & 3) == (t >> 6)) mine |= bits & (~bits + 1);
+    for (int64_t w = c + 1 + (t & 63); mine != 0 && w < nwords; w += 64) {
+      uint64_t acc = 0, bits = mine;
+      while (bits) {  // four independent loads in flight per round
+        uint64_t v[4] = {0, 0, 0, 0};
 #pragma unroll
-          for (int u = 0; u < 4; ++u) {
-            if (bits) {
-              const int r = __ffsll(static_cast<long long>(bits)) - 1;
-              bits &= bits - 1;
-              v[u] = mask[(base + r) * stride + w];
-            }
+        for (int u = 0; u < 4; ++u) {
+          if (bits) {
+            const int r = __ffsll(static_cast<long long>(bits)) - 1;
+            bits &= bits - 1;
+            v[u] = mask[(base + r) * stride + w];
           }
-          acc |= v[0] | v[1] | v[2] | v[3];
         }
-        removed[w] |= acc;
+        acc |= v[0] | v[1] | v[2] | v[3];
       }
+      if (acc) atomicOr(reinterpret_cast<unsigned long long*>(&removed[w]), static_cast<unsigned long long>(acc));
     }
-    __syncwarp();  // the next block's word may have been written by another lane
-    d0 = next0;
-    d1 = next1;
   }
-  for (int64_t q = count + lane; q < max_keep; q += 32) keep[q] = -1;
-  if (lane == 0) *num_kept = count;
+  gpu::cp_async_wait<0>();  // no copy may land after the block has gone
+  for (int64_t q = count + t; q < max_keep; q += kReduceThreads) keep[q] = -1;
+  if (t == 0) *num_kept = count;
 }
 
 // key = 0 - score (float32; float64 for float64 scores): its ascending stable sort visits the boxes in
@@ -348,7 +355,7 @@ void nms_launch(const at::Tensor& boxes, const at::Tensor& order, const c10::opt
                                            n_valid, nwords, iou_threshold,
                                            reinterpret_cast<uint64_t*>(mask.data_ptr<int64_t>()));
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  nms_reduce_kernel<<<1, 32, nwords * sizeof(uint64_t), stream>>>(
+  nms_reduce_kernel<<<1, kReduceThreads, nwords * sizeof(uint64_t), stream>>>(
       reinterpret_cast<const uint64_t*>(mask.data_ptr<int64_t>()), n, n_valid, nwords, order.data_ptr<int64_t>(),
       keep.size(0), keep.data_ptr<int64_t>(), num_kept.data_ptr<int64_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
@@ -370,6 +377,34 @@ at::Tensor nms_bev_cuda(const at::Tensor& boxes_in, const at::Tensor& scores, co
   return keep.slice(0, 0, num_kept.item<int64_t>());
 }
 
+// status[1] |= a box value is NaN or infinite, status[2] |= a score is, status[3] |= a box has a negative
+// size (the value checks of nms_bev, read with the number kept in status[0]). status[1:] start at 0.
+template <typename box_t, typename score_t>
+__global__ void nms_value_flags_kernel(const box_t* __restrict__ boxes, const score_t* __restrict__ scores,
+                                       int64_t N, unsigned long long* __restrict__ status) {
+  // compared in their own precision (float16/bfloat16 widen exactly): 1e300 is a finite float64
+  using box_acc = std::conditional_t<std::is_same_v<box_t, double>, double, float>;
+  using score_acc = std::conditional_t<std::is_same_v<score_t, double>, double, float>;
+  bool bad_box = false, bad_score = false, negative = false;
+  LIDAROPS_GRID_STRIDE(i, 7 * N) {
+    const box_acc v = static_cast<box_acc>(boxes[i]);
+    const int col = static_cast<int>(i % 7);
+    bad_box |= !isfinite(v);
+    negative |= col >= 3 && col < 6 && v < box_acc(0);
+  }
+  LIDAROPS_GRID_STRIDE(i, N) bad_score |= !isfinite(static_cast<score_acc>(scores[i]));
+  bad_box = __any_sync(gpu::kFullMask, bad_box);
+  bad_score = __any_sync(gpu::kFullMask, bad_score);
+  negative = __any_sync(gpu::kFullMask, negative);
+  if ((threadIdx.x & 31) != 0) return;
+  if (bad_box) atomicOr(status + 1, 1ull);
+  if (bad_score) atomicOr(status + 2, 1ull);
+  if (negative) atomicOr(status + 3, 1ull);
+}
+
+// nms_bev_padded (kChecked false): (keep (K,), count ()); nms_bev_checked: (keep, status (4,)), status[0]
+// the count and status[1:] the value flags of nms_value_flags_kernel.
+template <bool kChecked>
 std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cuda(const at::Tensor& boxes_in, const at::Tensor& scores,
                                                        const c10::optional<at::Tensor>& idxs, double iou_threshold,
                                                        c10::optional<double> score_threshold, int64_t pre_max,
@@ -381,17 +416,32 @@ std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cuda(const at::Tensor& boxes_i
   const int64_t K = post_max >= 0 ? std::min(post_max, n) : n;
   c10::cuda::CUDAGuard guard(boxes_in.device());
   const auto longs = boxes_in.options().dtype(at::kLong);
-  if (K == 0) return {at::empty({0}, longs), at::zeros({}, longs)};
-  auto count = at::empty({}, longs);  // written by the reduction
   cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  auto status = kChecked ? at::empty({4}, longs) : at::empty({}, longs);
+  if (kChecked || K == 0)  // the count is written by the reduction, which does not run when K is 0
+    C10_CUDA_CHECK(cudaMemsetAsync(status.data_ptr<int64_t>(), 0, status.numel() * sizeof(int64_t), stream));
+  if (kChecked && N > 0) {
+    auto b = boxes_in.contiguous();
+    auto s = scores.contiguous();
+    AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, b.scalar_type(), "lidarops_nms_flags_cuda", [&] {
+      using box_t = scalar_t;
+      AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, s.scalar_type(), "lidarops_nms_flags_cuda", [&] {
+        nms_value_flags_kernel<box_t, scalar_t><<<gpu::stride_blocks(7 * N, 256, 512), 256, 0, stream>>>(
+            b.data_ptr<box_t>(), s.data_ptr<scalar_t>(), N,
+            reinterpret_cast<unsigned long long*>(status.data_ptr<int64_t>()));
+        C10_CUDA_KERNEL_LAUNCH_CHECK();
+      });
+    });
+  }
+  if (K == 0) return {at::empty({0}, longs), status};
   // counted on the device and never read back: the candidates are the first min(n, n_valid) of the order
   at::Tensor n_valid;
   if (score_threshold.has_value()) n_valid = at::empty({}, longs);
   auto order = nms_order(scores, score_threshold.value_or(0.0), n_valid, stream).slice(0, 0, n);
   auto keep = at::empty({K}, longs);
-  nms_launch(boxes_in, order, idxs, n, n_valid.defined() ? n_valid.data_ptr<int64_t>() : nullptr, iou_threshold,
-             keep, count, stream);
-  return {keep, count};
+  nms_launch(boxes_in, order, idxs, n, n_valid.defined() ? n_valid.data_ptr<int64_t>() : nullptr, iou_threshold, keep,
+             kChecked ? status.select(0, 0) : status, stream);
+  return {keep, status};
 }
 
 constexpr int kPointThreads = 128;
@@ -449,7 +499,8 @@ TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("box_iou_bev", &box_iou_bev_cuda);
   m.impl("box_iou_3d", &box_iou_3d_cuda);
   m.impl("nms_bev", &nms_bev_cuda);
-  m.impl("nms_bev_padded", &nms_bev_padded_cuda);
+  m.impl("nms_bev_padded", &nms_bev_padded_cuda<false>);
+  m.impl("nms_bev_checked", &nms_bev_padded_cuda<true>);
   m.impl("points_in_boxes", &points_in_boxes_cuda);
 }
 

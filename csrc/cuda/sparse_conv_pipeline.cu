@@ -1,12 +1,10 @@
 // The host side of the cp.async pipeline of sparse_conv_pipeline.cuh: how many offset splits a launch
-// takes, the kernel that adds their partial sums, and the kernels' shared-memory limits.
+// takes and the kernel that adds their partial sums.
 #include <ATen/ATen.h>
 #include <c10/cuda/CUDAException.h>
 
 #include <algorithm>
 #include <cstdint>
-#include <mutex>
-#include <unordered_map>
 
 #include "sparse_conv_pipeline.cuh"
 
@@ -43,19 +41,6 @@ template void reduce_offset_splits<c10::Half>(const at::Tensor&, int, int, at::T
                                               const DeviceProps&, cudaStream_t);
 template void reduce_offset_splits<c10::BFloat16>(const at::Tensor&, int, int, at::Tensor&, const ConvEpilogue&,
                                                   const DeviceProps&, cudaStream_t);
-
-// Raises a kernel's dynamic shared-memory limit once per (kernel, device): a driver call per launch
-// showed in the host time of small layers.
-void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
-  static std::mutex mutex;
-  static std::unordered_map<const void*, uint64_t> done;  // kernel -> bit mask of devices
-  const uint64_t bit = uint64_t(1) << (dev & 63);
-  std::lock_guard<std::mutex> lock(mutex);
-  uint64_t& mask = done[kernel];
-  if (mask & bit) return;
-  C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(bytes)));
-  mask |= bit;
-}
 
 // Offset splits of a pipelined launch of `tiles` blocks (threads and dynamic shared memory each), whose
 // tiles take `steps` pipeline steps (offsets x input-channel chunks) without splits. None when a tile

@@ -12,6 +12,7 @@
 #include <cstdint>
 #include <type_traits>
 
+#include "lidarops/cp_async.cuh"
 #include "sparse_conv.cuh"
 
 namespace lidarops {
@@ -44,24 +45,9 @@ __device__ __forceinline__ int64_t heavy_first_tile() { return static_cast<int64
 // the cp.async pipeline (sm_80+): 16-byte copies from global to shared memory through a ring of
 // STAGES buffers, STAGES - 1 steps in flight (sparse_conv_simt.cu describes it)
 // ------------------------------------------------------------------------------------------------
-__device__ __forceinline__ void cp_async16(void* smem, const void* gmem, bool valid) {
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
-  const unsigned dst = static_cast<unsigned>(__cvta_generic_to_shared(smem));
-  const int bytes = valid ? 16 : 0;  // 0: fill the 16 bytes with zeros, read nothing
-  asm volatile("cp.async.cg.shared.global [%0], [%1], 16, %2;\n" ::"r"(dst), "l"(gmem), "r"(bytes));
-#endif
-}
-__device__ __forceinline__ void cp_async_commit() {
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
-  asm volatile("cp.async.commit_group;\n" ::);
-#endif
-}
-template <int N>
-__device__ __forceinline__ void cp_async_wait() {
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
-  asm volatile("cp.async.wait_group %0;\n" ::"n"(N));
-#endif
-}
+using gpu::cp_async16;
+using gpu::cp_async_commit;
+using gpu::cp_async_wait;
 
 // A block's place in its step sequence (offset position in klist, input-channel chunk, ring slot),
 // advanced one step at a time: no division by the runtime chunk count per step.
@@ -234,8 +220,6 @@ __device__ __forceinline__ void store_fragments(const float (&acc)[NF][4], const
 // Offset splits of a pipelined launch (sparse_conv_pipeline.cu); `forced` >= 1 forces that many.
 int offset_splits(int64_t tiles, int threads, size_t smem, int64_t K, int64_t steps, double split_below,
                   const DeviceProps& p, int64_t static_smem, int64_t forced);
-// Raises a kernel's dynamic shared-memory limit, once per (kernel, device).
-void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev);
 // out = epi(partial[0] + ... + partial[splits - 1]), added in that order (float, float16, bfloat16).
 template <typename T>
 void reduce_offset_splits(const at::Tensor& partial, int splits, int cout, at::Tensor& out, const ConvEpilogue& epi,
@@ -253,7 +237,7 @@ void launch_pipelined(Kernel kernel, int bm, int bn, int step_channels, double s
   const DeviceProps& props = a.props;
   cudaStream_t stream = a.stream;
   const int64_t n_out = nbr.size(0), K = nbr.size(1), cin = x.size(1), cout = w.size(0);
-  raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
+  gpu::raise_smem_limit(reinterpret_cast<const void*>(kernel), Tile::smem(kAsyncMaxK), x.get_device());
   const int64_t row_tiles = ceil_div(n_out, bm), col_tiles = ceil_div(cout, bn);
   const size_t smem = Tile::smem(static_cast<int>(K));
   const int64_t steps = K * ceil_div(cin, step_channels);  // of a tile, without splits

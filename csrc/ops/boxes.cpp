@@ -33,6 +33,13 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   m.def(
       "nms_bev_padded(Tensor boxes, Tensor scores, Tensor? idxs, float iou_threshold, float? score_threshold=None,"
       " int pre_max=-1, int post_max=-1) -> (Tensor, Tensor)");
+  // nms_bev_padded and the value checks of its inputs in one call: returns (keep (K,) int64, status (4,)
+  // int64) with status[0] the number kept and status[1], [2], [3] nonzero when a box value is NaN or
+  // infinite, a score is, a box has a negative size (the kernels are safe on any values; the caller reads
+  // the status once and raises).
+  m.def(
+      "nms_bev_checked(Tensor boxes, Tensor scores, Tensor? idxs, float iou_threshold, float? score_threshold=None,"
+      " int pre_max=-1, int post_max=-1) -> (Tensor, Tensor)");
   // points (P, C >= 3), boxes (M, 7) -> (P,) int64: the lowest index of the closed boxes holding each
   // point, -1 when none does.
   m.def("points_in_boxes(Tensor points, Tensor boxes) -> Tensor");

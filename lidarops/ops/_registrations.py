@@ -2,9 +2,10 @@
 
 Schemas: ``csrc/ops/neighbors.cpp`` (fps, knn, ball_query, gather, gather_backward), ``checks.cpp``
 (value_flags), ``voxelize.cpp`` (voxelize_assign, voxelize_scatter), ``boxes.cpp`` (box_overlap_bev,
-box_iou_bev, box_iou_3d, nms_bev, nms_bev_padded, points_in_boxes). No op of this package has a C++
-autograd kernel (``csrc/ops/autograd``): every formula is here, and every backward is made of registered ops (gather /
-gather_backward) or ATen ops, so it works on every device, under torch.compile, and twice (double backward).
+box_iou_bev, box_iou_3d, nms_bev, nms_bev_padded, nms_bev_checked, points_in_boxes). No op of this
+package has a C++ autograd kernel (``csrc/ops/autograd``): every formula is here, and every backward is
+made of registered ops (gather / gather_backward) or ATen ops, so it works on every device, under
+torch.compile, and twice (double backward).
 
 The voxelization ops are shape-static, so their fake kernels need no dynamic sizes: ``voxelize_assign``
 pads its per-voxel outputs to ``max_voxels`` and returns the data-dependent voxel count V in ``stats[0]``;
@@ -12,7 +13,8 @@ pads its per-voxel outputs to ``max_voxels`` and returns the data-dependent voxe
 (``lidarops.ops.voxelize``), which reads ``stats`` once and slices; under ``torch.compile`` that read is a
 graph break (or an unbacked size with ``capture_scalar_outputs``) unless ``padded=True``. The box ops are
 not differentiable; ``nms_bev`` keeps a data-dependent number of boxes (an unbacked size),
-``nms_bev_padded`` pads its kept list to a size fixed by the shapes and counts on the device.
+``nms_bev_padded`` pads its kept list to a size fixed by the shapes and counts on the device;
+``nms_bev_checked`` is ``nms_bev_padded`` with its inputs' value flags beside the count (one read back).
 
 Imported by :func:`lidarops.extension.load` (and by :mod:`lidarops.ops.voxelize`).
 """
@@ -124,6 +126,12 @@ def _nms_bev_padded_fake(boxes, scores, idxs, iou_threshold, score_threshold=Non
     if post_max >= 0:
         k = torch.sym_min(k, post_max)
     return boxes.new_empty((k,), dtype=torch.int64), boxes.new_empty((), dtype=torch.int64)
+
+
+@torch.library.register_fake("lidarops::nms_bev_checked")
+def _nms_bev_checked_fake(boxes, scores, idxs, iou_threshold, score_threshold=None, pre_max=-1, post_max=-1):
+    keep, _ = _nms_bev_padded_fake(boxes, scores, idxs, iou_threshold, score_threshold, pre_max, post_max)
+    return keep, boxes.new_empty((4,), dtype=torch.int64)
 
 
 @torch.library.register_fake("lidarops::points_in_boxes")

@@ -20,8 +20,7 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
-from lidarops.ops.validation import DeferredChecks, check_tensor, check_values, deferred_value_checks, describe, \
-    value_checks_enabled
+from lidarops.ops.validation import DeferredChecks, check_tensor, check_values, describe, value_checks_enabled
 
 extension.load()
 
@@ -37,15 +36,19 @@ def _check_boxes(boxes, name: str) -> None:
     extension.check_device(boxes, name)
 
 
-def _box_value_checks(boxes: Tensor, name: str) -> tuple[list, list]:
-    """NaN/inf anywhere and negative sizes: (finite checks, extra checks) for check_values."""
-    finite = [(boxes, lambda: f"{name} contains NaN or infinite values ({describe(boxes)})")]
-
+def _box_messages(boxes: Tensor, name: str) -> tuple:
+    """The messages of the box value checks (non-finite values, negative sizes), built when raised."""
     def negative() -> str:
         rows = torch.nonzero((boxes[:, 3:6] < 0).any(1)).flatten()[:3].tolist()
         return f"{name} must have sizes dx, dy, dz >= 0, got negative sizes in rows {rows} ({describe(boxes)})"
 
-    return finite, [((boxes[:, 3:6] < 0).any(), negative)]
+    return lambda: f"{name} contains NaN or infinite values ({describe(boxes)})", negative
+
+
+def _box_value_checks(boxes: Tensor, name: str) -> tuple[list, list]:
+    """NaN/inf anywhere and negative sizes: (finite checks, extra checks) for check_values."""
+    nonfinite, negative = _box_messages(boxes, name)
+    return [(boxes, nonfinite)], [((boxes[:, 3:6] < 0).any(), negative)]
 
 
 def _pair_args(a, b) -> None:
@@ -111,9 +114,8 @@ def _optional_count(v, name: str) -> int:
     return int(v)
 
 
-def _nms_args(boxes, scores, iou_threshold, idxs=None) -> tuple[float, DeferredChecks]:
-    """The threshold as a float, and the value checks computed but not read (the caller reads them with
-    the op's result, one host sync for both)."""
+def _nms_args(boxes, scores, iou_threshold, idxs=None) -> float:
+    """Checks of shapes, dtypes, devices and the threshold (no values read); the threshold as a float."""
     _check_boxes(boxes, "boxes")
     check_tensor(scores, "scores")
     n = boxes.shape[0]
@@ -131,12 +133,20 @@ def _nms_args(boxes, scores, iou_threshold, idxs=None) -> tuple[float, DeferredC
             or not (math.isfinite(iou_threshold) and iou_threshold >= 0):
         # an IoU lies in [0, 1]: below 0 even boxes that do not touch would suppress each other
         raise ValueError(f"iou_threshold must be a finite number >= 0, got {iou_threshold!r}")
-    checks = DeferredChecks(None, [])
+    return float(iou_threshold)
+
+
+def _nms_value_messages(boxes, scores) -> list:
+    """The messages of NMS' value checks, in the order of nms_bev_checked's status[1:] and check_values'."""
+    nonfinite, negative = _box_messages(boxes, "boxes")
+    return [nonfinite, lambda: f"scores contains NaN or infinite values ({describe(scores)})", negative]
+
+
+def _check_nms_values(boxes, scores) -> None:
     if value_checks_enabled():
-        finite, extra = _box_value_checks(boxes, "boxes")
-        finite.append((scores, lambda: f"scores contains NaN or infinite values ({describe(scores)})"))
-        checks = deferred_value_checks(finite=finite, extra=extra)
-    return float(iou_threshold), checks
+        messages = _nms_value_messages(boxes, scores)
+        check_values(finite=[(boxes, messages[0]), (scores, messages[1])],
+                     extra=[((boxes[:, 3:6] < 0).any(), messages[2])])
 
 
 def _score_threshold(v) -> float | None:
@@ -178,19 +188,21 @@ def nms_bev(boxes: Tensor, scores: Tensor, iou_threshold: float, pre_max: int | 
     Returns:
         Tensor[K] int64: indices of the kept boxes, in descending score order (``padded=False``).
     """
-    threshold, checks = _nms_args(boxes, scores, iou_threshold)
+    threshold = _nms_args(boxes, scores, iou_threshold)
     pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
+    score_threshold = _score_threshold(score_threshold)
     if padded:
-        checks.run()
-    keep, count = torch.ops.lidarops.nms_bev_padded(boxes, scores, None, threshold,
-                                                    _score_threshold(score_threshold), pre, post)
-    if padded:
-        return keep, count
-    if checks.flags is None:
+        _check_nms_values(boxes, scores)
+        return torch.ops.lidarops.nms_bev_padded(boxes, scores, None, threshold, score_threshold, pre, post)
+    if not value_checks_enabled():
+        keep, count = torch.ops.lidarops.nms_bev_padded(boxes, scores, None, threshold, score_threshold, pre, post)
         return keep[:int(count)]
-    # the number kept and the value flags come back in one read; the kernels are safe on any values
-    host = torch.cat([count.view(1), checks.flags.to(torch.int64)]).tolist()
-    checks.raise_first(host[1:])
+    # the op computes the value flags beside the number kept: one launch for the checks, one read back
+    # for both (the kernels are safe on any values)
+    keep, status = torch.ops.lidarops.nms_bev_checked(boxes, scores, None, threshold, score_threshold, pre, post)
+    host = status.tolist()
+    if any(host[1:]):
+        DeferredChecks(None, _nms_value_messages(boxes, scores)).raise_first(host[1:])
     return keep[:host[0]]
 
 
@@ -222,8 +234,8 @@ def batched_nms_bev(boxes: Tensor, scores: Tensor, idxs: Tensor, iou_threshold: 
     Returns:
         Tensor[K] int64: kept indices in descending score order (equal scores: lower index first).
     """
-    threshold, checks = _nms_args(boxes, scores, iou_threshold, idxs)
-    checks.run()
+    threshold = _nms_args(boxes, scores, iou_threshold, idxs)
+    _check_nms_values(boxes, scores)
     pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
     idxs = idxs.to(torch.int64)
     if pre < 0:

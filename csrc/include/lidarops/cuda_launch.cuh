@@ -63,5 +63,18 @@ inline DeviceProps device_props(c10::DeviceIndex dev) {
   return p;
 }
 
+// Raises a kernel's dynamic shared-memory limit once per (kernel, device): a driver call per launch
+// showed in the host time of small layers.
+inline void raise_smem_limit(const void* kernel, size_t bytes, c10::DeviceIndex dev) {
+  static std::mutex mutex;
+  static std::unordered_map<const void*, uint64_t> done;  // kernel -> bit mask of devices
+  const uint64_t bit = uint64_t(1) << (dev & 63);
+  std::lock_guard<std::mutex> lock(mutex);
+  uint64_t& mask = done[kernel];
+  if (mask & bit) return;
+  C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(bytes)));
+  mask |= bit;
+}
+
 }  // namespace gpu
 }  // namespace lidarops
