@@ -1,8 +1,8 @@
 """The registered stream ops (torch.ops.lidarops.pillar_stream_push / _gather) with corrupted state:
 a clear error or a reported corruption, never an out-of-bounds access.
 
-Values of the state tensors are checked where the kernels read them (docs/stream.md, "Invariants
-and bounds checks"): the push reports a bad value in stats[4] (a kPsBad* bit) and changes nothing;
+Values of the state tensors are checked where the kernels read them (docs/stream.md, "Design",
+and docs/notes/sscater.md): the push reports a bad value in stats[4] (a kPsBad* bit) and changes nothing;
 the gather reports -1 points for a pillar whose slot, head or count is out of range; shapes, dtypes,
 devices and the scalar arguments raise ValueError at entry. PillarStream turns the reports into a
 RuntimeError naming the tensor and the value.
