@@ -101,6 +101,21 @@ struct StepCopies {
   }
 };
 
+// The inputs of the tile's output rows orow[0, BM) at kernel offset k, into rows[0, BM) (-1: none);
+// whether this thread found one (the block ORs it with __syncthreads_or to skip an empty offset).
+template <int BM, int kThreads>
+__device__ __forceinline__ int offset_rows(const int32_t* nbr, const int64_t* orow, int64_t K, int64_t k,
+                                           int64_t n_in, int32_t* rows) {
+  int mine = 0;
+  for (int m = threadIdx.x; m < BM; m += kThreads) {
+    const int64_t o = orow[m];
+    const int32_t r = o >= 0 ? map_row(nbr[o * K + k], n_in) : -1;
+    rows[m] = r;
+    mine |= r >= 0;
+  }
+  return mine;
+}
+
 // The map slice of a tile of BM output rows starting at row0: orow[m] (the output row at tile row m,
 // -1 past the end), rows[k * BM + m] (its input at offset k, or -1) and klist[0, nk) (the offsets any
 // row of the tile has, ascending; K <= 32); with `groups`, also groups[k]: bit g set when a row of

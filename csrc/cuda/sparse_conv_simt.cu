@@ -40,14 +40,7 @@ __global__ void __launch_bounds__((BM / TM) * (BN / TN))
     for (int j = 0; j < TN; ++j) acc[i][j] = A(0);
 
   for (int64_t k = 0; k < K; ++k) {
-    int mine = 0;
-    for (int m = tid; m < BM; m += kThreads) {
-      const int64_t o = orow[m];
-      const int32_t r = o >= 0 ? map_row(nbr[o * K + k], n_in) : -1;
-      rows[m] = r;
-      mine |= r >= 0;
-    }
-    if (!__syncthreads_or(mine)) continue;  // no row of this tile has an input at offset k
+    if (!__syncthreads_or(offset_rows<BM, kThreads>(nbr, orow, K, k, n_in, rows))) continue;  // no row of this tile has an input at offset k
     const T* wk = w + k * cin;  // W[co, k, ci] = wk[co * K * cin + ci]
     for (int64_t c0 = 0; c0 < cin; c0 += BK) {
       for (int e = tid; e < BM * BK; e += kThreads) {

@@ -120,14 +120,7 @@ __global__ void __launch_bounds__(kWmmaThreads)
   const S* xs = reinterpret_cast<const S*>(x);
   const S* ws = reinterpret_cast<const S*>(w);
   for (int64_t k = 0; k < K; ++k) {
-    int mine = 0;
-    for (int m = tid; m < BM; m += kWmmaThreads) {
-      const int64_t o = orow[m];
-      const int32_t r = o >= 0 ? map_row(nbr[o * K + k], n_in) : -1;
-      rows[m] = r;
-      mine |= r >= 0;
-    }
-    if (!__syncthreads_or(mine)) continue;
+    if (!__syncthreads_or(offset_rows<BM, kWmmaThreads>(nbr, orow, K, k, n_in, rows))) continue;
     for (int64_t c0 = 0; c0 < cin; c0 += BK) {
       // A: BM rows x BK channels, V channels (16 bytes) per item
       for (int e = tid; e < BM * (BK / V); e += kWmmaThreads) {

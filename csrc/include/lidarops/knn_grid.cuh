@@ -401,22 +401,8 @@ __device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List&
         }
       }
     }
-    // Lower bound on the distance to any point outside the visited block of cells.
-    double lb = 1e308;
-    bool outside = false;
-    for (int a = 0; a < 3; ++a) {
-      const double m = grid_margin(o[a], h, dims[a], q[a]);
-      if (lo[a] > 0) {
-        outside = true;
-        const double gap = q[a] - (o[a] + static_cast<double>(lo[a]) * h) - m;
-        lb = fmin(lb, gap > 0.0 ? gap : 0.0);
-      }
-      if (hi[a] < dims[a] - 1) {
-        outside = true;
-        const double gap = (o[a] + static_cast<double>(hi[a] + 1) * h) - q[a] - m;
-        lb = fmin(lb, gap > 0.0 ? gap : 0.0);
-      }
-    }
+    bool outside;
+    const double lb = outside_block_gap(q, o, h, dims, lo, hi, outside);
     if (!outside) return;
     if (static_cast<double>(group_min<S>(list.worst(), mask)) < lb * lb * slack) return;
   }

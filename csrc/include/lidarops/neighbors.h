@@ -71,6 +71,28 @@ LIDAROPS_HD double slab_gap(double q, double o, double h, int64_t c, int64_t dim
   return g > 0.0 ? g : 0.0;
 }
 
+// Lower bound on the distance from q to any point outside the block of cells [lo, hi] (per axis, a
+// rounding margin off); outside = false when the block is the whole grid (no point lies outside it).
+LIDAROPS_HD double outside_block_gap(const double* q, const double* o, double h, const int64_t* dims,
+                                     const int64_t* lo, const int64_t* hi, bool& outside) {
+  double lb = 1e308;
+  outside = false;
+  for (int a = 0; a < 3; ++a) {
+    const double m = grid_margin(o[a], h, dims[a], q[a]);
+    if (lo[a] > 0) {
+      outside = true;
+      const double gap = q[a] - (o[a] + static_cast<double>(lo[a]) * h) - m;
+      lb = fmin(lb, gap > 0.0 ? gap : 0.0);
+    }
+    if (hi[a] < dims[a] - 1) {
+      outside = true;
+      const double gap = (o[a] + static_cast<double>(hi[a] + 1) * h) - q[a] - m;
+      lb = fmin(lb, gap > 0.0 ? gap : 0.0);
+    }
+  }
+  return lb;
+}
+
 // Exact kNN of one query through the grid: ring search in Chebyshev shells around the query cell,
 // stopping once no unvisited point can enter the list.
 template <typename T, typename S, typename List>
@@ -115,22 +137,8 @@ LIDAROPS_HD void knn_grid_search(const GridView& g, int64_t b, const S* pts, T q
         }
       }
     }
-    // Lower bound on the distance to any point outside the visited block of cells.
-    double lb = 1e308;
-    bool outside = false;
-    for (int a = 0; a < 3; ++a) {
-      const double m = grid_margin(o[a], h, dims[a], q[a]);
-      if (lo[a] > 0) {
-        outside = true;
-        const double gap = q[a] - (o[a] + static_cast<double>(lo[a]) * h) - m;
-        lb = fmin(lb, gap > 0.0 ? gap : 0.0);
-      }
-      if (hi[a] < dims[a] - 1) {
-        outside = true;
-        const double gap = (o[a] + static_cast<double>(hi[a] + 1) * h) - q[a] - m;
-        lb = fmin(lb, gap > 0.0 ? gap : 0.0);
-      }
-    }
+    bool outside;
+    const double lb = outside_block_gap(q, o, h, dims, lo, hi, outside);
     if (!outside) return;
     if (static_cast<double>(list.worst()) < lb * lb * slack) return;
   }
