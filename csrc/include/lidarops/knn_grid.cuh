@@ -370,10 +370,7 @@ __device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List&
   };
   for (int64_t r = 0;; ++r) {
     int64_t lo[3], hi[3];
-    for (int a = 0; a < 3; ++a) {
-      lo[a] = c0[a] - r > 0 ? c0[a] - r : 0;
-      hi[a] = c0[a] + r < dims[a] - 1 ? c0[a] + r : dims[a] - 1;
-    }
+    ring_block(c0, r, dims, lo, hi);
     for (int64_t cz = lo[2]; cz <= hi[2]; ++cz) {
       const bool zs = cz == c0[2] - r || cz == c0[2] + r;
       const double gz = slab_gap(q[2], o[2], h, cz, dims[2]);
@@ -385,13 +382,7 @@ __device__ void knn_grid_search_dev(const GridRef<T>& G, T qx, T qy, T qz, List&
         const double rest = kth / slack - (gz * gz + gy * gy);
         if (rest < 0.0) continue;  // every point of this row is farther than the k-th
         int64_t x0 = lo[0], x1 = hi[0];
-        if (rest < 1e300) {  // restrict the row to cells within reach
-          const double reach = sqrt(rest) + grid_margin(o[0], h, dims[0], q[0]);
-          const int64_t a0 = cell_of(q[0] - reach, o[0], h, dims[0]);
-          const int64_t a1 = cell_of(q[0] + reach, o[0], h, dims[0]);
-          x0 = x0 > a0 ? x0 : a0;
-          x1 = x1 < a1 ? x1 : a1;
-        }
+        clip_row_to_reach(rest, q[0], o[0], h, dims[0], x0, x1);
         if (zs || ys) {
           if (x0 <= x1) grid_row<T, decltype(visit), S>(G, cz, cy, x0, x1, visit, lane);
         } else {

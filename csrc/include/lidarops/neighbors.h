@@ -71,6 +71,26 @@ LIDAROPS_HD double slab_gap(double q, double o, double h, int64_t c, int64_t dim
   return g > 0.0 ? g : 0.0;
 }
 
+// The block of cells within Chebyshev distance r of cell c0, clamped to the grid: [lo, hi] per axis.
+LIDAROPS_HD void ring_block(const int64_t* c0, int64_t r, const int64_t* dims, int64_t* lo, int64_t* hi) {
+  for (int a = 0; a < 3; ++a) {
+    lo[a] = c0[a] - r > 0 ? c0[a] - r : 0;
+    hi[a] = c0[a] + r < dims[a] - 1 ? c0[a] + r : dims[a] - 1;
+  }
+}
+
+// Narrows the cells [x0, x1] of a row to those within reach of q along x, `rest` being the squared
+// distance left after the row's y and z gaps (1e300 or more, or NaN: no narrowing).
+LIDAROPS_HD void clip_row_to_reach(double rest, double q, double o, double h, int64_t dim, int64_t& x0,
+                                   int64_t& x1) {
+  if (!(rest < 1e300)) return;
+  const double reach = sqrt(rest) + grid_margin(o, h, dim, q);
+  const int64_t a0 = cell_of(q - reach, o, h, dim);
+  const int64_t a1 = cell_of(q + reach, o, h, dim);
+  x0 = x0 > a0 ? x0 : a0;
+  x1 = x1 < a1 ? x1 : a1;
+}
+
 // Lower bound on the distance from q to any point outside the block of cells [lo, hi] (per axis, a
 // rounding margin off); outside = false when the block is the whole grid (no point lies outside it).
 LIDAROPS_HD double outside_block_gap(const double* q, const double* o, double h, const int64_t* dims,
@@ -107,10 +127,7 @@ LIDAROPS_HD void knn_grid_search(const GridView& g, int64_t b, const S* pts, T q
   auto visit = [&](int64_t i, int64_t j) { list.push(grid_point_sqdist<T>(g, b, pts, i, j, qx, qy, qz), j); };
   for (int64_t r = 0;; ++r) {
     int64_t lo[3], hi[3];
-    for (int a = 0; a < 3; ++a) {
-      lo[a] = c0[a] - r > 0 ? c0[a] - r : 0;
-      hi[a] = c0[a] + r < dims[a] - 1 ? c0[a] + r : dims[a] - 1;
-    }
+    ring_block(c0, r, dims, lo, hi);
     for (int64_t cz = lo[2]; cz <= hi[2]; ++cz) {
       const bool zs = cz == c0[2] - r || cz == c0[2] + r;
       const double gz = slab_gap(q[2], o[2], h, cz, dims[2]);
@@ -121,13 +138,7 @@ LIDAROPS_HD void knn_grid_search(const GridView& g, int64_t b, const S* pts, T q
         const double rest = kth / slack - (gz * gz + gy * gy);
         if (rest < 0.0) continue;  // every point of this row is farther than the k-th
         int64_t x0 = lo[0], x1 = hi[0];
-        if (rest < 1e300) {  // restrict the row to cells within reach
-          const double reach = sqrt(rest) + grid_margin(o[0], h, dims[0], q[0]);
-          const int64_t a0 = cell_of(q[0] - reach, o[0], h, dims[0]);
-          const int64_t a1 = cell_of(q[0] + reach, o[0], h, dims[0]);
-          x0 = x0 > a0 ? x0 : a0;
-          x1 = x1 < a1 ? x1 : a1;
-        }
+        clip_row_to_reach(rest, q[0], o[0], h, dims[0], x0, x1);
         if (zs || ys) {
           if (x0 <= x1) grid_visit_row_pos(g, b, cz, cy, x0, x1, visit);
         } else {
