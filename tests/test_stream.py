@@ -37,8 +37,8 @@ F32_RTOL, F32_ATOL = 2.0**-20, 1e-7
 def _random_points(n: int, seed: int, grid: PillarGrid = SMALL, margin: float = 1.0, dtype=torch.float32):
     """Uniform in the grid's range grown by ``margin`` on every side (so some points are outside)."""
     rng = np.random.default_rng(seed)
-    lo = np.array(grid.point_range[:3]) - margin
-    hi = np.array(grid.point_range[3:]) + margin
+    lo = np.array(grid.point_cloud_range[:3]) - margin
+    hi = np.array(grid.point_cloud_range[3:]) + margin
     xyz = rng.uniform(lo, hi, size=(n, 3))
     inten = rng.uniform(0.0, 1.0, size=(n, 1))
     return torch.from_numpy(np.concatenate([xyz, inten], 1)).to(dtype)
@@ -104,11 +104,11 @@ def test_grid_presets():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    (dict(point_range=(0, 0, 0, 1, 1, 1), pillar_size=(0.3, 0.25)), "whole number of pillars along x"),
-    (dict(point_range=(0, 0, 0, 1, 1, 1), pillar_size=(0.25, -1)), "pillar_size"),
-    (dict(point_range=(0, 0, 0, 1, 1, 1), pillar_size=(0.25,)), "pillar_size"),
-    (dict(point_range=(0, 1, 0, 1, 0, 1), pillar_size=(0.25, 0.25)), "y0 < y1"),
-    (dict(point_range=(0, 0, 0, 1, 1), pillar_size=(0.25, 0.25)), "point_range"),
+    (dict(point_cloud_range=(0, 0, 0, 1, 1, 1), pillar_size=(0.3, 0.25)), "whole number of pillars along x"),
+    (dict(point_cloud_range=(0, 0, 0, 1, 1, 1), pillar_size=(0.25, -1)), "pillar_size"),
+    (dict(point_cloud_range=(0, 0, 0, 1, 1, 1), pillar_size=(0.25,)), "pillar_size"),
+    (dict(point_cloud_range=(0, 1, 0, 1, 0, 1), pillar_size=(0.25, 0.25)), "y0 < y1"),
+    (dict(point_cloud_range=(0, 0, 0, 1, 1), pillar_size=(0.25, 0.25)), "point_cloud_range"),
 ])
 def test_grid_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):

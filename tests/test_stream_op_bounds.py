@@ -158,7 +158,7 @@ def _child(device: str) -> None:
         def op(s, a):
             return torch.ops.lidarops.pillar_stream_push(
                 *(s[k] for k in STATE), a["points"], a["t"], a["runs"], a["log_head"], a["cutoff"],
-                list(g.point_range), list(g.pillar_size), a["grid_hw"])
+                list(g.point_cloud_range), list(g.pillar_size), a["grid_hw"])
         a["op"] = op
         return a
 

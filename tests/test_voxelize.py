@@ -87,8 +87,8 @@ def test_lidar_sweep_matches_reference(device, config):
     pts = torch.from_numpy(lidar_sweep(30_000, seed=3)).to(device)
     for method in _methods(device):
         for P, M in [(32, 16_000), (5, 4_000)]:
-            ref = _voxelize_reference(pts, cfg["voxel_size"], cfg["point_range"], P, M)
-            res = lidarops.voxelize(pts, cfg["voxel_size"], cfg["point_range"], P, M, overflow="drop", method=method)
+            ref = _voxelize_reference(pts, cfg["voxel_size"], cfg["point_cloud_range"], P, M)
+            res = lidarops.voxelize(pts, cfg["voxel_size"], cfg["point_cloud_range"], P, M, overflow="drop", method=method)
             _check(res, ref, pts, f"{device} {config} method={method} P={P} M={M}")
     if config == "pillars":
         assert res.info.grid_shape == (1, 496, 432)
@@ -142,7 +142,7 @@ def test_points_on_voxel_boundaries(device, dtype):
 def test_non_dyadic_boundaries_follow_float32_floor(device):
     # x0 + i * v with v = 0.16, x0 = -39.68 (float32 values); the cell is floor((x - x0) / v) in float32
     # (spconv and mmcv), which sometimes gives i - 1 at a boundary: the reference says which
-    vs, pr = KITTI_PILLARS["voxel_size"], KITTI_PILLARS["point_range"]
+    vs, pr = KITTI_PILLARS["voxel_size"], KITTI_PILLARS["point_cloud_range"]
     i = torch.arange(0, 496, dtype=torch.float32)
     y = torch.tensor(-39.68, dtype=torch.float32) + i * torch.tensor(0.16, dtype=torch.float32)
     pts = torch.stack([torch.full_like(y, 10.0), y, torch.zeros_like(y), torch.zeros_like(y)], 1).to(device)
@@ -289,7 +289,7 @@ def test_overflow_raise_on_lidar_sweep(device):
     with pytest.raises(VoxelOverflowError, match="max_points_per_voxel=32"):
         lidarops.voxelize(pts, **KITTI_PILLARS, max_points_per_voxel=32, max_voxels=16_000)
     res = lidarops.voxelize(pts, **KITTI_PILLARS, max_points_per_voxel=32, max_voxels=16_000, overflow="drop")
-    ref = _voxelize_reference(pts, KITTI_PILLARS["voxel_size"], KITTI_PILLARS["point_range"], 32, 16_000)
+    ref = _voxelize_reference(pts, KITTI_PILLARS["voxel_size"], KITTI_PILLARS["point_cloud_range"], 32, 16_000)
     _check(res, ref, pts, "sweep, drop")
     assert res.num_dropped > 0 and res.info.max_points_in_voxel > 32
     assert res.num_dropped == res.info.num_in_range - int(res.num_points.sum())
@@ -388,11 +388,11 @@ def test_opcheck(device):
     (dict(voxel_size=(0.5, -0.5, 0.5)), "voxel_size must be 3 finite positive"),
     (dict(voxel_size=(0.5, math.nan, 0.5)), "voxel_size must be 3 finite positive"),
     (dict(voxel_size=(0.5, 0.5)), "voxel_size must be a sequence of 3 numbers"),
-    (dict(point_range=(4, -4, -2, -4, 4, 2)), "x0 < x1"),
-    (dict(point_range=(-4, -4, 2, 4, 4, 2)), "z0 < z1"),
-    (dict(point_range=(-4, -4, -2, 4, 4, math.inf)), "6 finite numbers"),
-    (dict(point_range=(-4, -4, -2, 4, 4)), "point_range must be a sequence of 6 numbers"),
-    (dict(point_range=(-4, -4, -2, 4.3, 4, 2)), "whole number of voxels"),
+    (dict(point_cloud_range=(4, -4, -2, -4, 4, 2)), "x0 < x1"),
+    (dict(point_cloud_range=(-4, -4, 2, 4, 4, 2)), "z0 < z1"),
+    (dict(point_cloud_range=(-4, -4, -2, 4, 4, math.inf)), "6 finite numbers"),
+    (dict(point_cloud_range=(-4, -4, -2, 4, 4)), "point_cloud_range must be a sequence of 6 numbers"),
+    (dict(point_cloud_range=(-4, -4, -2, 4.3, 4, 2)), "whole number of voxels"),
     (dict(max_points_per_voxel=0), "max_points_per_voxel must be a positive int"),
     (dict(max_voxels=-3), "max_voxels must be a positive int"),
     (dict(max_voxels=2.5), "max_voxels must be a positive int"),
@@ -400,7 +400,7 @@ def test_opcheck(device):
     (dict(method="sort"), "method must be one of"),
 ])
 def test_bad_inputs(kwargs, match):
-    args = dict(points=torch.zeros(10, 4), voxel_size=(0.5, 0.5, 0.5), point_range=(-4, -4, -2, 4, 4, 2),
+    args = dict(points=torch.zeros(10, 4), voxel_size=(0.5, 0.5, 0.5), point_cloud_range=(-4, -4, -2, 4, 4, 2),
                 max_points_per_voxel=4, max_voxels=100)
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):

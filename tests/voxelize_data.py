@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 
 # KITTI PointPillars (OpenPCDet pointpillar.yaml) and SECOND (second.yaml) grids
-KITTI_PILLARS = dict(voxel_size=(0.16, 0.16, 4.0), point_range=(0.0, -39.68, -3.0, 69.12, 39.68, 1.0))
-KITTI_SECOND = dict(voxel_size=(0.05, 0.05, 0.1), point_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0))
+KITTI_PILLARS = dict(voxel_size=(0.16, 0.16, 4.0), point_cloud_range=(0.0, -39.68, -3.0, 69.12, 39.68, 1.0))
+KITTI_SECOND = dict(voxel_size=(0.05, 0.05, 0.1), point_cloud_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0))
 
 
 def lidar_sweep(n: int = 120_000, seed: int = 0, beams: int = 64, sensor_height: float = 1.73,

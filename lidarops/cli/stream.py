@@ -391,7 +391,7 @@ def _window_capacity(slices: list, bounds: list, grid, window: float, first_wind
     """(most points in one pillar, most occupied pillars) over the windows of the run and the calibration
     window [0, window), whose points are ``first_window`` (array[n, 4])."""
     import numpy as np
-    x0, y0, z0, x1, y1, z1 = grid.point_range
+    x0, y0, z0, x1, y1, z1 = grid.point_cloud_range
     vx, vy = grid.pillar_size
     H, W = grid.shape
     most_points, most_pillars = 0, 0
@@ -565,7 +565,7 @@ def _plot(path: Path, scenario: str, records: list[dict], change: dict, model, p
     from lidarops.models.pointpillars import scatter_to_bev
 
     grid = model.grid
-    x0, y0, _, x1, y1, _ = grid.point_range
+    x0, y0, _, x1, y1, _ = grid.point_cloud_range
     extent = (x0, x1, y0, y1)
     H, W = grid.shape
     fig = plt.figure(figsize=(16, 11), constrained_layout=True)

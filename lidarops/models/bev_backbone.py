@@ -1,15 +1,14 @@
-"""PointPillars' pillar feature net and 2D backbone, dense and sparse (Lang et al., CVPR 2019).
+"""PointPillars' 2D backbone (``backbone_2d``), OpenPCDet's ``BaseBEVBackbone``, dense and sparse (Lang et
+al., CVPR 2019).
 
-- :class:`PillarFeatureNet`: Linear (no bias) -> BatchNorm1d -> ReLU on the 9 decorated features of
-  each point, max over the points of a pillar (padding slots masked out). Pillars are independent in
-  eval mode, which is what lets SSCATeR recompute only the pillars whose points changed.
-- :class:`PointPillarsBackbone`: OpenPCDet's ``BaseBEVBackbone`` (three blocks of 3x3 convolutions, the
-  first of each block strided, transposed-convolution upsampling to a common grid, concatenated). The
-  module tree and parameter names are OpenPCDet's (``blocks.i.j``, ``deblocks.i.j``), so its PointPillars
-  checkpoints load; ``mode="sparse"`` runs the same parameters as the Sparse-PointPillars layout (a
-  strided sparse convolution at the start of each block, submanifold convolutions after it, sparse
-  transposed upsampling) and returns the same dense map shape.
-- :func:`scatter_to_bev`: the PointPillars scatter of pillar features into a dense pseudo-image.
+- :class:`BaseBEVBackbone`: three blocks of 3x3 convolutions, the first of each block strided,
+  transposed-convolution upsampling to a common grid, concatenated. The module tree and parameter names
+  are OpenPCDet's (``blocks.i.j``, ``deblocks.i.j``), so its PointPillars checkpoints load;
+  ``mode="sparse"`` runs the same parameters as the Sparse-PointPillars layout (a strided sparse
+  convolution at the start of each block, submanifold convolutions after it, sparse transposed
+  upsampling) and returns the same dense map shape.
+- :meth:`BaseBEVBackbone.delta_layers`: its convolutions in sparse terms (:class:`BackboneLayer`), what
+  SSCATeR's :class:`lidarops.sscater.DeltaBackbone` recycles.
 
 Sparse semantics: a site is active when the sparse network reaches it (pillars with points; a strided
 convolution's output where any active input lies under its kernel; a transposed convolution's children
@@ -25,69 +24,13 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from lidarops._moved import moved_attributes
 from lidarops.ops.validation import check_tensor, describe
 
-__all__ = ["PillarFeatureNet", "PointPillarsBackbone", "scatter_to_bev", "backbone_layers", "BackboneLayer"]
+__all__ = ["BaseBEVBackbone", "backbone_layers", "BackboneLayer"]
 
-
-class PillarFeatureNet(nn.Module):
-    """Pillar feature net: one PointNet layer over the points of each pillar.
-
-    Args:
-        in_channels (int): decorated features per point (9: x, y, z, intensity, offsets to the pillar's
-            mean, offsets x, y to the pillar centre).
-        out_channels (int): features per pillar.
-
-    Shape:
-        ``forward(pillars)`` takes anything with ``features (Tensor[P, N, in_channels])`` and
-        ``num_points (Tensor[P])`` (the ``Pillars`` of :func:`lidarops.stream.pillarize`) and returns
-        Tensor[P, out_channels] in the parameters' dtype (features are cast to it), rows in the
-        pillars' order. Slots at or beyond ``num_points[p]`` are
-        padding: they take no part in BatchNorm's batch statistics nor in the max.
-    """
-
-    def __init__(self, in_channels: int = 9, out_channels: int = 64):
-        super().__init__()
-        self.in_channels, self.out_channels = in_channels, out_channels
-        self.linear = nn.Linear(in_channels, out_channels, bias=False)
-        self.norm = nn.BatchNorm1d(out_channels, eps=1e-3, momentum=0.01)
-
-    def forward(self, pillars) -> Tensor:
-        features, num_points = pillars.features, pillars.num_points
-        check_tensor(features, "pillars.features")
-        if features.dim() != 3 or features.shape[2] != self.in_channels:
-            raise ValueError(f"pillars.features must be (P, N, {self.in_channels}), got {describe(features)}")
-        if num_points.dim() != 1 or num_points.shape[0] != features.shape[0]:
-            raise ValueError(f"pillars.num_points must be ({features.shape[0]},), got {describe(num_points)}")
-        # pillarize / PillarStream give float32 features (the points' dtype); a float64 net widens them
-        features = features.to(self.linear.weight.dtype)
-        P, N, _ = features.shape
-        mask = torch.arange(N, device=features.device) < num_points.to(features.device).long()[:, None]  # (P, N)
-        if not N or not P:
-            return features.new_zeros(P, self.out_channels)
-        if features.is_cuda and not self.training:
-            # every slot, padding masked to zero afterwards: no boolean indexing, so no host sync
-            # (eval mode only: BatchNorm's batch statistics must see the real points alone)
-            x = torch.relu(self.norm(self.linear(features.reshape(P * N, -1)))).view(P, N, -1)
-            out = torch.where(mask[..., None], x, x.new_zeros(()))
-        else:  # only the real points (on CPU the padding would multiply the work)
-            x = self.linear(features[mask])
-            x = torch.relu(self.norm(x)) if x.shape[0] else x
-            out = features.new_zeros(P, N, self.out_channels)
-            out[mask] = x
-        # post-ReLU values are >= 0, so zero padding never wins the max over a non-empty pillar
-        return out.amax(dim=1)
-
-
-def scatter_to_bev(pillar_features: Tensor, coords: Tensor, shape: Sequence[int], batch_size: int = 1) -> Tensor:
-    """Dense pseudo-image (B, C, H, W) from pillar features (P, C) at int coords (P, 3) = (batch, y, x)."""
-    H, W = int(shape[0]), int(shape[1])
-    C = pillar_features.shape[1]
-    out = pillar_features.new_zeros(batch_size, H, W, C)
-    if coords.shape[0]:
-        c = coords.long()
-        out[c[:, 0], c[:, 1], c[:, 2]] = pillar_features
-    return out.permute(0, 3, 1, 2).contiguous()
+# the name of lidarops 0.1
+__getattr__ = moved_attributes(__name__, {"PointPillarsBackbone": (__name__, "BaseBEVBackbone")})
 
 
 class BackboneLayer:
@@ -118,7 +61,7 @@ class BackboneLayer:
         return scale, n.bias - n.running_mean * scale
 
 
-def backbone_layers(backbone: "PointPillarsBackbone") -> list[BackboneLayer]:
+def backbone_layers(backbone: "BaseBEVBackbone") -> list[BackboneLayer]:
     """The backbone's convolutions in execution order: each block's layers, then the upsampling ones."""
     layers = []
     for b, block in enumerate(backbone.blocks):
@@ -133,8 +76,8 @@ def backbone_layers(backbone: "PointPillarsBackbone") -> list[BackboneLayer]:
     return layers
 
 
-class PointPillarsBackbone(nn.Module):
-    """PointPillars' 2D backbone (OpenPCDet ``BaseBEVBackbone``), dense or sparse.
+class BaseBEVBackbone(nn.Module):
+    """PointPillars' 2D backbone (OpenPCDet's ``BaseBEVBackbone``), dense or sparse.
 
     Args:
         in_channels (int): channels of the pillar pseudo-image.
@@ -182,6 +125,11 @@ class PointPillarsBackbone(nn.Module):
             c_in = c
         self.out_channels = int(sum(num_upsample_filters))
 
+    def delta_layers(self) -> list[BackboneLayer]:
+        """The convolutions in execution order, in sparse terms (:func:`backbone_layers`): what
+        :class:`lidarops.sscater.DeltaBackbone` takes."""
+        return backbone_layers(self)
+
     @staticmethod
     def _check_mode(mode: str) -> str:
         if mode not in ("dense", "sparse"):
@@ -225,7 +173,6 @@ class PointPillarsBackbone(nn.Module):
         return self._forward_sparse(x)
 
     def _forward_sparse(self, x) -> Tensor:
-        from lidarops.sparse import functional as Fs
         layers = backbone_layers(self)
         block_out = {}
         for layer in layers:

@@ -24,8 +24,9 @@ import torch
 from torch import Tensor
 
 import lidarops
-from lidarops.models.detector import PointPillars, _check_batch, postprocess_padded
-from lidarops.stream.pillars import MAX_ABS_INTENSITY
+from lidarops.models.pointpillars import PointPillars, _check_batch
+from lidarops.models.postprocess import postprocess_padded
+from lidarops.ops.pillars import MAX_ABS_INTENSITY
 from lidarops.ops.validation import check_tensor, describe, value_checks_enabled
 
 __all__ = ["GraphedPointPillars", "PRECISIONS"]

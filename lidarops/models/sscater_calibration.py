@@ -1,6 +1,6 @@
 """Seeded PointPillars fronts for SSCATeR, and the BatchNorm calibration that gives their random
 weights a trained network's ReLU sparsity: one home for the ``lidarops stream`` CLI
-(:mod:`lidarops.sscater.cli`), ``benchmarks/bm_sscater.py`` and the profiles in ``benchmarks/profile/``.
+(:mod:`lidarops.cli.stream`), ``benchmarks/bm_sscater.py`` and the profiles in ``benchmarks/profile/``.
 
 No trained checkpoint exists for the 9-feature pillar net, so the weights are seeded random ones and
 every BatchNorm is set so that, on a calibration window, a chosen share of each layer's pre-activations
@@ -26,14 +26,15 @@ def build_model(small: bool, seed: int, dtype: torch.dtype, device) -> tuple:
             256); 3 x 128 = 384 output channels). The layout (3/5/5 convolutions, strides 2/2/2,
             upsampling 1/2/4) is PointPillars' in both cases.
     """
-    from lidarops.models.pointpillars import PillarFeatureNet, PointPillarsBackbone
+    from lidarops.models.bev_backbone import BaseBEVBackbone
+    from lidarops.models.sscater_pointpillars import PillarFeatureNet
     torch.manual_seed(seed)
     if small:
         pfn = PillarFeatureNet(9, 16)
-        backbone = PointPillarsBackbone(16, (3, 5, 5), (2, 2, 2), (16, 32, 64), (1, 2, 4), (32, 32, 32))
+        backbone = BaseBEVBackbone(16, (3, 5, 5), (2, 2, 2), (16, 32, 64), (1, 2, 4), (32, 32, 32))
     else:
         pfn = PillarFeatureNet(9, 64)
-        backbone = PointPillarsBackbone()
+        backbone = BaseBEVBackbone()
     return pfn.eval().to(device, dtype), backbone.eval().to(device, dtype)
 
 
@@ -41,7 +42,7 @@ def layer_labels(backbone) -> dict[str, str]:
     """Readable names of the backbone's layers, keyed by DeltaBackbone's names (``block0.down0``,
     ``block0.subm1``, ..., ``up0``): ``"block 1 conv 1 (3x3, stride 2)"``, ``"block 1 conv 2 (3x3)"``,
     ``"upsampling of block 1 (x1)"``. Blocks and convolutions are counted from 1."""
-    from lidarops.models.pointpillars import backbone_layers
+    from lidarops.models.bev_backbone import backbone_layers
     labels, n_conv, in_block = {}, 0, {}
     for layer in backbone_layers(backbone):
         k = "x".join(str(v) for v in layer.conv.kernel_size)
@@ -60,7 +61,7 @@ def _sparse_pass(pfn, backbone, pillars, shape,
     """The sparse network (PFN + ``backbone(mode="sparse")``) on ``pillars``, calling
     ``on_preactivation(name, norm, x)`` with each BatchNorm's input features ``x (Tensor[n, C])`` (active
     sites or points only) before the BatchNorm and ReLU are applied; the callback may change the norm."""
-    from lidarops.models.pointpillars import _norm_relu, backbone_layers
+    from lidarops.models.bev_backbone import _norm_relu, backbone_layers
     from lidarops.sparse import SparseConvTensor
     from lidarops.sparse import functional as Fs
 
@@ -128,7 +129,7 @@ def relu_zero_shares(pfn, backbone, pillars, shape) -> dict[str, float]:
 
 
 def calibrate_on_window(model, share: float) -> dict[str, float]:
-    """:func:`calibrate_relu_zeros` of a :class:`~lidarops.sscater.SSCATeRPointPillars` on the window its
+    """:func:`calibrate_relu_zeros` of a :class:`~lidarops.models.SSCATeRPointPillars` on the window its
     stream holds now (e.g. after the first 100 ms of steps), then ``model.reset(reload=True)`` (the window
     is emptied and the new weights are read). Returns :func:`relu_zero_shares` on that window."""
     pillars = model.stream.pillars()

@@ -1,4 +1,5 @@
-"""SSCATeR PointPillars: a LiDAR stream -> pillars -> PillarFeatureNet -> recycling backbone.
+"""SSCATeR PointPillars: a LiDAR stream -> pillars -> PillarFeatureNet -> recycling backbone
+(:class:`lidarops.sscater.DeltaBackbone`).
 
 Each :meth:`SSCATeRPointPillars.step` consumes one slice of points (10 ms in the paper), slides the
 window (:class:`lidarops.stream.PillarStream`), runs the pillar feature net only on the pillars that
@@ -26,12 +27,67 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
-from lidarops.models.pointpillars import PillarFeatureNet, PointPillarsBackbone
+from lidarops.models.bev_backbone import BaseBEVBackbone
+from lidarops.ops.validation import check_tensor, describe
 from lidarops.sscater.delta import DeltaBackbone, LayerStats
 
-__all__ = ["SSCATeRPointPillars", "StepStats"]
+__all__ = ["SSCATeRPointPillars", "StepStats", "PillarFeatureNet"]
+
+
+# SSCATeR's own pillar net, kept until SSCATeR runs the detector's PillarVFE: the stream gathers 9-feature
+# pillars (lidarops.ops.pillars) whose padding slots must not enter BatchNorm or the max, so that a pillar's
+# features depend on its own points only and an unchanged pillar need not be recomputed.
+class PillarFeatureNet(nn.Module):
+    """Pillar feature net: one PointNet layer over the points of each pillar.
+
+    Args:
+        in_channels (int): decorated features per point (9: x, y, z, intensity, offsets to the pillar's
+            mean, offsets x, y to the pillar centre).
+        out_channels (int): features per pillar.
+
+    Shape:
+        ``forward(pillars)`` takes anything with ``features (Tensor[P, N, in_channels])`` and
+        ``num_points (Tensor[P])`` (the ``Pillars`` of :func:`lidarops.ops.pillarize`) and returns
+        Tensor[P, out_channels] in the parameters' dtype (features are cast to it), rows in the
+        pillars' order. Slots at or beyond ``num_points[p]`` are
+        padding: they take no part in BatchNorm's batch statistics nor in the max.
+    """
+
+    def __init__(self, in_channels: int = 9, out_channels: int = 64):
+        super().__init__()
+        self.in_channels, self.out_channels = in_channels, out_channels
+        self.linear = nn.Linear(in_channels, out_channels, bias=False)
+        self.norm = nn.BatchNorm1d(out_channels, eps=1e-3, momentum=0.01)
+
+    def forward(self, pillars) -> Tensor:
+        features, num_points = pillars.features, pillars.num_points
+        check_tensor(features, "pillars.features")
+        if features.dim() != 3 or features.shape[2] != self.in_channels:
+            raise ValueError(f"pillars.features must be (P, N, {self.in_channels}), got {describe(features)}")
+        if num_points.dim() != 1 or num_points.shape[0] != features.shape[0]:
+            raise ValueError(f"pillars.num_points must be ({features.shape[0]},), got {describe(num_points)}")
+        # pillarize / PillarStream give float32 features (the points' dtype); a float64 net widens them
+        features = features.to(self.linear.weight.dtype)
+        P, N, _ = features.shape
+        mask = torch.arange(N, device=features.device) < num_points.to(features.device).long()[:, None]  # (P, N)
+        if not N or not P:
+            return features.new_zeros(P, self.out_channels)
+        if features.is_cuda and not self.training:
+            # every slot, padding masked to zero afterwards: no boolean indexing, so no host sync
+            # (eval mode only: BatchNorm's batch statistics must see the real points alone)
+            x = torch.relu(self.norm(self.linear(features.reshape(P * N, -1)))).view(P, N, -1)
+            out = torch.where(mask[..., None], x, x.new_zeros(()))
+        else:  # only the real points (on CPU the padding would multiply the work)
+            x = self.linear(features[mask])
+            x = torch.relu(self.norm(x)) if x.shape[0] else x
+            out = features.new_zeros(P, N, self.out_channels)
+            out[mask] = x
+        # post-ReLU values are >= 0, so zero padding never wins the max over a non-empty pillar
+        return out.amax(dim=1)
+
+
 
 
 @dataclass
@@ -88,7 +144,7 @@ class SSCATeRPointPillars:
     """Streaming PointPillars front (PFN + backbone) with temporal data recycling.
 
     Args:
-        pfn (PillarFeatureNet), backbone (PointPillarsBackbone): the model, used in eval mode; its
+        pfn (PillarFeatureNet), backbone (BaseBEVBackbone): the model, used in eval mode; its
             parameters are read at construction (call :meth:`reset` with ``reload=True`` after changing them).
         grid (lidarops.stream.PillarGrid): pillar grid; H and W divisible by 8 with the default backbone.
         window (float): window length in seconds (100 ms in the paper).
@@ -118,7 +174,7 @@ class SSCATeRPointPillars:
     until the next step (clone it to keep it). ``stats`` describes the last step.
     """
 
-    def __init__(self, pfn: PillarFeatureNet, backbone: PointPillarsBackbone, grid, window: float = 0.1,
+    def __init__(self, pfn: PillarFeatureNet, backbone: BaseBEVBackbone, grid, window: float = 0.1,
                  max_points_per_pillar: int = 100, max_pillars: int = 12000, refresh_every: int = 25,
                  dtype: torch.dtype = torch.float32, device=None, profile: bool = False, guard: bool = True,
                  guard_ratio: Optional[float] = None, overflow: str = "raise"):

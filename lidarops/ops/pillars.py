@@ -3,7 +3,7 @@
 Conventions (identical on CPU and CUDA, and identical for :func:`pillarize` and
 :class:`~lidarops.stream.PillarStream`):
 
-- **Grid.** ``PillarGrid(point_range=(x0, y0, z0, x1, y1, z1), pillar_size=(vx, vy))`` has
+- **Grid.** ``PillarGrid(point_cloud_range=(x0, y0, z0, x1, y1, z1), voxel_size=(vx, vy))`` has
   ``H = (y1 - y0) / vy`` rows and ``W = (x1 - x0) / vx`` columns (whole numbers); ``.shape == (H, W)``.
 - **Which pillar.** Exactly :func:`lidarops.voxelize` with ``voxel_size = (vx, vy, z1 - z0)``: a point
   is in the grid when ``x0 <= x < x1``, ``y0 <= y < y1``, ``z0 <= z < z1`` and its cells
@@ -40,6 +40,7 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
+from lidarops._moved import renamed_kwargs, warn_renamed
 from lidarops.ops.validation import describe
 from lidarops.ops.voxelize import (
     _S_DROP_POINTS,
@@ -50,9 +51,9 @@ from lidarops.ops.voxelize import (
     _S_VOXELS,
     VoxelOverflowError,
     _assign,
-    _check_capacity,
+    check_capacity,
     _check_point_range,
-    _numbers,
+    float_list,
 )
 
 extension.load()
@@ -90,7 +91,7 @@ def invalid_points(points: Tensor, t: Tensor | None = None) -> tuple[Tensor, Ten
     return bad_intensity, (None if t is None else ~(t.abs() <= MAX_ABS_TIME))
 
 
-def _without_invalid(points: Tensor, invalid: Tensor) -> Tensor:
+def without_invalid(points: Tensor, invalid: Tensor) -> Tensor:
     """The points with the invalid ones moved outside every grid (NaN coordinates and intensity), so
     that the kernels skip them without a data-dependent compaction; the caller subtracts their count
     from the kernels' outside count."""
@@ -107,33 +108,50 @@ class PillarGrid:
     """A bird's-eye-view grid of ``H x W`` pillars (H along y, W along x).
 
     Args:
-        point_range (6 floats): ``(x0, y0, z0, x1, y1, z1)``; a whole number of pillars along x and y.
-        pillar_size (2 floats): ``(vx, vy)`` in metres.
+        point_cloud_range (6 floats): ``(x0, y0, z0, x1, y1, z1)``; a whole number of pillars along x and y.
+        voxel_size (2 or 3 floats): ``(vx, vy)`` in metres, or OpenPCDet's ``(vx, vy, vz)`` with ``vz`` the
+            range's z extent (one pillar in z).
+
+    The old keyword names ``point_range=`` and ``pillar_size=`` are accepted with a deprecation warning.
 
     Attributes:
-        point_range (tuple of 6 floats), pillar_size (tuple of 2 floats), shape ``(H, W)``,
-        voxel_size ``(vx, vy, z1 - z0)`` (the equivalent :func:`lidarops.voxelize` voxel).
+        point_cloud_range (tuple of 6 floats), voxel_size ``(vx, vy, z1 - z0)`` (the equivalent
+        :func:`lidarops.voxelize` voxel), pillar_size ``(vx, vy)``, shape ``(H, W)``.
     """
 
-    def __init__(self, point_range: Sequence[float], pillar_size: Sequence[float]) -> None:
-        pr = _check_point_range(point_range)
-        ps = _numbers(pillar_size, 2, "pillar_size")
+    @renamed_kwargs(point_range="point_cloud_range", pillar_size="voxel_size")
+    def __init__(self, point_cloud_range: Sequence[float], voxel_size: Sequence[float]) -> None:
+        pr = _check_point_range(point_cloud_range)
+        try:
+            n = len(voxel_size)
+        except TypeError:
+            n = 0
+        ps = float_list(voxel_size, 3 if n == 3 else 2, "voxel_size")
         if not all(math.isfinite(v) and v > 0 for v in ps):
-            raise ValueError(f"pillar_size must be 2 finite positive numbers (vx, vy), got {ps}")
+            raise ValueError(f"voxel_size must be finite positive numbers (vx, vy[, vz]), got {ps}")
+        if len(ps) == 3 and not math.isclose(ps[2], pr[5] - pr[2], rel_tol=1e-6, abs_tol=1e-9):
+            raise ValueError(f"voxel_size z ({ps[2]:g}) must be the z extent of point_cloud_range "
+                             f"({pr[5] - pr[2]:g}): a pillar spans the whole range in z")
         dims = []
         for a, axis in enumerate("xy"):
             extent = pr[a + 3] - pr[a]
             n = extent / ps[a]
             d = round(n)
             if d < 1 or abs(n - d) > 1e-3 + 1e-6 * d:
-                raise ValueError(f"point_range must hold a whole number of pillars along {axis}: the extent "
-                                 f"{extent:g} is {n:.6g} pillars of {ps[a]:g}; adjust point_range or pillar_size")
+                raise ValueError(f"point_cloud_range must hold a whole number of pillars along {axis}: the extent "
+                                 f"{extent:g} is {n:.6g} pillars of {ps[a]:g}; adjust point_cloud_range or voxel_size")
             dims.append(int(d))
         if dims[0] * dims[1] >= 2**31:
             raise ValueError(f"the grid has {dims[1]} x {dims[0]} pillars; at most 2^31 - 1 are supported")
-        self.point_range: tuple[float, ...] = tuple(pr)
+        self.point_cloud_range: tuple[float, ...] = tuple(pr)
         self.pillar_size: tuple[float, float] = (ps[0], ps[1])
         self.shape: tuple[int, int] = (dims[1], dims[0])
+
+    @property
+    def point_range(self) -> tuple[float, ...]:
+        """Deprecated name of :attr:`point_cloud_range`."""
+        warn_renamed("PillarGrid.point_range", "PillarGrid.point_cloud_range")
+        return self.point_cloud_range
 
     # ---- presets ----
     @classmethod
@@ -175,7 +193,7 @@ class PillarGrid:
 
     @property
     def voxel_size(self) -> tuple[float, float, float]:
-        return (self.pillar_size[0], self.pillar_size[1], self.point_range[5] - self.point_range[2])
+        return (self.pillar_size[0], self.pillar_size[1], self.point_cloud_range[5] - self.point_cloud_range[2])
 
     @property
     def grid_size(self) -> list[int]:
@@ -183,14 +201,15 @@ class PillarGrid:
         return [self.shape[1], self.shape[0], 1]
 
     def __repr__(self) -> str:
-        return f"PillarGrid(point_range={self.point_range}, pillar_size={self.pillar_size}, shape={self.shape})"
+        return (f"PillarGrid(point_cloud_range={self.point_cloud_range}, voxel_size={self.pillar_size}, "
+                f"shape={self.shape})")
 
     def __eq__(self, other) -> bool:
-        return (isinstance(other, PillarGrid) and self.point_range == other.point_range
+        return (isinstance(other, PillarGrid) and self.point_cloud_range == other.point_cloud_range
                 and self.pillar_size == other.pillar_size)
 
     def __hash__(self) -> int:
-        return hash((self.point_range, self.pillar_size))
+        return hash((self.point_cloud_range, self.pillar_size))
 
 
 class _PillarTriple(NamedTuple):
@@ -234,7 +253,7 @@ class Pillars(_PillarTriple):
         return v
 
 
-def _check_grid(grid) -> PillarGrid:
+def check_grid(grid) -> PillarGrid:
     if not isinstance(grid, PillarGrid):
         raise ValueError(f"grid must be a lidarops.stream.PillarGrid, got {type(grid).__name__}")
     return grid
@@ -252,12 +271,12 @@ def _check_pillar_points(points) -> None:
         raise ValueError("points on the meta device: the number of pillars is data, so pillarize needs real tensors")
 
 
-def _decorate(raw: Tensor, num_points: Tensor, coords: Tensor, grid: PillarGrid) -> Tensor:
+def decorate_pillars(raw: Tensor, num_points: Tensor, coords: Tensor, grid: PillarGrid) -> Tensor:
     return torch.ops.lidarops.pillar_decorate(raw, num_points, coords, list(grid.pillar_size),
-                                              [grid.point_range[0], grid.point_range[1]])
+                                              [grid.point_cloud_range[0], grid.point_cloud_range[1]])
 
 
-def _overflow_message(caller: str, what: str, needed_points: int, P: int, needed_pillars: int, M: int) -> str:
+def overflow_message(caller: str, what: str, needed_points: int, P: int, needed_pillars: int, M: int) -> str:
     why, fix = [], []
     if needed_points > P:
         why.append(f"a pillar would hold {needed_points} points but max_points_per_pillar={P}")
@@ -295,18 +314,18 @@ def pillarize(points: Tensor, grid: PillarGrid, max_points_per_pillar: int = 100
     of :func:`lidarops.voxelize`), sorts the pillars by key and decorates them with ``pillar_decorate``.
     """
     _check_pillar_points(points)
-    grid = _check_grid(grid)
-    P = _check_capacity(max_points_per_pillar, "max_points_per_pillar")
-    M = _check_capacity(max_pillars, "max_pillars")
+    grid = check_grid(grid)
+    P = check_capacity(max_points_per_pillar, "max_points_per_pillar")
+    M = check_capacity(max_pillars, "max_pillars")
     n = points.shape[0]
     bad_intensity, _ = invalid_points(points)
     num_invalid = bad_intensity.sum()
-    points = _without_invalid(points, bad_intensity)
+    points = without_invalid(points, bad_intensity)
     coords, num_points, point_voxel, point_slot, counts = _assign(
-        points, list(grid.voxel_size), list(grid.point_range), grid.grid_size, P, M, "drop", False, 0,
+        points, list(grid.voxel_size), list(grid.point_cloud_range), grid.grid_size, P, M, "drop", False, 0,
         ("pillar", "max_points_per_pillar", "max_pillars"), "pillarize")
     if counts[_S_DROP_VOXELS] or counts[_S_DROP_POINTS]:
-        raise PillarOverflowError(_overflow_message("pillarize", f"the {counts[_S_IN_GRID]} points in the grid",
+        raise PillarOverflowError(overflow_message("pillarize", f"the {counts[_S_IN_GRID]} points in the grid",
                                                     counts[_S_FULLEST], P, counts[_S_NEEDED], M))
     V = counts[_S_VOXELS]
     coords, num_points = coords[:V], num_points[:V]
@@ -321,7 +340,7 @@ def pillarize(points: Tensor, grid: PillarGrid, max_points_per_pillar: int = 100
     coords = coords.index_select(0, perm)
     coords[:, 0] = 0  # z of the one-cell-high voxels is the batch index 0
     num_points = num_points.index_select(0, perm)
-    return Pillars(_decorate(raw, num_points, coords, grid), coords, num_points, n - counts[_S_IN_GRID] - num_invalid,
+    return Pillars(decorate_pillars(raw, num_points, coords, grid), coords, num_points, n - counts[_S_IN_GRID] - num_invalid,
                    num_invalid)
 
 
@@ -332,7 +351,7 @@ def _pillar_keys_reference(points: np.ndarray, grid: PillarGrid) -> np.ndarray:
     arithmetic for float32 points)."""
     ct = np.float64 if points.dtype == np.float64 else np.float32
     p = points.astype(ct, copy=False)
-    pr = grid.point_range
+    pr = grid.point_cloud_range
     vs = grid.voxel_size
     dims = [grid.shape[1], grid.shape[0], 1]
     inside = np.ones(p.shape[0], dtype=bool)
@@ -364,7 +383,7 @@ def _pillarize_reference(points, grid: PillarGrid, max_points_per_pillar: int) -
     assert counts.size == 0 or counts.max() <= N, f"a pillar holds {counts.max()} > {N} points"
     P = keys.size
     W = grid.shape[1]
-    x0, y0 = grid.point_range[0], grid.point_range[1]
+    x0, y0 = grid.point_cloud_range[0], grid.point_cloud_range[1]
     vx, vy = grid.pillar_size
     feats = np.zeros((P, N, 9), dtype=np.float64)
     src = p.astype(np.float64)

@@ -42,16 +42,16 @@ from torch import Tensor
 
 from lidarops import extension
 from lidarops.ops.validation import describe
-from lidarops.ops.voxelize import _check_capacity
-from lidarops.stream.pillars import (
+from lidarops.ops.voxelize import check_capacity
+from lidarops.ops.pillars import (
     MAX_ABS_TIME,
     PillarGrid,
     PillarOverflowError,
     Pillars,
-    _check_grid,
-    _decorate,
-    _overflow_message,
-    _without_invalid,
+    check_grid,
+    decorate_pillars,
+    overflow_message,
+    without_invalid,
     invalid_points,
 )
 
@@ -172,15 +172,15 @@ class PillarStream:
 
     def __init__(self, grid: PillarGrid, window: float = 0.100, max_points_per_pillar: int = 100,
                  max_pillars: int = 12000, device: str | torch.device = "cpu", overflow: str = "raise") -> None:
-        self._grid = _check_grid(grid)
+        self._grid = check_grid(grid)
         if not isinstance(overflow, str) or overflow not in ("raise", "drop"):
             raise ValueError(f"overflow must be 'raise' or 'drop', got {overflow!r}")
         self._overflow = overflow
         if isinstance(window, bool) or not isinstance(window, (int, float)) or not (0 < float(window) < float("inf")):
             raise ValueError(f"window must be a positive finite number of seconds, got {window!r}")
         self._window = float(window)
-        self._N = _check_capacity(max_points_per_pillar, "max_points_per_pillar")
-        self._M = _check_capacity(max_pillars, "max_pillars")
+        self._N = check_capacity(max_points_per_pillar, "max_points_per_pillar")
+        self._M = check_capacity(max_pillars, "max_pillars")
         try:
             self._device = torch.device(device)
         except (RuntimeError, TypeError):
@@ -345,7 +345,7 @@ class PillarStream:
             t_max, n_invalid, bad_i, bad_t = torch.cat([t_max.view(1), counts]).tolist()  # exact below 2^53
             n_invalid, bad_i, bad_t = int(n_invalid), int(bad_i), int(bad_t)
             if n_invalid:
-                points = _without_invalid(points, invalid)
+                points = without_invalid(points, invalid)
                 t = torch.where(invalid, 0.0, t)
             newest = max(newest, t_max)
         if now is not None:
@@ -361,7 +361,7 @@ class PillarStream:
             raise RuntimeError(self._corruption_message(st[_P_OVERFLOW], st[_P_EMPTIED]))
         if st[_P_OVERFLOW] and self._overflow == "raise":
             raise PillarOverflowError(
-                _overflow_message("PillarStream.push", f"the window ({newest - self._window!r}, {newest!r}]",
+                overflow_message("PillarStream.push", f"the window ({newest - self._window!r}, {newest!r}]",
                                   st[_P_MAX_POINTS], self._N, st[_P_PILLARS], self._M)
                 + " when creating the PillarStream, or create it with overflow='drop' (the points that do not "
                   "fit are dropped by a documented rule and counted). The push had no effect: the stream still "
@@ -407,7 +407,7 @@ class PillarStream:
         change_map, stats, run_pops = torch.ops.lidarops.pillar_stream_push(
             self._pool_xyzi, self._pool_t, self._head, self._count, self._slot_cell, self._cell_slot,
             self._free_slots, self._num_free, self._log_cell, self._log_t, points.contiguous(), t.contiguous(),
-            runs, self._log_head, cutoff, list(g.point_range), list(g.pillar_size), list(g.shape))
+            runs, self._log_head, cutoff, list(g.point_cloud_range), list(g.pillar_size), list(g.shape))
         vals = torch.cat([stats, run_pops, change_map.sum().view(1)]).tolist()
         return change_map, vals[:_NUM_STATS], vals[_NUM_STATS:-1], vals[-1]
 
@@ -420,7 +420,7 @@ class PillarStream:
         n, W = points.shape[0], g.shape[1]
         # the pillar of each point, by the very cell rule of the push (voxelize_assign, one cell in z)
         coords, _, point_voxel, _, _ = torch.ops.lidarops.voxelize_assign(
-            points.contiguous(), list(g.voxel_size), list(g.point_range), g.grid_size, 1, max(1, n), 0)
+            points.contiguous(), list(g.voxel_size), list(g.point_cloud_range), g.grid_size, 1, max(1, n), 0)
         pv = point_voxel.clamp(min=0)
         key = torch.where(point_voxel >= 0, coords[pv, 1].to(torch.int64) * W + coords[pv, 2].to(torch.int64), -1)
         entering = torch.nonzero((key >= 0) & (t > cutoff)).view(-1)
@@ -561,7 +561,7 @@ class PillarStream:
             keys = coords[:, 1].to(torch.int64) * self._grid.shape[1] + coords[:, 2].to(torch.int64)
         raw, num_points = torch.ops.lidarops.pillar_stream_gather(self._pool_xyzi, self._head, self._count,
                                                                   self._cell_slot, keys)
-        return Pillars(_decorate(raw, num_points, coords, self._grid), coords, num_points)
+        return Pillars(decorate_pillars(raw, num_points, coords, self._grid), coords, num_points)
 
     def __repr__(self) -> str:
         return (f"PillarStream({self._grid!r}, window={self._window}, max_points_per_pillar={self._N}, "
