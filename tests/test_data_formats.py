@@ -364,10 +364,12 @@ def test_object_set_save_load(tmp_path, city_frames):
 
 # ----------------------------------------------------------------------------- torch datasets
 def test_detection_dataset_same_interface_synthetic_and_kitti(tmp_path, city_frames):
+    """Simulator and KITTI folder give the same items, in OpenPCDet's batch dialect (1-based class ids)."""
     torch = pytest.importorskip("torch")
     from torch.utils.data import DataLoader
 
-    from lidarops.data.datasets import DetectionDataset, collate_detection
+    from lidarops.data import CLASSES
+    from lidarops.data.datasets import DetectionDataset, collate_batch
 
     for i in range(2):
         write_kitti_frame(tmp_path, city_frames[i], frame_id=i, camera_fov_only=False, min_points=0)
@@ -376,13 +378,40 @@ def test_detection_dataset_same_interface_synthetic_and_kitti(tmp_path, city_fra
     assert len(synthetic) == len(disk) == 2
     a, b = synthetic[1], disk[1]
     assert set(b) <= set(a) and "t" in a and "t" not in b
-    assert torch.equal(a["points"], b["points"]) and torch.equal(a["labels"], b["labels"])
-    assert torch.allclose(a["boxes"][:, :6], b["boxes"][:, :6], atol=1e-5)
-    batch = next(iter(DataLoader(disk, batch_size=2, collate_fn=collate_detection)))
-    assert batch["points"].shape[0] == batch["batch_index"].shape[0] == sum(len(city_frames[i].points) for i in range(2))
-    assert batch["boxes"].shape[0] == 2 and batch["labels"].dtype == torch.int64
+    assert torch.equal(a["points"], b["points"]) and torch.equal(a["gt_boxes"][:, 7], b["gt_boxes"][:, 7])
+    assert torch.allclose(a["gt_boxes"][:, :6], b["gt_boxes"][:, :6], atol=1e-5)
+    # class ids are 1-based into the source's classes: the frame's 0-based labels + 1, names preserved
+    f = city_frames[1]
+    assert a["gt_boxes"][:, 7].long().tolist() == (f.labels + 1).tolist()
+    assert [CLASSES[int(k) - 1] for k in a["gt_boxes"][:, 7]] == [f.class_names[k] for k in f.labels]
+    batch = next(iter(DataLoader(disk, batch_size=2, collate_fn=collate_batch)))
+    assert batch["points"].shape == (sum(len(city_frames[i].points) for i in range(2)), 5)
+    assert batch["points"][:, 0].unique().tolist() == [0.0, 1.0] and batch["batch_size"] == 2
+    assert batch["gt_boxes"].shape[0] == 2 and batch["gt_boxes"].shape[2] == 8
+    real = batch["gt_boxes"][..., 7] > 0  # padding rows have class id 0
+    assert int(real.sum()) == sum(len(disk[i]["gt_boxes"]) for i in range(2))
+    assert batch["frame_id"] == [0, 1]
     filtered = DetectionDataset("synthetic:drone_lock", min_points=1, num_frames=1, seed=3)[0]
     assert torch.all(filtered["num_points_in_box"] >= 1)
+    # a model's class list: other classes are left out, ids follow the given order
+    cars = DetectionDataset(city_frames, class_names=("Pedestrian", "Car"))[1]
+    expect = [("Pedestrian", "Car").index(f.class_names[k]) + 1 for k in f.labels if f.class_names[k] in ("Pedestrian", "Car")]
+    assert cars["gt_boxes"][:, 7].long().tolist() == expect
+
+
+def test_collate_detection_keeps_the_old_format_with_a_warning(city_frames):
+    """lidarops 0.1's collate (batch_index, boxes, 0-based labels padded with -1) for one release."""
+    torch = pytest.importorskip("torch")
+    from lidarops.data.datasets import DetectionDataset, collate_detection
+
+    items = [DetectionDataset(city_frames)[i] for i in range(2)]
+    with pytest.warns(DeprecationWarning, match="collate_batch"):
+        old = collate_detection(items)
+    assert old["points"].shape[1] == 4 and old["batch_index"].tolist().count(1) == len(city_frames[1].points)
+    n0 = len(city_frames[0].labels)
+    assert old["labels"][0, :n0].tolist() == city_frames[0].labels.tolist()
+    assert (old["labels"][0, n0:] == -1).all() and old["num_boxes"].tolist() == [n0, len(city_frames[1].labels)]
+    assert torch.equal(old["boxes"][1, :len(city_frames[1].labels)], torch.from_numpy(city_frames[1].boxes))
 
 
 def test_object_dataset_from_frames_and_modelnet(tmp_path, city_frames):

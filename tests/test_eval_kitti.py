@@ -537,7 +537,7 @@ def test_evaluate_lidar_on_simulated_frames(tmp_path):
         keep = f.num_points_in_box >= 1
         scores = (rng.permutation(10000)[: int(keep.sum())] / 10000).astype(np.float32)
         perfect.append({"boxes": torch.from_numpy(f.boxes[keep]), "scores": torch.from_numpy(scores),
-                        "labels": torch.from_numpy(f.labels[keep])})
+                        "labels": torch.from_numpy(f.labels[keep] + 1)})  # 1-based class ids
         # imperfect: some boxes dropped, some shifted half a length, false positives, class names
         boxes = f.boxes[keep].copy()
         boxes[::4, 0] += boxes[::4, 3] / 2
@@ -557,9 +557,9 @@ def test_evaluate_lidar_on_simulated_frames(tmp_path):
         assert len(inside["name"]) == int(fov.sum())
 
     # gts as detections: the detection annotations are the gt annotations (same rows and fields)
-    _, results = kitti.evaluate_lidar(frames, perfect)
+    _, results = kitti.evaluate_lidar(frames, perfect, class_names=CLASSES)  # labels 1-based into CLASSES
     gt_annos = [kitti.frame_annos(f, calib) for f in frames]
-    dt_annos = [kitti.detection_annos(p, calib) for p in perfect]
+    dt_annos = [kitti.detection_annos(p, calib, class_names=CLASSES) for p in perfect]
     for g, d in zip(gt_annos, dt_annos):
         for key in ("name", "bbox", "alpha", "dimensions", "location", "rotation_y"):
             assert np.array_equal(g[key], d[key]), key
@@ -634,7 +634,7 @@ def test_bad_options():
 
 def test_bad_lidar_input():
     frame = SyntheticFrames("driving_city", num_frames=1, seed=1, object_counts={"Car": 5})[0]
-    good = {"boxes": frame.boxes, "scores": np.ones(frame.num_boxes), "labels": frame.labels}
+    good = {"boxes": frame.boxes, "scores": np.ones(frame.num_boxes), "labels": frame.labels + 1}
     with pytest.raises(ValueError, match="gt_frames has 1 frames but detections has 2"):
         kitti.evaluate_lidar([frame], [good, good])
     with pytest.raises(ValueError, match=r"gt_frames\[0\] must be a lidarops.data.Frame"):
@@ -643,8 +643,10 @@ def test_bad_lidar_input():
         kitti.evaluate_lidar([frame], [{"boxes": frame.boxes, "labels": frame.labels}])
     with pytest.raises(ValueError, match=r"detections\[0\]\['boxes'\] must be \(K, 7\)"):
         kitti.evaluate_lidar([frame], [dict(good, boxes=frame.boxes[:, :6])])
-    with pytest.raises(ValueError, match=r"detections\[0\]\['labels'\] must be integer indices"):
-        kitti.evaluate_lidar([frame], [dict(good, labels=frame.labels + len(CLASSES))])
+    with pytest.raises(ValueError, match=r"detections\[0\]\['labels'\] must be integer class ids 1\.\.3"):
+        kitti.evaluate_lidar([frame], [dict(good, labels=frame.labels + 1 + len(CLASSES))])
+    with pytest.raises(ValueError, match=r"detections\[0\]\['labels'\] must be integer class ids"):
+        kitti.evaluate_lidar([frame], [dict(good, labels=frame.labels)])  # 0-based: the padding id 0
     with pytest.raises(ValueError, match=r"needs 'labels'"):
         kitti.evaluate_lidar([frame], [{"boxes": frame.boxes, "scores": good["scores"]}])
     with pytest.raises(ValueError, match=r"detections\[0\]\['scores'\] must have"):
