@@ -18,9 +18,8 @@ The compiled library is loaded on first use, so ``import lidarops.data`` works w
 """
 from __future__ import annotations
 
-import importlib
-
 from lidarops import _moved
+from lidarops._lazy import lazy_attributes
 
 __version__ = "0.2.0"
 
@@ -47,14 +46,4 @@ _LAZY = {
 __all__ = sorted(_LAZY) + ["__version__"]
 
 
-def __getattr__(name: str):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'lidarops' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, {name: (module, name) for name, module in _LAZY.items()}, globals())

@@ -124,7 +124,7 @@ def transform_boxes(transform: np.ndarray, boxes: np.ndarray) -> np.ndarray:
 
     Args:
         transform (ndarray[4, 4]): rigid transform.
-        boxes (ndarray[M, 7]): boxes ``x, y, z, dx, dy, dz, yaw``.
+        boxes (ndarray[M, 7]): boxes ``x, y, z, dx, dy, dz, heading``.
 
     Returns:
         ndarray[M, 7] with the dtype of ``boxes``.
@@ -142,7 +142,7 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     """Corners of boxes.
 
     Args:
-        boxes (ndarray[M, 7]): boxes ``x, y, z, dx, dy, dz, yaw``.
+        boxes (ndarray[M, 7]): boxes ``x, y, z, dx, dy, dz, heading``.
 
     Returns:
         ndarray[M, 8, 3] (float64): corners; 0-3 the bottom ones, counter-clockwise seen from above

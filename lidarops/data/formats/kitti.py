@@ -371,7 +371,7 @@ def camera_to_lidar_boxes(location: np.ndarray, dimensions: np.ndarray, rotation
         calib (KittiCalib): calibration.
 
     Returns:
-        ndarray float64[M, 7]: ``x, y, z, dx, dy, dz, yaw`` (z = box centre).
+        ndarray float64[M, 7]: ``x, y, z, dx, dy, dz, heading`` (z = box centre).
     """
     location = np.asarray(location, dtype=np.float64).reshape(-1, 3)
     dimensions = np.asarray(dimensions, dtype=np.float64).reshape(-1, 3)
@@ -483,7 +483,7 @@ def boxes_to_kitti_labels(boxes: np.ndarray, names: Sequence[str], calib: KittiC
     ``alpha = rotation_y - arctan2(x, z)`` of the camera-frame location (KITTI's observation angle).
 
     Args:
-        boxes (ndarray[M, 7]): LiDAR boxes ``x, y, z, dx, dy, dz, yaw``.
+        boxes (ndarray[M, 7]): LiDAR boxes ``x, y, z, dx, dy, dz, heading``.
         names (sequence of str): object type of each box.
         calib (KittiCalib or None): calibration; default :meth:`KittiCalib.default`.
         image_size (tuple[int, int]): image (width, height).
