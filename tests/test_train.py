@@ -7,6 +7,7 @@ Toy models and datasets only: an MLP regressing a fixed linear map, whose loss i
 from __future__ import annotations
 
 import csv
+import dataclasses
 import functools
 import json
 import math
@@ -22,6 +23,7 @@ from torch import nn
 from torch.optim.optimizer import register_optimizer_step_pre_hook
 from torch.utils.data import Dataset
 
+import lidarops
 from lidarops.train import TrainConfig, build_optimizer, evaluate, fit, load_checkpoint
 from lidarops.train import loop as train_loop
 
@@ -67,6 +69,17 @@ class FakeClock:
 
     def __call__(self) -> float:
         return self.t
+
+
+@dataclasses.dataclass
+class ToyConfig:
+    """A model config as the trainer reads one: ``to_dict()`` and ``class_names``."""
+
+    hidden: int
+    class_names: list
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
 
 
 class ToyModel(nn.Module):
@@ -264,22 +277,35 @@ def test_model_without_loss_gets_a_clear_error(tmp_path):
 # ---- checkpoints ----
 
 def test_checkpoint_contents(tmp_path):
-    extra = {"model_config": {"name": "toy", "hidden": 8}, "class_names": ["Car", "Pedestrian"]}
+    """A training checkpoint is a lidarops.checkpoint file that says which model it holds (from model.config)."""
+    extra = {"data_recipe": {"scenario": "toy"}, "train_command": "lidarops train --config toy.yaml"}
     model = ToyModel()
+    model.config = ToyConfig(hidden=8, class_names=["Car", "Pedestrian"])
     result = fit(model, ToyFrames(10), collate, config(epochs=2), tmp_path, extra_checkpoint=extra)
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["checkpoint_epoch_1.pth", "checkpoint_epoch_2.pth", "final.pth", "latest.pth", "log.csv",
                      "train.log"]  # no temporary files left behind
     assert result.checkpoint == tmp_path / "final.pth" and result.global_step == 6
     ckpt = load_checkpoint(tmp_path / "final.pth")
-    assert ckpt["format"] == "lidarops.train.checkpoint" and ckpt["version"].startswith("lidarops+")
+    assert ckpt["format"] == "lidarops.checkpoint" and ckpt["format_version"] == 2
+    assert ckpt["version"].startswith("lidarops+") and ckpt["lidarops_version"] == lidarops.__version__
     assert (ckpt["epoch"], ckpt["step_in_epoch"], ckpt["it"], ckpt["steps_per_epoch"], ckpt["world_size"]) == (2, 0, 6, 3, 1)
     assert_same_params(ckpt["model_state"], params_of(model))
     assert ckpt["optimizer_state"]["state"][0]["step"].item() == 6
     assert ckpt["scheduler_state"]["last_epoch"] == 6 and ckpt["scaler_state"] is None
     assert TrainConfig.from_dict(ckpt["config"]) == config(epochs=2)
     assert set(ckpt["rng"][0]) == {"torch", "numpy", "python"} and len(ckpt["rng"]) == 1
-    assert ckpt["model_config"] == extra["model_config"] and ckpt["class_names"] == extra["class_names"]
+    assert ckpt["model_class"] == "ToyModel" and ckpt["class_names"] == ["Car", "Pedestrian"]
+    assert ckpt["model_config"] == {"hidden": 8, "class_names": ["Car", "Pedestrian"]}
+    assert ckpt["data_recipe"] == extra["data_recipe"] and ckpt["train_command"] == extra["train_command"]
+    # the model's own entries are the trainer's to write: an extra one is refused, naming it
+    with pytest.raises(ValueError, match=r"\['model_config'\] are reserved"):
+        fit(ToyModel(), ToyFrames(10), collate, config(epochs=1), tmp_path / "again",
+            extra_checkpoint={"model_config": {"hidden": 8}})
+    # a model without a config: the class is still recorded
+    fit(ToyModel(), ToyFrames(10), collate, config(epochs=1), tmp_path / "plain")
+    plain = load_checkpoint(tmp_path / "plain" / "final.pth")
+    assert plain["model_class"] == "ToyModel" and "model_config" not in plain and "class_names" not in plain
     first = load_checkpoint(tmp_path / "checkpoint_epoch_1.pth")
     assert (first["epoch"], first["it"]) == (1, 3)
     log = read_log(tmp_path / "log.csv")
@@ -297,6 +323,10 @@ def test_load_checkpoint_errors(tmp_path):
     torch.save({"model_state": {}, "epoch": 3}, tmp_path / "pcdet.pth")
     with pytest.raises(ValueError, match="looks like an OpenPCDet checkpoint"):
         load_checkpoint(tmp_path / "pcdet.pth")
+    # a shipped model (lidarops 0.1's layout: model_state + model_config) holds nothing to resume
+    torch.save({"model_state": {}, "model_config": {}}, tmp_path / "shipped.pth")
+    with pytest.raises(ValueError, match=r"without training state.*lidarops.models.load_model"):
+        load_checkpoint(tmp_path / "shipped.pth")
     fit(ToyModel(), ToyFrames(8), collate, config(epochs=1, optimizer="adamw"), tmp_path / "run")
     ckpt = torch.load(tmp_path / "run" / "final.pth", weights_only=True)
     del ckpt["rng"], ckpt["optimizer_state"]

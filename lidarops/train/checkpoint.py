@@ -73,7 +73,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu", weights_
         raise CheckpointError(f"{path} is not a lidarops checkpoint: expected format {CHECKPOINT_FORMAT!r}, "
                               f"found {what}{hint}")
     missing = [k for k in REQUIRED_KEYS if k not in ckpt]
-    if "optimizer_state" not in ckpt and "rng" not in ckpt:
+    if not any(k in ckpt for k in ("optimizer_state", "scheduler_state", "rng", "epoch", "it", "step_in_epoch")):
         raise CheckpointError(f"{path} holds a model without training state (a shipped or exported model), nothing "
                               "to resume: build it with lidarops.models.load_model(path)")
     if missing:
