@@ -69,7 +69,7 @@ demo: build
 
 train-demo: build
 	$(PY) -m lidarops data synth --scenario driving_city --frames 60 --val-fraction 0.2 --workers 2 --out data/synth_demo
-	$(PY) -m lidarops train --config configs/pointpillars_demo.yaml --data data/synth_demo --out runs/demo --epochs 4 --workers 2
+	$(PY) -m lidarops train --config configs/pointpillars/pointpillars_demo.yaml --data data/synth_demo --out runs/demo --epochs 4 --workers 2
 
 tour: build
 	$(PY) -m lidarops tour

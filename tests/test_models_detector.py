@@ -360,7 +360,7 @@ def test_gt_boxes_of_a_class_must_be_real_boxes():
 
 def test_checkpoint_of_another_config_names_the_keys(tmp_path):
     three = PointPillars()
-    all_classes = PointPillars(load_config("configs/pointpillars_synth_all.yaml"))
+    all_classes = PointPillars(load_config("configs/pointpillars/pointpillars_synth_all.yaml"))
     torch.save({"model_state": all_classes.state_dict()}, tmp_path / "eight.pth")
     with pytest.raises(CheckpointMismatchError, match=r"shape mismatch.*dense_head\.conv_cls\.weight"):
         PointPillars.from_checkpoint(tmp_path / "eight.pth", config=three.config)
@@ -371,7 +371,7 @@ def test_checkpoint_of_another_config_names_the_keys(tmp_path):
         three.load_weights(state)
     # an OpenPCDet-style checkpoint of the right config loads strictly and gives the same outputs
     torch.save({"model_state": three.state_dict(), "epoch": 80}, tmp_path / "pcdet.pth")
-    again = PointPillars.from_checkpoint(tmp_path / "pcdet.pth", config="configs/pointpillars_kitti.yaml")
+    again = PointPillars.from_checkpoint(tmp_path / "pcdet.pth", config="configs/pointpillars/pointpillars_kitti.yaml")
     assert all(torch.equal(a, b) for a, b in zip(three.state_dict().values(), again.state_dict().values()))
 
 
@@ -381,8 +381,8 @@ def test_openpcdet_yaml_with_base_config(tmp_path):
     cfgs = tmp_path / "tools" / "cfgs"
     (cfgs / "dataset_configs").mkdir(parents=True)
     (cfgs / "kitti_models").mkdir()
-    shutil.copy("configs/dataset/kitti.yaml", cfgs / "dataset_configs" / "kitti_dataset.yaml")
-    text = open("configs/pointpillars_kitti.yaml").read().replace("_BASE_CONFIG_: dataset/kitti.yaml",
+    shutil.copy("configs/datasets/kitti.yaml", cfgs / "dataset_configs" / "kitti_dataset.yaml")
+    text = open("configs/pointpillars/pointpillars_kitti.yaml").read().replace("_BASE_CONFIG_: datasets/kitti.yaml",
                                                                   "_BASE_CONFIG_: cfgs/dataset_configs/kitti_dataset.yaml")
     (cfgs / "kitti_models" / "pointpillar.yaml").write_text(text)
     cfg = load_config(cfgs / "kitti_models" / "pointpillar.yaml")
@@ -399,14 +399,14 @@ def test_openpcdet_yaml_with_base_config(tmp_path):
     ("DENSE_HEAD", {"NAME": "AnchorHeadMulti"}, "MODEL.DENSE_HEAD.NAME"),
 ])
 def test_unsupported_openpcdet_options(key, value, pattern):
-    cfg = load_config("configs/pointpillars_kitti.yaml")
+    cfg = load_config("configs/pointpillars/pointpillars_kitti.yaml")
     cfg["MODEL"][key] = {**cfg["MODEL"][key], **value}
     with pytest.raises(ConfigError, match=pattern):
         PointPillarsConfig.from_openpcdet(cfg)
 
 
 def test_config_round_trip_and_checks():
-    cfg = PointPillarsConfig.from_openpcdet(load_config("configs/pointpillars_synth_all.yaml"))
+    cfg = PointPillarsConfig.from_openpcdet(load_config("configs/pointpillars/pointpillars_synth_all.yaml"))
     assert PointPillarsConfig.from_dict(cfg.to_dict()) == cfg
     assert len(cfg.class_names) == 8
     with pytest.raises(ConfigError, match="whole number of VOXEL_SIZE cells"):
