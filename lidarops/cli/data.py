@@ -1,4 +1,10 @@
-"""``lidarops data synth`` and ``lidarops data show``.
+"""``lidarops data synth`` and ``lidarops data show``: simulated LiDAR data written as dataset files, and a
+look at any frame.
+
+``synth`` simulates frames of one or more scenarios (:mod:`lidarops.data.synthetic`) and writes them as a
+KITTI object split (velodyne, label_2, calib, ImageSets with whole scenes in val, ``recipe.json``: the same
+files for any number of ``--workers``) or as a PandaSet sequence. ``show`` draws a bird's-eye view of one
+frame of a KITTI, PandaSet or nuScenes file or folder, or of a scenario, or a ModelNet40 object.
 
 Examples::
 
@@ -13,39 +19,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
+from lidarops._progress import progress, progress_bar
+from lidarops.cli.errors import CliError, guarded
+
 __all__ = ["register", "synth", "show"]
-
-
-def _tqdm(enabled: bool):
-    if not enabled:
-        return None
-    try:
-        from tqdm import tqdm
-    except ImportError:  # tqdm is optional
-        return None
-    return tqdm
-
-
-def _progress(iterable, total: int, desc: str, enabled: bool):
-    tqdm = _tqdm(enabled)
-    return iterable if tqdm is None else tqdm(iterable, total=total, desc=desc, unit="frame")
-
-
-class _NoBar:
-    def update(self, n: int = 1) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress_bar(total: int, desc: str, enabled: bool):
-    """A tqdm bar counting frames (or a stand-in doing nothing)."""
-    tqdm = _tqdm(enabled)
-    return _NoBar() if tqdm is None else tqdm(total=total, desc=desc, unit="frame")
 
 
 def _object_counts(text: str | None):
@@ -215,7 +194,7 @@ def _synth_kitti(args: argparse.Namespace, out: Path, counts) -> None:
                 tasks.append({"source": source, "out": str(out), "split": args.split, "first_id": entry["first_id"],
                               "start": start, "stop": min(start + _CHUNK_FRAMES, lo + k, entry["frames"])})
     total = sum(entry["frames"] for entry in plan)
-    bar = _progress_bar(total, f"{'+'.join(args.scenario)} -> KITTI", not args.no_progress)
+    bar = progress_bar(total, f"{'+'.join(args.scenario)} -> KITTI", not args.no_progress)
     try:
         results = _run_tasks(tasks, args.workers, bar)
     finally:
@@ -245,7 +224,8 @@ def synth(args: argparse.Namespace) -> int:
     if args.format == "kitti":
         _synth_kitti(args, out, counts)
         return 0
-    from lidarops.data.formats.pandaset import _write_pose_files, write_pandaset_frame
+    # one (write_pandaset_sequence needs every frame in memory; this loop writes them as they are simulated)
+    from lidarops.data.formats.pandaset import write_pandaset_frame, write_pose_files
     from lidarops.data.synthetic import Simulator
 
     if len(args.scenario) != 1 or len(args.frames) != 1:
@@ -254,12 +234,12 @@ def synth(args: argparse.Namespace) -> int:
     sim = Simulator(scenario, seed=args.seed, sensor=args.sensor, object_counts=counts)
     seq_dir = out / args.sequence
     poses, stamps = [], []
-    for i in _progress(range(n_frames), n_frames, f"{scenario} -> PandaSet", not args.no_progress):
+    for i in progress(range(n_frames), n_frames, f"{scenario} -> PandaSet", not args.no_progress):
         frame = sim.sweep(i)
         write_pandaset_frame(seq_dir, frame, i, world_xyz=sim.points_to_world(frame.points, frame.t))
         poses.append(frame.sensor_pose)
         stamps.append(frame.timestamp)
-    _write_pose_files(seq_dir, poses, stamps)
+    write_pose_files(seq_dir, poses, stamps)
     _write_recipe(out, args, scenarios=[{"scenario": scenario, "frames": n_frames, "seed": args.seed,
                                          "sensor": sim.sensor.name}], frames=n_frames, sequence=args.sequence)
     print(f"wrote a {n_frames}-frame PandaSet sequence ({sim.sensor.name}, per-point timestamps) to {seq_dir}")
@@ -282,14 +262,17 @@ def show(args: argparse.Namespace) -> int:
 
         shapes = ModelNet40(spec, split=args.split_name)
         if not 0 <= args.index < len(shapes):
-            raise IndexError(f"object {args.index} out of range: {spec} has {len(shapes)} shapes")
+            raise CliError(f"object {args.index} out of range: {spec} has {len(shapes)} shapes")
         points, label = shapes[args.index]
         name = shapes.class_names[label] if 0 <= label < len(shapes.class_names) else str(label)
         save_object(points, out, title=f"{Path(spec).name} #{args.index}: {name} ({points.shape[0]} points)")
         print(f"wrote {out} ({name}, {points.shape[0]} points)")
         return 0
     options = {"num_frames": args.index + 1, "seed": args.seed} if is_scenario else {}
-    frame = read_frame(spec, args.index, **options)
+    try:
+        frame = read_frame(spec, args.index, **options)
+    except IndexError as e:  # read_frame's error for an index out of range
+        raise CliError(str(e)) from None
     if args.fov is not None:
         frame = frame.crop_forward(args.fov)
     extent = tuple(args.extent) if args.extent else None
@@ -298,17 +281,6 @@ def show(args: argparse.Namespace) -> int:
     summary = ", ".join(f"{n}: {names.count(n)}" for n in sorted(set(names))) or "no boxes"
     print(f"wrote {out}: {frame.num_points} points, {summary}")
     return 0
-
-
-def _guarded(fn):
-    def run(args: argparse.Namespace) -> int:
-        try:
-            return fn(args)
-        except (OSError, ValueError, IndexError, ImportError) as e:  # OSError: missing, not a directory, no permission
-            print(f"lidarops data {args.data_command}: error: {e}", file=sys.stderr)
-            return 2
-
-    return run
 
 
 def register(subparsers) -> None:
@@ -349,7 +321,7 @@ def register(subparsers) -> None:
                    help="KITTI: processes generating frames (default 1); the files are identical for any number")
     s.add_argument("--sequence", default="001", help="PandaSet: sequence directory name (default 001)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
-    s.set_defaults(func=_guarded(synth))
+    s.set_defaults(func=guarded("data synth", synth))
 
     v = data_sub.add_parser("show", help="bird's-eye view of a frame as PNG",
                             description="Bird's-eye view of a frame, boxes coloured by class. PATH may be a KITTI "
@@ -364,4 +336,4 @@ def register(subparsers) -> None:
     v.add_argument("--extent", type=float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"), default=None)
     v.add_argument("--max-extent", type=float, default=80.0, help="bound of the automatic extent (m)")
     v.add_argument("--color-by", choices=("z", "intensity", "range"), default="z")
-    v.set_defaults(func=_guarded(show))
+    v.set_defaults(func=guarded("data show", show))

@@ -1,6 +1,7 @@
 """``lidarops stream``: the simulator streamed through pillarization, the PFN and the SSCATeR backbone.
 
-Each step pushes one slice of points (10 ms by default) into :class:`~lidarops.sscater.SSCATeRPointPillars`,
+Each step pushes one slice of points (10 ms by default) into
+:class:`~lidarops.models.sscater_pointpillars.SSCATeRPointPillars`,
 which updates the pillars, the pillar features and the backbone's output by recomputing only what
 changed. Every ``--check-every`` steps the output is compared with a full recomputation of the window
 (``pillarize`` + PFN + ``backbone(mode="sparse")``, timed stage by stage), which is also the "full" column
@@ -14,8 +15,9 @@ a chosen share of each layer's pre-activations is negative (``--relu-zeros``), l
 trained network. Which sites change, and so the work SSCATeR saves, depends on that share; identity with
 the full recomputation does not.
 
-Errors (bad arguments, ``--device cuda`` without CUDA, unwritable ``--out`` / ``--json``, a stream
-capacity too small) are one line on stderr and exit code 2.
+Exit codes: 0 when every identity check held, 1 when one failed; errors (bad arguments, ``--device cuda``
+without CUDA, unwritable ``--out`` / ``--json``, a stream capacity too small) are one line on stderr and exit
+code 2 (:mod:`lidarops.cli.errors`).
 
 Examples::
 
@@ -39,7 +41,10 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from lidarops.sscater.models import build_model, calibrate_relu_zeros, layer_labels, relu_zero_shares
+from lidarops._progress import progress_bar
+from lidarops.cli._device import resolve_device
+from lidarops.cli.errors import CliError, guarded
+from lidarops.models.sscater_calibration import build_model, calibrate_relu_zeros, layer_labels, relu_zero_shares
 
 __all__ = ["register", "run", "SCENARIO_SETUP", "SCENARIO_NOTES"]
 
@@ -63,11 +68,6 @@ _BUDGET_MS = 10.0  # one 10 ms slice: a step must keep up with the sensor
 
 # ---- the run -----------------------------------------------------------------------------------------
 
-def _default_device() -> str:
-    from lidarops import extension
-    return "cuda" if torch.cuda.is_available() and extension.cuda_available() else "cpu"
-
-
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -77,8 +77,8 @@ def _sync(device: torch.device) -> None:
 def _full_recompute(model, points: Tensor) -> tuple[Tensor, tuple[float, float, float]]:
     """``model.recompute(points)``, the same calls, timed per stage: (output, (ms pillarize, ms PFN,
     ms backbone))."""
+    from lidarops.ops.pillars import pillarize
     from lidarops.sparse import SparseConvTensor
-    from lidarops.stream import pillarize
     dev = model.device
     _sync(dev)
     t0 = time.perf_counter()
@@ -92,16 +92,6 @@ def _full_recompute(model, points: Tensor) -> tuple[Tensor, tuple[float, float, 
     _sync(dev)
     t3 = time.perf_counter()
     return out, ((t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3)
-
-
-def _progress(total: int, desc: str, enabled: bool):
-    if not enabled:
-        return None
-    try:
-        from tqdm import tqdm
-    except ImportError:  # tqdm is optional
-        return None
-    return tqdm(total=total, desc=desc, unit="step", dynamic_ncols=True, leave=True)
 
 
 def _median(xs) -> float:
@@ -136,10 +126,11 @@ def run(scenario: str = "drone_bridge", seconds: float = 5.0, slice_s: float = 0
         ValueError: a bad argument, ``device="cuda"`` without CUDA torch or lidarops' CUDA kernels, an
             ``out`` / ``json_path`` that cannot be written (all checked before anything runs), or a stream
             capacity (``max_points_per_pillar`` / ``max_pillars``) too small for the scene.
+        lidarops.extension.LidaropsBuildError: the compiled library cannot be loaded.
     """
     _check_arguments(scenario, seconds, slice_s, window, dtype, check_every, refresh_every, relu_zeros, seed,
                      max_points_per_pillar, max_pillars, threads)
-    dev = _resolve_device(device)
+    dev = resolve_device(device)
     out = _check_output(Path(out or f"lidarops_stream_{scenario}.png"), "--out", image=True)
     if json_path:
         json_path = _check_output(Path(json_path), "--json")
@@ -179,33 +170,6 @@ def _check_arguments(scenario, seconds, slice_s, window, dtype, check_every, ref
         raise ValueError(f"--relu-zeros must be a share in [0, 1), e.g. 0.5, got {relu_zeros}")
 
 
-def _resolve_device(device) -> torch.device:
-    """The run's device; ValueError when CUDA is asked for but torch or lidarops cannot run on it."""
-    if device is None:
-        return torch.device(_default_device())
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        dev = None
-    if dev is None or dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"--device must be cpu or cuda, got {device!r}")
-    if dev.type == "cpu":
-        return dev
-    if not torch.cuda.is_available():
-        why = (f"this torch ({torch.__version__}) is built without CUDA" if torch.version.cuda is None
-               else f"this torch ({torch.__version__}, CUDA {torch.version.cuda}) sees no CUDA device")
-        raise ValueError(f"--device cuda: {why}; use --device cpu")
-    if dev.index is not None and dev.index >= torch.cuda.device_count():
-        raise ValueError(f"--device {device}: there are {torch.cuda.device_count()} CUDA devices")
-    from lidarops import extension
-    if not extension.cuda_available():
-        reason = extension.build_info().get("cuda_reason", "a CPU-only build")
-        raise ValueError(f"--device cuda: lidarops was built without its CUDA kernels ({reason}); rebuild it "
-                         "with a CUDA toolkit (make build, or FORCE_CUDA=1 pip install --no-build-isolation -e .) "
-                         "or use --device cpu")
-    return dev
-
-
 def _check_output(path: Path, flag: str, image: bool = False) -> Path:
     """``path``, once it is known to be writable (its folders are created; a file that did not exist is
     removed again), so that a bad path fails before the run rather than after it."""
@@ -236,8 +200,8 @@ def _run(scenario, seconds, slice_s, window, device, dtype, check_every, refresh
          out, json_path, max_points_per_pillar, max_pillars, profile, progress) -> int:
     import lidarops
     from lidarops.data.synthetic import Simulator
-    from lidarops.sscater import SSCATeRPointPillars
-    from lidarops.stream import PillarGrid, pillarize
+    from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
+    from lidarops.ops.pillars import PillarGrid, pillarize
 
     if small is None:
         small = device.type == "cpu"
@@ -303,7 +267,7 @@ def _run(scenario, seconds, slice_s, window, device, dtype, check_every, refresh
 
     pushed: deque = deque()  # (points, t) of the slices that may still hold points of the window
     records, checks = [], []
-    bar = _progress(steps, scenario, progress)
+    bar = progress_bar(steps, scenario, progress, unit="step", dynamic_ncols=True, leave=True)
     wall0 = time.perf_counter()
     try:
         for i, ((a, b), (p, t)) in enumerate(zip(bounds, slices)):
@@ -342,14 +306,12 @@ def _run(scenario, seconds, slice_s, window, device, dtype, check_every, refresh
                 upd = last_push["update"]  # copies: the stream reuses its buffers
                 shown_change.update(step=i, t=st.t, full_window=full_window, changed=upd.changed.clone(),
                                     removed=upd.removed.clone(), active=upd.active.clone())
-            if bar is not None:
-                bar.set_postfix_str(f"active {st.pillars_active}, changed "
-                                    f"{st.pillars_changed / max(st.pillars_active, 1):.0%}, {rec['ms_total']:.1f} ms",
-                                    refresh=False)
-                bar.update(1)
+            bar.set_postfix_str(f"active {st.pillars_active}, changed "
+                                f"{st.pillars_changed / max(st.pillars_active, 1):.0%}, {rec['ms_total']:.1f} ms",
+                                refresh=False)
+            bar.update(1)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     wall = time.perf_counter() - wall0
 
     # the last window's pseudo-image and ReLU zeros
@@ -562,7 +524,7 @@ def _plot(path: Path, scenario: str, records: list[dict], change: dict, model, p
     import numpy as np
     from matplotlib.patches import Patch
 
-    from lidarops.models.pointpillars import scatter_to_bev
+    from lidarops.models.map_to_bev import scatter_to_bev
 
     grid = model.grid
     x0, y0, _, x1, y1, _ = grid.point_cloud_range
@@ -697,7 +659,7 @@ def _max3(a):
 # ---- argparse ----------------------------------------------------------------------------------------
 
 def _main(args: argparse.Namespace) -> int:
-    from lidarops.extension import LidaropsBuildError
+    from lidarops.ops.pillars import PillarOverflowError
 
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     small = True if args.small else (False if args.full_size else None)
@@ -706,20 +668,8 @@ def _main(args: argparse.Namespace) -> int:
                    args.refresh_every, args.relu_zeros, args.seed, small, args.out, args.json,
                    args.max_points_per_pillar, args.max_pillars, args.profile or None, not args.no_progress,
                    args.threads)
-    except (ValueError, OSError, LidaropsBuildError) as e:  # OSError: the PNG or JSON could not be written
-        from lidarops.stream import PillarOverflowError
-        if isinstance(e, PillarOverflowError):  # the stream never drops points
-            return _fail(f"{e} (--max-points-per-pillar / --max-pillars)")
-        return _fail(str(e))
-    except KeyboardInterrupt:
-        print("lidarops stream: interrupted", file=sys.stderr)
-        return 130
-
-
-def _fail(message: str) -> int:
-    """One line on stderr, exit code 2."""
-    print(f"lidarops stream: error: {' '.join(message.split())}", file=sys.stderr)
-    return 2
+    except PillarOverflowError as e:  # the stream never drops points: name the flags that give it room
+        raise CliError(f"{e} (--max-points-per-pillar / --max-pillars)") from None
 
 
 def register(subparsers) -> None:
@@ -771,4 +721,4 @@ def register(subparsers) -> None:
                    help="picture path (default lidarops_stream_<scenario>.png; .pdf, .svg ... also work)")
     p.add_argument("--json", default=None, metavar="PATH", help="write the per-step figures as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_main)
+    p.set_defaults(func=guarded("stream", _main))

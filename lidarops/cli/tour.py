@@ -2,18 +2,20 @@
 
 Runs FPS, kNN, ball query and gather the way a PointNet++ set-abstraction layer chains them
 (sample centres, find their neighbours, group features), checks each result against the
-pure-PyTorch reference on a subsample, and prints a table of sizes, times and checks. It is the
-``make demo`` job until the larger demos exist.
+pure-PyTorch reference on a subsample, and prints a table of sizes, times and checks (``make tour``).
+Exit code 0 when every check passes, 1 when one fails, 2 on an error (:mod:`lidarops.cli.errors`).
 
-The cloud comes from ``lidarops.data.synthetic.Simulator("driving_city")`` when that module is
-present, else from :func:`lidar_like_cloud`, a small built-in generator (also used by the
-benchmarks) of what a rotating LiDAR sees: ground rings whose density falls with range, boxes
-(cars, pedestrians, walls) and clutter.
+The cloud comes from ``lidarops.data.synthetic.Simulator("driving_city")``
+(:func:`lidarops.data.clouds.simulated_sweep`); the references are :mod:`lidarops.ops.references`.
+
+Examples::
+
+    lidarops tour
+    lidarops tour --device cuda --n 200000 --seed 3
 """
 from __future__ import annotations
 
 import argparse
-import math
 import statistics
 import time
 from typing import Callable
@@ -21,131 +23,9 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-__all__ = ["lidar_like_cloud", "synthetic_sweep", "register", "run"]
+from lidarops.cli.errors import guarded
 
-_SENSOR_HEIGHT = 1.8  # metres above the ground
-
-
-def lidar_like_cloud(n: int, seed: int = 0, dtype: torch.dtype = torch.float32) -> Tensor:
-    """A LiDAR-like cloud of exactly ``n`` points, in metres, in the sensor frame.
-
-    About 55 % ground points on 48 rings (beam elevations -25 to -1.5 degrees, sensor 1.8 m above
-    the ground, so ring radii run from 3.9 m to 69 m and the density falls with range), 35 % on the
-    surfaces of boxes (cars, pedestrians, walls) 5-60 m away, 10 % in Gaussian clutter blobs. Points
-    are ordered by azimuth, as a rotating sensor emits them. Deterministic for a given ``seed``.
-
-    Args:
-        n (int): number of points, >= 0.
-        seed (int): random seed.
-        dtype (torch.dtype): floating dtype of the result.
-
-    Returns:
-        Tensor[n, 3]: x, y, z coordinates.
-    """
-    g = torch.Generator().manual_seed(int(seed))
-
-    def rand(*shape: int) -> Tensor:
-        return torch.rand(*shape, generator=g, dtype=torch.float64)
-
-    def randn(*shape: int) -> Tensor:
-        return torch.randn(*shape, generator=g, dtype=torch.float64)
-
-    n_obj, n_clutter = int(0.35 * n), int(0.10 * n)
-    n_ground = n - n_obj - n_clutter
-    parts = []
-
-    # ground: equal azimuth sampling per beam, so far rings are sparse
-    beams = 48
-    elev = torch.linspace(math.radians(-25.0), math.radians(-1.5), beams, dtype=torch.float64)
-    ring_r = _SENSOR_HEIGHT / torch.tan(-elev)
-    beam = torch.arange(n_ground) % beams
-    r = ring_r[beam] * (1.0 + 0.01 * randn(n_ground))
-    az = 2 * math.pi * rand(n_ground)
-    z = -_SENSOR_HEIGHT + 0.004 * r * torch.cos(az) + 0.03 * randn(n_ground)  # gentle slope
-    parts.append(torch.stack([r * torch.cos(az), r * torch.sin(az), z], 1))
-
-    # objects: boxes (length, width, height) at random positions, points spread over their surfaces
-    if n_obj:
-        kinds = torch.tensor([[4.5, 1.8, 1.6], [0.6, 0.6, 1.8], [20.0, 0.5, 6.0], [2.0, 2.0, 3.0]],
-                             dtype=torch.float64)
-        n_boxes = 40
-        kind = torch.multinomial(torch.tensor([0.5, 0.25, 0.1, 0.15]), n_boxes, replacement=True, generator=g)
-        size = kinds[kind] * (0.8 + 0.4 * rand(n_boxes, 3))
-        dist = 5.0 + 55.0 * rand(n_boxes)
-        ang = 2 * math.pi * rand(n_boxes)
-        yaw = 2 * math.pi * rand(n_boxes)
-        # nearer and larger boxes get more points, as they would from a sensor
-        weight = (size[:, 0] * size[:, 2] + size[:, 1] * size[:, 2]) / dist.square()
-        box = torch.multinomial(weight, n_obj, replacement=True, generator=g)
-        u = rand(n_obj, 3) - 0.5
-        face = torch.randint(0, 3, (n_obj,), generator=g)
-        side = torch.where(rand(n_obj) < 0.5, -0.5, 0.5).to(torch.float64)
-        u[torch.arange(n_obj), face] = side  # put each point on one face of its box
-        local = u * size[box]
-        c, s = torch.cos(yaw[box]), torch.sin(yaw[box])
-        x = dist[box] * torch.cos(ang[box]) + c * local[:, 0] - s * local[:, 1]
-        y = dist[box] * torch.sin(ang[box]) + s * local[:, 0] + c * local[:, 1]
-        z = -_SENSOR_HEIGHT + size[box, 2] / 2 + local[:, 2]
-        parts.append(torch.stack([x, y, z], 1))
-
-    # clutter: vegetation-like blobs
-    if n_clutter:
-        blobs = 12
-        centre = torch.stack([(8 + 50 * rand(blobs)) * torch.cos(2 * math.pi * rand(blobs)),
-                              (8 + 50 * rand(blobs)) * torch.sin(2 * math.pi * rand(blobs)),
-                              -_SENSOR_HEIGHT + 1.0 + 2.0 * rand(blobs)], 1)
-        blob = torch.randint(0, blobs, (n_clutter,), generator=g)
-        parts.append(centre[blob] + randn(n_clutter, 3) * torch.tensor([1.0, 1.0, 0.6], dtype=torch.float64))
-
-    pts = torch.cat(parts) if parts else torch.zeros(0, 3, dtype=torch.float64)
-    order = torch.argsort(torch.atan2(pts[:, 1], pts[:, 0]), stable=True)
-    return pts[order].to(dtype)
-
-
-_SIM_CACHE: dict = {}  # seed -> (simulator, list of sweep point tensors)
-
-
-def _simulated_points(seed: int, min_points: int) -> Tensor:
-    """Sweeps 0, 1, ... of the simulator's ``driving_city`` scene ``seed``, concatenated, >= min_points
-    (cached per seed, so several sizes cut from one scene cost one simulation)."""
-    if seed not in _SIM_CACHE:
-        from lidarops.data.synthetic import Simulator  # type: ignore[import-not-found]
-        try:
-            sim = Simulator("driving_city", seed=seed)
-        except TypeError:
-            sim = Simulator("driving_city")
-        if len(_SIM_CACHE) >= 16:
-            _SIM_CACHE.pop(next(iter(_SIM_CACHE)))
-        _SIM_CACHE[seed] = (sim, [])
-    sim, chunks = _SIM_CACHE[seed]
-    while sum(c.shape[0] for c in chunks) < min_points and len(chunks) < 64:
-        chunks.append(torch.as_tensor(sim.sweep(len(chunks)).points)[:, :3].to(torch.float32))
-    return torch.cat(chunks) if len(chunks) > 1 else chunks[0]
-
-
-def synthetic_sweep(n: int, seed: int = 0) -> tuple[Tensor, str]:
-    """A LiDAR sweep of exactly ``n`` points (float32, (n, 3)) and the name of its source.
-
-    Uses ``lidarops.data.synthetic.Simulator("driving_city", seed=seed)`` when it is importable:
-    its sweeps 0, 1, ... are concatenated until there are ``n`` points, then an order-preserving
-    random subset of ``n`` is kept. Otherwise :func:`lidar_like_cloud`.
-    """
-    try:
-        import lidarops.data.synthetic  # noqa: F401
-        have_sim = True
-    except ImportError:
-        have_sim = False
-    if have_sim and n > 0:
-        try:
-            pts = _simulated_points(int(seed), int(n))
-            if pts.shape[0] >= n:
-                g = torch.Generator().manual_seed(int(seed))
-                keep = torch.randperm(pts.shape[0], generator=g)[:n].sort().values
-                return pts[keep].contiguous(), f'lidarops.data.synthetic.Simulator("driving_city", seed={seed})'
-        except Exception as e:  # noqa: BLE001  (a simulator in progress must not break the tour)
-            print(f"[lidarops] simulator failed ({type(e).__name__}: {e}); using the built-in generator")
-    return lidar_like_cloud(n, seed), "lidarops.tour.lidar_like_cloud (built-in)"
-
+__all__ = ["register", "run"]
 
 # ---- the tour ----
 
@@ -186,24 +66,26 @@ def _compare(name: str, got_idx: Tensor, ref_idx: Tensor, got_d: Tensor | None =
     return True, "OK"
 
 
-def run(device: str | torch.device = "cpu", n: int = 20000, seed: int = 0, check_queries: int = 256) -> int:
-    """Run the tour and print its table; returns 0 when every check passes, 1 otherwise."""
-    import lidarops
-    from lidarops.ops import neighbors as nb
+def run(device: str | torch.device | None = "cpu", n: int = 20000, seed: int = 0, check_queries: int = 256) -> int:
+    """Run the tour and print its table; returns 0 when every check passes, 1 otherwise.
 
-    device = torch.device(device)
-    if device.type == "cuda":
-        from lidarops import extension
-        if not torch.cuda.is_available():
-            raise SystemExit("lidarops tour: --device cuda asked for, but torch sees no GPU")
-        if not extension.cuda_available():
-            raise SystemExit("lidarops tour: this lidarops build has no CUDA kernels "
-                             f"({extension.build_info().get('cuda_reason', 'CPU-only build')})")
-    if n < 64:
-        raise SystemExit(f"lidarops tour: --n must be at least 64, got {n}")
+    Args:
+        device: cpu or cuda; None: cuda when torch sees a GPU and lidarops has its CUDA kernels, else cpu.
+
+    Raises:
+        ValueError: ``n`` below 64, or a device this machine or build cannot run on (before anything runs).
+    """
+    import lidarops
+    from lidarops.cli._device import resolve_device
+    from lidarops.data.clouds import simulated_sweep
+    from lidarops.ops import references as ref
+
+    if isinstance(n, bool) or not isinstance(n, int) or n < 64:
+        raise ValueError(f"--n must be an integer >= 64, got {n}")
+    device = resolve_device(None if device is None else str(device))
 
     t0 = time.perf_counter()
-    cloud, source = synthetic_sweep(n, seed)
+    cloud, source = simulated_sweep(n, seed)
     points = cloud.unsqueeze(0).to(device)  # (1, n, 3)
     K = min(1024, max(16, n // 16))  # FPS centres
     k_knn, k_ball, radius, C = 16, 32, 1.0, 32
@@ -222,12 +104,12 @@ def run(device: str | torch.device = "cpu", n: int = 20000, seed: int = 0, check
     g = torch.Generator().manual_seed(seed + 1)
     sub = torch.randperm(K, generator=g)[:min(check_queries, K)].sort().values
     sub_dev = sub.to(device)
-    checks = {"fps": _compare("fps", centres_idx, nb._fps_reference(points, K))}
-    ref_kd, ref_ki = nb._knn_reference(centres[:, sub_dev], points, k_knn)
+    checks = {"fps": _compare("fps", centres_idx, ref.fps(points, K))}
+    ref_kd, ref_ki = ref.knn(centres[:, sub_dev], points, k_knn)
     checks["knn"] = _compare("knn", knn_i[:, sub_dev], ref_ki, knn_d[:, sub_dev], ref_kd)
-    ref_bd, ref_bi = nb._ball_query_reference(centres[:, sub_dev], points, radius, k_ball)
+    ref_bd, ref_bi = ref.ball_query(centres[:, sub_dev], points, radius, k_ball)
     checks["ball_query"] = _compare("ball_query", ball_i[:, sub_dev], ref_bi, ball_d[:, sub_dev], ref_bd)
-    ref_g = nb._gather_reference(feats.cpu(), ball_i.cpu())
+    ref_g = ref.gather(feats.cpu(), ball_i.cpu())
     checks["gather"] = (torch.equal(grouped.cpu(), ref_g),
                         "OK" if torch.equal(grouped.cpu(), ref_g) else "gather: differs from the reference")
 
@@ -259,17 +141,12 @@ def run(device: str | torch.device = "cpu", n: int = 20000, seed: int = 0, check
     for msg in failures:
         print(f"FAIL {msg}")
     print(f"\ntimes: median of 5 calls of the validated wrappers after a warm-up; "
-          f"checks: pure-PyTorch references (lidarops/ops/neighbors.py); total {time.perf_counter() - t0:.1f} s")
+          f"checks: float64 pure-PyTorch references (lidarops.ops.references); total {time.perf_counter() - t0:.1f} s")
     return 1 if failures else 0
 
 
 def _main(args: argparse.Namespace) -> int:
-    device = args.device
-    if device is None:
-        import lidarops.ops.neighbors  # noqa: F401  (loads the library through the op wrappers)
-        from lidarops import extension
-        device = "cuda" if torch.cuda.is_available() and extension.cuda_available() else "cpu"
-    return run(device=device, n=args.n, seed=args.seed)
+    return run(device=args.device, n=args.n, seed=args.seed)
 
 
 def register(subparsers) -> None:
@@ -280,4 +157,4 @@ def register(subparsers) -> None:
                    help="default: cuda when available and built, else cpu")
     p.add_argument("--n", type=int, default=20000, help="points in the sweep (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the sweep and features")
-    p.set_defaults(func=_main)
+    p.set_defaults(func=guarded("tour", _main))

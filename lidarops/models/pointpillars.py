@@ -26,6 +26,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from lidarops._checks import positive_int
+from lidarops._moved import moved_attributes
 from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
 from lidarops.config import ConfigError, load_config
 from lidarops.models.anchor_head import AnchorHeadSingle
@@ -38,6 +39,15 @@ from lidarops.ops.pillars import MAX_ABS_INTENSITY
 from lidarops.ops.validation import check_tensor, describe, run_value_checks, value_checks_enabled
 
 __all__ = ["PointPillars", "CheckpointMismatchError"]
+
+# lidarops 0.1's lidarops.models.pointpillars held the backbone and SSCATeR's pillar net: those names moved
+__getattr__ = moved_attributes(__name__, {
+    "PointPillarsBackbone": ("lidarops.models.bev_backbone", "BaseBEVBackbone"),
+    "BackboneLayer": "lidarops.models.bev_backbone",
+    "backbone_layers": "lidarops.models.bev_backbone",
+    "scatter_to_bev": "lidarops.models.map_to_bev",
+    "PillarFeatureNet": "lidarops.models.sscater_pointpillars",
+})
 
 #: A state dict that does not fit the model's config (the message lists the keys that differ), or a file
 #: that is not a readable checkpoint: :class:`lidarops.checkpoint.CheckpointError` under its 0.1 name.

@@ -478,5 +478,3 @@ def write_pandaset_sequence(seq_dir: str | Path, frames: Sequence[Frame], world_
     write_pose_files(seq_dir, [f.sensor_pose for f in frames], [f.timestamp for f in frames])
     return seq_dir
 
-
-_write_pose_files = write_pose_files  # TODO(relay): the name lidarops/cli/data.py imports until it uses write_pose_files

@@ -1,10 +1,11 @@
-"""Tests of ``lidarops data synth|show`` (run through lidarops.cli.main in-process)."""
+"""``lidarops data synth|show`` (lidarops/cli/data.py), run in-process."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from lidarops.cli import main
+from .helpers import one_error_line
 
 pytest.importorskip("matplotlib")
 
@@ -75,11 +76,21 @@ def test_show_scenario_nuscenes_and_modelnet(tmp_path):
 
 def test_cli_errors(tmp_path, capsys):
     assert main(["data", "show", str(tmp_path / "missing"), "--out", str(tmp_path / "x.png")]) == 2
-    assert "no such file" in capsys.readouterr().err
+    assert "no such file" in one_error_line(capsys.readouterr().err, "data show")
     (tmp_path / "broken.bin").write_bytes(b"\x00" * 7)
     assert main(["data", "show", str(tmp_path / "broken.bin"), "--out", str(tmp_path / "x.png")]) == 2
-    assert "broken.bin" in capsys.readouterr().err
+    assert "broken.bin" in one_error_line(capsys.readouterr().err, "data show")
+    assert main(["data", "show", "driving_city", "--index", "-1"]) == 2
+    assert "--index must be >= 0" in one_error_line(capsys.readouterr().err, "data show")
+    kitti = tmp_path / "kitti"
+    assert main(["data", "synth", "--frames", "1", "--out", str(kitti), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["data", "show", str(kitti), "--index", "5", "--out", str(tmp_path / "x.png")]) == 2  # 1 frame
+    assert "out of range" in one_error_line(capsys.readouterr().err, "data show")
     assert main(["data", "synth", "--out", str(tmp_path / "o"), "--frames", "1", "--object-counts", "{oops"]) == 2
+    assert "--object-counts" in one_error_line(capsys.readouterr().err, "data synth")
+    assert main(["data", "synth", "--frames", "0", "--out", str(tmp_path / "none")]) == 2
+    assert "at least 1 in all" in one_error_line(capsys.readouterr().err, "data synth")
     assert main(["data"]) == 2
     with pytest.raises(SystemExit):
         main(["data", "synth", "--scenario", "mars", "--out", str(tmp_path)])

@@ -1,4 +1,5 @@
-"""``lidarops stream`` (lidarops/sscater/cli.py), run in-process on short streams."""
+"""``lidarops stream`` (lidarops/cli/stream.py), run in-process on short streams, and the SSCATeR calibration it
+shares with the benchmarks (lidarops.models.sscater_calibration)."""
 import json
 import math
 
@@ -6,8 +7,8 @@ import pytest
 import torch
 
 from lidarops.cli import main
-from lidarops.sscater import cli as stream_cli
-from lidarops.sscater import models
+from lidarops.cli import stream as stream_cli
+from lidarops.models import sscater_calibration as calibration
 
 
 def test_stream_cli_short_run(tmp_path, capsys):
@@ -66,8 +67,8 @@ def test_stream_cli_shorter_than_the_window(tmp_path, capsys):
 
 
 def test_layer_labels():
-    pfn, backbone = models.build_model(True, 0, torch.float32, "cpu")
-    labels = models.layer_labels(backbone)
+    pfn, backbone = calibration.build_model(True, 0, torch.float32, "cpu")
+    labels = calibration.layer_labels(backbone)
     assert len(labels) == 19
     assert labels["block0.down0"] == "block 1 conv 1 (3x3, stride 2)"
     assert labels["block0.subm3"] == "block 1 conv 4 (3x3)"
@@ -82,14 +83,14 @@ def test_calibrate_on_window_reaches_the_relu_zero_share(share):
     """The calibration the CLI, the benchmark and the profiles share: on the window it was calibrated on,
     each layer's share of zero ReLU outputs is the target (up to ties and rounding); the model is reset."""
     from lidarops.data.synthetic import Simulator
-    from lidarops.sscater import SSCATeRPointPillars
-    from lidarops.stream import PillarGrid
-    pfn, backbone = models.build_model(True, 0, torch.float32, "cpu")
+    from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
+    from lidarops.ops.pillars import PillarGrid
+    pfn, backbone = calibration.build_model(True, 0, torch.float32, "cpu")
     model = SSCATeRPointPillars(pfn, backbone, PillarGrid.drone(), max_points_per_pillar=100, device="cpu")
     for i, (p, t) in enumerate(Simulator("drone_bridge", seed=0).slices(0.0, 0.1, 0.01)):
         model.step(torch.from_numpy(p), torch.from_numpy(t), now=0.01 * (i + 1))
-    shares = models.calibrate_on_window(model, share)
-    assert set(models.layer_labels(backbone)) | {"pfn"} == set(shares)
+    shares = calibration.calibrate_on_window(model, share)
+    assert set(calibration.layer_labels(backbone)) | {"pfn"} == set(shares)
     assert all(abs(v - share) < 0.05 for v in shares.values()), shares
     assert model.stream.num_points == 0 and model.stats.step == 0
 
@@ -163,13 +164,16 @@ def test_stream_cli_cuda_without_lidarops_kernels(monkeypatch, capsys):
 
 
 def test_stream_cli_extension_not_loadable(monkeypatch, capsys):
-    """E.g. while the extension is being rebuilt: LidaropsBuildError is one line too."""
+    """E.g. while the extension is being rebuilt: LidaropsBuildError, raised while the default device is
+    picked, is one line too."""
+    from lidarops import extension
     from lidarops.extension import LidaropsBuildError
 
     def broken():
         raise LidaropsBuildError("lidarops' compiled ops are not built.\nBuild them with `make build`")
 
-    monkeypatch.setattr(stream_cli, "_default_device", broken)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(extension, "cuda_available", broken)
     assert "compiled ops are not built. Build them with `make build`" in _error(capsys, ["--seconds", "0.02"])
 
 
