@@ -1,4 +1,4 @@
-"""Benchmark lidarops.voxelize on a LiDAR-like sweep (tests/voxelize_data.py), against a
+"""Benchmark lidarops.voxelize on a LiDAR-like sweep (tests/helpers/voxelize.py), against a
 pure-PyTorch implementation of the same semantics measured in the same run (and spconv's
 PointToVoxel when it is installed: the CUDA machine's spconv bundle).
 
@@ -30,7 +30,7 @@ sys.path.insert(0, ROOT)
 import lidarops  # noqa: E402
 from benchmarks.common import (  # noqa: E402
     env_meta, fmt_ms, fmt_ratio, print_table, short_status, time_cpu_interleaved, time_cuda, write_results)
-from voxelize_data import KITTI_PILLARS, KITTI_SECOND, lidar_sweep  # noqa: E402
+from helpers.voxelize import KITTI_PILLARS, KITTI_SECOND, lidar_sweep  # noqa: E402
 
 SECTION = "voxelize"
 CUDA_RUNS = 50  # every implementation gets this many timed calls on CUDA

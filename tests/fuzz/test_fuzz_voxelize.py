@@ -15,11 +15,11 @@ from hypothesis import strategies as st
 import lidarops
 from lidarops.ops.voxelize import VoxelOverflowError, _voxelize_reference
 from lidarops.stream import PillarGrid, PillarOverflowError, pillarize
-from lidarops.stream.pillars import _pillarize_reference
-from fuzzing import (assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome,
+from lidarops.ops.pillars import _pillarize_reference
+from .fuzzing import (assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome,
                      scalars)
 
-#: documented input policy of pillarize and PillarStream (lidarops.stream.pillars)
+#: documented input policy of pillarize and PillarStream (lidarops.ops.pillars)
 MAX_ABS_INTENSITY = 1e6
 
 
