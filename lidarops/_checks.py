@@ -63,19 +63,14 @@ def flag(value, name: str) -> bool:
 
 
 def positive_int(value, name: str) -> int:
-    """An int >= 1: Python and NumPy integers and one-element integer tensors; not bools or floats."""
-    if type(value).__module__.startswith("torch") and hasattr(value, "numel"):  # a tensor, without importing torch
-        if value.numel() != 1 or value.is_floating_point() or value.is_complex() or str(value.dtype) == "torch.bool":
-            raise ValueError(f"{name} must be a positive int, got a tensor of shape {tuple(value.shape)} "
-                             f"and dtype {value.dtype}")
-        value = int(value)
-    elif isinstance(value, (bool, np.bool_)):
+    """An int >= 1: Python and NumPy integers (anything with ``__index__``); not bools or floats. Tensors are
+    :func:`lidarops.ops.validation.check_positive_int`'s."""
+    if isinstance(value, (bool, np.bool_)):
         raise ValueError(f"{name} must be a positive int, got {value!r}")
-    else:
-        try:  # int, NumPy integers, anything with __index__ (not floats)
-            value = operator.index(value)
-        except TypeError:
-            raise ValueError(f"{name} must be a positive int, got {value!r}") from None
+    try:  # int, NumPy integers, anything with __index__ (not floats)
+        value = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be a positive int, got {value!r}") from None
     if value <= 0:
         raise ValueError(f"{name} must be a positive int, got {value}")
     return value

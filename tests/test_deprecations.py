@@ -77,10 +77,6 @@ RENAMED = [
      lambda: _get("lidarops.checkpoint.CheckpointError"), "lidarops.checkpoint"),
     ("lidarops.data.detection.DEFAULT_CLASS_NAMES", lambda: _get("lidarops.data.detection.DEFAULT_CLASS_NAMES"),
      lambda: _get("lidarops.conventions.KITTI_CLASSES"), "lidarops.conventions.KITTI_CLASSES"),
-    ("lidarops.data.detection.kitti_difficulty", lambda: _get("lidarops.data.detection.kitti_difficulty"),
-     lambda: _get("lidarops.data.formats.kitti.kitti_difficulty"), "lidarops.data.formats.kitti.kitti_difficulty"),
-    ("lidarops.data.formats.pandaset._write_pose_files", lambda: _get("lidarops.data.formats.pandaset._write_pose_files"),
-     lambda: _get("lidarops.data.formats.pandaset.write_pose_files"), "lidarops.data.formats.pandaset.write_pose_files"),
     # keywords
     ("voxelize(point_range=)", lambda: _voxelize(point_range=RANGE), lambda: _voxelize(point_cloud_range=RANGE),
      "point_cloud_range="),
@@ -106,6 +102,7 @@ KEPT = [*[(f"lidarops.data.detection.{n}", f"lidarops.data.augment.{n}")
           for n in ("flip_along_x", "flip_along_y", "rotate_world", "scale_world", "GtDatabase", "GtSampler",
                     "build_gt_database")],
         ("lidarops.data.detection.collate_batch", "lidarops.data.collate_batch"),
+        ("lidarops.data.detection.kitti_difficulty", "lidarops.data.formats.kitti.kitti_difficulty"),
         ("lidarops.train.checkpoint.save_checkpoint", "lidarops.checkpoint.save_checkpoint"),
         ("lidarops.train.checkpoint.check_plain", "lidarops.checkpoint.check_plain"),
         *[(f"lidarops.stream.{n}", f"lidarops.ops.pillars.{n}") for n in ("pillarize", "PillarGrid", "Pillars")]]

@@ -25,7 +25,6 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from lidarops._checks import positive_int
 from lidarops._moved import moved_attributes
 from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
 from lidarops.config import ConfigError, load_config
@@ -36,7 +35,8 @@ from lidarops.models.map_to_bev import PointPillarScatter
 from lidarops.models.pillar_vfe import PillarVFE
 from lidarops.models.postprocess import postprocess
 from lidarops.ops.pillars import MAX_ABS_INTENSITY
-from lidarops.ops.validation import check_tensor, describe, run_value_checks, value_checks_enabled
+from lidarops.ops.validation import (check_positive_int, check_tensor, describe, run_value_checks,
+                                      value_checks_enabled)
 
 __all__ = ["PointPillars", "CheckpointMismatchError"]
 
@@ -201,7 +201,7 @@ def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bo
     if points.dim() != 2 or points.shape[1] < 1 + c or not points.is_floating_point():
         raise ValueError(f"batch['points'] must be a floating (P, 1 + {c}) tensor (frame index, x, y, z, "
                          f"intensity), got {describe(points)}")
-    batch_size = positive_int(batch.get("batch_size"), "batch['batch_size']")  # ints, NumPy ints; not 1.0
+    batch_size = check_positive_int(batch.get("batch_size"), "batch['batch_size']")  # ints, NumPy ints; not 1.0
     if points.dtype != dtype:  # the weights' dtype: float32 (OpenPCDet's), float16 after model.half()
         points = points.to(dtype)
     checks = []

@@ -91,6 +91,10 @@ def check_same_device(tensors: Sequence[tuple[str, torch.Tensor]]) -> None:
 
 def check_positive_int(v, name: str) -> int:
     """An int >= 1 (ints, NumPy ints, one-element integer tensors), else ``ValueError`` naming ``name``."""
+    if isinstance(v, torch.Tensor):
+        if v.numel() != 1 or v.is_floating_point() or v.is_complex() or v.dtype == torch.bool:
+            raise ValueError(f"{name} must be a positive int, got {describe(v)}")
+        v = int(v)
     return positive_int(v, name)
 
 
