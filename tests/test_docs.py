@@ -39,6 +39,8 @@ SHORTER = [
 ]
 if not torch.cuda.is_available():  # the CPU variant of a GPU example: bf16 autocast is emulated (10x slower) on
     SHORTER.append((r"--amp bf16\b", "--amp none"))  # CPUs without bf16 instructions
+elif torch.cuda.device_count() == 1:  # a 2-GPU torchrun example on a machine of one GPU: one process
+    SHORTER.append((r"--nproc_per_node=2\b", "--nproc_per_node=1"))
 
 #: optional packages (tools/ensure_env.py): a block that needs a missing one skips, as their tests do
 OPTIONAL = ("h5py", "matplotlib", "scipy", "shapely", "pandas", "tqdm", "onnxscript", "onnxruntime")
