@@ -9,8 +9,8 @@ DistributedDataParallel, one process per GPU. Every checkpoint names the model, 
 Examples::
 
     lidarops data synth --scenario driving_city driving_highway --frames 2000 1000 --workers 16 --out data/synth
-    lidarops train --config configs/pointpillars_synth.yaml --data data/synth --out runs/pp --amp bf16
-    lidarops train --config configs/pointpillars_synth.yaml --data data/synth --out runs/pp --resume
+    lidarops train --config configs/pointpillars/pointpillars_synth.yaml --data data/synth --out runs/pp --amp bf16
+    lidarops train --config configs/pointpillars/pointpillars_synth.yaml --data data/synth --out runs/pp --resume
     torchrun --standalone --nproc_per_node=2 -m lidarops train --config ... --out runs/pp2   # 2 GPUs
 """
 from __future__ import annotations
@@ -144,7 +144,7 @@ def register(subparsers) -> None:
     t = subparsers.add_parser("train", help="train a model (PointPillars) from a config on a KITTI-format folder",
                               description="Train the model a config names (MODEL.NAME: "
                                           f"{', '.join(sorted(TRAINABLE))}) from an OpenPCDet-schema config (e.g. "
-                                          "configs/pointpillars_synth.yaml) on a KITTI-format folder. Under "
+                                          "configs/pointpillars/pointpillars_synth.yaml) on a KITTI-format folder. Under "
                                           "torchrun it runs DistributedDataParallel, one process per GPU.")
     t.add_argument("--config", required=True, help="YAML config (OpenPCDet schema)")
     t.add_argument("--data", default=None, help="KITTI-format folder (default: the config's DATA_PATH)")

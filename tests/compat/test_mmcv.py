@@ -20,31 +20,13 @@ import pytest
 import torch
 
 from lidarops.compat import mmcv
-from helpers.compat import lidar_like
-
-
-
+from helpers.compat import assert_equal, lidar_like, np_of, sqdist, to_t
 
 
 def cloud(kind, B, N, rng):
     if kind == "uniform":
         return rng.uniform(-1.0, 1.0, (B, N, 3)).astype(np.float32)
     return np.stack([lidar_like(N, rng) for _ in range(B)])
-
-
-def to_t(a, device, dtype=torch.float32):
-    return torch.as_tensor(np.asarray(a)).to(device=device, dtype=dtype)
-
-
-def np_of(t):
-    t = t.detach().cpu()
-    return t.numpy() if t.dtype == torch.float64 else t.to(torch.float32).numpy()
-
-
-def sqdist(a, b):
-    d = a[:, None, :] - b[None, :, :]
-    sq = d * d
-    return (sq[..., 0] + sq[..., 1]) + sq[..., 2]
 
 
 def f32_square(r):
@@ -97,14 +79,6 @@ def ref_knn(xyz, centers, k):
         out[b, :, :order.shape[1]] = order
         dist[b, :, :order.shape[1]] = np.take_along_axis(d, order, 1)
     return out.transpose(0, 2, 1), dist
-
-
-def assert_equal(got: torch.Tensor, want: np.ndarray):
-    g = got.cpu().numpy()
-    assert g.shape == want.shape, (g.shape, want.shape)
-    bad = np.argwhere(g != want)
-    assert bad.size == 0, f"{len(bad)} mismatches, first at {tuple(bad[0])}: got {g[tuple(bad[0])]}, " \
-                          f"want {want[tuple(bad[0])]}"
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,8 +19,7 @@ import pytest
 import torch
 
 from lidarops.compat import pytorch3d as p3
-from helpers.compat import lidar_like
-
+from helpers.compat import lidar_like, np_of, sqdist, to_t
 
 
 # ---------------------------------------------------------------------------------------------
@@ -28,32 +27,11 @@ from helpers.compat import lidar_like
 # ---------------------------------------------------------------------------------------------
 
 
-
 def make_batch(kind: str, B: int, P: int, D: int, rng) -> np.ndarray:
     if kind == "uniform":
         return rng.uniform(-1.0, 1.0, (B, P, D)).astype(np.float32)
     assert D == 3
     return np.stack([lidar_like(P, rng) for _ in range(B)])
-
-
-def to_t(a, device, dtype=torch.float32) -> torch.Tensor:
-    return torch.as_tensor(np.asarray(a)).to(device=device, dtype=dtype)
-
-
-def np_of(t: torch.Tensor) -> np.ndarray:
-    """Exact values the op sees in its computation dtype (float64 stays float64, else float32)."""
-    t = t.detach().cpu()
-    return t.numpy() if t.dtype == torch.float64 else t.to(torch.float32).numpy()
-
-
-def sqdist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(M, D) x (N, D) -> (M, N): ((d0*d0 + d1*d1) + d2*d2) + ..., every step rounded (no FMA)."""
-    d = a[:, None, :] - b[None, :, :]
-    sq = d * d
-    out = sq[..., 0].copy()
-    for j in range(1, a.shape[1]):
-        out = out + sq[..., j]
-    return out
 
 
 def l1dist(a, b):

@@ -19,10 +19,12 @@ import pytest
 import torch
 
 from lidarops.compat import torch_cluster as tc
-from helpers.compat import lidar_like
+from helpers.compat import assert_equal, lidar_like, np_of, sqdist, to_t
 
 
-
+def assert_equal_int64(got, want):
+    """torch_cluster's indices are int64 and must equal the reference exactly."""
+    assert_equal(got, want, torch.int64)
 
 
 def flat_batch(kind, sizes, F, rng):
@@ -32,24 +34,6 @@ def flat_batch(kind, sizes, F, rng):
     else:
         parts = [lidar_like(n, rng) if n else np.zeros((0, 3), np.float32) for n in sizes]
     return np.concatenate(parts), np.repeat(np.arange(len(sizes)), sizes)
-
-
-def to_t(a, device, dtype=torch.float32):
-    return torch.as_tensor(np.asarray(a)).to(device=device, dtype=dtype)
-
-
-def np_of(t):
-    t = t.detach().cpu()
-    return t.numpy() if t.dtype == torch.float64 else t.to(torch.float32).numpy()
-
-
-def sqdist(a, b):
-    d = a[:, None, :] - b[None, :, :]
-    sq = d * d
-    out = sq[..., 0].copy()
-    for j in range(1, a.shape[1]):
-        out = out + sq[..., j]
-    return out
 
 
 def ptr_of(batch, B):
@@ -118,15 +102,6 @@ def ref_radius(x, y, r, bx, by, max_nb, dtype=np.float32):
     return np.array([rows, cols], dtype=np.int64).reshape(2, -1)
 
 
-def assert_equal(got: torch.Tensor, want: np.ndarray):
-    g = got.cpu().numpy()
-    assert got.dtype == torch.int64
-    assert g.shape == want.shape, (g.shape, want.shape)
-    bad = np.argwhere(g != want)
-    assert bad.size == 0, f"{len(bad)} mismatches, first at {tuple(bad[0])}: got {g[tuple(bad[0])]}, " \
-                          f"want {want[tuple(bad[0])]}"
-
-
 # ---------------------------------------------------------------------------------------------
 # fps
 # ---------------------------------------------------------------------------------------------
@@ -137,7 +112,7 @@ def test_fps_matches_reference(device, kind, ratio):
     rng = np.random.default_rng(0)
     src, batch = flat_batch(kind, [120, 10, 0, 33, 1], 3, rng)
     got = tc.fps(to_t(src, device), to_t(batch, device, torch.int64), ratio, random_start=False)
-    assert_equal(got, ref_fps(src, batch, ratio))
+    assert_equal_int64(got, ref_fps(src, batch, ratio))
 
 
 def test_fps_rounding_follows_float32(device):
@@ -150,7 +125,7 @@ def test_fps_rounding_follows_float32(device):
         src = rng.uniform(-1, 1, (deg, 3)).astype(np.float32)
         got = tc.fps(to_t(src, device), None, ratio, random_start=False)
         assert got.numel() == n
-        assert_equal(got, ref_fps(src, np.zeros(deg, np.int64), ratio))
+        assert_equal_int64(got, ref_fps(src, np.zeros(deg, np.int64), ratio))
 
 
 def test_fps_duplicates_repeat_first_row(device):
@@ -162,7 +137,7 @@ def test_fps_duplicates_repeat_first_row(device):
     src, batch = np.concatenate([a, b]), np.repeat([0, 1], [20, 12])
     got = tc.fps(to_t(src, device), to_t(batch, device, torch.int64), 0.5, random_start=False)
     want = ref_fps(src, batch, 0.5)
-    assert_equal(got, want)
+    assert_equal_int64(got, want)
     assert (want[3:10] == 0).all() and (want[10:] == 20).all()
 
 
@@ -181,7 +156,7 @@ def test_fps_random_start(device):
     firsts = np.cumsum([0] + counts[:-1])
     starts = got.cpu().numpy()[firsts] - ptr[:3]
     assert ((starts >= 0) & (starts < np.array([50, 30, 9]))).all()
-    assert_equal(got, ref_fps(src, batch, 0.4, starts))
+    assert_equal_int64(got, ref_fps(src, batch, 0.4, starts))
 
 
 @pytest.mark.parametrize("F", [1, 2, 6])
@@ -192,21 +167,21 @@ def test_fps_other_feature_sizes(device, F):
     if F == 1:
         x = x.view(-1)  # torch_cluster treats a vector as one feature per row
     got = tc.fps(x, to_t(batch, device, torch.int64), 0.25, random_start=False)
-    assert_equal(got, ref_fps(src, batch, 0.25))
+    assert_equal_int64(got, ref_fps(src, batch, 0.25))
 
 
 def test_fps_ptr_tensor_ratio_and_dtypes(device):
     rng = np.random.default_rng(5)
     src, batch = flat_batch("uniform", [30, 20], 3, rng)
     want = ref_fps(src, batch, 0.5)
-    assert_equal(tc.fps(to_t(src, device), ptr=[0, 30, 50], ratio=0.5, random_start=False), want)
+    assert_equal_int64(tc.fps(to_t(src, device), ptr=[0, 30, 50], ratio=0.5, random_start=False), want)
     ratio = torch.tensor(0.5, device=device)
-    assert_equal(tc.fps(to_t(src, device), to_t(batch, device, torch.int64), ratio, False), want)
+    assert_equal_int64(tc.fps(to_t(src, device), to_t(batch, device, torch.int64), ratio, False), want)
     for dtype in (torch.float64, torch.float16):
         x = to_t(src * 50, device, dtype)
         got = tc.fps(x, to_t(batch, device, torch.int64), 0.3, random_start=False)
         ratio_in_dtype = torch.tensor(0.3, dtype=dtype).to(torch.float32).item()
-        assert_equal(got, ref_fps(np_of(x), batch, ratio_in_dtype))
+        assert_equal_int64(got, ref_fps(np_of(x), batch, ratio_in_dtype))
 
 
 def test_fps_bad_input():
@@ -239,7 +214,7 @@ def test_knn_matches_reference(device, kind):
     x, bx = flat_batch(kind, [200, 0, 5, 60], 3, rng)
     y, by = flat_batch(kind, [30, 4, 8, 0], 3, rng)
     got = tc.knn(to_t(x, device), to_t(y, device), 7, to_t(bx, device, torch.int64), to_t(by, device, torch.int64))
-    assert_equal(got, ref_knn(x, y, 7, bx, by))
+    assert_equal_int64(got, ref_knn(x, y, 7, bx, by))
 
 
 def test_knn_ties_single_example_and_empty(device):
@@ -248,7 +223,7 @@ def test_knn_ties_single_example_and_empty(device):
     y = rng.integers(-2, 3, (12, 3)).astype(np.float32)
     zeros = np.zeros(50, np.int64)
     got = tc.knn(to_t(x, device), to_t(y, device), 9)
-    assert_equal(got, ref_knn(x, y, 9, zeros, np.zeros(12, np.int64)))
+    assert_equal_int64(got, ref_knn(x, y, 9, zeros, np.zeros(12, np.int64)))
     assert tc.knn(torch.zeros(0, 3, device=device), to_t(y, device), 3).shape == (2, 0)
     assert tc.knn(to_t(x, device), torch.zeros(0, 3, device=device), 3).shape == (2, 0)
 
@@ -259,9 +234,9 @@ def test_knn_features_and_cosine(device, F):
     x, bx = flat_batch("uniform", [40, 25], F, rng)
     y, by = flat_batch("uniform", [10, 6], F, rng)
     args = (to_t(bx, device, torch.int64), to_t(by, device, torch.int64))
-    assert_equal(tc.knn(to_t(x, device), to_t(y, device), 4, *args), ref_knn(x, y, 4, bx, by))
+    assert_equal_int64(tc.knn(to_t(x, device), to_t(y, device), 4, *args), ref_knn(x, y, 4, bx, by))
     got = tc.knn(to_t(x, device), to_t(y, device), 4, *args, cosine=True)
-    assert_equal(got, ref_knn(x, y, 4, bx, by, cosine=True))
+    assert_equal_int64(got, ref_knn(x, y, 4, bx, by, cosine=True))
 
 
 def test_knn_bad_input():
@@ -289,7 +264,7 @@ def test_radius_matches_reference(device, kind, r, max_nb):
     y, by = flat_batch(kind, [40, 3, 5, 12], 3, rng)
     got = tc.radius(to_t(x, device), to_t(y, device), r, to_t(bx, device, torch.int64),
                     to_t(by, device, torch.int64), max_num_neighbors=max_nb)
-    assert_equal(got, ref_radius(x, y, r, bx, by, max_nb))
+    assert_equal_int64(got, ref_radius(x, y, r, bx, by, max_nb))
 
 
 def test_radius_threshold_is_rounded_double_square(device):
@@ -316,7 +291,7 @@ def test_radius_threshold_is_rounded_double_square(device):
     got = tc.radius(to_t(x, device), to_t(y, device), r)
     want = ref_radius(x, y, r, np.zeros(len(x), np.int64), np.zeros(1, np.int64), 32)
     assert want[1].tolist() == [len(on_sphere), len(on_sphere) + 1]
-    assert_equal(got, want)
+    assert_equal_int64(got, want)
 
 
 def test_radius_many_candidates_and_features(device):
@@ -327,15 +302,15 @@ def test_radius_many_candidates_and_features(device):
     y = x[:20]
     z = np.zeros(400, np.int64)
     got = tc.radius(to_t(x, device), to_t(y, device), 0.2, max_num_neighbors=8)
-    assert_equal(got, ref_radius(x, y, 0.2, z, z[:20], 8))
+    assert_equal_int64(got, ref_radius(x, y, 0.2, z, z[:20], 8))
     x5, bx = flat_batch("uniform", [60, 30], 5, rng)
     y5, by = flat_batch("uniform", [10, 10], 5, rng)
     got = tc.radius(to_t(x5, device), to_t(y5, device), 0.9, to_t(bx, device, torch.int64),
                     to_t(by, device, torch.int64), max_num_neighbors=6)
-    assert_equal(got, ref_radius(x5, y5, 0.9, bx, by, 6))
+    assert_equal_int64(got, ref_radius(x5, y5, 0.9, bx, by, 6))
     x64 = to_t(x, device, torch.float64)
     got = tc.radius(x64, x64[:20], 0.2, max_num_neighbors=8)
-    assert_equal(got, ref_radius(np_of(x64), np_of(x64)[:20], 0.2, z, z[:20], 8, dtype=np.float64))
+    assert_equal_int64(got, ref_radius(np_of(x64), np_of(x64)[:20], 0.2, z, z[:20], 8, dtype=np.float64))
 
 
 def test_radius_bad_input():
