@@ -13,7 +13,7 @@
 # make test-fast   build, then the suite without the tests marked slow (-m "not slow"; about 1.5 min)
 # make fuzz        build, then the fuzz suite tests/fuzz with its long profile (HYPOTHESIS_PROFILE=long:
 #                  2,000 random examples per test, each test once per device; about 25 min on 2 CPU cores,
-#                  more with CUDA); failures are kept in .hypothesis/ and replayed first (docs/testing.md)
+#                  more with CUDA); failures are kept in .hypothesis/ and replayed first (CONTRIBUTING.md, "Testing")
 # make tour        the short tour of the neighbourhood ops (lidarops tour)
 # make bench       the neighbourhood-op benchmarks (benchmarks/bm_neighbors.py)
 # make train-demo  simulate a small KITTI-format set and train a small PointPillars on it (CPU, minutes)
@@ -69,7 +69,7 @@ demo: build
 
 train-demo: build
 	$(PY) -m lidarops data synth --scenario driving_city --frames 60 --val-fraction 0.2 --workers 2 --out data/synth_demo
-	$(PY) -m lidarops train --config configs/pointpillars_demo.yaml --data data/synth_demo --out runs/demo --epochs 4 --workers 2
+	$(PY) -m lidarops train --config configs/pointpillars/pointpillars_demo.yaml --data data/synth_demo --out runs/demo --epochs 4 --workers 2
 
 tour: build
 	$(PY) -m lidarops tour

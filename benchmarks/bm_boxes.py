@@ -28,7 +28,7 @@ import lidarops  # noqa: E402
 from lidarops import extension  # noqa: E402
 from benchmarks.common import (  # noqa: E402
     Skip, env_meta, fmt_ms, fmt_ratio, print_table, time_call, write_results)
-from box_data import lidar_boxes  # noqa: E402
+from helpers.boxes import lidar_boxes  # noqa: E402
 
 
 def _torchvision_iou():

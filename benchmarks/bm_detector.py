@@ -31,8 +31,9 @@ sys.path.insert(0, ROOT)
 from benchmarks.common import env_meta, fmt_ms, print_table, time_call, write_results  # noqa: E402
 import lidarops  # noqa: E402
 from lidarops import extension  # noqa: E402
-from lidarops.models.detector import PointPillars, postprocess  # noqa: E402
-from lidarops.models.graph import GraphedPointPillars, precision_mode  # noqa: E402
+from lidarops.models.pointpillars import PointPillars  # noqa: E402
+from lidarops.models.postprocess import postprocess  # noqa: E402
+from lidarops.models.cuda_graph import GraphedPointPillars, precision_mode  # noqa: E402
 
 PRECISIONS = ("fp32", "tf32", "fp16")
 

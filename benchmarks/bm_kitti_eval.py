@@ -7,7 +7,7 @@ Usage::
     python benchmarks/bm_kitti_eval.py --json               # merge into benchmarks/results/<device>.json
     python benchmarks/bm_kitti_eval.py --json out.json      # or write this run's rows to out.json
 
-The annotations come from the test data generator (tests/kitti_eval_data.py, seeded): Cars, Pedestrians,
+The annotations come from the test data generator (tests/helpers/kitti.py, seeded): Cars, Pedestrians,
 Cyclists, Vans, Persons sitting, Trucks and DontCare regions, jittered detections and false positives.
 Rows: the whole evaluation (3 classes, the bbox / bev / 3d / aos metrics, strict and loose overlaps, as
 OpenPCDet runs it after each epoch), its two halves (checking the annotations and computing every IoU;
@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 import torch  # noqa: E402
 
 from benchmarks.common import env_meta, print_table, time_cpu, write_results  # noqa: E402
-from kitti_eval_data import random_annos  # noqa: E402
+from helpers.kitti import random_annos  # noqa: E402
 from lidarops.eval import kitti  # noqa: E402
 
 CLASSES = ("Car", "Pedestrian", "Cyclist")

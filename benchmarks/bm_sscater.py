@@ -17,7 +17,7 @@ Sections (``--only``):
   Cin in {16, 32, 64, 128} x Cout in {8, 16, 32, 64, 128}; SSCATeR's update for one step's changed
   sites against the full sparse layer (kernel map cached) and the dense layer (cuDNN).
 
-No trained checkpoint exists, so the weights are seeded random ones (``lidarops.sscater.models``, as
+No trained checkpoint exists, so the weights are seeded random ones (``lidarops.models.sscater_calibration``, as
 in ``lidarops stream``) whose BatchNorms are calibrated on the first window so that each layer's
 pre-activations have unit spread and a chosen share of them is negative (``--relu-zeros``, default
 0.5): a trained network's ReLU sparsity, which is what stops changes from spreading through the layers.
@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 
 from benchmarks.common import env_meta, fmt_ms, fmt_ratio, print_table, time_call, write_results
-from lidarops.sscater.models import calibrate_on_window
+from lidarops.models.sscater_calibration import calibrate_on_window
 
 _SCENARIOS = ("drone_bridge", "driving_city")
 
@@ -59,11 +59,11 @@ def _sync(device):
 
 
 def _model(scenario: str, device, zeros: float, seed: int = 0):
-    """The default-size PointPillars front of :func:`lidarops.sscater.models.build_model` (seeded random
-    weights) in an :class:`~lidarops.sscater.SSCATeRPointPillars` on ``scenario``'s grid, and its pillar
-    capacity. Calibrate it with :func:`lidarops.sscater.models.calibrate_on_window` once its window is full."""
-    from lidarops.sscater import SSCATeRPointPillars
-    from lidarops.sscater.models import build_model
+    """The default-size PointPillars front of :func:`lidarops.models.sscater_calibration.build_model` (seeded random
+    weights) in an :class:`~lidarops.models.SSCATeRPointPillars` on ``scenario``'s grid, and its pillar
+    capacity. Calibrate it with :func:`lidarops.models.sscater_calibration.calibrate_on_window` once its window is full."""
+    from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
+    from lidarops.models.sscater_calibration import build_model
     pfn, bb = build_model(False, seed, torch.float32, device)
     grid, N = _grid(scenario)
     return SSCATeRPointPillars(pfn, bb, grid, max_points_per_pillar=N, refresh_every=0, device=device), N
@@ -81,7 +81,7 @@ def _quantile(xs: list, q: float) -> float:
 
 def bench_stream(device, steps: int, every: int, zeros: float, rows: list, traces: dict, scenarios=_SCENARIOS):
     from lidarops.data.synthetic import Simulator
-    from lidarops.models.pointpillars import scatter_to_bev
+    from lidarops.models.map_to_bev import scatter_to_bev
     from lidarops.sparse import SparseConvTensor
     from lidarops.stream import pillarize
     for scenario in scenarios:

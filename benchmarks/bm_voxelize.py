@@ -1,4 +1,4 @@
-"""Benchmark lidarops.voxelize on a LiDAR-like sweep (tests/voxelize_data.py), against a
+"""Benchmark lidarops.voxelize on a LiDAR-like sweep (tests/helpers/voxelize.py), against a
 pure-PyTorch implementation of the same semantics measured in the same run (and spconv's
 PointToVoxel when it is installed: the CUDA machine's spconv bundle).
 
@@ -30,7 +30,7 @@ sys.path.insert(0, ROOT)
 import lidarops  # noqa: E402
 from benchmarks.common import (  # noqa: E402
     env_meta, fmt_ms, fmt_ratio, print_table, short_status, time_cpu_interleaved, time_cuda, write_results)
-from voxelize_data import KITTI_PILLARS, KITTI_SECOND, lidar_sweep  # noqa: E402
+from helpers.voxelize import KITTI_PILLARS, KITTI_SECOND, lidar_sweep  # noqa: E402
 
 SECTION = "voxelize"
 CUDA_RUNS = 50  # every implementation gets this many timed calls on CUDA
@@ -42,16 +42,16 @@ CONFIGS = {
 }
 
 
-def torch_voxelize(points, voxel_size, point_range, P, M):
+def torch_voxelize(points, voxel_size, point_cloud_range, P, M):
     """Pure-PyTorch voxelization with lidarops' semantics (first-seen voxels, input order within a
     voxel, drop beyond capacity): the baseline one writes without a custom op."""
     dev = points.device
     ct = torch.float64 if points.dtype == torch.float64 else torch.float32
     p = points[:, :3].to(ct)
-    lo = torch.tensor(point_range[:3], dtype=ct, device=dev)
-    hi = torch.tensor(point_range[3:], dtype=ct, device=dev)
+    lo = torch.tensor(point_cloud_range[:3], dtype=ct, device=dev)
+    hi = torch.tensor(point_cloud_range[3:], dtype=ct, device=dev)
     vs = torch.tensor(voxel_size, dtype=ct, device=dev)
-    dims = torch.tensor([round((point_range[a + 3] - point_range[a]) / voxel_size[a]) for a in range(3)], device=dev)
+    dims = torch.tensor([round((point_cloud_range[a + 3] - point_cloud_range[a]) / voxel_size[a]) for a in range(3)], device=dev)
     c = torch.floor((p - lo) / vs)
     ok = ((p >= lo) & (p < hi) & (c >= 0) & (c < dims)).all(1)
     idx = torch.nonzero(ok).squeeze(1)
@@ -83,7 +83,7 @@ def spconv_peer(device, cfg, P, M):
         from spconv.pytorch.utils import PointToVoxel
     except ImportError:
         return None
-    gen = PointToVoxel(vsize_xyz=list(cfg["voxel_size"]), coors_range_xyz=list(cfg["point_range"]),
+    gen = PointToVoxel(vsize_xyz=list(cfg["voxel_size"]), coors_range_xyz=list(cfg["point_cloud_range"]),
                        num_point_features=4, max_num_voxels=M, max_num_points_per_voxel=P, device=torch.device(device))
     return lambda pts: gen(pts)
 
@@ -124,7 +124,7 @@ def run(device: str, n: int, budget_s: float = 1.0) -> list[dict]:
     pts = torch.from_numpy(lidar_sweep(n, seed=0)).to(device)
     rows = []
     for name, (cfg, P, M) in CONFIGS.items():
-        vs, pr = cfg["voxel_size"], cfg["point_range"]
+        vs, pr = cfg["voxel_size"], cfg["point_cloud_range"]
         res = lidarops.voxelize(pts, vs, pr, P, M, overflow="drop")
         ours = res.voxels, res.coords, res.num_points
         base = torch_voxelize(pts, vs, pr, P, M)

@@ -441,7 +441,7 @@ def lidar_generator_name() -> str:
         import lidarops.data.synthetic  # noqa: F401
         return 'lidarops.data.synthetic.Simulator("driving_city") (sweeps, order-preserving subset)'
     except ImportError:
-        return "lidarops.tour.lidar_like_cloud (ring ground + boxes + clutter)"
+        return "lidarops.data.clouds.lidar_like_cloud (ring ground + boxes + clutter)"
 
 
 def lidar_clouds(B: int, N: int, seed: int = 0, device: str | torch.device = "cpu",
@@ -449,8 +449,8 @@ def lidar_clouds(B: int, N: int, seed: int = 0, device: str | torch.device = "cp
     """(B, N, 3) LiDAR-like clouds in metres, one sweep per batch row (seeds ``seed``..``seed+B-1``).
 
     Uses the project's simulator when importable, else the built-in ring + boxes + clutter
-    generator (both through :func:`lidarops.tour.synthetic_sweep`).
+    generator (both through :func:`lidarops.data.clouds.simulated_sweep`).
     """
-    from lidarops.tour import synthetic_sweep
-    clouds = [synthetic_sweep(N, seed + b)[0] for b in range(B)]
+    from lidarops.data.clouds import simulated_sweep
+    clouds = [simulated_sweep(N, seed + b)[0] for b in range(B)]
     return torch.stack(clouds).to(device=device, dtype=dtype)

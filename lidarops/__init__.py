@@ -6,7 +6,7 @@ Core ops (registered as ``torch.ops.lidarops.*``; these are their validated wrap
     lidarops.knn(query, points, k)        k nearest neighbours          -> dist2, idx (B, M, k)
     lidarops.ball_query(q, p, radius, k)  first k points within radius  -> dist2, idx (B, M, k)
     lidarops.gather(x, idx)               grouping (PointNet++)         -> (B, *idx.shape[1:], C)
-    lidarops.voxelize(points, voxel_size, point_range, max_points_per_voxel, max_voxels)
+    lidarops.voxelize(points, voxel_size, point_cloud_range, max_points_per_voxel, max_voxels)
                                           hard voxelization             -> voxels, coords, num_points
     lidarops.pillarize(points, grid)      decorated pillars (PointPillars) -> features, coords, num_points
     lidarops.box_iou_bev(a, b)            rotated BEV IoU (also box_overlap_bev, box_iou_3d) -> (N, M)
@@ -18,9 +18,12 @@ The compiled library is loaded on first use, so ``import lidarops.data`` works w
 """
 from __future__ import annotations
 
-import importlib
+from lidarops import _moved
+from lidarops._lazy import lazy_attributes
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
+
+_moved.install()  # old module paths (lidarops.models.detector, ...) import for one more release
 
 _LAZY = {
     "fps": "lidarops.ops.neighbors",
@@ -34,8 +37,8 @@ _LAZY = {
     "nms_bev": "lidarops.ops.boxes",
     "batched_nms_bev": "lidarops.ops.boxes",
     "points_in_boxes": "lidarops.ops.boxes",
-    "pillarize": "lidarops.stream",
-    "PillarGrid": "lidarops.stream",
+    "pillarize": "lidarops.ops.pillars",
+    "PillarGrid": "lidarops.ops.pillars",
     "PillarStream": "lidarops.stream",
     "validation": "lidarops.ops.validation",
 }
@@ -43,14 +46,4 @@ _LAZY = {
 __all__ = sorted(_LAZY) + ["__version__"]
 
 
-def __getattr__(name: str):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'lidarops' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, {name: (module, name) for name, module in _LAZY.items()}, globals())

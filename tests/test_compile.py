@@ -9,7 +9,8 @@ import pytest
 import torch
 
 import lidarops
-from conftest import assert_equal_report, lidar_cloud, noncontiguous, uniform_cloud
+from helpers.clouds import lidar_cloud, noncontiguous, uniform_cloud
+from helpers.compare import assert_equal_report
 from lidarops import extension
 
 extension.load()  # registers torch.ops.lidarops.* (importing lidarops alone is lazy)

@@ -1,4 +1,5 @@
-"""Every code block of README.md and docs/*.md runs here, so the documentation cannot rot.
+"""Every code block of README.md, CONTRIBUTING.md, CHANGELOG.md and docs/*.md runs here, so the documentation
+cannot rot.
 
 * ```python blocks of a page run in order, in one namespace per page (a page's blocks build on each other),
   in a fresh interpreter, from a temporary folder. Without a GPU, ``device="cuda"`` and ``.cuda()`` become
@@ -7,7 +8,8 @@
   checkout's interpreter, in the same temporary folder (``configs/``, ``tools/``, ``benchmarks/`` and
   ``tests/`` linked into it, ``/tmp/`` paths moved into it). ``make`` and ``pip install`` lines are not run
   here: CI runs ``make test`` itself and tests have no network. Long commands are shortened by
-  :data:`SHORTER` (fewer frames and epochs); the commands and their other arguments run as written.
+  :data:`SHORTER` (fewer frames and epochs; on a CPU, float32 instead of bf16 autocast); the commands and
+  their other arguments run as written.
 * Other blocks (```text, ```yaml, output without a language) are listings and are not run.
 """
 from __future__ import annotations
@@ -23,8 +25,8 @@ import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-PAGES = [REPO / "README.md"] + sorted((REPO / "docs").glob("*.md"))
-SLOW_PAGES = {"README.md", "detector.md", "data.md", "sscater.md", "boxes.md"}  # pages that simulate or train
+PAGES = [REPO / "README.md", REPO / "CONTRIBUTING.md", REPO / "CHANGELOG.md"] + sorted((REPO / "docs").glob("*.md"))
+SLOW_PAGES = {"README.md", "detector.md", "train.md", "data.md", "sscater.md", "boxes.md"}  # pages that simulate or train
 
 #: (regex, replacement) applied to bash lines: the documented runs take minutes to hours
 SHORTER = [
@@ -35,6 +37,10 @@ SHORTER = [
     (r"--eval-every 5\b", "--eval-every 1"),
     (r"--seconds [0-9.]+", "--seconds 0.3"),
 ]
+if not torch.cuda.is_available():  # the CPU variant of a GPU example: bf16 autocast is emulated (10x slower) on
+    SHORTER.append((r"--amp bf16\b", "--amp none"))  # CPUs without bf16 instructions
+elif torch.cuda.device_count() == 1:  # a 2-GPU torchrun example on a machine of one GPU: one process
+    SHORTER.append((r"--nproc_per_node=2\b", "--nproc_per_node=1"))
 
 #: optional packages (tools/ensure_env.py): a block that needs a missing one skips, as their tests do
 OPTIONAL = ("h5py", "matplotlib", "scipy", "shapely", "pandas", "tqdm", "onnxscript", "onnxruntime")
@@ -163,10 +169,11 @@ def test_fence_parser_finds_blocks():
 
 
 def test_index_lists_every_registered_op():
-    """docs/index.md's op table has one row per op that csrc/ops/*.cpp defines, and no other."""
+    """CONTRIBUTING.md's op map has one row per op that csrc/ops/*.cpp defines, and no other."""
     defined = set()
     for path in sorted((REPO / "csrc" / "ops").glob("*.cpp")):
         defined |= set(re.findall(r'm\.def\(\s*"(\w+)\(', path.read_text()))
-    rows = set(re.findall(r"^\| `(\w+)` \|", (REPO / "docs" / "index.md").read_text(), re.M))
+    op_map = (REPO / "CONTRIBUTING.md").read_text().split("## The op map", 1)[1]
+    rows = set(re.findall(r"^\| `(\w+)` \|", op_map, re.M))
     assert len(defined) > 30, "the schema pattern stopped matching csrc/ops"
-    assert defined == rows, f"missing from docs/index.md: {sorted(defined - rows)}; not ops: {sorted(rows - defined)}"
+    assert defined == rows, f"missing from CONTRIBUTING.md: {sorted(defined - rows)}; not ops: {sorted(rows - defined)}"

@@ -4,7 +4,7 @@
 # Everything printed goes to $OUT/run.log (the device tool returns at most 8 files); benchmark JSON
 # results are copied to $OUT. Usage (from the repository root):
 #   bash tools/device_run.sh [tests|bench|all]
-# Environment: TESTS (test files, default tests/test_*.py), TEST_K (a pytest -k expression for them), TEST_TIMEOUT (per file),
+# Environment: TESTS (test files, default tests/test_*.py tests/*/test_*.py), TEST_K (a pytest -k expression for them), TEST_TIMEOUT (per file),
 # TEST_JOBS (files run at once), SANITIZER_PLAN, SANITIZER_K (run beside the tests), SANITIZER_TIMEOUT, BENCHES, BENCH_TIMEOUT, LIDAROPS_SKIP_BUILD=1 (reuse lidarops/_C*.so), PRE (a command
 # run after the build, e.g. a diagnostic).
 set -uo pipefail
@@ -32,7 +32,7 @@ python3 -c "import lidarops.extension as e; e.load(); print('with_cuda', e.cuda_
 [ -n "${PRE:-}" ] && { echo "[device_run] PRE: $PRE"; bash -c "$PRE"; echo "[device_run] PRE exit $?"; }
 sanitize() {  # compute-sanitizer on CUDA kernel tests; SANITIZER_PLAN="tool:file,file tool:file@k+expr ..."
   mkdir -p /tmp/san; local i=0
-  for entry in ${SANITIZER_PLAN:-memcheck:tests/test_neighbors.py racecheck:tests/test_neighbors.py}; do
+  for entry in ${SANITIZER_PLAN:-memcheck:tests/ops/test_neighbors.py racecheck:tests/ops/test_neighbors.py}; do
     local tool=${entry%%:*} files=${entry#*:} k=${SANITIZER_K:-cuda and not slow}; i=$((i + 1))
     if [[ $files == *@* ]]; then k=${files#*@}; k=${k//+/ }; files=${files%%@*}; fi  # tool:files@k+expr
     timeout ${SANITIZER_TIMEOUT:-240} compute-sanitizer --tool $tool --error-exitcode 9 python3 -m pytest -q \
@@ -42,7 +42,7 @@ sanitize() {  # compute-sanitizer on CUDA kernel tests; SANITIZER_PLAN="tool:fil
   done
 }
 run_test_file() {  # one pytest per file, its output to /tmp/tlogs/<file>.log
-  local f=$1 s=$(date +%s) log=/tmp/tlogs/$(basename $1 .py).log
+  local f=$1 s=$(date +%s) log=/tmp/tlogs/$(echo ${1#tests/} | tr / _ | sed 's/\.py$//').log
   LIDAROPS_TEST_REQUIRE_CUDA=1 timeout ${TEST_TIMEOUT:-300} python3 -X faulthandler -m pytest "$f" -q -rfE \
     -p no:cacheprovider ${TEST_K:+-k "$TEST_K"} 2>&1 \
     | grep -v -E "site-packages/(_pytest|pluggy)/|frozen runpy|^Extension modules" | tail -40 > $log
@@ -56,7 +56,7 @@ if [ "$what" = tests ] || [ "$what" = all ]; then
   if command -v compute-sanitizer >/dev/null && [ -z "${NO_SANITIZER:-}" ]; then sanitize & san_pid=$!; fi
   # TEST_JOBS files at a time (GPU shared; OpenMP threads split between them)
   jobs=${TEST_JOBS:-1}; export OMP_NUM_THREADS=$(( 16 / jobs > 1 ? 16 / jobs : 1 ))
-  files=$(ls -S ${TESTS:-tests/test_*.py} 2>/dev/null)  # largest first
+  files=$(ls -S ${TESTS:-tests/test_*.py tests/*/test_*.py} 2>/dev/null)  # largest first
   [ -n "$files" ] && printf '%s\n' $files | xargs -P $jobs -I{} bash -c 'run_test_file {}'
   grep -h "exit .* in .* s$" /tmp/tlogs/*.log  # the summary
   unset OMP_NUM_THREADS

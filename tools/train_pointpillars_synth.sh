@@ -13,7 +13,7 @@ s=$(date +%s)
 python3 -m lidarops data synth --scenario driving_city driving_highway --frames 2400 1200 --seed 0 \
     --val-fraction 0.1389 --workers "$(nproc)" --out "$DATA" --no-progress
 echo "[train] data: $(( $(date +%s) - s )) s"
-TRAIN=(--config configs/pointpillars_synth.yaml --data "$DATA" --out "$OUT/run" --amp bf16 --batch-size "$BATCH"
+TRAIN=(--config configs/pointpillars/pointpillars_synth.yaml --data "$DATA" --out "$OUT/run" --amp bf16 --batch-size "$BATCH"
        --workers "$WORKERS" --epochs "$EPOCHS" --eval-every 5 --gt-database-frames 1000 --no-progress
        ${MAX_MINUTES:+--max-minutes $MAX_MINUTES} ${RESUME:+--resume})
 export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1   # the DataLoader workers' numpy/torch: one thread each

@@ -18,8 +18,8 @@ sys.path.insert(0, ROOT)
 
 import lidarops  # noqa: E402
 from benchmarks.bm_detector import kitti_like_frame, load_model  # noqa: E402
-from lidarops.models.detector import postprocess_padded  # noqa: E402
-from lidarops.models.graph import GraphedPointPillars, precision_mode  # noqa: E402
+from lidarops.models.postprocess import postprocess_padded  # noqa: E402
+from lidarops.models.cuda_graph import GraphedPointPillars, precision_mode  # noqa: E402
 from lidarops.ops.voxelize import voxelize  # noqa: E402
 
 STAGES = ("voxelize", "pfn", "scatter", "backbone", "head", "decode", "postprocess")

@@ -14,7 +14,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path[:0] = [ROOT, os.path.join(ROOT, "tests")]
 
 import lidarops  # noqa: E402
-from box_data import lidar_boxes  # noqa: E402
+from helpers.boxes import lidar_boxes  # noqa: E402
 
 
 def main() -> int:

@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import torch  # noqa: E402
 
 from benchmarks.bm_sscater import _model  # noqa: E402
-from lidarops.sscater.models import calibrate_on_window  # noqa: E402
+from lidarops.models.sscater_calibration import calibrate_on_window  # noqa: E402
 
 
 def main() -> None:

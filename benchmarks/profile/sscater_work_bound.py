@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     ap.add_argument("--relu-zeros", type=float, default=0.5)
     a = ap.parse_args(argv)
     from benchmarks.bm_sscater import _model
-    from lidarops.sscater.models import calibrate_on_window
+    from lidarops.models.sscater_calibration import calibrate_on_window
     from lidarops.data.synthetic import Simulator
     from lidarops.sscater.delta import DeltaBackbone
 

@@ -49,7 +49,7 @@ def main(argv=None) -> int:
         return 0
     from benchmarks.bm_sparse import pillars_input
     from benchmarks.bm_sscater import _model
-    from lidarops.sscater.models import calibrate_on_window
+    from lidarops.models.sscater_calibration import calibrate_on_window
     from lidarops.data.synthetic import Simulator
 
     dev = torch.device("cuda")

@@ -23,20 +23,10 @@ each face (and the compiled library) loads on first access.
 """
 from __future__ import annotations
 
-import importlib
+from lidarops._lazy import lazy_attributes
 
 _FACES = ("pytorch3d", "mmcv", "torch_cluster", "spconv", "spconv_utils")
 
 __all__ = list(_FACES)
 
-
-def __getattr__(name: str):
-    if name in _FACES:
-        module = importlib.import_module(f"{__name__}.{name}")
-        globals()[name] = module
-        return module
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_FACES))
+__getattr__, __dir__ = lazy_attributes(__name__, {face: f"{__name__}.{face}" for face in _FACES}, globals())

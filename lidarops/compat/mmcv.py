@@ -25,7 +25,6 @@ from torch import Tensor
 
 from lidarops.compat.pytorch3d import (
     _ball_query_filtered,
-    _check_positive_int,
     _compute_dtype,
     _f32_square,
     _repeat_first_after_exhaustion,
@@ -34,7 +33,7 @@ from lidarops.ops.neighbors import ball_query as _core_ball_query
 from lidarops.ops.neighbors import fps as _core_fps
 from lidarops.ops.neighbors import gather as _core_gather
 from lidarops.ops.neighbors import knn as _core_knn
-from lidarops.ops.validation import check_cloud, check_same_device, check_tensor, coordinate_checks, describe, \
+from lidarops.ops.validation import check_cloud, check_positive_int, check_same_device, check_tensor, coordinate_checks, describe, \
     run_value_checks, validation, value_checks_enabled
 
 __all__ = ["furthest_point_sample", "furthest_point_sample_with_dist", "ball_query", "knn", "three_nn", "gather_points", "grouping_operation"]
@@ -191,7 +190,7 @@ def _ball_args(min_radius, max_radius, sample_num) -> Tuple[float, float, int]:
         raise ValueError(f"min_radius must be >= 0, got {min_radius}")
     if not min_radius < max_radius:
         raise ValueError(f"min_radius must be < max_radius, got min_radius={min_radius}, max_radius={max_radius}")
-    sample_num = _check_positive_int(sample_num, "sample_num")
+    sample_num = check_positive_int(sample_num, "sample_num")
     return _f32_square(float(min_radius)), _f32_square(float(max_radius)), sample_num
 
 
@@ -271,7 +270,7 @@ def knn(k: int, xyz: Tensor, center_xyz: Optional[Tensor] = None, transposed: bo
         squared distance, ties to the lower index); index 0 where fewer than k points exist (mmcv's
         kernel keeps its initial index 0 there). Not differentiable.
     """
-    k = _check_positive_int(k, "k")
+    k = check_positive_int(k, "k")
     if center_xyz is None:
         center_xyz = xyz
     check_tensor(xyz, "xyz")

@@ -39,6 +39,7 @@ from lidarops.ops.neighbors import fps as _core_fps
 from lidarops.ops.neighbors import gather as _core_gather
 from lidarops.ops.neighbors import knn as _core_knn
 from lidarops.ops.validation import (
+    check_positive_int,
     check_same_device,
     coordinate_checks,
     check_tensor,
@@ -78,17 +79,6 @@ def _check_points(t, name: str, batch: Optional[int] = None, dim: Optional[int] 
     if t.shape[2] < 1:
         raise ValueError(f"{name} must have a point dimension D >= 1, got {describe(t)}")
     extension.check_device(t, name)
-
-
-def _check_positive_int(v, name: str) -> int:
-    if isinstance(v, Tensor) and v.numel() == 1 and not v.is_floating_point() and not v.is_complex() \
-            and v.dtype != torch.bool:
-        v = int(v)
-    if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-        raise ValueError(f"{name} must be a positive int, got {v!r}")
-    if v <= 0:
-        raise ValueError(f"{name} must be a positive int, got {v}")
-    return int(v)
 
 
 def _check_radius(radius, name: str = "radius") -> float:
@@ -252,7 +242,7 @@ def knn_points(
         raise ValueError(f"p1 and p2 must have the same dtype, got {p1.dtype} and {p2.dtype}")
     if isinstance(norm, bool) or norm not in (1, 2):
         raise ValueError(f"Support for 1 or 2 norm. (got norm={norm!r})")
-    K = _check_positive_int(K, "K")
+    K = check_positive_int(K, "K")
     if isinstance(version, bool) or not isinstance(version, numbers.Integral):
         raise ValueError(f"version must be an int, got {version!r}")
     lengths1 = lengths_or_full(lengths1, p1, "lengths1")
@@ -335,7 +325,7 @@ def ball_query(
     check_same_device([("p1", p1), ("p2", p2)])
     if p1.dtype != p2.dtype:
         raise ValueError(f"p1 and p2 must have the same dtype, got {p1.dtype} and {p2.dtype}")
-    K = _check_positive_int(K, "K")
+    K = check_positive_int(K, "K")
     radius = _check_radius(radius)
     lengths1 = lengths_or_full(lengths1, p1, "lengths1")
     lengths2 = lengths_or_full(lengths2, p2, "lengths2")

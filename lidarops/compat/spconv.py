@@ -38,6 +38,7 @@ from typing import Optional
 import torch
 from torch import nn
 
+from lidarops._lazy import lazy_attributes
 from lidarops.sparse import nn as spnn
 from lidarops.sparse.nn import (SparseBatchNorm, SparseIdentity, SparseModule, SparseReLU, SparseSequential,
                                 ToDense)
@@ -201,9 +202,6 @@ modules = types.SimpleNamespace(SparseModule=SparseModule, SparseSequential=Spar
 core = types.SimpleNamespace(SparseConvTensor=SparseConvTensor, IndiceData=KernelMap)
 
 
-def __getattr__(name: str):
-    # spconv.pytorch.utils.PointToVoxel, loaded on first use (lidarops.compat.spconv_utils)
-    if name in ("PointToVoxel", "utils"):
-        from lidarops.compat import spconv_utils
-        return spconv_utils.PointToVoxel if name == "PointToVoxel" else spconv_utils
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# spconv.pytorch.utils.PointToVoxel, loaded on first use
+__getattr__, __dir__ = lazy_attributes(__name__, {"PointToVoxel": ("lidarops.compat.spconv_utils", "PointToVoxel"),
+                                                  "utils": "lidarops.compat.spconv_utils"}, globals())

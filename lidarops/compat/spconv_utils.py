@@ -49,11 +49,11 @@ from torch import Tensor
 from lidarops.ops.validation import describe
 from lidarops.ops.voxelize import (
     VoxelizeResult,
-    _check_capacity,
-    _check_overflow,
-    _check_points,
-    _numbers,
-    _voxelize,
+    check_capacity,
+    check_overflow,
+    check_points,
+    float_list,
+    voxelize_checked,
 )
 
 __all__ = ["PointToVoxel"]
@@ -61,8 +61,8 @@ __all__ = ["PointToVoxel"]
 
 def _spconv_meta(vsize_xyz: Sequence[float], coors_range_xyz: Sequence[float]):
     """spconv's calc_point2voxel_meta_data for 3-D, in float32: (vsize_xyz, lo_xyz, grid_xyz)."""
-    vs = _numbers(vsize_xyz, 3, "vsize_xyz")
-    cr = _numbers(coors_range_xyz, 6, "coors_range_xyz")
+    vs = float_list(vsize_xyz, 3, "vsize_xyz")
+    cr = float_list(coors_range_xyz, 6, "coors_range_xyz")
     if not all(math.isfinite(v) for v in vs + cr):
         raise ValueError(f"vsize_xyz and coors_range_xyz must be finite, got {vs} and {cr}")
     vs32 = [np.float32(v) for v in vs]
@@ -105,10 +105,10 @@ class PointToVoxel:
         vs, lo, hi, grid = _spconv_meta(vsize_xyz, coors_range_xyz)
         self.ndim = 3
         self.device = torch.device(device)
-        self.num_point_features = _check_capacity(num_point_features, "num_point_features")
-        self.max_num_voxels = _check_capacity(max_num_voxels, "max_num_voxels")
-        self.max_num_points_per_voxel = _check_capacity(max_num_points_per_voxel, "max_num_points_per_voxel")
-        _check_overflow(overflow, False)
+        self.num_point_features = check_capacity(num_point_features, "num_point_features")
+        self.max_num_voxels = check_capacity(max_num_voxels, "max_num_voxels")
+        self.max_num_points_per_voxel = check_capacity(max_num_points_per_voxel, "max_num_points_per_voxel")
+        check_overflow(overflow, False)
         self.overflow = overflow
         # spconv's metadata, (z, y, x) order
         self.vsize = vs[::-1]
@@ -147,13 +147,13 @@ class PointToVoxel:
         return res.voxels, res.coords, res.num_points, res.info.point_voxel
 
     def _run(self, pc: Tensor, empty_mean: bool) -> VoxelizeResult:
-        _check_points(pc)
+        check_points(pc)
         if pc.device.type != self.device.type:
             raise ValueError(f"pc is on {pc.device} but this PointToVoxel was built for {self.device} "
                              "(spconv: 'your pc device is wrong')")
         if pc.shape[1] != self.num_point_features:
             raise ValueError(f"pc must have num_point_features={self.num_point_features} columns, got {describe(pc)}")
-        res = _voxelize(pc, self._vsize_xyz, self._range_xyz, self._grid_xyz, self.max_num_points_per_voxel,
+        res = voxelize_checked(pc, self._vsize_xyz, self._range_xyz, self._grid_xyz, self.max_num_points_per_voxel,
                         self.max_num_voxels, self.overflow, False, 0,
                         ("voxel", "max_num_points_per_voxel", "max_num_voxels"), "PointToVoxel")
         voxels = res.voxels.to(torch.float32)

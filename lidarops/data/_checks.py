@@ -1,4 +1,4 @@
-"""Argument and file checks shared by :mod:`lidarops.data` (NumPy only, no torch).
+"""File checks of :mod:`lidarops.data` (NumPy only, no torch), and the ground floor's argument checks.
 
 Every error is a ``ValueError`` (``FileNotFoundError`` for a missing file) that names the argument or
 the file and says what was expected, so a bad value is refused where it enters, not turned into a NaN,
@@ -6,63 +6,14 @@ a truncated number, a hang or an exception from deep inside NumPy.
 """
 from __future__ import annotations
 
-import math
-import numbers
-import operator
 from pathlib import Path
 
 import numpy as np
 
+from lidarops._checks import flag, integer, real  # noqa: F401  (the data floor's callers import them from here)
+
 __all__ = ["real", "integer", "flag", "require_file", "read_text", "record_count", "finite_rows", "read_float32_records",
            "read_npz"]
-
-
-def _range_text(lo, hi, lo_open: bool, hi_open: bool) -> str:
-    if lo is None and hi is None:
-        return ""
-    if hi is None:
-        return f" {'>' if lo_open else '>='} {lo:g}"
-    if lo is None:
-        return f" {'<' if hi_open else '<='} {hi:g}"
-    return f" in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-
-
-def real(value, name: str, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
-         hi_open: bool = False, unit: str = "") -> float:
-    """A finite real number in the given range, as a float.
-
-    Python and NumPy ints and floats pass; bools, strings, complex numbers, NaN and infinities do not.
-    """
-    expected = f"{name} must be a finite number{_range_text(lo, hi, lo_open, hi_open)}{unit}"
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{expected}, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)) \
-            or (hi is not None and (v >= hi if hi_open else v > hi)):
-        raise ValueError(f"{expected}, got {v!r}")
-    return v
-
-
-def integer(value, name: str, lo: int | None = None, hi: int | None = None) -> int:
-    """An int in ``[lo, hi]``: Python and NumPy integers; not bools, floats (1.7 would be truncated) or
-    strings."""
-    expected = f"{name} must be an int{_range_text(lo, hi, False, False)}"
-    if isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{expected}, got {value!r}")
-    try:
-        v = operator.index(value)
-    except TypeError:
-        raise ValueError(f"{expected}, got {value!r}") from None
-    if (lo is not None and v < lo) or (hi is not None and v > hi):
-        raise ValueError(f"{expected}, got {v}")
-    return v
-
-
-def flag(value, name: str) -> bool:
-    """A bool (or a NumPy bool)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name} must be True or False, got {value!r}")
-    return bool(value)
 
 
 # ---------------------------------------------------------------------------------------------

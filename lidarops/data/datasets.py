@@ -1,6 +1,7 @@
 """PyTorch datasets with one interface whether the frames come from the simulator or from disk.
 
-* :class:`DetectionDataset` -- frames as ``{"points", "boxes", "labels", ...}`` tensors.
+* :class:`DetectionDataset` -- frames as tensors with OpenPCDet's keys (``points``, ``gt_boxes`` with
+  1-based class ids), batched by :func:`collate_batch` (the one collate of every detection dataset).
 * :class:`ObjectDataset` -- object clouds ``(points, label)`` from detection frames or ModelNet40.
 * :class:`StreamDataset` -- consecutive time slices ``{"points", "t"}`` of a simulator or of frames with
   per-point timestamps (e.g. a PandaSet sequence).
@@ -14,12 +15,13 @@ Every dataset also accepts a path or a scenario name and opens it with
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, Iterable, Mapping, Protocol, Sequence
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from lidarops._moved import warn_renamed
 from lidarops.data._checks import integer, real
 from lidarops.data.frame import Frame
 
@@ -29,6 +31,7 @@ __all__ = [
     "DetectionDataset",
     "ObjectDataset",
     "StreamDataset",
+    "collate_batch",
     "collate_detection",
     "collate_objects",
 ]
@@ -55,21 +58,29 @@ def as_frame_source(source: "FrameSource | str | Path", **kwargs) -> FrameSource
 
 
 class DetectionDataset(Dataset):
-    """Detection frames as tensors.
+    """Detection frames of any frame source as tensors with OpenPCDet's keys (the batch dialect every
+    lidarops model reads; :func:`collate_batch` batches them).
 
-    Items are dicts with ``points (Tensor[N, 4])``, ``boxes (Tensor[M, 7])``, ``labels (Tensor[M])``,
-    ``num_points_in_box (Tensor[M])``, ``t (Tensor[N] float64)`` when the source has timestamps, and
-    ``frame_index``.
+    Items are dicts with ``points (Tensor[N, 4])``, ``gt_boxes (Tensor[M, 8])`` (7 box values + the class
+    id, 1-based into ``class_names``; boxes of other classes are left out, as OpenPCDet does),
+    ``num_points_in_box (Tensor[M])``, ``frame_id`` (the frame's index in its source), and
+    ``t (Tensor[N] float64)`` when the source has timestamps.
 
     Args:
         source: a frame source, a path or a scenario name.
+        class_names (sequence of str or None): the classes kept, in label order; ``None``: the source's own
+            class list (:data:`lidarops.data.CLASSES` for the simulator).
         min_points (int): drop boxes with fewer points.
         transform (callable or None): applied to the item dict.
         **source_options: see :func:`as_frame_source`.
     """
 
-    def __init__(self, source, min_points: int = 0, transform: Callable[[dict], dict] | None = None, **source_options) -> None:
+    def __init__(self, source, class_names: Sequence[str] | None = None, min_points: int = 0,
+                 transform: Callable[[dict], dict] | None = None, **source_options) -> None:
+        if isinstance(class_names, int) and not isinstance(class_names, bool):  # 0.1's DetectionDataset(src, min_points)
+            raise TypeError("DetectionDataset's second argument is class_names; pass min_points= by keyword")
         self.source = as_frame_source(source, **source_options)
+        self.class_names = None if class_names is None else tuple(str(n) for n in class_names)
         self.min_points = integer(min_points, "min_points", 0)
         self.transform = transform
 
@@ -80,40 +91,75 @@ class DetectionDataset(Dataset):
         frame = self.source[i]
         if self.min_points > 0:
             frame = frame.filter_boxes(self.min_points)
+        names = self.class_names if self.class_names is not None else tuple(frame.class_names)
+        frame_names = [frame.class_names[k] if 0 <= k < len(frame.class_names) else None for k in frame.labels]
+        class_id = np.array([names.index(n) + 1 if n in names else 0 for n in frame_names], dtype=np.float32)
+        keep = class_id > 0
+        gt_boxes = np.concatenate([frame.boxes[keep], class_id[keep, None]], axis=1).astype(np.float32)
         item = {
             "points": torch.from_numpy(frame.points),
-            "boxes": torch.from_numpy(frame.boxes),
-            "labels": torch.from_numpy(frame.labels),
-            "num_points_in_box": torch.from_numpy(frame.num_points_in_box),
-            "frame_index": frame.frame_index,
+            "gt_boxes": torch.from_numpy(gt_boxes),
+            "num_points_in_box": torch.from_numpy(frame.num_points_in_box[keep]),
+            "frame_id": frame.frame_index,
         }
         if frame.t is not None:
             item["t"] = torch.from_numpy(frame.t)
         return self.transform(item) if self.transform else item
 
 
-def collate_detection(batch: Sequence[dict]) -> dict[str, Any]:
-    """Batches detection items: points concatenated with a batch index, boxes padded.
+def collate_batch(items: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
+    """Batches detection items as OpenPCDet's ``collate_batch`` (the one collate of every detection dataset).
+
+    Args:
+        items: dicts with ``points`` (N, C) and ``gt_boxes`` (M, 8) as NumPy arrays or tensors, and any
+            other keys.
 
     Returns:
-        dict with ``points (Tensor[sum N, 4])``, ``batch_index (Tensor[sum N] int64)``,
-        ``boxes (Tensor[B, M_max, 7])`` (zero padded), ``labels (Tensor[B, M_max])`` (-1 padded),
-        ``num_boxes (Tensor[B])``, ``t (Tensor[sum N])`` if every item has it, ``frame_index (list)``.
+        dict: ``points`` (Tensor float32[sum N, 1 + C]: frame index in the batch, then the point's columns),
+        ``gt_boxes`` (Tensor float32[B, M_max, 8], zero padded: class id 0 marks padding), ``batch_size``
+        (int), ``t`` (Tensor float64[sum N]) when every item has it; any other item key (``frame_id``,
+        ``annos``, ``calib`` ...) becomes a list with one entry per frame.
     """
-    points = torch.cat([b["points"] for b in batch])
-    batch_index = torch.cat([torch.full((b["points"].shape[0],), i, dtype=torch.int64) for i, b in enumerate(batch)])
-    m = max([b["boxes"].shape[0] for b in batch] + [0])
-    boxes = torch.zeros(len(batch), m, 7, dtype=torch.float32)
-    labels = torch.full((len(batch), m), -1, dtype=torch.int64)
-    for i, b in enumerate(batch):
-        k = b["boxes"].shape[0]
-        boxes[i, :k] = b["boxes"]
-        labels[i, :k] = b["labels"]
-    out = {"points": points, "batch_index": batch_index, "boxes": boxes, "labels": labels,
-           "num_boxes": torch.tensor([b["boxes"].shape[0] for b in batch], dtype=torch.int64),
-           "frame_index": [b["frame_index"] for b in batch]}
-    if all("t" in b for b in batch):
-        out["t"] = torch.cat([b["t"] for b in batch])
+    items = list(items)
+    batch_size = len(items)
+
+    def array(x) -> np.ndarray:
+        return x.numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+    pts = [array(it["points"]) for it in items]
+    width = pts[0].shape[1] if pts else 4
+    points = [np.concatenate([np.full((p.shape[0], 1), b, np.float32), p.astype(np.float32, copy=False)], axis=1)
+              for b, p in enumerate(pts)]
+    boxes = [array(it["gt_boxes"]) for it in items]
+    m = max([g.shape[0] for g in boxes] + [0])
+    gt_boxes = np.zeros((batch_size, m, boxes[0].shape[1] if boxes else 8), dtype=np.float32)
+    for b, g in enumerate(boxes):
+        gt_boxes[b, :g.shape[0]] = g
+    out: dict[str, Any] = {
+        "points": torch.from_numpy(np.concatenate(points) if points else np.zeros((0, 1 + width), np.float32)),
+        "gt_boxes": torch.from_numpy(gt_boxes),
+        "batch_size": batch_size,
+    }
+    if items and all("t" in it for it in items):
+        out["t"] = torch.from_numpy(np.concatenate([array(it["t"]).astype(np.float64, copy=False) for it in items]))
+    for key in dict.fromkeys(k for it in items for k in it):
+        if key not in out:
+            out[key] = [it.get(key) for it in items]
+    return out
+
+
+def collate_detection(batch: Sequence[dict]) -> dict[str, Any]:
+    """The batch format of lidarops 0.1 (``batch_index``, ``boxes``, 0-based ``labels``); deprecated: use
+    :func:`collate_batch`, whose keys every model reads."""
+    warn_renamed("lidarops.data.datasets.collate_detection", "lidarops.data.collate_batch (OpenPCDet's keys)")
+    out = collate_batch(batch)
+    gt = out.pop("gt_boxes")
+    n = torch.tensor([int((g[:, 7] > 0).sum()) for g in gt], dtype=torch.int64) if gt.shape[1] else \
+        torch.zeros(len(gt), dtype=torch.int64)
+    out["batch_index"] = out["points"][:, 0].long()
+    out["points"] = out["points"][:, 1:]
+    out["boxes"], out["labels"], out["num_boxes"] = gt[..., :7], gt[..., 7].long() - 1, n
+    out["frame_index"] = out.pop("frame_id")
     return out
 
 

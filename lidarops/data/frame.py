@@ -48,7 +48,7 @@ class Frame:
             for simulated and KITTI data; raw for other formats unless normalised by the reader).
         t (ndarray float64[N] or None): per-point timestamps in seconds (``None`` for formats without
             them, e.g. KITTI object).
-        boxes (ndarray float32[M, 7]): ``x, y, z, dx, dy, dz, yaw`` in the LiDAR frame, z = box centre.
+        boxes (ndarray float32[M, 7]): ``x, y, z, dx, dy, dz, heading`` in the LiDAR frame, z = box centre.
         labels (ndarray int64[M]): indices into ``class_names`` (``-1``: a class not in the list).
         num_points_in_box (ndarray int64[M]): points of ``points`` inside each box.
         class_names (tuple[str, ...]): names for ``labels``.
@@ -59,7 +59,7 @@ class Frame:
         object_ids (ndarray int64[M]): track ids, stable across frames of one sequence (-1: unknown).
         velocities (ndarray float32[M, 3]): box velocities in the LiDAR frame at ``timestamp``, m/s
             (zeros if unknown).
-        yaw_rates (ndarray float32[M]): box yaw rates, rad/s.
+        yaw_rates (ndarray float32[M]): rates of change of the boxes' headings (yaw rates), rad/s.
         visibility (ndarray float32[M]): fraction of the sensor rays through the box that reach it
             (NaN if unknown).
         instance (ndarray int32[N] or None): index into ``boxes`` of the object each point hit, ``-1`` for

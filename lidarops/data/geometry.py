@@ -1,8 +1,10 @@
-"""Box and pose geometry shared by the simulator, the format readers and the datasets (NumPy only).
+"""Box and pose geometry shared by the simulator, the format readers and the datasets, on NumPy arrays:
+the one home of box corners, and of points-in-boxes on NumPy arrays (computed by the op
+:func:`lidarops.points_in_boxes`, whose float64 reference lives with the tests).
 
-Box convention (LiDAR frame, the whole of :mod:`lidarops.data`): ``boxes (float[M, 7])`` holds
-``x, y, z, dx, dy, dz, yaw`` where ``(x, y, z)`` is the box *centre*, ``dx`` the length along the
-heading, ``dy`` the width, ``dz`` the height, and ``yaw`` the heading angle about +z measured from +x
+Box convention (LiDAR frame, :mod:`lidarops.conventions`): ``boxes (float[M, 7])`` holds
+``x, y, z, dx, dy, dz, heading`` where ``(x, y, z)`` is the box *centre*, ``dx`` the length along the
+heading, ``dy`` the width, ``dz`` the height, and ``heading`` the angle about +z measured from +x
 towards +y (radians).
 """
 from __future__ import annotations
@@ -122,7 +124,7 @@ def transform_boxes(transform: np.ndarray, boxes: np.ndarray) -> np.ndarray:
 
     Args:
         transform (ndarray[4, 4]): rigid transform.
-        boxes (ndarray[M, 7]): boxes ``x, y, z, dx, dy, dz, yaw``.
+        boxes (ndarray[M, 7]): boxes ``x, y, z, dx, dy, dz, heading``.
 
     Returns:
         ndarray[M, 7] with the dtype of ``boxes``.
@@ -140,7 +142,7 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     """Corners of boxes.
 
     Args:
-        boxes (ndarray[M, 7]): boxes ``x, y, z, dx, dy, dz, yaw``.
+        boxes (ndarray[M, 7]): boxes ``x, y, z, dx, dy, dz, heading``.
 
     Returns:
         ndarray[M, 8, 3] (float64): corners; 0-3 the bottom ones, counter-clockwise seen from above
@@ -156,84 +158,73 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     return np.einsum("mij,mkj->mki", rot, local) + boxes[:, None, :3]
 
 
-def _inside(x: np.ndarray, y: np.ndarray, z: np.ndarray, boxes: np.ndarray, margin: float,
-            box: np.ndarray | int) -> np.ndarray:
-    """Whether point ``i`` (float64 ``x, y, z``) lies in the closed box ``box[i]`` (or in box ``box`` for all)
-    grown by ``margin``."""
-    c, s = np.cos(boxes[:, 6])[box], np.sin(boxes[:, 6])[box]
-    cx, cy, cz = (boxes[:, i][box] for i in range(3))
-    hx, hy, hz = ((boxes[:, i] / 2.0 + margin)[box] for i in range(3, 6))
-    dx, dy = x - cx, y - cy
-    inside = np.abs(c * dx + s * dy) <= hx
-    inside &= np.abs(-s * dx + c * dy) <= hy
-    inside &= np.abs(z - cz) <= hz
-    return inside
+def _box_tensors(points: np.ndarray, boxes: np.ndarray):
+    """float64 tensors for the op (exact for float32 input: the op then rounds nothing the NumPy caller did
+    not), boxes (M, 7)."""
+    import torch
+
+    p = torch.from_numpy(np.ascontiguousarray(np.asarray(points)[:, :3], dtype=np.float64))
+    return p, torch.from_numpy(np.ascontiguousarray(boxes, dtype=np.float64))
 
 
-_FEW_BOXES = 4  # up to this many boxes, every point is tested against every box (no grid)
+def _first_box(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """:func:`lidarops.points_in_boxes` (the lowest box holding each point, -1 for none) on NumPy arrays."""
+    from lidarops.ops.boxes import points_in_boxes
+
+    if points.shape[0] == 0 or boxes.shape[0] == 0:
+        return np.full(points.shape[0], -1, dtype=np.int64)
+    return points_in_boxes(*_box_tensors(points, boxes)).numpy()
 
 
-def _point_box_pairs(points: np.ndarray, boxes: np.ndarray, margin: float,
-                     cell: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
-    """``(box, point)`` index pairs of the points inside each (closed, grown) box.
+def _may_share_points(boxes: np.ndarray) -> np.ndarray:
+    """Boxes whose bounding spheres' footprints and z ranges meet another box's: only those can hold a point
+    that the op gives to a lower box (a superset of the overlapping boxes; exact results need no more)."""
+    r = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4])
+    d = np.hypot(boxes[:, None, 0] - boxes[None, :, 0], boxes[:, None, 1] - boxes[None, :, 1])
+    dz = np.abs(boxes[:, None, 2] - boxes[None, :, 2])
+    near = (d <= r[:, None] + r[None, :] + 1e-9) & (dz <= 0.5 * (boxes[:, None, 5] + boxes[None, :, 5]) + 1e-9)
+    np.fill_diagonal(near, False)
+    return near.any(axis=1)
 
-    With more than a few boxes, the candidates of a box are the points in the grid cells (``cell`` metres)
-    overlapping its bounding square, found by binary search on the points sorted by cell, for all boxes at
-    once; the candidates are then tested exactly.  Coordinates are taken in float64.
-    """
-    x, y, z = (np.asarray(points[:, i], dtype=np.float64) for i in range(3))
-    m = boxes.shape[0]
-    if m <= _FEW_BOXES:
-        inside = [np.flatnonzero(_inside(x, y, z, boxes, margin, j)) for j in range(m)]
-        return np.repeat(np.arange(m), [i.size for i in inside]), np.concatenate(inside)
-    radius = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4]) + max(margin, 0.0) + 1e-6
-    x_lo, x_hi, y_lo, y_hi = (np.floor((boxes[:, i] + sign * radius) / cell).astype(np.int64)
-                              for i, sign in ((0, -1), (0, 1), (1, -1), (1, 1)))
-    # cells numbered row-major over the boxes' extent; points outside it get -1 and are never candidates
-    x0, y0 = int(x_lo.min()), int(y_lo.min())
-    nx, ny = int(x_hi.max()) - x0 + 1, int(y_hi.max()) - y0 + 1
-    ix = np.floor(x / cell) - x0
-    iy = np.floor(y / cell) - y0
-    key = np.where((ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny), ix * ny + iy, -1.0)
-    # few enough cells for int16 keys: NumPy's stable argsort is then a radix sort, several times faster
-    key = key.astype(np.int16 if nx * ny < 32767 else np.int64)
-    order = np.argsort(key, kind="stable")
-    key_sorted = key[order]
-    # one slice of sorted points per (box, row of cells)
-    rows = x_hi - x_lo + 1
-    box_of_row = np.repeat(np.arange(m), rows)
-    row = np.repeat(x_lo - x0 - np.cumsum(rows) + rows, rows) + np.arange(int(rows.sum()))
-    lo = np.searchsorted(key_sorted, (row * ny + (y_lo[box_of_row] - y0)).astype(key.dtype), side="left")
-    hi = np.searchsorted(key_sorted, (row * ny + (y_hi[box_of_row] - y0)).astype(key.dtype), side="right")
-    counts = hi - lo
-    box = np.repeat(box_of_row, counts)
-    point = order[np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts - lo, counts)]
-    inside = _inside(x[point], y[point], z[point], boxes, margin, box)
-    return box[inside], point[inside]
+
+def _grown(boxes: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes grown by ``margin`` on every half-size, and which of them still have sizes >= 0."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7).copy()
+    if margin:
+        boxes[:, 3:6] += 2.0 * margin
+    return boxes, (boxes[:, 3:6] >= 0).all(axis=1)
 
 
 def points_in_boxes_mask(points: np.ndarray, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
-    """Which points lie inside which boxes (closed boxes, optionally grown by ``margin``).
+    """Which points lie inside which boxes (closed boxes, optionally grown by ``margin``), computed by the op
+    :func:`lidarops.points_in_boxes` (a point in two overlapping boxes is in both).
 
     Args:
         points (ndarray[N, >=3]): points; only x, y, z are used.
         boxes (ndarray[M, 7]): boxes.
-        margin (float): metres added to every half-size (negative shrinks).
+        margin (float): metres added to every half-size (negative shrinks; a box shrunk below zero size holds
+            nothing).
 
     Returns:
         ndarray[N, M] (bool).
     """
     points = np.asarray(points)
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    boxes, valid = _grown(boxes, margin)
     mask = np.zeros((points.shape[0], boxes.shape[0]), dtype=bool)
-    if points.shape[0] and boxes.shape[0]:
-        box, point = _point_box_pairs(points, boxes, margin)
-        mask[point, box] = True
+    cols = np.flatnonzero(valid)
+    if points.shape[0] == 0 or cols.size == 0:
+        return mask
+    first = _first_box(points, boxes[cols])
+    inside = first >= 0
+    mask[np.flatnonzero(inside), cols[first[inside]]] = True
+    for j in np.flatnonzero(_may_share_points(boxes[cols])):  # the op names the lowest box only
+        mask[:, cols[j]] = _first_box(points, boxes[cols[j]:cols[j] + 1]) == 0
     return mask
 
 
 def count_points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Number of points inside each box (closed boxes; a point in two boxes counts for both).
+    """Number of points inside each box (closed boxes; a point in two boxes counts for both), by the op
+    :func:`lidarops.points_in_boxes`.
 
     Args:
         points (ndarray[N, >=3]): points.
@@ -243,24 +234,27 @@ def count_points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
         ndarray[M] (int64).
     """
     points = np.asarray(points)
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    if not (points.shape[0] and boxes.shape[0]):
-        return np.zeros(boxes.shape[0], dtype=np.int64)
-    box, _ = _point_box_pairs(points, boxes, 0.0)
-    return np.bincount(box, minlength=boxes.shape[0]).astype(np.int64)
+    boxes, valid = _grown(boxes, 0.0)
+    counts = np.zeros(boxes.shape[0], dtype=np.int64)
+    cols = np.flatnonzero(valid)
+    if points.shape[0] == 0 or cols.size == 0:
+        return counts
+    first = _first_box(points, boxes[cols])
+    counts[cols] = np.bincount(first[first >= 0], minlength=cols.size)
+    for j in np.flatnonzero(_may_share_points(boxes[cols])):
+        counts[cols[j]] = int((_first_box(points, boxes[cols[j]:cols[j] + 1]) == 0).sum())
+    return counts
 
 
 def box_index_of_points(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Index of the (first) box containing each point, ``-1`` for points in no box.
+    """Index of the (first) box containing each point, ``-1`` for points in no box: :func:`lidarops.points_in_boxes`
+    on NumPy arrays.
 
     Args:
         points (ndarray[N, >=3]): points.
-        boxes (ndarray[M, 7]): boxes.
+        boxes (ndarray[M, 7]): boxes (sizes >= 0).
 
     Returns:
         ndarray[N] (int64).
     """
-    mask = points_in_boxes_mask(points, boxes)
-    if mask.shape[1] == 0:
-        return np.full(mask.shape[0], -1, dtype=np.int64)
-    return np.where(mask.any(axis=1), mask.argmax(axis=1), -1).astype(np.int64)
+    return _first_box(np.asarray(points), np.asarray(boxes, dtype=np.float64).reshape(-1, 7))

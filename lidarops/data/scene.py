@@ -17,6 +17,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from lidarops._lazy import lazy_attributes
+from lidarops._moved import renamed_kwargs
 from lidarops.data.geometry import euler_to_matrix
 
 __all__ = [
@@ -110,7 +112,7 @@ class BoxSet:
         return BoxSet(*(np.concatenate([getattr(s, f.name) for s in sets]) for f in dataclasses.fields(BoxSet)))
 
     def at(self, t: float) -> np.ndarray:
-        """Boxes at time ``t`` as ``float64[K, 7]`` (x, y, z, dx, dy, dz, yaw)."""
+        """Boxes at time ``t`` as ``float64[K, 7]`` (x, y, z, dx, dy, dz, heading)."""
         out = np.empty((len(self), 7))
         out[:, :3] = self.center + self.velocity * t
         out[:, 3:6] = 2.0 * self.half
@@ -209,15 +211,17 @@ class _StaticBuilder:
         self.cylinders: list[tuple] = []
         self.ellipsoids: list[tuple] = []
 
-    def box(self, cx, cy, cz, dx, dy, dz, yaw=0.0, refl=0.3, kind=SURFACE_STRUCTURE, piece=10.0) -> None:
+    @renamed_kwargs(yaw="heading")
+    def box(self, cx, cy, cz, dx, dy, dz, heading=0.0, refl=0.3, kind=SURFACE_STRUCTURE, piece=10.0) -> None:
         """An upright box; ``piece`` is the longest side of the pieces it is cut into for culling."""
-        self.boxes.append((cx, cy, cz, dx / 2, dy / 2, dz / 2, yaw, refl, kind, piece))
+        self.boxes.append((cx, cy, cz, dx / 2, dy / 2, dz / 2, heading, refl, kind, piece))
 
-    def box_on_ground(self, cx, cy, dx, dy, height, yaw=0.0, refl=0.3, kind=SURFACE_STRUCTURE, bury=0.5,
+    @renamed_kwargs(yaw="heading")
+    def box_on_ground(self, cx, cy, dx, dy, height, heading=0.0, refl=0.3, kind=SURFACE_STRUCTURE, bury=0.5,
                       lift=0.0) -> None:
         """A box standing on the ground, its base buried ``bury`` below the lowest corner (or floating
         ``lift`` above the ground when ``lift > 0``)."""
-        c, s = np.cos(yaw), np.sin(yaw)
+        c, s = np.cos(heading), np.sin(heading)
         xs = cx + np.array([1, -1, -1, 1]) * dx / 2 * c - np.array([1, 1, -1, -1]) * dy / 2 * s
         ys = cy + np.array([1, -1, -1, 1]) * dx / 2 * s + np.array([1, 1, -1, -1]) * dy / 2 * c
         heights = self.ground.height(xs, ys)
@@ -227,7 +231,7 @@ class _StaticBuilder:
         else:
             bottom = float(heights.min()) - bury
             top = float(heights.max()) + height
-        self.box(cx, cy, (bottom + top) / 2, dx, dy, top - bottom, yaw, refl, kind)
+        self.box(cx, cy, (bottom + top) / 2, dx, dy, top - bottom, heading, refl, kind)
 
     def cylinder(self, cx, cy, radius, height, refl=0.3, kind=SURFACE_POLE, base=None) -> None:
         z0 = float(self.ground.height(np.array([cx]), np.array([cy]))[0]) - 0.3 if base is None else base
@@ -502,8 +506,5 @@ def _rng(seed: int, *keys: object) -> np.random.Generator:
 _FROM_SCENARIOS = ("SCENARIOS", "build_scenario", "sample_object_counts", "MAX_OBJECTS")
 
 
-def __getattr__(name: str):
-    if name in _FROM_SCENARIOS:
-        from lidarops.data import scenarios
-        return getattr(scenarios, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__, _dir = lazy_attributes(__name__, {name: ("lidarops.data.scenarios", name) for name in _FROM_SCENARIOS},
+                                   globals())

@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from lidarops.data.frame import CLASS_COLORS, CLASSES, Frame
+from lidarops.data.geometry import box_corners
 
 __all__ = ["plot_bev", "save_bev", "save_object", "save_rosette", "new_figure"]
 
@@ -93,12 +94,9 @@ def plot_bev(
     for box, label in zip(boxes, labels):
         name = class_names[label] if 0 <= label < len(class_names) else "?"
         color = CLASS_COLORS.get(name, "black")
-        c, s = np.cos(box[6]), np.sin(box[6])
-        hx, hy = box[3] / 2, box[4] / 2
-        corners = np.array([[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]])
-        world = corners @ np.array([[c, s], [-s, c]]) + box[:2]
+        world = box_corners(box[None, :7])[0, :4, :2]  # the footprint, counter-clockwise from front-left
         ax.add_patch(Polygon(world, closed=True, fill=False, edgecolor=color, linewidth=1.2))
-        front = np.array([box[0] + c * hx, box[1] + s * hx])
+        front = world[[0, 3]].mean(axis=0)  # the middle of the front edge
         ax.plot([box[0], front[0]], [box[1], front[1]], color=color, linewidth=1.0)
         seen[name] = color
     ax.plot([0], [0], marker="^", color="black", markersize=6)

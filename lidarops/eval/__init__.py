@@ -2,7 +2,7 @@
 orientation metrics)::
 
     from lidarops.eval import kitti
-    text, results = kitti.evaluate(gt_annos, dt_annos, classes=("Car", "Pedestrian", "Cyclist"))
+    text, results = kitti.evaluate(gt_annos, dt_annos, classes=KITTI_CLASSES)   # lidarops.conventions
     print(text); results["Car_3d_moderate_R40"]
 
 Submodules are imported on first use (``import lidarops.eval`` loads nothing else).

@@ -42,7 +42,8 @@ from lidarops.data.formats.kitti import (
     kitti_fov_mask,
     read_label,
 )
-from lidarops.data.frame import CLASSES, Frame
+from lidarops.conventions import KITTI_CLASSES
+from lidarops.data.frame import Frame
 from lidarops.ops.boxes import box_iou_3d, box_iou_bev
 from lidarops.ops.validation import validation
 
@@ -163,7 +164,7 @@ def _numpy(value: Any) -> np.ndarray:
 
 
 def detection_annos(detection: Mapping[str, Any], calib: KittiCalib | None = None,
-                    image_size: tuple[int, int] = KITTI_IMAGE_SIZE, class_names: Sequence[str] = CLASSES,
+                    image_size: tuple[int, int] = KITTI_IMAGE_SIZE, class_names: Sequence[str] = KITTI_CLASSES,
                     index: int = 0) -> dict[str, np.ndarray]:
     """The annotation dict of one frame's LiDAR-frame detections.
 
@@ -173,11 +174,11 @@ def detection_annos(detection: Mapping[str, Any], calib: KittiCalib | None = Non
 
     Args:
         detection (dict): ``boxes`` (K, 7) ``x, y, z, dx, dy, dz, heading`` (LiDAR frame, z = centre),
-            ``scores`` (K,), and ``labels`` (K,) int indices into ``class_names`` or ``names`` (K,) str;
-            NumPy arrays or tensors.
+            ``scores`` (K,), and ``labels`` (K,) int class ids, 1-based into ``class_names`` (a model's
+            ``pred_labels``), or ``names`` (K,) str; NumPy arrays or tensors.
         calib (KittiCalib or None): calibration; default :meth:`KittiCalib.default`.
         image_size (tuple[int, int]): image (width, height).
-        class_names (sequence of str): names of ``labels``.
+        class_names (sequence of str): names of ``labels`` (label k is ``class_names[k - 1]``).
         index (int): the frame's index (for error messages).
 
     Raises:
@@ -201,12 +202,12 @@ def detection_annos(detection: Mapping[str, Any], calib: KittiCalib | None = Non
         names = _numpy(detection["names"]).astype(str).reshape(-1)
     elif "labels" in detection:
         labels = _numpy(detection["labels"]).reshape(-1)
-        if labels.size and (labels.dtype.kind not in "iu" or labels.min() < 0 or labels.max() >= len(class_names)):
-            raise ValueError(f"{where}['labels'] must be integer indices into {len(class_names)} class names "
-                             f"{tuple(class_names)}, got dtype {labels.dtype}, values {np.unique(labels)[:8].tolist()}")
-        names = np.array([class_names[i] for i in labels], dtype=str)
+        if labels.size and (labels.dtype.kind not in "iu" or labels.min() < 1 or labels.max() > len(class_names)):
+            raise ValueError(f"{where}['labels'] must be integer class ids 1..{len(class_names)} (1-based into "
+                             f"{tuple(class_names)}), got dtype {labels.dtype}, values {np.unique(labels)[:8].tolist()}")
+        names = np.array([class_names[i - 1] for i in labels], dtype=str)
     else:
-        raise ValueError(f"{where} needs 'labels' (indices into the class names) or 'names'")
+        raise ValueError(f"{where} needs 'labels' (class ids, 1-based into the class names) or 'names'")
     if names.shape[0] != k:
         raise ValueError(f"{where}: {names.shape[0]} labels/names for {k} boxes")
     if not (np.isfinite(boxes).all() and np.isfinite(scores).all()):
@@ -581,7 +582,7 @@ def _format(classes: Sequence[str], overlaps: np.ndarray, metrics: tuple[str, ..
 
 
 def evaluate(gt_annos: Sequence[Mapping], dt_annos: Sequence[Mapping],
-             classes: Sequence[str] = ("Car", "Pedestrian", "Cyclist"), min_overlaps: Mapping | None = None,
+             classes: Sequence[str] = KITTI_CLASSES, min_overlaps: Mapping | None = None,
              metrics: Sequence[str] = METRICS) -> tuple[str, dict[str, float]]:
     """KITTI's object evaluation: AP R11 and R40 per class, metric and difficulty, at the strict and the
     loose minimum overlaps.
@@ -661,10 +662,10 @@ def evaluate(gt_annos: Sequence[Mapping], dt_annos: Sequence[Mapping],
 
 
 def evaluate_lidar(gt_frames: Sequence[Frame], detections: Sequence[Mapping[str, Any]],
-                   classes: Sequence[str] = ("Car", "Pedestrian", "Cyclist"), calib: KittiCalib | None = None,
+                   classes: Sequence[str] = KITTI_CLASSES, calib: KittiCalib | None = None,
                    image_size: tuple[int, int] = KITTI_IMAGE_SIZE, min_overlaps: Mapping | None = None,
                    metrics: Sequence[str] = METRICS, camera_fov_only: bool = True,
-                   min_points: int = 1) -> tuple[str, dict[str, float]]:
+                   min_points: int = 1, class_names: Sequence[str] | None = None) -> tuple[str, dict[str, float]]:
     """:func:`evaluate` for frames and detections in lidarops' LiDAR box convention.
 
     Ground truths are the labels :func:`~lidarops.data.formats.kitti.write_kitti_frame` writes for each
@@ -677,11 +678,14 @@ def evaluate_lidar(gt_frames: Sequence[Frame], detections: Sequence[Mapping[str,
         gt_frames (sequence of Frame): ground-truth frames (``boxes``, ``labels`` into ``class_names``,
             ``visibility``).
         detections (sequence of dict): per frame ``{"boxes": (K, 7), "scores": (K,), "labels": (K,)}``
-            (``labels`` index :data:`lidarops.data.CLASSES`) or ``"names"`` instead of ``"labels"``.
+            (``labels`` 1-based into ``class_names``: what ``model.predict`` returns) or ``"names"`` instead of
+            ``"labels"``.
         classes, min_overlaps, metrics: as :func:`evaluate`.
         calib (KittiCalib or None): calibration; default :meth:`KittiCalib.default`.
         image_size (tuple[int, int]): image (width, height).
         camera_fov_only, min_points: which gt boxes get labels (as :func:`write_kitti_frame`).
+        class_names (sequence of str or None): the names of the detections' labels (the model's
+            ``class_names``); default ``classes``.
 
     Returns:
         (str, dict): as :func:`evaluate`.
@@ -694,11 +698,12 @@ def evaluate_lidar(gt_frames: Sequence[Frame], detections: Sequence[Mapping[str,
             raise ValueError(f"gt_frames[{i}] must be a lidarops.data.Frame, got {type(frame).__name__}")
     calib = calib or KittiCalib.default()
     gt_annos = [frame_annos(f, calib, image_size, camera_fov_only, min_points) for f in gt_frames]
-    dt_annos = [detection_annos(d, calib, image_size, index=i) for i, d in enumerate(detections)]
+    names = tuple(classes if class_names is None else class_names)
+    dt_annos = [detection_annos(d, calib, image_size, names, index=i) for i, d in enumerate(detections)]
     return evaluate(gt_annos, dt_annos, classes, min_overlaps, metrics)
 
 
-def count_difficulties(gt_annos: Sequence[Mapping], classes: Sequence[str] = ("Car", "Pedestrian", "Cyclist")
+def count_difficulties(gt_annos: Sequence[Mapping], classes: Sequence[str] = KITTI_CLASSES
                        ) -> dict[str, dict[str, int]]:
     """How many ground truths of each class count at each difficulty (as :func:`evaluate` counts them).
 
@@ -758,7 +763,7 @@ class KittiEvaluator:
         gt_annos, dt_annos = [], []
         for i, (pred, meta) in enumerate(zip(predictions, metas)):
             gt_annos.append(_item_annos(meta["annos"], i))
-            labels = _numpy(pred["labels"]).astype(np.int64) - 1
+            labels = _numpy(pred["labels"]).astype(np.int64)
             dt_annos.append(detection_annos({"boxes": pred["boxes"], "scores": pred["scores"], "labels": labels},
                                             meta.get("calib"), tuple(meta.get("image_size") or self.image_size),
                                             self.class_names, index=i))

@@ -1,24 +1,97 @@
-"""Models built on lidarops' ops.
+"""Models built on lidarops' ops, each readable top to bottom in one file, built from parts named by role.
 
-* :class:`PointPillars` (:mod:`lidarops.models.detector`): the PointPillars detector, OpenPCDet-compatible.
-* :class:`GraphedPointPillars` (:mod:`lidarops.models.graph`): its inference replayed as one CUDA graph.
-* :mod:`lidarops.models.weights`: the shipped checkpoints (``weights.load("pointpillars_synth")``).
-* :mod:`lidarops.models.boxes`: box coder, anchors, target assignment.
-* :mod:`lidarops.models.pointpillars`: the pillar feature net and the dense / sparse backbone (SSCATeR's too).
-* :mod:`lidarops.models.config`: YAML configs (OpenPCDet's schema).
+Detectors and their parts (OpenPCDet's names, so checkpoints and habits carry over):
 
+* :class:`PointPillars` (:mod:`~lidarops.models.pointpillars`): the detector; its parts ``vfe``
+  (:class:`PillarVFE`), ``map_to_bev`` (:class:`PointPillarScatter`), ``backbone_2d``
+  (:class:`BaseBEVBackbone`, dense or sparse) and ``dense_head`` (:class:`AnchorHeadSingle`) are importable
+  on their own; the box machinery is :mod:`~lidarops.models.anchors`, the losses
+  :mod:`~lidarops.models.losses`, the post-processing :mod:`~lidarops.models.postprocess`.
+* :class:`GraphedPointPillars` (:mod:`~lidarops.models.cuda_graph`): its inference as one CUDA graph.
+* :class:`SSCATeRPointPillars` (:mod:`~lidarops.models.sscater_pointpillars`): a LiDAR stream through
+  SSCATeR's recycling backbone.
+* :class:`PointPillarsConfig` (:mod:`~lidarops.models.config`): the typed config (YAML through
+  :func:`lidarops.config.load_config`).
+
+Files: :func:`load_model` builds whatever model a checkpoint names (through :data:`MODELS`);
+:mod:`~lidarops.models.weights` holds the shipped ones (``weights.load("pointpillars_synth")``).
 Submodules are imported on first use.
 """
 from __future__ import annotations
 
-from lidarops._lazy import lazy_attributes
+import importlib
+from pathlib import Path
+from typing import Any
 
-__all__ = ["PointPillars", "GraphedPointPillars", "PointPillarsConfig", "load_config", "weights"]
+from lidarops._lazy import lazy_attributes
+from lidarops._moved import moved_attributes
+
+__all__ = ["MODELS", "model_class", "load_model", "PointPillars", "PointPillarsConfig", "GraphedPointPillars",
+           "SSCATeRPointPillars", "PillarVFE", "PointPillarScatter", "BaseBEVBackbone", "AnchorHeadSingle",
+           "weights"]
+
+#: Every model a checkpoint can name, by ``model_class`` (the class name lidarops writes) and by the
+#: ``MODEL.NAME`` of OpenPCDet's configs: name -> (module, class). The one table; models register nothing.
+MODELS: dict[str, tuple[str, str]] = {
+    "PointPillars": ("lidarops.models.pointpillars", "PointPillars"),
+    "PointPillar": ("lidarops.models.pointpillars", "PointPillars"),  # OpenPCDet's MODEL.NAME
+}
+
+
+def model_class(name: str) -> type:
+    """The model class :data:`MODELS` names ``name``; ``ValueError`` listing the known names."""
+    entry = MODELS.get(name) if isinstance(name, str) else None
+    if entry is None:
+        raise ValueError(f"unknown model {name!r}: lidarops builds {sorted(MODELS)}")
+    return getattr(importlib.import_module(entry[0]), entry[1])
+
+
+def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu"):
+    """The model a checkpoint holds, built from the class and config it records and loaded with its weights
+    (strict: every key and shape must fit), in eval mode.
+
+    Args:
+        path: a checkpoint lidarops wrote (a training run's ``final.pth``, a shipped or exported model) or,
+            with ``config``, an OpenPCDet checkpoint.
+        config: the model config for a file that records none (an OpenPCDet checkpoint); its ``MODEL.NAME``
+            picks the class.
+        map_location: as ``torch.load``.
+
+    Raises:
+        FileNotFoundError, lidarops.checkpoint.CheckpointError: no such file, not a checkpoint, or weights
+            that do not fit (the message names the keys).
+        ValueError: a model class lidarops does not know.
+    """
+    from lidarops.checkpoint import CheckpointError, model_record, read_checkpoint
+
+    ckpt = read_checkpoint(path, map_location)
+    record = model_record(ckpt, str(path))
+    name = record.model_class
+    if name is None:
+        if config is None:
+            raise CheckpointError(f"{path} records no model (an OpenPCDet checkpoint?): pass config=... (a YAML "
+                                  "path or dict whose MODEL.NAME names the model)")
+        cfg = config
+        if isinstance(config, (str, Path)):
+            from lidarops.config import load_config
+
+            cfg = load_config(config)
+        name = cfg.get("MODEL", {}).get("NAME", "PointPillars") if isinstance(cfg, dict) else type(cfg).__name__
+        name = "PointPillars" if name == "PointPillarsConfig" else name
+    cls = model_class(name)
+    return cls.from_checkpoint(path, config=config, map_location=map_location).eval()
+
 
 __getattr__, __dir__ = lazy_attributes(__name__, {
-    "PointPillars": ("lidarops.models.detector", "PointPillars"),
-    "GraphedPointPillars": ("lidarops.models.graph", "GraphedPointPillars"),
+    "PointPillars": ("lidarops.models.pointpillars", "PointPillars"),
     "PointPillarsConfig": ("lidarops.models.config", "PointPillarsConfig"),
-    "load_config": ("lidarops.models.config", "load_config"),
+    "GraphedPointPillars": ("lidarops.models.cuda_graph", "GraphedPointPillars"),
+    "SSCATeRPointPillars": ("lidarops.models.sscater_pointpillars", "SSCATeRPointPillars"),
+    "PillarVFE": ("lidarops.models.pillar_vfe", "PillarVFE"),
+    "PointPillarScatter": ("lidarops.models.map_to_bev", "PointPillarScatter"),
+    "BaseBEVBackbone": ("lidarops.models.bev_backbone", "BaseBEVBackbone"),
+    "AnchorHeadSingle": ("lidarops.models.anchor_head", "AnchorHeadSingle"),
     "weights": "lidarops.models.weights",
 }, globals())
+__getattr__ = moved_attributes(__name__, {"PointPillarsBackbone": ("lidarops.models.bev_backbone", "BaseBEVBackbone")},
+                               fallback=__getattr__)

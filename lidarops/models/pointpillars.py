@@ -1,273 +1,242 @@
-"""PointPillars' pillar feature net and 2D backbone, dense and sparse (Lang et al., CVPR 2019).
+"""PointPillars, the detector (Lang et al., CVPR 2019), as OpenPCDet's ``pointpillar.yaml`` builds it.
+Read it top to bottom: the batch's points are voxelized into pillars on the device, then
 
-- :class:`PillarFeatureNet`: Linear (no bias) -> BatchNorm1d -> ReLU on the 9 decorated features of
-  each point, max over the points of a pillar (padding slots masked out). Pillars are independent in
-  eval mode, which is what lets SSCATeR recompute only the pillars whose points changed.
-- :class:`PointPillarsBackbone`: OpenPCDet's ``BaseBEVBackbone`` (three blocks of 3x3 convolutions, the
-  first of each block strided, transposed-convolution upsampling to a common grid, concatenated). The
-  module tree and parameter names are OpenPCDet's (``blocks.i.j``, ``deblocks.i.j``), so its PointPillars
-  checkpoints load; ``mode="sparse"`` runs the same parameters as the Sparse-PointPillars layout (a
-  strided sparse convolution at the start of each block, submanifold convolutions after it, sparse
-  transposed upsampling) and returns the same dense map shape.
-- :func:`scatter_to_bev`: the PointPillars scatter of pillar features into a dense pseudo-image.
+- ``vfe``: :class:`~lidarops.models.pillar_vfe.PillarVFE`, 10 features per point, a PointNet layer, the
+  max over each pillar's slots;
+- ``map_to_bev``: :class:`~lidarops.models.map_to_bev.PointPillarScatter`, pillar features into a dense
+  (B, C, ny, nx) pseudo-image;
+- ``backbone_2d``: :class:`~lidarops.models.bev_backbone.BaseBEVBackbone`, dense (cuDNN, OpenPCDet's
+  layout) or sparse (:mod:`lidarops.sparse`) with the same parameters;
+- ``dense_head``: :class:`~lidarops.models.anchor_head.AnchorHeadSingle`, class scores, box residuals and
+  direction bins over the anchors, with its losses and decoding;
+- :meth:`PointPillars.postprocess`: score threshold, top-k and rotated NMS
+  (:mod:`lidarops.models.postprocess`); :class:`~lidarops.models.cuda_graph.GraphedPointPillars` replays
+  the whole inference as one CUDA graph.
 
-Sparse semantics: a site is active when the sparse network reaches it (pillars with points; a strided
-convolution's output where any active input lies under its kernel; a transposed convolution's children
-of active inputs; submanifold layers keep their input's sites). Inactive sites are zero in the returned
-map, so ``mode="sparse"`` and ``mode="dense"`` differ wherever BatchNorm's shift or a convolution of
-zeros would make an inactive site non-zero in the dense network.
+Module and parameter names, shapes and the anchor order are OpenPCDet's, so an OpenPCDet PointPillars
+checkpoint (``checkpoint["model_state"]``) loads with ``strict=True`` and gives the same boxes.
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from pathlib import Path
+from typing import Any, Mapping
 
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from lidarops.ops.validation import check_tensor, describe
+from lidarops._moved import moved_attributes
+from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
+from lidarops.config import ConfigError, load_config
+from lidarops.models.anchor_head import AnchorHeadSingle
+from lidarops.models.bev_backbone import BaseBEVBackbone
+from lidarops.models.config import PointPillarsConfig
+from lidarops.models.map_to_bev import PointPillarScatter
+from lidarops.models.pillar_vfe import PillarVFE
+from lidarops.models.postprocess import postprocess
+from lidarops.ops.pillars import MAX_ABS_INTENSITY
+from lidarops.ops.validation import (check_positive_int, check_tensor, describe, run_value_checks,
+                                      value_checks_enabled)
 
-__all__ = ["PillarFeatureNet", "PointPillarsBackbone", "scatter_to_bev", "backbone_layers", "BackboneLayer"]
+__all__ = ["PointPillars", "CheckpointMismatchError"]
 
+# lidarops 0.1's lidarops.models.pointpillars held the backbone and SSCATeR's pillar net: those names moved
+__getattr__ = moved_attributes(__name__, {
+    "PointPillarsBackbone": ("lidarops.models.bev_backbone", "BaseBEVBackbone"),
+    "BackboneLayer": "lidarops.models.bev_backbone",
+    "backbone_layers": "lidarops.models.bev_backbone",
+    "scatter_to_bev": "lidarops.models.map_to_bev",
+    "PillarFeatureNet": "lidarops.models.sscater_pointpillars",
+})
 
-class PillarFeatureNet(nn.Module):
-    """Pillar feature net: one PointNet layer over the points of each pillar.
-
-    Args:
-        in_channels (int): decorated features per point (9: x, y, z, intensity, offsets to the pillar's
-            mean, offsets x, y to the pillar centre).
-        out_channels (int): features per pillar.
-
-    Shape:
-        ``forward(pillars)`` takes anything with ``features (Tensor[P, N, in_channels])`` and
-        ``num_points (Tensor[P])`` (the ``Pillars`` of :func:`lidarops.stream.pillarize`) and returns
-        Tensor[P, out_channels] in the parameters' dtype (features are cast to it), rows in the
-        pillars' order. Slots at or beyond ``num_points[p]`` are
-        padding: they take no part in BatchNorm's batch statistics nor in the max.
-    """
-
-    def __init__(self, in_channels: int = 9, out_channels: int = 64):
-        super().__init__()
-        self.in_channels, self.out_channels = in_channels, out_channels
-        self.linear = nn.Linear(in_channels, out_channels, bias=False)
-        self.norm = nn.BatchNorm1d(out_channels, eps=1e-3, momentum=0.01)
-
-    def forward(self, pillars) -> Tensor:
-        features, num_points = pillars.features, pillars.num_points
-        check_tensor(features, "pillars.features")
-        if features.dim() != 3 or features.shape[2] != self.in_channels:
-            raise ValueError(f"pillars.features must be (P, N, {self.in_channels}), got {describe(features)}")
-        if num_points.dim() != 1 or num_points.shape[0] != features.shape[0]:
-            raise ValueError(f"pillars.num_points must be ({features.shape[0]},), got {describe(num_points)}")
-        # pillarize / PillarStream give float32 features (the points' dtype); a float64 net widens them
-        features = features.to(self.linear.weight.dtype)
-        P, N, _ = features.shape
-        mask = torch.arange(N, device=features.device) < num_points.to(features.device).long()[:, None]  # (P, N)
-        if not N or not P:
-            return features.new_zeros(P, self.out_channels)
-        if features.is_cuda and not self.training:
-            # every slot, padding masked to zero afterwards: no boolean indexing, so no host sync
-            # (eval mode only: BatchNorm's batch statistics must see the real points alone)
-            x = torch.relu(self.norm(self.linear(features.reshape(P * N, -1)))).view(P, N, -1)
-            out = torch.where(mask[..., None], x, x.new_zeros(()))
-        else:  # only the real points (on CPU the padding would multiply the work)
-            x = self.linear(features[mask])
-            x = torch.relu(self.norm(x)) if x.shape[0] else x
-            out = features.new_zeros(P, N, self.out_channels)
-            out[mask] = x
-        # post-ReLU values are >= 0, so zero padding never wins the max over a non-empty pillar
-        return out.amax(dim=1)
+#: A state dict that does not fit the model's config (the message lists the keys that differ), or a file
+#: that is not a readable checkpoint: :class:`lidarops.checkpoint.CheckpointError` under its 0.1 name.
+CheckpointMismatchError = CheckpointError
 
 
-def scatter_to_bev(pillar_features: Tensor, coords: Tensor, shape: Sequence[int], batch_size: int = 1) -> Tensor:
-    """Dense pseudo-image (B, C, H, W) from pillar features (P, C) at int coords (P, 3) = (batch, y, x)."""
-    H, W = int(shape[0]), int(shape[1])
-    C = pillar_features.shape[1]
-    out = pillar_features.new_zeros(batch_size, H, W, C)
-    if coords.shape[0]:
-        c = coords.long()
-        out[c[:, 0], c[:, 1], c[:, 2]] = pillar_features
-    return out.permute(0, 3, 1, 2).contiguous()
-
-
-class BackboneLayer:
-    """One convolution of the backbone in sparse terms (what SSCATeR and the sparse mode run).
-
-    Attributes:
-        kind (str): ``"down"`` (strided 3x3, padding 1: regular sparse convolution), ``"subm"`` (3x3,
-            submanifold) or ``"up"`` (transposed, kernel = stride: each input site feeds its stride^2
-            children).
-        conv (nn.Conv2d | nn.ConvTranspose2d), norm (nn.BatchNorm2d): the modules holding the parameters.
-        stride (int), block (int): index of the block (or of the upsampling branch for ``"up"``).
-    """
-
-    def __init__(self, kind: str, conv: nn.Module, norm: nn.BatchNorm2d, stride: int, block: int):
-        self.kind, self.conv, self.norm, self.stride, self.block = kind, conv, norm, stride, block
-
-    def sparse_weight(self) -> Tensor:
-        """Weight in lidarops.sparse's layout [Cout, kh, kw, Cin]."""
-        w = self.conv.weight
-        if self.kind == "up":  # ConvTranspose2d: [Cin, Cout, kh, kw]
-            return w.permute(1, 2, 3, 0).contiguous()
-        return w.permute(0, 2, 3, 1).contiguous()
-
-    def folded_norm(self) -> tuple[Tensor, Tensor]:
-        """Eval-mode BatchNorm as (scale, shift): y = x * scale + shift."""
-        n = self.norm
-        scale = n.weight / torch.sqrt(n.running_var + n.eps)
-        return scale, n.bias - n.running_mean * scale
-
-
-def backbone_layers(backbone: "PointPillarsBackbone") -> list[BackboneLayer]:
-    """The backbone's convolutions in execution order: each block's layers, then the upsampling ones."""
-    layers = []
-    for b, block in enumerate(backbone.blocks):
-        mods = list(block)
-        convs = [(i, m) for i, m in enumerate(mods) if isinstance(m, nn.Conv2d)]
-        for j, (i, conv) in enumerate(convs):
-            norm = mods[i + 1]
-            layers.append(BackboneLayer("down" if j == 0 else "subm", conv, norm, conv.stride[0], b))
-    for b, deblock in enumerate(backbone.deblocks):
-        conv, norm = deblock[0], deblock[1]
-        layers.append(BackboneLayer("up", conv, norm, conv.stride[0], b))
-    return layers
-
-
-class PointPillarsBackbone(nn.Module):
-    """PointPillars' 2D backbone (OpenPCDet ``BaseBEVBackbone``), dense or sparse.
+class PointPillars(nn.Module):
+    """The PointPillars detector.
 
     Args:
-        in_channels (int): channels of the pillar pseudo-image.
-        layer_nums (Sequence[int]): 3x3 convolutions after the strided one, per block.
-        layer_strides (Sequence[int]): stride of each block's first convolution (2 in the sparse mode).
-        num_filters (Sequence[int]): channels of each block.
-        upsample_strides (Sequence[int]): stride (= kernel) of each block's transposed convolution.
-        num_upsample_filters (Sequence[int]): channels after upsampling, concatenated in the output.
-        mode (str): ``"dense"`` (the original network on a dense pseudo-image) or ``"sparse"``.
+        config (PointPillarsConfig | Mapping | str | Path): a typed config, a dict of its fields, an
+            OpenPCDet-schema dict (with ``MODEL``), or a YAML path (OpenPCDet's ``pointpillar.yaml`` or a
+            lidarops config).
 
-    Shape:
-        dense: ``forward(Tensor[B, in_channels, H, W])`` (a ``SparseConvTensor`` is densified first);
-        sparse: ``forward(SparseConvTensor)`` with 2D indices (batch, y, x) and features
-        (P, in_channels). Both return Tensor[B, sum(num_upsample_filters), H / s0 * u0, W / s0 * u0]
-        ((B, 384, H/2, W/2) with the defaults). The sparse mode's map is in ``torch.channels_last``
-        memory (same shape and values; ``.contiguous()`` gives channels-first memory).
+    Batch (OpenPCDet's keys): ``points (Tensor[P, 1 + C])`` with the frame's index in the batch in
+    column 0 then x, y, z, intensity; ``batch_size`` (int); in training ``gt_boxes (Tensor[B, M, 8])``
+    (7 box values + class id, 1-based into ``class_names``, 0 = padding).
+
+    ``forward(batch)`` returns the losses in training mode (``loss``, ``loss_cls``, ``loss_box``,
+    ``loss_dir``) and the raw head outputs in eval mode; :meth:`postprocess` turns those into
+    per-frame boxes, :meth:`predict` does both.
     """
 
-    def __init__(self, in_channels: int = 64, layer_nums: Sequence[int] = (3, 5, 5),
-                 layer_strides: Sequence[int] = (2, 2, 2), num_filters: Sequence[int] = (64, 128, 256),
-                 upsample_strides: Sequence[int] = (1, 2, 4), num_upsample_filters: Sequence[int] = (128, 128, 128),
-                 mode: str = "dense"):
+    def __init__(self, config: "PointPillarsConfig | Mapping | str | Path" = None):
         super().__init__()
-        if not (len(layer_nums) == len(layer_strides) == len(num_filters) == len(upsample_strides)
-                == len(num_upsample_filters)):
-            raise ValueError("layer_nums, layer_strides, num_filters, upsample_strides and num_upsample_filters "
-                             "must have the same length")
-        self.mode = self._check_mode(mode)
-        self.in_channels = in_channels
-        self.layer_strides = tuple(int(s) for s in layer_strides)
-        self.upsample_strides = tuple(int(s) for s in upsample_strides)
-        self.blocks, self.deblocks = nn.ModuleList(), nn.ModuleList()
-        c_in = in_channels
-        for c, n, s, u, cu in zip(num_filters, layer_nums, layer_strides, upsample_strides, num_upsample_filters):
-            layers = [nn.ZeroPad2d(1), nn.Conv2d(c_in, c, 3, stride=s, padding=0, bias=False),
-                      nn.BatchNorm2d(c, eps=1e-3, momentum=0.01), nn.ReLU()]
-            for _ in range(n):
-                layers += [nn.Conv2d(c, c, 3, padding=1, bias=False), nn.BatchNorm2d(c, eps=1e-3, momentum=0.01),
-                           nn.ReLU()]
-            self.blocks.append(nn.Sequential(*layers))
-            if u < 1:
-                raise ValueError(f"upsample_strides must be >= 1, got {tuple(upsample_strides)}")
-            self.deblocks.append(nn.Sequential(nn.ConvTranspose2d(c, cu, u, stride=u, bias=False),
-                                               nn.BatchNorm2d(cu, eps=1e-3, momentum=0.01), nn.ReLU()))
-            c_in = c
-        self.out_channels = int(sum(num_upsample_filters))
+        cfg = self.config = _as_config(config)
+        self.vfe = PillarVFE(cfg.num_point_features, cfg.voxel_size, cfg.point_cloud_range, cfg.vfe_num_filters,
+                             cfg.with_distance, cfg.use_absolute_xyz, cfg.use_norm)
+        self.map_to_bev = PointPillarScatter(self.vfe.out_channels, cfg.grid_size)
+        self.backbone_2d = BaseBEVBackbone(self.vfe.out_channels, cfg.layer_nums, cfg.layer_strides, cfg.num_filters,
+                                           cfg.upsample_strides, cfg.num_upsample_filters, mode=cfg.backbone_mode)
+        self.dense_head = AnchorHeadSingle(cfg, self.backbone_2d.out_channels)
+        self.register_buffer("global_step", torch.zeros(1, dtype=torch.long))  # OpenPCDet's Detector3DTemplate
 
-    @staticmethod
-    def _check_mode(mode: str) -> str:
-        if mode not in ("dense", "sparse"):
-            raise ValueError(f"mode must be 'dense' or 'sparse', got {mode!r}")
-        return mode
+    # ---------------------------------------------------------------- construction
+    @classmethod
+    def from_config(cls, config: "PointPillarsConfig | Mapping | str | Path") -> "PointPillars":
+        """A model with freshly initialised weights from a config (see the class docstring)."""
+        return cls(config)
 
-    def output_shape(self, shape: Sequence[int]) -> tuple[int, int]:
-        """(H_out, W_out) of the returned map for an input grid (H, W); ValueError when the upsampling
-        branches would reach different grids (e.g. H or W not divisible by 8 with the defaults)."""
-        H, W = int(shape[0]), int(shape[1])
-        outs = []
-        for s, u in zip(self.layer_strides, self.upsample_strides):
-            H, W = (H + 2 - 3) // s + 1, (W + 2 - 3) // s + 1
-            outs.append((H * u, W * u))
-        if len(set(outs)) != 1:
-            raise ValueError(f"the grid {tuple(int(v) for v in shape)} gives upsampled maps of different sizes "
-                             f"{outs}: choose H and W divisible by the product of layer_strides")
-        return outs[0]
+    @classmethod
+    def from_checkpoint(cls, path: "str | Path", config: "PointPillarsConfig | Mapping | str | Path | None" = None,
+                        map_location: "str | torch.device" = "cpu") -> "PointPillars":
+        """A model with weights from a lidarops checkpoint (it carries its config) or an OpenPCDet one
+        (``model_state``; give its ``config``). A state dict that does not fit raises
+        :class:`CheckpointMismatchError` naming the keys."""
+        ckpt = read_checkpoint(path, map_location)
+        record = model_record(ckpt, str(path))
+        if record.model_class not in (None, cls.__name__):
+            raise CheckpointError(f"{path} holds a {record.model_class}, not a {cls.__name__}: load it with "
+                                  "lidarops.models.load_model(path)")
+        if config is None:
+            config = record.config
+            if config is None:
+                raise ConfigError(f"{path} carries no model config (an OpenPCDet checkpoint?): pass config=...")
+        model = cls(config)
+        model.load_weights(model_state(ckpt, str(path)), source=str(path))
+        return model
 
-    def forward(self, x, mode: Optional[str] = None) -> Tensor:
-        mode = self.mode if mode is None else self._check_mode(mode)
-        from lidarops.sparse import SparseConvTensor  # lazy: the dense mode needs no extension
-        if mode == "dense":
-            if isinstance(x, SparseConvTensor):
-                x = x.dense(channels_first=True)
-            check_tensor(x, "x")
-            if x.dim() != 4 or x.shape[1] != self.in_channels:
-                raise ValueError(f"x must be (B, {self.in_channels}, H, W), got {describe(x)}")
-            self.output_shape(x.shape[2:])
-            ups = []
-            for block, deblock in zip(self.blocks, self.deblocks):
-                x = block(x)
-                ups.append(deblock(x))
-            return torch.cat(ups, dim=1)
-        if not isinstance(x, SparseConvTensor) or x.ndim != 2:
-            raise ValueError(f"mode='sparse' takes a 2D SparseConvTensor, got {type(x).__name__}"
-                             + (f" with {x.ndim} spatial dims" if isinstance(x, SparseConvTensor) else ""))
-        if x.features.shape[1] != self.in_channels:
-            raise ValueError(f"x.features must be (P, {self.in_channels}), got {describe(x.features)}")
-        self.output_shape(x.spatial_shape)
-        return self._forward_sparse(x)
+    def load_weights(self, state_dict: Mapping[str, Tensor], source: str = "state dict") -> None:
+        """``load_state_dict(strict=True)`` after checking keys and shapes, with one error naming every
+        missing, unexpected or differently shaped key."""
+        own = self.state_dict()
+        missing = [k for k in own if k not in state_dict]
+        unexpected = [k for k in state_dict if k not in own]
+        shapes = [f"{k}: checkpoint {tuple(state_dict[k].shape)} vs model {tuple(own[k].shape)}"
+                  for k in own if k in state_dict and tuple(state_dict[k].shape) != tuple(own[k].shape)]
+        if missing or unexpected or shapes:
+            parts = []
+            for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", shapes)):
+                if items:
+                    parts.append(f"{title} ({len(items)}): " + ", ".join(items[:8]) + (" ..." if len(items) > 8 else ""))
+            raise CheckpointMismatchError(f"{source} does not fit this PointPillars config "
+                                          f"(classes {self.config.class_names}): " + "; ".join(parts))
+        self.load_state_dict({k: v.to(own[k].dtype) for k, v in state_dict.items()}, strict=True)
 
-    def _forward_sparse(self, x) -> Tensor:
-        from lidarops.sparse import functional as Fs
-        layers = backbone_layers(self)
-        block_out = {}
-        for layer in layers:
-            if layer.kind == "down":
-                x = _conv_norm_relu(x, layer, "conv", stride=layer.stride, padding=1)
-            elif layer.kind == "subm":
-                x = _conv_norm_relu(x, layer, "subm", indice_key=f"subm{layer.block}")
-            else:
-                break
-            block_out[layer.block] = x
-        ups = [_conv_norm_relu(block_out[layer.block], layer, "transposed", stride=layer.stride)
-               for layer in layers if layer.kind == "up"]
-        # one zero map in channels_last memory, each branch's rows written into its channel slice: no
-        # per-branch dense map, transposing copy or concatenation (they were most of the CPU time)
-        H, W = ups[0].spatial_shape
-        out = ups[0].features.new_zeros(x.batch_size, H, W, sum(u.features.shape[1] for u in ups))
-        c0 = 0
-        for u in ups:
-            c1 = c0 + u.features.shape[1]
-            b, y, xx = u.indices.long().unbind(1)
-            out[b, y, xx, c0:c1] = u.features
-            c0 = c1
-        return out.permute(0, 3, 1, 2)  # (B, C, H, W), channels_last memory
+    # ---------------------------------------------------------------- the network
+    def voxelize(self, points: Tensor, batch_size: int) -> tuple[Tensor, Tensor, Tensor]:
+        """Pillars of every frame: ``voxels (V, N, C)``, ``num_points (V,)``, ``coords (V, 4)`` int32 =
+        (batch, z, y, x); pillars beyond the config's max voxels (train / test) are dropped."""
+        from lidarops.ops.voxelize import voxelize
+
+        cfg = self.config
+        max_voxels = cfg.max_voxels_train if self.training else cfg.max_voxels_test
+        frame = points[:, 0].long()
+        voxels, nums, coords = [], [], []
+        for b in range(batch_size):
+            pts = points[frame == b, 1:1 + cfg.num_point_features]
+            v, c, n = voxelize(pts, cfg.voxel_size, cfg.point_cloud_range, cfg.max_points_per_voxel, max_voxels,
+                               overflow="drop")
+            voxels.append(v)
+            nums.append(n)
+            coords.append(F.pad(c, (1, 0), value=b))
+        return torch.cat(voxels), torch.cat(nums), torch.cat(coords)
+
+    def network(self, voxels: Tensor, num_points: Tensor, coords: Tensor, batch_size: int) -> dict[str, Tensor]:
+        """Pillars -> raw head outputs (the part ``torch.export`` takes)."""
+        features = self.vfe(voxels, num_points, coords)
+        if self.config.backbone_mode == "dense":
+            bev = self.backbone_2d(self.map_to_bev(features, coords, batch_size))
+        else:
+            from lidarops.sparse import SparseConvTensor
+
+            nx, ny, _ = self.config.grid_size
+            x = SparseConvTensor(features, coords[:, [0, 2, 3]].int().contiguous(), [ny, nx], batch_size)
+            bev = self.backbone_2d(x)
+        return self.dense_head(bev)
+
+    def forward(self, batch: Mapping[str, Any]) -> dict[str, Tensor]:
+        weights = self.vfe.pfn_layers[0].linear.weight.dtype
+        points, batch_size = _check_batch(batch, self.config, self.training, weights)
+        raw = self.network(*self.voxelize(points, batch_size), batch_size)
+        if not self.training:
+            return raw
+        return self.dense_head.loss(raw, batch["gt_boxes"])
+
+    def postprocess(self, raw: Mapping[str, Tensor], batch: Mapping[str, Any] | None = None) -> list[dict]:
+        """Per-frame detections (see :func:`postprocess`) from the raw outputs of ``forward`` in eval mode."""
+        return postprocess(*self.dense_head.decode(raw), self.config)
+
+    @torch.no_grad()
+    def predict(self, batch: Mapping[str, Any]) -> list[dict]:
+        """Eval-mode forward and post-processing: one dict of ``boxes``, ``scores``, ``labels`` per frame."""
+        was_training = self.training
+        self.eval()
+        try:
+            return self.postprocess(self(batch), batch)
+        finally:
+            self.train(was_training)
 
 
-def _conv_norm_relu(x, layer: BackboneLayer, kind: str, **kw):
-    """The layer's sparse convolution, BatchNorm and ReLU: fused into the convolution's kernel in eval
-    mode without gradients (lidarops.sparse.functional.conv's epilogue), else three steps."""
-    from lidarops.sparse import functional as Fs
-    n = layer.norm
-    if not Fs.fusable_norm(x, n, layer.conv.weight):
-        return _norm_relu(Fs.conv(x, layer.sparse_weight(), None, kind, **kw), layer)
-    scale, shift = Fs.norm_affine(n)
-    w = Fs.cached_by_version(layer.conv, "_lidarops_sparse_weight", (layer.conv.weight,), layer.sparse_weight)
-    return Fs.conv(x, w, None, kind, **kw, scale=scale, shift=shift, relu=True)
+def _as_config(config) -> PointPillarsConfig:
+    if config is None:
+        return PointPillarsConfig()
+    if isinstance(config, PointPillarsConfig):
+        return config
+    if isinstance(config, (str, Path)):
+        return PointPillarsConfig.from_openpcdet(load_config(config))
+    if isinstance(config, Mapping):
+        return PointPillarsConfig.from_openpcdet(config) if "MODEL" in config else PointPillarsConfig.from_dict(config)
+    raise ConfigError(f"config must be a PointPillarsConfig, a dict or a YAML path, got {type(config).__name__}")
 
 
-def _norm_relu(x, layer: BackboneLayer):
-    """BatchNorm2d's parameters applied to the (N, C) features of the active sites, then ReLU."""
-    n = layer.norm
-    f = x.features
-    if f.shape[0] or not n.training:
-        f = F.batch_norm(f, n.running_mean, n.running_var, n.weight, n.bias,
-                         n.training and f.shape[0] > 1, n.momentum, n.eps)
-    return x.replace_feature(torch.relu(f))
+def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bool,
+                 dtype: torch.dtype = torch.float32) -> tuple[Tensor, int]:
+    if not isinstance(batch, Mapping) or "points" not in batch:
+        raise ValueError("batch must be a dict with 'points' (P, 1 + C) and 'batch_size' (OpenPCDet's keys)")
+    points = batch["points"]
+    check_tensor(points, "batch['points']")
+    c = cfg.num_point_features
+    if points.dim() != 2 or points.shape[1] < 1 + c or not points.is_floating_point():
+        raise ValueError(f"batch['points'] must be a floating (P, 1 + {c}) tensor (frame index, x, y, z, "
+                         f"intensity), got {describe(points)}")
+    batch_size = check_positive_int(batch.get("batch_size"), "batch['batch_size']")  # ints, NumPy ints; not 1.0
+    if points.dtype != dtype:  # the weights' dtype: float32 (OpenPCDet's), float16 after model.half()
+        points = points.to(dtype)
+    checks = []
+    if value_checks_enabled() and points.shape[0]:
+        frame, feats = points[:, 0], points[:, 4:1 + c]
+        # a point of another frame (or of none) would be silently left out of every frame
+        bad_frame = ~((frame >= 0) & (frame < batch_size) & (frame == frame.round()))
+        checks.append((bad_frame.any(), lambda: _bad_rows_message(
+            bad_frame, points[:, 0], f"batch['points'][:, 0] (frame index) must be an integer in [0, {batch_size})")))
+        if feats.shape[1]:
+            # non-finite x, y, z fall outside the point range (left out, as voxelize does); other
+            # features would enter a pillar and turn its features, then every box near it, into NaN
+            bad_feat = ~(feats.abs() <= MAX_ABS_INTENSITY).all(1)
+            checks.append((bad_feat.any(), lambda: _bad_rows_message(
+                bad_feat, feats, f"batch['points'][:, 4:] (intensity and other features) must be finite with "
+                f"|value| <= {MAX_ABS_INTENSITY:g}; drop such points first (lidarops.stream.invalid_points gives the "
+                "mask for intensity)")))
+    if training:
+        gt = batch.get("gt_boxes")
+        check_tensor(gt, "batch['gt_boxes']")
+        if gt.dim() != 3 or gt.shape[0] != batch_size or gt.shape[2] != 8:
+            raise ValueError(f"batch['gt_boxes'] must be (batch_size={batch_size}, M, 8) (box, class id), "
+                             f"got {describe(gt)}")
+        if value_checks_enabled() and gt.numel():
+            real = gt[..., 7] != 0  # class 0 rows are padding
+            box = gt[..., :7]
+            bad_box = real & ~(torch.isfinite(box).all(-1) & (box[..., 3:6] > 0).all(-1))
+            checks.append((bad_box.any(), lambda: _bad_rows_message(
+                bad_box.reshape(-1), gt.reshape(-1, 8), "batch['gt_boxes'] rows with a class must hold finite boxes "
+                "with sizes dx, dy, dz > 0")))
+    run_value_checks(checks)
+    return points, batch_size
+
+
+def _bad_rows_message(bad: Tensor, values: Tensor, expected: str) -> str:
+    rows = torch.nonzero(bad).flatten()
+    return (f"{expected}; {rows.numel()} row(s) are not, first row {int(rows[0])}: "
+            f"{values[int(rows[0])].tolist()}")

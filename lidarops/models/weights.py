@@ -5,9 +5,10 @@ without any download.
     model = weights.load("pointpillars_synth")          # PointPillars, Car / Pedestrian / Cyclist
     weights.available()                                  # names of the shipped checkpoints
 
-Each file holds ``model_state`` (float16 weights), ``model_config`` (the resolved
-:class:`~lidarops.models.config.PointPillarsConfig`), ``class_names``, the lidarops version, the data
-recipe, the training command and the evaluation of the model; ``docs/detector.md`` gives the same in prose.
+Each file is a :mod:`lidarops.checkpoint` file: ``model_state`` (float16 weights), the model's class and
+resolved config, ``class_names``, the lidarops version, the data recipe, the training command and the
+evaluation of the model; :func:`load` builds the model the file names (:func:`lidarops.models.load_model`).
+``docs/train.md`` lists the shipped files with their recipes.
 """
 from __future__ import annotations
 
@@ -34,38 +35,37 @@ def path(name: str = DEFAULT) -> Path:
 
 def info(name: str = DEFAULT) -> dict:
     """Everything a shipped checkpoint says about itself except the weights."""
-    from lidarops.models.detector import read_checkpoint
+    from lidarops.checkpoint import read_checkpoint
 
     ckpt = read_checkpoint(path(name))
     return {k: v for k, v in ckpt.items() if k != "model_state"}
 
 
 def load(name: str = DEFAULT, map_location="cpu"):
-    """The shipped model ``name`` in eval mode (float32 weights)."""
-    from lidarops.models.detector import PointPillars
+    """The shipped model ``name`` in eval mode (float32 weights), of the class its file records."""
+    from lidarops.models import load_model
 
-    return PointPillars.from_checkpoint(path(name), map_location=map_location).eval()
+    return load_model(path(name), map_location=map_location)
 
 
 def export(checkpoint: "str | Path", out: "str | Path", **extra) -> Path:
     """Writes a shippable file from a training checkpoint (``lidarops train``'s ``final.pth``): the model's
     weights in float16, its config, class names, data recipe, training command and evaluation, without
     the optimizer state. ``extra`` entries (e.g. ``evaluation=...``) are added."""
-    import torch
-
-    from lidarops.models.detector import read_checkpoint
+    from lidarops.checkpoint import format_fields, model_record, read_checkpoint, save_checkpoint
 
     ckpt = read_checkpoint(checkpoint)
-    if not isinstance(ckpt, dict) or "model_state" not in ckpt or "model_config" not in ckpt:
-        raise ValueError(f"{checkpoint}: not a lidarops training checkpoint of a detector (needs model_state and "
-                         f"model_config)")
+    record = model_record(ckpt, str(checkpoint))
+    if "model_state" not in ckpt or record.config is None:
+        raise ValueError(f"{checkpoint}: not a lidarops checkpoint of a model (needs model_state and model_config)")
     state = {k: (v.half() if v.is_floating_point() else v) for k, v in ckpt["model_state"].items()}
-    keep = ("model_config", "class_names", "config_path", "data_recipe", "train_command", "lidarops_version",
-            "epoch", "it", "elapsed_s", "frames", "config")
-    shipped = {"model_state": state, **{k: ckpt[k] for k in keep if k in ckpt}, **extra}
+    keep = ("config_path", "data_recipe", "train_command", "epoch", "it", "elapsed_s", "frames", "config")
+    shipped = {**format_fields(), "model_class": record.model_class, "model_config": record.config,
+               "class_names": list(record.class_names or ()), "model_state": state,
+               **{k: ckpt[k] for k in keep if k in ckpt}, **extra}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(shipped, str(out))
+    save_checkpoint(shipped, [out])
     return out
 
 

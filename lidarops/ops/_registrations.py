@@ -2,7 +2,8 @@
 
 Schemas: ``csrc/ops/neighbors.cpp`` (fps, knn, ball_query, gather, gather_backward), ``checks.cpp``
 (value_flags), ``voxelize.cpp`` (voxelize_assign, voxelize_scatter), ``boxes.cpp`` (box_overlap_bev,
-box_iou_bev, box_iou_3d, nms_bev, nms_bev_padded, nms_bev_checked, points_in_boxes). No op of this
+box_iou_bev, box_iou_3d, nms_bev, nms_bev_padded, nms_bev_checked, points_in_boxes), ``pillar_stream.cpp``
+(pillar_decorate, the one-shot pillarization's decoration). No op of this
 package has a C++ autograd kernel (``csrc/ops/autograd``): every formula is here, and every backward is
 made of registered ops (gather / gather_backward) or ATen ops, so it works on every device, under
 torch.compile, and twice (double backward).
@@ -228,3 +229,10 @@ def _scatter_backward(ctx, grad):
 
 
 torch.library.register_autograd("lidarops::voxelize_scatter", _scatter_backward, setup_context=_scatter_setup)
+
+
+# pillars (lidarops.ops.pillars; schema in csrc/ops/pillar_stream.cpp): keeps the (P, N) of its input
+@torch.library.register_fake("lidarops::pillar_decorate")
+def _pillar_decorate_fake(raw, num_points, coords, pillar_size, origin):
+    torch._check(raw.dim() == 3 and raw.shape[2] == 4, lambda: f"raw must be (P, N, 4), got {raw.shape}")
+    return raw.new_empty((raw.shape[0], raw.shape[1], 9))

@@ -17,10 +17,11 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import math
-import operator
 from typing import Iterator, Sequence
 
 import torch
+
+from lidarops._checks import positive_int
 
 # A ContextVar rather than a module global: each thread (and asyncio task) sees its own value, and a
 # new thread starts with the default (checks on).
@@ -89,20 +90,12 @@ def check_same_device(tensors: Sequence[tuple[str, torch.Tensor]]) -> None:
 
 
 def check_positive_int(v, name: str) -> int:
+    """An int >= 1 (ints, NumPy ints, one-element integer tensors), else ``ValueError`` naming ``name``."""
     if isinstance(v, torch.Tensor):
         if v.numel() != 1 or v.is_floating_point() or v.is_complex() or v.dtype == torch.bool:
             raise ValueError(f"{name} must be a positive int, got {describe(v)}")
         v = int(v)
-    elif isinstance(v, bool):
-        raise ValueError(f"{name} must be a positive int, got {v!r}")
-    else:
-        try:  # int, NumPy integers, anything with __index__ (not floats)
-            v = operator.index(v)
-        except TypeError:
-            raise ValueError(f"{name} must be a positive int, got {v!r}") from None
-    if v <= 0:
-        raise ValueError(f"{name} must be a positive int, got {v}")
-    return v
+    return positive_int(v, name)
 
 
 def lengths_or_full(lengths, like: torch.Tensor, name: str) -> torch.Tensor:

@@ -2,7 +2,7 @@
 
 Conventions (identical on CPU and CUDA, deterministic):
 
-- **Grid.** ``point_range = (x0, y0, z0, x1, y1, z1)`` must hold a whole number of voxels per axis:
+- **Grid.** ``point_cloud_range = (x0, y0, z0, x1, y1, z1)`` must hold a whole number of voxels per axis:
   ``D_x = (x1 - x0) / vx`` and so on (up to float rounding). ``info.grid_shape = (D_z, D_y, D_x)``
   is the ``spatial_shape`` of the sparse tensor built from the coords.
 - **Which points are voxelized.** A point is voxelized when ``x0 <= x < x1``, ``y0 <= y < y1`` and
@@ -46,6 +46,7 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
+from lidarops._moved import renamed_kwargs
 from lidarops.ops.validation import check_output_size, check_positive_int, check_tensor, describe
 
 extension.load()
@@ -73,8 +74,8 @@ class VoxelizeInfo(NamedTuple):
 
     num_voxels: int | Tensor            # V, voxels returned
     num_voxels_needed: int | Tensor     # distinct voxels holding a point in range (> V if some dropped)
-    num_in_range: int | Tensor          # points inside point_range
-    num_out_of_range: int | Tensor      # points outside point_range (not voxelized; not a drop)
+    num_in_range: int | Tensor          # points inside point_cloud_range
+    num_out_of_range: int | Tensor      # points outside point_cloud_range (not voxelized; not a drop)
     num_dropped: int | Tensor           # points in range that are not in the output
     num_dropped_max_voxels: int | Tensor   # ... because their voxel came after the first max_voxels
     num_dropped_max_points: int | Tensor   # ... because their voxel already had max_points_per_voxel
@@ -118,7 +119,7 @@ class VoxelizeResult(_VoxelTriple):
 
 # ---- argument handling ----
 
-def _numbers(value, n: int, name: str) -> list[float]:
+def float_list(value, n: int, name: str) -> list[float]:
     """``n`` real numbers from a list, tuple, array or tensor; strings, sets, dicts, bools and complex
     numbers are refused (``float("0.5")`` or a set's arbitrary order would pass silently)."""
     given = value
@@ -133,54 +134,55 @@ def _numbers(value, n: int, name: str) -> list[float]:
 
 
 def _check_voxel_size(voxel_size) -> list[float]:
-    vs = _numbers(voxel_size, 3, "voxel_size")
+    vs = float_list(voxel_size, 3, "voxel_size")
     if not all(math.isfinite(v) and v > 0 for v in vs):
         raise ValueError(f"voxel_size must be 3 finite positive numbers (x, y, z), got {vs}")
     return vs
 
 
-def _check_point_range(point_range) -> list[float]:
-    pr = _numbers(point_range, 6, "point_range")
+def _check_point_range(point_cloud_range) -> list[float]:
+    pr = float_list(point_cloud_range, 6, "point_cloud_range")
     if not all(math.isfinite(v) for v in pr):
-        raise ValueError(f"point_range must be 6 finite numbers (x0, y0, z0, x1, y1, z1), got {pr}")
+        raise ValueError(f"point_cloud_range must be 6 finite numbers (x0, y0, z0, x1, y1, z1), got {pr}")
     for a, axis in enumerate("xyz"):
         if not pr[a] < pr[a + 3]:
-            raise ValueError(f"point_range must be (x0, y0, z0, x1, y1, z1) with {axis}0 < {axis}1, got "
+            raise ValueError(f"point_cloud_range must be (x0, y0, z0, x1, y1, z1) with {axis}0 < {axis}1, got "
                              f"{axis}0={pr[a]}, {axis}1={pr[a + 3]} (inverted or empty range)")
     return pr
 
 
-def _grid_size(voxel_size: list[float], point_range: list[float]) -> list[int]:
+def _grid_size(voxel_size: list[float], point_cloud_range: list[float]) -> list[int]:
     """Cells along x, y, z; the range must be a whole number of voxels."""
     dims = []
     for a, axis in enumerate("xyz"):
-        extent = point_range[a + 3] - point_range[a]
+        extent = point_cloud_range[a + 3] - point_cloud_range[a]
         n = extent / voxel_size[a]
         d = round(n)
         if d > _MAX_DIM:
-            raise ValueError(f"point_range / voxel_size make a grid of {n:.4g} cells along {axis} (extent {extent:g}, "
+            raise ValueError(f"point_cloud_range / voxel_size make a grid of {n:.4g} cells along {axis} (extent {extent:g}, "
                              f"voxel_size {voxel_size[a]:g}); at most 2^24 are supported")
         if d < 1 or abs(n - d) > 1e-3 + 1e-6 * d:
             raise ValueError(
-                f"point_range must hold a whole number of voxels per axis: the {axis} extent "
-                f"{extent:g} is {n:.6g} voxels of voxel_size {voxel_size[a]:g}; adjust point_range or voxel_size")
+                f"point_cloud_range must hold a whole number of voxels per axis: the {axis} extent "
+                f"{extent:g} is {n:.6g} voxels of voxel_size {voxel_size[a]:g}; adjust point_cloud_range or voxel_size")
         dims.append(int(d))
     if math.prod(dims) >= _MAX_CELLS:
-        raise ValueError(f"point_range / voxel_size make a grid of {dims[0]} x {dims[1]} x {dims[2]} = "
+        raise ValueError(f"point_cloud_range / voxel_size make a grid of {dims[0]} x {dims[1]} x {dims[2]} = "
                          f"{math.prod(dims):.4g} cells; at most 2^62 are supported (larger voxels or a smaller range)")
     return dims
 
 
-def voxel_grid_shape(voxel_size: Sequence[float], point_range: Sequence[float]) -> tuple[int, int, int]:
+@renamed_kwargs(point_range="point_cloud_range")
+def voxel_grid_shape(voxel_size: Sequence[float], point_cloud_range: Sequence[float]) -> tuple[int, int, int]:
     """``(D_z, D_y, D_x)``: cells of the grid along z, y, x (the ``spatial_shape`` of the coords).
 
-    Raises ValueError when ``point_range`` is not a whole number of voxels per axis.
+    Raises ValueError when ``point_cloud_range`` is not a whole number of voxels per axis.
     """
-    dx, dy, dz = _grid_size(_check_voxel_size(voxel_size), _check_point_range(point_range))
+    dx, dy, dz = _grid_size(_check_voxel_size(voxel_size), _check_point_range(point_cloud_range))
     return dz, dy, dx
 
 
-def _check_points(points) -> None:
+def check_points(points) -> None:
     check_tensor(points, "points")
     if points.dim() != 2 or points.shape[1] < 3:
         raise ValueError(f"points must be (N, C) with C >= 3 (x, y, z first), got {describe(points)}")
@@ -189,14 +191,14 @@ def _check_points(points) -> None:
     extension.check_device(points, "points")
 
 
-def _check_capacity(v, name: str) -> int:
+def check_capacity(v, name: str) -> int:
     v = check_positive_int(v, name)
     if v > _INT32_MAX:
         raise ValueError(f"{name} must be below 2^31, got {v}")
     return v
 
 
-def _check_overflow(overflow, padded) -> None:
+def check_overflow(overflow, padded) -> None:
     if overflow not in ("raise", "drop"):
         raise ValueError(f"overflow must be 'raise' or 'drop', got {overflow!r}")
     if not isinstance(padded, bool):
@@ -208,7 +210,7 @@ def _check_overflow(overflow, padded) -> None:
 
 # ---- the two steps, shared with pillarization and the spconv face ----
 
-def _assign(points: Tensor, voxel_size: list[float], point_range: list[float], grid_size: list[int],
+def _assign(points: Tensor, voxel_size: list[float], point_cloud_range: list[float], grid_size: list[int],
             max_points: int, max_voxels: int, overflow: str, padded: bool, method: int = 0,
             names: tuple[str, str, str] = ("voxel", "max_points_per_voxel", "max_voxels"), caller: str = "voxelize"):
     """Run lidarops::voxelize_assign; return (coords, num_points, point_voxel, point_slot, counts) where
@@ -222,7 +224,7 @@ def _assign(points: Tensor, voxel_size: list[float], point_range: list[float], g
     check_output_size((rows, max_points, points.shape[1]), asked, f"{noun}s",
                       f"lower {points_arg}" + (f" or {voxels_arg}" if padded else ""))
     coords, num_points, point_voxel, point_slot, stats = torch.ops.lidarops.voxelize_assign(
-        points, voxel_size, point_range, grid_size, max_points, rows, method)
+        points, voxel_size, point_cloud_range, grid_size, max_points, rows, method)
     counts = stats.unbind(0) if padded else stats.tolist()
     if not padded and overflow == "raise":
         _raise_on_overflow(counts, max_points, max_voxels, names, caller)
@@ -261,12 +263,12 @@ def _info(counts, n_points: int, grid_size: list[int], point_voxel: Tensor, poin
         grid_shape=(grid_size[2], grid_size[1], grid_size[0]), point_voxel=point_voxel, point_slot=point_slot)
 
 
-def _voxelize(points: Tensor, voxel_size: list[float], point_range: list[float], grid_size: list[int],
+def voxelize_checked(points: Tensor, voxel_size: list[float], point_cloud_range: list[float], grid_size: list[int],
               max_points: int, max_voxels: int, overflow: str, padded: bool, method: int,
               names: tuple[str, str, str] = ("voxel", "max_points_per_voxel", "max_voxels"),
               caller: str = "voxelize") -> VoxelizeResult:
     coords, num_points, point_voxel, point_slot, counts = _assign(
-        points, voxel_size, point_range, grid_size, max_points, max_voxels, overflow, padded, method, names, caller)
+        points, voxel_size, point_cloud_range, grid_size, max_points, max_voxels, overflow, padded, method, names, caller)
     rows = max_voxels if padded else counts[_S_VOXELS]
     voxels = torch.ops.lidarops.voxelize_scatter(points, point_voxel, point_slot, rows, max_points)
     if not padded:
@@ -275,7 +277,8 @@ def _voxelize(points: Tensor, voxel_size: list[float], point_range: list[float],
     return VoxelizeResult(voxels, coords, num_points, info)
 
 
-def voxelize(points: Tensor, voxel_size: Sequence[float], point_range: Sequence[float], max_points_per_voxel: int,
+@renamed_kwargs(point_range="point_cloud_range")
+def voxelize(points: Tensor, voxel_size: Sequence[float], point_cloud_range: Sequence[float], max_points_per_voxel: int,
              max_voxels: int, overflow: str = "raise", *, padded: bool = False,
              method: str = "auto") -> VoxelizeResult:
     """Group points into voxels (hard voxelization, as in VoxelNet, SECOND and PointPillars).
@@ -284,8 +287,8 @@ def voxelize(points: Tensor, voxel_size: Sequence[float], point_range: Sequence[
         points (Tensor[N, C]): C >= 3 features per point, x, y, z in columns 0..2 (e.g. x, y, z,
             intensity); float32/float64/float16/bfloat16, CPU or CUDA. Non-contiguous is fine.
         voxel_size (sequence of 3 floats): voxel edge along x, y, z (> 0). A z size equal to the z
-            extent of ``point_range`` gives pillars (PointPillars): coords z is then 0.
-        point_range (sequence of 6 floats): ``(x0, y0, z0, x1, y1, z1)``, a whole number of voxels
+            extent of ``point_cloud_range`` gives pillars (PointPillars): coords z is then 0.
+        point_cloud_range (sequence of 6 floats): ``(x0, y0, z0, x1, y1, z1)``, a whole number of voxels
             per axis; points outside ``[x0, x1) x [y0, y1) x [z0, z1)`` are not voxelized.
         max_points_per_voxel (int): P, slots per voxel.
         max_voxels (int): most voxels returned.
@@ -318,31 +321,31 @@ def voxelize(points: Tensor, voxel_size: Sequence[float], point_range: Sequence[
     in float32, same coords layout and dtypes, first-seen order as in their CPU paths; see
     ``lidarops.compat.spconv_utils.PointToVoxel`` for the drop-in face.
     """
-    _check_points(points)
+    check_points(points)
     vs = _check_voxel_size(voxel_size)
-    pr = _check_point_range(point_range)
+    pr = _check_point_range(point_cloud_range)
     grid = _grid_size(vs, pr)
-    P = _check_capacity(max_points_per_voxel, "max_points_per_voxel")
-    M = _check_capacity(max_voxels, "max_voxels")
-    _check_overflow(overflow, padded)
+    P = check_capacity(max_points_per_voxel, "max_points_per_voxel")
+    M = check_capacity(max_voxels, "max_voxels")
+    check_overflow(overflow, padded)
     if not isinstance(method, str) or method not in _METHODS:
         raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
     if points.device.type == "meta" and not padded:
         raise ValueError("points on the meta device: the voxel count is data, so meta tensors need padded=True")
-    return _voxelize(points, vs, pr, grid, P, M, overflow, padded, _METHODS[method])
+    return voxelize_checked(points, vs, pr, grid, P, M, overflow, padded, _METHODS[method])
 
 
 # ---- pure-Python reference (dict-based first-seen loop), used by the tests ----
 
-def _voxelize_reference(points: Tensor, voxel_size, point_range, max_points_per_voxel: int, max_voxels: int,
+def _voxelize_reference(points: Tensor, voxel_size, point_cloud_range, max_points_per_voxel: int, max_voxels: int,
                         grid_size=None) -> dict:
     """NumPy reference of voxelize with overflow='drop'. ``grid_size`` (x, y, z) defaults to the
-    whole number of voxels in ``point_range``; ``point_range`` upper bounds may be +inf."""
+    whole number of voxels in ``point_cloud_range``; ``point_cloud_range`` upper bounds may be +inf."""
     ct = np.float64 if points.dtype == torch.float64 else np.float32
     p = points.detach().cpu().to(torch.float64 if ct is np.float64 else torch.float32).numpy()
     N, C = p.shape
     vs = np.array([float(v) for v in voxel_size], dtype=np.float64)
-    pr = [float(v) for v in point_range]
+    pr = [float(v) for v in point_cloud_range]
     if grid_size is None:
         grid_size = [int(round((pr[a + 3] - pr[a]) / vs[a])) for a in range(3)]
     lo = np.array(pr[:3], dtype=ct)

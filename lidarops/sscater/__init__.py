@@ -1,25 +1,25 @@
-"""SSCATeR: sparse scatter-based convolution with temporal data recycling (Hunt et al.).
+"""SSCATeR: sparse scatter-based convolution with temporal data recycling (Hunt et al.), the engine.
 
-- :class:`lidarops.sscater.delta.DeltaBackbone`: the recycling state of a PointPillars backbone.
-- :class:`lidarops.sscater.pointpillars.SSCATeRPointPillars`: stream -> pillars -> PFN -> backbone,
-  recomputing only what changed.
+- :class:`lidarops.sscater.delta.DeltaBackbone`: the recycling state of a BEV backbone, built from a list
+  of :class:`~lidarops.sscater.delta.DeltaLayer` (what it reads of each convolution); it imports no model.
 - :mod:`lidarops.sscater.ops`: validated wrappers of the ``torch.ops.lidarops.sscater_*`` ops and their
   float64 references.
-- :mod:`lidarops.sscater.models`: seeded PointPillars fronts and the BatchNorm calibration for a ReLU zero
-  share (used by ``lidarops stream``, ``benchmarks/bm_sscater.py`` and ``benchmarks/profile/``).
 
-Imports are lazy so that loading the extension (which imports this package's fake kernels) stays light.
+The streaming detector front built on it (stream -> pillars -> PFN -> DeltaBackbone) is
+:class:`lidarops.models.SSCATeRPointPillars`. Imports are lazy so that loading the extension (which
+imports this package's fake kernels) stays light.
 """
 from __future__ import annotations
 
-import importlib
+from lidarops._lazy import lazy_attributes
+from lidarops._moved import moved_attributes
 
-__all__ = ["DeltaBackbone", "Change", "LayerStats", "SSCATeRPointPillars"]
+__all__ = ["DeltaBackbone", "DeltaLayer", "Change", "LayerStats"]
 
-_WHERE = {"DeltaBackbone": "delta", "Change": "delta", "LayerStats": "delta", "SSCATeRPointPillars": "pointpillars"}
-
-
-def __getattr__(name):
-    if name in _WHERE:
-        return getattr(importlib.import_module(f"lidarops.sscater.{_WHERE[name]}"), name)
-    raise AttributeError(f"module 'lidarops.sscater' has no attribute {name!r}")
+_lazy_getattr, __dir__ = lazy_attributes(__name__, {
+    "DeltaBackbone": ("lidarops.sscater.delta", "DeltaBackbone"),
+    "DeltaLayer": ("lidarops.sscater.delta", "DeltaLayer"),
+    "Change": ("lidarops.sscater.delta", "Change"),
+    "LayerStats": ("lidarops.sscater.delta", "LayerStats"),
+}, globals())
+__getattr__ = moved_attributes(__name__, fallback=_lazy_getattr)

@@ -1,4 +1,4 @@
-"""SSCATeR's recycling backbone: a PointPillars backbone whose every convolution keeps its output and
+"""SSCATeR's recycling backbone: a BEV backbone whose every convolution keeps its output and
 updates it by ``acc += (I_curr - I_prev) (*) W`` on the changed sites only (Hunt et al., SSCATeR,
 equation 2), with change maps propagated through BatchNorm/ReLU, strided and transposed convolutions
 (Algorithm 1).
@@ -39,14 +39,39 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Protocol, Sequence, runtime_checkable
 
 import torch
 from torch import Tensor
 
-from lidarops.models.pointpillars import BackboneLayer, PointPillarsBackbone, backbone_layers
+__all__ = ["Change", "DeltaBackbone", "LayerStats", "DeltaLayer"]
 
-__all__ = ["Change", "DeltaBackbone", "LayerStats"]
+
+@runtime_checkable
+class DeltaLayer(Protocol):
+    """What :class:`DeltaBackbone` reads of one convolution of a BEV backbone (a PointPillars
+    ``BaseBEVBackbone``: :meth:`lidarops.models.BaseBEVBackbone.delta_layers` lists its own).
+
+    Attributes:
+        kind (str): ``"down"`` (strided 3x3, padding 1: a regular sparse convolution, the first of a
+            block), ``"subm"`` (3x3 submanifold, the rest of the block) or ``"up"`` (transposed, kernel =
+            stride: each input site feeds its stride^2 children; one per block, after the blocks).
+        block (int): the block the layer belongs to (for ``"up"``: the block it upsamples).
+        stride (int): the convolution's stride.
+
+    ``sparse_weight()`` is the weight in :mod:`lidarops.sparse`'s layout ``[Cout, kh, kw, Cin]`` and
+    ``folded_norm()`` the eval-mode BatchNorm after it as ``(scale, shift)``: ``y = relu(x * scale +
+    shift)``; both are read again by :meth:`DeltaBackbone.reload`. Layers come in execution order: each
+    block's ``down`` then its ``subm`` layers, then the ``up`` layers.
+    """
+
+    kind: str
+    block: int
+    stride: int
+
+    def sparse_weight(self) -> Tensor: ...
+
+    def folded_norm(self) -> tuple[Tensor, Tensor]: ...
 
 
 @dataclass
@@ -83,7 +108,7 @@ class LayerStats:
 
 
 class _Layer:
-    def __init__(self, spec: BackboneLayer, dtype, device, in_shape, out_shape, name: str):
+    def __init__(self, spec: DeltaLayer, dtype, device, in_shape, out_shape, name: str):
         self.kind, self.block, self.name = spec.kind, spec.block, name
         self.stride = spec.stride if spec.kind != "subm" else 1
         self.padding = 0 if spec.kind == "up" else 1
@@ -112,14 +137,16 @@ def _keys(sites: Tensor, W: int) -> Tensor:
 
 
 class DeltaBackbone:
-    """Recycling state of a :class:`PointPillarsBackbone` on one (H, W) pillar grid (batch 1, eval mode).
+    """Recycling state of a BEV backbone's convolutions on one (H, W) pillar grid (batch 1, eval mode).
 
     Args:
-        backbone (PointPillarsBackbone): its parameters and BatchNorm running statistics are copied
-            (folded) at construction; call :meth:`reload` after changing them.
+        layers (sequence of DeltaLayer, or a backbone with ``delta_layers()``): the convolutions in
+            execution order (see :class:`DeltaLayer`); their weights and BatchNorm running statistics are
+            copied (folded) at construction; call :meth:`reload` after changing them. A backbone module
+            (e.g. :class:`lidarops.models.BaseBEVBackbone`) must be in eval mode.
         shape (tuple[int, int]): the pillar grid (H, W).
         dtype (torch.dtype): float32 or float64 state.
-        device: where the state lives (default: the backbone's).
+        device: where the state lives (default: the layers' weights').
         sync_free (bool): never trim the site lists on the host; each op reads the previous op's row
             count from the device instead, so a step makes no host synchronisation between layers
             (default: on CUDA, where a sync stalls the launch queue; on CPU reading a count is free
@@ -136,16 +163,15 @@ class DeltaBackbone:
     ``torch.channels_last`` (call ``.contiguous()`` for channels-first memory).
     """
 
-    def __init__(self, backbone: PointPillarsBackbone, shape, dtype: torch.dtype = torch.float32, device=None,
+    def __init__(self, layers: "Sequence[DeltaLayer]", shape, dtype: torch.dtype = torch.float32, device=None,
                  sync_free: Optional[bool] = None, cuda_graph: Optional[bool] = None, state_check: bool = True):
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-        if backbone.training:
-            raise ValueError("the backbone must be in eval mode (SSCATeR folds BatchNorm's running statistics)")
-        self.backbone = backbone
+        self._layer_source = self._as_layer_source(layers)
+        first = self._layer_source()[0].sparse_weight()
         self.shape = (int(shape[0]), int(shape[1]))
         self.dtype = dtype
-        self.device = torch.device(device) if device is not None else next(backbone.parameters()).device
+        self.device = torch.device(device) if device is not None else first.device
         self.sync_free = self.device.type == "cuda" if sync_free is None else bool(sync_free)
         self.cuda_graph = self.sync_free and self.device.type == "cuda" if cuda_graph is None else bool(cuda_graph)
         if self.cuda_graph and not (self.sync_free and self.device.type == "cuda"):
@@ -156,12 +182,28 @@ class DeltaBackbone:
 
     # ---- construction ----------------------------------------------------------------------------
 
+    @staticmethod
+    def _as_layer_source(layers):
+        """A function giving the current layer list: a backbone's ``delta_layers`` (re-read on reload, and
+        its eval mode checked), or the given list."""
+        if hasattr(layers, "delta_layers"):
+            if getattr(layers, "training", False):
+                raise ValueError("the backbone must be in eval mode (SSCATeR folds BatchNorm's running statistics)")
+            return layers.delta_layers
+        layers = list(layers)
+        kinds = [getattr(layer, "kind", None) for layer in layers]
+        if not layers or not all(isinstance(layer, DeltaLayer) for layer in layers) \
+                or not set(kinds) <= {"down", "subm", "up"} or "down" not in kinds or "up" not in kinds:
+            raise ValueError("layers must be a backbone with delta_layers() or a list of DeltaLayer (kind 'down', "
+                             f"'subm' or 'up', block, stride, sparse_weight(), folded_norm()), got kinds {kinds}")
+        return lambda: layers
+
     def reload(self) -> None:
-        """(Re)build the state from the backbone's current parameters; the state is cleared."""
+        """(Re)build the state from the layers' current parameters; the state is cleared."""
         dev, dt = self.device, self.dtype
-        specs = backbone_layers(self.backbone)
+        specs = list(self._layer_source())
         H, W = self.shape
-        self.in_channels = self.backbone.in_channels
+        self.in_channels = int(specs[0].sparse_weight().shape[3])
         # the input maps, flat with one scratch row at H * W where padding rows of a step's input land
         self._in_feats = torch.zeros(H * W + 1, self.in_channels, dtype=dt, device=dev)
         self._in_active = torch.zeros(H * W + 1, dtype=torch.bool, device=dev)
@@ -197,7 +239,7 @@ class DeltaBackbone:
         if len(set(up_shapes)) != 1:
             raise ValueError(f"the upsampling branches reach different grids {up_shapes}")
         Hu, Wu = up_shapes[0]
-        couts = [s.conv.weight.shape[1] for s in ups]
+        couts = [int(s.sparse_weight().shape[0]) for s in ups]
         # channels_last memory: each upsampling layer writes its sites' channels contiguously
         self.out = torch.zeros(1, sum(couts), Hu, Wu, dtype=dt, device=dev).to(memory_format=torch.channels_last)
         self.up_layers: list[_Layer] = []

@@ -1,9 +1,10 @@
-"""Fake kernels of the pillarization ops (schemas in csrc/ops/pillar_stream.cpp).
+"""Fake kernels of the streaming pillarization ops (schemas in csrc/ops/pillar_stream.cpp; the one-shot
+``pillar_decorate``'s is in :mod:`lidarops.ops._registrations`).
 
-Every op is shape-static: ``pillar_decorate`` keeps the (P, N) of its input, ``pillar_stream_gather``
+Every op is shape-static: ``pillar_stream_gather``
 returns one row per requested pillar, and ``pillar_stream_push`` returns an (H, W) change map, a fixed
 stats vector and one count per run. The data-dependent parts (which pillars are active or changed)
-are read by the wrapper (``lidarops.stream.stream``). No op is differentiable (the features are the
+are read by the wrapper (``lidarops.stream.pillar_stream``). No op is differentiable (the features are the
 network's input), so there is no autograd formula, Python or C++ (``csrc/ops/autograd``). Imported by
 ``lidarops.extension.load()``.
 """
@@ -12,12 +13,6 @@ from __future__ import annotations
 import torch
 
 _NUM_STATS = 11  # kNumPillarStreamStats in csrc/include/lidarops/pillar_stream.h
-
-
-@torch.library.register_fake("lidarops::pillar_decorate")
-def _pillar_decorate_fake(raw, num_points, coords, pillar_size, origin):
-    torch._check(raw.dim() == 3 and raw.shape[2] == 4, lambda: f"raw must be (P, N, 4), got {raw.shape}")
-    return raw.new_empty((raw.shape[0], raw.shape[1], 9))
 
 
 @torch.library.register_fake("lidarops::pillar_stream_gather")

@@ -1,4 +1,6 @@
-"""One training loop for every lidarops model (PointPillars, CounterNet, CAS-Net ...).
+"""One training loop for every lidarops model (PointPillars, CounterNet, CAS-Net ...), model-agnostic: it
+imports no model, dataset or metric (those come in through :class:`TrainableModel`, the dataset, the
+collate function and the :class:`Evaluator`).
 
 ::
 
@@ -6,8 +8,12 @@
 
     config = TrainConfig.from_openpcdet(yaml_cfg["OPTIMIZATION"], num_workers=4, amp="bf16", max_minutes=9)
     result = fit(model, train_set, collate_fn, config, "runs/pp", val_dataset=val_set, evaluator=kitti_eval,
-                 resume=True, extra_checkpoint={"model_config": ..., "class_names": [...]})
+                 resume=True, extra_checkpoint={"data_recipe": {...}, "train_command": "..."})
     ckpt = load_checkpoint("runs/pp/final.pth")       # model.load_state_dict(ckpt["model_state"])
+    model = lidarops.models.load_model("runs/pp/final.pth")   # or build the model the file names
+
+Every checkpoint is a :mod:`lidarops.checkpoint` file: it records the model's class, config and class names
+(from ``model.config``), so the model can be rebuilt from the file alone.
 
 Multi-GPU: the same script under ``torchrun --standalone --nproc_per_node=G script.py`` (DDP, one process per
 GPU, ``batch_size`` frames per process). The model contract is :class:`TrainableModel`; the optimisation

@@ -1,10 +1,9 @@
-"""Checkpoint files: atomic writes, loading with clear errors, RNG states, pruning.
+"""Training checkpoints: the training state in the one checkpoint format (:mod:`lidarops.checkpoint`),
+read back for resuming, RNG states, pruning.
 
-A checkpoint is one ``torch.save`` dict (loadable with ``weights_only=True``)::
+A training checkpoint is a :mod:`lidarops.checkpoint` file (``format``, ``model_class``, ``model_config``,
+``class_names``, ``model_state`` ...) that also holds::
 
-    format            "lidarops.train.checkpoint"        format_version  1
-    version           "lidarops+<version>"  (OpenPCDet's key)   lidarops_version "<version>"
-    model_state       the model's state_dict (no DDP "module." prefix; OpenPCDet's key)
     optimizer_state   optimizer.state_dict()              scheduler_state  scheduler.state_dict()
     scaler_state      GradScaler.state_dict() or None (amp != "fp16")
     epoch             epochs completed (OpenPCDet's key)   step_in_epoch    steps done in the next epoch
@@ -13,89 +12,75 @@ A checkpoint is one ``torch.save`` dict (loadable with ``weights_only=True``)::
     elapsed_s, frames  training wall time and frames (per process) so far
     config            TrainConfig.to_dict()
     rng               per rank: {"torch", "numpy", "python", "cuda" (when on CUDA)}
-    ... plus the caller's ``extra_checkpoint`` entries (model config, class names, data recipe).
+    ... plus the caller's ``extra_checkpoint`` entries (config path, data recipe, training command).
 """
 from __future__ import annotations
 
 import os
 import random
 import re
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 import torch
 
+from lidarops.checkpoint import FORMAT, FORMAT_VERSION, CheckpointError, check_plain, read_checkpoint, save_checkpoint
+
 __all__ = ["CHECKPOINT_FORMAT", "REQUIRED_KEYS", "load_checkpoint", "save_checkpoint", "capture_rng_state",
            "restore_rng_state", "prune_epoch_checkpoints", "check_plain"]
 
-CHECKPOINT_FORMAT = "lidarops.train.checkpoint"
-FORMAT_VERSION = 1
+CHECKPOINT_FORMAT = FORMAT
+# the training checkpoints of lidarops 0.1 (format_version 1) resume too
+_TRAIN_FORMATS = (FORMAT, "lidarops.train.checkpoint")
 REQUIRED_KEYS = ("format_version", "version", "lidarops_version", "model_state", "optimizer_state",
                  "scheduler_state", "scaler_state", "epoch", "step_in_epoch", "it", "steps_per_epoch",
                  "world_size", "eval_pending", "elapsed_s", "frames", "config", "rng")
-RESERVED_KEYS = frozenset(REQUIRED_KEYS) | {"format"}
+RESERVED_KEYS = frozenset(REQUIRED_KEYS) | {"format", "model_class", "model_config", "class_names"}
 _EPOCH_FILE = re.compile(r"^checkpoint_epoch_(\d+)\.pth$")
 
 
-def save_checkpoint(state: Mapping[str, Any], paths: list[Path]) -> None:
-    """Writes ``state`` to each path atomically: a temporary file in the same folder, then ``os.replace``,
-    so a kill at any moment leaves either the previous file or the new one."""
-    first = None
-    for path in paths:
-        path = Path(path)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                if first is None:
-                    torch.save(dict(state), f)
-                else:
-                    with open(first, "rb") as src:
-                        while chunk := src.read(1 << 24):
-                            f.write(chunk)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        first = first or path
-
-
 def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu", weights_only: bool = True) -> dict[str, Any]:
-    """A lidarops checkpoint as a dict (see the module docstring for the keys).
+    """A training checkpoint as a dict (see the module docstring for the keys), to resume from.
 
     Args:
         path: a ``.pth`` file written by :func:`lidarops.train.fit`.
         map_location: as ``torch.load``.
-        weights_only (bool): as ``torch.load``; lidarops checkpoints hold only plain values and tensors.
+        weights_only (bool): kept for compatibility; checkpoints are always read with ``weights_only=True``.
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: the file is not a lidarops checkpoint (e.g. an OpenPCDet one: load its
-            ``model_state`` with ``model.load_state_dict``), or lacks keys of the format.
+        ValueError: the file is not a lidarops training checkpoint (e.g. an OpenPCDet one: load its
+            ``model_state`` with ``model.load_state_dict``; a shipped model: ``lidarops.models.load_model``),
+            or lacks keys of the format.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=weights_only)
-    except Exception as e:
-        raise ValueError(f"{path} is not a lidarops checkpoint: torch.load failed ({type(e).__name__}: "
-                         f"{str(e).splitlines()[0] if str(e) else ''})") from e
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        what = f"a dict with keys {sorted(map(str, ckpt))[:12]}" if isinstance(ckpt, dict) else type(ckpt).__name__
-        hint = (" (it looks like an OpenPCDet checkpoint: load ckpt['model_state'] with model.load_state_dict)"
-                if isinstance(ckpt, dict) and "model_state" in ckpt else "")
-        raise ValueError(f"{path} is not a lidarops checkpoint: expected format {CHECKPOINT_FORMAT!r}, "
-                         f"found {what}{hint}")
+        ckpt = read_checkpoint(path, map_location)
+    except CheckpointError as e:
+        raise CheckpointError(f"{path} is not a lidarops checkpoint: torch.load failed ({e})") from None
+    if ckpt.get("format") not in _TRAIN_FORMATS:
+        what = f"a dict with keys {sorted(map(str, ckpt))[:12]}"
+        if "model_state" in ckpt and "model_config" in ckpt:
+            hint = (" (a model without training state, e.g. a shipped one: build it with "
+                    "lidarops.models.load_model(path))")
+        elif "model_state" in ckpt:
+            hint = " (it looks like an OpenPCDet checkpoint: load ckpt['model_state'] with model.load_state_dict)"
+        else:
+            hint = ""
+        raise CheckpointError(f"{path} is not a lidarops checkpoint: expected format {CHECKPOINT_FORMAT!r}, "
+                              f"found {what}{hint}")
     missing = [k for k in REQUIRED_KEYS if k not in ckpt]
+    if not any(k in ckpt for k in ("optimizer_state", "scheduler_state", "rng", "epoch", "it", "step_in_epoch")):
+        raise CheckpointError(f"{path} holds a model without training state (a shipped or exported model), nothing "
+                              "to resume: build it with lidarops.models.load_model(path)")
     if missing:
-        raise ValueError(f"{path} is a damaged lidarops checkpoint: missing keys {missing}")
+        raise CheckpointError(f"{path} is a damaged lidarops checkpoint: missing keys {missing}")
     if ckpt["format_version"] > FORMAT_VERSION:
-        raise ValueError(f"{path} has checkpoint format {ckpt['format_version']}, newer than this lidarops "
-                         f"reads ({FORMAT_VERSION}): upgrade lidarops")
+        raise CheckpointError(f"{path} has checkpoint format {ckpt['format_version']}, newer than this lidarops "
+                              f"reads ({FORMAT_VERSION}): upgrade lidarops")
     return ckpt
 
 
@@ -134,22 +119,3 @@ def prune_epoch_checkpoints(out_dir: Path, keep_last: int | None) -> list[Path]:
     for p in doomed:
         p.unlink(missing_ok=True)
     return doomed
-
-
-_PLAIN = (str, int, float, bool, type(None), torch.Tensor)
-
-
-def check_plain(value: Any, where: str = "extra_checkpoint") -> None:
-    """Raises ``TypeError`` unless ``value`` is made of dicts (str keys), lists, tuples, str, numbers,
-    None and tensors: what ``torch.load(weights_only=True)`` reads back."""
-    if isinstance(value, dict):
-        for k, v in value.items():
-            if not isinstance(k, str):
-                raise TypeError(f"{where}: keys must be str, got {k!r}")
-            check_plain(v, f"{where}[{k!r}]")
-    elif isinstance(value, (list, tuple)):
-        for i, v in enumerate(value):
-            check_plain(v, f"{where}[{i}]")
-    elif not isinstance(value, _PLAIN):
-        raise TypeError(f"{where} is a {type(value).__name__}; checkpoints hold only dicts, lists, str, numbers, "
-                        f"None and tensors (convert dataclasses with dataclasses.asdict)")

@@ -23,9 +23,9 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import Dataset
 
-from lidarops.train.checkpoint import (
-    CHECKPOINT_FORMAT, FORMAT_VERSION, RESERVED_KEYS, capture_rng_state, check_plain, load_checkpoint,
-    prune_epoch_checkpoints, restore_rng_state, save_checkpoint)
+from lidarops.checkpoint import check_plain, format_fields, model_fields, save_checkpoint
+from lidarops.train.checkpoint import (RESERVED_KEYS, capture_rng_state, load_checkpoint, prune_epoch_checkpoints,
+                                       restore_rng_state)
 from lidarops.train.config import RESUMABLE_CHANGES, TrainConfig
 from lidarops.train.data import EpochLoader, batch_lengths, frame_meta, make_loader, move_to_device, shard_indices
 from lidarops.train.distributed import DistContext
@@ -230,11 +230,8 @@ class _Run:
         t0 = _clock()
         rng = self.ctx.gather_to_main(capture_rng_state(self.ctx.device))
         if self.ctx.is_main:
-            from lidarops import __version__
-
             state = {
-                "format": CHECKPOINT_FORMAT, "format_version": FORMAT_VERSION,
-                "version": f"lidarops+{__version__}", "lidarops_version": __version__,
+                **format_fields(), **model_fields(self.module),
                 "model_state": self.module.state_dict(), "optimizer_state": self.optimizer.state_dict(),
                 "scheduler_state": self.scheduler.state_dict(),
                 "scaler_state": self.scaler.state_dict() if self.scaler is not None else None,

@@ -23,6 +23,10 @@ class TrainableModel(Protocol):
 
     ``batch`` is what the collate function returns: a dict whose tensors (also inside lists, tuples and
     dicts) the trainer has moved to the device; other values pass through.
+
+    Optionally, ``model.config`` with ``to_dict()`` (and ``class_names``): the trainer then records the
+    model's class, config and classes in every checkpoint, so :func:`lidarops.models.load_model` can rebuild
+    it from the file alone.
     """
 
     training: bool

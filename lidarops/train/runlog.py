@@ -12,6 +12,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lidarops._progress import tqdm_class
+
 __all__ = ["RunLog"]
 
 
@@ -45,14 +47,8 @@ class RunLog:
             self._start_csv(self._fields)
             self._writer.writerows(rows)
             self._csv_file.flush()
-        self._tqdm = None
-        if progress and sys.stderr.isatty():  # in a pipe or a file: plain lines every log_every steps
-            try:
-                from tqdm.auto import tqdm
-
-                self._tqdm = tqdm
-            except ImportError:
-                pass
+        # in a pipe or a file: plain lines every log_every steps
+        self._tqdm = tqdm_class(bool(progress) and sys.stderr.isatty(), auto=True)
         self._progress = progress
         if tensorboard:
             try:

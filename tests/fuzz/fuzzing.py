@@ -31,8 +31,8 @@ from hypothesis import strategies as st
 # - ``dev``: 200 examples, random: a quick local check while editing a test.
 #
 # They are applied by the ``fuzz`` decorator below to the tests of this folder only, so the other
-# hypothesis tests of the suite keep their own settings. (No tests/fuzz/conftest.py: a second
-# module named ``conftest`` would shadow tests/conftest.py for ``from conftest import ...``.)
+# hypothesis tests of the suite keep their own settings. (The folder is a package: its tests import
+# ``from .fuzzing import ...``; the shared helpers of the whole suite are ``helpers``.)
 _COMMON = dict(deadline=None, print_blob=True,
                # the device fixture only returns a string: safe to share between examples
                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 import lidarops
 from lidarops.ops.boxes import (_box_iou_3d_reference, _box_iou_bev_reference, _box_overlap_bev_reference,
                                 _nms_bev_reference, _points_in_boxes_reference)
-from fuzzing import (Boxes, assert_clear_error, assert_close, assert_no_error, assert_same, box_sets, fuzz, outcome,
+from .fuzzing import (Boxes, assert_clear_error, assert_close, assert_no_error, assert_same, box_sets, fuzz, outcome,
                      scalars)
 
 _PAIR_OPS = {"box_overlap_bev": (lidarops.box_overlap_bev, _box_overlap_bev_reference),

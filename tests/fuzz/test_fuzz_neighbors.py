@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 import lidarops
 from lidarops.ops.neighbors import (_ball_query_reference, _compute_dtype, _fps_reference, _gather_reference,
                                     _knn_reference, _sqdist_reference)
-from fuzzing import Cloud, assert_clear_error, assert_no_error, assert_same, clouds, fuzz, outcome
+from .fuzzing import Cloud, assert_clear_error, assert_no_error, assert_same, clouds, fuzz, outcome
 
 #: k that no memory holds (an attempt fails at once instead of filling the machine)
 HUGE_K = (2**36, 2**40, 2**62, 2**63 - 1)

@@ -21,7 +21,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from fuzzing import assert_clear_error, fuzz, mangled, outcome
+from .fuzzing import assert_clear_error, fuzz, mangled, outcome
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -385,7 +385,7 @@ def test_object_set_npz(tmp_path, data):
 @fuzz
 @given(data=st.data())
 def test_gt_database_npz(tmp_path, data):
-    from lidarops.data.detection import GtDatabase
+    from lidarops.data.augment import GtDatabase
 
     db = GtDatabase(points=np.arange(12, dtype=np.float32).reshape(3, 4), offsets=np.array([0, 1, 3]),
                     boxes=np.ones((2, 7), np.float32), names=np.array(["Car", "Cyclist"]), num_points=np.array([1, 2]),

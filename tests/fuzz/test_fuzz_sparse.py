@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from lidarops.sparse import SparseConvTensor
 from lidarops.sparse import functional as Fs
-from fuzzing import Sites, assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome, sparse_sites
+from .fuzzing import Sites, assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome, sparse_sites
 
 
 def _tensor(s: Sites, device: str) -> SparseConvTensor:

@@ -15,8 +15,8 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from lidarops.stream import PillarGrid, PillarOverflowError, PillarStream
-from lidarops.stream.pillars import _pillarize_reference
-from fuzzing import assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome
+from lidarops.ops.pillars import _pillarize_reference
+from .fuzzing import assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome
 
 GRID = PillarGrid((0.0, 0.0, -2.0, 4.0, 4.0, 2.0), (1.0, 1.0))
 WINDOW = 0.1

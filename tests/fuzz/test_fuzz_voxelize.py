@@ -15,11 +15,11 @@ from hypothesis import strategies as st
 import lidarops
 from lidarops.ops.voxelize import VoxelOverflowError, _voxelize_reference
 from lidarops.stream import PillarGrid, PillarOverflowError, pillarize
-from lidarops.stream.pillars import _pillarize_reference
-from fuzzing import (assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome,
+from lidarops.ops.pillars import _pillarize_reference
+from .fuzzing import (assert_clear_error, assert_close, assert_no_error, assert_same, fuzz, outcome,
                      scalars)
 
-#: documented input policy of pillarize and PillarStream (lidarops.stream.pillars)
+#: documented input policy of pillarize and PillarStream (lidarops.ops.pillars)
 MAX_ABS_INTENSITY = 1e6
 
 
@@ -38,14 +38,14 @@ def point_rows(draw, C: int, dtype: torch.dtype, lo: float, hi: float, max_n: in
     return torch.tensor(rows, dtype=torch.float64).reshape(n, C).to(dtype), regime
 
 
-_GRIDS = [  # (voxel_size, point_range): whole numbers of voxels
+_GRIDS = [  # (voxel_size, point_cloud_range): whole numbers of voxels
     ((1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 4.0, 4.0, 2.0)),
     ((0.5, 0.25, 4.0), (-1.0, -1.0, -2.0, 1.0, 1.0, 2.0)),  # one cell along z: pillars
     ((0.1, 0.1, 0.2), (-0.4, 0.0, -0.2, 0.4, 0.3, 0.2)),  # sizes that float32 rounds
     ((2.0, 2.0, 2.0), (-4.0, -4.0, -4.0, 4.0, 4.0, 4.0)),
 ]
 _BAD = [((0.0, 1.0, 1.0), "voxel_size"), ((-1.0, 1.0, 1.0), "voxel_size"), ((math.nan, 1.0, 1.0), "voxel_size"),
-        ((0.3, 1.0, 1.0), "point_range")]  # 0.3 does not divide the x extent 4
+        ((0.3, 1.0, 1.0), "point_cloud_range")]  # 0.3 does not divide the x extent 4
 
 
 @fuzz
@@ -128,7 +128,7 @@ def check_pillarize(points: torch.Tensor, grid: PillarGrid, P: int, M: int, devi
 def test_pillarize(device, data):
     dtype = data.draw(st.sampled_from([torch.float32, torch.float64]), "dtype")
     grid = data.draw(st.sampled_from(_PILLAR_GRIDS), "grid")
-    x0, y0, z0, x1, y1, z1 = grid.point_range
+    x0, y0, z0, x1, y1, z1 = grid.point_cloud_range
     points, regime = data.draw(point_rows(4, dtype, min(x0, y0, z0) - 0.5, max(x1, y1, z1) + 0.5), "points")
     P = data.draw(st.integers(1, 5), "max_points_per_pillar")
     M = data.draw(st.integers(1, 30), "max_pillars")

@@ -47,6 +47,7 @@ __all__ = [
     "boxes_to_kitti_labels",
     "write_image_sets",
     "KITTI_IMAGE_SIZE",
+    "kitti_difficulty",
 ]
 
 #: (width, height) of KITTI's left colour images (they vary slightly, 1224-1242 x 370-376).
@@ -370,7 +371,7 @@ def camera_to_lidar_boxes(location: np.ndarray, dimensions: np.ndarray, rotation
         calib (KittiCalib): calibration.
 
     Returns:
-        ndarray float64[M, 7]: ``x, y, z, dx, dy, dz, yaw`` (z = box centre).
+        ndarray float64[M, 7]: ``x, y, z, dx, dy, dz, heading`` (z = box centre).
     """
     location = np.asarray(location, dtype=np.float64).reshape(-1, 3)
     dimensions = np.asarray(dimensions, dtype=np.float64).reshape(-1, 3)
@@ -482,7 +483,7 @@ def boxes_to_kitti_labels(boxes: np.ndarray, names: Sequence[str], calib: KittiC
     ``alpha = rotation_y - arctan2(x, z)`` of the camera-frame location (KITTI's observation angle).
 
     Args:
-        boxes (ndarray[M, 7]): LiDAR boxes ``x, y, z, dx, dy, dz, yaw``.
+        boxes (ndarray[M, 7]): LiDAR boxes ``x, y, z, dx, dy, dz, heading``.
         names (sequence of str): object type of each box.
         calib (KittiCalib or None): calibration; default :meth:`KittiCalib.default`.
         image_size (tuple[int, int]): image (width, height).
@@ -714,3 +715,18 @@ def write_image_sets(root: str | Path, ids: Sequence[str], val_fraction: float =
     (root / "ImageSets" / "train.txt").write_text("".join(f"{i}\n" for i in train))
     (root / "ImageSets" / "val.txt").write_text("".join(f"{i}\n" for i in sorted(val)))
 
+
+def kitti_difficulty(labels: KittiLabels) -> np.ndarray:
+    """KITTI's difficulty of each label (OpenPCDet's ``Object3d.get_kitti_obj_level``): 0 easy (2D box
+    >= 40 px high, truncation <= 0.15, fully visible), 1 moderate (>= 25 px, <= 0.3, occlusion <= 1),
+    2 hard (>= 25 px, <= 0.5, occlusion <= 2), -1 otherwise.
+
+    Returns:
+        ndarray int64[M].
+    """
+    height = labels.bbox[:, 3].astype(np.float64) - labels.bbox[:, 1] + 1
+    trunc, occ = labels.truncated, labels.occluded
+    out = np.full(len(labels), -1, dtype=np.int64)
+    for level, (min_h, max_t, max_o) in reversed(list(enumerate(((40, 0.15, 0), (25, 0.3, 1), (25, 0.5, 2))))):
+        out[(height >= min_h) & (trunc <= max_t) & (occ <= max_o)] = level
+    return out

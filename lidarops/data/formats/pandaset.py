@@ -45,6 +45,7 @@ __all__ = [
     "matrix_to_quaternion",
     "world_to_ego",
     "pose_to_matrix",
+    "write_pose_files",
 ]
 
 #: PandaSet label written for each class of :data:`~lidarops.data.CLASSES`.
@@ -390,7 +391,7 @@ def write_pandaset_frame(seq_dir: str | Path, frame: Frame, index: int, world_xy
     """Writes one frame's ``lidar/NN.pkl.gz`` and ``annotations/cuboids/NN.pkl.gz``.
 
     Poses and timestamps are written by :func:`write_pandaset_sequence` (or by calling
-    :func:`_write_pose_files` yourself).
+    :func:`write_pose_files` yourself).
 
     Args:
         seq_dir (str or Path): sequence directory.
@@ -444,7 +445,7 @@ def write_pandaset_frame(seq_dir: str | Path, frame: Frame, index: int, world_xy
     return lidar_path
 
 
-def _write_pose_files(seq_dir: str | Path, poses: Sequence[np.ndarray], timestamps: Sequence[float]) -> None:
+def write_pose_files(seq_dir: str | Path, poses: Sequence[np.ndarray], timestamps: Sequence[float]) -> None:
     """Writes ``lidar/poses.json`` (world <- PandaSet LiDAR) and ``lidar/timestamps.json``."""
     lidar = Path(seq_dir) / "lidar"
     lidar.mkdir(parents=True, exist_ok=True)
@@ -474,5 +475,6 @@ def write_pandaset_sequence(seq_dir: str | Path, frames: Sequence[Frame], world_
     seq_dir = Path(seq_dir)
     for i, frame in enumerate(frames):
         write_pandaset_frame(seq_dir, frame, i, None if world_xyz is None else world_xyz[i], sensor_id)
-    _write_pose_files(seq_dir, [f.sensor_pose for f in frames], [f.timestamp for f in frames])
+    write_pose_files(seq_dir, [f.sensor_pose for f in frames], [f.timestamp for f in frames])
     return seq_dir
+

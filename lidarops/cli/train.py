@@ -1,0 +1,169 @@
+"""``lidarops train``: trains a model from a config (OpenPCDet's schema) with the one training loop,
+:func:`lidarops.train.fit`.
+
+The config's ``MODEL.NAME`` picks, through :data:`TRAINABLE`, the model class, the datasets with their
+collate function, and the evaluator run on the validation frames. Under ``torchrun`` the same command runs
+DistributedDataParallel, one process per GPU. Every checkpoint names the model, its config and classes
+(written by the trainer), the config file, the data recipe and this command line.
+
+Examples::
+
+    lidarops data synth --scenario driving_city driving_highway --frames 2000 1000 --workers 16 --out data/synth
+    lidarops train --config configs/pointpillars/pointpillars_synth.yaml --data data/synth --out runs/pp --amp bf16
+    lidarops train --config configs/pointpillars/pointpillars_synth.yaml --data data/synth --out runs/pp --resume
+    torchrun --standalone --nproc_per_node=2 -m lidarops train --config ... --out runs/pp2   # 2 GPUs
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+from lidarops.cli.errors import CliError, guarded
+
+__all__ = ["register", "train", "Trainable", "TRAINABLE"]
+
+
+@dataclass(frozen=True)
+class Trainable:
+    """What ``lidarops train`` needs to train one kind of model (the functions import on call, so that
+    building the parser imports no model, dataset or trainer).
+
+    Attributes:
+        model: the class's name in :data:`lidarops.models.MODELS`; the class is built from the whole config.
+        datasets: ``(data folder, class names, config, args) -> (training set, validation set, collate_fn)``.
+        evaluator: ``class names -> `` the evaluator :func:`lidarops.train.fit` runs on the validation set.
+        summary: ``(metrics, class names) -> `` the line printed after an evaluation, or ``""``.
+    """
+
+    model: str
+    datasets: Callable[[Path, Sequence[str], Mapping, argparse.Namespace], tuple]
+    evaluator: Callable[[Sequence[str]], Any]
+    summary: Callable[[Mapping[str, float], Sequence[str]], str]
+
+
+def _kitti_detection_datasets(root: Path, class_names: Sequence[str], cfg: Mapping, args: argparse.Namespace):
+    """A KITTI-format folder's ``ImageSets/train.txt`` (augmented as ``DATA_CONFIG`` says, with gt sampling)
+    and ``ImageSets/val.txt``, batched by OpenPCDet's collate."""
+    from lidarops.data.detection import (DetectionConfig, KittiDetectionDataset, build_gt_database, collate_batch,
+                                         train_val_datasets)
+
+    data_cfg = DetectionConfig.from_openpcdet(cfg.get("DATA_CONFIG", {}))
+    gt_database = None
+    if args.gt_database_frames:  # OpenPCDet builds it from every training frame; a subset is quicker
+        ids = KittiDetectionDataset(root, "train", class_names, data_cfg).ids[:args.gt_database_frames]
+        gt_database = build_gt_database(root, ids, class_names)
+    train_set, val_set = train_val_datasets(root, class_names, data_cfg, seed=args.seed or 0, gt_database=gt_database)
+    if args.max_train_frames:
+        train_set.ids = train_set.ids[:args.max_train_frames]
+    if args.max_val_frames and val_set is not None:
+        val_set.ids = val_set.ids[:args.max_val_frames]
+    return train_set, val_set, collate_batch
+
+
+def _kitti_evaluator(class_names: Sequence[str]):
+    from lidarops.eval.kitti import KittiEvaluator
+
+    return KittiEvaluator(class_names)
+
+
+def _kitti_summary(metrics: Mapping[str, float], class_names: Sequence[str]) -> str:
+    keys = [f"{n}_3d_moderate_R40" for n in class_names] + [f"{n}_bev_moderate_R40" for n in class_names]
+    shown = [f"{k.replace('_moderate_R40', '')} {metrics[k]:.1f}" for k in keys if k in metrics]
+    return "moderate AP (R40): " + ", ".join(shown) if shown else ""
+
+
+_POINTPILLARS = Trainable(model="PointPillars", datasets=_kitti_detection_datasets, evaluator=_kitti_evaluator,
+                          summary=_kitti_summary)
+
+#: ``MODEL.NAME`` -> how to train it: the one table of what ``lidarops train`` trains. OpenPCDet's configs
+#: name PointPillars ``PointPillar``; lidarops' checkpoints name the class.
+TRAINABLE: dict[str, Trainable] = {
+    "PointPillar": _POINTPILLARS,
+    "PointPillars": _POINTPILLARS,
+}
+
+
+def _trainable(cfg: Mapping, config_path: str) -> Trainable:
+    model = cfg.get("MODEL")
+    name = model.get("NAME") if isinstance(model, Mapping) else None
+    if name is None:
+        raise CliError(f"{config_path} names no model (MODEL.NAME); lidarops trains {', '.join(sorted(TRAINABLE))}")
+    if name not in TRAINABLE:
+        raise CliError(f"{config_path}: MODEL.NAME {name!r} is not a model lidarops trains; known: "
+                       f"{', '.join(sorted(TRAINABLE))}")
+    return TRAINABLE[name]
+
+
+def train(args: argparse.Namespace) -> int:
+    """Trains the model a config names on its data folder; prints the evaluation and where the checkpoint is."""
+    from lidarops.cli._device import resolve_device
+    from lidarops.config import load_config
+    from lidarops.models import model_class
+    from lidarops.train import TrainConfig, fit
+
+    cfg = load_config(args.config)
+    entry = _trainable(cfg, args.config)
+    if args.device not in (None, "auto"):  # checked now; the trainer maps "cuda" to each process's GPU
+        resolve_device(args.device)
+    overrides = {k: v for k, v in dict(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, amp=args.amp,
+                                       num_workers=args.workers, seed=args.seed, eval_every=args.eval_every,
+                                       max_minutes=args.max_minutes, max_steps=args.max_steps, device=args.device,
+                                       sync_bn=args.sync_bn or None,
+                                       progress=False if args.no_progress else None).items()
+                 if v is not None}
+    config = TrainConfig.from_openpcdet(cfg.get("OPTIMIZATION", {}), **overrides)
+    data_path = args.data or cfg.get("DATA_CONFIG", {}).get("DATA_PATH")
+    if not data_path or not Path(data_path).is_dir():
+        where = f"data folder {data_path} not found" if data_path else "no data folder"
+        raise CliError(f"{where} (give --data, or DATA_CONFIG.DATA_PATH in the config); make one with: "
+                       "lidarops data synth --out DIR ...")
+    data_root = Path(data_path)
+    model = model_class(entry.model)(cfg)
+    names = list(model.config.class_names)
+    train_set, val_set, collate_fn = entry.datasets(data_root, names, cfg, args)
+    # model_class, model_config and class_names are the trainer's to write (from the model)
+    extra = {"config_path": str(args.config),
+             "data_recipe": getattr(train_set, "recipe", None) or {"root": str(data_root)},
+             "train_command": "lidarops " + shlex.join(sys.argv[1:])}
+    result = fit(model, train_set, collate_fn, config, args.out, val_dataset=val_set if len(val_set or []) else None,
+                 evaluator=entry.evaluator(names), resume=args.resume, extra_checkpoint=extra)
+    line = entry.summary(result.metrics, names) if result.metrics else ""
+    if line:
+        print(line)
+    state = "finished" if result.finished else f"stopped ({result.stop_reason}); continue with --resume"
+    print(f"{state}: {result.global_step} steps, {result.frames_per_s_total:.1f} frames/s; {result.checkpoint}")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Adds ``train`` to the ``lidarops`` parser."""
+    t = subparsers.add_parser("train", help="train a model (PointPillars) from a config on a KITTI-format folder",
+                              description="Train the model a config names (MODEL.NAME: "
+                                          f"{', '.join(sorted(TRAINABLE))}) from an OpenPCDet-schema config (e.g. "
+                                          "configs/pointpillars/pointpillars_synth.yaml) on a KITTI-format folder. Under "
+                                          "torchrun it runs DistributedDataParallel, one process per GPU.")
+    t.add_argument("--config", required=True, help="YAML config (OpenPCDet schema)")
+    t.add_argument("--data", default=None, help="KITTI-format folder (default: the config's DATA_PATH)")
+    t.add_argument("--out", required=True, help="run folder: checkpoints, log.csv, evaluations")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from latest.pth")
+    t.add_argument("--epochs", type=int, default=None)
+    t.add_argument("--batch-size", type=int, default=None, help="frames per step and per process")
+    t.add_argument("--lr", type=float, default=None)
+    t.add_argument("--amp", choices=("none", "bf16", "fp16"), default=None, help="mixed precision")
+    t.add_argument("--workers", type=int, default=None, help="DataLoader workers per process")
+    t.add_argument("--eval-every", type=int, default=None, help="epochs between evaluations (0: only at the end)")
+    t.add_argument("--max-minutes", type=float, default=None, help="stop with a checkpoint after this long")
+    t.add_argument("--max-steps", type=int, default=None, help="stop with a checkpoint after this many steps")
+    t.add_argument("--max-train-frames", type=int, default=None, help="use only the first N training frames")
+    t.add_argument("--max-val-frames", type=int, default=None, help="evaluate on the first N validation frames")
+    t.add_argument("--gt-database-frames", type=int, default=None,
+                   help="build the gt-sampling database from the first N training frames (default: all)")
+    t.add_argument("--seed", type=int, default=None)
+    t.add_argument("--device", default=None, help="auto (default), cpu, cuda")
+    t.add_argument("--sync-bn", action="store_true", help="SyncBatchNorm under multi-GPU DDP")
+    t.add_argument("--no-progress", action="store_true")
+    t.set_defaults(func=guarded("train", train))

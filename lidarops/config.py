@@ -1,0 +1,89 @@
+"""Configs: YAML files with OpenPCDet's schema (``CLASS_NAMES``, ``DATA_CONFIG``, ``MODEL``,
+``OPTIMIZATION``) read into plain dicts, with ``_BASE_CONFIG_`` merging. The ground floor: models,
+datasets and the trainer each read their part of the same dict into their own dataclass.
+
+lidarops' own configs (``configs/<model>/*.yaml`` in the repository, over ``configs/datasets/``) use the
+same schema, so an OpenPCDet ``pointpillar.yaml`` and a lidarops config load the same way::
+
+    from lidarops.config import load_config
+    cfg = load_config("configs/pointpillars/pointpillars_synth.yaml")   # a plain dict, bases merged
+    model_cfg = PointPillarsConfig.from_openpcdet(cfg)                   # typed, validated (lidarops.models)
+
+``_BASE_CONFIG_`` may appear at any level (OpenPCDet puts it under ``DATA_CONFIG``); the base file's
+keys are loaded first and the including file's keys merged over them, recursively. Its path is tried
+as given, relative to the including file and to each folder above it (OpenPCDet's paths are relative
+to its ``tools/`` folder, e.g. ``cfgs/dataset_configs/kitti_dataset.yaml``), and relative to the
+working directory.
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Mapping
+
+__all__ = ["load_config", "merge_config", "ConfigError"]
+
+
+class ConfigError(ValueError):
+    """A config file or dict that lidarops cannot build a model from; the message says which key."""
+
+
+def _yaml():
+    try:
+        import yaml
+    except ImportError:  # pyyaml is what reads configs; it is in lidarops' requirements
+        raise ConfigError("reading YAML configs needs pyyaml: pip install pyyaml") from None
+    return yaml
+
+
+def _find_base(name: str, including: Path) -> Path:
+    tried = []
+    candidates = [Path(name)] if Path(name).is_absolute() else (
+        [d / name for d in [including.parent, *including.parent.parents]] + [Path.cwd() / name])
+    for c in candidates:
+        tried.append(str(c))
+        if c.is_file():
+            return c
+    raise ConfigError(f"{including}: _BASE_CONFIG_ {name!r} not found (tried {', '.join(tried[:4])}"
+                      f"{', ...' if len(tried) > 4 else ''})")
+
+
+def merge_config(base: dict, new: Mapping, source: Path | None = None) -> dict:
+    """Merges ``new`` into ``base`` in place (OpenPCDet's ``merge_new_config``): a ``_BASE_CONFIG_`` key
+    loads that file into ``base`` first; dict values merge recursively, others replace."""
+    if "_BASE_CONFIG_" in new:
+        if source is None:
+            raise ConfigError("_BASE_CONFIG_ needs the path of the including file to resolve it")
+        base.update(load_config(_find_base(str(new["_BASE_CONFIG_"]), source)))
+    for key, value in new.items():
+        if key == "_BASE_CONFIG_":
+            continue
+        if isinstance(value, Mapping):
+            if not isinstance(base.get(key), dict):
+                base[key] = {}
+            merge_config(base[key], value, source)
+        else:
+            base[key] = copy.deepcopy(value)
+    return base
+
+
+def load_config(path: str | Path) -> dict:
+    """Reads a YAML config with its ``_BASE_CONFIG_`` files merged in; returns a plain dict.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ConfigError: not YAML, not a mapping, or a base file that cannot be found.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config file not found: {path}")
+    yaml = _yaml()
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None  # one line
+    if data is None:
+        data = {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{path}: a config must be a YAML mapping, got {type(data).__name__}")
+    return merge_config({}, data, path.resolve())

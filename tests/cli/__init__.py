@@ -1,0 +1,1 @@
+"""Tests of the command line (lidarops/cli/), one file per command."""

@@ -1,0 +1,66 @@
+"""``lidarops eval`` (lidarops/cli/eval.py): KITTI AP of result files against labels, run in-process."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from .helpers import one_error_line
+
+
+def test_eval_scores_result_files(synth_kitti, tmp_path, run_cli):
+    """Result files equal to the labels (with scores) give the same APs as evaluate() on the labels."""
+    from lidarops.data.formats.kitti import read_label, write_label
+    from lidarops.eval import kitti
+
+    labels = synth_kitti / "training" / "label_2"
+    split = synth_kitti / "ImageSets" / "val.txt"
+    ids = split.read_text().split()
+    for i in ids:
+        rows = read_label(labels / f"{i}.txt")
+        rows.score = np.linspace(0.9, 0.5, len(rows)).astype(np.float32)
+        write_label(tmp_path / "res" / f"{i}.txt", rows)
+    code, out, _ = run_cli(["eval", "--results", tmp_path / "res", "--labels", labels, "--split", split,
+                            "--json", tmp_path / "r.json"])
+    assert code == 0 and "Car AP_R40@0.70, 0.70, 0.70:" in out
+    got = json.loads((tmp_path / "r.json").read_text())
+    gt = kitti.read_annos(labels, ids)
+    dt = kitti.read_annos(tmp_path / "res", ids)
+    assert got == pytest.approx(kitti.evaluate(gt, dt)[1], nan_ok=True)
+    # without --split: every result file
+    code, out, _ = run_cli(["eval", "--results", tmp_path / "res", "--labels", labels])
+    assert code == 0 and "Car AP_R40@0.70, 0.70, 0.70:" in out
+    (tmp_path / "res" / f"{ids[0]}.txt").unlink()
+    code, _, err = run_cli(["eval", "--results", tmp_path / "res", "--labels", labels, "--split", split])
+    assert code == 2 and "have no result file" in one_error_line(err, "eval")
+
+
+def test_eval_needs_frames(synth_kitti, tmp_path, run_cli):
+    labels = synth_kitti / "training" / "label_2"
+    (tmp_path / "res").mkdir()
+    code, _, err = run_cli(["eval", "--results", tmp_path / "res", "--labels", labels])
+    assert code == 2 and "no frames to score" in one_error_line(err, "eval")
+    (tmp_path / "empty.txt").write_text("\n")
+    code, _, err = run_cli(["eval", "--results", tmp_path / "res", "--labels", labels, "--split",
+                            tmp_path / "empty.txt"])
+    assert code == 2 and "lists none" in one_error_line(err, "eval")
+
+
+def test_match_summary_counts_found_objects():
+    """A detection on a labelled car is found, one elsewhere is another detection."""
+    from lidarops.cli.eval import match_summary
+
+    def anno(locations, scores=None):
+        n = len(locations)
+        out = {"name": np.array(["Car"] * n), "location": np.array(locations, np.float64).reshape(n, 3),
+               "dimensions": np.tile([[3.9, 1.6, 1.5]], (n, 1)), "rotation_y": np.zeros(n)}
+        if scores is not None:
+            out["score"] = np.array(scores, np.float64)
+        return out
+
+    gt = [anno([[0.0, 1.5, 10.0]])]
+    dt = [anno([[0.0, 1.5, 10.0], [5.0, 1.5, 30.0]], [0.9, 0.8])]
+    line = match_summary(gt, dt, ["Car", "Pedestrian"])
+    assert line == ("matches: Car: 1 of 1 labelled found (3D IoU >= 0.7), 1 other detections; "
+                    "Pedestrian: 0 of 0 labelled found (3D IoU >= 0.5), 0 other detections")

@@ -1,0 +1,63 @@
+"""``lidarops train`` (lidarops/cli/train.py) on a tiny synthetic folder, in-process: training, resuming, what
+the checkpoint records, and the table that picks what to train from MODEL.NAME."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from .helpers import one_error_line, repo_config
+
+
+def test_train_then_resume_then_detect(synth_kitti, tmp_path, run_cli):
+    run = tmp_path / "run"
+    config = repo_config("pointpillars_demo.yaml")
+    args = ["train", "--config", config, "--data", synth_kitti, "--out", run, "--workers", "0", "--no-progress",
+            "--epochs", "2", "--eval-every", "0"]
+    code, out, err = run_cli(args + ["--max-steps", "3"])
+    assert code == 0 and "stopped (max_steps)" in out and (run / "latest.pth").is_file(), err
+    code, out, err = run_cli(args + ["--resume"])
+    assert code == 0 and "finished: 4 steps" in out and (run / "final.pth").is_file(), err  # 4 frames, batch 2
+    assert "moderate AP (R40): Car_3d " in out  # the evaluation after the last epoch
+    ckpt = torch.load(run / "final.pth", weights_only=False)
+    # written by the trainer from the model
+    assert ckpt["model_class"] == "PointPillars" and ckpt["class_names"] == ["Car", "Pedestrian", "Cyclist"]
+    assert ckpt["model_config"]["class_names"] == ckpt["class_names"]
+    # written by the command
+    assert ckpt["config_path"] == str(config) and ckpt["data_recipe"]["frames"] == 6
+    assert ckpt["train_command"].startswith("lidarops ")
+    code, out, err = run_cli(["detect", synth_kitti, "--split", "val", "--checkpoint", run / "final.pth", "--out",
+                              tmp_path / "det", "--score-thresh", "0.0", "--print-boxes", "3", "--device", "cpu"])
+    assert code == 0 and "KITTI result file(s)" in out, err
+    files = sorted((tmp_path / "det" / "data").glob("*.txt"))
+    assert [f.stem for f in files] == sorted((synth_kitti / "ImageSets" / "val.txt").read_text().split())
+    assert (tmp_path / "det" / f"{files[0].stem}.png").is_file() and (tmp_path / "det" / "eval.json").is_file()
+
+
+def test_model_name_picks_what_to_train():
+    from lidarops.cli.train import TRAINABLE
+    from lidarops.models import MODELS, model_class
+    from lidarops.models.pointpillars import PointPillars
+
+    assert TRAINABLE["PointPillar"] is TRAINABLE["PointPillars"]  # OpenPCDet's name and the class's
+    assert all(entry.model in MODELS for entry in TRAINABLE.values())
+    assert model_class(TRAINABLE["PointPillar"].model) is PointPillars
+
+
+def test_unknown_model_name_is_one_line(tmp_path, run_cli):
+    unknown = tmp_path / "centerpoint.yaml"
+    unknown.write_text(f"_BASE_CONFIG_: {repo_config('pointpillars_demo.yaml')}\nMODEL:\n    NAME: CenterPoint\n")
+    unnamed = tmp_path / "unnamed.yaml"
+    unnamed.write_text("CLASS_NAMES: ['Car']\nMODEL:\n    VFE:\n        NAME: PillarVFE\n")
+    for config, expected in ((unknown, "MODEL.NAME 'CenterPoint' is not a model lidarops trains; "
+                                       "known: PointPillar, PointPillars"),
+                             (unnamed, "names no model (MODEL.NAME); lidarops trains PointPillar, PointPillars")):
+        code, out, err = run_cli(["train", "--config", config, "--out", tmp_path / "run"])
+        assert code == 2 and out == "" and expected in one_error_line(err, "train")
+    assert not (tmp_path / "run").exists()
+
+
+def test_train_help(run_cli, capsys):
+    with pytest.raises(SystemExit) as e:
+        run_cli(["train", "--help"])
+    out = capsys.readouterr().out
+    assert e.value.code == 0 and "--config" in out and "PointPillar, PointPillars" in out

@@ -1,0 +1,1 @@
+"""Tests of lidarops/data/ (the simulator, formats, detection items, the native ray caster)."""

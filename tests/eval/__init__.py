@@ -1,0 +1,1 @@
+"""Tests of lidarops/eval/ (the KITTI evaluation)."""

@@ -1,0 +1,1 @@
+"""Regression tests of hardened inputs: each fails if its guard is removed."""

@@ -1,0 +1,1 @@
+"""Tests of lidarops/models/ (PointPillars, the BEV backbone, anchors, SSCATeR's model and calibration)."""

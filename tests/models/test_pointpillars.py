@@ -1,0 +1,627 @@
+"""lidarops.models.pointpillars (PointPillars and its parts: pillar_vfe, anchor_head, losses, postprocess):
+OpenPCDet's state-dict layout and anchor order, the pillar features and losses against values computed here by
+hand, post-processing, configs, bad input, export, and an overfit run on simulated frames."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch.nn import functional as F
+
+import lidarops
+from lidarops.checkpoint import CheckpointError
+from lidarops.config import ConfigError, load_config
+from lidarops.models.config import PointPillarsConfig
+from lidarops.models.losses import sigmoid_focal_loss
+from lidarops.models.pillar_vfe import PillarVFE
+from lidarops.models.pointpillars import PointPillars
+from lidarops.models.postprocess import postprocess, postprocess_padded
+
+TINY = dict(
+    class_names=["Car"],
+    point_cloud_range=[0.0, -4.0, -3.0, 8.0, 4.0, 1.0],
+    voxel_size=[1.0, 1.0, 4.0],
+    vfe_num_filters=[8],
+    layer_nums=[1, 1, 1], layer_strides=[2, 2, 2], num_filters=[8, 8, 8],
+    upsample_strides=[1, 2, 4], num_upsample_filters=[4, 4, 4],
+    anchor_generator_config=[{"class_name": "Car", "anchor_sizes": [[2.0, 1.0, 1.5]], "anchor_rotations": [0, 1.57],
+                              "anchor_bottom_heights": [-1.78], "align_center": True, "feature_map_stride": 2,
+                              "matched_threshold": 0.6, "unmatched_threshold": 0.45}],
+)
+
+
+def openpcdet_pointpillar_keys() -> dict[str, tuple]:
+    """The state dict of OpenPCDet's PointPillar (pointpillar.yaml) written from its module tree:
+    Detector3DTemplate's global_step; PillarVFE's one PFNLayer (Linear 10 -> 64 without bias,
+    BatchNorm1d); BaseBEVBackbone blocks [ZeroPad2d, Conv, BN, ReLU] + [Conv, BN, ReLU] x n and deblocks
+    [ConvTranspose2d, BN, ReLU]; AnchorHeadSingle's three 1x1 convolutions over 6 anchors per location."""
+    keys = {"global_step": (1,)}
+
+    def bn(prefix, c):
+        keys.update({f"{prefix}.weight": (c,), f"{prefix}.bias": (c,), f"{prefix}.running_mean": (c,),
+                     f"{prefix}.running_var": (c,), f"{prefix}.num_batches_tracked": ()})
+
+    keys["vfe.pfn_layers.0.linear.weight"] = (64, 10)
+    bn("vfe.pfn_layers.0.norm", 64)
+    c_in = 64
+    for i, (c, n, cu, u) in enumerate(zip([64, 128, 256], [3, 5, 5], [128, 128, 128], [1, 2, 4])):
+        keys[f"backbone_2d.blocks.{i}.1.weight"] = (c, c_in, 3, 3)
+        bn(f"backbone_2d.blocks.{i}.2", c)
+        for j in range(n):
+            keys[f"backbone_2d.blocks.{i}.{4 + 3 * j}.weight"] = (c, c, 3, 3)
+            bn(f"backbone_2d.blocks.{i}.{5 + 3 * j}", c)
+        keys[f"backbone_2d.deblocks.{i}.0.weight"] = (c, cu, u, u)
+        bn(f"backbone_2d.deblocks.{i}.1", cu)
+        c_in = c
+    for name, out in (("conv_cls", 6 * 3), ("conv_box", 6 * 7), ("conv_dir_cls", 6 * 2)):
+        keys[f"dense_head.{name}.weight"] = (out, 384, 1, 1)
+        keys[f"dense_head.{name}.bias"] = (out,)
+    return keys
+
+
+def test_state_dict_is_openpcdet_pointpillar():
+    model = PointPillars()
+    got = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    assert got == openpcdet_pointpillar_keys()
+    assert sum(p.numel() for p in model.parameters()) == 4_834_888  # OpenPCDet reports 4.8 M
+
+
+def test_kitti_anchor_count_and_head_layout():
+    model = PointPillars()
+    head = model.dense_head
+    assert head.anchors_flat.shape == (216 * 248 * 6, 7) == (321_408, 7)
+    assert head.num_anchors_per_location == 6
+    raw = head(torch.zeros(1, 384, 248, 216))
+    assert raw["cls_preds"].shape == (1, 248, 216, 18) and raw["dir_cls_preds"].shape == (1, 248, 216, 12)
+    # location (y=0, x=1): anchors 6..11 are Car 0, Car pi/2, Ped 0, Ped pi/2, Cyc 0, Cyc pi/2
+    a = head.anchors_flat[6:12]
+    step = 69.12 / 215
+    assert torch.allclose(a[:, 0], torch.full((6,), step)) and torch.allclose(a[:, 1], torch.full((6,), -39.68))
+    assert torch.allclose(a[:, 3], torch.tensor([3.9, 3.9, 0.8, 0.8, 1.76, 1.76]))
+    assert torch.allclose(a[:, 6], torch.tensor([0, 1.57, 0, 1.57, 0, 1.57]))
+    assert torch.allclose(a[0, 2], torch.tensor(-1.78 + 1.56 / 2))
+
+
+def test_vfe_features_by_hand():
+    """Two points in pillar (x=2, y=1) of a 1 m grid starting at (0, -4): the 10 features, with the
+    linear layer an identity on them and BatchNorm an identity."""
+    vfe = PillarVFE(4, [1.0, 1.0, 4.0], [0.0, -4.0, -3.0, 8.0, 4.0, 1.0], num_filters=[10]).eval()
+    with torch.no_grad():
+        vfe.pfn_layers[0].linear.weight.copy_(torch.eye(10))
+        vfe.pfn_layers[0].norm.running_var.fill_(1 - 1e-3)  # with eps 1e-3: scale exactly 1
+    p = torch.tensor([[2.2, -2.9, -1.0, 0.5], [2.6, -2.3, -0.5, 0.25]])
+    voxels = torch.zeros(1, 4, 4)
+    voxels[0, :2] = p
+    out = vfe(voxels, torch.tensor([2]), torch.tensor([[0, 0, 1, 2]]))
+    mean = p[:, :3].mean(0)
+    centre = torch.tensor([2.5, -2.5, -1.0])  # (x + 0.5) m, -4 + (y + 0.5) m, z range centre
+    feats = torch.cat([p, p[:, :3] - mean, p[:, :3] - centre], 1)
+    expected = torch.relu(feats).amax(0)  # the two empty slots add zeros, below relu(.)
+    assert torch.allclose(out[0], expected, atol=1e-6), (out, expected)
+
+
+def test_vfe_empty_slots_take_part_like_openpcdet():
+    """OpenPCDet lets the zero-feature padding slots through BatchNorm and ReLU into the max: with a
+    positive BatchNorm shift a pillar of negative responses outputs relu(shift), not relu(x + shift)."""
+    vfe = PillarVFE(4, [1.0, 1.0, 4.0], [0.0, -4.0, -3.0, 8.0, 4.0, 1.0], num_filters=[1]).eval()
+    with torch.no_grad():
+        vfe.pfn_layers[0].linear.weight.zero_()
+        vfe.pfn_layers[0].linear.weight[0, 0] = -1.0  # -x
+        vfe.pfn_layers[0].norm.running_var.fill_(1 - 1e-3)
+        vfe.pfn_layers[0].norm.bias.fill_(0.5)
+    voxels = torch.zeros(2, 3, 4)
+    voxels[:, 0] = torch.tensor([[3.2, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])
+    out = vfe(voxels, torch.tensor([1, 3]), torch.tensor([[0, 0, 4, 3], [0, 0, 4, 0]]))
+    # pillar 0: one point (-3.2 + 0.5 < 0) and two empty slots giving relu(0.5)
+    # pillar 1: three "points" (the zeros count as points): max(relu(-0.2 + 0.5), relu(0.5)) = 0.5
+    assert torch.allclose(out[:, 0], torch.tensor([0.5, 0.5]))
+
+
+def test_pfn_inference_folds_batchnorm_exactly_enough():
+    """In eval mode the last PFN layer folds BatchNorm into the linear map and takes the max before the
+    ReLU; against Linear -> BatchNorm (running statistics, some scales negative) -> ReLU -> max in float64."""
+    from lidarops.models.pillar_vfe import PFNLayer
+
+    g = torch.Generator().manual_seed(3)
+    layer = PFNLayer(10, 16, use_norm=True, last_layer=True).double()
+    with torch.no_grad():
+        layer.norm.weight.copy_(torch.randn(16, generator=g, dtype=torch.float64))
+        layer.norm.bias.copy_(torch.randn(16, generator=g, dtype=torch.float64))
+        layer.norm.running_mean.copy_(torch.randn(16, generator=g, dtype=torch.float64))
+        layer.norm.running_var.copy_(torch.rand(16, generator=g, dtype=torch.float64) + 0.1)
+    x = torch.randn(50, 7, 10, generator=g, dtype=torch.float64)
+    n = layer.norm
+    y = F.linear(x, layer.linear.weight)
+    y = (y - n.running_mean) / torch.sqrt(n.running_var + n.eps) * n.weight + n.bias
+    expected = torch.relu(y).amax(dim=1, keepdim=True)
+    assert (n.weight < 0).any()
+    assert torch.allclose(layer.eval()(x), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_focal_loss_formula():
+    logits = torch.tensor([-2.0, 0.0, 1.5, 3.0])
+    targets = torch.tensor([0.0, 1.0, 1.0, 0.0])
+    got = sigmoid_focal_loss(logits, targets)
+    for x, t, g in zip(logits.tolist(), targets.tolist(), got.tolist()):
+        p = 1 / (1 + math.exp(-x))
+        pt = p if t == 1 else 1 - p
+        alpha = 0.25 if t == 1 else 0.75
+        assert abs(g - alpha * (1 - pt) ** 2 * -math.log(pt)) < 1e-6
+
+
+def test_losses_by_hand():
+    """Tiny grid, one gt box equal to one anchor: the loss terms computed anchor by anchor here."""
+    torch.manual_seed(0)
+    model = PointPillars(TINY)
+    head = model.dense_head
+    anchors = head.anchors_flat  # (4 * 4 * 2, 7), align_center: x in {1, 3, 5, 7}, y in {-3, -1, 1, 3}
+    k = 2 * (4 * 1 + 2) + 1  # y index 1, x index 2, rotation pi/2
+    gt = anchors[k].clone()
+    gt[0] += 0.1
+    gt[6] += 0.2
+    gt_boxes = torch.cat([gt, torch.tensor([1.0])])[None, None]
+    g = torch.Generator().manual_seed(1)
+    preds = {"cls_preds": torch.randn(1, 4, 4, 2, generator=g), "box_preds": torch.randn(1, 4, 4, 14, generator=g) * 0.1,
+             "dir_cls_preds": torch.randn(1, 4, 4, 4, generator=g)}
+    out = head.loss(preds, gt_boxes)
+    labels = head.target_assigner.assign_targets(head.anchors, gt_boxes)["box_cls_labels"][0]
+    assert labels[k] == 1 and (labels == 1).sum() == 1  # the matched anchor; others ignored or background
+    cls = preds["cls_preds"].reshape(-1)
+    box = preds["box_preds"].reshape(-1, 7)
+    dirl = preds["dir_cls_preds"].reshape(-1, 2)
+    loss_cls = loss_box = loss_dir = 0.0
+    for i in range(anchors.shape[0]):
+        lab = int(labels[i])
+        if lab >= 0:
+            p = 1 / (1 + math.exp(-float(cls[i])))
+            t = 1.0 if lab == 1 else 0.0
+            pt = p if t else 1 - p
+            loss_cls += (0.25 if t else 0.75) * (1 - pt) ** 2 * -math.log(pt)
+        if lab == 1:
+            a = anchors[i].tolist()
+            diag = math.hypot(a[3], a[4])
+            target = [(gt[0] - a[0]) / diag, (gt[1] - a[1]) / diag, (gt[2] - a[2]) / a[5], math.log(gt[3] / a[3]),
+                      math.log(gt[4] / a[4]), math.log(gt[5] / a[5]), gt[6] - a[6]]
+            b = box[i].tolist()
+            for c in range(7):
+                bp, tp = (b[c], float(target[c])) if c < 6 else (math.sin(b[6]) * math.cos(target[6]),
+                                                                  math.cos(b[6]) * math.sin(target[6]))
+                d = abs(bp - tp)
+                loss_box += 0.5 * d * d * 9 if d < 1 / 9 else d - 0.5 / 9
+            rot = (float(gt[6]) - 0.78539) % (2 * math.pi)
+            bin_ = int(rot // math.pi)
+            z = dirl[i].tolist()
+            loss_dir += -(z[bin_] - math.log(math.exp(z[0]) + math.exp(z[1])))
+    assert abs(out["loss_cls"].item() - loss_cls) < 1e-5
+    assert abs(out["loss_box"].item() - 2.0 * loss_box) < 1e-5
+    assert abs(out["loss_dir"].item() - 0.2 * loss_dir) < 1e-5
+    assert abs(out["loss"].item() - (loss_cls + 2.0 * loss_box + 0.2 * loss_dir)) < 1e-5
+
+
+def _hand_case():
+    """Two classes, four decoded anchors: two overlapping cars, a pedestrian apart, one below threshold."""
+    cfg = PointPillarsConfig(**{**TINY, "class_names": ["Car", "Pedestrian"],
+                                "anchor_generator_config": TINY["anchor_generator_config"] + [
+                                    {**TINY["anchor_generator_config"][0], "class_name": "Pedestrian"}]})
+    boxes = torch.tensor([[[1.0, 0, 0, 4, 2, 1.5, 0], [1.2, 0, 0, 4, 2, 1.5, 0], [10, 0, 0, 4, 2, 1.5, 0],
+                           [20, 0, 0, 1, 1, 1, 0]]])
+    logit = lambda p: math.log(p / (1 - p))  # noqa: E731
+    cls = torch.tensor([[[logit(0.9), logit(0.2)], [logit(0.95), logit(0.1)], [logit(0.05), logit(0.3)],
+                         [logit(0.01), logit(0.09)]]])
+    return cfg, boxes, cls
+
+
+def test_postprocess_threshold_and_nms():
+    cfg, boxes, cls = _hand_case()
+    out = postprocess(cls, boxes, cfg)[0]
+    # box 1 (0.95) suppresses box 0 (IoU > 0.01); box 2 is a Pedestrian at 0.3; box 3 is below 0.1
+    assert out["labels"].tolist() == [1, 2] and torch.allclose(out["scores"], torch.tensor([0.95, 0.3]))
+    assert torch.equal(out["boxes"], boxes[0, [1, 2]])
+    multi = postprocess(cls, boxes, PointPillarsConfig(**{**cfg.to_dict(), "multi_classes_nms": True}))[0]
+    # per class, on each class's own scores: Car keeps box 1 (0.95; box 0 suppressed); Pedestrian keeps box 2
+    # (0.3) and box 0 (0.2, apart from box 2) and suppresses box 1 (0.1, overlapping box 0)
+    assert multi["labels"].tolist() == [1, 2, 2]
+    assert torch.allclose(multi["scores"], torch.tensor([0.95, 0.3, 0.2]))
+    assert torch.equal(multi["boxes"], boxes[0, [1, 2, 0]])
+
+
+def _assert_padded_equals(padded: dict, eager: list[dict], what: str) -> None:
+    for b, want in enumerate(eager):
+        n = int(padded["count"][b])
+        assert n == want["scores"].numel(), f"{what} frame {b}: {n} boxes, eager {want['scores'].numel()}"
+        assert torch.equal(padded["labels"][b, :n], want["labels"]), what
+        assert torch.equal(padded["scores"][b, :n], want["scores"]), what
+        assert torch.equal(padded["boxes"][b, :n], want["boxes"]), what
+        assert not padded["labels"][b, n:].any() and not padded["boxes"][b, n:].any(), f"{what}: padding rows"
+
+
+@pytest.mark.parametrize("multi", [False, True])
+@pytest.mark.parametrize("pre,post", [(4096, 500), (30, 8), (5, 500)])
+def test_postprocess_padded_equals_postprocess(device, multi, pre, post):
+    """Random decoded anchors of 2 frames and 3 classes, with tied scores (logits on a coarse grid) and
+    boxes clustered so NMS suppresses: the fixed-size post-processing keeps postprocess's boxes, in its order."""
+    cfg = PointPillarsConfig(**{**TINY, "multi_classes_nms": multi, "nms_pre_maxsize": pre, "nms_post_maxsize": post,
+                                "nms_thresh": 0.1})
+    g = torch.Generator().manual_seed(pre + post + multi)
+    B, A, C = 2, 300, 3
+    cls = ((torch.randn(B, A, C, generator=g) * 2 - 1) * 4).round() / 4
+    boxes = torch.cat([torch.rand(B, A, 2, generator=g) * 12, torch.zeros(B, A, 1),
+                       1 + torch.rand(B, A, 3, generator=g) * 3, torch.rand(B, A, 1, generator=g) * 6], -1)
+    cls, boxes = cls.to(device), boxes.to(device)
+    eager = postprocess(cls, boxes, cfg)
+    assert all(0 < e["scores"].numel() for e in eager)
+    padded = postprocess_padded(cls, boxes, cfg)
+    k = min(A, pre, post) * (C if multi else 1)
+    assert padded["boxes"].shape == (B, k, 7) and padded["count"].shape == (B,)
+    _assert_padded_equals(padded, eager, f"multi={multi} pre={pre} post={post}")
+
+
+def test_postprocess_padded_hand_case():
+    """The hand-made case of test_postprocess_threshold_and_nms through the padded path."""
+    cfg, boxes, cls = _hand_case()
+    out = postprocess_padded(cls, boxes, cfg)
+    assert int(out["count"][0]) == 2 and out["labels"][0].tolist() == [1, 2, 0, 0]
+    multi = postprocess_padded(cls, boxes, PointPillarsConfig(**{**cfg.to_dict(), "multi_classes_nms": True}))
+    assert int(multi["count"][0]) == 3 and multi["labels"][0, :3].tolist() == [1, 2, 2]
+    assert torch.equal(multi["boxes"][0, :3], boxes[0, [1, 2, 0]])
+
+
+def _batch(points_per_frame: list[torch.Tensor], gt: list[list[list[float]]] | None = None) -> dict:
+    pts = [torch.cat([torch.full((p.shape[0], 1), float(i)), p], 1) for i, p in enumerate(points_per_frame)]
+    batch = {"points": torch.cat(pts) if pts else torch.zeros(0, 5), "batch_size": len(points_per_frame)}
+    if gt is not None:
+        m = max(1, max(len(g) for g in gt))
+        boxes = torch.zeros(len(gt), m, 8)
+        for i, g in enumerate(gt):
+            if g:
+                boxes[i, :len(g)] = torch.tensor(g)
+        batch["gt_boxes"] = boxes
+    return batch
+
+
+def test_empty_and_out_of_range_clouds():
+    torch.manual_seed(0)
+    model = PointPillars(TINY)
+    far = torch.tensor([[100.0, 100.0, 0.0, 0.5], [-5.0, 0.0, 0.0, 0.1]])
+    for clouds in ([torch.zeros(0, 4)], [far], [torch.zeros(0, 4), far]):
+        preds = model.predict(_batch(clouds))
+        assert len(preds) == len(clouds) and all(p["boxes"].shape == (0, 7) for p in preds)
+    model.train()
+    out = model(_batch([torch.zeros(0, 4), far], gt=[[], [[3.0, 0.0, -1.0, 2.0, 1.0, 1.5, 0.0, 1.0]]]))
+    assert torch.isfinite(out["loss"]) and out["loss"].requires_grad
+
+
+def test_bad_batches_raise():
+    model = PointPillars(TINY)
+    with pytest.raises(ValueError, match="batch must be a dict"):
+        model([1, 2])
+    with pytest.raises(ValueError, match=r"batch\['points'\] must be a floating \(P, 1 \+ 4\)"):
+        model({"points": torch.zeros(5, 3), "batch_size": 1})
+    with pytest.raises(ValueError, match="batch_size"):
+        model({"points": torch.zeros(5, 5), "batch_size": 0})
+    with pytest.raises(ValueError, match=r"gt_boxes'\] must be \(batch_size=1, M, 8\)"):
+        model.train()({"points": torch.zeros(5, 5), "batch_size": 1, "gt_boxes": torch.zeros(1, 2, 7)})
+
+
+def _points(n: int = 50, frames: int = 1) -> torch.Tensor:
+    g = torch.Generator().manual_seed(0)
+    p = torch.rand(n, 5, generator=g) * torch.tensor([0.0, 60.0, 60.0, 3.0, 1.0]) - torch.tensor([0.0, 0.0, 30.0, 2.0, 0.0])
+    p[:, 0] = torch.arange(n) % frames
+    return p
+
+
+@pytest.mark.parametrize("frame, why", [(3.0, "beyond batch_size"), (0.5, "fractional"), (-1.0, "negative"),
+                                        (math.nan, "NaN")])
+def test_points_of_no_frame_raise(frame, why):
+    """A point whose frame index names no frame of the batch was silently left out of every frame."""
+    points = _points()
+    points[7, 0] = frame
+    with pytest.raises(ValueError, match=r"batch\['points'\]\[:, 0\] \(frame index\) must be an integer in \[0, 1\).*row 7"):
+        PointPillars(TINY).eval()({"points": points, "batch_size": 1})
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, 1e30])
+def test_invalid_intensity_raises_before_it_poisons_a_pillar(value):
+    points = _points()
+    points[3, 4] = value
+    with pytest.raises(ValueError, match=r"batch\['points'\]\[:, 4:\].*first row 3"):
+        PointPillars(TINY).predict({"points": points, "batch_size": 1})
+    points[3, 1:4] = math.nan  # a no-return beam (NaN x, y, z) is outside the range: left out, as voxelize does
+    points[3, 4] = 0.0
+    assert len(PointPillars(TINY).predict({"points": points, "batch_size": 1})) == 1
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float16])
+def test_other_float_dtypes_run_in_the_weights_dtype(dtype):
+    model = PointPillars(TINY).eval()
+    points = _points(200, frames=2)
+    want = model({"points": points, "batch_size": 2})
+    got = model({"points": points.to(dtype), "batch_size": 2})
+    exact = points.to(dtype).float()
+    want = model({"points": exact, "batch_size": 2})  # the same float32 values
+    for k in want:
+        assert torch.equal(got[k], want[k]), k
+
+
+def test_gt_boxes_of_a_class_must_be_real_boxes():
+    model = PointPillars(TINY).train()
+    for bad in ([math.nan] * 7, [10.0, 0.0, -1.0, -3.9, 1.6, 1.5, 0.0], [10.0, 0.0, -1.0, 3.9, 0.0, 1.5, 0.0],
+                [10.0, 0.0, -1.0, 3.9, 1.6, 1.5, math.inf]):
+        gt = torch.tensor([[bad + [1.0], [0.0] * 8]])
+        with pytest.raises(ValueError, match=r"batch\['gt_boxes'\] rows with a class must hold finite boxes"):
+            model({"points": _points(), "batch_size": 1, "gt_boxes": gt})
+    pad = torch.tensor([[[math.nan] * 7 + [0.0]]] * 2)  # class 0 rows are padding: never read
+    assert torch.isfinite(model({"points": _points(frames=2), "batch_size": 2, "gt_boxes": pad})["loss"])
+
+
+def test_checkpoint_of_another_config_names_the_keys(tmp_path):
+    three = PointPillars()
+    all_classes = PointPillars(load_config("configs/pointpillars/pointpillars_synth_all.yaml"))
+    torch.save({"model_state": all_classes.state_dict()}, tmp_path / "eight.pth")
+    with pytest.raises(CheckpointError, match=r"shape mismatch.*dense_head\.conv_cls\.weight"):
+        PointPillars.from_checkpoint(tmp_path / "eight.pth", config=three.config)
+    state = three.state_dict()
+    del state["vfe.pfn_layers.0.norm.weight"]
+    state["extra.weight"] = torch.zeros(1)
+    with pytest.raises(CheckpointError, match=r"missing \(1\): vfe\.pfn_layers\.0\.norm\.weight.*unexpected"):
+        three.load_weights(state)
+    # an OpenPCDet-style checkpoint of the right config loads strictly and gives the same outputs
+    torch.save({"model_state": three.state_dict(), "epoch": 80}, tmp_path / "pcdet.pth")
+    again = PointPillars.from_checkpoint(tmp_path / "pcdet.pth", config="configs/pointpillars/pointpillars_kitti.yaml")
+    assert all(torch.equal(a, b) for a, b in zip(three.state_dict().values(), again.state_dict().values()))
+
+
+def test_openpcdet_yaml_with_base_config(tmp_path):
+    """OpenPCDet's layout: tools/cfgs/kitti_models/pointpillar.yaml naming its base relative to tools/."""
+    import shutil
+    cfgs = tmp_path / "tools" / "cfgs"
+    (cfgs / "dataset_configs").mkdir(parents=True)
+    (cfgs / "kitti_models").mkdir()
+    shutil.copy("configs/datasets/kitti.yaml", cfgs / "dataset_configs" / "kitti_dataset.yaml")
+    text = open("configs/pointpillars/pointpillars_kitti.yaml").read().replace("_BASE_CONFIG_: datasets/kitti.yaml",
+                                                                  "_BASE_CONFIG_: cfgs/dataset_configs/kitti_dataset.yaml")
+    (cfgs / "kitti_models" / "pointpillar.yaml").write_text(text)
+    cfg = load_config(cfgs / "kitti_models" / "pointpillar.yaml")
+    assert cfg["DATA_CONFIG"]["FOV_POINTS_ONLY"] is True  # from the base
+    assert cfg["DATA_CONFIG"]["POINT_CLOUD_RANGE"] == [0, -39.68, -3, 69.12, 39.68, 1]  # overridden
+    assert PointPillarsConfig.from_openpcdet(cfg) == PointPillarsConfig()
+    (cfgs / "kitti_models" / "bad.yaml").write_text(text.replace("dataset_configs/kitti_dataset", "nowhere/x"))
+    with pytest.raises(ConfigError, match="_BASE_CONFIG_ 'cfgs/nowhere/x.yaml' not found"):
+        load_config(cfgs / "kitti_models" / "bad.yaml")
+
+
+@pytest.mark.parametrize("key,value,pattern", [
+    ("VFE", {"NAME": "DynamicPillarVFE"}, "MODEL.VFE.NAME = 'DynamicPillarVFE' is not supported"),
+    ("DENSE_HEAD", {"NAME": "AnchorHeadMulti"}, "MODEL.DENSE_HEAD.NAME"),
+])
+def test_unsupported_openpcdet_options(key, value, pattern):
+    cfg = load_config("configs/pointpillars/pointpillars_kitti.yaml")
+    cfg["MODEL"][key] = {**cfg["MODEL"][key], **value}
+    with pytest.raises(ConfigError, match=pattern):
+        PointPillarsConfig.from_openpcdet(cfg)
+
+
+def test_config_round_trip_and_checks():
+    cfg = PointPillarsConfig.from_openpcdet(load_config("configs/pointpillars/pointpillars_synth_all.yaml"))
+    assert PointPillarsConfig.from_dict(cfg.to_dict()) == cfg
+    assert len(cfg.class_names) == 8
+    with pytest.raises(ConfigError, match="whole number of VOXEL_SIZE cells"):
+        PointPillarsConfig(voxel_size=[0.17, 0.16, 4.0])
+    with pytest.raises(ConfigError, match="one entry per class"):
+        PointPillarsConfig(class_names=["Car"])
+
+
+class _Network(torch.nn.Module):
+    """PointPillars' exportable part: pillars -> the head's three outputs."""
+
+    def __init__(self, m):
+        super().__init__()
+        self.m = m
+
+    def forward(self, voxels, num_points, coords):
+        out = self.m.network(voxels, num_points, coords, 1)
+        return out["cls_preds"], out["box_preds"], out["dir_cls_preds"]
+
+
+def _pillars_of(model, n, seed):
+    pts = torch.rand(n, 4, generator=torch.Generator().manual_seed(seed)) * torch.tensor([8.0, 8.0, 4.0, 1.0]) \
+        + torch.tensor([0, -4.0, -3, 0])
+    return model.voxelize(torch.cat([torch.zeros(n, 1), pts], 1), 1)
+
+
+def test_torch_export_of_the_network():
+    torch.manual_seed(0)
+    model = PointPillars(TINY).eval()
+    pts = torch.tensor([[1.5, -2.5, -1.0, 0.3], [1.2, -2.1, -0.5, 0.1], [6.5, 3.5, 0.0, 0.9]])
+    voxels, num_points, coords = model.voxelize(torch.cat([torch.zeros(3, 1), pts], 1), 1)
+    ep = torch.export.export(_Network(model), (voxels, num_points, coords))
+    for a, b in zip(ep.module()(voxels, num_points, coords), _Network(model)(voxels, num_points, coords)):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_onnx_export_of_the_network(tmp_path):
+    """ONNX (torch.onnx's dynamo exporter) of the network with a dynamic number of pillars, run in
+    onnxruntime on frames with other pillar counts than the exported one."""
+    pytest.importorskip("onnxscript")
+    ort = pytest.importorskip("onnxruntime")
+    torch.manual_seed(0)
+    model = PointPillars(TINY).eval()
+    net = _Network(model)
+    program = torch.onnx.export(net, _pillars_of(model, 300, 0), dynamo=True, verbose=False,
+                                dynamic_shapes=({0: "pillars"}, {0: "pillars"}, {0: "pillars"}))
+    program.save(str(tmp_path / "pointpillars.onnx"))
+    session = ort.InferenceSession(str(tmp_path / "pointpillars.onnx"))
+    counts = set()
+    for n, seed in ((300, 1), (40, 2)):
+        inputs = _pillars_of(model, n, seed)
+        counts.add(inputs[0].shape[0])
+        got = session.run(None, {i.name: x.numpy() for i, x in zip(session.get_inputs(), inputs)})
+        for g, want in zip(got, net(*inputs)):
+            assert g.shape == tuple(want.shape)
+            assert torch.allclose(torch.from_numpy(g), want, atol=1e-5)
+    assert len(counts) == 2
+
+
+def test_sparse_backbone_mode_runs():
+    torch.manual_seed(0)
+    dense = PointPillars(TINY).eval()
+    sparse = PointPillars({**TINY, "backbone_mode": "sparse"}).eval()
+    sparse.load_weights(dense.state_dict())
+    batch = _batch([torch.tensor([[1.5, -2.5, -1.0, 0.3], [6.5, 3.5, 0.0, 0.9]])])
+    with torch.no_grad():
+        a, b = dense(batch), sparse(batch)
+    assert all(a[k].shape == b[k].shape for k in a)
+
+
+def _synthetic_frames(n: int):
+    from lidarops.data.synthetic import SyntheticFrames
+
+    frames = SyntheticFrames("driving_city", num_frames=n, seed=5, object_counts={"Car": 8, "Pedestrian": 0,
+                                                                                   "Cyclist": 0})
+    out = []
+    for i in range(n):
+        f = frames[i]
+        keep = (f.labels == 0) & (f.num_points_in_box >= 20)
+        out.append((torch.from_numpy(f.points), torch.from_numpy(f.boxes[keep])))
+    return out
+
+
+@pytest.mark.slow
+def test_overfit_a_few_frames():
+    """A narrow PointPillars on 2 simulated frames: the loss falls and the cars come back (BEV IoU > 0.5)."""
+    cfg = dict(TINY, point_cloud_range=[0.0, -20.48, -3.0, 40.96, 20.48, 1.0], voxel_size=[0.32, 0.32, 4.0],
+               vfe_num_filters=[32], num_filters=[32, 32, 64], num_upsample_filters=[32, 32, 32],
+               anchor_generator_config=[{**TINY["anchor_generator_config"][0], "anchor_sizes": [[3.9, 1.6, 1.56]],
+                                         "align_center": False}])
+    torch.manual_seed(0)
+    model = PointPillars(cfg)
+    data = _synthetic_frames(2)
+    lo, hi = torch.tensor(cfg["point_cloud_range"][:3]), torch.tensor(cfg["point_cloud_range"][3:])
+    clouds, gts = [], []
+    for pts, boxes in data:
+        clouds.append(pts[((pts[:, :3] >= lo) & (pts[:, :3] < hi)).all(1)])
+        inside = ((boxes[:, :2] >= lo[:2] + 2) & (boxes[:, :2] < hi[:2] - 2)).all(1)
+        gts.append(torch.cat([boxes[inside], torch.ones(int(inside.sum()), 1)], 1).tolist())
+    assert sum(len(g) for g in gts) >= 4
+    batch = _batch(clouds, gts)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    model.train()
+    losses = []
+    for _ in range(120):
+        out = model(batch)
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+        losses.append(out["loss"].item())
+    assert np.mean(losses[-10:]) < 0.2 * np.mean(losses[:5]), losses[::20]
+    # BatchNorm's running statistics (momentum 0.01) lag 120 steps behind: take this batch's statistics
+    for m in model.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.reset_running_stats()
+            m.momentum = None
+    with torch.no_grad():
+        model(batch)
+    import lidarops
+
+    for pred, gt in zip(model.predict(batch), gts):
+        gt = torch.tensor(gt)[:, :7]
+        iou = lidarops.box_iou_bev(gt, pred["boxes"].float())
+        assert (iou.amax(1) > 0.5).float().mean() >= 0.75, iou.amax(1)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.parametrize("mode", ["dense", "sparse"])
+def test_cuda_matches_cpu(mode):
+    """The whole model on CUDA against CPU: head outputs to float tolerance, losses, and detections."""
+    torch.manual_seed(0)
+    model = PointPillars(dict(TINY, backbone_mode=mode)).eval()
+    g = torch.Generator().manual_seed(3)
+    clouds = [torch.rand(300, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0])
+              for _ in range(2)]
+    batch = _batch(clouds, [[[3.0, 0.0, -1.0, 2.0, 1.0, 1.5, 0.3, 1.0]], []])
+    cuda_batch = {k: v.cuda() if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+    with torch.no_grad():
+        cpu, gpu = model(batch), model.cuda()(cuda_batch)
+        for k in cpu:
+            assert torch.allclose(cpu[k], gpu[k].cpu(), atol=1e-4, rtol=1e-4), k
+        model.cpu().train()
+        loss_cpu = model(batch)
+        loss_gpu = model.cuda()(cuda_batch)
+        for k in ("loss_cls", "loss_box", "loss_dir"):
+            assert abs(loss_cpu[k].item() - loss_gpu[k].item()) < 1e-4 * max(1.0, abs(loss_cpu[k].item())), k
+        model.eval()
+        cls_gpu, boxes_gpu = model.dense_head.decode(model(cuda_batch))
+        cls_cpu, boxes_cpu = model.cpu().dense_head.decode(model(batch))
+    assert torch.allclose(cls_cpu, cls_gpu.cpu(), atol=1e-4) and torch.allclose(boxes_cpu, boxes_gpu.cpu(), atol=1e-4)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_padded_network_captures_in_a_cuda_graph():
+    """Padded voxelization, the dense network and the decode record into one CUDA graph (no host copy
+    or read inside) and its replay on a new frame equals the eager call on that frame."""
+    from lidarops.ops.voxelize import voxelize
+
+    torch.manual_seed(0)
+    model = PointPillars(TINY).cuda().eval()
+    cfg = model.config
+    g = torch.Generator().manual_seed(5)
+    frames = [(torch.rand(400, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0])
+               + torch.tensor([0, -4.0, -3, 0])).cuda() for _ in range(2)]
+    static = frames[0].clone()
+
+    def body(points):
+        with torch.no_grad(), lidarops.validation(False):
+            v, c, n = voxelize(points, cfg.voxel_size, cfg.point_cloud_range, cfg.max_points_per_voxel,
+                               cfg.max_voxels_test, overflow="drop", padded=True)
+            coords = torch.cat([(c[:, :1] >= 0).to(c.dtype) - 1, c], 1)  # frame 0, padding rows -1
+            return model.dense_head.decode(model.network(v, n, coords, 1))
+
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        body(static)
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out = body(static)
+    static.copy_(frames[1])
+    graph.replay()
+    want = body(frames[1])
+    for got, ref in zip(out, want):
+        assert torch.allclose(got, ref, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
+                    reason="needs a GPU and lidarops built with CUDA kernels")
+def test_graphed_pointpillars_equals_predict():
+    """The whole inference (voxelization to NMS) replayed as one CUDA graph gives predict's detections on
+    frames of other sizes, an empty one included; bad frames get the eager call's errors."""
+    from lidarops.models.cuda_graph import GraphedPointPillars
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1}).cuda().eval()
+    with torch.no_grad():  # scores around 0.5 instead of the prior's 0.01, so that boxes pass 0.3
+        model.dense_head.conv_cls.bias.zero_()
+    g = torch.Generator().manual_seed(7)
+    frames = [(torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0])
+               + torch.tensor([0, -4.0, -3, 0])).cuda() for n in (400, 1000, 0, 37)]
+    graphed = GraphedPointPillars(model, capacity=1000)
+    kept = 0
+    for i, f in enumerate(frames):
+        got = graphed(f)
+        want = model.predict({"points": torch.nn.functional.pad(f, (1, 0)), "batch_size": 1})[0]
+        assert got["labels"].tolist() == want["labels"].tolist(), f"frame {i}"
+        assert torch.allclose(got["scores"], want["scores"], atol=1e-5), f"frame {i}"
+        assert torch.allclose(got["boxes"], want["boxes"], atol=1e-4), f"frame {i}"
+        kept += len(want["labels"])
+    assert kept > 0, "the case must keep boxes"
+    with pytest.raises(ValueError, match="more than capacity=1000"):
+        graphed(torch.zeros(1001, 4, device="cuda"))
+    bad = frames[0].clone()
+    bad[3, 3] = float("nan")
+    with pytest.raises(ValueError, match="intensity"):
+        graphed(bad)
+    with pytest.raises(ValueError, match="backbone_mode='dense'"):
+        GraphedPointPillars(PointPillars({**TINY, "backbone_mode": "sparse"}).cuda())

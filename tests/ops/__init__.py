@@ -1,0 +1,1 @@
+"""Tests of lidarops/ops/ (neighbours, boxes, voxelize, pillars, value checks, every registered op's bounds)."""

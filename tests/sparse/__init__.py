@@ -1,0 +1,1 @@
+"""Tests of lidarops/sparse/ (sparse convolution, fused layers, indice keys, the nn modules)."""

@@ -1,0 +1,227 @@
+"""The fused inference convolution: ``sparse_conv_affine`` (a per-channel affine map and ReLU applied to
+the convolution's float accumulator), its use by ``SparseSequential`` and the sparse PointPillars
+backbone for conv -> BatchNorm (eval) -> ReLU, and the host-side shortcuts of eager inference.
+
+References: the float64 product of the same (rounded) inputs on the CPU followed by the epilogue in
+float64, and, for the networks, the same modules run unfused (with gradients enabled, which turns the
+fusion off) or a hand-written BatchNorm.
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+import lidarops.compat.spconv as spconv
+from lidarops.sparse import SparseConvTensor
+from lidarops.sparse import functional as Fs
+from helpers.sparse import TOL, random_tensor, random_weight
+
+ops = torch.ops.lidarops
+
+
+def _reference(features, weight, nbr, scale, shift, relu):
+    out = ops.sparse_conv(features.double().cpu(), weight.double().cpu(), nbr.cpu())
+    if scale is not None:
+        out = out * scale.double().cpu()
+    if shift is not None:
+        out = out + shift.double().cpu()
+    return out.clamp_min(0) if relu else out
+
+
+# kernel families on CUDA: (cin, cout) and dtype pick the general SIMT tiles (cin % 4 != 0), the
+# float32 cp.async tiles, the tensor-core pipeline (cin a multiple of the vector) and the plain
+# tensor-core kernel (float16 with cin % 8 != 0); every one runs on the CPU too
+CASES = [(6, 10, torch.float32), (24, 100, torch.float32), (32, 64, torch.float16), (20, 48, torch.float16),
+         (32, 40, torch.bfloat16), (16, 24, torch.float64), (64, 16, "tf32"), (48, 32, "3xtf32")]
+
+
+@pytest.mark.parametrize("cin,cout,dtype", CASES, ids=[f"{a}-{b}-{c}".replace("torch.", "") for a, b, c in CASES])
+@pytest.mark.parametrize("parts", ["scale+shift+relu", "shift+relu", "scale", "relu"])
+def test_sparse_conv_affine_matches_float64(device, cin, cout, dtype, parts):
+    if dtype in ("tf32", "3xtf32") and device == "cpu":
+        pytest.skip("TF32 is a CUDA mode")
+    algo = "3xtf32" if dtype == "3xtf32" else "auto"
+    dt = torch.float32 if dtype in ("tf32", "3xtf32") else dtype
+    x = random_tensor(2, (40, 40), 300, cin, seed=cin + cout, dtype=dt, device=device)
+    km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+    nbr = km.neighbors.clone()
+    nbr[::7] = -1  # rows with no input: epi(0)
+    w = (random_weight(cout, (3, 3), cin, seed=cout, dtype=dt, device=device) / 8).reshape(cout, 9, cin)
+    g = torch.Generator().manual_seed(cin)
+    scale = (torch.rand(cout, generator=g) + 0.5).to(device) if "scale" in parts else None
+    shift = (torch.randn(cout, generator=g)).to(device) if "shift" in parts else None
+    relu = "relu" in parts
+    old = torch.backends.cuda.matmul.allow_tf32
+    try:
+        torch.backends.cuda.matmul.allow_tf32 = dtype == "tf32"
+        got = ops.sparse_conv_affine(x.features, w, nbr, km.order, scale, shift, relu, algo)
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = old
+    ref = _reference(x.features, w, nbr, scale, shift, relu)
+    assert got.dtype == dt and got.shape == ref.shape
+    row0 = torch.zeros(cout, dtype=torch.float64)  # the epilogue of an empty sum
+    if shift is not None:
+        row0 = row0 + shift.double().cpu()
+    if relu:
+        row0 = row0.clamp_min(0)
+    torch.testing.assert_close(got[::7].double().cpu(), row0.to(dt).double().expand(got[::7].shape[0], cout),
+                               rtol=0, atol=0)
+    tol = 5e-3 if dtype == "tf32" else TOL[dt]  # 3xTF32: float32's tolerance
+    assert (got.double().cpu() - ref).abs().max().item() <= tol * max(1.0, ref.abs().max().item())
+    if relu:
+        assert (got >= 0).all()
+
+
+def test_sparse_conv_affine_without_inputs_and_nan(device):
+    w = torch.randn(5, 9, 4, device=device)
+    nbr = torch.full((3, 9), -1, dtype=torch.int32, device=device)
+    shift = torch.tensor([1.0, -2.0, 0.5, -0.1, 3.0], device=device)
+    for n_in in (0, 6):
+        x = torch.randn(n_in, 4, device=device)
+        out = ops.sparse_conv_affine(x, w, nbr, None, None, shift, True)
+        assert torch.equal(out.cpu(), shift.clamp_min(0).expand(3, 5).cpu())
+        out = ops.sparse_conv_affine(x, w, nbr, None, torch.full((5,), 2.0, device=device), shift, False)
+        assert torch.equal(out.cpu(), shift.expand(3, 5).cpu())
+    # ReLU keeps NaN, as torch.relu
+    x = torch.full((1, 4), float("nan"), device=device)
+    out = ops.sparse_conv_affine(x, w, torch.zeros(1, 9, dtype=torch.int32, device=device), None, None, None, True)
+    assert torch.isnan(out).all()
+
+
+def test_sparse_conv_affine_checks_its_arguments(device):
+    x = random_tensor(1, (8, 8), 20, 4, seed=1, dtype=torch.float32, device=device)
+    km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+    w = torch.randn(6, 9, 4, device=device)
+    good = torch.ones(6, device=device)
+    for bad, name in [(torch.ones(6, dtype=torch.float64, device=device), "scale"), (torch.ones(5, device=device), "scale"),
+                      (torch.ones(6, 1, device=device), "scale")]:
+        with pytest.raises(ValueError, match=name):
+            ops.sparse_conv_affine(x.features, w, km.neighbors, None, bad, good, False)
+        with pytest.raises(ValueError, match="shift"):
+            ops.sparse_conv_affine(x.features, w, km.neighbors, None, good, bad, False)
+    with pytest.raises(ValueError, match="scale"):
+        Fs.conv(x, torch.randn(6, 3, 3, 4, device=device), None, "subm", scale=good.double())
+    if device != "cpu":
+        with pytest.raises(ValueError, match="scale is on cpu"):
+            ops.sparse_conv_affine(x.features, w, km.neighbors, None, good.cpu(), None, False)
+
+
+def test_opcheck_sparse_conv_affine(device):
+    x = random_tensor(2, (6, 5), 10, 3, seed=0, dtype=torch.float32, device=device)
+    km = Fs.build_kernel_map(x, "conv", 3, 2, 1, 1)
+    w = random_weight(4, (9,), 3, dtype=torch.float32, device=device)
+    s, b = torch.rand(4, device=device) + 0.5, torch.randn(4, device=device)
+    torch.library.opcheck(ops.sparse_conv_affine, (x.features, w, km.neighbors, km.order, s, b, True))
+    torch.library.opcheck(ops.sparse_conv_affine, (x.features, w, km.neighbors, None, None, None, False))
+
+
+def test_functional_conv_epilogue_with_and_without_gradients(device):
+    x = random_tensor(2, (20, 20), 80, 8, seed=3, dtype=torch.float32, device=device)
+    w = random_weight(12, (3, 3), 8, seed=3, dtype=torch.float32, device=device) / 4
+    bias = torch.randn(12, device=device)
+    scale, shift = torch.rand(12, device=device) + 0.5, torch.randn(12, device=device)
+    ref = Fs.conv(x, w, bias, "conv", 2, 1).features
+    ref = torch.relu(ref * scale + shift)
+    with torch.no_grad():  # fused kernel, the bias folded into the shift
+        got = Fs.conv(x, w, bias, "conv", 2, 1, scale=scale, shift=shift, relu=True).features
+    torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
+    wg = w.clone().requires_grad_()
+    y = Fs.conv(x, wg, bias, "conv", 2, 1, scale=scale, shift=shift, relu=True).features  # differentiable path
+    torch.testing.assert_close(y.detach(), ref, rtol=1e-5, atol=1e-5)
+    y.sum().backward()
+    assert wg.grad is not None and wg.grad.abs().sum() > 0
+
+
+def _randomize_norms(net, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    for m in net.modules():
+        if isinstance(m, nn.modules.batchnorm._BatchNorm):
+            C = m.num_features
+            m.running_mean.copy_(torch.randn(C, generator=g))
+            m.running_var.copy_(torch.rand(C, generator=g) + 0.3)
+            if m.weight is not None:
+                m.weight.data.copy_(torch.rand(C, generator=g) + 0.5)
+                m.bias.data.copy_(torch.randn(C, generator=g))
+    return net
+
+
+def _net(cin):
+    return spconv.SparseSequential(
+        spconv.SubMConv2d(cin, 16, 3, bias=True, indice_key="s1"), nn.BatchNorm1d(16), nn.ReLU(),
+        spconv.SparseConv2d(16, 32, 3, stride=2, padding=1, bias=False, indice_key="d1"), nn.BatchNorm1d(32),
+        spconv.SubMConv2d(32, 32, 3, bias=False, indice_key="s2"), nn.BatchNorm1d(32, affine=False), nn.ReLU(),
+        spconv.SparseInverseConv2d(32, 16, 3, indice_key="d1", bias=False), nn.BatchNorm1d(16), nn.ReLU(),
+        spconv.SparseConvTranspose2d(16, 8, 2, stride=2, bias=True), spconv.SparseBatchNorm(8), spconv.SparseReLU(),
+        spconv.SubMConv2d(8, 8, 1, bias=False), nn.BatchNorm1d(8), nn.ReLU())  # spconv's kernel-1 shortcut
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+def test_sparse_sequential_fuses_eval_batchnorm_relu(device, dtype):
+    if dtype == torch.float16 and device == "cpu":
+        pytest.skip("float16 networks run on CUDA")
+    net = _randomize_norms(_net(8)).to(device=device, dtype=dtype).eval()
+    x = random_tensor(2, (30, 30), 150, 8, seed=5, dtype=dtype, device=device)
+    ref = net(x)  # gradients enabled and parameters require them: no fusion
+    calls = []
+    orig = ops.sparse_conv_affine
+    with torch.no_grad():
+        try:  # count the fused launches
+            ops.sparse_conv_affine = lambda *a: calls.append(1) or orig(*a)  # noqa: E731
+            got = net(x)
+        finally:
+            ops.sparse_conv_affine = orig
+    assert len(calls) == 5  # every conv but the kernel-1 shortcut
+    assert torch.equal(got.indices, ref.indices)
+    tol = 1e-5 if dtype == torch.float32 else 2e-2
+    torch.testing.assert_close(got.features, ref.features.detach(), rtol=tol, atol=tol)
+    # an in-place change of a BatchNorm buffer reaches the cached affine map
+    with torch.no_grad():
+        net[1].running_var.mul_(4)
+        again = net(x)
+    ref2 = net(x)
+    torch.testing.assert_close(again.features, ref2.features.detach(), rtol=tol, atol=tol)
+    assert not torch.allclose(again.features, got.features)
+
+
+def test_sparse_sequential_keeps_hooks_training_mode_and_float64(device):
+    net = _randomize_norms(_net(8)).to(device)
+    x = random_tensor(2, (30, 30), 150, 8, seed=6, dtype=torch.float32, device=device)
+    seen = []
+    net.eval()
+    h = net[1].register_forward_hook(lambda m, i, o: seen.append(o.shape))
+    with torch.no_grad():
+        net(x)
+    h.remove()
+    assert len(seen) == 1  # the hooked BatchNorm ran as a module
+    # training mode: batch statistics, never fused (running stats are updated)
+    net.train()
+    before = net[1].running_mean.clone()
+    with torch.no_grad():
+        net(x)
+    assert not torch.equal(before, net[1].running_mean)
+    # float64 keeps BatchNorm's own arithmetic
+    net64 = _randomize_norms(_net(8)).to(device=device, dtype=torch.float64).eval()
+    x64 = random_tensor(2, (30, 30), 150, 8, seed=6, dtype=torch.float64, device=device)
+    with torch.no_grad():
+        got = net64(x64)
+    ref = net64(x64)
+    assert (got.features - ref.features).abs().max() <= 1e-12
+
+
+def test_pointpillars_sparse_backbone_fused_equals_unfused(device):
+    from lidarops.models.bev_backbone import BaseBEVBackbone
+    torch.manual_seed(0)
+    bb = _randomize_norms(BaseBEVBackbone(in_channels=16, mode="sparse")).to(device).eval()
+    x = random_tensor(1, (64, 64), 500, 16, seed=7, dtype=torch.float32, device=device)
+    ref = bb(x)  # gradients: three steps per layer
+    with torch.no_grad():
+        got = bb(x)
+        again = bb(x)  # cached weights and affine maps
+    torch.testing.assert_close(got, ref.detach(), rtol=1e-5, atol=1e-5)
+    assert torch.equal(got, again)
+    with torch.no_grad():  # a weight changed in place reaches the cached sparse weight
+        bb.blocks[0][1].weight.mul_(-1)  # the first block's strided conv
+        changed = bb(x)
+    torch.testing.assert_close(changed, bb(x).detach(), rtol=1e-5, atol=1e-5)
+    assert not torch.allclose(changed, got)

@@ -1,0 +1,1 @@
+"""Tests of lidarops/sscater/ (the delta-convolution ops and the recycling backbone)."""

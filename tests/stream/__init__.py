@@ -1,0 +1,1 @@
+"""Tests of lidarops/stream/ (PillarStream: steps, faults, corrupt state, overflow)."""

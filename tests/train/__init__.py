@@ -1,0 +1,1 @@
+"""Tests of lidarops/train/ (the training loop; DDP on two GPUs)."""
