@@ -35,7 +35,11 @@ def evaluate_results(args: argparse.Namespace) -> int:
         split = Path(args.split)
         if not split.is_file():
             raise CliError(f"--split {split} not found")
-        ids = [line.strip() for line in split.read_text().splitlines() if line.strip()]
+        try:
+            text = split.read_bytes().decode("utf-8-sig")
+        except UnicodeDecodeError as e:
+            raise CliError(f"--split {split}: not a text file of frame ids (byte {e.start} is not UTF-8 text)") from None
+        ids = [line.strip() for line in text.splitlines() if line.strip()]
     else:
         ids = sorted(p.stem for p in results_dir.glob("*.txt"))
     if not ids:
