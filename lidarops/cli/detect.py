@@ -66,6 +66,9 @@ def _frames(args: argparse.Namespace) -> Iterator[tuple]:
 
     if args.frames is not None and args.frames < 1:  # 0 would mean "every frame" of a folder
         raise CliError(f"--frames must be >= 1 (leave it out for every frame of a folder), got {args.frames}")
+    for flag in ("png", "print_frames", "print_boxes"):
+        if getattr(args, flag) < 0:
+            raise CliError(f"--{flag.replace('_', '-')} must be >= 0, got {getattr(args, flag)}")
     if args.scenario:
         from lidarops.data.synthetic import SyntheticFrames
 

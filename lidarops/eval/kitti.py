@@ -230,9 +230,8 @@ def detection_annos(detection: Mapping[str, Any], calib: KittiCalib | None = Non
         raise ValueError(f"{where}['boxes']: sizes dx, dy, dz must be >= 0")
     calib = calib or KittiCalib.default()
     keep = kitti_fov_mask(boxes[:, :3], calib, image_size) if k else np.zeros(0, bool)
-    anno = annos_from_labels(boxes_to_kitti_labels(boxes[keep], names[keep], calib, image_size))
-    anno["score"] = scores[keep]
-    return anno
+    labels = boxes_to_kitti_labels(boxes[keep], names[keep], calib, image_size, score=scores[keep])
+    return annos_from_labels(_as_written(labels))  # as the result file reads back: in memory == from files
 
 
 def _field(anno: Mapping, key: str, k: int, width: int, where: str) -> np.ndarray:

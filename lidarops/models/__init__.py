@@ -68,6 +68,9 @@ def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu"
     ckpt = read_checkpoint(path, map_location)
     record = model_record(ckpt, str(path))
     name = record.model_class
+    if name is not None and name not in MODELS:
+        raise CheckpointError(f"{path}: model_class {name!r} is not a model this lidarops builds "
+                              f"({', '.join(sorted(MODELS))}); a newer lidarops may")
     if name is None:
         if config is None:
             raise CheckpointError(f"{path} records no model (an OpenPCDet checkpoint?): pass config=... (a YAML "

@@ -104,7 +104,11 @@ class PointPillars(nn.Module):
             config = record.config
             if config is None:
                 raise ConfigError(f"{path} carries no model config (an OpenPCDet checkpoint?): pass config=...")
-        model = cls(config)
+        try:
+            model = cls(config)
+        except ConfigError as e:
+            where = "the config given" if record.config is None or config is not record.config else "its model_config"
+            raise ConfigError(f"{path}: {where}: {e}") from None
         model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
         return model
 

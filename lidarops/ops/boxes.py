@@ -53,14 +53,28 @@ def _box_out_of_range(boxes: Tensor) -> Tensor:
             | ((size != 0) & ((size < MIN_BOX_SIZE) | (size > MAX_BOX_SIZE))).any(1))
 
 
+def _value_out_of_range(v: float, column: int) -> bool:
+    """The rule of :func:`_box_out_of_range` for one value of a column (0-6)."""
+    if column < 3:
+        return abs(v) > MAX_ABS_BOX_CENTRE
+    if column < 6:
+        return v != 0 and not MIN_BOX_SIZE <= v <= MAX_BOX_SIZE
+    return abs(v) > MAX_ABS_HEADING
+
+
 def _box_messages(boxes: Tensor, name: str) -> tuple:
     """The messages of the box value checks (non-finite values, values out of range), built when raised."""
     def out_of_range() -> str:
         rows = torch.nonzero(_box_out_of_range(boxes)).flatten()[:3].tolist()
         first = boxes[rows[0]].tolist() if rows else []
+        column = next((c for c in range(7) if _value_out_of_range(first[c], c)), None) if first else None
+        what = ""
+        if column is not None:
+            field, v = ("x", "y", "z", "dx", "dy", "dz", "heading")[column], first[column]
+            what = f"; row {rows[0]} has {field} = {v!r}" + (" (a negative size)" if 3 <= column < 6 and v < 0 else "")
         return (f"{name} must hold centres within {MAX_ABS_BOX_CENTRE:g} m, sizes dx, dy, dz of 0 or in "
-                f"[{MIN_BOX_SIZE:g}, {MAX_BOX_SIZE:g}] m (>= 0) and headings within {MAX_ABS_HEADING:g} rad; rows "
-                f"{rows} are not (first: {first}; {describe(boxes)})")
+                f"[{MIN_BOX_SIZE:g}, {MAX_BOX_SIZE:g}] m and headings within {MAX_ABS_HEADING:g} rad; rows "
+                f"{rows} are not{what} ({describe(boxes)})")
 
     return lambda: f"{name} contains NaN or infinite values ({describe(boxes)})", out_of_range
 
@@ -215,6 +229,8 @@ def nms_bev(boxes: Tensor, scores: Tensor, iou_threshold: float, pre_max: int | 
     score_threshold = _score_threshold(score_threshold)
     if not isinstance(padded, bool):  # padded="no" is truthy: it would silently return (keep, count)
         raise ValueError(f"padded must be True or False, got {padded!r}")
+    if boxes.device.type == "meta" and not padded:
+        raise ValueError("boxes on the meta device: the number of boxes kept is data, so meta tensors need padded=True")
     if padded:
         _check_nms_values(boxes, scores)
         return torch.ops.lidarops.nms_bev_padded(boxes, scores, None, threshold, score_threshold, pre, post)
@@ -259,6 +275,9 @@ def batched_nms_bev(boxes: Tensor, scores: Tensor, idxs: Tensor, iou_threshold: 
         Tensor[K] int64: kept indices in descending score order (equal scores: lower index first).
     """
     threshold = _nms_args(boxes, scores, iou_threshold, idxs)
+    if boxes.device.type == "meta":
+        raise ValueError("boxes on the meta device: the number of boxes batched_nms_bev keeps is data (use "
+                         "nms_bev(..., padded=True) per group)")
     _check_nms_values(boxes, scores)
     pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
     idxs = idxs.to(torch.int64)

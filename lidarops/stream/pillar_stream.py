@@ -528,6 +528,7 @@ class PillarStream:
         if not check and coords is not None:
             return self._gather(coords)
         H, W = self._grid.shape
+        given = None  # the coords as the caller gave them, for the error message
         if coords is None:
             coords = self.active_coords()
         else:
@@ -536,9 +537,9 @@ class PillarStream:
                     or coords.dtype == torch.bool:
                 raise ValueError(f"coords must be an integer (P, 3) tensor of (batch, y, x), got {describe(coords)}")
             # out-of-grid values become -1 before the int32 cast: a huge int64 would wrap into the grid
-            wide = coords.to(torch.int64)
-            limit = torch.tensor([1, H, W], device=wide.device)
-            coords = torch.where((wide >= 0) & (wide < limit), wide, -1).to(torch.int32)
+            given = coords.to(torch.int64)
+            limit = torch.tensor([1, H, W], device=given.device)
+            coords = torch.where((given >= 0) & (given < limit), given, -1).to(torch.int32)
         keys = coords[:, 1].to(torch.int64) * W + coords[:, 2].to(torch.int64)
         pillars = self._gather(coords, keys)
         if coords.shape[0]:
@@ -550,7 +551,8 @@ class PillarStream:
             if bad.numel():
                 i = int(bad[0, 0])
                 if not bool(active[i]):
-                    raise ValueError(f"coords[{i}] = {coords[i].tolist()} is not an active pillar of the stream "
+                    raise ValueError(f"coords[{i}] = {(given if given is not None else coords)[i].tolist()} is not an "
+                                     "active pillar of the stream "
                                      f"({bad.shape[0]} of {coords.shape[0]} coords are not; grid {H} x {W}, "
                                      f"batch 0)")
                 s = int(self._cell_slot[keys[i]])
