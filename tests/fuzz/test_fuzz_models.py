@@ -27,19 +27,9 @@ from lidarops.checkpoint import format_fields, model_fields, save_checkpoint
 from lidarops.config import ConfigError
 from lidarops.models import PointPillars, PointPillarsConfig, load_model
 
-from .fuzzing import assert_clear_error, fuzz, outcome
+from helpers.models import TINY
 
-TINY = dict(
-    class_names=["Car"],
-    point_cloud_range=[0.0, -4.0, -3.0, 8.0, 4.0, 1.0],
-    voxel_size=[1.0, 1.0, 4.0],
-    vfe_num_filters=[8],
-    layer_nums=[1, 1, 1], layer_strides=[2, 2, 2], num_filters=[8, 8, 8],
-    upsample_strides=[1, 2, 4], num_upsample_filters=[4, 4, 4],
-    anchor_generator_config=[{"class_name": "Car", "anchor_sizes": [[2.0, 1.0, 1.5]], "anchor_rotations": [0, 1.57],
-                              "anchor_bottom_heights": [-1.78], "align_center": True, "feature_map_stride": 2,
-                              "matched_threshold": 0.6, "unmatched_threshold": 0.45}],
-)
+from .fuzzing import assert_clear_error, fuzz, outcome
 
 # field -> (OpenPCDet key, kind, low, high, low open, high open): the policy of docs/detector.md
 _SCALARS = {

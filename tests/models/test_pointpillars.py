@@ -19,17 +19,7 @@ from lidarops.models.pillar_vfe import PillarVFE
 from lidarops.models.pointpillars import PointPillars
 from lidarops.models.postprocess import postprocess, postprocess_padded
 
-TINY = dict(
-    class_names=["Car"],
-    point_cloud_range=[0.0, -4.0, -3.0, 8.0, 4.0, 1.0],
-    voxel_size=[1.0, 1.0, 4.0],
-    vfe_num_filters=[8],
-    layer_nums=[1, 1, 1], layer_strides=[2, 2, 2], num_filters=[8, 8, 8],
-    upsample_strides=[1, 2, 4], num_upsample_filters=[4, 4, 4],
-    anchor_generator_config=[{"class_name": "Car", "anchor_sizes": [[2.0, 1.0, 1.5]], "anchor_rotations": [0, 1.57],
-                              "anchor_bottom_heights": [-1.78], "align_center": True, "feature_map_stride": 2,
-                              "matched_threshold": 0.6, "unmatched_threshold": 0.45}],
-)
+from helpers.models import TINY
 
 
 def openpcdet_pointpillar_keys() -> dict[str, tuple]:
