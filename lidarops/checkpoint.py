@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "CheckpointError", "ModelRecord", "read_checkpoint", "save_checkpoint",
-           "model_record", "model_state", "model_fields", "format_fields", "check_plain"]
+           "model_record", "model_state", "model_fields", "format_fields", "check_plain", "check_finite"]
 
 FORMAT = "lidarops.checkpoint"
 FORMAT_VERSION = 2
@@ -119,6 +119,24 @@ def model_state(ckpt: Mapping[str, Any], source: str = "checkpoint") -> Mapping[
         if isinstance(state, Mapping):
             return state
     raise CheckpointError(f"{source}: no model_state / state_dict in the checkpoint (keys: {sorted(map(str, ckpt))[:8]})")
+
+
+def check_finite(state: Mapping[str, Any], source: str = "state dict") -> None:
+    """Refuses a state dict holding NaN or infinite values (``CheckpointError`` naming the tensors and how
+    many values each): one damaged weight would otherwise turn every output into NaN, and a detector
+    would silently find nothing. One reduction per floating tensor."""
+    import torch
+
+    bad = []
+    for name, value in state.items():
+        if isinstance(value, torch.Tensor) and (value.is_floating_point() or value.is_complex()) and value.numel():
+            n = int((~torch.isfinite(value)).sum())
+            if n:
+                bad.append(f"{name} ({n} of {value.numel()})")
+    if bad:
+        raise CheckpointError(f"{source} holds non-finite values (NaN or inf) in {len(bad)} tensor(s): "
+                              f"{', '.join(bad[:8])}{' ...' if len(bad) > 8 else ''}; the model would output NaN. "
+                              "Load it anyway with check_finite=False")
 
 
 def model_fields(model: Any) -> dict[str, Any]:

@@ -48,20 +48,22 @@ def _find_base(name: str, including: Path) -> Path:
                       f"{', ...' if len(tried) > 4 else ''})")
 
 
-def merge_config(base: dict, new: Mapping, source: Path | None = None) -> dict:
+def merge_config(base: dict, new: Mapping, source: Path | None = None, _chain: tuple = ()) -> dict:
     """Merges ``new`` into ``base`` in place (OpenPCDet's ``merge_new_config``): a ``_BASE_CONFIG_`` key
     loads that file into ``base`` first; dict values merge recursively, others replace."""
     if "_BASE_CONFIG_" in new:
         if source is None:
             raise ConfigError("_BASE_CONFIG_ needs the path of the including file to resolve it")
-        base.update(load_config(_find_base(str(new["_BASE_CONFIG_"]), source)))
+        if not isinstance(new["_BASE_CONFIG_"], str):
+            raise ConfigError(f"{source}: _BASE_CONFIG_ must be a file name, got {new['_BASE_CONFIG_']!r}")
+        base.update(_load(_find_base(new["_BASE_CONFIG_"], source), _chain))
     for key, value in new.items():
         if key == "_BASE_CONFIG_":
             continue
         if isinstance(value, Mapping):
             if not isinstance(base.get(key), dict):
                 base[key] = {}
-            merge_config(base[key], value, source)
+            merge_config(base[key], value, source, _chain)
         else:
             base[key] = copy.deepcopy(value)
     return base
@@ -74,16 +76,25 @@ def load_config(path: str | Path) -> dict:
         FileNotFoundError: no such file.
         ConfigError: not YAML, not a mapping, or a base file that cannot be found.
     """
-    path = Path(path)
+    return _load(Path(path), ())
+
+
+def _load(path: Path, chain: tuple) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"config file not found: {path}")
+    if path.resolve() in chain:  # a file that is its own base, directly or not, would never finish
+        raise ConfigError(f"{path}: _BASE_CONFIG_ includes itself ({' -> '.join(str(p) for p in chain + (path,))})")
     yaml = _yaml()
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_bytes().decode("utf-8-sig")  # a byte-order mark is not part of the first key
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a YAML text file (byte {e.start} is not UTF-8 text)") from None
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None  # one line
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path}: a config must be a YAML mapping, got {type(data).__name__}")
-    return merge_config({}, data, path.resolve())
+    return merge_config({}, data, path.resolve(), chain + (path.resolve(),))

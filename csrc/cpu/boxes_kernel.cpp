@@ -137,6 +137,19 @@ std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cpu(const at::Tensor& boxes_in
   return {keep, count};
 }
 
+// Any finite box value outside the supported values (boxes::box_value_out_of_range), in its own precision.
+bool box_values_out_of_range(const at::Tensor& boxes_in) {
+  auto b = boxes_in.contiguous();
+  bool bad = false;
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, b.scalar_type(), "lidarops_box_range_cpu", [&] {
+    using acc_t = std::conditional_t<std::is_same_v<scalar_t, double>, double, float>;
+    const scalar_t* p = b.data_ptr<scalar_t>();
+    for (int64_t i = 0, n = b.numel(); i < n && !bad; ++i)
+      bad = boxes::box_value_out_of_range(static_cast<acc_t>(p[i]), static_cast<int>(i % 7));
+  });
+  return bad;
+}
+
 std::tuple<at::Tensor, at::Tensor> nms_bev_checked_cpu(const at::Tensor& boxes_in, const at::Tensor& scores,
                                                        const c10::optional<at::Tensor>& idxs, double iou_threshold,
                                                        c10::optional<double> score_threshold, int64_t pre_max,
@@ -147,7 +160,7 @@ std::tuple<at::Tensor, at::Tensor> nms_bev_checked_cpu(const at::Tensor& boxes_i
   st[0] = count.item<int64_t>();
   st[1] = !at::isfinite(boxes_in).all().item<bool>();
   st[2] = !at::isfinite(scores).all().item<bool>();
-  st[3] = boxes_in.slice(1, 3, 6).lt(0).any().item<bool>();
+  st[3] = box_values_out_of_range(boxes_in);
   return {keep, status};
 }
 

@@ -377,8 +377,10 @@ at::Tensor nms_bev_cuda(const at::Tensor& boxes_in, const at::Tensor& scores, co
   return keep.slice(0, 0, num_kept.item<int64_t>());
 }
 
-// status[1] |= a box value is NaN or infinite, status[2] |= a score is, status[3] |= a box has a negative
-// size (the value checks of nms_bev, read with the number kept in status[0]). status[1:] start at 0.
+// status[1] |= a box value is NaN or infinite, status[2] |= a score is, status[3] |= a finite box value is
+// out of the supported values (a negative or huge size, a far centre, a huge heading:
+// boxes::box_value_out_of_range), the value checks of nms_bev, read with the number kept in status[0].
+// status[1:] start at 0.
 template <typename box_t, typename score_t>
 __global__ void nms_value_flags_kernel(const box_t* __restrict__ boxes, const score_t* __restrict__ scores,
                                        int64_t N, unsigned long long* __restrict__ status) {
@@ -388,9 +390,8 @@ __global__ void nms_value_flags_kernel(const box_t* __restrict__ boxes, const sc
   bool bad_box = false, bad_score = false, negative = false;
   LIDAROPS_GRID_STRIDE(i, 7 * N) {
     const box_acc v = static_cast<box_acc>(boxes[i]);
-    const int col = static_cast<int>(i % 7);
     bad_box |= !isfinite(v);
-    negative |= col >= 3 && col < 6 && v < box_acc(0);
+    negative |= boxes::box_value_out_of_range(v, static_cast<int>(i % 7));
   }
   LIDAROPS_GRID_STRIDE(i, N) bad_score |= !isfinite(static_cast<score_acc>(scores[i]));
   bad_box = __any_sync(gpu::kFullMask, bad_box);

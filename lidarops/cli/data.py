@@ -21,6 +21,7 @@ import argparse
 import json
 from pathlib import Path
 
+from lidarops._checks import real
 from lidarops._progress import progress, progress_bar
 from lidarops.cli.errors import CliError, guarded
 
@@ -256,6 +257,11 @@ def show(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.index < 0:
         raise ValueError(f"--index must be >= 0, got {args.index}")
+    if args.fov is not None:
+        real(args.fov, "--fov", 0, 360, lo_open=True, unit=" degrees")
+    real(args.max_extent, "--max-extent", 0, None, lo_open=True, unit=" m")
+    for i, v in enumerate(args.extent or ()):
+        real(v, f"--extent's value {i + 1}", unit=" m")
     is_scenario = spec.startswith("synthetic:") or (spec in SCENARIOS and not Path(spec).exists())
     if not is_scenario and detect_format(spec) == "modelnet":
         from lidarops.data.formats.modelnet import ModelNet40

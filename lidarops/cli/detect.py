@@ -41,11 +41,34 @@ def _load_model(args: argparse.Namespace):
     return model, device, path
 
 
+def _scan_format(path: Path, fmt: str) -> str:
+    """The layout of a scan file: ``--format``, else the name (``*.pcd.bin``: nuScenes, 5 floats per point;
+    ``velodyne/*.bin``: KITTI, 4 floats); a loose ``.bin`` whose size fits both layouts is refused, since
+    reading one as the other gives a grid of nonsense points without an error."""
+    if fmt != "auto":
+        return fmt
+    if path.name.endswith(".pcd.bin"):
+        return "nuscenes"
+    if path.parent.name == "velodyne":
+        return "kitti"
+    size = path.stat().st_size
+    fits = [name for name, record in (("kitti", 16), ("nuscenes", 20)) if size % record == 0]
+    if len(fits) == 2 and size:
+        raise CliError(f"{path}: its {size} bytes fit both KITTI's 4 and nuScenes' 5 floats per point and its name "
+                       "says neither (velodyne/*.bin, *.pcd.bin): give --format kitti or --format nuscenes")
+    return fits[0] if fits else "kitti"  # the reader names a size that fits neither
+
+
 def _frames(args: argparse.Namespace) -> Iterator[tuple]:
     """(frame id, Frame, calib, label file or None) of a scenario, a .bin or a KITTI folder; the input is
     checked on the call, before the first frame is asked for."""
     from lidarops.data.formats.kitti import KittiCalib, KittiDataset, read_kitti_frame
 
+    if args.frames is not None and args.frames < 1:  # 0 would mean "every frame" of a folder
+        raise CliError(f"--frames must be >= 1 (leave it out for every frame of a folder), got {args.frames}")
+    for flag in ("png", "print_frames", "print_boxes"):
+        if getattr(args, flag) < 0:
+            raise CliError(f"--{flag.replace('_', '-')} must be >= 0, got {getattr(args, flag)}")
     if args.scenario:
         from lidarops.data.synthetic import SyntheticFrames
 
@@ -58,9 +81,17 @@ def _frames(args: argparse.Namespace) -> Iterator[tuple]:
         raise CliError(f"{path} not found")
     if path.is_file():
         if path.suffix != ".bin":
-            raise CliError(f"{path}: expected a KITTI velodyne .bin file or a folder")
+            raise CliError(f"{path}: expected a KITTI velodyne .bin, a nuScenes .pcd.bin or a folder")
+        fmt = _scan_format(path, args.format)
 
         def one():
+            if fmt == "nuscenes":  # in lidarops' axes (x forward) with intensity in [0, 1], as the model was trained
+                from lidarops.data.formats.nuscenes import read_nuscenes_bin
+
+                frame = read_nuscenes_bin(path, x_forward=True, normalize_intensity=True)
+                yield path.name[:-len(".pcd.bin")] if path.name.endswith(".pcd.bin") else path.stem, frame, \
+                    KittiCalib.default(), None
+                return
             frame = read_kitti_frame(path)
             label = path.parent.parent / "label_2" / f"{path.stem}.txt"
             yield path.stem, frame, frame.meta.get("calib") or KittiCalib.default(), label if label.is_file() else None
@@ -206,6 +237,9 @@ def register(subparsers) -> None:
     d.add_argument("input", nargs="?", help="a KITTI velodyne .bin or a KITTI folder")
     d.add_argument("--scenario", default=None, help="simulate frames of this scenario instead (e.g. driving_city)")
     d.add_argument("--frames", type=int, default=None, help="number of frames (scenario: default 1; folder: all)")
+    d.add_argument("--format", choices=("auto", "kitti", "nuscenes"), default="auto",
+                   help="layout of a scan file: KITTI (4 floats per point) or nuScenes (5); default from the name "
+                        "(*.pcd.bin: nuScenes, velodyne/*.bin: KITTI)")
     d.add_argument("--seed", type=int, default=1000, help="scenario seed (default 1000)")
     d.add_argument("--split", default=None, help="KITTI folder: an ImageSets name (train, val)")
     d.add_argument("--checkpoint", default=None, help="checkpoint (default: the shipped pointpillars_synth)")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Sequence
 
@@ -28,6 +29,8 @@ def evaluate_results(args: argparse.Namespace) -> int:
     from lidarops.eval import kitti as kitti_eval
 
     results_dir, labels_dir = Path(args.results), Path(args.labels)
+    if not all(name.strip() for name in args.classes):
+        raise CliError(f"--classes holds an empty class name: {args.classes}")
     for p, what in ((results_dir, "--results"), (labels_dir, "--labels")):
         if not p.is_dir():
             raise CliError(f"{what} {p} is not a folder")
@@ -35,7 +38,11 @@ def evaluate_results(args: argparse.Namespace) -> int:
         split = Path(args.split)
         if not split.is_file():
             raise CliError(f"--split {split} not found")
-        ids = [line.strip() for line in split.read_text().splitlines() if line.strip()]
+        try:
+            text = split.read_bytes().decode("utf-8-sig")
+        except UnicodeDecodeError as e:
+            raise CliError(f"--split {split}: not a text file of frame ids (byte {e.start} is not UTF-8 text)") from None
+        ids = [line.strip() for line in text.splitlines() if line.strip()]
     else:
         ids = sorted(p.stem for p in results_dir.glob("*.txt"))
     if not ids:
@@ -49,6 +56,11 @@ def evaluate_results(args: argparse.Namespace) -> int:
     dt = kitti_eval.read_annos(results_dir, ids)
     text, results = kitti_eval.evaluate(gt, dt, args.classes)
     print(text)
+    for name in args.classes:
+        # KITTI's convention scores a class without labels 0 AP: say why rather than leave a bare 0
+        if not any((np.char.lower(a["name"].astype(str)) == name.lower()).any() for a in gt):
+            print(f"lidarops eval: note: the labels hold no {name} object, so its AP is 0 by KITTI's convention",
+                  file=sys.stderr)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
         print(f"wrote {args.json}")

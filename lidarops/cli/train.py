@@ -105,6 +105,9 @@ def train(args: argparse.Namespace) -> int:
     from lidarops.models import model_class
     from lidarops.train import TrainConfig, fit
 
+    for flag, lo in (("max_train_frames", 1), ("max_val_frames", 1), ("gt_database_frames", 1)):
+        if getattr(args, flag) is not None and getattr(args, flag) < lo:
+            raise CliError(f"--{flag.replace('_', '-')} must be >= {lo}, got {getattr(args, flag)}")
     cfg = load_config(args.config)
     entry = _trainable(cfg, args.config)
     if args.device not in (None, "auto"):  # checked now; the trainer maps "cuda" to each process's GPU

@@ -28,10 +28,11 @@ def require_file(path, what: str) -> Path:
 
 
 def read_text(path: Path, what: str) -> str:
-    """A text file decoded as UTF-8; binary junk is a ValueError that names the file and the byte."""
+    """A text file decoded as UTF-8, a leading byte-order mark dropped (editors on Windows write one; left in,
+    it would become part of the first field); binary junk is a ValueError that names the file and the byte."""
     data = path.read_bytes()
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise ValueError(f"{path}: not a {what} text file (byte {e.start} is {data[e.start:e.start + 1]!r}, "
                          "not UTF-8 text)") from None

@@ -337,17 +337,17 @@ def _annos(labels: KittiLabels) -> dict[str, np.ndarray]:
     """The label file's fields (DontCare included) for evaluation; ``dimensions_hwl`` in the file's h, w, l."""
     annos = {
         "name": np.array(labels.names, dtype=str).reshape(-1),
-        "truncated": np.asarray(labels.truncated, dtype=np.float32),
+        "truncated": np.asarray(labels.truncated, dtype=np.float64),  # float64, as KITTI's evaluator reads them
         "occluded": np.asarray(labels.occluded, dtype=np.int64),
-        "alpha": np.asarray(labels.alpha, dtype=np.float32),
-        "bbox": np.asarray(labels.bbox, dtype=np.float32).reshape(-1, 4),
+        "alpha": np.asarray(labels.alpha, dtype=np.float64),
+        "bbox": np.asarray(labels.bbox, dtype=np.float64).reshape(-1, 4),
         "dimensions_hwl": np.asarray(labels.dimensions, dtype=np.float64).reshape(-1, 3),
         "location": np.asarray(labels.location, dtype=np.float64).reshape(-1, 3),
         "rotation_y": np.asarray(labels.rotation_y, dtype=np.float64),
         "difficulty": kitti_difficulty(labels),
     }
     if labels.score is not None:
-        annos["score"] = np.asarray(labels.score, dtype=np.float32)
+        annos["score"] = np.asarray(labels.score, dtype=np.float64)
     return annos
 
 

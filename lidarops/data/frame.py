@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from lidarops._checks import real
+
 from lidarops.data.geometry import count_points_in_boxes
 
 __all__ = ["CLASSES", "CLASS_COLORS", "Frame", "class_index"]
@@ -196,7 +198,7 @@ class Frame:
         Returns:
             Frame.
         """
-        half = np.deg2rad(fov_deg) / 2.0
+        half = np.deg2rad(real(fov_deg, "fov_deg", 0, 360, lo_open=True, unit=" degrees")) / 2.0
 
         def inside(xy: np.ndarray) -> np.ndarray:
             return (xy[:, 0] > 0) & (np.abs(np.arctan2(xy[:, 1], xy[:, 0])) < half)

@@ -59,6 +59,8 @@ def crop_forward(frame: Frame, fov_deg: float = 90.0) -> Frame:
 #: Latest time (s) the simulator generates: a day and more of simulated time, far below where firing
 #: indices (``t * firing_rate``) would leave int64 or lose their exactness in float64.
 MAX_TIME = 1e6
+#: Longest span of one :meth:`Simulator.stream` call (s): it is simulated and held at once.
+MAX_STREAM_SPAN = 10.0
 
 
 def _time(value, name: str) -> float:
@@ -342,7 +344,7 @@ class Simulator:
         """All points with timestamps in ``[t0, t1)``, in time order.
 
         Args:
-            t0, t1 (float): span in seconds (``0 <= t0``).
+            t0, t1 (float): span in seconds (``0 <= t0``, at most :data:`MAX_STREAM_SPAN` long).
 
         Returns:
             points (ndarray float32[n, 4]): ``x, y, z, intensity``, each in the sensor frame at its time.
@@ -351,6 +353,9 @@ class Simulator:
         t0, t1 = _time(t0, "t0"), _time(t1, "t1")
         if t1 < t0:
             raise ValueError(f"t1 must be >= t0 (the span [t0, t1)), got t0={t0!r}, t1={t1!r}")
+        if t1 - t0 > MAX_STREAM_SPAN:  # all of it is simulated and held at once: ~1.3 M points per second
+            raise ValueError(f"the span [t0, t1) of stream() is at most {MAX_STREAM_SPAN:g} s, got {t1 - t0:g} s; "
+                             "take a longer stream in pieces with slices(t0, t1, dt)")
         data = self._span(self._first_firing_at_or_after(t0), self._first_firing_at_or_after(t1))
         return data["points"], data["t"]
 

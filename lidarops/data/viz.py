@@ -10,6 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
+from lidarops._checks import real
 from lidarops.data.frame import CLASS_COLORS, CLASSES, Frame
 from lidarops.data.geometry import box_corners
 
@@ -75,6 +76,11 @@ def plot_bev(
     from matplotlib.lines import Line2D
     from matplotlib.patches import Polygon
 
+    max_extent = real(max_extent, "max_extent", 0, None, lo_open=True, unit=" m")
+    if extent is not None:
+        extent = tuple(real(v, f"extent[{i}]", unit=" m") for i, v in enumerate(extent))
+        if len(extent) != 4 or not (extent[0] < extent[1] and extent[2] < extent[3]):
+            raise ValueError(f"extent must be (xmin, xmax, ymin, ymax) with xmin < xmax and ymin < ymax, got {extent}")
     points = np.asarray(points, dtype=np.float32)
     boxes = np.zeros((0, 7), np.float32) if boxes is None else np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     labels = np.full(boxes.shape[0], -1) if labels is None else np.asarray(labels)

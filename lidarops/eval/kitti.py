@@ -153,8 +153,22 @@ def read_annos(path: str | Path | Sequence[str | Path], frame_ids: Sequence[int 
 def frame_annos(frame: Frame, calib: KittiCalib | None = None, image_size: tuple[int, int] = KITTI_IMAGE_SIZE,
                 camera_fov_only: bool = True, min_points: int = 1) -> dict[str, np.ndarray]:
     """The ground-truth annotation dict of a LiDAR frame: the labels :func:`write_kitti_frame` writes
-    (:func:`~lidarops.data.formats.kitti.frame_to_kitti_labels`), at full precision."""
-    return annos_from_labels(frame_to_kitti_labels(frame, calib, image_size, camera_fov_only, min_points))
+    (:func:`~lidarops.data.formats.kitti.frame_to_kitti_labels`), each field as the written file reads back
+    (truncation and 2D box to 2 decimals, the 3D fields to 6), so that scoring a frame and scoring its files
+    put every object on the same side of a difficulty boundary."""
+    labels = frame_to_kitti_labels(frame, calib, image_size, camera_fov_only, min_points)
+    return annos_from_labels(_as_written(labels))
+
+
+def _as_written(labels: KittiLabels, decimals: int = 6) -> KittiLabels:
+    """``labels`` with each field rounded as :func:`~lidarops.data.formats.kitti.write_label` prints it."""
+    def r(a, d):
+        return np.array([float(f"{v:.{d}f}") for v in np.asarray(a, dtype=np.float64).reshape(-1)]).reshape(np.shape(a))
+
+    return KittiLabels(list(labels.names), r(labels.truncated, 2), np.asarray(labels.occluded, np.int64),
+                       r(labels.alpha, decimals), r(labels.bbox, 2), r(labels.dimensions, decimals),
+                       r(labels.location, decimals), r(labels.rotation_y, decimals),
+                       None if labels.score is None else r(labels.score, 4))
 
 
 def _numpy(value: Any) -> np.ndarray:
@@ -216,9 +230,8 @@ def detection_annos(detection: Mapping[str, Any], calib: KittiCalib | None = Non
         raise ValueError(f"{where}['boxes']: sizes dx, dy, dz must be >= 0")
     calib = calib or KittiCalib.default()
     keep = kitti_fov_mask(boxes[:, :3], calib, image_size) if k else np.zeros(0, bool)
-    anno = annos_from_labels(boxes_to_kitti_labels(boxes[keep], names[keep], calib, image_size))
-    anno["score"] = scores[keep]
-    return anno
+    labels = boxes_to_kitti_labels(boxes[keep], names[keep], calib, image_size, score=scores[keep])
+    return annos_from_labels(_as_written(labels))  # as the result file reads back: in memory == from files
 
 
 def _field(anno: Mapping, key: str, k: int, width: int, where: str) -> np.ndarray:

@@ -46,7 +46,7 @@ def model_class(name: str) -> type:
     return getattr(importlib.import_module(entry[0]), entry[1])
 
 
-def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu"):
+def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu", check_finite: bool = True):
     """The model a checkpoint holds, built from the class and config it records and loaded with its weights
     (strict: every key and shape must fit), in eval mode.
 
@@ -56,6 +56,7 @@ def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu"
         config: the model config for a file that records none (an OpenPCDet checkpoint); its ``MODEL.NAME``
             picks the class.
         map_location: as ``torch.load``.
+        check_finite (bool): refuse weights holding NaN or infinite values (naming the tensors).
 
     Raises:
         FileNotFoundError, lidarops.checkpoint.CheckpointError: no such file, not a checkpoint, or weights
@@ -67,6 +68,9 @@ def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu"
     ckpt = read_checkpoint(path, map_location)
     record = model_record(ckpt, str(path))
     name = record.model_class
+    if name is not None and name not in MODELS:
+        raise CheckpointError(f"{path}: model_class {name!r} is not a model this lidarops builds "
+                              f"({', '.join(sorted(MODELS))}); a newer lidarops may")
     if name is None:
         if config is None:
             raise CheckpointError(f"{path} records no model (an OpenPCDet checkpoint?): pass config=... (a YAML "
@@ -79,7 +83,7 @@ def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu"
         name = cfg.get("MODEL", {}).get("NAME", "PointPillars") if isinstance(cfg, dict) else type(cfg).__name__
         name = "PointPillars" if name == "PointPillarsConfig" else name
     cls = model_class(name)
-    return cls.from_checkpoint(path, config=config, map_location=map_location).eval()
+    return cls.from_checkpoint(path, config=config, map_location=map_location, check_finite=check_finite).eval()
 
 
 __getattr__, __dir__ = lazy_attributes(__name__, {

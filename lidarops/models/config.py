@@ -34,6 +34,14 @@ def _get(d: Mapping, path: str, default: Any = dataclasses.MISSING) -> Any:
     return cur
 
 
+def _section(d: Mapping, key: str, name: str | None = None, default: Any = dataclasses.MISSING) -> Mapping:
+    """``d[key]`` when it is a mapping (``default`` when absent), else a ``ConfigError`` naming the key."""
+    value = _get(d, key, default)
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{name or key} must be a mapping of keys, got {value!r}")
+    return value
+
+
 def _expect(value: Any, allowed: Sequence, key: str) -> None:
     if value not in allowed:
         raise ConfigError(f"{key} = {value!r} is not supported by lidarops' PointPillars; supported: "
@@ -48,6 +56,101 @@ def _by_split(value: Any, split: str, key: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
         raise ConfigError(f"{key} must be a positive int (or {{train: .., test: ..}}), got {value!r}")
     return value
+
+
+_INT32 = 2**31 - 1
+# field -> (OpenPCDet's key, kind, lo, hi): kind "int", "real", "bool", "ints" / "reals" (a list of them);
+# bounds are inclusive except where the check says otherwise
+_SPEC: dict[str, tuple] = {
+    "point_cloud_range": ("DATA_CONFIG.POINT_CLOUD_RANGE", "reals", None, None),
+    "voxel_size": ("transform_points_to_voxels.VOXEL_SIZE", "reals", 0.0, None),
+    "max_points_per_voxel": ("MAX_POINTS_PER_VOXEL", "int", 1, _INT32),
+    "max_voxels_train": ("MAX_NUMBER_OF_VOXELS.train", "int", 1, _INT32),
+    "max_voxels_test": ("MAX_NUMBER_OF_VOXELS.test", "int", 1, _INT32),
+    "num_point_features": ("POINT_FEATURE_ENCODING.used_feature_list (its length)", "int", 3, 1024),
+    "vfe_num_filters": ("MODEL.VFE.NUM_FILTERS", "ints", 1, 1 << 16),
+    "with_distance": ("MODEL.VFE.WITH_DISTANCE", "bool", None, None),
+    "use_absolute_xyz": ("MODEL.VFE.USE_ABSLOTE_XYZ", "bool", None, None),
+    "use_norm": ("MODEL.VFE.USE_NORM", "bool", None, None),
+    "layer_nums": ("MODEL.BACKBONE_2D.LAYER_NUMS", "ints", 0, 256),
+    "layer_strides": ("MODEL.BACKBONE_2D.LAYER_STRIDES", "ints", 1, 64),
+    "num_filters": ("MODEL.BACKBONE_2D.NUM_FILTERS", "ints", 1, 1 << 16),
+    "upsample_strides": ("MODEL.BACKBONE_2D.UPSAMPLE_STRIDES", "ints", 1, 64),
+    "num_upsample_filters": ("MODEL.BACKBONE_2D.NUM_UPSAMPLE_FILTERS", "ints", 1, 1 << 16),
+    "use_direction_classifier": ("MODEL.DENSE_HEAD.USE_DIRECTION_CLASSIFIER", "bool", None, None),
+    "dir_offset": ("MODEL.DENSE_HEAD.DIR_OFFSET", "real", -2 * math.pi, 2 * math.pi),
+    "dir_limit_offset": ("MODEL.DENSE_HEAD.DIR_LIMIT_OFFSET", "real", 0.0, 1.0),
+    "num_dir_bins": ("MODEL.DENSE_HEAD.NUM_DIR_BINS", "int", 1, 360),
+    "norm_by_num_examples": ("TARGET_ASSIGNER_CONFIG.NORM_BY_NUM_EXAMPLES", "bool", None, None),
+    "cls_weight": ("LOSS_CONFIG.LOSS_WEIGHTS.cls_weight", "real", 0.0, None),
+    "loc_weight": ("LOSS_CONFIG.LOSS_WEIGHTS.loc_weight", "real", 0.0, None),
+    "dir_weight": ("LOSS_CONFIG.LOSS_WEIGHTS.dir_weight", "real", 0.0, None),
+    "code_weights": ("LOSS_CONFIG.LOSS_WEIGHTS.code_weights", "reals", 0.0, None),
+    "score_thresh": ("MODEL.POST_PROCESSING.SCORE_THRESH", "real", 0.0, 1.0),
+    "multi_classes_nms": ("POST_PROCESSING.NMS_CONFIG.MULTI_CLASSES_NMS", "bool", None, None),
+    "nms_thresh": ("POST_PROCESSING.NMS_CONFIG.NMS_THRESH", "real", 0.0, 1.0),
+    "nms_pre_maxsize": ("POST_PROCESSING.NMS_CONFIG.NMS_PRE_MAXSIZE", "int", -1, _INT32),
+    "nms_post_maxsize": ("POST_PROCESSING.NMS_CONFIG.NMS_POST_MAXSIZE", "int", -1, _INT32),
+}
+_OPEN_LOW = {"voxel_size"}  # sizes must be > 0
+_OPEN_HIGH = {"score_thresh"}  # a sigmoid score never reaches 1
+_ANCHOR_SPEC = {  # per entry of ANCHOR_GENERATOR_CONFIG
+    "anchor_sizes": ("reals", 0.0, None), "anchor_rotations": ("reals", None, None),
+    "anchor_bottom_heights": ("reals", None, None), "matched_threshold": ("real", 0.0, 1.0),
+    "unmatched_threshold": ("real", 0.0, 1.0), "feature_map_stride": ("int", 1, 64),
+}
+
+
+def _check_value(value: Any, key: str, kind: str, lo, hi, lo_open: bool = False, hi_open: bool = False) -> None:
+    """One value of a config: its kind (bools are not numbers, floats are not ints) and finite range."""
+    what = {"int": "an int", "real": "a finite number", "bool": "true or false"}[kind]
+    if kind == "bool":
+        ok = isinstance(value, bool)
+    elif kind == "int":
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value < hi if hi_open else value <= hi
+    if not ok:
+        bounds = [f"{'>' if lo_open else '>='} {lo:g}"] if lo is not None else []
+        bounds += [f"{'<' if hi_open else '<='} {hi if kind == 'int' else f'{hi:g}'}"] if hi is not None else []
+        raise ConfigError(f"{key} must be {what}{' ' if bounds else ''}{' and '.join(bounds)}, got {value!r}")
+
+
+def _check_fields(cfg: "PointPillarsConfig") -> None:
+    for name, (key, kind, lo, hi) in _SPEC.items():
+        value = getattr(cfg, name)
+        if kind in ("ints", "reals"):
+            if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)) or not value:
+                raise ConfigError(f"{key} must be a non-empty list of numbers, got {value!r}")
+            for i, v in enumerate(value):
+                _check_value(v, f"{key}[{i}]", kind[:-1], lo, hi, name in _OPEN_LOW, name in _OPEN_HIGH)
+        else:
+            _check_value(value, key, kind, lo, hi, name in _OPEN_LOW, name in _OPEN_HIGH)
+    for i, entry in enumerate(cfg.anchor_generator_config):
+        if not isinstance(entry, Mapping):
+            raise ConfigError(f"ANCHOR_GENERATOR_CONFIG[{i}] must be a mapping, got {entry!r}")
+        for name, (kind, lo, hi) in _ANCHOR_SPEC.items():
+            if name not in entry:
+                continue  # a missing key is named by validate()
+            key = f"ANCHOR_GENERATOR_CONFIG[{i}].{name}"
+            value = entry[name]
+            if kind == "reals":
+                flat = [v for row in value for v in (row if isinstance(row, (list, tuple)) else [row])] \
+                    if isinstance(value, (list, tuple)) else None
+                if not flat:
+                    raise ConfigError(f"{key} must be a non-empty list of numbers, got {value!r}")
+                for v in flat:
+                    _check_value(v, key, "real", lo, hi, lo_open=name == "anchor_sizes")
+            else:
+                _check_value(value, key, kind, lo, hi)
+        if "matched_threshold" in entry and "unmatched_threshold" in entry \
+                and entry["unmatched_threshold"] > entry["matched_threshold"]:
+            raise ConfigError(f"ANCHOR_GENERATOR_CONFIG[{i}]: unmatched_threshold {entry['unmatched_threshold']} must "
+                              f"not exceed matched_threshold {entry['matched_threshold']}")
 
 
 @dataclass
@@ -108,6 +211,14 @@ class PointPillarsConfig:
 
     def __post_init__(self) -> None:
         self.validate()
+        for name, (_, kind, _, _) in _SPEC.items():  # checked numbers; reals stored as floats (0 -> 0.0)
+            if kind == "real":
+                setattr(self, name, float(getattr(self, name)))
+            elif kind == "reals":
+                setattr(self, name, [float(v) for v in getattr(self, name)])
+            elif kind == "ints":
+                setattr(self, name, list(getattr(self, name)))
+        self.class_names = list(self.class_names)
 
     # ------------------------------------------------------------------ derived
     @property
@@ -122,6 +233,11 @@ class PointPillarsConfig:
 
     # ------------------------------------------------------------------ checks
     def validate(self) -> None:
+        """Every field's type, finiteness and range (a ``ConfigError`` naming OpenPCDet's key and the field),
+        then the consistency of the grid, the anchors and the backbone."""
+        if not isinstance(self.class_names, (list, tuple)) or not all(isinstance(n, str) for n in self.class_names):
+            raise ConfigError(f"CLASS_NAMES must be a list of names, got {self.class_names!r}")
+        _check_fields(self)
         if not self.class_names or len(set(self.class_names)) != len(self.class_names):
             raise ConfigError(f"CLASS_NAMES must be distinct names, got {self.class_names}")
         if len(self.point_cloud_range) != 6 or len(self.voxel_size) != 3:
@@ -172,67 +288,84 @@ class PointPillarsConfig:
     @classmethod
     def from_openpcdet(cls, cfg: Mapping) -> "PointPillarsConfig":
         """From a full OpenPCDet-schema config dict (``load_config`` of ``pointpillar.yaml`` or a lidarops
-        config). Options lidarops does not implement raise :class:`ConfigError` naming the key."""
-        model = _get(cfg, "MODEL")
+        config). Options lidarops does not implement, and values of the wrong type or range, raise
+        :class:`ConfigError` naming the key."""
+        if not isinstance(cfg, Mapping):
+            raise ConfigError(f"a config must be a mapping (OpenPCDet's schema), got {type(cfg).__name__}")
+        model = _section(cfg, "MODEL")
         _expect(_get(model, "VFE.NAME"), ("PillarVFE",), "MODEL.VFE.NAME")
         _expect(_get(model, "MAP_TO_BEV.NAME", "PointPillarScatter"), ("PointPillarScatter",), "MODEL.MAP_TO_BEV.NAME")
         _expect(_get(model, "BACKBONE_2D.NAME"), ("BaseBEVBackbone",), "MODEL.BACKBONE_2D.NAME")
         _expect(_get(model, "DENSE_HEAD.NAME"), ("AnchorHeadSingle",), "MODEL.DENSE_HEAD.NAME")
-        head = _get(model, "DENSE_HEAD")
-        _expect(bool(head.get("CLASS_AGNOSTIC", False)), (False,), "MODEL.DENSE_HEAD.CLASS_AGNOSTIC")
-        assigner = head.get("TARGET_ASSIGNER_CONFIG", {})
+        head = _section(model, "DENSE_HEAD", "MODEL.DENSE_HEAD")
+        _expect(head.get("CLASS_AGNOSTIC", False), (False,), "MODEL.DENSE_HEAD.CLASS_AGNOSTIC")
+        assigner = _section(head, "TARGET_ASSIGNER_CONFIG", "MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG", {})
         _expect(assigner.get("NAME", "AxisAlignedTargetAssigner"), ("AxisAlignedTargetAssigner",),
                 "TARGET_ASSIGNER_CONFIG.NAME")
         _expect(assigner.get("BOX_CODER", "ResidualCoder"), ("ResidualCoder",), "TARGET_ASSIGNER_CONFIG.BOX_CODER")
-        _expect(bool(assigner.get("MATCH_HEIGHT", False)), (False,), "TARGET_ASSIGNER_CONFIG.MATCH_HEIGHT")
-        if float(assigner.get("POS_FRACTION", -1.0)) > 0:
+        _expect(assigner.get("MATCH_HEIGHT", False), (False,), "TARGET_ASSIGNER_CONFIG.MATCH_HEIGHT")
+        pos_fraction = assigner.get("POS_FRACTION", -1.0)
+        _check_value(pos_fraction, "TARGET_ASSIGNER_CONFIG.POS_FRACTION", "real", None, None)
+        if pos_fraction > 0:
             raise ConfigError("TARGET_ASSIGNER_CONFIG.POS_FRACTION > 0 (anchor sampling) is not supported; use -1.0")
-        post = _get(model, "POST_PROCESSING", {})
-        nms = post.get("NMS_CONFIG", {})
+        post = _section(model, "POST_PROCESSING", "MODEL.POST_PROCESSING", {})
+        nms = _section(post, "NMS_CONFIG", "MODEL.POST_PROCESSING.NMS_CONFIG", {})
         _expect(nms.get("NMS_TYPE", "nms_gpu"), ("nms_gpu",), "POST_PROCESSING.NMS_CONFIG.NMS_TYPE")
-        vfe = _get(model, "VFE")
-        data = _get(cfg, "DATA_CONFIG", {})
-        proc = {p.get("NAME"): p for p in data.get("DATA_PROCESSOR", [])}
-        voxel = proc.get("transform_points_to_voxels", {})
-        encoding = data.get("POINT_FEATURE_ENCODING", {})
+        vfe = _section(model, "VFE", "MODEL.VFE")
+        data = _section(cfg, "DATA_CONFIG", "DATA_CONFIG", {})
+        processors = data.get("DATA_PROCESSOR", [])
+        if not isinstance(processors, list) or not all(isinstance(p, Mapping) for p in processors):
+            raise ConfigError(f"DATA_CONFIG.DATA_PROCESSOR must be a list of mappings, got {processors!r}")
+        voxel = {p.get("NAME"): p for p in processors}.get("transform_points_to_voxels", {})
+        encoding = _section(data, "POINT_FEATURE_ENCODING", "DATA_CONFIG.POINT_FEATURE_ENCODING", {})
         used = encoding.get("used_feature_list", ["x", "y", "z", "intensity"])
-        bb = _get(model, "BACKBONE_2D")
-        weights = head.get("LOSS_CONFIG", {}).get("LOSS_WEIGHTS", {})
+        if not isinstance(used, list):
+            raise ConfigError(f"POINT_FEATURE_ENCODING.used_feature_list must be a list of names, got {used!r}")
+        bb = _section(model, "BACKBONE_2D", "MODEL.BACKBONE_2D")
+        weights = _section(_section(head, "LOSS_CONFIG", "MODEL.DENSE_HEAD.LOSS_CONFIG", {}), "LOSS_WEIGHTS",
+                           "LOSS_CONFIG.LOSS_WEIGHTS", {})
+        anchors = _get(head, "ANCHOR_GENERATOR_CONFIG")
+        if not isinstance(anchors, list) or not all(isinstance(c, Mapping) for c in anchors):
+            raise ConfigError(f"MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG must be a list of mappings, got {anchors!r}")
+        names = _get(cfg, "CLASS_NAMES")
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ConfigError(f"CLASS_NAMES must be a list of names, got {names!r}")
+        # raw values: __post_init__ checks every type and range (naming the key), then makes reals floats
         kwargs = dict(
-            class_names=list(_get(cfg, "CLASS_NAMES")),
-            point_cloud_range=[float(v) for v in _get(data, "POINT_CLOUD_RANGE", cls().point_cloud_range)],
-            voxel_size=[float(v) for v in voxel.get("VOXEL_SIZE", [0.16, 0.16, 4.0])],
-            max_points_per_voxel=int(voxel.get("MAX_POINTS_PER_VOXEL", 32)),
+            class_names=list(names),
+            point_cloud_range=_get(data, "POINT_CLOUD_RANGE", cls().point_cloud_range),
+            voxel_size=voxel.get("VOXEL_SIZE", [0.16, 0.16, 4.0]),
+            max_points_per_voxel=voxel.get("MAX_POINTS_PER_VOXEL", 32),
             max_voxels_train=_by_split(voxel.get("MAX_NUMBER_OF_VOXELS", {"train": 16000, "test": 40000}), "train",
                                        "MAX_NUMBER_OF_VOXELS"),
             max_voxels_test=_by_split(voxel.get("MAX_NUMBER_OF_VOXELS", {"train": 16000, "test": 40000}), "test",
                                       "MAX_NUMBER_OF_VOXELS"),
             num_point_features=len(used),
-            vfe_num_filters=[int(v) for v in vfe.get("NUM_FILTERS", [64])],
-            with_distance=bool(vfe.get("WITH_DISTANCE", False)),
-            use_absolute_xyz=bool(vfe.get("USE_ABSLOTE_XYZ", True)),  # sic: OpenPCDet's spelling
-            use_norm=bool(vfe.get("USE_NORM", True)),
-            layer_nums=[int(v) for v in _get(bb, "LAYER_NUMS")],
-            layer_strides=[int(v) for v in _get(bb, "LAYER_STRIDES")],
-            num_filters=[int(v) for v in _get(bb, "NUM_FILTERS")],
-            upsample_strides=[int(v) for v in _get(bb, "UPSAMPLE_STRIDES")],
-            num_upsample_filters=[int(v) for v in _get(bb, "NUM_UPSAMPLE_FILTERS")],
-            backbone_mode=str(bb.get("MODE", "dense")),
+            vfe_num_filters=vfe.get("NUM_FILTERS", [64]),
+            with_distance=vfe.get("WITH_DISTANCE", False),
+            use_absolute_xyz=vfe.get("USE_ABSLOTE_XYZ", True),  # sic: OpenPCDet's spelling
+            use_norm=vfe.get("USE_NORM", True),
+            layer_nums=_get(bb, "LAYER_NUMS"),
+            layer_strides=_get(bb, "LAYER_STRIDES"),
+            num_filters=_get(bb, "NUM_FILTERS"),
+            upsample_strides=_get(bb, "UPSAMPLE_STRIDES"),
+            num_upsample_filters=_get(bb, "NUM_UPSAMPLE_FILTERS"),
+            backbone_mode=bb.get("MODE", "dense"),
             anchor_generator_config=[{k.lower() if k.isupper() else k: copy.deepcopy(v) for k, v in c.items()}
-                                     for c in _get(head, "ANCHOR_GENERATOR_CONFIG")],
-            use_direction_classifier=bool(head.get("USE_DIRECTION_CLASSIFIER", True)),
-            dir_offset=float(head.get("DIR_OFFSET", 0.78539)),
-            dir_limit_offset=float(head.get("DIR_LIMIT_OFFSET", 0.0)),
-            num_dir_bins=int(head.get("NUM_DIR_BINS", 2)),
-            norm_by_num_examples=bool(assigner.get("NORM_BY_NUM_EXAMPLES", False)),
-            cls_weight=float(weights.get("cls_weight", 1.0)),
-            loc_weight=float(weights.get("loc_weight", 2.0)),
-            dir_weight=float(weights.get("dir_weight", 0.2)),
-            code_weights=[float(v) for v in weights.get("code_weights", [1.0] * 7)],
-            score_thresh=float(post.get("SCORE_THRESH", 0.1)),
-            multi_classes_nms=bool(nms.get("MULTI_CLASSES_NMS", False)),
-            nms_thresh=float(nms.get("NMS_THRESH", 0.01)),
-            nms_pre_maxsize=int(nms.get("NMS_PRE_MAXSIZE", 4096)),
-            nms_post_maxsize=int(nms.get("NMS_POST_MAXSIZE", 500)),
+                                     for c in anchors],
+            use_direction_classifier=head.get("USE_DIRECTION_CLASSIFIER", True),
+            dir_offset=head.get("DIR_OFFSET", 0.78539),
+            dir_limit_offset=head.get("DIR_LIMIT_OFFSET", 0.0),
+            num_dir_bins=head.get("NUM_DIR_BINS", 2),
+            norm_by_num_examples=assigner.get("NORM_BY_NUM_EXAMPLES", False),
+            cls_weight=weights.get("cls_weight", 1.0),
+            loc_weight=weights.get("loc_weight", 2.0),
+            dir_weight=weights.get("dir_weight", 0.2),
+            code_weights=weights.get("code_weights", [1.0] * 7),
+            score_thresh=post.get("SCORE_THRESH", 0.1),
+            multi_classes_nms=nms.get("MULTI_CLASSES_NMS", False),
+            nms_thresh=nms.get("NMS_THRESH", 0.01),
+            nms_pre_maxsize=nms.get("NMS_PRE_MAXSIZE", 4096),
+            nms_post_maxsize=nms.get("NMS_POST_MAXSIZE", 500),
         )
         return cls(**kwargs)

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from lidarops import checkpoint
 from lidarops._moved import moved_attributes
 from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
 from lidarops.config import ConfigError, load_config
@@ -90,10 +91,10 @@ class PointPillars(nn.Module):
 
     @classmethod
     def from_checkpoint(cls, path: "str | Path", config: "PointPillarsConfig | Mapping | str | Path | None" = None,
-                        map_location: "str | torch.device" = "cpu") -> "PointPillars":
+                        map_location: "str | torch.device" = "cpu", check_finite: bool = True) -> "PointPillars":
         """A model with weights from a lidarops checkpoint (it carries its config) or an OpenPCDet one
-        (``model_state``; give its ``config``). A state dict that does not fit raises
-        :class:`CheckpointMismatchError` naming the keys."""
+        (``model_state``; give its ``config``). A state dict that does not fit, or (with ``check_finite``)
+        holds NaN or infinite values, raises :class:`~lidarops.checkpoint.CheckpointError` naming the keys."""
         ckpt = read_checkpoint(path, map_location)
         record = model_record(ckpt, str(path))
         if record.model_class not in (None, cls.__name__):
@@ -103,13 +104,19 @@ class PointPillars(nn.Module):
             config = record.config
             if config is None:
                 raise ConfigError(f"{path} carries no model config (an OpenPCDet checkpoint?): pass config=...")
-        model = cls(config)
-        model.load_weights(model_state(ckpt, str(path)), source=str(path))
+        try:
+            model = cls(config)
+        except ConfigError as e:
+            where = "the config given" if record.config is None or config is not record.config else "its model_config"
+            raise ConfigError(f"{path}: {where}: {e}") from None
+        model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
         return model
 
-    def load_weights(self, state_dict: Mapping[str, Tensor], source: str = "state dict") -> None:
+    def load_weights(self, state_dict: Mapping[str, Tensor], source: str = "state dict",
+                     check_finite: bool = True) -> None:
         """``load_state_dict(strict=True)`` after checking keys and shapes, with one error naming every
-        missing, unexpected or differently shaped key."""
+        missing, unexpected or differently shaped key; with ``check_finite`` (the default) NaN or infinite
+        values are refused too, naming the tensors (:func:`lidarops.checkpoint.check_finite`)."""
         own = self.state_dict()
         missing = [k for k in own if k not in state_dict]
         unexpected = [k for k in state_dict if k not in own]
@@ -122,6 +129,8 @@ class PointPillars(nn.Module):
                     parts.append(f"{title} ({len(items)}): " + ", ".join(items[:8]) + (" ..." if len(items) > 8 else ""))
             raise CheckpointMismatchError(f"{source} does not fit this PointPillars config "
                                           f"(classes {self.config.class_names}): " + "; ".join(parts))
+        if check_finite:
+            checkpoint.check_finite(state_dict, source)
         self.load_state_dict({k: v.to(own[k].dtype) for k, v in state_dict.items()}, strict=True)
 
     # ---------------------------------------------------------------- the network
@@ -202,6 +211,12 @@ def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bo
         raise ValueError(f"batch['points'] must be a floating (P, 1 + {c}) tensor (frame index, x, y, z, "
                          f"intensity), got {describe(points)}")
     batch_size = check_positive_int(batch.get("batch_size"), "batch['batch_size']")  # ints, NumPy ints; not 1.0
+    # every frame of a batch holds a point (an empty scan is a batch of its own): refused before anything is
+    # allocated, since each frame costs a whole pseudo-image
+    if batch_size > max(points.shape[0], 1):
+        raise ValueError(f"batch['batch_size']={batch_size} but batch['points'] holds {points.shape[0]} point(s): "
+                         "every frame of a batch needs at least one point (an empty scan is a batch of its own, "
+                         "batch_size=1)")
     if points.dtype != dtype:  # the weights' dtype: float32 (OpenPCDet's), float16 after model.half()
         points = points.to(dtype)
     checks = []
@@ -211,6 +226,12 @@ def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bo
         bad_frame = ~((frame >= 0) & (frame < batch_size) & (frame == frame.round()))
         checks.append((bad_frame.any(), lambda: _bad_rows_message(
             bad_frame, points[:, 0], f"batch['points'][:, 0] (frame index) must be an integer in [0, {batch_size})")))
+        if batch_size > 1:
+            per_frame = torch.bincount(frame.long().clamp(0, batch_size - 1), minlength=batch_size)
+            empty = per_frame == 0
+            checks.append((empty.any(), lambda: f"batch['points'][:, 0] names no point of frame(s) "
+                           f"{torch.nonzero(empty).flatten()[:8].tolist()} of batch['batch_size']={batch_size}: every "
+                           "frame of a batch needs at least one point (an empty scan is a batch of its own)"))
         if feats.shape[1]:
             # non-finite x, y, z fall outside the point range (left out, as voxelize does); other
             # features would enter a pillar and turn its features, then every box near it, into NaN

@@ -32,20 +32,19 @@ def postprocess(cls_logits: Tensor, boxes: Tensor, cfg: PointPillarsConfig) -> l
     """
     from lidarops.ops.boxes import batched_nms_bev, nms_bev
 
+    pre, post = _limits(cfg)
     out = []
     for b in range(cls_logits.shape[0]):
         scores_all = torch.sigmoid(cls_logits[b])
         if not cfg.multi_classes_nms:
             scores, labels = scores_all.max(dim=-1)
             keep = torch.nonzero(scores >= cfg.score_thresh).squeeze(1)
-            sel = keep[nms_bev(boxes[b, keep], scores[keep], cfg.nms_thresh, pre_max=cfg.nms_pre_maxsize,
-                               post_max=cfg.nms_post_maxsize)]
+            sel = keep[nms_bev(boxes[b, keep], scores[keep], cfg.nms_thresh, pre_max=pre, post_max=post)]
             out.append({"boxes": boxes[b, sel], "scores": scores[sel], "labels": labels[sel] + 1})
             continue
         anchor, label = torch.nonzero(scores_all >= cfg.score_thresh, as_tuple=True)
         scores = scores_all[anchor, label]
-        sel = batched_nms_bev(boxes[b, anchor], scores, label, cfg.nms_thresh, pre_max=cfg.nms_pre_maxsize,
-                              post_max=cfg.nms_post_maxsize)
+        sel = batched_nms_bev(boxes[b, anchor], scores, label, cfg.nms_thresh, pre_max=pre, post_max=post)
         out.append({"boxes": boxes[b, anchor[sel]], "scores": scores[sel], "labels": label[sel] + 1})
     return out
 
@@ -70,8 +69,7 @@ def postprocess_padded(cls_logits: Tensor, boxes: Tensor, cfg: PointPillarsConfi
     """
     from lidarops.ops.boxes import nms_bev
 
-    pre = cfg.nms_pre_maxsize if cfg.nms_pre_maxsize >= 0 else None
-    post = cfg.nms_post_maxsize if cfg.nms_post_maxsize >= 0 else None
+    pre, post = _limits(cfg)
     B, A, C = cls_logits.shape
     out: dict[str, list] = {"boxes": [], "scores": [], "labels": [], "count": []}
     for b in range(B):
@@ -102,3 +100,9 @@ def postprocess_padded(cls_logits: Tensor, boxes: Tensor, cfg: PointPillarsConfi
         out["labels"].append(torch.where(valid, label + 1, 0))
         out["count"].append(count)
     return {k: torch.stack(v) for k, v in out.items()}
+
+
+def _limits(cfg: PointPillarsConfig) -> tuple[int | None, int | None]:
+    """``nms_pre_maxsize`` and ``nms_post_maxsize`` as the NMS ops take them: -1 (no limit) is None."""
+    return (cfg.nms_pre_maxsize if cfg.nms_pre_maxsize >= 0 else None,
+            cfg.nms_post_maxsize if cfg.nms_post_maxsize >= 0 else None)

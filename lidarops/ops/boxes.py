@@ -20,7 +20,8 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
-from lidarops.ops.validation import DeferredChecks, check_tensor, check_values, describe, value_checks_enabled
+from lidarops.ops.validation import (DeferredChecks, check_output_size, check_tensor, check_values, describe,
+                                      value_checks_enabled)
 
 extension.load()
 
@@ -36,19 +37,52 @@ def _check_boxes(boxes, name: str) -> None:
     extension.check_device(boxes, name)
 
 
-def _box_messages(boxes: Tensor, name: str) -> tuple:
-    """The messages of the box value checks (non-finite values, negative sizes), built when raised."""
-    def negative() -> str:
-        rows = torch.nonzero((boxes[:, 3:6] < 0).any(1)).flatten()[:3].tolist()
-        return f"{name} must have sizes dx, dy, dz >= 0, got negative sizes in rows {rows} ({describe(boxes)})"
+#: The values a box may hold (rows of ``(x, y, z, dx, dy, dz, heading)``): centres within this many metres of
+#: the origin, sizes 0 or in [MIN_BOX_SIZE, MAX_BOX_SIZE] metres, headings within this many radians.
+#: Inside them every box op is exact to its documented rounding (the kernels reduce headings exactly up to
+#: 2^20 * pi / 2 and keep every area and coordinate a normal double); beyond them it is refused by name.
+MAX_ABS_BOX_CENTRE = 1e6
+MIN_BOX_SIZE, MAX_BOX_SIZE = 1e-6, 1e6
+MAX_ABS_HEADING = 1e6
 
-    return lambda: f"{name} contains NaN or infinite values ({describe(boxes)})", negative
+
+def _box_out_of_range(boxes: Tensor) -> Tensor:
+    """(N,) True where a box is finite but outside the supported values (see :data:`MAX_ABS_HEADING`)."""
+    size = boxes[:, 3:6]
+    return ((boxes[:, :3].abs() > MAX_ABS_BOX_CENTRE).any(1) | (boxes[:, 6].abs() > MAX_ABS_HEADING)
+            | ((size != 0) & ((size < MIN_BOX_SIZE) | (size > MAX_BOX_SIZE))).any(1))
+
+
+def _value_out_of_range(v: float, column: int) -> bool:
+    """The rule of :func:`_box_out_of_range` for one value of a column (0-6)."""
+    if column < 3:
+        return abs(v) > MAX_ABS_BOX_CENTRE
+    if column < 6:
+        return v != 0 and not MIN_BOX_SIZE <= v <= MAX_BOX_SIZE
+    return abs(v) > MAX_ABS_HEADING
+
+
+def _box_messages(boxes: Tensor, name: str) -> tuple:
+    """The messages of the box value checks (non-finite values, values out of range), built when raised."""
+    def out_of_range() -> str:
+        rows = torch.nonzero(_box_out_of_range(boxes)).flatten()[:3].tolist()
+        first = boxes[rows[0]].tolist() if rows else []
+        column = next((c for c in range(7) if _value_out_of_range(first[c], c)), None) if first else None
+        what = ""
+        if column is not None:
+            field, v = ("x", "y", "z", "dx", "dy", "dz", "heading")[column], first[column]
+            what = f"; row {rows[0]} has {field} = {v!r}" + (" (a negative size)" if 3 <= column < 6 and v < 0 else "")
+        return (f"{name} must hold centres within {MAX_ABS_BOX_CENTRE:g} m, sizes dx, dy, dz of 0 or in "
+                f"[{MIN_BOX_SIZE:g}, {MAX_BOX_SIZE:g}] m and headings within {MAX_ABS_HEADING:g} rad; rows "
+                f"{rows} are not{what} ({describe(boxes)})")
+
+    return lambda: f"{name} contains NaN or infinite values ({describe(boxes)})", out_of_range
 
 
 def _box_value_checks(boxes: Tensor, name: str) -> tuple[list, list]:
-    """NaN/inf anywhere and negative sizes: (finite checks, extra checks) for check_values."""
-    nonfinite, negative = _box_messages(boxes, name)
-    return [(boxes, nonfinite)], [((boxes[:, 3:6] < 0).any(), negative)]
+    """NaN/inf anywhere and values out of the supported range: (finite checks, extra checks) for check_values."""
+    nonfinite, out_of_range = _box_messages(boxes, name)
+    return [(boxes, nonfinite)], [(_box_out_of_range(boxes).any(), out_of_range)]
 
 
 def _pair_args(a, b) -> None:
@@ -58,6 +92,8 @@ def _pair_args(a, b) -> None:
         raise ValueError(f"b is on {b.device} but a is on {a.device}; move them to one device")
     if a.dtype != b.dtype:
         raise ValueError(f"a and b must have the same dtype, got {a.dtype} and {b.dtype}")
+    check_output_size([a.shape[0], b.shape[0]], f"a ({a.shape[0]} boxes) and b ({b.shape[0]} boxes)",
+                      "the pairwise matrix", "compare in chunks of a")
     if value_checks_enabled():
         fa, ea = _box_value_checks(a, "a")
         fb, eb = _box_value_checks(b, "b")
@@ -138,15 +174,15 @@ def _nms_args(boxes, scores, iou_threshold, idxs=None) -> float:
 
 def _nms_value_messages(boxes, scores) -> list:
     """The messages of NMS' value checks, in the order of nms_bev_checked's status[1:] and check_values'."""
-    nonfinite, negative = _box_messages(boxes, "boxes")
-    return [nonfinite, lambda: f"scores contains NaN or infinite values ({describe(scores)})", negative]
+    nonfinite, out_of_range = _box_messages(boxes, "boxes")
+    return [nonfinite, lambda: f"scores contains NaN or infinite values ({describe(scores)})", out_of_range]
 
 
 def _check_nms_values(boxes, scores) -> None:
     if value_checks_enabled():
         messages = _nms_value_messages(boxes, scores)
         check_values(finite=[(boxes, messages[0]), (scores, messages[1])],
-                     extra=[((boxes[:, 3:6] < 0).any(), messages[2])])
+                     extra=[(_box_out_of_range(boxes).any(), messages[2])])
 
 
 def _score_threshold(v) -> float | None:
@@ -191,6 +227,10 @@ def nms_bev(boxes: Tensor, scores: Tensor, iou_threshold: float, pre_max: int | 
     threshold = _nms_args(boxes, scores, iou_threshold)
     pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
     score_threshold = _score_threshold(score_threshold)
+    if not isinstance(padded, bool):  # padded="no" is truthy: it would silently return (keep, count)
+        raise ValueError(f"padded must be True or False, got {padded!r}")
+    if boxes.device.type == "meta" and not padded:
+        raise ValueError("boxes on the meta device: the number of boxes kept is data, so meta tensors need padded=True")
     if padded:
         _check_nms_values(boxes, scores)
         return torch.ops.lidarops.nms_bev_padded(boxes, scores, None, threshold, score_threshold, pre, post)
@@ -235,6 +275,9 @@ def batched_nms_bev(boxes: Tensor, scores: Tensor, idxs: Tensor, iou_threshold: 
         Tensor[K] int64: kept indices in descending score order (equal scores: lower index first).
     """
     threshold = _nms_args(boxes, scores, iou_threshold, idxs)
+    if boxes.device.type == "meta":
+        raise ValueError("boxes on the meta device: the number of boxes batched_nms_bev keeps is data (use "
+                         "nms_bev(..., padded=True) per group)")
     _check_nms_values(boxes, scores)
     pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
     idxs = idxs.to(torch.int64)

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from lidarops import extension
 from lidarops.ops.validation import check_tensor, describe, run_value_checks, value_checks_enabled
-from lidarops.sparse.tensor import KernelMap, SparseConvTensor
+from lidarops.sparse.tensor import KernelMap, SparseConvTensor, check_sites
 
 extension.load()
 from lidarops.sparse import _registrations  # noqa: E402,F401  (fake kernels and autograd)
@@ -505,8 +505,8 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
 
     Raises:
         ValueError: naming the argument: bad shapes, dtypes or devices; sites outside the grid or
-            duplicated (checked when a kernel map is built: a 1 x 1 ``"subm"`` convolution reads no
-            site, builds no map and so checks none); a reused ``indice_key`` whose map was built on
+            duplicated (checked when a kernel map is built, or once per indices tensor for a 1 x 1
+            ``"subm"`` convolution, which builds no map); a reused ``indice_key`` whose map was built on
             other sites.
     """
     if not isinstance(x, SparseConvTensor):
@@ -538,7 +538,9 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
     cout, K = weight.shape[0], math.prod(ksize)
     w = weight.reshape(cout, K, cin)
     if kind == "subm" and K == 1:
-        # every site is its own only neighbour: a matrix product, no kernel map needed
+        # every site is its own only neighbour: a matrix product, no kernel map needed (and none checks the
+        # sites, so they are checked here, once per indices tensor)
+        check_sites(x)
         out = x.features.matmul(w[:, 0, :].t())
         out = out + bias if bias is not None else out
         return x.replace_feature(_affine_torch(out, scale, shift, relu) if epilogue else out)

@@ -119,8 +119,9 @@ def _spatial_shape(spatial_shape, ndim: int) -> tuple:
     return tuple(_int(v, f"spatial_shape[{d}]", 1, _INT32_MAX) for d, v in enumerate(spatial_shape))
 
 
-def _range_check(indices: Tensor, batch_size: int, spatial_shape: list) -> None:
-    """One host sync: every row of ``indices`` lies in ``[0, batch_size) x [0, spatial_shape)``."""
+def _range_check(indices: Tensor, batch_size: int, spatial_shape: list, duplicates: bool = False) -> None:
+    """One host sync: every row of ``indices`` lies in ``[0, batch_size) x [0, spatial_shape)`` (and, with
+    ``duplicates``, no site is given twice: a dense map or a 1 x 1 convolution would keep one row of two)."""
     idx = indices.long()
     bound = torch.tensor([batch_size] + spatial_shape, device=idx.device)
     outside = (idx < 0) | (idx >= bound)
@@ -130,7 +131,38 @@ def _range_check(indices: Tensor, batch_size: int, spatial_shape: list) -> None:
         return (f"indices lie outside batch_size {batch_size} / spatial_shape {spatial_shape}: row {row} is "
                 f"{idx[row].tolist()} (batch, coordinates)")
 
-    run_value_checks([(outside.any(), message)])
+    checks = [(outside.any(), message)]
+    if duplicates and idx.shape[0] > 1:
+        cells = math.prod([batch_size] + spatial_shape)
+        if cells < 2**62:  # linear keys fit int64 (rows outside are told apart by the check above first)
+            strides = torch.tensor([math.prod(([batch_size] + spatial_shape)[d + 1:]) for d in range(idx.shape[1])],
+                                   device=idx.device)
+            keys = torch.sort((idx.clamp(min=0) * strides).sum(1)).values
+            repeated = keys[1:] == keys[:-1]
+        else:
+            rows = torch.unique(idx, dim=0)
+            repeated = torch.tensor([rows.shape[0] < idx.shape[0]], device=idx.device)
+
+        def dup_message() -> str:
+            uniq, counts = torch.unique(idx, dim=0, return_counts=True)
+            return (f"indices hold site {uniq[counts > 1][0].tolist()} (batch, coordinates) more than once: each site "
+                    "must appear once (a dense map or a 1 x 1 submanifold convolution would keep only one of its rows)")
+
+        checks.append((repeated.any(), dup_message))
+    run_value_checks(checks)
+
+
+def check_sites(x: "SparseConvTensor") -> None:
+    """The sites of ``x`` lie in its grid and each appears once: checked once per indices tensor and shape
+    (a layer with a cached map returns the same indices tensor every call: no host synchronisation after the
+    first); an in-place change re-checks. Inference tensors keep no version counter: checked every time.
+    Edits through ``.data`` bypass the version counter (as they do autograd's checks): make a new tensor."""
+    key = None if x.indices.is_inference() else (x.indices._version, x.batch_size, tuple(x.spatial_shape), "sites")
+    if value_checks_enabled() and x.indices.numel() and (
+            key is None or getattr(x.indices, "_lidarops_checked", None) != key):
+        _range_check(x.indices, x.batch_size, x.spatial_shape, duplicates=True)
+        if key is not None:
+            x.indices._lidarops_checked = key
 
 
 def _as_int32(indices: Tensor, batch_size: int, spatial_shape: list) -> Tensor:
@@ -139,10 +171,7 @@ def _as_int32(indices: Tensor, batch_size: int, spatial_shape: list) -> Tensor:
         return indices
     if value_checks_enabled() and indices.numel():
         _range_check(indices, batch_size, spatial_shape)
-    out = indices.to(torch.int32)
-    if not out.is_inference() and indices.numel() and value_checks_enabled():
-        out._lidarops_checked = (out._version, batch_size, tuple(spatial_shape))  # dense() needs no second check
-    return out
+    return indices.to(torch.int32)
 
 
 class SparseConvTensor:
@@ -300,16 +329,7 @@ class SparseConvTensor:
             Differentiable with respect to ``features``.
         """
         C = self.features.shape[1]
-        # checked once per indices tensor and shape (a layer with a cached map returns the same indices
-        # tensor every call: no host synchronisation after the first); an in-place change re-checks.
-        # Inference tensors keep no version counter: they are checked every time.
-        key = None if self.indices.is_inference() else (self.indices._version, self.batch_size,
-                                                         tuple(self.spatial_shape))
-        if value_checks_enabled() and self.indices.numel() and (
-                key is None or getattr(self.indices, "_lidarops_checked", None) != key):
-            _range_check(self.indices, self.batch_size, self.spatial_shape)
-            if key is not None:
-                self.indices._lidarops_checked = key
+        check_sites(self)
         if channels_first and self.features.is_floating_point():
             # the registered op moves 32 x 32 tiles through shared memory on CUDA: coalesced writes into
             # the channel planes, about twice as fast as index_put_ through a channels-last view

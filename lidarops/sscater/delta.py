@@ -354,7 +354,7 @@ class DeltaBackbone:
                 the step then makes no host synchronisation before its figures are read.
         """
         if check:
-            sites, features = self._check_input(sites, features)
+            sites, features = self._check_input(sites, features, finite=True)
             if removed.shape != (sites.shape[0],) or removed.dtype != torch.bool:
                 raise ValueError(f"removed must be bool ({sites.shape[0]},), got {removed.dtype} "
                                  f"{tuple(removed.shape)}")
@@ -504,20 +504,38 @@ class DeltaBackbone:
         lo, hi = torch.aminmax(self._accs)
         return torch.maximum(hi, -lo)
 
-    def _check_input(self, sites: Tensor, features: Tensor) -> tuple[Tensor, Tensor]:
+    def _check_input(self, sites: Tensor, features: Tensor, finite: bool = False) -> tuple[Tensor, Tensor]:
+        """Sites inside the grid, each once; with ``finite`` (an update, whose deltas stay in the recycled sums)
+        finite features. One wait for the device."""
         if not isinstance(sites, Tensor) or sites.dim() != 2 or sites.shape[1] != 2 or sites.is_floating_point():
             raise ValueError(f"sites must be an integer (n, 2) tensor of (y, x), got "
                              f"{getattr(sites, 'dtype', type(sites))} {tuple(getattr(sites, 'shape', ()))}")
         if not isinstance(features, Tensor) or features.shape != (sites.shape[0], self.in_channels):
             raise ValueError(f"features must be ({sites.shape[0]}, {self.in_channels}), got "
                              f"{tuple(getattr(features, 'shape', ()))}")
-        sites = sites.to(device=self.device, dtype=torch.int32)
-        if sites.shape[0]:
+        if sites.dtype == torch.bool or sites.is_complex():
+            raise ValueError(f"sites must be an integer (n, 2) tensor of (y, x), got {sites.dtype}")
+        wide = sites.to(device=self.device, dtype=torch.int64)  # checked before the int32 cast: no wrap-around
+        features = features.to(device=self.device, dtype=self.dtype)
+        if wide.shape[0]:
             H, W = self.shape
-            bad = (sites[:, 0] < 0) | (sites[:, 0] >= H) | (sites[:, 1] < 0) | (sites[:, 1] >= W)
-            if bool(bad.any()):
-                raise ValueError(f"sites lie outside the ({H}, {W}) grid, e.g. {sites[bad][0].tolist()}")
-        return sites, features.to(device=self.device, dtype=self.dtype)
+            bad = (wide[:, 0] < 0) | (wide[:, 0] >= H) | (wide[:, 1] < 0) | (wide[:, 1] >= W)
+            key = wide[:, 0] * W + wide[:, 1]
+            sorted_keys = torch.sort(torch.where(bad, -1 - torch.arange(len(key), device=key.device), key)).values
+            repeated = (sorted_keys[1:] == sorted_keys[:-1]) & (sorted_keys[1:] >= 0)
+            nonfinite = ~torch.isfinite(features).all(1) if finite else torch.zeros_like(bad)
+            flags = torch.stack([bad.any(), repeated.any(), nonfinite.any()]).tolist()  # one wait for the device
+            if flags[0]:
+                raise ValueError(f"sites lie outside the ({H}, {W}) grid, e.g. {wide[bad][0].tolist()}")
+            if flags[1]:
+                dup = sorted_keys[1:][repeated][0].item()
+                raise ValueError(f"sites must each appear once: ({dup // W}, {dup % W}) is given more than once "
+                                 "(a site's delta would be applied twice)")
+            if flags[2]:
+                row = int(torch.nonzero(nonfinite)[0])
+                raise ValueError(f"features must be finite (a NaN or inf would stay in the recycled state): row {row} "
+                                 f"at site {wide[row].tolist()} is {features[row].tolist()[:8]}")
+        return wide.to(torch.int32), features
 
     def _tick(self, profile: bool) -> float:
         if profile and self.device.type == "cuda":

@@ -57,7 +57,10 @@ from lidarops.ops.pillars import (
 
 extension.load()
 
-__all__ = ["PillarStream", "StreamUpdate", "StreamCounts"]
+__all__ = ["PillarStream", "StreamUpdate", "StreamCounts", "MIN_WINDOW"]
+
+#: The shortest window, in seconds: above the float64 resolution of timestamps up to MAX_ABS_TIME (2e-6 s).
+MIN_WINDOW = 1e-5
 
 # indices into the stats output of lidarops::pillar_stream_push (csrc/include/lidarops/pillar_stream.h)
 (_P_IN, _P_OUT, _P_OUTSIDE, _P_LATE, _P_OVERFLOW, _P_MAX_POINTS, _P_PILLARS, _P_NEW, _P_EMPTIED, _P_TOUCHED,
@@ -176,8 +179,11 @@ class PillarStream:
         if not isinstance(overflow, str) or overflow not in ("raise", "drop"):
             raise ValueError(f"overflow must be 'raise' or 'drop', got {overflow!r}")
         self._overflow = overflow
-        if isinstance(window, bool) or not isinstance(window, (int, float)) or not (0 < float(window) < float("inf")):
-            raise ValueError(f"window must be a positive finite number of seconds, got {window!r}")
+        # at least MIN_WINDOW: near MAX_ABS_TIME a shorter window rounds away (the newest point would fall out)
+        if isinstance(window, bool) or not isinstance(window, (int, float)) \
+                or not (MIN_WINDOW <= float(window) < float("inf")):
+            raise ValueError(f"window must be a finite number of seconds >= {MIN_WINDOW:g} (timestamps are float64 "
+                             f"seconds up to {MAX_ABS_TIME:g}), got {window!r}")
         self._window = float(window)
         self._N = check_capacity(max_points_per_pillar, "max_points_per_pillar")
         self._M = check_capacity(max_pillars, "max_pillars")
@@ -522,6 +528,7 @@ class PillarStream:
         if not check and coords is not None:
             return self._gather(coords)
         H, W = self._grid.shape
+        given = None  # the coords as the caller gave them, for the error message
         if coords is None:
             coords = self.active_coords()
         else:
@@ -529,7 +536,10 @@ class PillarStream:
             if coords.dim() != 2 or coords.shape[1] != 3 or coords.is_floating_point() or coords.is_complex() \
                     or coords.dtype == torch.bool:
                 raise ValueError(f"coords must be an integer (P, 3) tensor of (batch, y, x), got {describe(coords)}")
-            coords = coords.to(torch.int32)
+            # out-of-grid values become -1 before the int32 cast: a huge int64 would wrap into the grid
+            given = coords.to(torch.int64)
+            limit = torch.tensor([1, H, W], device=given.device)
+            coords = torch.where((given >= 0) & (given < limit), given, -1).to(torch.int32)
         keys = coords[:, 1].to(torch.int64) * W + coords[:, 2].to(torch.int64)
         pillars = self._gather(coords, keys)
         if coords.shape[0]:
@@ -541,7 +551,8 @@ class PillarStream:
             if bad.numel():
                 i = int(bad[0, 0])
                 if not bool(active[i]):
-                    raise ValueError(f"coords[{i}] = {coords[i].tolist()} is not an active pillar of the stream "
+                    raise ValueError(f"coords[{i}] = {(given if given is not None else coords)[i].tolist()} is not an "
+                                     "active pillar of the stream "
                                      f"({bad.shape[0]} of {coords.shape[0]} coords are not; grid {H} x {W}, "
                                      f"batch 0)")
                 s = int(self._cell_slot[keys[i]])

@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any, Mapping
+
+from lidarops._checks import integer, real
 
 __all__ = ["TrainConfig", "OPTIMIZERS", "AMP_MODES"]
 
@@ -117,31 +118,50 @@ class TrainConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        self.moms = tuple(float(m) for m in self.moms)
-        self.decay_epochs = tuple(int(e) for e in self.decay_epochs)
-        self.pct_start = float(self.pct_start)
         problems = []
+
+        def check(fn, name, *args, **kwargs):
+            try:
+                return fn(getattr(self, name), name, *args, **kwargs)
+            except ValueError as e:
+                problems.append(str(e))
+                return getattr(self, name)
+
         if self.optimizer not in OPTIMIZERS:
             problems.append(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         if self.amp not in AMP_MODES:
             problems.append(f"amp must be one of {AMP_MODES}, got {self.amp!r}")
         for name in ("epochs", "batch_size", "log_every"):
-            if int(getattr(self, name)) < 1:
-                problems.append(f"{name} must be >= 1, got {getattr(self, name)!r}")
-        if self.num_workers < 0 or self.eval_every < 0:
-            problems.append("num_workers and eval_every must be >= 0")
-        if not (self.lr > 0 and math.isfinite(self.lr)) or self.weight_decay < 0:
-            problems.append(f"lr must be positive and weight_decay >= 0, got lr={self.lr!r}, "
-                            f"weight_decay={self.weight_decay!r}")
-        if len(self.moms) != 2 or not all(0 <= m < 1 for m in self.moms):
-            problems.append(f"moms must be two values in [0, 1), got {self.moms!r}")
-        if not 0 < self.pct_start < 1 or self.div_factor <= 0:
-            problems.append(f"pct_start must be in (0, 1) and div_factor > 0, got {self.pct_start!r}, "
-                            f"{self.div_factor!r}")
-        for name in ("max_minutes", "max_steps", "ckpt_every_min", "keep_last"):
-            v = getattr(self, name)
-            if v is not None and v < 0:
-                problems.append(f"{name} must be >= 0 or None, got {v!r}")
+            setattr(self, name, check(integer, name, 1))
+        for name in ("num_workers", "eval_every", "seed"):
+            setattr(self, name, check(integer, name, 0))
+        self.lr = check(real, "lr", 0, None, lo_open=True)
+        for name in ("weight_decay", "lr_decay", "lr_clip"):
+            setattr(self, name, check(real, name, 0))
+        self.pct_start = check(real, "pct_start", 0, 1, lo_open=True, hi_open=True)
+        self.div_factor = check(real, "div_factor", 0, None, lo_open=True)
+        try:
+            self.moms = tuple(real(m, f"moms[{i}]", 0, 1, hi_open=True) for i, m in enumerate(self.moms))
+            if len(self.moms) != 2:
+                raise ValueError(f"moms must be two values in [0, 1), got {self.moms!r}")
+        except (TypeError, ValueError) as e:
+            problems.append(str(e) if isinstance(e, ValueError) else f"moms must be two values, got {self.moms!r}")
+        try:
+            self.decay_epochs = tuple(integer(e, f"decay_epochs[{i}]", 0) for i, e in enumerate(self.decay_epochs))
+        except TypeError:
+            problems.append(f"decay_epochs must be a list of ints, got {self.decay_epochs!r}")
+        except ValueError as e:
+            problems.append(str(e))
+        # None turns each of these off; a value must mean something (NaN minutes would never stop the run)
+        for name, fn, lo, lo_open in (("grad_norm_clip", real, 0, True), ("ckpt_every_min", real, 0, False),
+                                      ("max_minutes", real, 0, True), ("max_steps", integer, 1, False),
+                                      ("keep_last", integer, 0, False)):
+            if getattr(self, name) is not None:
+                extra = {"lo_open": lo_open} if fn is real else {}
+                setattr(self, name, check(fn, name, lo, None, **extra))
+        for name in ("sync_bn", "find_unused_parameters", "tensorboard", "progress"):
+            if not isinstance(getattr(self, name), bool):
+                problems.append(f"{name} must be True or False, got {getattr(self, name)!r}")
         if problems:
             raise ValueError("TrainConfig: " + "; ".join(problems))
 

@@ -110,6 +110,6 @@ def test_detect_input_errors(tmp_path, run_cli):
     assert code == 2 and "give a .bin file, a KITTI folder, or --scenario NAME" in one_error_line(err, "detect")
     (tmp_path / "x.txt").write_text("")
     code, _, err = run_cli(["detect", tmp_path / "x.txt", "--device", "cpu"])
-    assert code == 2 and "expected a KITTI velodyne .bin file" in one_error_line(err, "detect")
+    assert code == 2 and "expected a KITTI velodyne .bin, a nuScenes .pcd.bin or a folder" in one_error_line(err, "detect")
     code, _, err = run_cli(["detect", "--scenario", "driving_city", "--device", "cpu", "--out", tmp_path / "x.txt"])
     assert code == 2 and "is a file; give a folder" in one_error_line(err, "detect")

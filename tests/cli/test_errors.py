@@ -124,7 +124,7 @@ def test_missing_files(argv, pattern, run_cli):
 
 @pytest.mark.parametrize("argv, pattern", [
     (["train", "--config", repo_config("pointpillars_demo.yaml"), "--out", NEVER, "--lr", "-1"],
-     "lr must be positive"),
+     "lr must be a finite number > 0, got -1.0"),
     (["train", "--config", REPO / "README.md", "--out", NEVER], "not valid YAML"),
     (["detect", "--scenario", "driving_city", "--score-thresh", "2", "--device", "cpu", "--out", NEVER],
      r"--score-thresh must be in \[0, 1\)"),

@@ -271,6 +271,15 @@ class Boxes:
     def nonnegative(self) -> bool:
         return bool((self.boxes[:, 3:6] >= 0).all()) if self.boxes.numel() else True
 
+    def in_range(self) -> bool:
+        """Within docs/boxes.md's input policy: centres within 1e6 m of the origin, sizes 0 or in
+        [1e-6, 1e6] m, headings within 1e6 rad (NaN counts as out of range)."""
+        t = self.boxes.double()
+        size = t[:, 3:6]
+        ok = (t[:, :3].abs() <= 1e6).all(1) & (t[:, 6].abs() <= 1e6) \
+            & ((size == 0) | ((size >= 1e-6) & (size <= 1e6))).all(1)
+        return bool(ok.all())
+
 
 _HEADINGS = st.sampled_from([0.0, math.pi / 2, -math.pi / 2, math.pi, 2 * math.pi, 0.25, -3.0]) | st.floats(-7, 7)
 
@@ -278,16 +287,18 @@ _HEADINGS = st.sampled_from([0.0, math.pi / 2, -math.pi / 2, math.pi, 2 * math.p
 @st.composite
 def box_sets(draw, dtype: Optional[torch.dtype] = None, max_boxes: int = 5, regime: Optional[str] = None,
              min_boxes: int = 0) -> Boxes:
-    """Boxes near each other (so that they overlap), with zero sizes, huge coordinates, NaN/inf or
-    negative sizes depending on the regime."""
+    """Boxes near each other (so that they overlap), with zero sizes, coordinates near the supported bound
+    ("huge"), NaN/inf, negative sizes or one value beyond the supported range ("outside") depending on the
+    regime."""
     dtype = dtype or draw(st.sampled_from(FLOAT_DTYPES))
-    regime = regime or draw(st.sampled_from(["normal", "normal", "zero", "huge", "nonfinite", "negative"]))
+    regime = regime or draw(st.sampled_from(["normal", "normal", "zero", "huge", "nonfinite", "negative",
+                                             "outside"]))
     m = draw(st.integers(min_boxes, max_boxes))
     width = 32 if dtype == torch.float32 else 64
     centre = st.floats(-3, 3, width=width) | st.sampled_from([0.0, 0.5, 1.0])
     size = st.floats(0.125, 4, width=width) | st.sampled_from([1.0, 2.0])
     rows = []
-    offset = draw(st.sampled_from([1e4, -1e6, 3e7])) if regime == "huge" else 0.0
+    offset = draw(st.sampled_from([1e4, -9.99e5, 9.9e5])) if regime == "huge" else 0.0
     for _ in range(m):
         x, y, z = (draw(centre) for _ in range(3))
         dx, dy, dz = (draw(size) for _ in range(3))
@@ -301,6 +312,10 @@ def box_sets(draw, dtype: Optional[torch.dtype] = None, max_boxes: int = 5, regi
         t[draw(st.integers(0, m - 1)), draw(st.integers(0, 6))] = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
     if m and regime == "negative":
         t[draw(st.integers(0, m - 1)), draw(st.integers(3, 5))] = -draw(st.floats(0.01, 2))
+    if m and regime == "outside":
+        col, value = draw(st.sampled_from([(0, 3e7), (1, -1.5e6), (2, 2e6), (3, 2e6), (4, 1e-9), (5, 5e-7),
+                                           (6, 1e7), (6, -1e20), (6, 1.5e6)]))
+        t[draw(st.integers(0, m - 1)), col] = value
     return Boxes(t.to(dtype), regime)
 
 

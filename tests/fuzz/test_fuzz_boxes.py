@@ -25,8 +25,9 @@ _PAIR_OPS = {"box_overlap_bev": (lidarops.box_overlap_bev, _box_overlap_bev_refe
 
 
 def _bad_names(*named: tuple) -> list:
-    """Names of box sets that must be rejected: NaN / infinite values or negative sizes."""
-    return [name for name, b in named if not (b.finite() and b.nonnegative())]
+    """Names of box sets that must be rejected: NaN / infinite values, negative sizes, or values beyond the
+    supported range (docs/boxes.md)."""
+    return [name for name, b in named if not (b.finite() and b.nonnegative() and b.in_range())]
 
 
 def _tolerance(*sets: Boxes) -> float:

@@ -46,7 +46,7 @@ def _field_replaced(draw, valid: bytes) -> bytes:
     words = valid.split(b" ")
     i = draw(st.integers(0, len(words) - 1))
     tail = b"\n" if words[i].endswith(b"\n") else b""
-    words[i] = draw(st.sampled_from([b"nan", b"inf", b"-inf", b"1e39", b"abc", b"", b"0x10", b"1_0", b"\xff"])) + tail
+    words[i] = draw(st.sampled_from([b"nan", b"inf", b"-inf", b"1e39", b"abc", b"", b"0x10", b"1_0", b"\xff", b"0", b"-1.5"])) + tail
     return b" ".join(words)
 
 
@@ -119,7 +119,7 @@ _LABEL = (b"Pedestrian 0.00 0 -0.20 712.40 143.00 810.73 307.92 1.89 0.48 1.20 1
 def _label_reference(raw: bytes):
     """Pure-Python parse of a label_2 file: None when the format refuses it."""
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")  # a leading byte-order mark is not part of the first name
     except UnicodeDecodeError:
         return None
     rows = []
@@ -135,6 +135,8 @@ def _label_reference(raw: bytes):
             return None
         if not all(abs(v) <= _F32_MAX for v in nums) or nums[1] not in (-1, 0, 1, 2, 3):
             return None
+        if fields[0] != "DontCare" and not all(v > 0 for v in nums[7:10]):
+            return None  # an object with a zero or negative size
         rows.append((fields[0], nums))
     if len({len(r[1]) for r in rows}) > 1:
         return None
@@ -147,6 +149,7 @@ def test_kitti_label(tmp_path, data):
     from lidarops.data.formats import read_label
 
     raw = data.draw(file_bytes(_LABEL, text=True), "bytes")
+    raw = data.draw(st.sampled_from([raw, b"\xef\xbb\xbf" + raw, raw.replace(b"\n", b"\r\n")]), "bom or crlf")
     path = _write(tmp_path, "label_2/000000.txt", raw)
     got, err = outcome(read_label, path)
     ref = _label_reference(raw)
@@ -158,7 +161,8 @@ def test_kitti_label(tmp_path, data):
         assert got.occluded[i] == nums[1]
         assert got.dimensions[i].tolist() == nums[7:10], "dimensions are h, w, l in the file's order"
         assert got.location[i].tolist() == nums[10:13] and got.rotation_y[i] == nums[13]
-        assert got.bbox[i].tolist() == [float(np.float32(v)) for v in nums[3:7]]
+        assert got.bbox[i].tolist() == nums[3:7], "read in float64, as KITTI's evaluator reads them"
+        assert got.truncated[i] == nums[0] and got.alpha[i] == nums[2]
         assert (got.score is None) == (len(nums) == 14)
 
 

@@ -26,3 +26,18 @@ def small_backbone(cin=8, seed=0, negative_bias=0.0, dtype=torch.float64):
     bb = BaseBEVBackbone(cin, (1, 2, 2), (2, 2, 2), (8, 12, 16), (1, 2, 4), (6, 6, 6))
     randomize_bn(bb, seed, negative_bias)
     return bb.eval().to(dtype)
+
+
+#: A small PointPillars config (one class, an 8 x 8 grid of 1 m pillars, 8 filters): model tests build it in
+#: milliseconds.
+TINY = dict(
+    class_names=["Car"],
+    point_cloud_range=[0.0, -4.0, -3.0, 8.0, 4.0, 1.0],
+    voxel_size=[1.0, 1.0, 4.0],
+    vfe_num_filters=[8],
+    layer_nums=[1, 1, 1], layer_strides=[2, 2, 2], num_filters=[8, 8, 8],
+    upsample_strides=[1, 2, 4], num_upsample_filters=[4, 4, 4],
+    anchor_generator_config=[{"class_name": "Car", "anchor_sizes": [[2.0, 1.0, 1.5]], "anchor_rotations": [0, 1.57],
+                              "anchor_bottom_heights": [-1.78], "align_center": True, "feature_map_stride": 2,
+                              "matched_threshold": 0.6, "unmatched_threshold": 0.45}],
+)

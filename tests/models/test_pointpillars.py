@@ -19,17 +19,7 @@ from lidarops.models.pillar_vfe import PillarVFE
 from lidarops.models.pointpillars import PointPillars
 from lidarops.models.postprocess import postprocess, postprocess_padded
 
-TINY = dict(
-    class_names=["Car"],
-    point_cloud_range=[0.0, -4.0, -3.0, 8.0, 4.0, 1.0],
-    voxel_size=[1.0, 1.0, 4.0],
-    vfe_num_filters=[8],
-    layer_nums=[1, 1, 1], layer_strides=[2, 2, 2], num_filters=[8, 8, 8],
-    upsample_strides=[1, 2, 4], num_upsample_filters=[4, 4, 4],
-    anchor_generator_config=[{"class_name": "Car", "anchor_sizes": [[2.0, 1.0, 1.5]], "anchor_rotations": [0, 1.57],
-                              "anchor_bottom_heights": [-1.78], "align_center": True, "feature_map_stride": 2,
-                              "matched_threshold": 0.6, "unmatched_threshold": 0.45}],
-)
+from helpers.models import TINY
 
 
 def openpcdet_pointpillar_keys() -> dict[str, tuple]:
@@ -285,11 +275,14 @@ def test_empty_and_out_of_range_clouds():
     torch.manual_seed(0)
     model = PointPillars(TINY)
     far = torch.tensor([[100.0, 100.0, 0.0, 0.5], [-5.0, 0.0, 0.0, 0.1]])
-    for clouds in ([torch.zeros(0, 4)], [far], [torch.zeros(0, 4), far]):
+    for clouds in ([torch.zeros(0, 4)], [far], [far, far]):
         preds = model.predict(_batch(clouds))
         assert len(preds) == len(clouds) and all(p["boxes"].shape == (0, 7) for p in preds)
+    # an empty scan is a batch of its own: inside a batch, a frame without points is refused by index
+    with pytest.raises(ValueError, match=r"names no point of frame\(s\) \[0\] of batch\['batch_size'\]=2"):
+        model.predict(_batch([torch.zeros(0, 4), far]))
     model.train()
-    out = model(_batch([torch.zeros(0, 4), far], gt=[[], [[3.0, 0.0, -1.0, 2.0, 1.0, 1.5, 0.0, 1.0]]]))
+    out = model(_batch([far, far], gt=[[], [[3.0, 0.0, -1.0, 2.0, 1.0, 1.5, 0.0, 1.0]]]))
     assert torch.isfinite(out["loss"]) and out["loss"].requires_grad
 
 

@@ -425,9 +425,11 @@ def test_nms_checked_status_is_count_and_value_flags(device):
     keep2, status = torch.ops.lidarops.nms_bev_checked(boxes, scores, None, 0.1, 0.2, 40, 30)
     assert_equal_report(keep2, keep, "checked keep")
     assert status.tolist() == [int(count), 0, 0, 0]
-    # [non-finite box value, non-finite score, negative size]; post_max=0 keeps nothing but still checks
-    for col, value, expected in ((0, math.nan, [1, 0, 0]), (6, math.inf, [1, 0, 0]), (4, -0.5, [0, 0, 1]),
-                                 (3, -math.inf, [1, 0, 1]), (5, math.nan, [1, 0, 0])):
+    # [non-finite box value, non-finite score, a value outside the supported range (a negative size, a centre
+    # beyond 1e6 m, ...; an infinity is both)]; post_max=0 keeps nothing but still checks
+    for col, value, expected in ((0, math.nan, [1, 0, 0]), (6, math.inf, [1, 0, 1]), (4, -0.5, [0, 0, 1]),
+                                 (3, -math.inf, [1, 0, 1]), (5, math.nan, [1, 0, 0]), (1, -2e6, [0, 0, 1]),
+                                 (6, 1.5e6, [0, 0, 1]), (4, 1e-7, [0, 0, 1]), (5, 0.0, [0, 0, 0])):
         bad = boxes.clone()
         bad[17, col] = value
         flags = torch.ops.lidarops.nms_bev_checked(bad, scores, None, 0.1, None, -1, 0)[1].tolist()[1:]
@@ -440,13 +442,16 @@ def test_nms_checked_status_is_count_and_value_flags(device):
     zero = boxes.clone()
     zero[5, 3:6] = -0.0
     assert torch.ops.lidarops.nms_bev_checked(zero, scores, None, 0.1, None, -1, -1)[1].tolist()[1:] == [0, 0, 0]
-    # values are checked in their own dtype: 1e300 is finite in float64, float16 boxes and scores widen exactly
+    # values are checked in their own dtype: 1e300 is finite in float64 (but beyond the supported centres),
+    # float16 boxes and scores widen exactly
     huge, big_scores = boxes.double(), scores.double()
     huge[3, 0], big_scores[7] = 1e300, -1e300
-    assert torch.ops.lidarops.nms_bev_checked(huge, big_scores, None, 0.1, None, -1, -1)[1].tolist()[1:] == [0, 0, 0]
+    assert torch.ops.lidarops.nms_bev_checked(huge, big_scores, None, 0.1, None, -1, -1)[1].tolist()[1:] == [0, 0, 1]
     half = boxes.half()
     half[2, 1] = math.inf
-    assert torch.ops.lidarops.nms_bev_checked(half, scores.half(), None, 0.1, None, -1, -1)[1].tolist()[1:] == [1, 0, 0]
+    assert torch.ops.lidarops.nms_bev_checked(half, scores.half(), None, 0.1, None, -1, -1)[1].tolist()[1:] == [1, 0, 1]
+    half[2, 1] = 65504.0  # float16's largest value: within the supported centres
+    assert torch.ops.lidarops.nms_bev_checked(half, scores.half(), None, 0.1, None, -1, -1)[1].tolist()[1:] == [0, 0, 0]
 
 
 @pytest.mark.skipif(not LIDAROPS_CUDA, reason="needs a GPU and lidarops built with CUDA kernels")
@@ -551,11 +556,11 @@ def _bad_cases():
         (lambda: lidarops.box_iou_bev(good, good.long()), "b must be floating"),
         (lambda: lidarops.box_iou_bev(good, good.double()), "same dtype"),
         (lambda: lidarops.box_iou_3d(good, nan), "b contains NaN"),
-        (lambda: lidarops.box_overlap_bev(neg, good), "a must have sizes dx, dy, dz >= 0.*rows \\[2\\]"),
+        (lambda: lidarops.box_overlap_bev(neg, good), "a must hold .*sizes dx, dy, dz of 0 or in .*rows \\[2\\] are not; row 2 has d[xyz] = -[0-9.]+ \\(a negative size\\)"),
         (lambda: lidarops.nms_bev(good, scores[:3], 0.5), "scores must be a floating \\(N,\\) tensor with N = 4"),
         (lambda: lidarops.nms_bev(nan, scores, 0.5), "boxes contains NaN"),
         (lambda: lidarops.nms_bev(good, torch.tensor([0.1, float("nan"), 0, 0]), 0.5), "scores contains NaN"),
-        (lambda: lidarops.nms_bev(neg, scores, 0.5, post_max=0), "boxes must have sizes dx, dy, dz >= 0.*rows \\[2\\]"),
+        (lambda: lidarops.nms_bev(neg, scores, 0.5, post_max=0), "boxes must hold .*rows \\[2\\] are not; row 2 has d[xyz] = -[0-9.]+ \\(a negative size\\)"),
         (lambda: lidarops.nms_bev(nan, scores, 0.5, padded=True), "boxes contains NaN"),
         (lambda: lidarops.nms_bev(good, scores, float("nan")), "iou_threshold must be a finite number"),
         (lambda: lidarops.nms_bev(good, scores, -0.5), "iou_threshold must be a finite number >= 0"),

@@ -310,7 +310,7 @@ def test_stream_bad_input(device):
         with pytest.raises(ValueError, match="points is on cpu but the stream is on cuda"):
             stream.push(p.cpu(), t)
     assert stream.num_points == 0 and stream.t == -math.inf  # nothing was applied
-    for kwargs, match in [(dict(window=0), "window must be a positive"), (dict(window="1"), "window"),
+    for kwargs, match in [(dict(window=0), "window must be a finite number of seconds >= 1e-05"), (dict(window="1"), "window"),
                           (dict(max_points_per_pillar=0), "max_points_per_pillar"),
                           (dict(max_pillars=-1), "max_pillars"), (dict(device="mps"), "device must be")]:
         with pytest.raises(ValueError, match=match):

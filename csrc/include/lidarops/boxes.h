@@ -59,6 +59,18 @@ LIDAROPS_HD void sincos_det(double x, double* s_out, double* c_out) {
 
 // One box, ready for pair tests: centre, half sizes, heading with its sine and cosine, the radius of
 // its circumscribed circle (BEV), z range and BEV area.
+// The values a box may hold (lidarops.ops.boxes: MAX_ABS_BOX_CENTRE, MIN_BOX_SIZE, MAX_BOX_SIZE,
+// MAX_ABS_HEADING): inside them the reduction of sincos_det is exact and every area a normal double.
+constexpr double kMaxAbsBoxCentre = 1e6, kMinBoxSize = 1e-6, kMaxBoxSize = 1e6, kMaxAbsHeading = 1e6;
+
+// Whether value v of box column col (0..6) is outside those values (NaN is not: it is flagged apart).
+template <typename T>
+LIDAROPS_HD bool box_value_out_of_range(T v, int col) {
+  if (col < 3) return v < T(-kMaxAbsBoxCentre) || v > T(kMaxAbsBoxCentre);
+  if (col < 6) return v != T(0) && (v < T(kMinBoxSize) || v > T(kMaxBoxSize));
+  return v < T(-kMaxAbsHeading) || v > T(kMaxAbsHeading);
+}
+
 struct BoxGeom {
   double x, y, z, hx, hy, hz, heading, c, s, radius, zlo, zhi, area;
 };

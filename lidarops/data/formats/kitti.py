@@ -245,10 +245,11 @@ class KittiLabels:
 
     Attributes:
         names (list[str]): object types.
-        truncated (float32[M]), occluded (int64[M]), alpha (float32[M]),
-        bbox (float32[M, 4]: left, top, right, bottom), dimensions (float64[M, 3]: h, w, l),
+        truncated (float64[M]), occluded (int64[M]), alpha (float64[M]),
+        bbox (float64[M, 4]: left, top, right, bottom), dimensions (float64[M, 3]: h, w, l),
         location (float64[M, 3]: bottom centre, rectified camera frame), rotation_y (float64[M]),
-        score (float32[M] or None).
+        score (float64[M] or None). Read as KITTI's evaluator reads them (float64), so that a field on a
+        difficulty boundary (truncation 0.15, 0.30, 0.50; a 40 or 25 pixel box) lands on the same side.
     """
 
     names: list[str]
@@ -266,8 +267,8 @@ class KittiLabels:
 
     @staticmethod
     def empty() -> "KittiLabels":
-        return KittiLabels([], np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.float32),
-                           np.zeros((0, 4), np.float32), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        return KittiLabels([], np.zeros(0), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 4)), np.zeros((0, 3)),
+                           np.zeros((0, 3)), np.zeros(0))
 
     def select(self, mask: np.ndarray) -> "KittiLabels":
         idx = np.flatnonzero(np.asarray(mask))
@@ -308,22 +309,26 @@ def read_label(path: str | Path) -> KittiLabels:
         if values[1] not in (-1, 0, 1, 2, 3):
             raise ValueError(f"{path}:{line_no}: occluded is {fields[2]!r}; expected an integer in [-1, 3] "
                              "(0 visible, 1 partly, 2 largely occluded, 3 unknown; -1 in result files)")
+        if fields[0] != "DontCare" and not all(v > 0 for v in values[7:10]):
+            raise ValueError(f"{path}:{line_no}: a {fields[0]} with dimensions h, w, l = {fields[8:11]}; an object's "
+                             "sizes must be > 0 (only DontCare regions carry placeholder sizes)")
         rows.append(fields)
     if not rows:
         return KittiLabels.empty()
     if len({len(r) for r in rows}) > 1:
         raise ValueError(f"{path}: lines mix 15 and 16 fields")
+    # float64 throughout, as KITTI's evaluator reads them: a truncation of 0.15 in float32 is above 0.15
     num = np.array([[float(v) for v in r[1:]] for r in rows], dtype=np.float64)
     return KittiLabels(
         names=[r[0] for r in rows],
-        truncated=num[:, 0].astype(np.float32),
+        truncated=num[:, 0].copy(),
         occluded=num[:, 1].astype(np.int64),
-        alpha=num[:, 2].astype(np.float32),
-        bbox=num[:, 3:7].astype(np.float32),
+        alpha=num[:, 2].copy(),
+        bbox=num[:, 3:7].copy(),
         dimensions=num[:, 7:10].copy(),
         location=num[:, 10:13].copy(),
         rotation_y=num[:, 13].copy(),
-        score=num[:, 14].astype(np.float32) if num.shape[1] == 15 else None,
+        score=num[:, 14].copy() if num.shape[1] == 15 else None,
     )
 
 

@@ -1,0 +1,220 @@
+"""Fuzz: the model floor's entry points: PointPillars configs, checkpoints and the detector's batch dict.
+
+- **configs**: one field of a small valid config replaced by a drawn value (NaN, infinities, bools where
+  numbers go, floats where ints go, strings, values on and beyond each documented bound). The oracle is the
+  policy docs/detector.md states, written out again here as a table: the config is refused with a
+  ``ConfigError`` naming the OpenPCDet key exactly when the table says the value is out of its range;
+  otherwise it builds, and a model built from it turns a small cloud into finite boxes.
+- **checkpoints**: a small model's checkpoint damaged one way (a NaN or inf in one tensor, a tensor of
+  another shape, a key dropped or added, another model class, a broken config, truncated bytes):
+  :func:`lidarops.models.load_model` refuses it with a ``ValueError`` naming the file and the tensor or
+  key, and an undamaged one loads to the same weights.
+- **batch dicts**: ``points`` and ``batch_size`` drawn (frame indices that are negative, fractional, beyond
+  the batch, missing frames, huge batch sizes, wrong dtypes and shapes, empty): ``predict`` refuses with a
+  ``ValueError`` naming ``batch_size`` or ``points``, or returns one result per frame with finite boxes,
+  before allocating anything the size of the batch size.
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+
+from lidarops.checkpoint import format_fields, model_fields, save_checkpoint
+from lidarops.config import ConfigError
+from lidarops.models import PointPillars, PointPillarsConfig, load_model
+
+from helpers.models import TINY
+
+from .fuzzing import assert_clear_error, fuzz, outcome
+
+# field -> (OpenPCDet key, kind, low, high, low open, high open): the policy of docs/detector.md
+_SCALARS = {
+    "score_thresh": ("SCORE_THRESH", "real", 0.0, 1.0, False, True),
+    "nms_thresh": ("NMS_THRESH", "real", 0.0, 1.0, False, False),
+    "nms_pre_maxsize": ("NMS_PRE_MAXSIZE", "int", -1, 2**31 - 1, False, False),
+    "nms_post_maxsize": ("NMS_POST_MAXSIZE", "int", -1, 2**31 - 1, False, False),
+    "dir_offset": ("DIR_OFFSET", "real", -2 * math.pi, 2 * math.pi, False, False),
+    "dir_limit_offset": ("DIR_LIMIT_OFFSET", "real", 0.0, 1.0, False, False),
+    "cls_weight": ("cls_weight", "real", 0.0, None, False, False),
+    "loc_weight": ("loc_weight", "real", 0.0, None, False, False),
+    "dir_weight": ("dir_weight", "real", 0.0, None, False, False),
+    "max_points_per_voxel": ("MAX_POINTS_PER_VOXEL", "int", 1, 2**31 - 1, False, False),
+    "max_voxels_test": ("MAX_NUMBER_OF_VOXELS.test", "int", 1, 2**31 - 1, False, False),
+    "max_voxels_train": ("MAX_NUMBER_OF_VOXELS.train", "int", 1, 2**31 - 1, False, False),
+    "use_norm": ("USE_NORM", "bool", None, None, False, False),
+    "with_distance": ("WITH_DISTANCE", "bool", None, None, False, False),
+    "multi_classes_nms": ("MULTI_CLASSES_NMS", "bool", None, None, False, False),
+}
+# cheap to run: the fields a built model is run with (the others only change training or the network's size)
+_RUN = {"score_thresh", "nms_thresh", "nms_pre_maxsize", "nms_post_maxsize", "dir_offset", "dir_limit_offset",
+        "max_points_per_voxel", "max_voxels_test", "use_norm", "with_distance", "multi_classes_nms"}
+
+
+def _valid(value, kind, lo, hi, lo_open, hi_open) -> bool:
+    """The policy, independently of lidarops' checks: bools are not numbers, floats are not ints."""
+    if kind == "bool":
+        return type(value) is bool
+    if type(value) is bool or not isinstance(value, (int, float)):
+        return False
+    if kind == "int" and not isinstance(value, int):
+        return False
+    if not math.isfinite(value):
+        return False
+    if lo is not None and (value <= lo if lo_open else value < lo):
+        return False
+    return hi is None or (value < hi if hi_open else value <= hi)
+
+
+def _values(kind, lo, hi) -> st.SearchStrategy:
+    edges = [v for b in (lo, hi) if b is not None for v in (b, b - 1e-9, b + 1e-9, b - 1, b + 1)]
+    if kind == "int" and lo is not None:
+        edges += [int(lo), int(lo) - 1, int(lo) + 1, int(lo) + 3]
+    return st.one_of(
+        st.sampled_from([math.nan, math.inf, -math.inf, True, False, "0.5", None, [0.5], 2**63, -2**63]),
+        st.sampled_from(edges or [0, 1]),
+        st.floats(-10, 10, allow_nan=False), st.integers(-5, 600),
+    )
+
+
+@pytest.fixture(scope="module")
+def cloud():
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(300, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0.0, -4.0, -3.0, 0.0])
+    return torch.cat([torch.zeros(300, 1), pts], 1)
+
+
+@fuzz
+@given(data=st.data())
+def test_config_values_follow_the_documented_policy(cloud, data):
+    field = data.draw(st.sampled_from(sorted(_SCALARS)), "field")
+    key, kind, lo, hi, lo_open, hi_open = _SCALARS[field]
+    value = data.draw(_values(kind, lo, hi), "value")
+    cfg, err = outcome(PointPillarsConfig, **{**TINY, field: value})
+    if not _valid(value, kind, lo, hi, lo_open, hi_open):
+        assert isinstance(err, ConfigError), f"{field}={value!r} was accepted ({err!r})"
+        assert_clear_error(err, (ConfigError,), [key], f"PointPillarsConfig({field}={value!r})")
+        return
+    assert err is None, f"{field}={value!r} is within the policy but was refused: {err}"
+    if field in _RUN and not (kind == "int" and value > 4096):  # not the memory of 2^31 voxels
+        torch.manual_seed(0)
+        model = PointPillars(cfg).eval()
+        with torch.no_grad():
+            out = model.predict({"points": cloud, "batch_size": 1})
+        assert len(out) == 1 and torch.isfinite(out[0]["boxes"]).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# checkpoints
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_checkpoint():
+    torch.manual_seed(0)
+    model = PointPillars(TINY).eval()
+    return {**format_fields(), **model_fields(model), "model_state": dict(model.state_dict())}
+
+
+def _damaged(draw, ckpt: dict) -> tuple[dict | bytes, list[str]]:
+    """A copy of ``ckpt`` damaged one way, and what the error must name (besides the file)."""
+    state = {k: v.clone() for k, v in ckpt["model_state"].items()}
+    ckpt = {**ckpt, "model_state": state}
+    floats = sorted(k for k, v in state.items() if v.is_floating_point())
+    how = draw(st.sampled_from(["none", "non-finite", "shape", "drop", "extra", "class", "config", "names",
+                                "truncate", "not a dict"]), "damage")
+    if how == "none":
+        return ckpt, []
+    if how == "non-finite":
+        key = draw(st.sampled_from(floats), "tensor")
+        flat = state[key].view(-1)
+        flat[draw(st.integers(0, flat.numel() - 1), "index")] = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
+        return ckpt, [key]
+    if how == "shape":
+        key = draw(st.sampled_from(floats), "tensor")
+        state[key] = torch.zeros(state[key].numel() + 1)
+        return ckpt, [key]
+    if how == "drop":
+        key = draw(st.sampled_from(sorted(state)), "tensor")
+        del state[key]
+        return ckpt, [key]
+    if how == "extra":
+        state["dense_head.conv_extra.weight"] = torch.zeros(3)
+        return ckpt, ["dense_head.conv_extra.weight"]
+    if how == "class":
+        name = draw(st.sampled_from(["CounterNet3000", "", "pointpillars"]), "class")
+        return {**ckpt, "model_class": name}, ["model_class" if not name else name]
+    if how == "config":
+        field, value = draw(st.sampled_from([("score_thresh", math.nan), ("voxel_size", [1.0, -1.0, 4.0]),
+                                             ("num_filters", "eight")]), "config field")
+        return {**ckpt, "model_config": {**ckpt["model_config"], field: value}}, [field.upper()]
+    if how == "names":
+        return {**ckpt, "class_names": "Car"}, ["class_names"]
+    if how == "not a dict":
+        return [1, 2, 3], []
+    return b"", []  # truncate: filled in by the caller
+
+
+@fuzz
+@given(data=st.data())
+def test_damaged_checkpoints_are_refused_by_name(tmp_path_factory, tiny_checkpoint, data):
+    path = tmp_path_factory.mktemp("ckpt") / "model.pth"
+    ckpt, names = _damaged(data.draw, tiny_checkpoint)
+    if isinstance(ckpt, bytes):
+        save_checkpoint(tiny_checkpoint, path)
+        raw = path.read_bytes()
+        path.write_bytes(raw[:data.draw(st.integers(0, len(raw) - 1), "cut")])
+    elif isinstance(ckpt, list):
+        torch.save(ckpt, path)
+    else:
+        save_checkpoint(ckpt, path)
+    model, err = outcome(load_model, path)
+    if ckpt is tiny_checkpoint or (isinstance(ckpt, dict) and not names):
+        assert err is None, f"an undamaged checkpoint was refused: {err}"
+        for k, v in model.state_dict().items():
+            assert torch.equal(v, tiny_checkpoint["model_state"][k]), k
+        return
+    assert err is not None, f"a damaged checkpoint loaded ({names})"
+    assert_clear_error(err, (ValueError,), names or [str(path)], f"load_model({names})")
+    assert str(path) in str(err), f"the error does not name the file: {err}"
+
+
+# ---------------------------------------------------------------------------------------------
+# the batch dict
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_model():
+    torch.manual_seed(0)
+    return PointPillars(TINY).eval()
+
+
+@fuzz
+@given(data=st.data())
+def test_batch_dicts_give_one_result_per_frame_or_name_the_key(tiny_model, data):
+    n = data.draw(st.integers(0, 40), "points")
+    batch_size = data.draw(st.one_of(st.integers(-2, 5), st.sampled_from([10_000, 2**24, 2**40, 2**63 - 1]),
+                                     st.sampled_from([1.0, True, "2", None, torch.tensor(2), torch.tensor([1, 1])])),
+                           "batch_size")
+    g = torch.Generator().manual_seed(data.draw(st.integers(0, 100), "seed"))
+    xyz = torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0.0, -4.0, -3.0, 0.0])
+    frames = data.draw(st.lists(st.integers(-1, 5), min_size=n, max_size=n), "frame of each point")
+    idx = torch.tensor(frames, dtype=torch.float32).reshape(-1, 1)
+    if data.draw(st.booleans(), "fractional index"):
+        idx = idx + 0.5
+    points = torch.cat([idx, xyz], 1)
+    points = data.draw(st.sampled_from([points, points.double(), points[:, :4], points.half(), points.long()]),
+                       "points dtype/shape")
+    batch = {"points": points, "batch_size": batch_size}
+    with torch.no_grad():
+        out, err = outcome(tiny_model.predict, batch)
+    ok_size = type(batch_size) is int and 1 <= batch_size
+    ok_points = points.dtype == torch.float32 and points.shape[1] == 5 and n > 0
+    frames_ok = ok_points and ok_size and batch_size <= n and (idx.frac() == 0).all() \
+        and set(frames) == set(range(batch_size))
+    if not frames_ok:
+        assert err is not None, f"batch_size={batch_size!r}, frames {sorted(set(frames))}: accepted"
+        assert_clear_error(err, (ValueError, TypeError), ["batch_size", "points"], f"predict(batch_size={batch_size!r})")
+        return
+    assert err is None, f"a valid batch was refused: {err}"
+    assert len(out) == batch_size and all(torch.isfinite(o["boxes"]).all() for o in out)
