@@ -63,9 +63,9 @@ demo: build
 	$(PY) -m lidarops stream --scenario drone_bridge --seconds 1.5
 	@echo "[demo] SSCATeR 3/3: the same stream with 90 % ReLU zeros (sparser activations stop the change spreading)"
 	$(PY) -m lidarops stream --scenario drone_bridge --seconds 1.5 --relu-zeros 0.9 --out lidarops_stream_drone_bridge_relu90.png
-	@echo "[demo] detection: the shipped PointPillars (lidarops/weights) on 3 simulated frames it never saw: boxes,"
-	@echo "       a bird's-eye view with detections and labels (demo_detections/*.png), KITTI AP, found / labelled"
-	$(PY) -m lidarops detect --scenario driving_city --frames 3 --seed 2026 --out demo_detections --print-frames 1
+	@echo "[demo] detection: the shipped PointPillars (lidarops/weights) on 25 simulated frames it never saw: boxes,"
+	@echo "       a bird's-eye view (demo_detections/*.png), ms per frame, KITTI 3D AP beside the trained model's, found / labelled"
+	$(PY) -m lidarops detect --scenario driving_city --frames 25 --seed 2026 --out demo_detections --print-frames 1 --print-boxes 5
 
 train-demo: build
 	$(PY) -m lidarops data synth --scenario driving_city --frames 60 --val-fraction 0.2 --workers 2 --out data/synth_demo

@@ -149,7 +149,9 @@ def register(subparsers) -> None:
                                           f"{', '.join(sorted(TRAINABLE))}) from an OpenPCDet-schema config (e.g. "
                                           "configs/pointpillars/pointpillars_synth.yaml) on a KITTI-format folder. Under "
                                           "torchrun it runs DistributedDataParallel, one process per GPU.")
-    t.add_argument("--config", required=True, help="YAML config (OpenPCDet schema)")
+    t.add_argument("--config", required=True,
+                   help="YAML config (OpenPCDet schema): a path, or a shipped config by name (pointpillars_synth, "
+                        "pointpillars_demo, pointpillars_kitti, pointpillars_synth_all)")
     t.add_argument("--data", default=None, help="KITTI-format folder (default: the config's DATA_PATH)")
     t.add_argument("--out", required=True, help="run folder: checkpoints, log.csv, evaluations")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from latest.pth")
