@@ -368,7 +368,9 @@ def register(subparsers) -> None:
     d.add_argument("--checkpoint", default=None, help="checkpoint (default: the shipped pointpillars_synth)")
     d.add_argument("--config", default=None, help="config for an OpenPCDet checkpoint (lidarops ones carry theirs)")
     d.add_argument("--out", default="detections", help="output folder (default ./detections)")
-    d.add_argument("--score-thresh", type=float, default=None)
+    d.add_argument("--score-thresh", type=float, default=None,
+                   help="keep detections scoring at least this (default: the model's SCORE_THRESH, 0.1 for the "
+                        "shipped one)")
     d.add_argument("--device", default="auto", help="auto (default: cuda when available and built), cpu, cuda")
     d.add_argument("--no-fov", action="store_true", help="keep points outside the camera's field of view")
     d.add_argument("--png", type=int, default=1, help="frames to draw (default 1)")
