@@ -13,8 +13,8 @@ schema, so an OpenPCDet ``pointpillar.yaml`` and a lidarops config load the same
 ``_BASE_CONFIG_`` may appear at any level (OpenPCDet puts it under ``DATA_CONFIG``); the base file's
 keys are loaded first and the including file's keys merged over them, recursively. Its path is tried
 as given, relative to the including file and to each folder above it (OpenPCDet's paths are relative
-to its ``tools/`` folder, e.g. ``cfgs/dataset_configs/kitti_dataset.yaml``), and relative to the
-working directory.
+to its ``tools/`` folder, e.g. ``cfgs/dataset_configs/kitti_dataset.yaml``), relative to the working
+directory, and among the shipped configs (so a copy of ``pointpillars_demo.yaml`` loads anywhere).
 """
 from __future__ import annotations
 
@@ -37,10 +37,16 @@ def _yaml():
     return yaml
 
 
+#: The configs lidarops ships (``lidarops/configs``, also ``configs/`` at the repository's root).
+PACKAGED_CONFIGS = Path(__file__).resolve().parent / "configs"
+
+
 def _find_base(name: str, including: Path) -> Path:
     tried = []
+    # a copy of a shipped config keeps working outside the repository: its base is found among the shipped ones
     candidates = [Path(name)] if Path(name).is_absolute() else (
-        [d / name for d in [including.parent, *including.parent.parents]] + [Path.cwd() / name])
+        [d / name for d in [including.parent, *including.parent.parents]] + [Path.cwd() / name,
+                                                                              PACKAGED_CONFIGS / name])
     for c in candidates:
         tried.append(str(c))
         if c.is_file():
@@ -68,10 +74,6 @@ def merge_config(base: dict, new: Mapping, source: Path | None = None, _chain: t
         else:
             base[key] = copy.deepcopy(value)
     return base
-
-
-#: The configs lidarops ships (``lidarops/configs``, also ``configs/`` at the repository's root).
-PACKAGED_CONFIGS = Path(__file__).resolve().parent / "configs"
 
 
 def packaged_configs() -> dict[str, Path]:

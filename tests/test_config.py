@@ -52,3 +52,11 @@ def test_train_takes_a_config_by_name(elsewhere, capsys):
     err = capsys.readouterr().err
     assert "data folder no_data not found" in err and "config file not found" not in err
     assert not (elsewhere / "run").exists()
+
+
+def test_a_copy_of_a_shipped_config_finds_its_base_anywhere(elsewhere):
+    text = (REPO / "configs" / "pointpillars" / "pointpillars_demo.yaml").read_text()
+    (elsewhere / "mine.yaml").write_text(text.replace("NUM_EPOCHS: 4", "NUM_EPOCHS: 7"))
+    cfg = load_config("mine.yaml")
+    assert cfg["OPTIMIZATION"]["NUM_EPOCHS"] == 7
+    assert cfg["DATA_CONFIG"]["DATASET"] == load_config("pointpillars_demo")["DATA_CONFIG"]["DATASET"]
