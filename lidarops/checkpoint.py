@@ -76,10 +76,20 @@ def read_checkpoint(path: "str | os.PathLike", map_location: Any = "cpu") -> dic
         ckpt = torch.load(str(path), map_location=map_location, weights_only=True)
     except Exception as e:  # noqa: BLE001  (torch.load raises many types for a damaged or foreign file)
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        raise CheckpointError(
-            f"{path}: not a readable checkpoint ({type(e).__name__}: {first[:200]}); if it is a checkpoint you "
-            "trust that holds other objects, load it with torch.load(..., weights_only=False) and pass its "
-            "state dict to model.load_weights") from None
+        # a torch file (a zip archive: "PK", or a legacy pickle: 0x80) holding objects beyond tensors; anything
+        # else is not a checkpoint at all, and the advice to unpickle it must not be given
+        with open(path, "rb") as f:
+            head = f.read(2)
+        if "weights only load failed" in first.lower() and (head == b"PK" or head[:1] == b"\x80"):
+            raise CheckpointError(
+                f"{path}: a torch file holding objects that safe loading refuses (it could run code); only if "
+                "you trust where it came from, load it with torch.load(..., weights_only=False) and pass its "
+                "state dict to model.load_weights") from None
+        if not (head == b"PK" or head[:1] == b"\x80"):
+            raise CheckpointError(f"{path}: not a checkpoint (neither a torch zip archive nor a pickle: it starts "
+                                  f"with {head!r}); give a .pth file that lidarops or OpenPCDet wrote") from None
+        raise CheckpointError(f"{path}: a damaged or truncated checkpoint (torch cannot read it: "
+                              f"{type(e).__name__}: {first[:160]})") from None
     if not isinstance(ckpt, dict):
         raise CheckpointError(f"{path}: not a checkpoint (a {type(ckpt).__name__}, not a dict)")
     version = ckpt.get("format_version", 0)

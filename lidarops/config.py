@@ -2,18 +2,19 @@
 ``OPTIMIZATION``) read into plain dicts, with ``_BASE_CONFIG_`` merging. The ground floor: models,
 datasets and the trainer each read their part of the same dict into their own dataclass.
 
-lidarops' own configs (``configs/<model>/*.yaml`` in the repository, over ``configs/datasets/``) use the
-same schema, so an OpenPCDet ``pointpillar.yaml`` and a lidarops config load the same way::
+lidarops' own configs (``lidarops/configs/<model>/*.yaml``, over ``datasets/``; ``configs/`` at the
+repository's root) ship inside the package and load by name from any directory. They use the same
+schema, so an OpenPCDet ``pointpillar.yaml`` and a lidarops config load the same way::
 
     from lidarops.config import load_config
-    cfg = load_config("configs/pointpillars/pointpillars_synth.yaml")   # a plain dict, bases merged
+    cfg = load_config("pointpillars_synth")          # or "configs/pointpillars/pointpillars_synth.yaml", or any path
     model_cfg = PointPillarsConfig.from_openpcdet(cfg)                   # typed, validated (lidarops.models)
 
 ``_BASE_CONFIG_`` may appear at any level (OpenPCDet puts it under ``DATA_CONFIG``); the base file's
 keys are loaded first and the including file's keys merged over them, recursively. Its path is tried
 as given, relative to the including file and to each folder above it (OpenPCDet's paths are relative
-to its ``tools/`` folder, e.g. ``cfgs/dataset_configs/kitti_dataset.yaml``), and relative to the
-working directory.
+to its ``tools/`` folder, e.g. ``cfgs/dataset_configs/kitti_dataset.yaml``), relative to the working
+directory, and among the shipped configs (so a copy of ``pointpillars_demo.yaml`` loads anywhere).
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import copy
 from pathlib import Path
 from typing import Mapping
 
-__all__ = ["load_config", "merge_config", "ConfigError"]
+__all__ = ["load_config", "merge_config", "ConfigError", "packaged_configs", "resolve_config", "PACKAGED_CONFIGS"]
 
 
 class ConfigError(ValueError):
@@ -36,10 +37,16 @@ def _yaml():
     return yaml
 
 
+#: The configs lidarops ships (``lidarops/configs``, also ``configs/`` at the repository's root).
+PACKAGED_CONFIGS = Path(__file__).resolve().parent / "configs"
+
+
 def _find_base(name: str, including: Path) -> Path:
     tried = []
+    # a copy of a shipped config keeps working outside the repository: its base is found among the shipped ones
     candidates = [Path(name)] if Path(name).is_absolute() else (
-        [d / name for d in [including.parent, *including.parent.parents]] + [Path.cwd() / name])
+        [d / name for d in [including.parent, *including.parent.parents]] + [Path.cwd() / name,
+                                                                              PACKAGED_CONFIGS / name])
     for c in candidates:
         tried.append(str(c))
         if c.is_file():
@@ -69,14 +76,50 @@ def merge_config(base: dict, new: Mapping, source: Path | None = None, _chain: t
     return base
 
 
+def packaged_configs() -> dict[str, Path]:
+    """The shipped configs by name (the file's stem, e.g. ``"pointpillars_synth"``): what
+    :func:`load_config` finds by name from any directory. Base files (``datasets/``) are left out."""
+    return {p.stem: p for p in sorted(PACKAGED_CONFIGS.rglob("*.yaml")) if p.parent.name != "datasets"}
+
+
+def resolve_config(path: str | Path) -> Path:
+    """The file ``path`` names: the path itself when it is a file; else a shipped config by name
+    (``pointpillars_demo``), or by its path in the repository (``configs/pointpillars/pointpillars_demo.yaml``),
+    so that the docs' commands work from any directory.
+
+    Raises:
+        FileNotFoundError: neither a file nor a shipped config; the message lists the shipped names.
+    """
+    given = Path(path)
+    if given.is_file():
+        return given
+    parts = given.parts[1:] if given.parts[:1] == ("configs",) else given.parts
+    candidates = []
+    if parts and not given.is_absolute():
+        rel = Path(*parts)
+        candidates += [PACKAGED_CONFIGS / rel, PACKAGED_CONFIGS / rel.with_name(rel.name + ".yaml")]
+    shipped = packaged_configs()
+    if given.suffix in ("", ".yaml") and given.stem in shipped and len(given.parts) == 1:
+        candidates.append(shipped[given.stem])
+    for c in candidates:
+        if c.is_file():
+            return c
+    raise FileNotFoundError(f"config file not found: {path} (nor a shipped config of that name; shipped: "
+                            f"{', '.join(shipped)})")
+
+
 def load_config(path: str | Path) -> dict:
     """Reads a YAML config with its ``_BASE_CONFIG_`` files merged in; returns a plain dict.
 
+    Args:
+        path: a YAML file, or the name of a shipped config (:func:`packaged_configs`, e.g.
+            ``"pointpillars_synth"``, or ``"configs/pointpillars/pointpillars_synth.yaml"`` from any directory).
+
     Raises:
-        FileNotFoundError: no such file.
+        FileNotFoundError: no such file and no shipped config of that name.
         ConfigError: not YAML, not a mapping, or a base file that cannot be found.
     """
-    return _load(Path(path), ())
+    return _load(resolve_config(path), ())
 
 
 def _load(path: Path, chain: tuple) -> dict:

@@ -177,3 +177,18 @@ def test_index_lists_every_registered_op():
     rows = set(re.findall(r"^\| `(\w+)` \|", op_map, re.M))
     assert len(defined) > 30, "the schema pattern stopped matching csrc/ops"
     assert defined == rows, f"missing from CONTRIBUTING.md: {sorted(defined - rows)}; not ops: {sorted(rows - defined)}"
+
+
+def test_no_message_points_outside_the_repository():
+    """Users have the repository, not the developers' workspace: no skip reason, error or doc sends them to
+    ../shared or another path above the checkout."""
+    root = Path(__file__).resolve().parents[1]
+    offenders = []
+    for pattern in ("lidarops/**/*.py", "tests/**/*.py", "docs/*.md", "*.md", "Makefile"):
+        for path in root.glob(pattern):
+            if path.resolve() == Path(__file__).resolve():
+                continue
+            for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+                if "../shared" in line:
+                    offenders.append(f"{path.relative_to(root)}:{n}")
+    assert not offenders, offenders

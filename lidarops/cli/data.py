@@ -22,6 +22,7 @@ import json
 from pathlib import Path
 
 from lidarops._checks import real
+from lidarops.conventions import HELD_OUT_SEED
 from lidarops._progress import progress, progress_bar
 from lidarops.cli.errors import CliError, guarded
 
@@ -263,6 +264,13 @@ def show(args: argparse.Namespace) -> int:
     for i, v in enumerate(args.extent or ()):
         real(v, f"--extent's value {i + 1}", unit=" m")
     is_scenario = spec.startswith("synthetic:") or (spec in SCENARIOS and not Path(spec).exists())
+    if not is_scenario and not Path(spec).exists():
+        import difflib
+
+        close = difflib.get_close_matches(spec, SCENARIOS, n=1)
+        hint = f"did you mean the scenario {close[0]}? " if close else ""
+        raise CliError(f"{spec} not found: neither a file, a dataset folder nor a scenario ({hint}scenarios: "
+                       f"{', '.join(sorted(SCENARIOS))})")
     if not is_scenario and detect_format(spec) == "modelnet":
         from lidarops.data.formats.modelnet import ModelNet40
 
@@ -310,19 +318,22 @@ def register(subparsers) -> None:
                         "simulated with seed --seed + 1000 k, its frame ids follow the previous scenario's")
     s.add_argument("--frames", type=int, nargs="+", default=[10],
                    help="number of frames (default 10): one total, split evenly over the scenarios, or one per scenario")
-    s.add_argument("--format", choices=("kitti", "pandaset"), default="kitti")
+    s.add_argument("--format", choices=("kitti", "pandaset"), default="kitti", help="output layout (default kitti)")
     s.add_argument("--out", required=True, help="output directory")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=HELD_OUT_SEED,
+                   help=f"first scenario's seed (default {HELD_OUT_SEED}: frames no shipped model was trained on)")
     s.add_argument("--sensor", choices=("hdl64", "pandar64", "avia"), default=None,
                    help="sensor preset (default: the scenario's)")
     s.add_argument("--object-counts", default=None,
-                   help="'dense', 'empty' or JSON such as '{\"Car\": 35, \"Pedestrian\": [0, 5]}'")
+                   help="'dense', 'empty' or JSON such as '{\"Car\": 35, \"Pedestrian\": [0, 5]}' (default: the "
+                        "scenario's)")
     s.add_argument("--frames-per-scene", type=int, default=1,
                    help="KITTI: consecutive sweeps per simulated scene (default 1: independent frames); "
                         "scenes are never split between train and val")
     s.add_argument("--split", default="training", help="KITTI split directory (default training)")
     s.add_argument("--val-fraction", type=float, default=0.2,
-                   help="KITTI: share of scenes in ImageSets/val.txt (whole scenes: no scene in both splits)")
+                   help="KITTI: share of scenes in ImageSets/val.txt (default 0.2; whole scenes: no scene in both "
+                        "splits)")
     s.add_argument("--workers", type=int, default=1,
                    help="KITTI: processes generating frames (default 1); the files are identical for any number")
     s.add_argument("--sequence", default="001", help="PandaSet: sequence directory name (default 001)")
@@ -336,10 +347,12 @@ def register(subparsers) -> None:
     v.add_argument("path", help="dataset path or scenario name (e.g. driving_city)")
     v.add_argument("--out", default="bev.png", help="output PNG (default bev.png)")
     v.add_argument("--index", type=int, default=0, help="frame (or ModelNet object) index")
-    v.add_argument("--seed", type=int, default=0, help="seed for a scenario name")
+    v.add_argument("--seed", type=int, default=HELD_OUT_SEED,
+                   help=f"seed for a scenario name (default {HELD_OUT_SEED})")
     v.add_argument("--split-name", default="train", help="ModelNet40 split when PATH is a directory")
     v.add_argument("--fov", type=float, default=None, help="forward crop opening in degrees (e.g. 90)")
-    v.add_argument("--extent", type=float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"), default=None)
+    v.add_argument("--extent", type=float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"), default=None,
+                   help="the area drawn, in metres (default: fitted to the points within --max-extent)")
     v.add_argument("--max-extent", type=float, default=80.0, help="bound of the automatic extent (m)")
-    v.add_argument("--color-by", choices=("z", "intensity", "range"), default="z")
+    v.add_argument("--color-by", choices=("z", "intensity", "range"), default="z", help="point colours (default z)")
     v.set_defaults(func=guarded("data show", show))

@@ -16,12 +16,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+import time
 from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
 
+from lidarops._progress import progress_bar
 from lidarops.cli.errors import CliError, guarded
+from lidarops.conventions import HELD_OUT_SEED
 
 __all__ = ["register", "detect", "save_detections_png"]
 
@@ -57,6 +61,58 @@ def _scan_format(path: Path, fmt: str) -> str:
         raise CliError(f"{path}: its {size} bytes fit both KITTI's 4 and nuScenes' 5 floats per point and its name "
                        "says neither (velodyne/*.bin, *.pcd.bin): give --format kitti or --format nuscenes")
     return fits[0] if fits else "kitti"  # the reader names a size that fits neither
+
+
+def _recipe_sources(recipe) -> list[dict]:
+    """The simulated sources of a ``data synth`` recipe: scenario, seed, first frame id, frames, and what
+    else decides a frame (sensor, object counts, frames per scene)."""
+    if not isinstance(recipe, dict):
+        return []
+    same = {k: recipe.get(k) for k in ("sensor", "object_counts")}
+    same["frames_per_scene"] = recipe.get("frames_per_scene", 1)
+    return [{**same, "scenario": e.get("scenario"), "seed": e.get("seed"), "first_id": e.get("first_id", 0),
+             "frames": e.get("frames", 0)} for e in recipe.get("scenarios") or [] if isinstance(e, dict)]
+
+
+def _in_recipe(recipe, scenario: str, seed: int, index: int, sensor=None, object_counts=None,
+               frames_per_scene: int = 1) -> bool:
+    """Whether frame ``index`` of (scenario, seed) with these settings is one of ``recipe``'s frames (the
+    simulator's frames are functions of exactly these)."""
+    return any(src["scenario"] == scenario and src["seed"] == seed and 0 <= index < src["frames"]
+               and src["sensor"] == sensor and src["object_counts"] == object_counts
+               and src["frames_per_scene"] == frames_per_scene for src in _recipe_sources(recipe))
+
+
+def _trained_ids(args: argparse.Namespace, model_recipe, ids: Sequence[str]) -> list[str]:
+    """The frame ids among ``ids`` that are frames of the model's data recipe (it was trained or validated
+    on them): a simulated ``--scenario`` run, or a folder ``data synth`` wrote (its ``recipe.json``)."""
+    if not model_recipe:
+        return []
+    if args.scenario:
+        return [i for k, i in enumerate(ids) if _in_recipe(model_recipe, args.scenario, args.seed, k)]
+    if not args.input or not (Path(args.input) / "recipe.json").is_file():
+        return []
+    try:
+        folder = json.loads((Path(args.input) / "recipe.json").read_text())
+    except (OSError, ValueError):
+        return []
+    hits = []
+    for frame_id in ids:
+        if not frame_id.isdigit():
+            continue
+        for src in _recipe_sources(folder):
+            index = int(frame_id) - int(src["first_id"] or 0)
+            if 0 <= index < src["frames"] and _in_recipe(model_recipe, src["scenario"], src["seed"], index,
+                                                         src["sensor"], src["object_counts"], src["frames_per_scene"]):
+                hits.append(frame_id)
+                break
+    return hits
+
+
+def _frame_count(args: argparse.Namespace) -> int | None:
+    if args.scenario:
+        return 1 if args.frames is None else args.frames
+    return args.frames
 
 
 def _frames(args: argparse.Namespace) -> Iterator[tuple]:
@@ -109,14 +165,18 @@ def _frames(args: argparse.Namespace) -> Iterator[tuple]:
 
 
 def save_detections_png(path: Path, points: np.ndarray, pred: dict, class_names: Sequence[str], gt_boxes=None,
-                        gt_names=None, title: str = "") -> Path:
-    """A bird's-eye view: points, ground-truth boxes (dashed) and detections (solid, with scores).
+                        gt_names=None, title: str = "", other_boxes=None, score_floor: float = 0.0) -> Path:
+    """A bird's-eye view: points shaded by height (with its key), ground-truth boxes (dashed), other labelled
+    boxes that are not counted (dotted grey: out of the model's range or in no KITTI difficulty) and
+    detections (solid) scoring at least ``score_floor``, each score written where it does not cover another.
 
     Args:
         path: the PNG to write (its folder is created).
         points (ndarray[N, >=3]): the frame's points.
         pred: ``boxes (K, 7)``, ``labels (K,)`` (1-based into ``class_names``), ``scores (K,)``.
-        gt_boxes (ndarray[M, 7] | None), gt_names (list[str] | None): the labelled boxes.
+        gt_boxes (ndarray[M, 7] | None), gt_names (list[str] | None): the counted labelled boxes.
+        other_boxes (ndarray[L, 7] | None): labelled boxes drawn but not counted.
+        score_floor: detections below it are not drawn (the title says how many).
     """
     from matplotlib.lines import Line2D
     from matplotlib.patches import Polygon
@@ -125,29 +185,38 @@ def save_detections_png(path: Path, points: np.ndarray, pred: dict, class_names:
     from lidarops.data.geometry import box_corners
     from lidarops.data.viz import new_figure
 
-    fig = new_figure(9.0, 9.0)
+    fig = new_figure(9.0, 8.2)
     ax = fig.add_subplot(1, 1, 1)
     p = points[(points[:, 0] > -5) & (points[:, 0] < 75) & (np.abs(points[:, 1]) < 42)]
     # grey by height: the ground light, objects and structures darker
-    ax.scatter(p[:, 0], p[:, 1], s=0.4, c=p[:, 2], cmap="Greys", vmin=-3.5, vmax=0.0, linewidths=0, rasterized=True)
+    shade = ax.scatter(p[:, 0], p[:, 1], s=0.4, c=p[:, 2], cmap="Greys", vmin=-3.5, vmax=0.0, linewidths=0,
+                       rasterized=True)
+    placed: list[tuple[float, float]] = []
 
-    def draw(box, color, dashed, text=None):
+    def draw(box, color, style, text=None):
         bottom = box_corners(box)[0, :4, :2]  # counter-clockwise from front-left: 0 and 3 span the front face
-        ax.add_patch(Polygon(bottom, closed=True, fill=False, edgecolor=color, lw=1.0 if dashed else 1.4,
-                             linestyle="--" if dashed else "-"))
-        if not dashed:  # the heading: centre to the middle of the front face
+        ax.add_patch(Polygon(bottom, closed=True, fill=False, edgecolor=color, lw=1.4 if style == "-" else 1.0,
+                             linestyle=style))
+        if style == "-":  # the heading: centre to the middle of the front face
             front = bottom[[0, 3]].mean(0)
             ax.plot([box[0], front[0]], [box[1], front[1]], color=color, lw=1.0)
         if text:
-            ax.text(box[0] + box[3] / 2 + 0.3, box[1], text, color=color, fontsize=6)
+            x, y = box[0] + box[3] / 2 + 0.3, box[1]
+            if all(abs(x - px) > 3.0 or abs(y - py) > 1.2 for px, py in placed):  # skip a label that would overlap
+                placed.append((x, y))
+                ax.text(x, y, text, color=color, fontsize=6)
 
-    seen = {}
+    for box in other_boxes if other_boxes is not None else []:
+        draw(box, "0.6", ":")
     for box, name in zip(gt_boxes if gt_boxes is not None else [], gt_names if gt_names is not None else []):
-        draw(box, CLASS_COLORS.get(name, "black"), True)
-    for box, label, score in zip(pred["boxes"], pred["labels"], pred["scores"]):
-        name = class_names[int(label) - 1]
+        draw(box, CLASS_COLORS.get(name, "black"), "--")
+    seen = {}
+    shown = np.asarray(pred["scores"]) >= score_floor
+    order = np.argsort(-np.asarray(pred["scores"]), kind="stable")  # the best boxes get their labels first
+    for i in order[shown[order]]:
+        name = class_names[int(pred["labels"][i]) - 1]
         seen[name] = CLASS_COLORS.get(name, "black")
-        draw(box, seen[name], False, f"{score:.2f}")
+        draw(pred["boxes"][i], seen[name], "-", f"{pred['scores'][i]:.2f}")
     ax.plot([0], [0], marker="^", color="black", markersize=6)
     ax.set_xlim(-2, 72)
     ax.set_ylim(-40, 40)
@@ -155,14 +224,28 @@ def save_detections_png(path: Path, points: np.ndarray, pred: dict, class_names:
     ax.set_xlabel("x (m, forward)")
     ax.set_ylabel("y (m, left)")
     handles = [Line2D([0], [0], color=c, lw=2, label=n) for n, c in sorted(seen.items())]
-    handles += [Line2D([0], [0], color="gray", lw=1, ls="--", label="ground truth"),
-                Line2D([0], [0], color="gray", lw=1.4, label="detection (score)")]
+    handles += [Line2D([0], [0], color="gray", lw=1, ls="--", label="labelled (counted)"),
+                Line2D([0], [0], color="0.6", lw=1, ls=":", label="labelled, not counted"),
+                Line2D([0], [0], color="gray", lw=1.4, label=f"detection (score >= {score_floor:g})")]
     ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.85)
-    ax.set_title(title, fontsize=9)
+    fig.colorbar(shade, ax=ax, fraction=0.025, pad=0.01, label="point height z (m)")
+    hidden = int((~shown).sum())
+    ax.set_title(title + (f"; {hidden} below {score_floor:g} not drawn" if hidden else ""), fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     return path
+
+
+def _model_record(path: Path) -> dict:
+    """What a checkpoint records beside the weights (its data recipe, its evaluation); {} when unreadable."""
+    from lidarops.checkpoint import read_checkpoint
+
+    try:
+        ckpt = read_checkpoint(path)
+    except (OSError, ValueError):
+        return {}
+    return {k: ckpt.get(k) for k in ("data_recipe", "evaluation")}
 
 
 def detect(args: argparse.Namespace) -> int:
@@ -170,8 +253,9 @@ def detect(args: argparse.Namespace) -> int:
     them when the frames have labels."""
     import torch
 
-    from lidarops.cli.eval import match_summary
-    from lidarops.data.formats.kitti import boxes_to_kitti_labels, kitti_fov_mask, read_label, write_label
+    from lidarops.cli.eval import ap_headline, counted, match_summary
+    from lidarops.data.formats.kitti import (boxes_to_kitti_labels, camera_to_lidar_boxes, kitti_fov_mask, read_label,
+                                             write_label)
     from lidarops.eval import kitti as kitti_eval
 
     if args.score_thresh is not None and not 0 <= args.score_thresh < 1:  # NaN too
@@ -182,13 +266,24 @@ def detect(args: argparse.Namespace) -> int:
     frames = _frames(args)
     model, device, ckpt = _load_model(args)
     names = model.config.class_names
-    gt_annos, dt_annos, shown = [], [], 0
+    pc_range = list(model.config.point_cloud_range)
+    gt_annos, dt_annos, ids, shown = [], [], [], 0
     labelled = True
+    model_seconds = []
+    start = time.perf_counter()
+    total = _frame_count(args)
+    # a bar only on a terminal, where it redraws in place (a log would keep every redraw)
+    bar = progress_bar(total or 0, "detect", enabled=not args.no_progress and (total is None or total > 3)
+                       and sys.stderr.isatty(), leave=False)
     for frame_id, frame, calib, label in frames:
         points = frame.points if args.no_fov else frame.points[kitti_fov_mask(frame.points, calib)]
         batch = {"points": torch.from_numpy(np.concatenate([np.zeros((len(points), 1), np.float32), points], 1))
                  .to(device), "batch_size": 1}
-        pred = {k: v.detach().cpu().numpy() for k, v in model.predict(batch)[0].items()}
+        t0 = time.perf_counter()
+        pred = {k: v.detach().cpu().numpy() for k, v in model.predict(batch)[0].items()}  # .cpu() waits for the GPU
+        model_seconds.append(time.perf_counter() - t0)
+        ids.append(frame_id)
+        bar.update(1)
         # KITTI results cover the camera's view: boxes whose centre projects into the image
         keep = kitti_fov_mask(pred["boxes"][:, :3].astype(np.float64), calib) if len(pred["boxes"]) else \
             np.zeros(0, bool)
@@ -197,34 +292,61 @@ def detect(args: argparse.Namespace) -> int:
         rows = boxes_to_kitti_labels(pred["boxes"], det_names, calib, score=pred["scores"])
         write_label(out / "data" / f"{frame_id}.txt", rows)
         dt_annos.append(kitti_eval.annos_from_labels(rows))
+        gt = None
         if args.scenario:  # the labels write_kitti_frame would write for it
-            gt_annos.append(kitti_eval.frame_annos(frame, calib))
+            gt = kitti_eval.frame_annos(frame, calib)
         elif label is not None:  # every object of the label file, DontCare and Vans included
-            gt_annos.append(kitti_eval.annos_from_labels(read_label(label)))
+            gt = kitti_eval.annos_from_labels(read_label(label))
         else:
             labelled = False
+        if gt is not None:
+            gt_annos.append(gt)
+        # one count everywhere: objects of the model's classes, in a KITTI difficulty and in its range
+        ours = np.isin(gt["name"], list(names)) if gt is not None else np.zeros(0, bool)
+        count = ours & counted(gt, pc_range) if gt is not None else ours
         if shown < args.print_frames:
-            print(f"{frame_id}: {len(pred['boxes'])} detection(s), {frame.num_boxes} labelled box(es)")
+            seen = f", {int(count.sum())} labelled in range" if gt is not None else ""
+            print(f"{frame_id}: {len(pred['boxes'])} detection(s){seen}")
             for name, score, box in list(zip(det_names, pred["scores"], pred["boxes"]))[:args.print_boxes]:
                 heading = (box[6] + np.pi) % (2 * np.pi) - np.pi  # the model's range is OpenPCDet's; print [-pi, pi)
                 print(f"  {name:<11} {score:5.2f}  x {box[0]:6.2f} y {box[1]:6.2f} z {box[2]:5.2f}  "
                       f"dx {box[3]:4.2f} dy {box[4]:4.2f} dz {box[5]:4.2f}  heading {heading:5.2f}")
         if shown < args.png:
-            gt_mask = np.isin(frame.labels, [i for i, n in enumerate(frame.class_names) if n in names])
-            png = save_detections_png(out / f"{frame_id}.png", frame.points, pred, names, frame.boxes[gt_mask],
-                                      [frame.class_names[i] for i in frame.labels[gt_mask]],
+            gt_boxes = camera_to_lidar_boxes(gt["location"], gt["dimensions"][:, [1, 2, 0]], gt["rotation_y"],
+                                             calib) if gt is not None and len(gt["name"]) else np.zeros((0, 7))
+            png = save_detections_png(out / f"{frame_id}.png", frame.points, pred, names, gt_boxes[count],
+                                      list(gt["name"][count]) if gt is not None else [],
                                       title=f"{frame_id}: {len(pred['boxes'])} detections (solid), "
-                                            f"{int(gt_mask.sum())} labelled {'/'.join(names)} (dashed)")
+                                            f"{int(count.sum())} labelled in range (dashed)",
+                                      other_boxes=gt_boxes[ours & ~count], score_floor=args.draw_score)
             print(f"  wrote {png}")
         shown += 1
+    bar.close()
     if not shown:
         raise CliError("no frames to run on")
+    wall = time.perf_counter() - start
+    # the first call pays for lazy initialisation (kernels, allocator): the steady rate leaves it out
+    steady = model_seconds[1:] or model_seconds
     print(f"wrote {shown} KITTI result file(s) to {out / 'data'} (checkpoint {ckpt})")
+    print(f"{shown} frame(s) in {wall:.1f} s ({shown / wall:.2f} frames/s with reading and writing); the model: "
+          f"{1e3 * sum(steady) / len(steady):.1f} ms per frame on {device}"
+          + (f" (first frame {1e3 * model_seconds[0]:.0f} ms)" if len(model_seconds) > 1 else ""))
+    trained = _trained_ids(args, _model_record(ckpt).get("data_recipe"), ids)
+    if trained:
+        print(f"lidarops detect: warning: {len(trained)} of the {shown} frame(s) are frames of the model's own "
+              f"data recipe (it was trained or validated on them, e.g. {trained[0]}): scores on them measure "
+              f"memory, not detection. Unseen frames: --seed {HELD_OUT_SEED} (data synth and detect's default)",
+              file=sys.stderr)
+    (out / "detect.json").write_text(json.dumps({"checkpoint": str(ckpt), "frames": ids,
+                                                 "frames_of_the_model_recipe": trained}, indent=1))
     if labelled and gt_annos:
         text, results = kitti_eval.evaluate(gt_annos, dt_annos, names)
-        print(text)
+        (out / "eval.txt").write_text(text + "\n")
         (out / "eval.json").write_text(json.dumps(results, indent=1))
-        print(match_summary(gt_annos, dt_annos, names))
+        recorded = ((_model_record(ckpt).get("evaluation") or {}).get("metrics")) or None
+        print(ap_headline(results, names, len(gt_annos), recorded, kitti_eval.count_difficulties(gt_annos, names)))
+        print(f"  (KITTI's full table: {out / 'eval.txt'}; below 41 objects of a class R40 cannot reach 100)")
+        print(match_summary(gt_annos, dt_annos, names, pc_range))
     return 0
 
 
@@ -240,15 +362,21 @@ def register(subparsers) -> None:
     d.add_argument("--format", choices=("auto", "kitti", "nuscenes"), default="auto",
                    help="layout of a scan file: KITTI (4 floats per point) or nuScenes (5); default from the name "
                         "(*.pcd.bin: nuScenes, velodyne/*.bin: KITTI)")
-    d.add_argument("--seed", type=int, default=1000, help="scenario seed (default 1000)")
+    d.add_argument("--seed", type=int, default=HELD_OUT_SEED,
+                   help=f"scenario seed (default {HELD_OUT_SEED}: frames no shipped model was trained on)")
     d.add_argument("--split", default=None, help="KITTI folder: an ImageSets name (train, val)")
     d.add_argument("--checkpoint", default=None, help="checkpoint (default: the shipped pointpillars_synth)")
     d.add_argument("--config", default=None, help="config for an OpenPCDet checkpoint (lidarops ones carry theirs)")
     d.add_argument("--out", default="detections", help="output folder (default ./detections)")
-    d.add_argument("--score-thresh", type=float, default=None)
+    d.add_argument("--score-thresh", type=float, default=None,
+                   help="keep detections scoring at least this (default: the model's SCORE_THRESH, 0.1 for the "
+                        "shipped one)")
     d.add_argument("--device", default="auto", help="auto (default: cuda when available and built), cpu, cuda")
     d.add_argument("--no-fov", action="store_true", help="keep points outside the camera's field of view")
     d.add_argument("--png", type=int, default=1, help="frames to draw (default 1)")
-    d.add_argument("--print-frames", type=int, default=3)
-    d.add_argument("--print-boxes", type=int, default=10)
+    d.add_argument("--print-frames", type=int, default=3, help="frames whose boxes are printed (default 3)")
+    d.add_argument("--print-boxes", type=int, default=10, help="boxes printed per frame (default 10)")
+    d.add_argument("--draw-score", type=float, default=0.3,
+                   help="detections scoring below this are left out of the pictures (default 0.3)")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar")
     d.set_defaults(func=guarded("detect", detect))

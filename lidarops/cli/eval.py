@@ -21,7 +21,7 @@ import numpy as np
 
 from lidarops.cli.errors import CliError, guarded
 
-__all__ = ["register", "evaluate_results", "match_summary"]
+__all__ = ["register", "evaluate_results", "match_summary", "counted", "ap_headline"]
 
 
 def evaluate_results(args: argparse.Namespace) -> int:
@@ -54,8 +54,20 @@ def evaluate_results(args: argparse.Namespace) -> int:
                        "a frame without detections needs an empty file")
     gt = kitti_eval.read_annos(labels_dir, ids)
     dt = kitti_eval.read_annos(results_dir, ids)
+    _check_sides(gt, dt, labels_dir, results_dir, ids)
     text, results = kitti_eval.evaluate(gt, dt, args.classes)
     print(text)
+    made = results_dir.parent / "detect.json"  # written by lidarops detect beside its data/ folder
+    if made.is_file():
+        try:
+            trained = set(json.loads(made.read_text()).get("frames_of_the_model_recipe") or ())
+        except (OSError, ValueError, AttributeError):
+            trained = set()
+        scored = [i for i in ids if i in trained]
+        if scored:
+            print(f"lidarops eval: warning: {len(scored)} of the {len(ids)} frames scored are frames the model was "
+                  f"trained or validated on ({made} says so): the AP measures memory, not detection",
+                  file=sys.stderr)
     for name in args.classes:
         # KITTI's convention scores a class without labels 0 AP: say why rather than leave a bare 0
         if not any((np.char.lower(a["name"].astype(str)) == name.lower()).any() for a in gt):
@@ -67,15 +79,45 @@ def evaluate_results(args: argparse.Namespace) -> int:
     return 0
 
 
-def match_summary(gt_annos: list, dt_annos: list, names: Sequence[str]) -> str:
-    """Found / labelled objects per class at KITTI's 3D overlap (0.7 Car, 0.5 others), every labelled
-    object counted whatever its difficulty: the line a few frames are better read by than an AP (below 41
-    objects of a class, R40 cannot reach 100).
+def _check_sides(gt: list, dt: list, labels_dir: Path, results_dir: Path, ids: Sequence[str]) -> None:
+    """Refuses label files given as results (no score column) and result files given as labels, naming the
+    folder and the first such file: the evaluator would otherwise fail on a missing field."""
+    for annos, folder, flag, want in ((dt, results_dir, "--results", True), (gt, labels_dir, "--labels", False)):
+        for anno, frame_id in zip(annos, ids):
+            if len(anno["name"]) and ("score" in anno) != want:
+                what = "label files (15 fields, no score)" if want else "result files (16 fields, with a score)"
+                raise CliError(f"{flag} {folder} holds {what}: {folder / (frame_id + '.txt')}; "
+                               f"{'--results takes detections' if want else '--labels takes the ground truth'}"
+                               " (are --results and --labels swapped?)")
+
+
+def counted(anno: dict, point_cloud_range: Sequence[float] | None = None) -> np.ndarray:
+    """Which labelled objects of a frame a summary counts: those in one of KITTI's difficulties (a 2D box
+    >= 25 px high, truncation <= 0.5, occlusion <= 2: the objects AP is computed on) and, with
+    ``point_cloud_range``, whose centre lies inside the model's range in x and y (it cannot see others)."""
+    n = len(anno["name"])
+    if n == 0:
+        return np.zeros(0, bool)
+    height = anno["bbox"][:, 3] - anno["bbox"][:, 1]
+    keep = (height >= 25) & (anno["truncated"] <= 0.5) & (anno["occluded"] <= 2)
+    if point_cloud_range is not None:
+        x, y = anno["location"][:, 2], -anno["location"][:, 0]  # camera frame -> x forward, y left
+        x0, y0, _, x1, y1, _ = point_cloud_range
+        keep &= (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+    return keep
+
+
+def match_summary(gt_annos: list, dt_annos: list, names: Sequence[str],
+                  point_cloud_range: Sequence[float] | None = None) -> str:
+    """Found / labelled objects per class at KITTI's 3D overlap (0.7 Car, 0.5 others), counting the labelled
+    objects :func:`counted` keeps (in a KITTI difficulty and, given it, the model's range): the line a few
+    frames are better read by than an AP (below 41 objects of a class, R40 cannot reach 100).
 
     Args:
         gt_annos, dt_annos: per-frame KITTI annotation dicts (:mod:`lidarops.eval.kitti`), the detections
             with ``score``.
         names: the classes to count.
+        point_cloud_range: the model's range (x0, y0, z0, x1, y1, z1), or None for no range limit.
     """
     import lidarops
     from lidarops.eval.kitti import iou_boxes
@@ -88,7 +130,7 @@ def match_summary(gt_annos: list, dt_annos: list, names: Sequence[str]) -> str:
         need = 0.7 if name in ("Car", "Van", "Truck", "Bus") else 0.5
         found = labelled = spare = 0
         for gt, dt in zip(gt_annos, dt_annos):
-            g, d = gt["name"] == name, dt["name"] == name
+            g, d = (gt["name"] == name) & counted(gt, point_cloud_range), dt["name"] == name
             labelled += int(g.sum())
             if not (g.any() and d.any()):
                 spare += int(d.sum())
@@ -103,8 +145,32 @@ def match_summary(gt_annos: list, dt_annos: list, names: Sequence[str]) -> str:
                     found += 1
                 else:
                     spare += 1
-        parts.append(f"{name}: {found} of {labelled} labelled found (3D IoU >= {need}), {spare} other detections")
-    return "matches: " + "; ".join(parts)
+        parts.append(f"{name}: {found} of {labelled} found (3D IoU >= {need}), {spare} other detections")
+    where = " in range and a KITTI difficulty" if point_cloud_range is not None else " in a KITTI difficulty"
+    return f"matches (labelled objects{where}): " + "; ".join(parts)
+
+
+def ap_headline(results: dict, names: Sequence[str], frames: int, recorded: dict | None = None,
+                counts: dict | None = None) -> str:
+    """A few lines of the AP that matter (3D and BEV, R40, strict overlaps) per class, with the number of
+    objects scored at moderate difficulty (``counts``: :func:`lidarops.eval.kitti.count_difficulties`) and the
+    model's own recorded evaluation beside them when there is one."""
+    rows = [f"KITTI AP (R40, %) on {frames} frame(s), 3D easy / moderate / hard, BEV moderate:"]
+    for name in names:
+        get = [results.get(f"{name}_3d_{d}_R40") for d in ("easy", "moderate", "hard")]
+        bev = results.get(f"{name}_bev_moderate_R40")
+        if None in get or bev is None:
+            continue
+        line = f"  {name:<11} 3D {get[0]:5.1f} / {get[1]:5.1f} / {get[2]:5.1f}   BEV {bev:5.1f}"
+        n = (counts or {}).get(name, {}).get("moderate")
+        if n is not None:
+            # R40 samples 40 recall positions: with fewer objects a perfect detector still scores below 100
+            line += f"   {n:4d} moderate objects" + ("  (too few for R40: read the found line)" if n < 41 else "")
+        mine = (recorded or {}).get(f"{name}_3d_moderate_R40")
+        if mine is not None:
+            line += f"   (recorded when trained: {mine:.1f})"
+        rows.append(line)
+    return "\n".join(rows)
 
 
 def register(subparsers) -> None:

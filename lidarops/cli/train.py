@@ -149,13 +149,15 @@ def register(subparsers) -> None:
                                           f"{', '.join(sorted(TRAINABLE))}) from an OpenPCDet-schema config (e.g. "
                                           "configs/pointpillars/pointpillars_synth.yaml) on a KITTI-format folder. Under "
                                           "torchrun it runs DistributedDataParallel, one process per GPU.")
-    t.add_argument("--config", required=True, help="YAML config (OpenPCDet schema)")
+    t.add_argument("--config", required=True,
+                   help="YAML config (OpenPCDet schema): a path, or a shipped config by name (pointpillars_synth, "
+                        "pointpillars_demo, pointpillars_kitti, pointpillars_synth_all)")
     t.add_argument("--data", default=None, help="KITTI-format folder (default: the config's DATA_PATH)")
     t.add_argument("--out", required=True, help="run folder: checkpoints, log.csv, evaluations")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from latest.pth")
-    t.add_argument("--epochs", type=int, default=None)
+    t.add_argument("--epochs", type=int, default=None, help="epochs (default: the config's OPTIMIZATION.NUM_EPOCHS)")
     t.add_argument("--batch-size", type=int, default=None, help="frames per step and per process")
-    t.add_argument("--lr", type=float, default=None)
+    t.add_argument("--lr", type=float, default=None, help="peak learning rate (default: the config's OPTIMIZATION.LR)")
     t.add_argument("--amp", choices=("none", "bf16", "fp16"), default=None, help="mixed precision")
     t.add_argument("--workers", type=int, default=None, help="DataLoader workers per process")
     t.add_argument("--eval-every", type=int, default=None, help="epochs between evaluations (0: only at the end)")
@@ -165,8 +167,8 @@ def register(subparsers) -> None:
     t.add_argument("--max-val-frames", type=int, default=None, help="evaluate on the first N validation frames")
     t.add_argument("--gt-database-frames", type=int, default=None,
                    help="build the gt-sampling database from the first N training frames (default: all)")
-    t.add_argument("--seed", type=int, default=None)
+    t.add_argument("--seed", type=int, default=None, help="seed of the augmentations and the initial weights (default 0)")
     t.add_argument("--device", default=None, help="auto (default), cpu, cuda")
     t.add_argument("--sync-bn", action="store_true", help="SyncBatchNorm under multi-GPU DDP")
-    t.add_argument("--no-progress", action="store_true")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
     t.set_defaults(func=guarded("train", train))

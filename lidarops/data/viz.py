@@ -6,7 +6,7 @@ the Agg canvas directly, so nothing here touches pyplot's global state.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -58,8 +58,9 @@ def plot_bev(
     point_size: float = 0.3,
     max_extent: float = 80.0,
     legend: bool = True,
-) -> None:
-    """Draws a bird's-eye view on a matplotlib axes.
+) -> Any:
+    """Draws a bird's-eye view on a matplotlib axes; returns the points' scatter (for a colour key: its
+    ``key_label`` names what the colours show).
 
     Args:
         ax: matplotlib axes.
@@ -95,7 +96,9 @@ def plot_bev(
         zs = p[:, 2] if len(p) else np.zeros(1)
         values, cmap = p[:, 2], "turbo"
         vmin, vmax = float(np.percentile(zs, 2)), float(np.percentile(zs, 98))
-    ax.scatter(p[:, 0], p[:, 1], c=values, s=point_size, cmap=cmap, vmin=vmin, vmax=vmax, linewidths=0, rasterized=True)
+    shade = ax.scatter(p[:, 0], p[:, 1], c=values, s=point_size, cmap=cmap, vmin=vmin, vmax=vmax, linewidths=0,
+                       rasterized=True)
+    shade.key_label = {"intensity": "intensity", "range": "range (m)"}.get(color_by, "height z (m)")
     seen = {}
     for box, label in zip(boxes, labels):
         name = class_names[label] if 0 <= label < len(class_names) else "?"
@@ -114,6 +117,7 @@ def plot_bev(
     if legend and seen:
         handles = [Line2D([0], [0], color=col, lw=2, label=name) for name, col in sorted(seen.items())]
         ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.8)
+    return shade
 
 
 def save_bev(frame: Frame, path: str | Path, title: str | None = None, **kwargs) -> Path:
@@ -131,7 +135,12 @@ def save_bev(frame: Frame, path: str | Path, title: str | None = None, **kwargs)
     path = Path(path)
     fig = new_figure()
     ax = fig.add_subplot(1, 1, 1)
-    plot_bev(ax, frame.points, frame.boxes, frame.labels, frame.class_names, **kwargs)
+    shade = plot_bev(ax, frame.points, frame.boxes, frame.labels, frame.class_names, **kwargs)
+    fig.colorbar(shade, ax=ax, fraction=0.025, pad=0.01, label=shade.key_label)
+    # the figure takes the drawn area's shape (a wide street view would otherwise float in white space)
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    width = 10.0
+    fig.set_size_inches(width, min(max(width * (y1 - y0) / max(x1 - x0, 1e-9) + 1.2, 3.5), 12.0))
     ax.set_title(title if title is not None else f"{frame.source or 'frame'} #{frame.frame_index}: "
                  f"{frame.num_points} points, {frame.num_boxes} box{'' if frame.num_boxes == 1 else 'es'}", fontsize=9)
     fig.tight_layout()

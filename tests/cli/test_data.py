@@ -90,7 +90,10 @@ def test_show_scenario_nuscenes_and_modelnet(tmp_path):
 @needs_matplotlib
 def test_cli_errors(tmp_path, capsys):
     assert main(["data", "show", str(tmp_path / "missing"), "--out", str(tmp_path / "x.png")]) == 2
-    assert "no such file" in one_error_line(capsys.readouterr().err, "data show")
+    assert "missing not found: neither a file, a dataset folder nor a scenario" in \
+        one_error_line(capsys.readouterr().err, "data show")
+    assert main(["data", "show", "driving_cty", "--out", str(tmp_path / "x.png")]) == 2
+    assert "did you mean the scenario driving_city?" in one_error_line(capsys.readouterr().err, "data show")
     (tmp_path / "broken.bin").write_bytes(b"\x00" * 7)
     assert main(["data", "show", str(tmp_path / "broken.bin"), "--out", str(tmp_path / "x.png")]) == 2
     assert "broken.bin" in one_error_line(capsys.readouterr().err, "data show")

@@ -1,6 +1,8 @@
 """``lidarops detect`` (lidarops/cli/detect.py) and the shipped checkpoint it runs by default, in-process."""
 from __future__ import annotations
 
+import json
+import re
 import subprocess
 import sys
 
@@ -54,8 +56,16 @@ def test_detect_on_a_scenario(tmp_path, run_cli):
     assert code == 0, err
     assert "driving_city_000000:" in text and " detection(s), " in text
     assert "  Car " in text and "heading" in text  # a printed box
-    assert "Car AP_R40@0.70, 0.70, 0.70:" in text and text.rstrip().splitlines()[-1].startswith("matches: Car: ")
+    assert "KITTI AP (R40, %) on 1 frame(s)" in text and re.search(r"\n  Car +3D +[0-9.]+ / ", text)
+    assert "(recorded when trained: 97.1)" in text  # the shipped model's own evaluation, beside
+    last = text.rstrip().splitlines()[-1]
+    assert last.startswith("matches (labelled objects in range and a KITTI difficulty): Car: ")
+    # one count of labelled objects: the frame line and the matches line agree
+    frame_count = int(re.search(r"(\d+) labelled in range", text).group(1))
+    matched = sum(int(n) for n in re.findall(r"\d+ of (\d+) found", last))
+    assert frame_count == matched
     assert (out / "data" / "driving_city_000000.txt").is_file() and (out / "eval.json").is_file()
+    assert "Car AP_R40@0.70, 0.70, 0.70:" in (out / "eval.txt").read_text()  # KITTI's full table
     png = out / "driving_city_000000.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
 
@@ -72,12 +82,30 @@ def test_detect_png_draws_box_corners(tmp_path, monkeypatch):
     box = np.array([[20.0, 5.0, -1.0, 4.0, 2.0, 1.5, 0.7]], np.float32)
     save_detections_png(tmp_path / "x.png", np.zeros((10, 4), np.float32), {"boxes": box, "labels": np.array([1]),
                         "scores": np.array([0.9])}, ["Car"], gt_boxes=box, gt_names=["Car"])
-    (ax,) = figures[0].axes
+    ax, key = figures[0].axes  # the picture and the colour key of the point heights
+    assert key.get_ylabel() == "point height z (m)"
     want = box_corners(box)[0, :4, :2]
     outlines = [p.get_xy()[:4] for p in ax.patches]
     assert len(outlines) == 2 and all(np.allclose(o, want, atol=1e-5) for o in outlines)
     heading = [line.get_xydata() for line in ax.lines if len(line.get_xydata()) == 2]
     assert len(heading) == 1 and np.allclose(heading[0][1], want[[0, 3]].mean(0), atol=1e-5)
+
+
+def test_detect_png_leaves_out_low_scores_and_colliding_labels(tmp_path, monkeypatch):
+    from lidarops.cli.detect import save_detections_png
+    from lidarops.data import viz
+
+    figures, new_figure = [], viz.new_figure
+    monkeypatch.setattr(viz, "new_figure", lambda *a, **k: figures.append(new_figure(*a, **k)) or figures[-1])
+    boxes = np.array([[20.0, 5.0, -1.0, 4.0, 2.0, 1.5, 0.0], [20.2, 5.1, -1.0, 4.0, 2.0, 1.5, 0.0],
+                      [40.0, -5.0, -1.0, 4.0, 2.0, 1.5, 0.0]], np.float32)
+    save_detections_png(tmp_path / "x.png", np.zeros((10, 4), np.float32),
+                        {"boxes": boxes, "labels": np.array([1, 1, 1]), "scores": np.array([0.9, 0.8, 0.1])},
+                        ["Car"], score_floor=0.3, title="t")
+    ax = figures[0].axes[0]
+    assert len(ax.patches) == 2  # the 0.1 box is not drawn
+    assert [t.get_text() for t in ax.texts] == ["0.90"]  # the 0.80 label would sit on the 0.90 one
+    assert ax.get_title() == "t; 1 below 0.3 not drawn"
 
 
 def test_module_entry_point_help():
@@ -86,16 +114,33 @@ def test_module_entry_point_help():
     assert proc.returncode == 0 and "--checkpoint" in proc.stdout
 
 
-@pytest.mark.parametrize("content", [b"junk\n", None])
-def test_damaged_checkpoints_are_one_line_errors(content, tmp_path, run_cli):
-    """A file that is not a checkpoint, or a truncated one, names the file (no pickle traceback)."""
+@pytest.mark.parametrize("content, message", [
+    (b"junk\n", r"bad.pth: not a checkpoint \(neither a torch zip archive nor a pickle"),
+    (b"\x89PNG\r\n\x1a\n" + bytes(64), r"bad.pth: not a checkpoint \(neither"),
+    (None, r"bad.pth: a damaged or truncated checkpoint"),
+])
+def test_damaged_checkpoints_are_one_line_errors(content, message, tmp_path, run_cli):
+    """A file that is not a checkpoint, or a truncated one, names the file (no pickle traceback), and never
+    passes on torch's advice to unpickle it (which would run code from an untrusted file)."""
     from lidarops.models import weights
 
     bad = tmp_path / "bad.pth"
     bad.write_bytes(content if content is not None else weights.path().read_bytes()[:100_000])
     code, _, err = run_cli(["detect", "--checkpoint", bad, "--scenario", "driving_city", "--frames", "1",
                             "--device", "cpu"])
-    assert code == 2 and "bad.pth: not a readable checkpoint" in one_error_line(err, "detect")
+    line = one_error_line(err, "detect")
+    assert code == 2 and re.search(message, line), line
+    assert "weights_only" not in line
+
+
+def test_a_torch_file_holding_objects_gets_the_trust_advice(tmp_path, run_cli):
+    import argparse
+
+    path = tmp_path / "objects.pth"
+    torch.save({"args": argparse.Namespace(lr=0.1)}, path)
+    code, _, err = run_cli(["detect", "--checkpoint", path, "--scenario", "driving_city", "--device", "cpu"])
+    line = one_error_line(err, "detect")
+    assert code == 2 and "only if you trust where it came from" in line and "weights_only=False" in line
 
 
 @pytest.mark.parametrize("value", ["nan", "2", "-0.1"])
@@ -113,3 +158,36 @@ def test_detect_input_errors(tmp_path, run_cli):
     assert code == 2 and "expected a KITTI velodyne .bin, a nuScenes .pcd.bin or a folder" in one_error_line(err, "detect")
     code, _, err = run_cli(["detect", "--scenario", "driving_city", "--device", "cpu", "--out", tmp_path / "x.txt"])
     assert code == 2 and "is a file; give a folder" in one_error_line(err, "detect")
+
+
+def test_the_models_own_training_frames_are_named_by_detect_and_eval(tmp_path, run_cli):
+    """The shipped model's recipe simulated driving_city with seed 0: frames of it are flagged, by detect on
+    the scenario and on a folder data synth made with that seed, and by eval on what detect wrote."""
+    code, out, err = run_cli(["detect", "--scenario", "driving_city", "--seed", "0", "--frames", "1", "--png", "0",
+                              "--device", "cpu", "--out", tmp_path / "sim", "--no-progress"])
+    assert code == 0 and "1 of the 1 frame(s) are frames of the model's own data recipe" in err
+    assert json.loads((tmp_path / "sim" / "detect.json").read_text())["frames_of_the_model_recipe"] == \
+        ["driving_city_000000"]
+    assert run_cli(["data", "synth", "--scenario", "driving_city", "--frames", "2", "--seed", "0", "--val-fraction",
+                    "0", "--out", tmp_path / "kitti", "--no-progress"])[0] == 0
+    code, out, err = run_cli(["detect", tmp_path / "kitti", "--png", "0", "--device", "cpu", "--out",
+                              tmp_path / "det", "--no-progress"])
+    assert code == 0 and "2 of the 2 frame(s) are frames of the model's own data recipe" in err
+    code, out, err = run_cli(["eval", "--results", tmp_path / "det" / "data", "--labels",
+                              tmp_path / "kitti" / "training" / "label_2"])
+    assert code == 0 and "2 of the 2 frames scored are frames the model was trained or validated on" in err
+
+
+def test_default_seeds_are_unseen_and_detect_reports_its_speed(tmp_path, run_cli):
+    from lidarops.models import weights
+
+    seeds = {s["seed"] for s in weights.info()["data_recipe"]["scenarios"]}
+    code, out, err = run_cli(["detect", "--scenario", "driving_highway", "--frames", "2", "--png", "0", "--device",
+                              "cpu", "--out", tmp_path, "--no-progress"])
+    assert code == 0 and "warning" not in err, err
+    assert re.search(r"2 frame\(s\) in [0-9.]+ s \([0-9.]+ frames/s with reading and writing\); the model: "
+                     r"[0-9.]+ ms per frame on cpu \(first frame [0-9]+ ms\)", out), out
+    assert json.loads((tmp_path / "detect.json").read_text())["frames_of_the_model_recipe"] == []
+    from lidarops.conventions import HELD_OUT_SEED
+
+    assert HELD_OUT_SEED not in seeds and HELD_OUT_SEED + 1000 not in seeds

@@ -115,7 +115,7 @@ def _expect_one_line(run_cli, argv: list, pattern: str) -> None:
      "checkpoint /no/ckpt.pth not found"),
     (["eval", "--results", "/no/such/dir", "--labels", "/no/such/dir"], "--results /no/such/dir is not a folder"),
     (["eval", "--results", REPO, "--labels", REPO, "--split", "/no/split.txt"], "--split /no/split.txt not found"),
-    (["data", "show", "/no/such/frame.bin", "--out", NEVER / "x.png"], "no such file"),
+    (["data", "show", "/no/such/frame.bin", "--out", NEVER / "x.png"], "frame.bin not found: neither a file"),
     (["stream", "--seconds", "0.02", "--device", "cpu", "--out", REPO / "README.md" / "x.png"], "cannot be written"),
 ])
 def test_missing_files(argv, pattern, run_cli):

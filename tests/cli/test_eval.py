@@ -48,13 +48,16 @@ def test_eval_needs_frames(synth_kitti, tmp_path, run_cli):
 
 
 def test_match_summary_counts_found_objects():
-    """A detection on a labelled car is found, one elsewhere is another detection."""
+    """A detection on a labelled car is found, one elsewhere is another detection; labelled objects in no KITTI
+    difficulty (too small in the image, too occluded) or beyond the model's range are not counted."""
     from lidarops.cli.eval import match_summary
 
-    def anno(locations, scores=None):
+    def anno(locations, scores=None, height=50.0, occluded=0):
         n = len(locations)
         out = {"name": np.array(["Car"] * n), "location": np.array(locations, np.float64).reshape(n, 3),
-               "dimensions": np.tile([[3.9, 1.6, 1.5]], (n, 1)), "rotation_y": np.zeros(n)}
+               "dimensions": np.tile([[3.9, 1.6, 1.5]], (n, 1)), "rotation_y": np.zeros(n),
+               "bbox": np.tile([[100.0, 100.0, 200.0, 100.0 + height]], (n, 1)), "truncated": np.zeros(n),
+               "occluded": np.full(n, occluded)}
         if scores is not None:
             out["score"] = np.array(scores, np.float64)
         return out
@@ -62,5 +65,11 @@ def test_match_summary_counts_found_objects():
     gt = [anno([[0.0, 1.5, 10.0]])]
     dt = [anno([[0.0, 1.5, 10.0], [5.0, 1.5, 30.0]], [0.9, 0.8])]
     line = match_summary(gt, dt, ["Car", "Pedestrian"])
-    assert line == ("matches: Car: 1 of 1 labelled found (3D IoU >= 0.7), 1 other detections; "
-                    "Pedestrian: 0 of 0 labelled found (3D IoU >= 0.5), 0 other detections")
+    assert line == ("matches (labelled objects in a KITTI difficulty): Car: 1 of 1 found (3D IoU >= 0.7), 1 other "
+                    "detections; Pedestrian: 0 of 0 found (3D IoU >= 0.5), 0 other detections")
+    for hidden in (anno([[0.0, 1.5, 10.0]], height=20.0), anno([[0.0, 1.5, 10.0]], occluded=3)):
+        assert "Car: 0 of 0 found" in match_summary([hidden], dt, ["Car"])
+    far = [anno([[0.0, 1.5, 10.0], [0.0, 1.5, 80.0]])]  # 80 m ahead: beyond a 69.12 m range
+    pc_range = [0, -39.68, -3, 69.12, 39.68, 1]
+    assert "Car: 1 of 1 found" in match_summary(far, dt, ["Car"], point_cloud_range=pc_range)
+    assert "Car: 1 of 2 found" in match_summary(far, dt, ["Car"])

@@ -11,7 +11,7 @@ import lidarops.compat.spconv as lspconv
 from helpers.devices import CUDA_OK
 from helpers.sparse import linear_order, random_sites
 
-spconv = pytest.importorskip("spconv.pytorch", reason="spconv 2.x is not installed (see ../shared/tools/spconv-bundle.sh)")
+spconv = pytest.importorskip("spconv.pytorch", reason="spconv 2.x is not installed (pip install spconv-cu120 or a spconv wheel for your CUDA)")
 pytestmark = pytest.mark.skipif(not CUDA_OK, reason="needs a GPU and lidarops built with CUDA kernels")
 
 SHAPES = {2: [40, 36], 3: [12, 40, 36]}
