@@ -30,7 +30,7 @@ SLOW_PAGES = {"README.md", "detector.md", "train.md", "data.md", "sscater.md", "
 
 #: (regex, replacement) applied to bash lines: the documented runs take minutes to hours
 SHORTER = [
-    (r"--frames 2400 1200\b", "--frames 12 6"),
+    (r"--frames 2400 1200\b", "--frames 6 3"),
     (r"--workers 16\b", "--workers 1"),
     (r"--epochs 30\b", "--epochs 1"),
     (r"--batch-size 8\b", "--batch-size 2"),
@@ -39,8 +39,8 @@ SHORTER = [
 ]
 if not torch.cuda.is_available():  # the CPU variant of a GPU example: bf16 autocast is emulated (10x slower) on
     SHORTER.append((r"--amp bf16\b", "--amp none"))  # CPUs without bf16 instructions
-elif torch.cuda.device_count() == 1:  # a 2-GPU torchrun example on a machine of one GPU: one process
-    SHORTER.append((r"--nproc_per_node=2\b", "--nproc_per_node=1"))
+if torch.cuda.device_count() <= 1:  # a 2-GPU torchrun example on a machine of one GPU (or none): one process;
+    SHORTER.append((r"--nproc_per_node=2\b", "--nproc_per_node=1"))  # tests/train covers DDP with 2 (gloo)
 
 #: optional packages (tools/ensure_env.py): a block that needs a missing one skips, as their tests do
 OPTIONAL = ("h5py", "matplotlib", "scipy", "shapely", "pandas", "tqdm", "onnxscript", "onnxruntime")
