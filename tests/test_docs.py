@@ -30,7 +30,7 @@ SLOW_PAGES = {"README.md", "detector.md", "train.md", "data.md", "sscater.md", "
 
 #: (regex, replacement) applied to bash lines: the documented runs take minutes to hours
 SHORTER = [
-    (r"--frames 2400 1200\b", "--frames 12 6"),
+    (r"--frames 2400 1200\b", "--frames 6 3"),
     (r"--workers 16\b", "--workers 1"),
     (r"--epochs 30\b", "--epochs 1"),
     (r"--batch-size 8\b", "--batch-size 2"),
@@ -39,8 +39,8 @@ SHORTER = [
 ]
 if not torch.cuda.is_available():  # the CPU variant of a GPU example: bf16 autocast is emulated (10x slower) on
     SHORTER.append((r"--amp bf16\b", "--amp none"))  # CPUs without bf16 instructions
-elif torch.cuda.device_count() == 1:  # a 2-GPU torchrun example on a machine of one GPU: one process
-    SHORTER.append((r"--nproc_per_node=2\b", "--nproc_per_node=1"))
+if torch.cuda.device_count() <= 1:  # a 2-GPU torchrun example on a machine of one GPU (or none): one process;
+    SHORTER.append((r"--nproc_per_node=2\b", "--nproc_per_node=1"))  # tests/train covers DDP with 2 (gloo)
 
 #: optional packages (tools/ensure_env.py): a block that needs a missing one skips, as their tests do
 OPTIONAL = ("h5py", "matplotlib", "scipy", "shapely", "pandas", "tqdm", "onnxscript", "onnxruntime")
@@ -126,18 +126,34 @@ for request in sys.stdin:
 """
 
 
+def _progress(request):
+    """A line on the terminal as each block starts: a page can run for minutes, and a silent suite looks hung."""
+    reporter = request.config.pluginmanager.get_plugin("terminalreporter")
+    capture = request.config.pluginmanager.get_plugin("capturemanager")
+    verbose = request.config.getoption("verbose") >= 0 and reporter is not None and capture is not None
+
+    def say(text: str) -> None:
+        if verbose:
+            with capture.global_and_fixture_disabled():  # past pytest's capture of the test's output
+                reporter.write(f"\n    {text} ", flush=True)
+
+    return say
+
+
 @pytest.mark.parametrize("page", list(_params()))
-def test_code_blocks_run(page: Path, tmp_path: Path):
+def test_code_blocks_run(page: Path, tmp_path: Path, request):
     blocks = [b for b in code_blocks(page) if b[0] in ("python", "bash", "sh")]
     if not blocks:
         pytest.skip(f"{page.name} has no python or bash blocks")
     env = _workdir(tmp_path)
     rel = page.relative_to(REPO)
+    say = _progress(request)
     # one interpreter per page: its python blocks share a namespace, in page order
     worker = subprocess.Popen([sys.executable, "-c", _WORKER, str(REPO)], cwd=tmp_path, env=env, text=True,
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE)
     try:
-        for lang, line, src in blocks:
+        for k, (lang, line, src) in enumerate(blocks, 1):
+            say(f"{rel}:{line} ({lang} block {k} of {len(blocks)})")
             src = src.replace("/tmp/", f"{tmp_path}/")
             if lang == "python":
                 worker.stdin.write(json.dumps({"src": _cpu_variant(src), "name": f"{rel}:{line}"}) + "\n")
