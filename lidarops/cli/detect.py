@@ -125,6 +125,8 @@ def _frames(args: argparse.Namespace) -> Iterator[tuple]:
     for flag in ("png", "print_frames", "print_boxes"):
         if getattr(args, flag) < 0:
             raise CliError(f"--{flag.replace('_', '-')} must be >= 0, got {getattr(args, flag)}")
+    if not 0 <= args.draw_score <= 1:  # NaN too
+        raise CliError(f"--draw-score must be a score in [0, 1], got {args.draw_score}")
     if args.scenario:
         from lidarops.data.synthetic import SyntheticFrames
 

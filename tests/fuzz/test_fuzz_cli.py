@@ -36,6 +36,7 @@ COMMANDS: dict[str, tuple[list[str], dict[str, list[str]]]] = {
         "--png": _INT_JUNK + ["-1"],
         "--print-frames": _INT_JUNK + ["-1"],
         "--print-boxes": _INT_JUNK + ["-1"],
+        "--draw-score": _FLOAT_JUNK + ["-0.1", "1.5"],
         "--checkpoint": _NOT_A_FILE + ["{binary}", "{empty}"],
         "--config": _NOT_TEXT + ["{empty}"],
         "--device": ["gpu", "cuda:x", "", "tpu", "meta"],
