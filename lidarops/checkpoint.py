@@ -58,9 +58,22 @@ class ModelRecord:
     format_version: int
 
 
+def _numpy_scalar_globals() -> list:
+    """What unpickling NumPy scalars needs: OpenPCDet's ``train.py`` saves its one-cycle schedule's learning
+    rates and betas as ``numpy.float64`` in ``optimizer_state``. Data constructors only (no code runs)."""
+    import numpy as np
+
+    try:
+        from numpy._core.multiarray import scalar
+    except ImportError:  # NumPy < 2
+        from numpy.core.multiarray import scalar
+    return [scalar, np.dtype] + [type(np.dtype(t)) for t in ("float64", "float32", "float16", "int64", "int32",
+                                                              "int16", "int8", "uint8", "bool")]
+
+
 def read_checkpoint(path: "str | os.PathLike", map_location: Any = "cpu") -> dict:
     """The dict a checkpoint file holds, loaded with ``weights_only=True`` (a pickle can run code; lidarops'
-    and OpenPCDet's checkpoints hold only tensors and plain values).
+    and OpenPCDet's checkpoints hold only tensors and plain values, and NumPy scalars, which are allowed).
 
     Raises:
         FileNotFoundError: no such file.
@@ -73,7 +86,8 @@ def read_checkpoint(path: "str | os.PathLike", map_location: Any = "cpu") -> dic
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} not found")
     try:
-        ckpt = torch.load(str(path), map_location=map_location, weights_only=True)
+        with torch.serialization.safe_globals(_numpy_scalar_globals()):
+            ckpt = torch.load(str(path), map_location=map_location, weights_only=True)
     except Exception as e:  # noqa: BLE001  (torch.load raises many types for a damaged or foreign file)
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""
         # a torch file (a zip archive: "PK", or a legacy pickle: 0x80) holding objects beyond tensors; anything

@@ -9,6 +9,7 @@ it imitates, so code written against that library can switch its import::
     from lidarops.compat.torch_cluster import fps, knn, radius, knn_graph, radius_graph  # TorchScript-able
     from lidarops.compat.spconv_utils import PointToVoxel
     import lidarops.compat.spconv as spconv   # SparseConvTensor, SubMConv3d, ... (spconv 2.x)
+    from lidarops.compat.pcdet import iou3d_nms_utils, roiaware_pool3d_utils   # OpenPCDet's compiled ops
 
 ==================  ==========================================================================
 face                convention
@@ -16,6 +17,7 @@ face                convention
 ``pytorch3d``       padded ``(N, P, D)`` + lengths; knn pads idx 0 / dists 0; ball query pads -1 / 0
 ``mmcv``            ``(B, N, 3)`` or stacked + counts, int32 indices padded with valid indices
 ``torch_cluster``   flat ``(N, F)`` + sorted batch vector; edge index ``(2, E)`` [row = y, col = x]; scripts
+``pcdet``           OpenPCDet's ``pcdet.ops`` modules; ``pcdet.install()`` serves them to OpenPCDet's code
 ==================  ==========================================================================
 
 The full table, with every known deviation, is ``docs/compat.md``. Importing this package is light:
@@ -25,7 +27,7 @@ from __future__ import annotations
 
 from lidarops._lazy import lazy_attributes
 
-_FACES = ("pytorch3d", "mmcv", "torch_cluster", "spconv", "spconv_utils")
+_FACES = ("pytorch3d", "mmcv", "torch_cluster", "spconv", "spconv_utils", "pcdet")
 
 __all__ = list(_FACES)
 

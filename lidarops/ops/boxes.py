@@ -85,6 +85,20 @@ def _box_value_checks(boxes: Tensor, name: str) -> tuple[list, list]:
     return [(boxes, nonfinite)], [(_box_out_of_range(boxes).any(), out_of_range)]
 
 
+def check_box_values(*named: tuple[str, Tensor]) -> None:
+    """ValueError naming the first of ``(name, boxes)`` that holds NaN, infinite or out-of-range values
+    (see :data:`MAX_ABS_HEADING`), with one host read for all; nothing with the value checks off. For code
+    wrapping the box ops under other argument names (the OpenPCDet faces)."""
+    if not value_checks_enabled():
+        return
+    finite, extra = [], []
+    for name, boxes in named:
+        f, e = _box_value_checks(boxes, name)
+        finite += f
+        extra += e
+    check_values(finite=finite, extra=extra)
+
+
 def _pair_args(a, b) -> None:
     _check_boxes(a, "a")
     _check_boxes(b, "b")

@@ -116,6 +116,8 @@ class DistContext:
         """Leaves the group if this context made it (else only its control group)."""
         if not self.distributed or not dist.is_initialized():
             return
+        # a rank that tears gloo down while another still sends aborts the process at exit
+        dist.barrier(group=self.control_group)
         if self.owns_group:
             dist.destroy_process_group()
         elif self.control_group is not dist.group.WORLD:

@@ -52,6 +52,8 @@ class FitResult:
         frames_per_s: training frames per second of one process in this call (its first step, the warm-up,
             left out when there are others); frames_per_s_total: summed over the processes.
         train_seconds: wall time of those steps.
+        data_seconds: of ``train_seconds``, the time this process waited for its next batch (the data
+            pipeline's share: near 0 when loading keeps up with the GPU).
         losses: the last logged loss terms (rank 0).
         metrics: the last evaluation's metrics (every rank), or None.
     """
@@ -68,6 +70,7 @@ class FitResult:
     frames_per_s: float
     frames_per_s_total: float
     train_seconds: float
+    data_seconds: float
     losses: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, float] | None = None
 
@@ -182,6 +185,7 @@ class _Run:
         self.steps = 0
         self.frames = 0
         self.train_seconds = 0.0
+        self.data_seconds = 0.0
         self.first_step = (0, 0.0)  # (frames, seconds) of the warm-up step
         self.step_estimate = 0.0
         self.ckpt_seconds = 0.0
@@ -353,7 +357,11 @@ class _Run:
                 if reason:
                     self.log.end_epoch()
                     return reason
-                out, grad_norm = self.train_step(next(batches))
+                t_fetch = _clock()
+                batch = next(batches)
+                self.data_seconds += _clock() - t_fetch
+                out, grad_norm = self.train_step(batch)
+                del batch
                 self.step_in_epoch += 1
                 self.global_step += 1
                 self.steps += 1
@@ -395,6 +403,10 @@ class _Run:
             frames, seconds = frames - self.first_step[0], seconds - self.first_step[1]
         fps = frames / seconds if seconds > 0 else 0.0
         return fps, self.ctx.sum(fps)
+
+
+def _share(part: float, whole: float) -> str:
+    return f"{100 * part / whole:.0f} %" if whole > 0 else "0 %"
 
 
 def _seed_all(seed: int) -> None:
@@ -466,13 +478,14 @@ def fit(model: nn.Module, train_dataset: Dataset, collate_fn: Callable | None, c
         fps, fps_total = run.throughput()
         checkpoint = out / ("final.pth" if reason == "finished" else "latest.pth")
         log.say(f"{reason} at epoch {run.epoch}, step {run.step_in_epoch} (global step {run.global_step}); "
-                f"{run.steps} steps in {run.train_seconds:.1f} s, {fps:.1f} frames/s per process, "
-                f"{fps_total:.1f} in all; checkpoint {checkpoint}"
+                f"{run.steps} steps in {run.train_seconds:.1f} s ({_share(run.data_seconds, run.train_seconds)} "
+                f"waiting for data), {fps:.1f} frames/s per process, {fps_total:.1f} in all; checkpoint {checkpoint}"
                 + ("" if reason == "finished" else " (continue with resume=True)"))
         return FitResult(out_dir=out, checkpoint=checkpoint, finished=reason == "finished", stop_reason=reason,
                          epoch=run.epoch, step_in_epoch=run.step_in_epoch, global_step=run.global_step,
                          steps=run.steps, world_size=ctx.world_size, frames_per_s=fps, frames_per_s_total=fps_total,
-                         train_seconds=run.train_seconds, losses=run.losses, metrics=run.metrics)
+                         train_seconds=run.train_seconds, data_seconds=run.data_seconds, losses=run.losses,
+                         metrics=run.metrics)
     finally:
         if log is not None:
             log.close()

@@ -483,5 +483,5 @@ def test_import_is_light():
     import subprocess
     import sys
     code = "import sys, lidarops.compat as c; assert 'torch' not in sys.modules; " \
-           "assert sorted(c.__all__) == ['mmcv', 'pytorch3d', 'spconv', 'spconv_utils', 'torch_cluster']"
+           "assert sorted(c.__all__) == ['mmcv', 'pcdet', 'pytorch3d', 'spconv', 'spconv_utils', 'torch_cluster']"
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -366,6 +366,21 @@ def test_checkpoint_of_another_config_names_the_keys(tmp_path):
     assert all(torch.equal(a, b) for a, b in zip(three.state_dict().values(), again.state_dict().values()))
 
 
+def test_openpcdet_train_py_checkpoint_loads(tmp_path):
+    """OpenPCDet's train.py saves its one-cycle learning rates and betas as numpy.float64 in optimizer_state:
+    safe loading must accept those (and only data: an object that would run code is still refused)."""
+    model = PointPillars(TINY)
+    optimizer = {"state": {}, "param_groups": [{"lr": np.float64(7.5e-4), "betas": (np.float64(0.925), 0.99),
+                                                "step": np.int64(3), "params": [0]}]}
+    torch.save({"epoch": 2, "it": 40, "model_state": model.state_dict(), "optimizer_state": optimizer,
+                "version": "pcdet+0.6.0"}, tmp_path / "checkpoint_epoch_2.pth")
+    again = PointPillars.from_checkpoint(tmp_path / "checkpoint_epoch_2.pth", config=TINY)
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), again.state_dict().values()))
+    torch.save({"model_state": model.state_dict(), "note": math.gcd}, tmp_path / "code.pth")  # a function
+    with pytest.raises(CheckpointError, match="safe loading refuses"):
+        PointPillars.from_checkpoint(tmp_path / "code.pth", config=TINY)
+
+
 def test_openpcdet_yaml_with_base_config(tmp_path):
     """OpenPCDet's layout: tools/cfgs/kitti_models/pointpillar.yaml naming its base relative to tools/."""
     import shutil
