@@ -115,6 +115,7 @@ def test_compile_fullgraph_matches_eager(device):
         assert_equal_report(a, b, f"compiled output {i}")
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_compile_dynamic_shapes_and_backward(device):
     """dynamic=True: one graph serves several sizes; gradients through the compiled ops equal eager.
     The aot_eager backend traces the fake kernels and the autograd formulas exactly as Inductor

@@ -121,6 +121,7 @@ def _files(root):
             if p.is_file() and p.name != "recipe.json"}
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_synth_workers_scenarios_scene_split_recipe(tmp_path):
     common = ["data", "synth", "--scenario", "driving_city", "driving_highway", "--frames", "6", "3",
               "--frames-per-scene", "3", "--val-fraction", "0.5", "--seed", "7", "--no-progress",

@@ -48,6 +48,7 @@ def test_shipped_model_finds_the_cars_of_an_unseen_scene():
     assert found.float().mean() >= 0.8, found
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_detect_on_a_scenario(tmp_path, run_cli):
     """The shipped model on one simulated frame: boxes printed, a result file, a picture, AP and matches."""
     out = tmp_path / "det"
@@ -160,6 +161,7 @@ def test_detect_input_errors(tmp_path, run_cli):
     assert code == 2 and "is a file; give a folder" in one_error_line(err, "detect")
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_the_models_own_training_frames_are_named_by_detect_and_eval(tmp_path, run_cli):
     """The shipped model's recipe simulated driving_city with seed 0: frames of it are flagged, by detect on
     the scenario and on a folder data synth made with that seed, and by eval on what detect wrote."""
@@ -178,6 +180,7 @@ def test_the_models_own_training_frames_are_named_by_detect_and_eval(tmp_path, r
     assert code == 0 and "2 of the 2 frames scored are frames the model was trained or validated on" in err
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_default_seeds_are_unseen_and_detect_reports_its_speed(tmp_path, run_cli):
     from lidarops.models import weights
 

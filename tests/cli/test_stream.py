@@ -10,6 +10,7 @@ from lidarops.cli import main
 from lidarops.cli import stream as stream_cli
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_stream_cli_short_run(tmp_path, capsys):
     png, js = tmp_path / "trace.png", tmp_path / "steps.json"
     rc = main(["stream", "--scenario", "drone_bridge", "--seconds", "0.3", "--small", "--check-every", "5",
@@ -42,6 +43,7 @@ def test_stream_cli_short_run(tmp_path, capsys):
     assert torch.get_num_threads() >= 1  # restored after the run
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_stream_cli_float64_refresh(tmp_path, capsys):
     """float64 state, refreshes inside the run, sparser ReLU: the identity bound is 1e-12."""
     rc = main(["stream", "--seconds", "0.12", "--small", "--dtype", "float64", "--check-every", "4",

@@ -8,6 +8,7 @@ import torch
 from .helpers import one_error_line, repo_config
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_train_then_resume_then_detect(synth_kitti, tmp_path, run_cli):
     run = tmp_path / "run"
     config = repo_config("pointpillars_demo.yaml")

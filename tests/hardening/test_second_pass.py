@@ -265,6 +265,7 @@ def test_detect_frames_zero_is_refused(capsys, tmp_path):
     _one_line(capsys, "detect", "--frames must be >= 1")
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_detect_tells_nuscenes_scans_from_kitti_ones(tmp_path, capsys):
     from lidarops.cli import main
     from lidarops.data.formats.nuscenes import write_nuscenes_bin

@@ -449,6 +449,7 @@ def test_torch_export_of_the_network():
         assert torch.allclose(a, b, atol=1e-6)
 
 
+@pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_onnx_export_of_the_network(tmp_path):
     """ONNX (torch.onnx's dynamo exporter) of the network with a dynamic number of pillars, run in
     onnxruntime on frames with other pillar counts than the exported one."""
