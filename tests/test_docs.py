@@ -26,7 +26,7 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 PAGES = [REPO / "README.md", REPO / "CONTRIBUTING.md", REPO / "CHANGELOG.md"] + sorted((REPO / "docs").glob("*.md"))
-SLOW_PAGES = {"README.md", "detector.md", "train.md", "data.md", "sscater.md", "boxes.md"}  # pages that simulate or train
+SLOW_PAGES = {"README.md", "detector.md", "train.md", "data.md", "sscater.md", "boxes.md", "query.md"}  # pages that simulate or train
 
 #: (regex, replacement) applied to bash lines: the documented runs take minutes to hours
 SHORTER = [
@@ -43,7 +43,8 @@ if torch.cuda.device_count() <= 1:  # a 2-GPU torchrun example on a machine of o
     SHORTER.append((r"--nproc_per_node=2\b", "--nproc_per_node=1"))  # tests/train covers DDP with 2 (gloo)
 
 #: optional packages (tools/ensure_env.py): a block that needs a missing one skips, as their tests do
-OPTIONAL = ("h5py", "matplotlib", "scipy", "shapely", "pandas", "tqdm", "onnxscript", "onnxruntime")
+OPTIONAL = ("h5py", "matplotlib", "scipy", "shapely", "pandas", "tqdm", "onnxscript", "onnxruntime", "duckdb",
+            "pyarrow")
 
 _FENCE = re.compile(r"^```(\w*)[^\n]*\n(.*?)^```\s*$", re.S | re.M)
 

@@ -17,7 +17,8 @@ TORCH = "torch==2.13.0"  # the CPU wheel on the development machines; never pull
 REQUIRED = {"numpy": "numpy", "pytest": "pytest", "setuptools": "setuptools>=64", "yaml": "pyyaml"}
 OPTIONAL = {"pybind11": "pybind11", "wheel": "wheel", "scipy": "scipy", "hypothesis": "hypothesis", "tqdm": "tqdm", "matplotlib": "matplotlib",
             "h5py": "h5py", "pandas": "pandas", "fpsample": "fpsample", "shapely": "shapely",
-            "onnxscript": "onnxscript", "onnxruntime": "onnxruntime", "xdist": "pytest-xdist"}
+            "onnxscript": "onnxscript", "onnxruntime": "onnxruntime", "xdist": "pytest-xdist",
+            "duckdb": "duckdb", "pyarrow": "pyarrow"}
 
 
 def missing(mods: dict) -> list[str]:

@@ -27,6 +27,7 @@ _SUBCOMMAND_MODULES = (
     "lidarops.cli.train",
     "lidarops.cli.detect",
     "lidarops.cli.eval",
+    "lidarops.cli.query",
 )
 
 

@@ -10,6 +10,7 @@ never a file written.
 """
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import pytest
@@ -95,12 +96,37 @@ COMMANDS: dict[str, tuple[list[str], dict[str, list[str]]]] = {
         "--scenario": ["nope"],
         "--dtype": ["float16"],
     }),
+    "index build": (["index", "build", "--scenario", "driving_city", "--frames", "1", "--out", "{out}/idx",
+                     "--no-progress"], {
+        "--frames": _INT_JUNK + ["0", "-1"],
+        "--seed": _INT_JUNK,
+        "--chunk": _INT_JUNK + ["0", "-4"],
+        "--score-thresh": _FLOAT_JUNK + ["-0.5", "1.5"],
+        "--classes": ["", "two words", "1st"],
+        "--source": ["radar", ""],
+        "--device": ["gpu", "", "cuda:x", "tpu"],
+        "--scenario": ["nope", ""],
+    }),
     "tour": (["tour", "--device", "cpu", "--n", "2000"], {
         "--n": _INT_JUNK + ["0", "-1"],
         "--seed": _INT_JUNK,
         "--device": ["gpu", ""],
     }),
 }
+
+
+if importlib.util.find_spec("duckdb") and importlib.util.find_spec("pyarrow"):  # the query extra
+    COMMANDS["query sum"] = (["query", "sum", "{index}", "--class", "Car"], {
+        "--class": ["", "Truck", "car"],
+        "--source": ["radar", ""],
+        "--frames": ["5-9", "a:b", "9:5", ""],
+        "--region": ["1,2,3", "a,b,c,d", "1,1,0,0", "nan,0,1,1", ""],
+    })
+    COMMANDS["query retrieve"] = (["query", "retrieve", "{index}", "--where", "Car>=1"], {
+        "--where": ["Car=>1", "Truck>=1", "Car>=x", "", "Car>=1.5"],
+        "--show": _INT_JUNK,
+        "--frames": ["5-9", "9:5"],
+    })
 
 
 @pytest.fixture(scope="module")
@@ -123,9 +149,16 @@ def files(tmp_path_factory):
     pts = np.random.default_rng(0).uniform(-20, 20, (500, 4)).astype(np.float32)
     pts[:, 3] = 0.5
     scan.write_bytes(pts.tobytes())
+    index = root / "index"
+    if "query sum" in COMMANDS:
+        from lidarops.query import FrameIndex
+
+        FrameIndex.create(index, {"frame_id": [0, 1, 2], "Car": [1, 0, 4], "Pedestrian": [0, 2, 0]},
+                          centres={"frame_id": [0, 2, 2], "class": ["Car", "Car", "Car"], "x": [1.0, 5.0, 50.0],
+                                   "y": [0.0, 1.0, -3.0]})
     return {"results": root / "results", "labels": root / "labels", "binary": root / "binary.bin",
             "empty": root / "empty.txt", "dir": root / "dir", "missing": root / "no" / "such.file",
-            "config": repo / "configs" / "pointpillars" / "pointpillars_demo.yaml", "scan": scan}
+            "config": repo / "configs" / "pointpillars" / "pointpillars_demo.yaml", "scan": scan, "index": index}
 
 
 def _fill(arg: str, paths: dict) -> str:
