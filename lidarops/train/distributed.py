@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from datetime import timedelta
 from typing import Any
 
 import torch
@@ -116,8 +117,12 @@ class DistContext:
         """Leaves the group if this context made it (else only its control group)."""
         if not self.distributed or not dist.is_initialized():
             return
-        # a rank that tears gloo down while another still sends aborts the process at exit
-        dist.barrier(group=self.control_group)
+        # a rank that tears gloo down while another still sends aborts the process at exit; bounded, so that
+        # a rank that died (an error path) cannot hang the others here
+        try:
+            dist.monitored_barrier(group=self.control_group, timeout=timedelta(seconds=60))
+        except RuntimeError:
+            pass
         if self.owns_group:
             dist.destroy_process_group()
         elif self.control_group is not dist.group.WORLD:
