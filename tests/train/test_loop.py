@@ -480,6 +480,22 @@ def test_throughput_is_reported(tmp_path):
     assert all(float(r["frames_per_s"]) > 0 for r in rows)
 
 
+def test_data_wait_is_measured(tmp_path, monkeypatch):
+    """The time spent fetching batches (a loader in the main process here, on a clock only loading moves)."""
+    clock = FakeClock()
+    monkeypatch.setattr(train_loop, "_clock", clock)
+
+    class SlowFrames(ToyFrames):
+        def __getitem__(self, i: int) -> dict:
+            clock.t += 0.25
+            return super().__getitem__(i)
+
+    result = fit(ToyModel(), SlowFrames(8), collate, config(epochs=2), tmp_path)
+    assert result.data_seconds == pytest.approx(0.25 * 16)
+    assert result.train_seconds == pytest.approx(result.data_seconds)  # nothing else moved the clock
+    assert "(100 % waiting for data)" in (tmp_path / "train.log").read_text()
+
+
 # ---- DDP on CPU (gloo, 2 processes) ----
 
 DDP_BATCH = 4  # per process; the single-process reference takes 8
