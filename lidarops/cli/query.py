@@ -120,17 +120,17 @@ def query(args: argparse.Namespace) -> int:
     frames, region = _frames_arg(args.frames), _region_arg(args.region)
     if args.source not in idx.sources:
         raise CliError(f"--source {args.source!r}: the index's sources are {', '.join(idx.sources)}")
-    for name in list(_parse_where(getattr(args, "where", None))) + ([args.cls] if getattr(args, "cls", None) else []):
+    where = _parse_where(getattr(args, "where", None))
+    for name in list(where) + ([args.cls] if getattr(args, "cls", None) else []):
         if name not in idx.classes:
             flag = "--class" if name == getattr(args, "cls", None) else "--where"
             raise CliError(f"{flag}: unknown class {name!r}; the index's classes: {', '.join(idx.classes)}")
     if args.kind == "retrieve":
-        ids = idx.retrieve(_parse_where(args.where), frames=frames, source=args.source, region=region)
+        ids = idx.retrieve(where, frames=frames, source=args.source, region=region)
         shown = ", ".join(str(i) for i in ids[:args.show]) + (" ..." if len(ids) > args.show else "")
         print(f"{len(ids)} frame(s): {shown}" if ids else "0 frames")
         return 0
     if args.kind == "count":
-        where = _parse_where(args.where)
         if len(where) != 1:
             raise CliError("count takes one --where, e.g. --where 'Pedestrian>10'")
         (cls, (op, value)), = where.items()

@@ -1,12 +1,11 @@
-"""What the OpenPCDet faces share: numpy in -> numpy out (``common_utils.check_numpy_to_torch``), the
-shape checks in OpenPCDet's argument names and the box value checks (:func:`check_box_values`)."""
+"""What the OpenPCDet faces share: numpy in -> numpy out (``common_utils.check_numpy_to_torch``) and the
+shape checks in OpenPCDet's argument names."""
 from __future__ import annotations
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from lidarops.ops.boxes import check_box_values  # noqa: F401  (the faces import it from here)
 from lidarops.ops.validation import check_tensor, describe
 
 

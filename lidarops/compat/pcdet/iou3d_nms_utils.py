@@ -21,8 +21,9 @@ import numbers
 import torch
 from torch import Tensor
 
-from lidarops.compat.pcdet._common import check_box_values, check_boxes, to_torch
+from lidarops.compat.pcdet._common import check_boxes, to_torch
 from lidarops.ops import boxes as _boxes
+from lidarops.ops.boxes import check_box_values
 from lidarops.ops.validation import check_same_device, describe, validation
 
 __all__ = ["boxes_bev_iou_cpu", "boxes_iou_bev", "boxes_iou3d_gpu", "boxes_aligned_iou3d_gpu",

@@ -16,8 +16,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lidarops.compat.pcdet._common import check_box_values, check_boxes, check_points, to_torch
+from lidarops.compat.pcdet._common import check_boxes, check_points, to_torch
 from lidarops.ops import boxes as _boxes
+from lidarops.ops.boxes import check_box_values
 from lidarops.ops.validation import check_same_device, describe, validation
 
 __all__ = ["points_in_boxes_cpu", "points_in_boxes_gpu", "CPU_MARGIN", "GPU_MARGIN"]
