@@ -125,3 +125,28 @@ def test_stacked_counts_checked(device, data):
     assert_no_error(err, what)
     dist = res[0]
     assert bool((dist[:, 0] == 0).all()) if rows else True, f"{what}: a point is its own nearest neighbour"
+
+
+_NOT_TENSORS = st.sampled_from([None, [[0.0] * 7], 3.0, "boxes", (1, 2, 3)])
+
+
+@fuzz
+@given(data=st.data())
+def test_non_tensor_arguments_named(device, data):
+    """A list, None or a string where a tensor goes: a ValueError naming the argument, never an
+    AttributeError from inside the face."""
+    good_boxes = torch.tensor([[0.0, 0, 0, 2, 2, 2, 0]], device=device)
+    good_points = torch.zeros(1, 4, 3, device=device)
+    bad = data.draw(_NOT_TENSORS, "bad")
+    calls = [
+        ("boxes_a", lambda: iou3d_nms_utils.boxes_iou_bev(bad, good_boxes)),
+        ("boxes_b", lambda: iou3d_nms_utils.boxes_iou3d_gpu(good_boxes, bad)),
+        ("boxes", lambda: iou3d_nms_utils.nms_gpu(bad, torch.ones(1, device=device), 0.1)),
+        ("points", lambda: roiaware_pool3d_utils.points_in_boxes_gpu(bad, good_boxes[None])),
+        ("boxes", lambda: roiaware_pool3d_utils.points_in_boxes_gpu(good_points, bad)),
+    ]
+    if device == "cpu":
+        calls.append(("points", lambda: roiaware_pool3d_utils.points_in_boxes_cpu(bad, good_boxes)))
+    name, call = data.draw(st.sampled_from(calls), "call")
+    res, err = outcome(call)
+    assert_clear_error(err, ValueError, [name], f"{name}={bad!r}")

@@ -19,12 +19,14 @@ def to_torch(x, name: str) -> tuple[Tensor, bool]:
 
 def check_boxes(t: Tensor, name: str, batched: bool = False) -> None:
     shape = "(B, T, 7)" if batched else "(N, 7)"
+    check_tensor(t, name)  # a list or None would otherwise fail on .dim() with an AttributeError
     if t.dim() != (3 if batched else 2) or t.shape[-1] != 7 or not t.is_floating_point():
         raise ValueError(f"{name} must be a floating {shape} tensor [x, y, z, dx, dy, dz, heading], got {describe(t)}")
 
 
 def check_points(t: Tensor, name: str, batched: bool = False) -> None:
     shape = "(B, M, 3)" if batched else "(num_points, 3)"
+    check_tensor(t, name)
     if t.dim() != (3 if batched else 2) or t.shape[-1] != 3 or not t.is_floating_point():
         raise ValueError(f"{name} must be a floating {shape} tensor, got {describe(t)}")
 
