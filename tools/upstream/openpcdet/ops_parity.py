@@ -64,9 +64,28 @@ def main() -> int:
         if args.out:  # after every op: a crash in a later one keeps these
             args.out.write_text(json.dumps(results, indent=1))
 
-    def close(a, b, tol):
-        d = float((a.double() - b.double()).abs().max()) if a.numel() else 0.0
-        return d <= tol, f"max diff {d:.2e}"
+    def close(a, b, tol, rel=0.0):
+        """Within ``tol + rel * |b|`` everywhere (``rel`` for sums of many terms whose order differs)."""
+        a, b = a.detach().double(), b.detach().double()
+        if not a.numel():
+            return True, "max diff 0"
+        d = (a - b).abs()
+        return bool((d <= tol + rel * b.abs()).all()), f"max diff {float(d.max()):.2e} (|values| up to {float(b.abs().max()):.1f})"
+
+    def fps_divergence(xyz, ours, theirs):
+        """Where two farthest-point samplings of one cloud part: the first differing pick, and which of the two
+        candidates is farther from the picks before it in float64 (a rounding or tie decision, or a wrong pick)."""
+        ours, theirs = ours.long().cpu(), theirs.long().cpu()
+        diff = (ours != theirs).nonzero()
+        if not len(diff):
+            return "identical"
+        j = int(diff[0])
+        pts = xyz.double().cpu()
+        dist = torch.cdist(pts, pts[ours[:j]]).min(1).values if j else torch.full((len(pts),), float("inf"))
+        d_o, d_t = float(dist[ours[j]]), float(dist[theirs[j]])
+        f32 = "equal" if np.float32(d_o) == np.float32(d_t) else "different"
+        return (f"first differs at pick {j}: lidarops {int(ours[j])} at {d_o:.9f} m, OpenPCDet {int(theirs[j])} at "
+                f"{d_t:.9f} m (float64; float32 {f32}); farthest: {'lidarops' if d_o > d_t else 'OpenPCDet' if d_t > d_o else 'tie'}")
 
     def section_boxes():
         from lidarops.ops.boxes import _box_iou_bev_reference
@@ -115,7 +134,8 @@ def main() -> int:
         xyz = torch.from_numpy(np.stack([lidar_cloud(16384, rng) for _ in range(2)])).to(dev).contiguous()
         idx_o, idx_t = L_pb.farthest_point_sample(xyz, 4096), T_pb.farthest_point_sample(xyz, 4096)
         record("pointnet2_batch farthest_point_sample 2x16384 -> 4096", torch.equal(idx_o, idx_t),
-               f"{int((idx_o != idx_t).sum())} differ")
+               f"{int((idx_o != idx_t).sum())} differ; " + "; ".join(
+                   fps_divergence(xyz[b], idx_o[b], idx_t[b]) for b in range(xyz.shape[0])))
         new_xyz = L_pb.gather_operation(xyz.transpose(1, 2).contiguous(), idx_t).transpose(1, 2).contiguous()
         new_t = T_pb.gather_operation(xyz.transpose(1, 2).contiguous(), idx_t).transpose(1, 2).contiguous()
         record("pointnet2_batch gather_operation", torch.equal(new_xyz, new_t), "")
@@ -129,11 +149,17 @@ def main() -> int:
         gradient = torch.randn_like(go)
         (g_o,) = torch.autograd.grad(go, feats, gradient)
         (g_t,) = torch.autograd.grad(gt, feats, gradient)
-        record("pointnet2_batch grouping_operation backward", *close(g_o, g_t, 1e-4))
+        record("pointnet2_batch grouping_operation backward", *close(g_o, g_t, 1e-5, rel=1e-5))
         do, no = L_pb.three_nn(new_xyz, xyz[:, ::4].contiguous())
         dt, nt = T_pb.three_nn(new_xyz, xyz[:, ::4].contiguous())
         ok, det = close(do, dt, 1e-5)
-        record("pointnet2_batch three_nn", ok and torch.equal(no, nt), f"{int((no != nt).sum())} indices differ, {det}")
+        known = xyz[:, ::4].double()
+        where = (no != nt).nonzero()
+        gap = max((abs(float((new_xyz[b, i].double() - known[b, no[b, i, k]]).norm())
+                           - float((new_xyz[b, i].double() - known[b, nt[b, i, k]]).norm())) for b, i, k in where.tolist()),
+                  default=0.0)
+        record("pointnet2_batch three_nn", ok and torch.equal(no, nt), f"{len(where)} indices differ, {det}; where they "
+               f"differ, the two picks' float64 distances differ by at most {gap:.2e} m (a near tie)")
         w = torch.rand(2, 4096, 3, device=dev)
         f2 = torch.randn(2, 16, 4096, device=dev, requires_grad=True)
         io, it = L_pb.three_interpolate(f2, nt, w), T_pb.three_interpolate(f2, nt, w)
@@ -152,7 +178,11 @@ def main() -> int:
         cnt = torch.tensor(counts, dtype=torch.int32, device=dev)
         so = L_ps.stack_farthest_point_sample(sxyz, cnt, [2048, 30, 1024])
         st = T_ps.stack_farthest_point_sample(sxyz, cnt, [2048, 30, 1024])
-        record("pointnet2_stack stack_farthest_point_sample", torch.equal(so, st), f"{int((so != st).sum())} differ")
+        starts = np.cumsum([0] + counts)
+        picks = np.cumsum([0, 2048, 30, 1024])
+        record("pointnet2_stack stack_farthest_point_sample", torch.equal(so, st), f"{int((so != st).sum())} differ; " +
+               "; ".join(fps_divergence(sxyz[starts[i]:starts[i + 1]], so[picks[i]:picks[i + 1]] - starts[i],
+                                        st[picks[i]:picks[i + 1]] - starts[i]) for i in range(3)))
         centers = sxyz[st.long()].contiguous()
         ccnt = torch.tensor([2048, 30, 1024], dtype=torch.int32, device=dev)
         far = centers.clone()
@@ -166,7 +196,7 @@ def main() -> int:
         record("pointnet2_stack grouping_operation", torch.equal(go, gt), "")
         gradient = torch.randn_like(go)
         record("pointnet2_stack grouping_operation backward",
-               *close(torch.autograd.grad(go, sf, gradient)[0], torch.autograd.grad(gt, sf, gradient)[0], 1e-4))
+               *close(torch.autograd.grad(go, sf, gradient)[0], torch.autograd.grad(gt, sf, gradient)[0], 1e-5, rel=1e-5))
         qo, qio = L_ps.QueryAndGroup(1.2, 16)(sxyz, cnt, far, ccnt, sf.detach())
         qt, qit = T_ps.QueryAndGroup(1.2, 16)(sxyz, cnt, far, ccnt, sf.detach())
         ok, det = close(qo, qt, 1e-6)
