@@ -70,6 +70,13 @@ demo: build
 	@echo "[demo] detection: the shipped PointPillars (lidarops/weights) on 40 simulated frames it never saw: boxes,"
 	@echo "       a bird's-eye view (demo_detections/*.png), ms per frame, KITTI 3D AP beside the trained model's, found / labelled"
 	$(PY) -m lidarops detect --scenario driving_city --frames 40 --seed 2026 --out demo_detections --print-frames 1 --print-boxes 5
+	@echo "[demo] queries (CounterNet): an index of 12 simulated frames counted twice, by the labels and by the shipped"
+	@echo "       PointPillars as a counter; one query of each type, the detector's answer beside the labels' (demo_index/)"
+	$(PY) -m lidarops index build --scenario driving_city --frames 12 --out demo_index --no-progress
+	$(PY) -m lidarops index build --scenario driving_city --frames 12 --out demo_index --source detector --no-progress
+	$(PY) -m lidarops query retrieve demo_index --where "Car>=5" --where "Pedestrian<=3" --compare --html demo_index/answer.html
+	$(PY) -m lidarops query count demo_index --where "Pedestrian>=2" --compare
+	$(PY) -m lidarops query sum demo_index --class Car --compare
 
 train-demo: build
 	@echo "[train-demo] a Car-only PointPillars on 120 simulated frames (seed 100), 6 epochs on the CPU: about 5 minutes on"

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-import time
 from pathlib import Path
 
 from lidarops.cli.errors import CliError, guarded
@@ -13,17 +12,22 @@ from lidarops.conventions import HELD_OUT_SEED
 
 _WHERE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(<=|>=|<|>|=)\s*(-?\d+)\s*$")
 DEFAULT_CLASSES = ("Car", "Pedestrian", "Cyclist")
+SHIPPED_RANGE = "0,-39.68,69.12,39.68"  # the shipped PointPillars' BEV point cloud range (configs/pointpillars)
 
 
-def _frames_of(args: argparse.Namespace):
-    """(frame_id, Frame) pairs of a scenario or a KITTI folder."""
+def _frames_of(args: argparse.Namespace, needs_labels: bool):
+    """(frame ids, ``load(frame_id) -> Frame``) of a scenario or a KITTI folder."""
     if args.scenario:
         from lidarops.data.synthetic import SyntheticFrames
 
         if args.frames is None or args.frames < 1:
             raise CliError(f"--frames must be >= 1 with --scenario, got {args.frames}")
-        data = SyntheticFrames(args.scenario, num_frames=args.frames, seed=args.seed)
-        return len(data), ((i, data[i]) for i in range(len(data)))
+        if args.frames_per_scene < 1:
+            raise CliError(f"--frames-per-scene must be >= 1, got {args.frames_per_scene}")
+        data = SyntheticFrames(args.scenario, num_frames=args.frames, seed=args.seed,
+                               frames_per_scene=args.frames_per_scene,
+                               object_counts=None if args.object_counts == "default" else args.object_counts)
+        return list(range(len(data))), _ScenarioLoader(data, f"{args.scenario}:{args.seed}")
     if not args.input:
         raise CliError("give a KITTI folder, or --scenario NAME --frames N")
     path = Path(args.input)
@@ -32,50 +36,124 @@ def _frames_of(args: argparse.Namespace):
     from lidarops.data.formats.kitti import KittiDataset
 
     data = KittiDataset(path)
-    n = len(data) if args.frames is None else min(len(data), args.frames)
-    if n == 0:
-        raise CliError(f"{path} holds no frames")
-    for i in range(n):
-        if not data.ids[i].isdigit():
-            raise CliError(f"{path}: frame id {data.ids[i]!r} is not a number (the index keys frames by integer ids)")
-    return n, ((int(data.ids[i]), data[i]) for i in range(n))
+    names = data.ids if args.frames is None else data.ids[:args.frames]
+    if not names:
+        raise CliError(f"{data.split_dir / 'velodyne'} holds no .bin scans")
+    bad = [n for n in names if not n.isdigit()]
+    if bad:
+        raise CliError(f"{path}: frame id {bad[0]!r} is not a number (the index keys frames by integer ids)")
+    if needs_labels and not (data.split_dir / "label_2").is_dir():
+        raise CliError(f"{data.split_dir} has no label_2/ folder: --source labels counts the labels "
+                       "(use --source detector to count with a detector)")
+    return [int(n) for n in names], _KittiLoader(data, names, needs_labels)
+
+
+class _ScenarioLoader:
+    """``frame_id -> Frame`` of a simulated drive, its sequence named ``scenario:seed``."""
+
+    def __init__(self, data, sequence: str):
+        self.data, self.sequence = data, sequence
+
+    def __call__(self, fid: int):
+        frame = self.data[fid]
+        frame.meta["sequence"] = self.sequence
+        return frame
+
+
+class _KittiLoader:
+    """``frame_id -> Frame`` over a KITTI folder (a class, not a closure, so DataLoader workers can take it)."""
+
+    def __init__(self, data, names: list[str], needs_labels: bool):
+        self.data, self.needs_labels = data, needs_labels
+        where = {n: i for i, n in enumerate(data.ids)}
+        self.position = {int(n): where[n] for n in names}
+
+    def __call__(self, fid: int):
+        from lidarops.query.build import FrameError
+
+        i = self.position[fid]
+        name = self.data.ids[i]
+        label = self.data.split_dir / "label_2" / f"{name}.txt"
+        if not self.needs_labels:  # a counter needs the scan only: no labels, calibration or box counts read
+            import torch
+
+            from lidarops.data.formats.kitti import read_velodyne
+            from lidarops.query.build import Scan
+
+            scan = (self.data.split_dir / "velodyne" / f"{name}.bin").resolve()
+            return Scan(points=torch.from_numpy(read_velodyne(scan)), source=str(scan), frame_index=i)
+        if not label.is_file():
+            raise FrameError(f"frame {name}: no labels ({label} is missing)")
+        return self.data[i]
 
 
 def build(args: argparse.Namespace) -> int:
-    """Counts frames into an index."""
+    """Counts frames into an index (under torchrun: each rank its share, the index their union)."""
     from lidarops.query.build import DetectorSource, LabelsSource, build_index
 
-    if args.chunk < 1:
-        raise CliError(f"--chunk must be >= 1, got {args.chunk}")
+    for flag, value, least in (("--batch", args.batch, 1), ("--part-frames", args.part_frames, 1),
+                               ("--workers", args.workers, 0)):
+        if value < least:
+            raise CliError(f"{flag} must be >= {least}, got {value}")
     if not 0 <= args.score_thresh <= 1:  # NaN too
         raise CliError(f"--score-thresh must be a score in [0, 1], got {args.score_thresh}")
     for name in args.classes or []:
         if not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", name):
             raise CliError(f"--classes: {name!r} is not a class name (letters, digits, underscores)")
-    from lidarops.cli._device import resolve_device
-
-    device = resolve_device(args.device)
-    if args.source == "labels":
-        source = LabelsSource(args.classes or DEFAULT_CLASSES)
-    else:
-        from lidarops.models import load_model, weights
-
-        model = load_model(args.checkpoint or weights.path()).to(device).eval()
-        source = DetectorSource(model, args.score_thresh)
-    total, frames = _frames_of(args)
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise CliError(f"--out {args.out} is a file; give a folder for the index")
-    from lidarops._progress import progress_bar
+    if args.min_points < 0:
+        raise CliError(f"--min-points must be >= 0, got {args.min_points}")
+    labels_range = None if args.labels_range == "all" else _region_arg(args.labels_range, "--labels-range")
+    from lidarops.cli._device import resolve_device
 
-    start = time.perf_counter()
-    bar = progress_bar(total, f"index {args.source}", enabled=not args.no_progress and sys.stderr.isatty())
+    device = resolve_device(args.device)  # a bad --device is named even where the labels need none
+    ids, load = _frames_of(args, needs_labels=args.source == "labels")
+    from lidarops.train.distributed import DistContext
+
+    # a plain "cuda" becomes cuda:LOCAL_RANK under torchrun
+    ctx = DistContext.from_env((device.type if device.index is None else device) if args.source == "detector" else "cpu")
     try:
-        result = build_index(args.out, frames, source, source_name=args.source, chunk=args.chunk, progress=bar.update)
+        if args.source == "labels":
+            source = LabelsSource(args.classes or DEFAULT_CLASSES, region=labels_range, min_points=args.min_points)
+        else:
+            from lidarops.models import load_model, weights
+
+            model = load_model(args.checkpoint or weights.path()).to(ctx.device).eval()
+            source = DetectorSource(model, args.score_thresh)
+        from lidarops._progress import progress_bar
+
+        bar = progress_bar(len(ids), f"index {args.source}",
+                           enabled=ctx.is_main and not args.no_progress and sys.stderr.isatty())
+        try:
+            report = build_index(args.out, ids, load, source, source_name=args.source, batch=args.batch,
+                                 part_frames=args.part_frames, workers=args.workers,
+                                 on_error="skip" if args.skip_bad else "raise", progress=bar.update)
+        finally:
+            bar.close()
+        reports = ctx.gather_to_main(report)
     finally:
-        bar.close()
-    wall = time.perf_counter() - start
-    print(f"indexed {result['indexed']} frame(s) with source {args.source} into {args.out} "
-          f"({result['skipped']} already there) in {wall:.1f} s ({total / max(wall, 1e-9):.1f} frames/s)")
+        ctx.close()
+    if not ctx.is_main:
+        return 0
+    indexed = sum(r.indexed for r in reports)
+    failed = sorted(f for r in reports for f in r.failed)
+    wall = max(r.seconds for r in reports)
+    ranks = f" on {len(reports)} ranks" if len(reports) > 1 else ""
+    print(f"indexed {indexed} frame(s) with source {args.source} into {args.out} ({reports[0].skipped} already "
+          f"there) in {wall:.1f} s{ranks} ({indexed / max(wall, 1e-9):.1f} frames/s; {reports[0].shares()})")
+    if args.source == "labels":
+        where = "everywhere" if labels_range is None else "centred in x [{:g}, {:g}), y [{:g}, {:g})".format(
+            labels_range[0], labels_range[2], labels_range[1], labels_range[3])
+        print(f"  labels counted: boxes {where} holding >= {args.min_points} point(s) (--labels-range, --min-points)")
+    stages = getattr(source, "stage_seconds", None)
+    if stages and report.stage_seconds.get("count"):
+        print("  counting: " + ", ".join(f"{k} {100 * v / report.stage_seconds['count']:.0f} %"
+                                         for k, v in stages.items()))
+    if failed:
+        listed = "; ".join(f"{fid}: {why}" for fid, why in failed[:5]) + (" ..." if len(failed) > 5 else "")
+        print(f"left out {len(failed)} frame(s) that could not be read (a build run again retries them): {listed}")
+        return 1
     return 0
 
 
@@ -100,7 +178,7 @@ def _frames_arg(text: str | None):
     return range(int(m.group(1)), int(m.group(2)))
 
 
-def _region_arg(text: str | None):
+def _region_arg(text: str | None, flag: str = "--region"):
     if text is None:
         return None
     try:
@@ -108,14 +186,20 @@ def _region_arg(text: str | None):
     except ValueError:
         values = []
     if len(values) != 4:
-        raise CliError(f"--region {text!r}: expected X0,Y0,X1,Y1 in metres, e.g. 0,-7.5,15,7.5")
+        raise CliError(f"{flag} {text!r}: expected X0,Y0,X1,Y1 in metres, e.g. 0,-7.5,15,7.5")
+    if not (values[0] < values[2] and values[1] < values[3]):  # NaN too
+        raise CliError(f"{flag} {text!r}: expected X0 < X1 and Y0 < Y1")
     return tuple(values)
 
 
 def query(args: argparse.Namespace) -> int:
-    """Answers one query over an index."""
+    """Answers one query over an index (beside every other source's answer with --compare; as a page with
+    --html)."""
     from lidarops.query import FrameIndex
 
+    if getattr(args, "html_frames", 0) < 0:
+        raise CliError(f"--html-frames must be >= 0, got {args.html_frames}")
+    _output_file(args.html, "--html")
     idx = FrameIndex.open(args.index)
     frames, region = _frames_arg(args.frames), _region_arg(args.region)
     if args.source not in idx.sources:
@@ -125,21 +209,120 @@ def query(args: argparse.Namespace) -> int:
         if name not in idx.classes:
             flag = "--class" if name == getattr(args, "cls", None) else "--where"
             raise CliError(f"{flag}: unknown class {name!r}; the index's classes: {', '.join(idx.classes)}")
-    if args.kind == "retrieve":
-        ids = idx.retrieve(where, frames=frames, source=args.source, region=region)
-        shown = ", ".join(str(i) for i in ids[:args.show]) + (" ..." if len(ids) > args.show else "")
-        print(f"{len(ids)} frame(s): {shown}" if ids else "0 frames")
-        return 0
-    if args.kind == "count":
-        if len(where) != 1:
-            raise CliError("count takes one --where, e.g. --where 'Pedestrian>10'")
-        (cls, (op, value)), = where.items()
-        print(idx.count(cls, op, value, frames=frames, source=args.source, region=region))
-        return 0
-    if not args.cls:
+    if args.kind == "count" and len(where) != 1:
+        raise CliError("count takes one --where, e.g. --where 'Pedestrian>10'")
+    if args.kind in ("sum", "avg") and not args.cls:
         raise CliError(f"{args.kind} needs --class, one of: {', '.join(idx.classes)}")
-    value = getattr(idx, args.kind)(args.cls, frames=frames, source=args.source, region=region)
-    print(value if value is not None else "no frames")
+
+    def ask(source: str):
+        """The query's answer from ``source``'s counts."""
+        if args.kind == "retrieve":
+            return idx.retrieve(where, frames=frames, source=source, region=region)
+        if args.kind == "count":
+            (cls, (op, value)), = where.items()
+            return idx.count(cls, op, value, frames=frames, source=source, region=region)
+        return getattr(idx, args.kind)(args.cls, frames=frames, source=source, region=region)
+
+    answer = ask(args.source)
+    if args.compare:
+        _compare(idx, args, ask)
+    elif args.kind == "retrieve":
+        shown = ", ".join(str(i) for i in answer[:args.show]) + (" ..." if len(answer) > args.show else "")
+        print(f"{len(answer)} frame(s): {shown}" if answer else "0 frames")
+    else:
+        print(answer if answer is not None else "no frames")
+    if args.html:
+        _answer_page(idx, args, answer, ask, where, frames, region)
+    return 0
+
+
+def _output_file(path: "str | None", flag: str) -> None:
+    """A file the command will write: refused before any work when it is a folder or its folder is missing."""
+    if path is None:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise CliError(f"{flag} {path} is a folder; give a file name")
+    if not p.parent.is_dir():
+        raise CliError(f"{flag} {path}: the folder {p.parent} does not exist")
+
+
+def _compare(idx, args: argparse.Namespace, ask) -> None:
+    """--compare: the answer of every source, beside the labels' (for retrieve: how many of the labels'
+    frames each finds, and how many it adds)."""
+    from lidarops.query import QueryError
+
+    truth = ask("labels") if "labels" in idx.sources else None
+    rows = []
+    for source in ["labels"] * (truth is not None) + [s for s in idx.sources if s != "labels"]:
+        try:
+            got = truth if source == "labels" else ask(source)
+        except QueryError as e:  # e.g. a region over a source without centres
+            rows.append((source, f"cannot answer: {e}", ""))
+            continue
+        if args.kind == "retrieve":
+            text = f"{len(got)} frame(s)"
+            if truth is not None and source != "labels":
+                hit = len(set(got) & set(truth))
+                rows.append((source, text, f"{hit} of the labels' {len(truth)} found, {len(got) - hit} not in them"))
+                continue
+        else:
+            text = "no frames" if got is None else (f"{got:.3f}" if isinstance(got, float) else str(got))
+            if source != "labels" and got is not None and truth is not None:
+                rows.append((source, text, f"{got - truth:+.3f}" if isinstance(got, float) else f"{got - truth:+d}"))
+                continue
+        rows.append((source, text, ""))
+    width = max(len(r[0]) for r in rows)
+    answer_width = max(len(r[1]) for r in rows)
+    print(f"{'source':<{width}}  {'answer':<{answer_width}}  beside the labels")
+    for source, text, note in rows:
+        print(f"{source:<{width}}  {text:<{answer_width}}  {note}".rstrip())
+
+
+def _answer_page(idx, args: argparse.Namespace, answer, ask, where: dict, frames, region) -> None:
+    """--html: the answer page, its frames pictured (the retrieved ones; those meeting a count's condition;
+    an aggregation's frames), beside the labels' answer when the source is another."""
+    from lidarops.query import QueryError
+    from lidarops.query.page import answer_page, points_from_index
+
+    if args.kind == "retrieve":
+        shown = answer
+    else:  # count: the frames meeting its condition; sum, avg: every frame aggregated over
+        shown = idx.retrieve(where if args.kind == "count" else {}, frames=frames, source=args.source, region=region)
+    truth, truth_answer = ("labels" if args.source != "labels" and "labels" in idx.sources else None), None
+    if truth:
+        try:
+            truth_answer = ask(truth)
+        except QueryError:  # e.g. labels without centres under --region: the page says so, no truth answer
+            pass
+    text = " AND ".join(f"{c}{op}{v}" for c, (op, v) in where.items()) or getattr(args, "cls", None) or "all frames"
+    text = f"{args.kind} {text}" + (f" frames {args.frames}" if args.frames else "") + (
+        f" region {args.region}" if args.region else "")
+    path = answer_page(idx, args.html, kind=args.kind, query_text=text, answer=answer, frame_ids=shown,
+                       source=args.source, truth=truth, max_frames=args.html_frames, region=region,
+                       points_of=points_from_index(idx, shown[:args.html_frames], source=args.source),
+                       truth_answer=truth_answer)
+    print(f"answer page: {path} ({min(len(shown), args.html_frames)} of {len(shown)} frame(s) pictured)")
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    """Scores a source's counts against the labels' with CounterNet's query metrics."""
+    import json
+
+    from lidarops.query import FrameIndex
+    from lidarops.query.evaluate import evaluate as run
+
+    _output_file(args.json, "--json")
+    m = re.match(r"^(\d+):(\d+)$", args.group_frames)
+    if not m:
+        raise CliError(f"--group-frames {args.group_frames!r}: expected FEWEST:MOST frames, e.g. 100:500")
+    result = run(FrameIndex.open(args.index), source=args.source, truth=args.truth, classes=args.classes,
+                 seed=args.seed, tolerances=tuple(args.tolerances), groups=args.groups, queries=args.queries,
+                 group_frames=(int(m.group(1)), int(m.group(2))))
+    print(result.format())
+    if args.json:
+        Path(args.json).write_text(json.dumps(result.as_dict(), indent=1) + "\n")
+        print(f"wrote {args.json}")
     return 0
 
 
@@ -155,13 +338,29 @@ def register(subparsers) -> None:
     b.add_argument("--scenario", help="simulate frames of this scenario instead")
     b.add_argument("--frames", type=int, default=None, help="number of frames (scenario: required; folder: all)")
     b.add_argument("--seed", type=int, default=HELD_OUT_SEED, help=f"scenario seed (default {HELD_OUT_SEED})")
+    b.add_argument("--object-counts", choices=["default", "dense", "empty"], default="default",
+                   help="scenario traffic (default: the scenario's own)")
+    b.add_argument("--frames-per-scene", type=int, default=1, help="scenario: consecutive sweeps of one drive per "
+                                                                   "scene (default 1: a new scene each frame)")
     b.add_argument("--source", choices=["labels", "detector"], default="labels", help="what counts (default labels)")
     b.add_argument("--checkpoint", help="detector checkpoint (default: the shipped PointPillars)")
     b.add_argument("--score-thresh", type=float, default=0.5, help="detector: count boxes scoring at least this "
                                                                     "(default 0.5)")
     b.add_argument("--classes", nargs="+", help=f"labels: classes to count (default {' '.join(DEFAULT_CLASSES)})")
+    b.add_argument("--labels-range", default=SHIPPED_RANGE, help="labels: count boxes centred in X0,Y0,X1,Y1 metres, "
+                                                                 "or 'all' (default: the shipped PointPillars' range, "
+                                                                 f"{SHIPPED_RANGE}, what it can count)")
+    b.add_argument("--min-points", type=int, default=1, help="labels: count boxes holding at least this many points "
+                                                             "(default 1: what a LiDAR can see)")
     b.add_argument("--device", default="auto", help="detector: auto (default), cpu, cuda")
-    b.add_argument("--chunk", type=int, default=64, help="frames per Parquet part (default 64)")
+    b.add_argument("--batch", type=int, default=8, help="frames per detector call (default 8)")
+    b.add_argument("--workers", type=int, default=2, help="DataLoader processes reading frames (default 2; 0: "
+                                                          "read in this process)")
+    b.add_argument("--part-frames", type=int, default=1024, help="frames per Parquet part, the most a killed build "
+                                                                 "redoes (default 1024)")
+    b.add_argument("--skip-bad", action="store_true", help="leave out frames that cannot be read (an unreadable "
+                                                           "scan, missing labels), list them, exit 1; default: stop "
+                                                           "at the first")
     b.add_argument("--out", required=True, help="index folder")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     b.set_defaults(func=guarded("index build", build))
@@ -183,5 +382,27 @@ def register(subparsers) -> None:
         k.add_argument("--region", help="X0,Y0,X1,Y1 metres: count only objects inside")
         if kind == "retrieve":
             k.add_argument("--show", type=int, default=20, help="frame ids printed (default 20)")
+        k.add_argument("--compare", action="store_true", help="the answer of every source of the index, beside the "
+                                                              "labels'")
+        k.add_argument("--html", metavar="PATH", help="also write the answer page: one self-contained HTML file "
+                                                      "(counts table, bird's-eye view of each frame; docs/query.md)")
+        k.add_argument("--html-frames", type=int, default=24, metavar="N", help="frames pictured on the page "
+                                                                                "(default 24)")
         k.set_defaults(func=guarded(f"query {kind}", query), kind=kind)
+    e = qs.add_parser("evaluate", help="score a source's counts against the labels (CounterNet's query metrics)",
+                      description="RETRIEVAL-SINGLE / -MULTIPLE accuracy, COUNT accuracy over random groups of "
+                                  "consecutive frames, AGGREGATION difference and Q-error, per-class counting "
+                                  "accuracy (docs/query.md).")
+    e.add_argument("index", help="index folder")
+    e.add_argument("--source", default="detector", help="the source scored (default detector)")
+    e.add_argument("--truth", default="labels", help="the source taken as the truth (default labels)")
+    e.add_argument("--classes", nargs="+", help="classes scored (default: all the index's)")
+    e.add_argument("--tolerances", nargs="+", type=float, default=[0.10, 0.05], help="RETRIEVAL tolerances "
+                                                                                     "(default 0.10 0.05)")
+    e.add_argument("--groups", type=int, default=500, help="random groups of consecutive frames (default 500)")
+    e.add_argument("--queries", type=int, default=1000, help="COUNT queries per class (default 1000)")
+    e.add_argument("--group-frames", default="100:500", help="FEWEST:MOST frames of a group (default 100:500)")
+    e.add_argument("--seed", type=int, default=0, help="seed of the random groups and queries (default 0)")
+    e.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    e.set_defaults(func=guarded("query evaluate", evaluate))
     q.set_defaults(func=lambda a: (q.print_help(), 2)[1])

@@ -100,9 +100,15 @@ COMMANDS: dict[str, tuple[list[str], dict[str, list[str]]]] = {
                      "--no-progress"], {
         "--frames": _INT_JUNK + ["0", "-1"],
         "--seed": _INT_JUNK,
-        "--chunk": _INT_JUNK + ["0", "-4"],
+        "--batch": _INT_JUNK + ["0", "-4"],
+        "--part-frames": _INT_JUNK + ["0", "-4"],
+        "--workers": _INT_JUNK + ["-1"],
         "--score-thresh": _FLOAT_JUNK + ["-0.5", "1.5"],
         "--classes": ["", "two words", "1st"],
+        "--labels-range": ["1,2,3", "a,b,c,d", "1,1,0,0", "nan,0,1,1", ""],
+        "--min-points": _INT_JUNK + ["-1"],
+        "--object-counts": ["busy", ""],
+        "--frames-per-scene": _INT_JUNK + ["0"],
         "--source": ["radar", ""],
         "--device": ["gpu", "", "cuda:x", "tpu"],
         "--scenario": ["nope", ""],
@@ -126,6 +132,20 @@ if importlib.util.find_spec("duckdb") and importlib.util.find_spec("pyarrow"):  
         "--where": ["Car=>1", "Truck>=1", "Car>=x", "", "Car>=1.5"],
         "--show": _INT_JUNK,
         "--frames": ["5-9", "9:5"],
+        "--html-frames": _INT_JUNK + ["-1"],
+        "--html": ["{dir}", "/nonexistent/dir/page.html"],
+    })
+    COMMANDS["query evaluate"] = (["query", "evaluate", "{index}", "--source", "labels", "--groups", "3",
+                                   "--queries", "5", "--group-frames", "1:2"], {
+        "--source": ["radar", ""],
+        "--truth": ["radar", ""],
+        "--classes": ["Truck", ""],
+        "--tolerances": _FLOAT_JUNK + ["-0.1", "1.5"],
+        "--groups": _INT_JUNK + ["0", "-1"],
+        "--queries": _INT_JUNK + ["0", "-1"],
+        "--group-frames": ["5-9", "9:5", "0:0", ""],
+        "--seed": _INT_JUNK + ["-1"],
+        "--json": ["{dir}", "/nonexistent/dir/x.json"],
     })
 
 

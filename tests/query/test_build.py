@@ -1,6 +1,15 @@
 """Filling an index from frames (lidarops.query.build) and the ``lidarops index`` / ``lidarops query``
-commands: counts equal the frames' labels, a build stopped midway and run again holds every frame once."""
+commands: counts equal the frames' labels; a build killed midway (SIGKILL) and run again holds every frame
+once; two torchrun ranks make one index; unreadable scans and missing labels are named, or skipped and
+listed, never a silent hole."""
 from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,76 +18,298 @@ pytest.importorskip("duckdb")
 pytest.importorskip("pyarrow")
 
 from lidarops.cli import main  # noqa: E402
+from lidarops.data.formats.kitti import KittiCalib, write_calib  # noqa: E402
 from lidarops.query import FrameIndex  # noqa: E402
-from lidarops.query.build import LabelsSource, build_index  # noqa: E402
+from lidarops.query.build import BuildReport, FrameError, LabelsSource, build_index  # noqa: E402
+from lidarops.query.index import QueryError  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+CLASSES = ("Car", "Pedestrian", "Cyclist")
 
 
 class FakeFrame:
     class_names = ("Car", "Pedestrian", "Cyclist", "Truck")
 
-    def __init__(self, rng):
+    def __init__(self, rng, timestamp=None):
         n = int(rng.integers(0, 9))
         self.labels = rng.integers(-1, 4, n)  # -1: a class outside the list, 3: a class not counted
         self.boxes = np.concatenate([rng.uniform(-30, 60, (n, 2)), np.ones((n, 5))], 1).astype(np.float32)
+        self.timestamp = timestamp
+        self.meta = {}
 
 
 def frames(n, seed=0):
     rng = np.random.default_rng(seed)
-    return [(10 * i + 3, FakeFrame(rng)) for i in range(n)]
+    return {10 * i + 3: FakeFrame(rng, timestamp=0.1 * i) for i in range(n)}
 
 
 def truth(pairs):
-    return {fid: {c: int((f.labels == k).sum()) for k, c in enumerate(("Car", "Pedestrian", "Cyclist"))}
-            for fid, f in pairs}
+    return {fid: {c: int((f.labels == k).sum()) for k, c in enumerate(CLASSES)} for fid, f in pairs.items()}
+
+
+def stored(idx, source="labels"):
+    got = idx.sql('SELECT frame_id, "Car", "Pedestrian", "Cyclist" FROM counts WHERE source = ? ORDER BY frame_id',
+                  [source])
+    return {int(r.frame_id): {"Car": r.Car, "Pedestrian": r.Pedestrian, "Cyclist": r.Cyclist} for r in got.itertuples()}
 
 
 def test_labels_counts_and_centres(tmp_path):
     pairs = frames(23)
-    out = build_index(tmp_path / "idx", pairs, LabelsSource(["Car", "Pedestrian", "Cyclist"]), chunk=5)
-    assert out == {"indexed": 23, "skipped": 0}
+    out = build_index(tmp_path / "idx", list(pairs), pairs.__getitem__, LabelsSource(CLASSES), batch=3, part_frames=5)
+    assert (out.indexed, out.skipped, out.failed) == (23, 0, [])
+    assert set(out.stage_seconds) == {"load", "count", "write"}
     idx = FrameIndex.open(tmp_path / "idx")
     want = truth(pairs)
-    got = idx.sql('SELECT frame_id, "Car", "Pedestrian", "Cyclist" FROM counts ORDER BY frame_id')
-    assert {int(r.frame_id): {"Car": r.Car, "Pedestrian": r.Pedestrian, "Cyclist": r.Cyclist}
-            for r in got.itertuples()} == want
+    assert stored(idx) == want
+    assert len(list((tmp_path / "idx" / "counts" / "labels").glob("*.parquet"))) == 5  # ceil(23 / 5) parts
     n_centres = int(idx.sql("SELECT count(*) AS n FROM centres")["n"][0])
     assert n_centres == sum(sum(v.values()) for v in want.values())
+    stamps = idx.sql("SELECT frame_id, timestamp FROM counts ORDER BY frame_id")
+    assert np.allclose(stamps["timestamp"], [0.1 * i for i in range(23)])
     # a region equals counting the labelled boxes inside it
     region = (0.0, -10.0, 30.0, 10.0)
     inside = sum(int(((f.labels == 0) & (f.boxes[:, 0] >= 0) & (f.boxes[:, 0] < 30) & (f.boxes[:, 1] >= -10)
-                      & (f.boxes[:, 1] < 10)).sum()) for _, f in pairs)
+                      & (f.boxes[:, 1] < 10)).sum()) for f in pairs.values())
     assert idx.sum("Car", region=region) == inside
+
+
+def test_workers_give_the_same_index(tmp_path):
+    pairs = frames(17, seed=4)
+    build_index(tmp_path / "a", list(pairs), pairs.__getitem__, LabelsSource(CLASSES), batch=4, workers=0)
+    build_index(tmp_path / "b", list(pairs), pairs.__getitem__, LabelsSource(CLASSES), batch=4, workers=2)
+    assert stored(FrameIndex.open(tmp_path / "b")) == stored(FrameIndex.open(tmp_path / "a")) == truth(pairs)
 
 
 def test_a_stopped_build_resumes_without_duplicates(tmp_path):
     pairs = frames(30, seed=1)
     calls = {"n": 0}
-    inner = LabelsSource(["Car", "Pedestrian", "Cyclist"])
+    inner = LabelsSource(CLASSES)
 
-    def dying(batch):  # the process is killed while counting the third chunk
+    def dying(batch):  # the process is stopped while counting the fifth batch
         calls["n"] += 1
-        if calls["n"] == 3:
+        if calls["n"] == 5:
             raise KeyboardInterrupt
         return inner(batch)
 
     with pytest.raises(KeyboardInterrupt):
-        build_index(tmp_path / "idx", pairs, dying, source_name="labels", classes=inner.classes, chunk=7)
-    assert FrameIndex.open(tmp_path / "idx").count("Car", ">=", 0) == 14  # two chunks landed
-    out = build_index(tmp_path / "idx", pairs, inner, chunk=7)
-    assert out == {"indexed": 16, "skipped": 14}
+        build_index(tmp_path / "idx", list(pairs), pairs.__getitem__, dying, source_name="labels",
+                    classes=inner.classes, batch=3, part_frames=6)
+    assert FrameIndex.open(tmp_path / "idx").frame_count("labels") == 12  # two parts of 6 landed
+    out = build_index(tmp_path / "idx", list(pairs), pairs.__getitem__, inner, batch=3, part_frames=6)
+    assert (out.indexed, out.skipped) == (18, 12)
     idx = FrameIndex.open(tmp_path / "idx")
-    ids = idx.retrieve({})
-    assert ids == sorted(fid for fid, _ in pairs)  # every frame once
-    assert idx.sum("Pedestrian") == sum(v["Pedestrian"] for v in truth(pairs).values())
-    assert build_index(tmp_path / "idx", pairs, inner) == {"indexed": 0, "skipped": 30}
+    assert idx.retrieve({}) == sorted(pairs)  # every frame once
+    assert stored(idx) == truth(pairs)
+    again = build_index(tmp_path / "idx", list(pairs), pairs.__getitem__, inner)
+    assert (again.indexed, again.skipped) == (0, 30)
+
+
+def test_centres_of_a_part_whose_counts_never_landed_are_not_read(tmp_path):
+    """A kill between a part's centres and its counts leaves an orphan centres file: not counted, and
+    overwritten by the build run again."""
+    pairs = frames(6, seed=2)
+    build_index(tmp_path / "idx", list(pairs), pairs.__getitem__, LabelsSource(CLASSES), part_frames=3)
+    counts = tmp_path / "idx" / "counts" / "labels"
+    last = sorted(counts.glob("*.parquet"))[-1]
+    last.unlink()  # as if killed after writing this part's centres
+    idx = FrameIndex.open(tmp_path / "idx")
+    want = truth(pairs)
+    kept = sorted(pairs)[:3]
+    assert idx.frame_count("labels") == 3
+    assert int(idx.sql("SELECT count(*) AS n FROM centres")["n"][0]) == sum(sum(want[f].values()) for f in kept)
+    build_index(tmp_path / "idx", list(pairs), pairs.__getitem__, LabelsSource(CLASSES), part_frames=3)
+    idx = FrameIndex.open(tmp_path / "idx")
+    assert stored(idx) == want
+    assert int(idx.sql("SELECT count(*) AS n FROM centres")["n"][0]) == sum(sum(v.values()) for v in want.values())
+
+
+def test_unreadable_frames_raise_or_are_listed(tmp_path):
+    pairs = frames(9, seed=3)
+
+    def load(fid):
+        if fid in (23, 63):
+            raise FrameError(f"frame {fid}: scan unreadable")
+        return pairs[fid]
+
+    with pytest.raises(FrameError, match="frame 23"):
+        build_index(tmp_path / "idx", list(pairs), load, LabelsSource(CLASSES), batch=2)
+    out = build_index(tmp_path / "idx2", list(pairs), load, LabelsSource(CLASSES), batch=2, on_error="skip")
+    assert out.indexed == 7 and [f for f, _ in out.failed] == [23, 63] and "unreadable" in out.failed[0][1]
+    assert FrameIndex.open(tmp_path / "idx2").retrieve({}) == [f for f in sorted(pairs) if f not in (23, 63)]
+    retry = build_index(tmp_path / "idx2", list(pairs), pairs.__getitem__, LabelsSource(CLASSES))
+    assert (retry.indexed, retry.skipped) == (2, 7)
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    (dict(batch=0), "batch must be an integer >= 1"),
+    (dict(part_frames=1.5), "part_frames must be an integer >= 1"),
+    (dict(workers=-1), "workers must be an integer >= 0"),
+    (dict(on_error="ignore"), "on_error must be 'raise' or 'skip'"),
+])
+def test_bad_build_arguments_are_named(tmp_path, kwargs, message):
+    with pytest.raises(QueryError, match=message):
+        build_index(tmp_path / "idx", [1], lambda f: None, LabelsSource(CLASSES), **kwargs)
+
+
+def test_duplicate_ids_are_refused(tmp_path):
+    with pytest.raises(QueryError, match=r"ids holds duplicates, e.g. \[4\]"):
+        build_index(tmp_path / "idx", [4, 5, 4], lambda f: None, LabelsSource(CLASSES))
+
+
+# ---------------------------------------------------------------- a KITTI folder, written by hand
+
+LABEL = "{name} 0.00 0 0.0 100.0 120.0 200.0 220.0 1.5 1.6 3.9 {x:.2f} 1.70 {z:.2f} 0.10\n"
+
+
+def kitti_folder(root: Path, n: int, seed: int = 0, points: int = 200) -> dict[int, dict[str, int]]:
+    """``n`` frames (ids 100, 101, ...) with random labels; returns each frame's true counts per class,
+    counted from the names written (Van and DontCare are not counted)."""
+    rng = np.random.default_rng(seed)
+    want = {}
+    for d in ("velodyne", "label_2", "calib"):
+        (root / d).mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        fid = 100 + i
+        pts = np.concatenate([rng.uniform(-40, 40, (points, 3)), rng.uniform(0, 1, (points, 1))], 1)
+        pts.astype(np.float32).tofile(root / "velodyne" / f"{fid:06d}.bin")
+        names = rng.choice(["Car", "Pedestrian", "Cyclist", "Van", "DontCare"], int(rng.integers(0, 7)))
+        (root / "label_2" / f"{fid:06d}.txt").write_text(
+            "".join(LABEL.format(name=nm, x=rng.uniform(-10, 10), z=rng.uniform(5, 40)) for nm in names))
+        write_calib(root / "calib" / f"{fid:06d}.txt", KittiCalib.default())
+        want[fid] = {c: int((names == c).sum()) for c in CLASSES}
+    return want
+
+
+def test_cli_builds_a_kitti_folder(tmp_path, capsys):
+    want = kitti_folder(tmp_path / "kitti", 7)
+    out = str(tmp_path / "idx")
+    assert main(["index", "build", str(tmp_path / "kitti"), "--out", out, "--no-progress", "--workers", "0",
+                 "--min-points", "0"]) == 0
+    printed = capsys.readouterr().out
+    assert "indexed 7 frame(s) with source labels" in printed and "load" in printed and "count" in printed
+    idx = FrameIndex.open(out)
+    assert stored(idx) == want
+    paths = idx.sql("SELECT frame_id, path FROM counts ORDER BY frame_id")
+    assert [Path(p).name for p in paths["path"]] == [f"{f:06d}.bin" for f in sorted(want)]
+
+
+def test_cli_names_a_corrupt_scan_or_lists_it(tmp_path, capsys):
+    want = kitti_folder(tmp_path / "kitti", 6, seed=1)
+    (tmp_path / "kitti" / "velodyne" / "000102.bin").write_bytes(b"\x00" * 10)  # not a whole point
+    (tmp_path / "kitti" / "label_2" / "000104.txt").unlink()
+    out = str(tmp_path / "idx")
+    assert main(["index", "build", str(tmp_path / "kitti"), "--out", out, "--no-progress", "--workers", "0",
+                 "--min-points", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "000102.bin" in err[0], err
+    assert main(["index", "build", str(tmp_path / "kitti"), "--out", out, "--no-progress", "--skip-bad",
+                 "--min-points", "0"]) == 1
+    printed = capsys.readouterr().out
+    assert "left out 2 frame(s)" in printed and "000102.bin" in printed and "000104: no labels" in printed
+    assert sorted(stored(FrameIndex.open(out))) == [100, 101, 103, 105]
+    # the detector does not need labels: the frame without them is counted, the corrupt scan still named
+    assert FrameIndex.open(out).sources == ["labels"]
+    assert {f: want[f] for f in (100, 101, 103, 105)} == stored(FrameIndex.open(out))
+
+
+@pytest.mark.parametrize("setup,message", [
+    (lambda p: p.mkdir(), "is not a KITTI object directory"),
+    (lambda p: (p / "velodyne").mkdir(parents=True), "holds no .bin scans"),
+    (lambda p: kitti_folder(p, 1) and None, None),
+])
+def test_cli_empty_or_unlabelled_folders(tmp_path, capsys, setup, message):
+    folder = tmp_path / "kitti"
+    setup(folder)
+    if message is None:  # a folder without label_2/ asked for the labels
+        import shutil
+        shutil.rmtree(folder / "label_2")
+        message = "has no label_2/ folder: --source labels counts the labels"
+    assert main(["index", "build", str(folder), "--out", str(tmp_path / "idx"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+
+
+def _cli(*args, env=None):
+    return [sys.executable, "-c", "import sys; from lidarops.cli import main; sys.exit(main(sys.argv[1:]))", *args]
+
+
+def test_sigkill_midway_then_resume(tmp_path):
+    """A real SIGKILL during a build (parts of one frame, so it dies between parts), then the same command
+    again: every frame once, counts equal to the labels."""
+    want = kitti_folder(tmp_path / "kitti", 60, seed=2, points=20000)
+    out = tmp_path / "idx"
+    cmd = _cli("index", "build", str(tmp_path / "kitti"), "--out", str(out), "--no-progress", "--workers", "0",
+               "--part-frames", "1", "--batch", "1", "--min-points", "0")
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    parts = out / "counts" / "labels"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None and len(list(parts.glob("*.parquet"))) < 3:
+        time.sleep(0.01)
+    assert proc.poll() is None, "the build ended before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    landed = FrameIndex.open(out).frame_count("labels")
+    assert 3 <= landed < 60
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert f"({landed} already there)" in done.stdout
+    idx = FrameIndex.open(out)
+    assert idx.retrieve({}) == sorted(want)
+    assert stored(idx) == want
+
+
+@pytest.mark.slow
+def test_torchrun_two_ranks_make_one_index(tmp_path):
+    """``torchrun --nproc_per_node=2 lidarops index build``: two gloo processes, each its share of the
+    frames and its own parts; the index is their union, every frame once."""
+    want = kitti_folder(tmp_path / "kitti", 13, seed=3)
+    out = tmp_path / "idx"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "--no-python",
+           *_cli("index", "build", str(tmp_path / "kitti"), "--out", str(out), "--no-progress", "--workers", "0",
+                 "--part-frames", "4", "--min-points", "0")]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "indexed 13 frame(s) with source labels" in done.stdout and "on 2 ranks" in done.stdout
+    names = sorted(p.name for p in (out / "counts" / "labels").glob("*.parquet"))
+    assert names == ["part-r000-00000.parquet", "part-r000-00001.parquet",
+                     "part-r001-00000.parquet", "part-r001-00001.parquet"]  # 7 + 6 frames, parts of 4
+    idx = FrameIndex.open(out)
+    assert stored(idx) == want
+
+
+def test_report_shares():
+    r = BuildReport(indexed=10, seconds=2.0, stage_seconds={"load": 0.5, "count": 1.0, "write": 0.5})
+    assert r.frames_per_second == 5.0
+    assert r.shares() == "load 25 %, count 50 %, write 25 %"
 
 
 def test_cli_build_and_query(tmp_path, capsys):
+    from lidarops.data.synthetic import SyntheticFrames
+
     out = str(tmp_path / "idx")
-    assert main(["index", "build", "--scenario", "driving_city", "--frames", "3", "--out", out, "--no-progress"]) == 0
-    assert "indexed 3 frame(s) with source labels" in capsys.readouterr().out
+    assert main(["index", "build", "--scenario", "driving_city", "--frames", "3", "--out", out, "--no-progress",
+                 "--workers", "0"]) == 0
+    printed = capsys.readouterr().out
+    assert "indexed 3 frame(s) with source labels" in printed
+    assert "boxes centred in x [0, 69.12), y [-39.68, 39.68) holding >= 1 point(s)" in printed
     idx = FrameIndex.open(out)
+    # the default rule, counted by hand from the simulated frames: within the shipped detector's range, seen
+    sim = SyntheticFrames("driving_city", num_frames=3, seed=5000)
+    for i in range(3):
+        f = sim[i]
+        ok = ((f.boxes[:, 0] >= 0) & (f.boxes[:, 0] < 69.12) & (f.boxes[:, 1] >= -39.68) & (f.boxes[:, 1] < 39.68)
+              & (f.num_points_in_box >= 1))
+        want = {c: int(((f.labels == f.class_names.index(c)) & ok).sum()) for c in CLASSES}
+        assert stored(idx)[i] == want
+    everywhere = str(tmp_path / "all")
+    assert main(["index", "build", "--scenario", "driving_city", "--frames", "1", "--out", everywhere,
+                 "--no-progress", "--workers", "0", "--labels-range", "all", "--min-points", "0"]) == 0
+    capsys.readouterr()
+    f = sim[0]
+    assert stored(FrameIndex.open(everywhere))[0] == {c: int((f.labels == f.class_names.index(c)).sum()) for c in CLASSES}
     cars = idx.sum("Car")
+    assert idx.sql("SELECT DISTINCT sequence FROM counts")["sequence"].tolist() == ["driving_city:5000"]
     assert main(["query", "sum", out, "--class", "Car"]) == 0
     assert capsys.readouterr().out.strip() == str(cars)
     assert main(["query", "retrieve", out, "--where", "Car>=0", "--frames", "0:2"]) == 0
@@ -98,6 +329,9 @@ def test_cli_build_and_query(tmp_path, capsys):
     (["query", "sum", "{nowhere}", "--class", "Car"], "no frame index at"),
     (["index", "build", "--out", "{new}"], "give a KITTI folder, or --scenario NAME --frames N"),
     (["index", "build", "--scenario", "driving_city", "--out", "{new}"], "--frames must be >= 1"),
+    (["index", "build", "--scenario", "driving_city", "--frames", "2", "--batch", "0", "--out", "{new}"],
+     "--batch must be >= 1"),
+    (["index", "build", "{nowhere}", "--out", "{new}"], "is not a folder"),
 ])
 def test_cli_errors_are_one_line(tmp_path, capsys, argv, message):
     idx = tmp_path / "idx"
@@ -106,3 +340,89 @@ def test_cli_errors_are_one_line(tmp_path, capsys, argv, message):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
+
+
+class _CountingModel:
+    """A stand-in detector: per frame, one Car (label 1) at its points' mean scoring 0.9, and as many
+    Pedestrians (label 2) as the frame has points above z = 1, scoring 0.3."""
+
+    class config:
+        class_names = ["Car", "Pedestrian", "Cyclist"]
+
+    def parameters(self):
+        import torch
+        yield torch.zeros(1)
+
+    def predict(self, batch):
+        import torch
+        pts = batch["points"]
+        out = []
+        for i in range(batch["batch_size"]):
+            p = pts[pts[:, 0] == i, 1:]
+            tall = int((p[:, 2] > 1).sum())
+            boxes = torch.zeros(1 + tall, 7)
+            boxes[0, :2] = p[:, :2].mean(0)
+            out.append({"boxes": boxes, "labels": torch.tensor([1] + [2] * tall),
+                        "scores": torch.tensor([0.9] + [0.3] * tall)})
+        return out
+
+
+@pytest.mark.parametrize("as_tensor", [False, True])
+def test_detector_source_batches_frames_and_thresholds_scores(as_tensor):
+    import torch
+
+    from lidarops.query.build import DetectorSource, Scan
+
+    rng = np.random.default_rng(6)
+    clouds = [rng.uniform(-5, 5, (n, 4)).astype(np.float32) for n in (7, 0 + 3, 12)]
+    frames_ = [Scan(torch.from_numpy(c)) if as_tensor else FakeFrame(rng) for c in clouds]
+    if not as_tensor:
+        for f, c in zip(frames_, clouds):
+            f.points = c
+    low = DetectorSource(_CountingModel(), score_thresh=0.25)(frames_)
+    high = DetectorSource(_CountingModel(), score_thresh=0.5)(frames_)
+    for c, (counts, centres), (counts_hi, _) in zip(clouds, low, high):
+        tall = int((c[:, 2] > 1).sum())
+        assert counts == {"Car": 1, "Pedestrian": tall, "Cyclist": 0}
+        assert counts_hi == {"Car": 1, "Pedestrian": 0, "Cyclist": 0}
+        assert centres[0][0] == "Car" and np.allclose(centres[0][1:3], c[:, :2].mean(0), atol=1e-5)
+
+
+def test_cli_compare_html_and_evaluate(tmp_path, capsys):
+    """--compare puts each source's answer beside the labels' (numbers worked out from the tables here);
+    --html writes the page; evaluate prints its tables and writes JSON."""
+    import json
+
+    rng = np.random.default_rng(8)
+    n = 40
+    labels = {"frame_id": np.arange(n), "Car": rng.integers(0, 8, n), "Pedestrian": rng.integers(0, 4, n),
+              "Cyclist": rng.integers(0, 2, n)}
+    detector = {**labels, "Car": np.maximum(labels["Car"] + rng.integers(-2, 2, n), 0)}
+    out = tmp_path / "idx"
+    idx = FrameIndex.create(out, labels)
+    idx.append(detector, source="detector")
+    assert main(["query", "retrieve", str(out), "--where", "Car>=5", "--compare"]) == 0
+    printed = capsys.readouterr().out
+    want = set(np.flatnonzero(labels["Car"] >= 5).tolist())
+    got = set(np.flatnonzero(detector["Car"] >= 5).tolist())
+    assert f"{len(got & want)} of the labels' {len(want)} found, {len(got - want)} not in them" in printed
+    assert main(["query", "sum", str(out), "--class", "Car", "--compare"]) == 0
+    printed = capsys.readouterr().out
+    diff = int(detector["Car"].sum()) - int(labels["Car"].sum())
+    assert f"detector  {int(detector['Car'].sum())}" in printed and f"{diff:+d}" in printed
+    page = tmp_path / "answer.html"
+    assert main(["query", "count", str(out), "--where", "Pedestrian>=2", "--source", "detector", "--html",
+                 str(page), "--html-frames", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.splitlines()[0] == str(int((detector["Pedestrian"] >= 2).sum()))
+    assert page.is_file() and "of" in printed.splitlines()[1] and "3 of" in printed.splitlines()[1]
+    report = tmp_path / "eval.json"
+    assert main(["query", "evaluate", str(out), "--groups", "4", "--queries", "20", "--group-frames", "5:10",
+                 "--json", str(report)]) == 0
+    printed = capsys.readouterr().out
+    assert "RETRIEVAL" in printed and "COUNT" in printed and "AGGREGATION" in printed
+    data = json.loads(report.read_text())
+    true, pred = int(labels["Car"].sum()), int(detector["Car"].sum())
+    assert data["aggregation"]["true"]["Car"] == true and data["aggregation"]["pred"]["Car"] == pred
+    assert data["aggregation"]["q_error"]["Car"] == pytest.approx(max(true, pred) / min(true, pred))
+    assert data["frames"] == n

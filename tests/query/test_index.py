@@ -11,6 +11,7 @@ import pytest
 duckdb = pytest.importorskip("duckdb")
 pa = pytest.importorskip("pyarrow")
 
+from helpers.query import centres_of as _centres_of  # noqa: E402
 from lidarops.query import FrameIndex, QueryError  # noqa: E402
 
 CLASSES = ["Car", "Pedestrian", "Cyclist"]
@@ -23,16 +24,7 @@ def table(rng, n, first=0, classes=CLASSES, high=8):
 
 
 def centres_of(rng, counts):
-    rows = {"frame_id": [], "class": [], "x": [], "y": [], "score": []}
-    for i, fid in enumerate(counts["frame_id"]):
-        for c in CLASSES:
-            for _ in range(int(counts[c][i])):
-                rows["frame_id"].append(int(fid))
-                rows["class"].append(c)
-                rows["x"].append(float(rng.choice([0.0, 10.0, 20.0]) if rng.random() < 0.3 else rng.uniform(-5, 40)))
-                rows["y"].append(float(rng.uniform(-20, 20)))
-                rows["score"].append(float(rng.uniform(0.3, 1)))
-    return rows
+    return _centres_of(rng, counts, CLASSES, ties=0.3)
 
 
 def brute(counts, where=None, frames=None, region=None, centres=None):
