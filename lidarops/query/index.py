@@ -327,6 +327,21 @@ class FrameIndex:
         value = self.con.execute(f"{sql} SELECT avg({column}) FROM f", base).fetchone()[0]
         return None if value is None else float(value)
 
+    def compare(self, kind: str, *args, **kwargs) -> dict[str, Any]:
+        """One query's answer from every source of the index, ``{source: answer}``, labels first: e.g.
+        ``idx.compare("count", "Car", ">=", 5, region=(0, -10, 40, 10))``.
+
+        Args:
+            kind: ``"retrieve"``, ``"count"``, ``"sum"`` or ``"avg"``; the other arguments are that
+                method's, without ``source``.
+        """
+        if kind not in ("retrieve", "count", "sum", "avg"):
+            raise QueryError(f"kind must be one of retrieve, count, sum, avg, got {kind!r}")
+        if "source" in kwargs:
+            raise QueryError("compare asks every source: leave source out")
+        order = sorted(self.sources, key=lambda s: (s != "labels", s))
+        return {source: getattr(self, kind)(*args, source=source, **kwargs) for source in order}
+
     def sql(self, query: str, params: Sequence[Any] = ()):
         """Any SQL over the views ``counts`` and ``centres`` (a pandas DataFrame)."""
         return self.con.execute(query, list(params)).df()

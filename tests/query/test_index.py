@@ -179,3 +179,21 @@ def test_import_is_light():
     import sys
     code = "import sys, lidarops.query; assert 'duckdb' not in sys.modules and 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_compare_asks_every_source(tmp_path):
+    rng = np.random.default_rng(11)
+    a, b = table(rng, 30), table(rng, 30)
+    idx = FrameIndex.create(tmp_path / "idx", b, source="zeta")
+    idx.append(a, source="labels")
+    got = idx.compare("count", "Car", ">=", 4, frames=range(4, 70))
+    assert list(got) == ["labels", "zeta"]
+    for name, t in (("labels", a), ("zeta", b)):
+        inside = (t["frame_id"] >= 4) & (t["frame_id"] < 70)
+        assert got[name] == int(((t["Car"] >= 4) & inside).sum())
+    sums = idx.compare("sum", "Pedestrian")
+    assert sums == {"labels": int(a["Pedestrian"].sum()), "zeta": int(b["Pedestrian"].sum())}
+    with pytest.raises(QueryError, match="kind must be one of"):
+        idx.compare("max", "Car")
+    with pytest.raises(QueryError, match="leave source out"):
+        idx.compare("sum", "Car", source="labels")
