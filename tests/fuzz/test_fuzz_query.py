@@ -51,3 +51,41 @@ def test_index_queries(data):
         assert res == sorted(f for f, r in rows if OPS[op](r[cls], value))
         assert idx.count(cls, op, value, frames=frames) == len(res)
         assert idx.sum(cls, frames=frames) == sum(r[cls] for _, r in rows)
+
+
+@fuzz
+@given(data=st.data())
+def test_compare(data):
+    """compare: each source's brute-force answer, labels first, or a QueryError naming the kind, the source
+    argument, the class or the operator."""
+    n = data.draw(st.integers(0, 8), "frames")
+    with tempfile.TemporaryDirectory() as root:
+        tables = {}
+        for source in data.draw(st.lists(st.sampled_from(["labels", "detector", "net"]), min_size=1, max_size=3,
+                                         unique=True), "sources"):
+            tables[source] = {"frame_id": list(range(n)),
+                              **{c: data.draw(st.lists(st.integers(0, 4), min_size=n, max_size=n), c) for c in CLASSES}}
+            if len(tables) == 1:
+                idx = FrameIndex.create(root + "/idx", tables[source], source=source, classes=CLASSES)
+            else:
+                idx.append(tables[source], source=source)
+        kind = data.draw(st.sampled_from(["count", "sum", "retrieve", "max", ""]), "kind")
+        cls = data.draw(st.sampled_from(CLASSES + ["Truck"]), "class")
+        op = data.draw(st.sampled_from(list(OPS) + ["=>"]), "operator")
+        extra = data.draw(st.sampled_from([{}, {"source": "labels"}]), "extra")
+        args = {"count": (cls, op, 2), "sum": (cls,), "retrieve": ({cls: (op, 2)},)}.get(kind, (cls,))
+        res, err = outcome(idx.compare, kind, *args, **extra)
+        if kind not in ("count", "sum", "retrieve"):
+            return assert_clear_error(err, QueryError, ["kind"], "compare")
+        if extra:
+            return assert_clear_error(err, QueryError, ["source"], "compare")
+        if cls == "Truck":
+            return assert_clear_error(err, QueryError, ["Truck"], "compare")
+        if op == "=>" and kind != "sum":
+            return assert_clear_error(err, QueryError, ["=>"], "compare")
+        assert err is None, err
+        assert list(res) == sorted(tables, key=lambda s: (s != "labels", s))
+        for source, t in tables.items():
+            hits = [f for f in t["frame_id"] if OPS.get(op, operator.ge)(t[cls][f], 2)]
+            want = {"count": len(hits), "sum": sum(t[cls]), "retrieve": hits}[kind]
+            assert res[source] == want, (source, kind)
