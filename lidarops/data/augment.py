@@ -32,7 +32,14 @@ if TYPE_CHECKING:
     from lidarops.data.detection import KittiDetectionDataset
 
 __all__ = ["flip_along_x", "flip_along_y", "rotate_world", "scale_world", "GtDatabase", "GtSampler",
-           "build_gt_database"]
+           "build_gt_database", "BOX_MARGIN_XY"]
+
+#: OpenPCDet's ``points_in_boxes_cpu`` -- what its ``create_groundtruth_database`` gathers an object's points
+#: with, and its gt sampling clears the scene under the pasted boxes with -- counts a point in a box when
+#: ``|local x| < dx / 2 + 0.01``, ``|local y| < dy / 2 + 0.01`` (metres) and ``|z - z_centre| <= dz / 2``.
+#: The centimetre takes in the surface points that range noise puts just outside the labelled faces: without
+#: it an object of ``lidarops data synth`` frames keeps about three quarters of its points.
+BOX_MARGIN_XY = 0.01
 
 
 def _counts(entries: Mapping[str, int] | Sequence[str] | None, what: str) -> dict[str, int]:
@@ -136,6 +143,9 @@ class GtDatabase:
         frame_ids (ndarray str[K]): frame of each object.
         gt_index (ndarray int64[K]): row of the object in its label file.
         source_ids (ndarray str[F]): the frames the database was built from.
+        margin (float): metres added to each box's half-length and half-width (not its height) when its
+            points were gathered (:data:`BOX_MARGIN_XY`, OpenPCDet's; files written before lidarops recorded
+            it were gathered with 0.0).
     """
 
     points: np.ndarray
@@ -147,6 +157,7 @@ class GtDatabase:
     frame_ids: np.ndarray
     gt_index: np.ndarray
     source_ids: np.ndarray
+    margin: float = 0.0
 
     _FIELDS = ("points", "offsets", "boxes", "names", "num_points", "difficulty", "frame_ids", "gt_index", "source_ids")
 
@@ -166,7 +177,7 @@ class GtDatabase:
         fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent)
         try:
             with os.fdopen(fd, "wb") as f:
-                np.savez(f, **{name: getattr(self, name) for name in self._FIELDS})
+                np.savez(f, **{name: getattr(self, name) for name in self._FIELDS}, margin=np.float64(self.margin))
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
@@ -185,7 +196,14 @@ class GtDatabase:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"gt database not found: {path}")
-        data = read_npz(path, cls._FIELDS, "a lidarops gt database")
+        what = "a lidarops gt database"
+        try:
+            data = read_npz(path, cls._FIELDS + ("margin",), what)
+        except ValueError as e:
+            if "missing ['margin']" not in str(e):
+                raise
+            data = read_npz(path, cls._FIELDS, what)  # written before the margin was recorded: gathered without
+            data["margin"] = np.float64(0.0)
         m = data["boxes"].shape[0] if data["boxes"].ndim == 2 else -1
         off = data["offsets"]
         problem = None
@@ -200,14 +218,18 @@ class GtDatabase:
             problem = f"offsets must rise from 0 to the {data['points'].shape[0]} points in {m + 1} steps"
         elif data["source_ids"].ndim != 1:
             problem = "source_ids must be 1-D"
+        elif data["margin"].shape != () or data["margin"].dtype.kind != "f" or not 0 <= float(data["margin"]) < 1:
+            problem = f"margin must be a float scalar in [0, 1) metres, got {data['margin']!r}"
         if problem:
             raise ValueError(f"{path}: not a gt database written by GtDatabase.save ({problem})")
+        data["margin"] = float(data["margin"])
         return cls(**data)
 
     def __repr__(self) -> str:
         names, counts = np.unique(self.names, return_counts=True)
         summary = ", ".join(f"{n}={c}" for n, c in zip(names, counts))
-        return f"GtDatabase({len(self)} objects [{summary}], {self.points.shape[0]} points, {len(self.source_ids)} frames)"
+        return (f"GtDatabase({len(self)} objects [{summary}], {self.points.shape[0]} points, "
+                f"{len(self.source_ids)} frames, margin {self.margin:g} m)")
 
 
 def _frame_labels(split_dir: Path, frame_id: str) -> KittiLabels:
@@ -223,13 +245,15 @@ def _care(labels: KittiLabels) -> np.ndarray:
 
 def build_gt_database(source: "KittiDetectionDataset | str | Path", ids: str | Sequence[str] | None = None,
                       class_names: Sequence[str] | None = KITTI_CLASSES,
-                      out_path: str | Path | None = None) -> GtDatabase:
+                      out_path: str | Path | None = None, margin: float = BOX_MARGIN_XY) -> GtDatabase:
     """Extracts the labelled objects of KITTI-format frames with their points (OpenPCDet's
     ``create_groundtruth_database``).
 
     Each object's points are those of the whole scan (not only the camera's field of view; as OpenPCDet)
-    inside its box (``lidarops.points_in_boxes``; a point in two overlapping boxes goes to both), stored
-    relative to the box centre. ``DontCare`` labels are skipped. Building twice gives the same database.
+    inside its box grown by ``margin`` on each side in length and width, not in height (OpenPCDet's
+    ``points_in_boxes_cpu`` grows them by :data:`BOX_MARGIN_XY`; computed by ``lidarops.points_in_boxes``, a
+    point in two overlapping boxes goes to both), stored relative to the box centre. ``DontCare`` labels are
+    skipped. Building twice gives the same database.
 
     Args:
         source: a :class:`KittiDetectionDataset` (its folder and, by default, its ids), or a KITTI root /
@@ -238,10 +262,13 @@ def build_gt_database(source: "KittiDetectionDataset | str | Path", ids: str | S
             ``None`` (the dataset's ids, or every scan of the folder).
         class_names (sequence of str or None): object types to keep (``None``: all).
         out_path (str or Path or None): where to save the ``.npz`` (not saved if ``None``).
+        margin (float): metres added to each half-length and half-width, in [0, 1) (0: the box itself).
 
     Returns:
         GtDatabase.
     """
+    if not 0 <= margin < 1:
+        raise ValueError(f"margin must be in [0, 1) metres, got {margin!r}")
     if hasattr(source, "split_dir") and hasattr(source, "ids"):  # a KittiDetectionDataset
         split_dir = source.split_dir
         if ids is None:
@@ -266,7 +293,7 @@ def build_gt_database(source: "KittiDetectionDataset | str | Path", ids: str | S
         calib = read_calib(split_dir / "calib" / f"{frame_id}.txt")
         points = read_velodyne(split_dir / "velodyne" / f"{frame_id}.bin")
         boxes = camera_to_lidar_boxes(labels.location, labels.dimensions, labels.rotation_y, calib).astype(np.float32)
-        members = _object_members(points, boxes)
+        members = _object_members(points, boxes, margin)
         for j, idx in enumerate(members):
             pts = points[idx].copy()
             pts[:, :3] -= boxes[j, :3]
@@ -288,15 +315,24 @@ def build_gt_database(source: "KittiDetectionDataset | str | Path", ids: str | S
         frame_ids=np.array(parts["frame_ids"], dtype=str),
         gt_index=np.concatenate(parts["gt_index"]).astype(np.int64) if parts["gt_index"] else np.zeros(0, np.int64),
         source_ids=np.array(ids, dtype=str),
+        margin=float(margin),
     )
     if out_path is not None:
         db.save(out_path)
     return db
 
 
-def _object_members(points: np.ndarray, boxes: np.ndarray) -> list[np.ndarray]:
-    """Indices of the points inside each box; a point in several (overlapping) boxes counts for each."""
-    mask = points_in_boxes_mask(points, boxes)
+def _grown_xy(boxes: np.ndarray, margin: float) -> np.ndarray:
+    """(M, 7) float64 boxes with ``margin`` added to each half-length and half-width (not the height)."""
+    grown = np.asarray(boxes, dtype=np.float64)[:, :7].copy()
+    grown[:, 3:5] += 2.0 * margin
+    return grown
+
+
+def _object_members(points: np.ndarray, boxes: np.ndarray, margin: float) -> list[np.ndarray]:
+    """Indices of the points inside each box grown by ``margin`` in x and y; a point in several (overlapping)
+    boxes counts for each."""
+    mask = points_in_boxes_mask(points, _grown_xy(boxes, margin))
     return [np.flatnonzero(mask[:, j]) for j in range(boxes.shape[0])]
 
 
@@ -307,8 +343,9 @@ class GtSampler:
     the class in the scene`` with ``limit_whole_scene``) uniformly without replacement (``rng.choice``; OpenPCDet
     walks a shuffled list with a pointer kept across calls instead, which would tie an item to the items
     drawn before it); drawn boxes overlapping (BEV IoU > 0) a scene box, an object pasted before or another
-    drawn box are dropped; the scene's points inside the kept boxes (grown by ``remove_extra_width``) are
-    removed and the objects' points put first. Objects keep their height (no road planes: OpenPCDet's
+    drawn box are dropped; the scene's points inside the kept boxes (grown by ``remove_extra_width``, then by
+    :data:`BOX_MARGIN_XY` in length and width: OpenPCDet's ``remove_points_in_boxes3d``) are removed and the
+    objects' points put first. Objects keep their height (no road planes: OpenPCDet's
     ``USE_ROAD_PLANE`` is not supported) and may come from the scene's own frame.
 
     Args:
@@ -376,9 +413,9 @@ class GtSampler:
         picked = np.concatenate(chosen) if chosen else np.zeros(0, np.int64)
         if picked.size == 0:
             return points, existing, names
-        grown = db.boxes[picked].copy()
+        grown = db.boxes[picked].astype(np.float64)
         grown[:, 3:6] += self.remove_extra_width
-        scene = points[box_index_of_points(points, grown) < 0]
+        scene = points[box_index_of_points(points, _grown_xy(grown, BOX_MARGIN_XY)) < 0]
         pasted = [db.object_points(i) for i in picked]
         return (np.concatenate(pasted + [scene]).astype(np.float32, copy=False), existing,
                 np.concatenate([names, db.names[picked]]))

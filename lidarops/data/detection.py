@@ -46,7 +46,9 @@ Departures from OpenPCDet, all deliberate:
   their z, right for the simulator's flat ground and one sensor height; ``pointpillar.yaml`` runs without
   road planes too);
 * the ground-truth database is one ``.npz`` file (:class:`GtDatabase`) instead of ``gt_database/*.bin`` +
-  ``kitti_dbinfos_train.pkl``, built on demand;
+  ``kitti_dbinfos_train.pkl``, built on demand (its objects' points gathered as OpenPCDet's
+  ``points_in_boxes_cpu`` does, 1 cm beyond the box sides: :data:`~lidarops.data.augment.BOX_MARGIN_XY`; a
+  cached file gathered otherwise, as lidarops wrote them before, is rebuilt);
 * voxelization (``transform_points_to_voxels``) is not done here: the model voxelizes on the device.
 """
 from __future__ import annotations
@@ -66,8 +68,8 @@ from lidarops._moved import moved_attributes
 from lidarops.conventions import KITTI_CLASSES
 from lidarops.data._checks import read_text
 from lidarops.data.datasets import collate_batch
-from lidarops.data.augment import (GtDatabase, GtSampler, _care, _counts, _frame_labels, build_gt_database,
-                                   flip_along_x, flip_along_y, rotate_world, scale_world)
+from lidarops.data.augment import (BOX_MARGIN_XY, GtDatabase, GtSampler, _care, _counts, _frame_labels,
+                                   build_gt_database, flip_along_x, flip_along_y, rotate_world, scale_world)
 from lidarops.data.formats.kitti import (
     KITTI_IMAGE_SIZE,
     KittiDataset,
@@ -133,9 +135,12 @@ class DetectionConfig:
         rotation_range (tuple of 2 float): ``random_world_rotation`` angle range, radians (``WORLD_ROT_ANGLE``).
         scale_range (tuple of 2 float): ``random_world_scaling`` factor range (``WORLD_SCALE_RANGE``).
         mask_outside_range (bool): run ``mask_points_and_boxes_outside_range`` (points: x and y in the range).
-        remove_outside_boxes (bool): in training, drop boxes with fewer than ``min_num_corners`` corners in
-            the range (``REMOVE_OUTSIDE_BOXES``).
-        min_num_corners (int): see ``remove_outside_boxes``.
+        remove_outside_boxes (bool): in training, drop the boxes :func:`mask_boxes_outside_range` rejects
+            (``REMOVE_OUTSIDE_BOXES``).
+        use_center_to_filter (bool): keep a box when its centre is in the range (x, y and z; OpenPCDet's
+            default since 2022), else when ``min_num_corners`` of its corners are, in x and y
+            (``USE_CENTER_TO_FILTER``).
+        min_num_corners (int): see ``use_center_to_filter``.
         shuffle_train, shuffle_test (bool): ``shuffle_points`` (``SHUFFLE_ENABLED`` train / test).
     """
 
@@ -152,6 +157,7 @@ class DetectionConfig:
     scale_range: tuple[float, float] = (0.95, 1.05)
     mask_outside_range: bool = True
     remove_outside_boxes: bool = True
+    use_center_to_filter: bool = True
     min_num_corners: int = 1
     shuffle_train: bool = True
     shuffle_test: bool = False
@@ -179,6 +185,9 @@ class DetectionConfig:
         self.scale_range = _pair(self.scale_range, "scale_range")
         if self.scale_range[0] <= 0:
             raise ValueError(f"scale_range must be positive, got {list(self.scale_range)}")
+        if not isinstance(self.use_center_to_filter, (bool, np.bool_)):
+            raise ValueError(f"use_center_to_filter must be True or False, got {self.use_center_to_filter!r}")
+        self.use_center_to_filter = bool(self.use_center_to_filter)
         if int(self.min_num_corners) not in range(1, 9):
             raise ValueError(f"min_num_corners must be 1..8, got {self.min_num_corners}")
 
@@ -225,6 +234,7 @@ class DetectionConfig:
                     raise ValueError(f"DATA_PROCESSOR {entry['NAME']!r} is not supported (supported: {list(_PROCESSORS)})")
                 if entry["NAME"] == "mask_points_and_boxes_outside_range":
                     kw["remove_outside_boxes"] = bool(entry.get("REMOVE_OUTSIDE_BOXES", True))
+                    kw["use_center_to_filter"] = bool(entry.get("USE_CENTER_TO_FILTER", True))
                     kw["min_num_corners"] = int(entry.get("min_num_corners", 1))
                 elif entry["NAME"] == "shuffle_points":
                     enabled = entry.get("SHUFFLE_ENABLED", {"train": True, "test": False})
@@ -289,21 +299,29 @@ def mask_points_by_range(points: np.ndarray, point_cloud_range: Sequence[float])
     return (x >= r[0]) & (x <= r[3]) & (y >= r[1]) & (y <= r[4])
 
 
-def mask_boxes_outside_range(boxes: np.ndarray, point_cloud_range: Sequence[float], min_num_corners: int = 1) -> np.ndarray:
-    """OpenPCDet's ``mask_boxes_outside_range_numpy``: boxes with at least ``min_num_corners`` of their
-    eight corners inside the closed range, in x, y *and* z (OpenPCDet's default ``filter_z=True``).
+def mask_boxes_outside_range(boxes: np.ndarray, point_cloud_range: Sequence[float], min_num_corners: int = 1,
+                             use_center_to_filter: bool = True) -> np.ndarray:
+    """OpenPCDet's ``mask_boxes_outside_range_numpy`` (its ``mask_points_and_boxes_outside_range`` passes
+    ``USE_CENTER_TO_FILTER``, default True): boxes whose centre lies in the closed range in x, y and z; with
+    ``use_center_to_filter=False``, boxes with at least ``min_num_corners`` of their eight corners in the
+    closed range in x and y.
 
     Args:
         boxes (ndarray[M, >=7]): boxes.
         point_cloud_range (sequence of 6 float): ``x0, y0, z0, x1, y1, z1``.
-        min_num_corners (int): corners required.
+        min_num_corners (int): corners required (corner rule only).
+        use_center_to_filter (bool): the centre rule.
 
     Returns:
         ndarray bool[M].
     """
-    r = np.asarray(point_cloud_range, dtype=np.float64)
-    corners = box_corners(np.asarray(boxes)[:, :7])  # (M, 8, 3)
-    inside = ((corners >= r[:3]) & (corners <= r[3:])).all(axis=2)
+    r = np.asarray(point_cloud_range, dtype=np.float32)  # OpenPCDet's range is float32 (a centre on its end is in)
+    boxes = np.asarray(boxes)[:, :7]
+    if use_center_to_filter:
+        centres = boxes[:, :3]
+        return ((centres >= r[:3]) & (centres <= r[3:])).all(axis=1)
+    corners = box_corners(boxes)[:, :, :2]  # (M, 8, 2)
+    inside = ((corners >= r[:2]) & (corners <= r[3:5])).all(axis=2)
     return inside.sum(axis=1) >= min_num_corners
 
 
@@ -377,9 +395,9 @@ class KittiDetectionDataset(Dataset):
         training (bool): augment, drop boxes outside the range, shuffle; else evaluation items.
         seed (int): base of every random draw (>= 0).
         gt_database (GtDatabase, path or None): objects for gt sampling (training only). ``None``: the file
-            ``gt_database_<split>.npz`` next to ``ImageSets``, (re)built from this split's frames when missing
-            or made from other frames (kept in memory where the folder is read-only); for an id list, a
-            database built in memory.
+            ``gt_database_<split>.npz`` next to ``ImageSets``, (re)built from this split's frames when missing,
+            made from other frames or gathered with another margin than OpenPCDet's (kept in memory where the
+            folder is read-only); for an id list, a database built in memory.
     """
 
     def __init__(self, root: str | Path, split: str | Sequence[str] | None = "train",
@@ -426,7 +444,8 @@ class KittiDetectionDataset(Dataset):
         path = self.root / f"gt_database_{self.split}.npz"
         if path.is_file():
             db = GtDatabase.load(path)
-            if list(db.source_ids) == self.ids:  # built from these frames (for every object type)
+            # built from these frames (for every object type), their points gathered as OpenPCDet does
+            if list(db.source_ids) == self.ids and db.margin == BOX_MARGIN_XY:
                 return db
         log.info("building the gt database of %s (%d frames) at %s", self.split_dir, len(self.ids), path)
         db = build_gt_database(self, class_names=None)
@@ -484,7 +503,8 @@ class KittiDetectionDataset(Dataset):
         if cfg.mask_outside_range:
             points = points[mask_points_by_range(points, cfg.point_cloud_range)]
             if self.training and cfg.remove_outside_boxes:
-                gt_boxes = gt_boxes[mask_boxes_outside_range(gt_boxes, cfg.point_cloud_range, cfg.min_num_corners)]
+                gt_boxes = gt_boxes[mask_boxes_outside_range(gt_boxes, cfg.point_cloud_range, cfg.min_num_corners,
+                                                             cfg.use_center_to_filter)]
         if cfg.shuffle_train if self.training else cfg.shuffle_test:
             points = points[rng.permutation(points.shape[0])]
         item["points"] = np.ascontiguousarray(points, dtype=np.float32)

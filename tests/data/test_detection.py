@@ -11,6 +11,7 @@ import torch
 import lidarops
 from lidarops.data import collate_batch
 from lidarops.data.augment import (
+    BOX_MARGIN_XY,
     GtDatabase,
     GtSampler,
     build_gt_database,
@@ -32,6 +33,7 @@ from lidarops.data.formats.kitti import (
     kitti_fov_mask,
     read_label,
     read_velodyne,
+    write_calib,
     write_kitti_frame,
     write_velodyne,
 )
@@ -152,7 +154,8 @@ def test_fov_and_range_crops(synth, tmp_path):
     assert mask_points_by_range(pts, r).tolist() == [True, False, True, False, False]
 
 
-def test_boxes_kept_iff_a_corner_is_in_range():
+def test_boxes_kept_by_centre_or_corners_as_openpcdet():
+    # OpenPCDet's mask_boxes_outside_range_numpy (master since 2022, USE_CENTER_TO_FILTER default True)
     r = (0.0, -39.68, -3.0, 69.12, 39.68, 1.0)
     boxes = np.array([
         [10, 0, -1, 4, 2, 1.5, 0],            # inside
@@ -161,11 +164,39 @@ def test_boxes_kept_iff_a_corner_is_in_range():
         [-1.3, 0, -1, 2, 2, 1.5, math.pi / 4],  # rotated: only the corner at x = -1.3 + 1.414 inside
         [-1.5, 0, -1, 2, 2, 1.5, math.pi / 4],  # rotated: the nearest corner at x = -0.086
         [30, 41.0, -1, 4, 2, 1.5, 0],         # beyond y1 by more than half the width
-        [30, 40.5, -1, 4, 2, 1.5, 0],         # straddles y1
-        [30, 0, 2.0, 4, 2, 1.5, 0],           # entirely above z1 (OpenPCDet checks z too)
+        [30, 40.5, -1, 4, 2, 1.5, 0],         # straddles y1, centre outside
+        [30, 0, 2.0, 4, 2, 1.5, 0],           # centre and every corner above z1
+        [30, 0, 0.9, 4, 2, 1.5, 0],           # centre below z1, top above it
+        [0.0, 39.68, -3.0, 4, 2, 1.5, 0],     # centre on the closed range's ends
     ], np.float32)
-    assert mask_boxes_outside_range(boxes, r).tolist() == [True, True, False, True, False, False, True, False]
-    assert mask_boxes_outside_range(boxes, r, min_num_corners=8).tolist() == [True] + [False] * 7
+    assert mask_boxes_outside_range(boxes, r).tolist() == [True, False, False, False, False, False, False, False,
+                                                           True, True]
+    # the corner rule counts corners in x and y only
+    corners = mask_boxes_outside_range(boxes, r, use_center_to_filter=False)
+    assert corners.tolist() == [True, True, False, True, False, False, True, True, True, True]
+    assert mask_boxes_outside_range(boxes, r, min_num_corners=8, use_center_to_filter=False).tolist() == \
+        [True] + [False] * 6 + [True, True, False]
+
+
+def test_training_items_drop_boxes_whose_centre_is_out_of_range(synth):
+    root, _ = synth
+    box = KittiDetectionDataset(root, ["000001"], training=False)[0]["gt_boxes"][0]
+    # a range starting 0.2 m past a box's centre: its centre is out, its far corners in
+    near = (float(box[0]) + 0.2, -39.68, -3.0, 69.12, 39.68, 1.0)
+    for use_centre in (True, False):
+        cfg = DetectionConfig(**{**NO_AUG, "mask_outside_range": True, "point_cloud_range": near,
+                                 "use_center_to_filter": use_centre})
+        got = KittiDetectionDataset(root, ["000001"], config=cfg)[0]["gt_boxes"]
+        every = KittiDetectionDataset(root, ["000001"], config=cfg, training=False)[0]["gt_boxes"]
+        np.testing.assert_array_equal(got, every[mask_boxes_outside_range(every, near, 1, use_centre)])
+        centres_in = ((every[:, :3] >= near[:3]) & (every[:, :3] <= near[3:])).all(1)
+        if use_centre:
+            assert got.shape[0] == int(centres_in.sum()) < every.shape[0]
+        else:
+            assert got.shape[0] > int(centres_in.sum())
+    corner_rule = [{"NAME": "mask_points_and_boxes_outside_range", "USE_CENTER_TO_FILTER": False}]
+    assert DetectionConfig.from_openpcdet({"DATA_PROCESSOR": corner_rule}).use_center_to_filter is False
+    assert DetectionConfig().use_center_to_filter
 
 
 # ---------------------------------------------------------------------------------------------
@@ -269,18 +300,98 @@ def test_gt_database(synth, database):
         np.testing.assert_array_equal(getattr(rebuilt, name), getattr(db, name))
     assert "DontCare" not in db.names and list(db.source_ids) == ["000000", "000001", "000002"]
     assert np.diff(db.offsets).tolist() == db.num_points.tolist() and db.num_points.max() > 20
+    assert db.margin == again.margin == BOX_MARGIN_XY == 0.01
     for i in range(len(db)):
         pts = db.object_points(i)
-        grown = db.boxes[i:i + 1].copy()
+        grown = _xy_grown(db.boxes[i:i + 1])
         grown[:, 3:6] += 1e-3  # the centre's float32 round trip
         assert (_owner(pts, grown) == 0).all()
         raw = read_velodyne(root / "training" / "velodyne" / f"{db.frame_ids[i]}.bin")
-        assert (_owner(raw, db.boxes[i:i + 1]) == 0).sum() == db.num_points[i]
+        assert (_owner(raw, _xy_grown(db.boxes[i:i + 1])) == 0).sum() == db.num_points[i]
         labels = read_label(root / "training" / "label_2" / f"{db.frame_ids[i]}.txt")
         assert labels.names[db.gt_index[i]] == db.names[i]
         assert kitti_difficulty(labels)[db.gt_index[i]] == db.difficulty[i]
     cars = build_gt_database(root, "val", class_names=("Car",))
     assert set(cars.names) == {"Car"} and set(cars.frame_ids) == {"000002"}
+
+
+def _xy_grown(boxes, margin=BOX_MARGIN_XY):
+    """Boxes (M, 7) with ``margin`` added to each half-length and half-width, as OpenPCDet's CPU box test."""
+    grown = np.array(boxes[:, :7], dtype=np.float32)
+    grown[:, 3:5] += 2 * margin
+    return grown
+
+
+def test_gt_database_gathers_points_as_openpcdet(synth, database):
+    # OpenPCDet's create_groundtruth_database takes an object's points with its points_in_boxes_cpu, which
+    # counts a point up to 1 cm beyond the box's sides (not above or below it). lidarops.compat.pcdet's
+    # face of it gives OpenPCDet's own masks (compared with OpenPCDet's compiled op: docs/compat.md).
+    from lidarops.compat.pcdet import roiaware_pool3d_utils
+
+    root, _ = synth
+    db, _ = database
+    short = 0
+    for frame_id in db.source_ids:
+        raw = read_velodyne(root / "training" / "velodyne" / f"{frame_id}.bin")
+        rows = np.flatnonzero(db.frame_ids == frame_id)
+        mask = roiaware_pool3d_utils.points_in_boxes_cpu(raw[:, :3], db.boxes[rows])  # (M, N) int32
+        np.testing.assert_array_equal(db.num_points[rows], mask.sum(1))
+        short += int((_owner(raw, db.boxes[rows]) >= 0).sum())
+    assert short < 0.9 * db.num_points.sum()  # the margin matters on simulated surfaces: > 10 % of the points
+
+
+def test_gt_database_margin_hand_computed(synth, tmp_path):
+    root, _ = synth
+    calib = KittiCalib.default()
+    label = "Car 0.00 0 -1.57 600.00 170.00 700.00 230.00 1.500000 1.600000 3.900000 2.000000 1.650000 15.000000 -1.570000\n"
+    box = camera_to_lidar_boxes([[2.0, 1.65, 15.0]], [[1.5, 1.6, 3.9]], [-1.57], calib)[0].astype(np.float64)
+    # points in the box's own frame: half sizes 1.95, 0.8, 0.75
+    local = np.array([[0, 0, 0], [1.955, 0, 0], [-1.965, 0.3, 0], [0, 0.809, 0.2], [0.5, -0.811, 0],
+                      [0, 0, 0.74], [0, 0, 0.755], [1.958, 0.807, -0.7]])
+    inside = [True, True, False, True, False, True, False, True]
+    c, s = math.cos(box[6]), math.sin(box[6])
+    pts = np.stack([box[0] + c * local[:, 0] - s * local[:, 1], box[1] + s * local[:, 0] + c * local[:, 1],
+                    box[2] + local[:, 2], np.full(len(local), 0.5)], 1).astype(np.float32)
+    split = tmp_path / "training"
+    write_velodyne(split / "velodyne" / "000000.bin", pts)
+    write_calib(split / "calib" / "000000.txt", calib)
+    (split / "label_2").mkdir()
+    (split / "label_2" / "000000.txt").write_text(label)
+    db = build_gt_database(tmp_path, ["000000"], class_names=("Car",))
+    assert db.num_points.tolist() == [sum(inside)] and db.margin == 0.01
+    np.testing.assert_allclose(db.object_points(0), pts[inside], atol=1e-5)
+    assert build_gt_database(tmp_path, ["000000"], class_names=("Car",), margin=0.0).num_points.tolist() == [2]
+    with pytest.raises(ValueError, match="margin"):
+        build_gt_database(tmp_path, ["000000"], margin=-0.01)
+    # gt sampling clears the scene under a pasted box with the same margin (OpenPCDet's remove_points_in_boxes3d)
+    one = GtDatabase(points=np.zeros((1, 4), np.float32), offsets=np.array([0, 1]), boxes=box[None].astype(np.float32),
+                     names=np.array(["Car"]), num_points=np.array([1]), difficulty=np.zeros(1, np.int64),
+                     frame_ids=np.array(["a"]), gt_index=np.zeros(1, np.int64), source_ids=np.array(["a"]))
+    out, _, _ = GtSampler(one, {"Car": 1}, None, CLASSES)(pts, np.zeros((0, 7), np.float32), np.array([], str),
+                                                           np.random.default_rng(0))
+    np.testing.assert_array_equal(out[1:], pts[~np.array(inside)])
+
+
+def test_cached_gt_database_gathered_without_the_margin_is_rebuilt(synth, tmp_path):
+    root, _ = synth
+    copy = tmp_path / "kitti"
+    (copy / "ImageSets").mkdir(parents=True)
+    (copy / "ImageSets" / "train.txt").write_text((root / "ImageSets" / "train.txt").read_text())
+    (copy / "training").symlink_to(root / "training")
+    old = build_gt_database(root, "train", class_names=None, margin=0.0)
+    path = copy / "gt_database_train.npz"
+    # a file as lidarops wrote them before the margin was recorded: no 'margin' array
+    np.savez(path, **{name: getattr(old, name) for name in GtDatabase._FIELDS})
+    assert GtDatabase.load(path).margin == 0.0
+    ds = KittiDetectionDataset(copy, "train", seed=0)
+    db = ds.sampler.database
+    assert db.margin == BOX_MARGIN_XY and (db.num_points >= old.num_points).all()
+    assert db.num_points.sum() > old.num_points.sum()
+    assert GtDatabase.load(path).margin == BOX_MARGIN_XY  # rewritten
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **{name: getattr(old, name) for name in GtDatabase._FIELDS}, margin=np.array([0.01, 0.02]))
+    with pytest.raises(ValueError, match="margin"):
+        GtDatabase.load(bad)
 
 
 def _sampled_rows(db, boxes):
@@ -318,12 +429,13 @@ def test_gt_sampling(synth, database, limit_whole_scene):
         assert iou.max(initial=0) == 0  # no overlap with the scene's boxes nor with each other
         n_pasted = int(db.num_points[rows].sum())
         pasted, kept = out_points[:n_pasted], out_points[n_pasted:]
-        grown = new.copy()
+        grown = _xy_grown(new)
         grown[:, 3:6] += 1e-3
         owner = _owner(pasted, grown)
         assert (owner >= 0).all() and np.array_equal(np.bincount(owner, minlength=len(rows)), db.num_points[rows])
-        assert (_owner(kept, new) < 0).all()  # the scene's points inside pasted boxes are gone
-        assert kept.shape[0] == int((_owner(points, new) < 0).sum())
+        # the scene's points inside the pasted boxes, 1 cm beyond their sides included, are gone
+        assert (_owner(kept, _xy_grown(new)) < 0).all()
+        assert kept.shape[0] == int((_owner(points, _xy_grown(new)) < 0).sum())
     assert total > 0
     strict = GtSampler(db, {"Car": 50}, {"Car": 10_000}, CLASSES)
     assert strict.pools["Car"].size == 0
