@@ -43,6 +43,7 @@ class Trainable:
     datasets: Callable[[Path, Sequence[str], Mapping, argparse.Namespace], tuple]
     evaluator: Callable[[Sequence[str]], Any]
     summary: Callable[[Mapping[str, float], Sequence[str]], str]
+    creates_data: Callable[[Mapping], bool] = lambda cfg: False  # the data folder is a cache the run fills
 
 
 def _kitti_detection_datasets(root: Path, class_names: Sequence[str], cfg: Mapping, args: argparse.Namespace):
@@ -76,6 +77,34 @@ def _kitti_summary(metrics: Mapping[str, float], class_names: Sequence[str]) -> 
     return "moderate AP (R40): " + ", ".join(shown) if shown else ""
 
 
+def _object_datasets(root: Path, class_names: Sequence[str], cfg: Mapping, args: argparse.Namespace):
+    """Objects cut from simulated scenes (cached in the data folder) or ModelNet40, resampled to a fixed
+    number of points, batched as ``points (B, N, C)``, ``labels (B,)``."""
+    import os
+
+    from lidarops.data.object_sets import datasets_from_config, without_single_object_batches
+
+    train_set, test_set, collate = datasets_from_config(cfg, data_path=root, workers=args.workers or 0, log=print)
+    if args.max_train_frames:
+        train_set = train_set.subset(range(min(args.max_train_frames, len(train_set))))
+    if args.max_val_frames:
+        test_set = test_set.subset(range(min(args.max_val_frames, len(test_set))))
+    batch = args.batch_size or cfg.get("OPTIMIZATION", {}).get("BATCH_SIZE_PER_GPU", 32)
+    return without_single_object_batches(train_set, batch, int(os.environ.get("WORLD_SIZE", 1))), test_set, collate
+
+
+def _classification_evaluator(class_names: Sequence[str]):
+    from lidarops.eval.classification import ClassificationEvaluator
+
+    return ClassificationEvaluator(class_names)
+
+
+def _classification_summary(metrics: Mapping[str, float], class_names: Sequence[str]) -> str:
+    if "accuracy" not in metrics:
+        return ""
+    return f"accuracy {metrics['accuracy']:.1f} %, mean class accuracy {metrics['mean_class_accuracy']:.1f} %"
+
+
 _POINTPILLARS = Trainable(model="PointPillars", datasets=_kitti_detection_datasets, evaluator=_kitti_evaluator,
                           summary=_kitti_summary)
 
@@ -84,6 +113,9 @@ _POINTPILLARS = Trainable(model="PointPillars", datasets=_kitti_detection_datase
 TRAINABLE: dict[str, Trainable] = {
     "PointPillar": _POINTPILLARS,
     "PointPillars": _POINTPILLARS,
+    "PointNet": Trainable(model="PointNet", datasets=_object_datasets, evaluator=_classification_evaluator,
+                          summary=_classification_summary,
+                          creates_data=lambda cfg: cfg.get("DATA_CONFIG", {}).get("DATASET", "SimObjects") == "SimObjects"),
 }
 
 
@@ -120,6 +152,8 @@ def train(args: argparse.Namespace) -> int:
                  if v is not None}
     config = TrainConfig.from_openpcdet(cfg.get("OPTIMIZATION", {}), **overrides)
     data_path = args.data or cfg.get("DATA_CONFIG", {}).get("DATA_PATH")
+    if data_path and entry.creates_data(cfg):
+        Path(data_path).mkdir(parents=True, exist_ok=True)
     if not data_path or not Path(data_path).is_dir():
         where = f"data folder {data_path} not found" if data_path else "no data folder"
         raise CliError(f"{where} (give --data, or DATA_CONFIG.DATA_PATH in the config); make one with: "
@@ -144,15 +178,18 @@ def train(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     """Adds ``train`` to the ``lidarops`` parser."""
-    t = subparsers.add_parser("train", help="train a model (PointPillars) from a config on a KITTI-format folder",
+    t = subparsers.add_parser("train", help="train a model (PointPillars, PointNet) from a config on its data",
                               description="Train the model a config names (MODEL.NAME: "
                                           f"{', '.join(sorted(TRAINABLE))}) from an OpenPCDet-schema config (e.g. "
-                                          "configs/pointpillars/pointpillars_synth.yaml) on a KITTI-format folder. Under "
+                                          "configs/pointpillars/pointpillars_synth.yaml) on a KITTI-format folder, or a PointNet "
+                                          "classifier (configs/casnet/pointnet_objects.yaml) on objects cut from "
+                                          "simulated scenes. Under "
                                           "torchrun it runs DistributedDataParallel, one process per GPU.")
     t.add_argument("--config", required=True,
                    help="YAML config (OpenPCDet schema): a path, or a shipped config by name (pointpillars_synth, "
                         "pointpillars_demo, pointpillars_kitti, pointpillars_synth_all)")
-    t.add_argument("--data", default=None, help="KITTI-format folder (default: the config's DATA_PATH)")
+    t.add_argument("--data", default=None, help="KITTI-format folder, or the object-set cache folder (default: the "
+                                                "config's DATA_PATH)")
     t.add_argument("--out", required=True, help="run folder: checkpoints, log.csv, evaluations")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from latest.pth")
     t.add_argument("--epochs", type=int, default=None, help="epochs (default: the config's OPTIMIZATION.NUM_EPOCHS)")

@@ -53,6 +53,10 @@ _LAZY = {
     "GtSampler": "lidarops.data.augment",
     "build_gt_database": "lidarops.data.augment",
     "save_bev": "lidarops.data.viz",
+    "ObjectClassificationDataset": "lidarops.data.object_sets",
+    "ObjectSetRecipe": "lidarops.data.object_sets",
+    "build_object_set": "lidarops.data.object_sets",
+    "collate_classification": "lidarops.data.object_sets",
 }
 
 __all__ = ["CLASSES", "CLASS_COLORS", "Frame", "class_index", "box_corners", "count_points_in_boxes",

@@ -13,6 +13,14 @@ Detectors and their parts (OpenPCDet's names, so checkpoints and habits carry ov
 * :class:`PointPillarsConfig` (:mod:`~lidarops.models.config`): the typed config (YAML through
   :func:`lidarops.config.load_config`).
 
+Classification: :class:`PointNet` (:mod:`~lidarops.models.pointnet`), the classifier CAS-Net's
+experiments put behind a sampler.
+
+CAS-Net, learned point cloud simplification (:mod:`~lidarops.models.casnet`): :class:`CASNet` and its
+parts (:class:`OffsetAttention`; the losses :func:`chamfer_distance`, :func:`selection_cosine_loss`), and
+the samplers behind one interface ``sampler(points, m) -> indices`` (:class:`RandomSampler`,
+:class:`FPSSampler`, :class:`ChunkedFPSSampler`, :class:`CASNetSampler`; :mod:`~lidarops.models.samplers`).
+
 Files: :func:`load_model` builds whatever model a checkpoint names (through :data:`MODELS`);
 :mod:`~lidarops.models.weights` holds the shipped ones (``weights.load("pointpillars_synth")``).
 Submodules are imported on first use.
@@ -28,13 +36,16 @@ from lidarops._moved import moved_attributes
 
 __all__ = ["MODELS", "model_class", "load_model", "PointPillars", "PointPillarsConfig", "GraphedPointPillars",
            "SSCATeRPointPillars", "PillarVFE", "PointPillarScatter", "BaseBEVBackbone", "AnchorHeadSingle",
-           "weights"]
+           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
+           "chamfer_distance", "selection_cosine_loss", "RandomSampler", "FPSSampler", "ChunkedFPSSampler",
+           "sample_features"]
 
 #: Every model a checkpoint can name, by ``model_class`` (the class name lidarops writes) and by the
 #: ``MODEL.NAME`` of OpenPCDet's configs: name -> (module, class). The one table; models register nothing.
 MODELS: dict[str, tuple[str, str]] = {
     "PointPillars": ("lidarops.models.pointpillars", "PointPillars"),
     "PointPillar": ("lidarops.models.pointpillars", "PointPillars"),  # OpenPCDet's MODEL.NAME
+    "PointNet": ("lidarops.models.pointnet", "PointNet"),
 }
 
 
@@ -95,6 +106,19 @@ __getattr__, __dir__ = lazy_attributes(__name__, {
     "PointPillarScatter": ("lidarops.models.map_to_bev", "PointPillarScatter"),
     "BaseBEVBackbone": ("lidarops.models.bev_backbone", "BaseBEVBackbone"),
     "AnchorHeadSingle": ("lidarops.models.anchor_head", "AnchorHeadSingle"),
+    "PointNet": ("lidarops.models.pointnet", "PointNet"),
+    "PointNetConfig": ("lidarops.models.pointnet", "PointNetConfig"),
+    "CASNet": ("lidarops.models.casnet", "CASNet"),
+    "CASNetSampler": ("lidarops.models.casnet", "CASNetSampler"),
+    "segment_and_sample": ("lidarops.models.casnet", "segment_and_sample"),
+    "casnet_loss": ("lidarops.models.casnet", "casnet_loss"),
+    "OffsetAttention": ("lidarops.models.offset_attention", "OffsetAttention"),
+    "chamfer_distance": ("lidarops.models.casnet_losses", "chamfer_distance"),
+    "selection_cosine_loss": ("lidarops.models.casnet_losses", "selection_cosine_loss"),
+    "RandomSampler": ("lidarops.models.samplers", "RandomSampler"),
+    "FPSSampler": ("lidarops.models.samplers", "FPSSampler"),
+    "ChunkedFPSSampler": ("lidarops.models.samplers", "ChunkedFPSSampler"),
+    "sample_features": ("lidarops.models.samplers", "sample_features"),
     "weights": "lidarops.models.weights",
 }, globals())
 __getattr__ = moved_attributes(__name__, {"PointPillarsBackbone": ("lidarops.models.bev_backbone", "BaseBEVBackbone")},

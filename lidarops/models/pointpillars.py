@@ -28,7 +28,8 @@ from torch.nn import functional as F
 from lidarops import checkpoint
 from lidarops._moved import moved_attributes
 from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
-from lidarops.config import ConfigError, load_config
+from lidarops.config import ConfigError
+from lidarops.models.base import PredictMixin, as_model_config
 from lidarops.models.anchor_head import AnchorHeadSingle
 from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.models.config import PointPillarsConfig
@@ -55,7 +56,7 @@ __getattr__ = moved_attributes(__name__, {
 CheckpointMismatchError = CheckpointError
 
 
-class PointPillars(nn.Module):
+class PointPillars(PredictMixin, nn.Module):
     """The PointPillars detector.
 
     Args:
@@ -74,7 +75,7 @@ class PointPillars(nn.Module):
 
     def __init__(self, config: "PointPillarsConfig | Mapping | str | Path" = None):
         super().__init__()
-        cfg = self.config = _as_config(config)
+        cfg = self.config = as_model_config(config, PointPillarsConfig)
         self.vfe = PillarVFE(cfg.num_point_features, cfg.voxel_size, cfg.point_cloud_range, cfg.vfe_num_filters,
                              cfg.with_distance, cfg.use_absolute_xyz, cfg.use_norm)
         self.map_to_bev = PointPillarScatter(self.vfe.out_channels, cfg.grid_size)
@@ -177,27 +178,8 @@ class PointPillars(nn.Module):
         """Per-frame detections (see :func:`postprocess`) from the raw outputs of ``forward`` in eval mode."""
         return postprocess(*self.dense_head.decode(raw), self.config)
 
-    @torch.no_grad()
-    def predict(self, batch: Mapping[str, Any]) -> list[dict]:
-        """Eval-mode forward and post-processing: one dict of ``boxes``, ``scores``, ``labels`` per frame."""
-        was_training = self.training
-        self.eval()
-        try:
-            return self.postprocess(self(batch), batch)
-        finally:
-            self.train(was_training)
 
 
-def _as_config(config) -> PointPillarsConfig:
-    if config is None:
-        return PointPillarsConfig()
-    if isinstance(config, PointPillarsConfig):
-        return config
-    if isinstance(config, (str, Path)):
-        return PointPillarsConfig.from_openpcdet(load_config(config))
-    if isinstance(config, Mapping):
-        return PointPillarsConfig.from_openpcdet(config) if "MODEL" in config else PointPillarsConfig.from_dict(config)
-    raise ConfigError(f"config must be a PointPillarsConfig, a dict or a YAML path, got {type(config).__name__}")
 
 
 def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bool,

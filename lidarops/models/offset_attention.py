@@ -1,0 +1,376 @@
+"""PCT's offset-attention layer (Guo et al. 2021, ``SA_Layer`` of PCT's code), as CAS-Net stacks it, with a path
+for whole clouds that never holds an N x N matrix.
+
+The layer, for features ``x (B, C, N)``::
+
+    Q = K = W_qk x                       one shared 1x1 projection C -> d, no bias (PCT: q_conv.weight = k_conv.weight)
+    V     = W_v x + b_v                  1x1 conv C -> C
+    E     = Q^T K                        (B, N, N), no 1/sqrt(d) scale (PCT's offset attention has none)
+    P     = softmax(E, dim=-1)           over the keys j of each query i
+    A     = P / (1e-9 + P.sum(dim=1))    column re-normalisation: each column j sums to ~1 over the queries i
+    x_r   = V A                          x_r[:, j] = sum_i V[:, i] A[i, j]
+    out   = x + ReLU(BN(Conv1x1(x - x_r)))
+
+Two paths compute ``x_r`` (:func:`column_normalized_attention`):
+
+* **plain** (``chunk=None``): the formula above with ``torch.bmm``; autograd keeps the N x N matrices.
+* **chunked** (``chunk=r`` rows, or ``"auto"``): ``A``'s normalisation divides column j by a number, so
+  ``x_r[:, j] = (sum_i V[:, i] P[i, j]) / (1e-9 + sum_i P[i, j])``: one pass over blocks of r query rows
+  accumulates the numerator ``V P`` and the column sums ``1^T P`` together (V with a row of ones appended), each
+  block's softmax complete because a block holds whole rows. The backward (a ``torch.autograd.Function``)
+  recomputes each block from the saved row maxima and sums; its gradients, with ``H = G / D`` (G the gradient
+  of ``x_r``, D the column denominators) and ``g_D = -sum_c H x_r``:
+
+      dV = H P^T,    dP = V^T H + 1 g_D^T,    dE = P * (dP - rowsum(P * dP)),    dQ = K dE^T,    dK = Q dE
+
+  (Q and K are one tensor here; autograd adds the two). Same result as the plain path up to rounding.
+
+Padding (``mask (B, N)``, True = a real point): padded points neither attend nor are attended. A padded key
+column j gets ``P[i, j] = 0`` (left out of every softmax over j); a padded query row i gets ``P[i, :] = 0``
+(left out of every column sum and of every ``x_r``); BatchNorm's statistics (training) are taken over the real
+points only; and the output at a padded point is its input ``x`` unchanged (identity, so stacked layers carry
+padding through untouched). The real points' outputs are then exactly those of the layer run on the real points
+alone (:func:`_offset_attention_reference` states it that way), whatever the padded features hold.
+
+Memory of the attention, per layer (s = bytes per element of the computation dtype, float32 for float16/bfloat16
+inputs in the chunked path; C channels, d qk channels, r rows per block):
+
+* plain, inference: peak ``2 B N^2 s`` (the energies, then the softmax and its re-normalised copy); training:
+  ``2 B N^2 s`` kept from forward to backward (P saved by the softmax and the division, A by bmm; ``3 B N^2 s``
+  with a mask: the masked copy of P too) and a peak of about ``6 B N^2 s`` while the backward runs.
+* chunked, forward: ``B r N s`` (one block, energies turned into probabilities in place) + ``B N (2C + 5) s`` (the
+  numerator with its row of column sums, V with its row of ones, row maxima and sums, denominators); kept for the
+  backward: ``B N (C + 4) s`` (x_r with the column-sum row, row maxima and sums, denominators) besides Q, K, V;
+  backward: ``2 B r N s`` (the block's P and its dP -> dE, in place) + about ``B N (4C + 2d + 4) s`` (H, [H; g_D],
+  V with ones, dV, dQ, dK). Nothing of size N x N, forward or backward.
+
+Measured on CPU (every allocation counted after each op; the whole layer, C = 64, d = 16, B = 1, float32,
+N = 1024..4096): plain inference ``2.0-2.2 B N^2 s``, plain training step ``6.0-6.1 B N^2 s``; chunked inference
+``B r N s + 3.3 B N C s``, chunked training step ``2 B r N s + 9.9 B N C s`` (the layer's convolutions, offsets
+and BatchNorm included). At N = 20,000 that is about 9.6 GB against 0.18 GB (r = 832) for one layer's training
+step; at N = 65,536, 103 GB against 0.3 GB (r = 256).
+
+``"auto"`` picks the plain path when ``B N^2 <= AUTO_ENTRIES`` (2^24 entries: 64 MiB in float32) and otherwise
+chunks of ``r = AUTO_ENTRIES // (B N)`` rows (a multiple of 64 when at least 64), so a block holds at most
+``AUTO_ENTRIES`` entries.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+from torch.autograd.function import once_differentiable
+from torch.nn import functional as F
+
+from lidarops._checks import positive_int
+from lidarops.ops.validation import check_tensor, describe
+
+__all__ = ["OffsetAttention", "column_normalized_attention", "AUTO_ENTRIES"]
+
+#: Most entries of one block of energies the ``"auto"`` chunking allows (and the largest B N^2 it runs plain).
+AUTO_ENTRIES = 2**24
+#: PCT's constant in the column re-normalisation ``A / (1e-9 + A.sum(dim=1))``.
+COLUMN_EPS = 1e-9
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# argument checks
+# ---------------------------------------------------------------------------------------------------------------
+def _check_mask(mask, B: int, N: int, like: Tensor) -> None:
+    if mask is None:
+        return
+    check_tensor(mask, "mask")
+    if mask.dtype != torch.bool:
+        raise ValueError(f"mask must be a bool tensor (True = a real point), got {describe(mask)}")
+    if tuple(mask.shape) != (B, N):
+        raise ValueError(f"mask must be (B, N) = ({B}, {N}), got {describe(mask)}")
+    if mask.device != like.device:
+        raise ValueError(f"mask is on {mask.device} but the features are on {like.device}; move them to one device")
+
+
+def _check_chunk(chunk) -> "int | str | None":
+    if chunk is None or (isinstance(chunk, str) and chunk == "auto"):
+        return chunk
+    if isinstance(chunk, str):
+        raise ValueError(f"chunk must be None (plain path), 'auto' or an int >= 1 (rows per block), got {chunk!r}")
+    try:
+        return positive_int(chunk, "chunk")
+    except ValueError:
+        raise ValueError(f"chunk must be None (plain path), 'auto' or an int >= 1 (rows per block), "
+                         f"got {chunk!r}") from None
+
+
+def _rows_per_chunk(chunk, B: int, N: int) -> "int | None":
+    """The rows per block the chunked path runs with; None for the plain path."""
+    if chunk is None:
+        return None
+    if chunk == "auto":
+        if B * N * N <= AUTO_ENTRIES:
+            return None
+        rows = max(1, AUTO_ENTRIES // max(1, B * N))
+        return rows - rows % 64 if rows >= 64 else rows
+    return chunk
+
+
+def _check_qkv(q, k, v) -> None:
+    for name, t in (("q", q), ("k", k), ("v", v)):
+        check_tensor(t, name)
+        if t.dim() != 3:
+            raise ValueError(f"{name} must be (B, channels, N), got {describe(t)}")
+        if not t.is_floating_point():
+            raise ValueError(f"{name} must be floating point, got {describe(t)}")
+    if q.shape != k.shape:
+        raise ValueError(f"q and k must have one shape (B, d, N), got q {describe(q)} and k {describe(k)}")
+    if v.shape[0] != q.shape[0] or v.shape[2] != q.shape[2]:
+        raise ValueError(f"v must be (B, C, N) with B, N = {q.shape[0]}, {q.shape[2]} (those of q), got {describe(v)}")
+    for name, t in (("k", k), ("v", v)):
+        if t.dtype != q.dtype:
+            raise ValueError(f"{name} must have q's dtype {q.dtype}, got {describe(t)}")
+        if t.device != q.device:
+            raise ValueError(f"{name} is on {t.device} but q is on {q.device}; move them to one device")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the plain path
+# ---------------------------------------------------------------------------------------------------------------
+def _attention_plain(q: Tensor, k: Tensor, v: Tensor, mask: "Tensor | None") -> Tensor:
+    attention = torch.bmm(q.transpose(1, 2), k)  # the energies (B, N, N)
+    if mask is not None:  # padded keys out of every softmax; padded query rows made finite, then zeroed
+        attention = attention.masked_fill(~mask[:, None, :], -math.inf).masked_fill(~mask[:, :, None], 0.0)
+    attention = torch.softmax(attention, dim=-1)
+    if mask is not None:
+        attention = attention.masked_fill(~mask[:, :, None], 0.0)
+    attention = attention / (COLUMN_EPS + attention.sum(dim=1, keepdim=True))
+    return torch.bmm(v, attention)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the chunked path
+# ---------------------------------------------------------------------------------------------------------------
+def _block_probabilities(q_rows: Tensor, k: Tensor, mask: "Tensor | None", rows: slice,
+                         row_max: "Tensor | None" = None, row_sum: "Tensor | None" = None):
+    """P of the query rows ``rows``: (B, r, N), computed in place in one buffer. Without ``row_max``/``row_sum``
+    it computes them (forward) and returns them too; with them (backward) it recomputes the same P bit for bit."""
+    p = torch.bmm(q_rows.transpose(1, 2), k)
+    if mask is not None:
+        p.masked_fill_(~mask[:, None, :], -math.inf)
+        p.masked_fill_(~mask[:, rows, None], 0.0)
+    if row_max is None:
+        m = p.amax(dim=-1, keepdim=True)
+        p.sub_(m).exp_()
+        s = p.sum(dim=-1, keepdim=True)
+        p.div_(s)
+    else:
+        m, s = row_max[:, rows, None], row_sum[:, rows, None]
+        p.sub_(m).exp_().div_(s)
+    if mask is not None:
+        p.masked_fill_(~mask[:, rows, None], 0.0)
+    return p, m, s
+
+
+def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
+    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+
+
+class _ChunkedColumnAttention(torch.autograd.Function):
+    """x_r = V A over blocks of query rows, forward and backward; see the module's docstring for the algebra."""
+
+    @staticmethod
+    def forward(ctx, q: Tensor, k: Tensor, v: Tensor, mask: "Tensor | None", rows: int) -> Tensor:
+        out_dtype = v.dtype
+        ct = _compute_dtype(q.dtype)
+        with torch.autocast(q.device.type, enabled=False):
+            q, k, v = q.to(ct), k.to(ct), v.to(ct)
+            B, C, N = v.shape
+            v1 = torch.cat([v, v.new_ones(B, 1, N)], 1)  # the row of ones accumulates the column sums
+            acc = v.new_zeros(B, C + 1, N)
+            row_max, row_sum = v.new_empty(B, N), v.new_empty(B, N)
+            for start in range(0, N, rows):
+                r = slice(start, min(N, start + rows))
+                p, m, s = _block_probabilities(q[:, :, r], k, mask, r)
+                row_max[:, r], row_sum[:, r] = m.squeeze(-1), s.squeeze(-1)
+                acc.baddbmm_(v1[:, :, r], p)
+                del p
+            denom = acc[:, C].add(COLUMN_EPS)  # (B, N)
+            x_r = acc[:, :C].div_(denom[:, None, :])
+        ctx.rows = rows
+        ctx.out_dtype = out_dtype
+        ctx.dtypes = (q.dtype, k.dtype, v.dtype)
+        ctx.save_for_backward(q, k, v, mask, row_max, row_sum, denom, x_r)
+        return x_r.to(out_dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        q, k, v, mask, row_max, row_sum, denom, x_r = ctx.saved_tensors
+        need_q, need_k, need_v = ctx.needs_input_grad[:3]
+        B, C, N = v.shape
+        with torch.autocast(q.device.type, enabled=False):
+            h = grad.to(v.dtype) / denom[:, None, :]  # H = G / D
+            if mask is not None:  # padded columns: D = 1e-9 and P = 0 there; keep H finite
+                h = h.masked_fill(~mask[:, None, :], 0.0)
+            h1 = torch.cat([h, -(h * x_r).sum(dim=1, keepdim=True)], 1)  # [H; g_D], g_D = -sum_c H x_r
+            v1 = torch.cat([v, v.new_ones(B, 1, N)], 1) if (need_q or need_k) else None
+            dq = torch.zeros_like(q) if need_q else None
+            dk = torch.zeros_like(k) if need_k else None
+            dv = torch.empty_like(v) if need_v else None
+            for start in range(0, N, ctx.rows):
+                r = slice(start, min(N, start + ctx.rows))
+                p, _, _ = _block_probabilities(q[:, :, r], k, mask, r, row_max, row_sum)
+                if need_v:
+                    dv[:, :, r] = torch.bmm(h, p.transpose(1, 2))
+                if need_q or need_k:
+                    de = torch.bmm(v1[:, :, r].transpose(1, 2), h1)  # dP of the block (B, r, N)
+                    de.mul_(p)
+                    de.addcmul_(p, de.sum(dim=-1, keepdim=True), value=-1.0)  # dE = P * (dP - rowsum(P * dP))
+                    if need_q:
+                        dq[:, :, r] = torch.bmm(k, de.transpose(1, 2))
+                    if need_k:
+                        dk.baddbmm_(q[:, :, r], de)
+                    del de
+                del p
+        dq = dq.to(ctx.dtypes[0]) if need_q else None
+        dk = dk.to(ctx.dtypes[1]) if need_k else None
+        dv = dv.to(ctx.dtypes[2]) if need_v else None
+        return dq, dk, dv, None, None
+
+
+def column_normalized_attention(q: Tensor, k: Tensor, v: Tensor, mask: "Tensor | None" = None,
+                                chunk: "int | str | None" = None) -> Tensor:
+    """``x_r = V A`` of offset attention: ``A = P / (1e-9 + P.sum(dim=1))``, ``P = softmax(Q^T K, dim=-1)``.
+
+    Args:
+        q (Tensor[B, d, N]), k (Tensor[B, d, N]): queries and keys (one tensor in PCT's layer), floating.
+        v (Tensor[B, C, N]): values, same dtype and device.
+        mask (Tensor[B, N] bool, optional): True = a real point; padded keys get no weight and padded queries
+            take no part in the column sums (their columns of ``x_r`` are 0).
+        chunk: ``None`` (plain path, N x N matrices), an int (the chunked path with blocks of that many query
+            rows; never an N x N matrix, forward or backward) or ``"auto"`` (see :data:`AUTO_ENTRIES`).
+
+    Returns:
+        Tensor[B, C, N]: ``x_r`` in v's dtype (the chunked path computes float16/bfloat16 in float32).
+
+    Raises:
+        ValueError: shapes, dtypes or devices that do not fit, a bad ``mask`` or ``chunk``.
+    """
+    _check_qkv(q, k, v)
+    B, _, N = q.shape
+    _check_mask(mask, B, N, q)
+    rows = _rows_per_chunk(_check_chunk(chunk), B, N)
+    if B == 0 or N == 0:
+        return v * 0  # empty
+    if rows is None:
+        return _attention_plain(q, k, v, mask)
+    return _ChunkedColumnAttention.apply(q, k, v, mask, rows)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the layer
+# ---------------------------------------------------------------------------------------------------------------
+class OffsetAttention(nn.Module):
+    """PCT's offset-attention layer (``SA_Layer``; CAS-Net's OA), with its parameter names (``q_conv``,
+    ``k_conv``, ``v_conv``, ``trans_conv``, ``after_norm``) so PCT and CAS-Net checkpoints load.
+
+    Args:
+        channels (int): C, the feature channels in and out.
+        qk_channels (int): d, the shared query/key projection's channels (PCT: C / 4).
+        chunk: the default path of :meth:`forward`: ``None`` (plain), an int (rows per block of the chunked path)
+            or ``"auto"`` (plain for small inputs, chunked for large ones; see :data:`AUTO_ENTRIES`).
+
+    Shapes: ``x (B, C, N)`` -> ``(B, C, N)``; ``mask (B, N)`` bool, True = a real point (see the module docstring:
+    padded points neither attend nor are attended, BatchNorm's statistics skip them, their output is ``x``).
+    """
+
+    def __init__(self, channels: int = 64, qk_channels: int = 16, chunk: "int | str | None" = "auto"):
+        super().__init__()
+        channels, qk_channels = positive_int(channels, "channels"), positive_int(qk_channels, "qk_channels")
+        self.channels, self.qk_channels = channels, qk_channels
+        self.chunk = _check_chunk(chunk)
+        self.q_conv = nn.Conv1d(channels, qk_channels, 1, bias=False)
+        self.k_conv = nn.Conv1d(channels, qk_channels, 1, bias=False)
+        self.k_conv.weight = self.q_conv.weight  # one projection for Q and K, as PCT
+        self.v_conv = nn.Conv1d(channels, channels, 1)
+        self.trans_conv = nn.Conv1d(channels, channels, 1)
+        self.after_norm = nn.BatchNorm1d(channels)
+        self.act = nn.ReLU()
+
+    def extra_repr(self) -> str:
+        return f"channels={self.channels}, qk_channels={self.qk_channels}, chunk={self.chunk!r}"
+
+    def forward(self, x: Tensor, mask: "Tensor | None" = None, chunk: "int | str | None" = ...) -> Tensor:
+        """Args:
+            x (Tensor[B, C, N]): features, floating, on the layer's device.
+            mask (Tensor[B, N] bool, optional): True = a real point.
+            chunk: overrides the layer's ``chunk`` for this call (``...``, the default, keeps it).
+
+        Returns:
+            Tensor[B, C, N]: ``x + ReLU(BN(trans_conv(x - x_r)))`` at real points, ``x`` at padded ones.
+        """
+        check_tensor(x, "x")
+        if x.dim() != 3 or x.shape[1] != self.channels:
+            raise ValueError(f"x must be (B, C, N) with C = {self.channels}, got {describe(x)}")
+        if not x.is_floating_point():
+            raise ValueError(f"x must be floating point, got {describe(x)}")
+        weight = self.q_conv.weight
+        if x.device != weight.device:
+            raise ValueError(f"x is on {x.device} but the layer is on {weight.device}; move them to one device")
+        if x.dtype != weight.dtype and not torch.is_autocast_enabled(x.device.type):
+            raise ValueError(f"x must have the layer's dtype {weight.dtype} (or run under torch.autocast), "
+                             f"got {describe(x)}")
+        B, _, N = x.shape
+        _check_mask(mask, B, N, x)
+        chunk = self.chunk if chunk is ... else _check_chunk(chunk)
+        if B == 0 or N == 0:
+            return x.clone()
+        q = self.q_conv(x)
+        k = q if self.k_conv.weight is self.q_conv.weight else self.k_conv(x)
+        x_r = column_normalized_attention(q, k, self.v_conv(x), mask, chunk)
+        y = self.trans_conv(x - x_r)
+        if mask is None:
+            return x + self.act(self.after_norm(y))
+        # BatchNorm over the real points only (its statistics and running averages), padded points unchanged
+        yt = y.transpose(1, 2)
+        real = yt[mask]  # (P, C)
+        if real.shape[0] == 0:  # only padding: nothing to normalise
+            return x.clone()
+        delta = torch.zeros_like(yt).index_put((mask,), self.act(self.after_norm(real)))
+        return x + delta.transpose(1, 2)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the reference
+# ---------------------------------------------------------------------------------------------------------------
+def _offset_attention_reference(x: Tensor, q_weight: Tensor, v_weight: Tensor, v_bias: Tensor, trans_weight: Tensor,
+                                trans_bias: Tensor, bn_weight: Tensor, bn_bias: Tensor, running_mean: Tensor,
+                                running_var: Tensor, training: bool, momentum: float = 0.1, bn_eps: float = 1e-5,
+                                mask: "Tensor | None" = None) -> Tensor:
+    """PCT's ``SA_Layer.forward`` written out literally, cloud by cloud on the real points only (padded points
+    do not exist for it; their output is their input). BatchNorm pools the real points of every cloud, as one
+    ``F.batch_norm`` call; in training it updates ``running_mean``/``running_var`` in place, as the layer does.
+
+    Args: the layer's weights as tensors (``q_weight (d, C, 1)``, ``v_weight (C, C, 1)``, ``v_bias (C,)``,
+    ``trans_weight (C, C, 1)``, ``trans_bias (C,)``) and its BatchNorm's parameters and buffers.
+    """
+    B, C, N = x.shape
+    mask = torch.ones(B, N, dtype=torch.bool, device=x.device) if mask is None else mask
+    offsets = []
+    for b in range(B):
+        xb = x[b:b + 1, :, mask[b]]  # (1, C, n): the real points of cloud b
+        if xb.shape[2] == 0:
+            continue
+        x_q = F.conv1d(xb, q_weight).permute(0, 2, 1)  # (1, n, d)
+        x_k = F.conv1d(xb, q_weight)  # (1, d, n): the same weight
+        x_v = F.conv1d(xb, v_weight, v_bias)  # (1, C, n)
+        energy = torch.bmm(x_q, x_k)  # (1, n, n)
+        attention = torch.softmax(energy, dim=-1)
+        attention = attention / (1e-9 + attention.sum(dim=1, keepdim=True))
+        x_r = torch.bmm(x_v, attention)  # (1, C, n)
+        offsets.append(xb - x_r)
+    if not offsets:  # only padding
+        return x.clone()
+    y = F.conv1d(torch.cat(offsets, dim=2), trans_weight, trans_bias)  # (1, C, P): every real point of the batch
+    y = F.batch_norm(y, running_mean, running_var, bn_weight, bn_bias, training, momentum, bn_eps)
+    out = x.clone()
+    out.permute(0, 2, 1)[mask] = (x.permute(0, 2, 1)[mask] + F.relu(y[0].t()))
+    return out
