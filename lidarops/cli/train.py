@@ -105,6 +105,11 @@ def _classification_summary(metrics: Mapping[str, float], class_names: Sequence[
     return f"accuracy {metrics['accuracy']:.1f} %, mean class accuracy {metrics['mean_class_accuracy']:.1f} %"
 
 
+def _simulated_objects(cfg: Mapping) -> bool:
+    """Whether the data folder is the object-set cache a first run simulates (rather than data to read)."""
+    return cfg.get("DATA_CONFIG", {}).get("DATASET", "SimObjects") == "SimObjects"
+
+
 _POINTPILLARS = Trainable(model="PointPillars", datasets=_kitti_detection_datasets, evaluator=_kitti_evaluator,
                           summary=_kitti_summary)
 
@@ -114,8 +119,10 @@ TRAINABLE: dict[str, Trainable] = {
     "PointPillar": _POINTPILLARS,
     "PointPillars": _POINTPILLARS,
     "PointNet": Trainable(model="PointNet", datasets=_object_datasets, evaluator=_classification_evaluator,
-                          summary=_classification_summary,
-                          creates_data=lambda cfg: cfg.get("DATA_CONFIG", {}).get("DATASET", "SimObjects") == "SimObjects"),
+                          summary=_classification_summary, creates_data=_simulated_objects),
+    "CASNetPointNet": Trainable(model="CASNetPointNet", datasets=_object_datasets,
+                                evaluator=_classification_evaluator, summary=_classification_summary,
+                                creates_data=_simulated_objects),
 }
 
 
@@ -178,11 +185,12 @@ def train(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     """Adds ``train`` to the ``lidarops`` parser."""
-    t = subparsers.add_parser("train", help="train a model (PointPillars, PointNet) from a config on its data",
+    t = subparsers.add_parser("train", help="train a model (PointPillars, PointNet, CAS-Net) from a config on its data",
                               description="Train the model a config names (MODEL.NAME: "
                                           f"{', '.join(sorted(TRAINABLE))}) from an OpenPCDet-schema config (e.g. "
                                           "configs/pointpillars/pointpillars_synth.yaml) on a KITTI-format folder, or a PointNet "
-                                          "classifier (configs/casnet/pointnet_objects.yaml) on objects cut from "
+                                          "classifier (configs/casnet/pointnet_objects.yaml) or CAS-Net in front of a trained one "
+                                          "(configs/casnet/casnet_pointnet_objects.yaml) on objects cut from "
                                           "simulated scenes. Under "
                                           "torchrun it runs DistributedDataParallel, one process per GPU.")
     t.add_argument("--config", required=True,

@@ -36,7 +36,7 @@ from lidarops._moved import moved_attributes
 
 __all__ = ["MODELS", "model_class", "load_model", "PointPillars", "PointPillarsConfig", "GraphedPointPillars",
            "SSCATeRPointPillars", "PillarVFE", "PointPillarScatter", "BaseBEVBackbone", "AnchorHeadSingle",
-           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
+           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetPointNet", "CASNetPointNetConfig", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
            "chamfer_distance", "selection_cosine_loss", "RandomSampler", "FPSSampler", "ChunkedFPSSampler",
            "sample_features"]
 
@@ -46,6 +46,7 @@ MODELS: dict[str, tuple[str, str]] = {
     "PointPillars": ("lidarops.models.pointpillars", "PointPillars"),
     "PointPillar": ("lidarops.models.pointpillars", "PointPillars"),  # OpenPCDet's MODEL.NAME
     "PointNet": ("lidarops.models.pointnet", "PointNet"),
+    "CASNetPointNet": ("lidarops.models.casnet_pointnet", "CASNetPointNet"),
 }
 
 
@@ -109,6 +110,8 @@ __getattr__, __dir__ = lazy_attributes(__name__, {
     "PointNet": ("lidarops.models.pointnet", "PointNet"),
     "PointNetConfig": ("lidarops.models.pointnet", "PointNetConfig"),
     "CASNet": ("lidarops.models.casnet", "CASNet"),
+    "CASNetPointNet": ("lidarops.models.casnet_pointnet", "CASNetPointNet"),
+    "CASNetPointNetConfig": ("lidarops.models.casnet_pointnet", "CASNetPointNetConfig"),
     "CASNetSampler": ("lidarops.models.casnet", "CASNetSampler"),
     "segment_and_sample": ("lidarops.models.casnet", "segment_and_sample"),
     "casnet_loss": ("lidarops.models.casnet", "casnet_loss"),

@@ -293,8 +293,9 @@ class PointNet(PredictMixin, nn.Module):
                  for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", shapes))
                  if items]
         if parts:
-            raise CheckpointError(f"{source} does not fit this PointNet config (classes {self.config.class_names}, "
-                                  f"in_channels {self.config.in_channels}): " + "; ".join(parts))
+            raise CheckpointError(f"{source} does not fit this {type(self).__name__} config (classes "
+                                  f"{self.config.class_names}, in_channels {self.config.in_channels}): "
+                                  + "; ".join(parts))
         if check_finite:
             checkpoint.check_finite(state_dict, source)
         self.load_state_dict({k: v.to(own[k].dtype) for k, v in state_dict.items()}, strict=True)
