@@ -3,9 +3,11 @@
     lidarops tour                      a short tour of the neighbourhood ops on a synthetic sweep
     lidarops data synth|show           simulate LiDAR data; write and view dataset files
     lidarops stream                    the simulator streamed through SSCATeR PointPillars
-    lidarops train                     train a detector from a config on a KITTI-format folder
+    lidarops train                     train a model (detector, classifier, CAS-Net) from a config
     lidarops detect                    run a detector on frames; boxes, result files, pictures
     lidarops eval                      KITTI AP of result files against labels
+    lidarops index build, query ...    count frames into a frame index; RETRIEVAL / COUNT / AGGREGATION queries
+    lidarops sample                    keep 1/D of a scan's points; sampled files and before/after pictures
 
 Each module in ``_SUBCOMMAND_MODULES`` adds its command through ``register(subparsers)``; they are imported
 when the parser is built, not by ``import lidarops``. Every command reports errors the same way
@@ -28,6 +30,7 @@ _SUBCOMMAND_MODULES = (
     "lidarops.cli.detect",
     "lidarops.cli.eval",
     "lidarops.cli.query",
+    "lidarops.cli.sample",
 )
 
 

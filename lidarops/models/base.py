@@ -1,6 +1,8 @@
 """What every lidarops model shares: its config from any of the forms users hand it, and ``predict``."""
 from __future__ import annotations
 
+import copy
+import dataclasses
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -8,7 +10,7 @@ import torch
 
 from lidarops.config import ConfigError, load_config
 
-__all__ = ["as_model_config", "PredictMixin"]
+__all__ = ["as_model_config", "PredictMixin", "DictConfig"]
 
 
 def as_model_config(config: Any, cls: type):
@@ -38,3 +40,22 @@ class PredictMixin:
             return self.postprocess(self(batch), batch)
         finally:
             self.train(was_training)
+
+
+class DictConfig:
+    """``to_dict`` / ``from_dict`` of a model's config dataclass: the plain values a checkpoint stores."""
+
+    def to_dict(self) -> dict:
+        """Plain values, as checkpoints store them."""
+        return copy.deepcopy(dataclasses.asdict(self))
+
+    @classmethod
+    def from_dict(cls, d: Mapping):
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ConfigError``."""
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"a {cls.__name__} dict must be a mapping, got {type(d).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ConfigError(f"unknown {cls.__name__} keys {unknown}; known: {sorted(known)}")
+        return cls(**copy.deepcopy(dict(d)))

@@ -18,7 +18,6 @@ protocol, which Chen et al. 2023 follow). Read it top to bottom:
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +29,7 @@ from torch.nn import functional as F
 
 from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
 from lidarops.config import ConfigError
-from lidarops.models.base import PredictMixin, as_model_config
+from lidarops.models.base import DictConfig, PredictMixin, as_model_config
 from lidarops.models.casnet import CASNet, casnet_loss
 from lidarops.models.casnet_losses import COSINE_FORMS
 from lidarops.models.config import _check_value
@@ -64,7 +63,7 @@ _MODEL_KEYS = {"NAME"} | {key.split(".", 1)[1] for key, *_ in [*_SPEC.values(), 
 
 
 @dataclass
-class CASNetPointNetConfig:
+class CASNetPointNetConfig(DictConfig):
     """Everything :class:`CASNetPointNet` is built from.
 
     Attributes (the YAML key in brackets, OpenPCDet's schema; :meth:`from_openpcdet` reads a whole config):
@@ -156,21 +155,6 @@ class CASNetPointNetConfig:
         if list(task.class_names) != list(names) or task.in_channels != self.in_channels:
             raise ConfigError(f"MODEL.TASK: the PointNet classifies {list(task.class_names)} from {task.in_channels} "
                               f"channels, the config {list(names)} from {self.in_channels}")
-
-    def to_dict(self) -> dict:
-        """Plain values, as checkpoints store them."""
-        return copy.deepcopy(dataclasses.asdict(self))
-
-    @classmethod
-    def from_dict(cls, d: Mapping) -> "CASNetPointNetConfig":
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ConfigError``."""
-        if not isinstance(d, Mapping):
-            raise ConfigError(f"a CASNetPointNetConfig dict must be a mapping, got {type(d).__name__}")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ConfigError(f"unknown CASNetPointNetConfig keys {unknown}; known: {sorted(known)}")
-        return cls(**copy.deepcopy(dict(d)))
 
     @classmethod
     def from_openpcdet(cls, cfg: Mapping) -> "CASNetPointNetConfig":

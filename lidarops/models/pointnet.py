@@ -29,8 +29,6 @@ Labels are 0-based into ``class_names`` (:mod:`lidarops.conventions`: classifica
 """
 from __future__ import annotations
 
-import copy
-import dataclasses
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +41,7 @@ from torch.nn import functional as F
 from lidarops import checkpoint
 from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
 from lidarops.config import ConfigError
-from lidarops.models.base import PredictMixin, as_model_config
+from lidarops.models.base import DictConfig, PredictMixin, as_model_config
 from lidarops.models.config import _check_value
 from lidarops.ops.validation import describe, run_value_checks, value_checks_enabled
 
@@ -67,7 +65,7 @@ _MODEL_KEYS = {"NAME"} | {v[0].split(".", 1)[1] for v in _SPEC.values() if v[0].
 
 
 @dataclass
-class PointNetConfig:
+class PointNetConfig(DictConfig):
     """Everything :class:`PointNet` is built from.
 
     Attributes (the YAML key in brackets, OpenPCDet's schema; :meth:`from_openpcdet` reads a whole config):
@@ -125,21 +123,6 @@ class PointNetConfig:
         if self.feature_transform and len(self.mlp) < 3:
             raise ConfigError(f"MODEL.FEATURE_TRANSFORM needs at least 3 MLP layers (it acts after the second), "
                               f"got MODEL.MLP {list(self.mlp)}")
-
-    def to_dict(self) -> dict:
-        """Plain values, as checkpoints store them."""
-        return copy.deepcopy(dataclasses.asdict(self))
-
-    @classmethod
-    def from_dict(cls, d: Mapping) -> "PointNetConfig":
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ConfigError``."""
-        if not isinstance(d, Mapping):
-            raise ConfigError(f"a PointNetConfig dict must be a mapping, got {type(d).__name__}")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ConfigError(f"unknown PointNetConfig keys {unknown}; known: {sorted(known)}")
-        return cls(**copy.deepcopy(dict(d)))
 
     @classmethod
     def from_openpcdet(cls, cfg: Mapping) -> "PointNetConfig":

@@ -118,6 +118,17 @@ COMMANDS: dict[str, tuple[list[str], dict[str, list[str]]]] = {
         "--seed": _INT_JUNK,
         "--device": ["gpu", ""],
     }),
+    # the path third, where _with puts a positional's hostile value
+    "sample": (["sample", "--no-picture", "{scan}", "--device", "cpu", "--out", "{out}"], {
+        "path": _NOT_A_FILE + ["{empty}", "{binary}"],
+        "--ratio": _INT_JUNK + ["0", "-1"],
+        "--frames": _INT_JUNK + ["0", "-1"],
+        "--method": ["voxel", "", "FPS"],
+        "--seed": _INT_JUNK + ["-1"],
+        "--checkpoint": _NOT_A_FILE + ["{binary}"],
+        "--device": ["gpu", "", "cuda:x", "tpu"],
+        "--out": ["{binary}"],
+    }),
 }
 
 
