@@ -10,7 +10,7 @@ import torch
 
 from lidarops.config import ConfigError, load_config
 
-__all__ = ["as_model_config", "PredictMixin", "DictConfig"]
+__all__ = ["as_model_config", "PredictMixin", "DictConfig", "read_object_config"]
 
 
 def as_model_config(config: Any, cls: type):
@@ -59,3 +59,36 @@ class DictConfig:
         if unknown:
             raise ConfigError(f"unknown {cls.__name__} keys {unknown}; known: {sorted(known)}")
         return cls(**copy.deepcopy(dict(d)))
+
+
+def read_object_config(cfg: Any, name: str, model_keys: set, spec: Mapping) -> tuple[Mapping, Mapping, dict]:
+    """The common part of reading an object classifier's whole config (``CLASS_NAMES``, ``DATA_CONFIG``,
+    ``MODEL`` with ``NAME: <name>``): checks the shapes and the ``MODEL`` keys (``ConfigError`` naming the
+    key) and returns ``(MODEL, DATA_CONFIG, kwargs)``, ``kwargs`` holding ``class_names``, ``in_channels``
+    (from ``used_feature_list``) and every ``MODEL.*`` entry of ``spec`` (field -> (key, ...)) present."""
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"a config must be a mapping (OpenPCDet's schema), got {type(cfg).__name__}")
+    model = cfg.get("MODEL")
+    if not isinstance(model, Mapping):
+        raise ConfigError(f"MODEL must be a mapping of keys, got {model!r}")
+    if model.get("NAME") != name:
+        raise ConfigError(f"MODEL.NAME must be '{name}' for {name}Config, got {model.get('NAME')!r}")
+    unknown = sorted(set(model) - set(model_keys))
+    if unknown:
+        raise ConfigError(f"unknown MODEL keys {unknown} for {name}; known: {sorted(model_keys)}")
+    if "CLASS_NAMES" not in cfg:
+        raise ConfigError("config key CLASS_NAMES is missing")
+    kwargs: dict[str, Any] = {"class_names": cfg["CLASS_NAMES"]}
+    data = cfg.get("DATA_CONFIG", {})
+    data = data if isinstance(data, Mapping) else {}
+    encoding = data.get("POINT_FEATURE_ENCODING", {})
+    used = encoding.get("used_feature_list") if isinstance(encoding, Mapping) else None
+    if used is not None:
+        if not isinstance(used, list) or used[:3] != ["x", "y", "z"]:
+            raise ConfigError("DATA_CONFIG.POINT_FEATURE_ENCODING.used_feature_list must be a list starting "
+                              f"with x, y, z, got {used!r}")
+        kwargs["in_channels"] = len(used)
+    for field_name, (key, *_rest) in spec.items():
+        if key.startswith("MODEL.") and key[6:] in model:
+            kwargs[field_name] = model[key[6:]]
+    return model, data, kwargs

@@ -29,7 +29,7 @@ from torch.nn import functional as F
 
 from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
 from lidarops.config import ConfigError
-from lidarops.models.base import DictConfig, PredictMixin, as_model_config
+from lidarops.models.base import DictConfig, PredictMixin, as_model_config, read_object_config
 from lidarops.models.casnet import CASNet, casnet_loss
 from lidarops.models.casnet_losses import COSINE_FORMS
 from lidarops.models.config import _check_value
@@ -161,33 +161,9 @@ class CASNetPointNetConfig(DictConfig):
         """From a whole config dict (``CLASS_NAMES``, ``DATA_CONFIG``, ``MODEL`` with ``NAME: CASNetPointNet``),
         e.g. ``load_config("configs/casnet/casnet_pointnet_objects.yaml")``. Unknown ``MODEL`` keys and bad
         values raise ``ConfigError`` naming the key."""
-        if not isinstance(cfg, Mapping):
-            raise ConfigError(f"a config must be a mapping (OpenPCDet's schema), got {type(cfg).__name__}")
-        model = cfg.get("MODEL")
-        if not isinstance(model, Mapping):
-            raise ConfigError(f"MODEL must be a mapping of keys, got {model!r}")
-        if model.get("NAME") != "CASNetPointNet":
-            raise ConfigError(f"MODEL.NAME must be 'CASNetPointNet' for CASNetPointNetConfig, got {model.get('NAME')!r}")
-        unknown = sorted(set(model) - _MODEL_KEYS)
-        if unknown:
-            raise ConfigError(f"unknown MODEL keys {unknown} for CASNetPointNet; known: {sorted(_MODEL_KEYS)}")
-        if "CLASS_NAMES" not in cfg:
-            raise ConfigError("config key CLASS_NAMES is missing")
-        kwargs: dict[str, Any] = {"class_names": cfg["CLASS_NAMES"]}
-        data = cfg.get("DATA_CONFIG", {})
-        data = data if isinstance(data, Mapping) else {}
-        encoding = data.get("POINT_FEATURE_ENCODING", {})
-        used = encoding.get("used_feature_list") if isinstance(encoding, Mapping) else None
-        if used is not None:
-            if not isinstance(used, list) or used[:3] != ["x", "y", "z"]:
-                raise ConfigError("DATA_CONFIG.POINT_FEATURE_ENCODING.used_feature_list must be a list starting "
-                                  f"with x, y, z, got {used!r}")
-            kwargs["in_channels"] = len(used)
+        model, data, kwargs = read_object_config(cfg, "CASNetPointNet", _MODEL_KEYS, {**_SPEC, **_CHOICES})
         if "NUM_POINTS" in data:
             kwargs["num_points"] = data["NUM_POINTS"]
-        for name, (key, *_rest) in [*_SPEC.items(), *_CHOICES.items()]:
-            if key.startswith("MODEL.") and key[6:] in model:
-                kwargs[name] = model[key[6:]]
         kwargs["task_checkpoint"] = model.get("TASK_CHECKPOINT")
         task = model.get("TASK")
         if task is not None:
