@@ -141,3 +141,39 @@ def _load(path: Path, chain: tuple) -> dict:
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path}: a config must be a YAML mapping, got {type(data).__name__}")
     return merge_config({}, data, path.resolve(), chain + (path.resolve(),))
+
+
+def apply_overrides(cfg: dict, pairs: "list[str] | tuple[str, ...]") -> dict:
+    """OpenPCDet's ``--set KEY VALUE [KEY VALUE ...]`` (``cfg_from_list``): each dotted ``KEY`` (e.g.
+    ``MODEL.RATIO``) must already be in ``cfg`` (a typo would otherwise change nothing); each ``VALUE`` is
+    read as YAML (``4``, ``0.5``, ``5e-5``, ``[1, 2]``, ``null``, ``fast``). Returns ``cfg``, changed in place.
+
+    Raises:
+        ConfigError: an odd number of items, or a key that is not in the config (naming it and the keys
+            beside it).
+    """
+    pairs = list(pairs)
+    if len(pairs) % 2:
+        raise ConfigError(f"--set takes KEY VALUE pairs, got {len(pairs)} item(s): {' '.join(pairs)}")
+    yaml = _yaml()
+    for key, text in zip(pairs[::2], pairs[1::2]):
+        node, parts = cfg, key.split(".")
+        for i, part in enumerate(parts):
+            if not isinstance(node, dict) or part not in node:
+                where = ".".join(parts[:i]) or "the config"
+                known = sorted(node) if isinstance(node, dict) else []
+                raise ConfigError(f"--set {key}: {where} has no key {part!r}"
+                                  + (f" (it has {', '.join(map(str, known))})" if known else ""))
+            if i < len(parts) - 1:
+                node = node[part]
+        try:  # YAML, except that 5e-5 is a number (YAML 1.1 reads it as a string; OpenPCDet's literal_eval not)
+            value = yaml.safe_load(text)
+            if isinstance(value, str):
+                try:
+                    value = float(value)
+                except ValueError:
+                    pass
+            node[parts[-1]] = value
+        except yaml.YAMLError as e:
+            raise ConfigError(f"--set {key} {text}: not a YAML value ({' '.join(str(e).split())})") from None
+    return cfg

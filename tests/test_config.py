@@ -62,3 +62,37 @@ def test_a_copy_of_a_shipped_config_finds_its_base_anywhere(elsewhere):
     cfg = load_config("mine.yaml")
     assert cfg["OPTIMIZATION"]["NUM_EPOCHS"] == 77
     assert cfg["DATA_CONFIG"]["DATASET"] == load_config("pointpillars_demo")["DATA_CONFIG"]["DATASET"]
+
+
+def test_set_overrides_keys_as_openpcdet_does():
+    from lidarops.config import apply_overrides
+
+    cfg = {"MODEL": {"RATIO": 8, "VARIANT": "full", "HEAD": {"SIZES": [1, 2]}}, "OPTIMIZATION": {"LR": 0.1}}
+    out = apply_overrides(cfg, ["MODEL.RATIO", "4", "MODEL.VARIANT", "fast", "MODEL.HEAD.SIZES", "[3, 4, 5]",
+                                "OPTIMIZATION.LR", "5e-5"])
+    assert out is cfg
+    assert cfg == {"MODEL": {"RATIO": 4, "VARIANT": "fast", "HEAD": {"SIZES": [3, 4, 5]}},
+                   "OPTIMIZATION": {"LR": 5e-5}}
+    apply_overrides(cfg, ["MODEL.HEAD", "null"])
+    assert cfg["MODEL"]["HEAD"] is None
+
+
+@pytest.mark.parametrize("pairs, match", [
+    (["MODEL.RATIO"], "KEY VALUE pairs"),
+    (["MODEL.RATO", "4"], r"MODEL has no key 'RATO' \(it has RATIO\)"),
+    (["MODLE.RATIO", "4"], "the config has no key 'MODLE'"),
+    (["MODEL.RATIO.X", "4"], "MODEL.RATIO has no key 'X'"),
+    (["MODEL.RATIO", "[1, 2"], "not a YAML value"),
+])
+def test_set_refuses_what_would_change_nothing(pairs, match):
+    from lidarops.config import ConfigError, apply_overrides
+
+    with pytest.raises(ConfigError, match=match):
+        apply_overrides({"MODEL": {"RATIO": 8}}, pairs)
+
+
+def test_train_set_flag_refuses_an_unknown_key(tmp_path, capsys):
+    code = main(["train", "--config", str(REPO / "configs/casnet/casnet_pointnet_objects.yaml"), "--out", str(tmp_path / "r"),
+                 "--set", "MODEL.RATIOO", "4"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--set MODEL.RATIOO: MODEL has no key 'RATIOO'" in err and not (tmp_path / "r").exists()

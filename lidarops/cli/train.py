@@ -11,6 +11,7 @@ Examples::
     lidarops data synth --scenario driving_city driving_highway --frames 2000 1000 --workers 16 --out data/synth
     lidarops train --config configs/pointpillars/pointpillars_synth.yaml --data data/synth --out runs/pp --amp bf16
     lidarops train --config configs/pointpillars/pointpillars_synth.yaml --data data/synth --out runs/pp --resume
+    lidarops train --config configs/casnet/casnet_pointnet_objects.yaml --out runs/cas_d4 --set MODEL.RATIO 4
     torchrun --standalone --nproc_per_node=2 -m lidarops train --config ... --out runs/pp2   # 2 GPUs
 """
 from __future__ import annotations
@@ -123,6 +124,8 @@ TRAINABLE: dict[str, Trainable] = {
     "CASNetPointNet": Trainable(model="CASNetPointNet", datasets=_object_datasets,
                                 evaluator=_classification_evaluator, summary=_classification_summary,
                                 creates_data=_simulated_objects),
+    "CASNetPointPillars": Trainable(model="CASNetPointPillars", datasets=_kitti_detection_datasets,
+                                    evaluator=_kitti_evaluator, summary=_kitti_summary),
 }
 
 
@@ -148,6 +151,13 @@ def train(args: argparse.Namespace) -> int:
         if getattr(args, flag) is not None and getattr(args, flag) < lo:
             raise CliError(f"--{flag.replace('_', '-')} must be >= {lo}, got {getattr(args, flag)}")
     cfg = load_config(args.config)
+    if args.set_cfgs:
+        from lidarops.config import ConfigError, apply_overrides
+
+        try:
+            apply_overrides(cfg, args.set_cfgs)
+        except ConfigError as e:
+            raise CliError(str(e)) from None
     entry = _trainable(cfg, args.config)
     if args.device not in (None, "auto"):  # checked now; the trainer maps "cuda" to each process's GPU
         resolve_device(args.device)
@@ -216,4 +226,7 @@ def register(subparsers) -> None:
     t.add_argument("--device", default=None, help="auto (default), cpu, cuda")
     t.add_argument("--sync-bn", action="store_true", help="SyncBatchNorm under multi-GPU DDP")
     t.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+    t.add_argument("--set", dest="set_cfgs", nargs="+", default=None, metavar="KEY VALUE",
+                   help="change config keys, OpenPCDet's --set: e.g. --set MODEL.RATIO 4 MODEL.VARIANT fast (each "
+                        "key must exist in the config; values are read as YAML)")
     t.set_defaults(func=guarded("train", train))
