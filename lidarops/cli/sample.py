@@ -73,34 +73,14 @@ def _scans(path: Path, frames: "int | None") -> "tuple[list[Path], Path | None]"
 
 
 def _load_casnet(path: Path, device):
-    """The CAS-Net of a checkpoint file, in eval mode on ``device``."""
-    from lidarops.checkpoint import CheckpointError, check_finite, model_state, read_checkpoint
-    from lidarops.models.casnet import CASNet
+    """The CAS-Net of ``--checkpoint`` (a file or a shipped name), in eval mode on ``device``."""
+    from lidarops.checkpoint import CheckpointError
+    from lidarops.models.casnet import load_casnet
 
-    ckpt = read_checkpoint(path)
-    model_class = ckpt.get("model_class", "CASNet")
-    if model_class == "CASNetPointNet":  # lidarops train's CAS-Net + frozen PointNet: its sampler
-        from lidarops.models.casnet_pointnet import CASNetPointNet
-
-        return CASNetPointNet.from_checkpoint(path).casnet.eval().to(device)
-    if model_class != "CASNet":
-        raise CheckpointError(f"--checkpoint {path} holds a {model_class}, not a CASNet")
-    config = ckpt.get("model_config")
-    if not isinstance(config, dict):
-        raise CheckpointError(f"--checkpoint {path}: no model_config dict (CASNet's keyword arguments) in the file "
-                              f"(keys: {sorted(map(str, ckpt))[:8]})")
     try:
-        model = CASNet(**config)
-    except TypeError as e:
-        raise CheckpointError(f"--checkpoint {path}: model_config does not fit CASNet: {e}") from None
-    state = model_state(ckpt, f"--checkpoint {path}")
-    check_finite(state, f"--checkpoint {path}")
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:
-        raise CheckpointError(f"--checkpoint {path}: its weights do not fit its model_config: "
-                              f"{str(e).splitlines()[0]}") from None
-    return model.eval().to(device)
+        return load_casnet(str(path), device)
+    except (CheckpointError, FileNotFoundError) as e:
+        raise CheckpointError(f"--checkpoint {e}") from None
 
 
 def _sampler(method: str, seed: int, checkpoint: "str | None", device):

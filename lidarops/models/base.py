@@ -10,7 +10,7 @@ import torch
 
 from lidarops.config import ConfigError, load_config
 
-__all__ = ["as_model_config", "PredictMixin", "DictConfig", "read_object_config"]
+__all__ = ["as_model_config", "PredictMixin", "DictConfig", "read_object_config", "model_from_checkpoint"]
 
 
 def as_model_config(config: Any, cls: type):
@@ -92,3 +92,27 @@ def read_object_config(cfg: Any, name: str, model_keys: set, spec: Mapping) -> t
         if key.startswith("MODEL.") and key[6:] in model:
             kwargs[field_name] = model[key[6:]]
     return model, data, kwargs
+
+
+def model_from_checkpoint(cls: type, path: "str | Path", config: Any = None, map_location: Any = "cpu",
+                          check_finite: bool = True, **build: Any):
+    """The common ``from_checkpoint`` of the models: reads a lidarops checkpoint (refusing one of another model
+    class), builds ``cls(config or the config it records, **build)`` and loads its weights with
+    ``model.load_weights`` (strict; with ``check_finite`` NaN or infinite values are refused). Errors name
+    ``path``."""
+    from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
+
+    ckpt = read_checkpoint(path, map_location)
+    record = model_record(ckpt, str(path))
+    if record.model_class not in (None, cls.__name__):
+        raise CheckpointError(f"{path} holds a {record.model_class}, not a {cls.__name__}: load it with "
+                              "lidarops.models.load_model(path)")
+    config = record.config if config is None else config
+    if config is None:
+        raise ConfigError(f"{path} carries no model config: pass config=...")
+    try:
+        model = cls(config, **build)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
+    return model

@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Optional
 
 import torch
@@ -51,7 +52,7 @@ from lidarops.ops.validation import (check_positive_int, check_tensor, check_val
                                      validation, value_checks_enabled)
 
 __all__ = ["CASNet", "CASNetOutput", "FeatureEmbedding", "SamplingHead", "matrix_sample", "greedy_distinct_rows",
-           "count_duplicates", "segment_and_sample", "CASNetSampler", "casnet_loss"]
+           "count_duplicates", "segment_and_sample", "CASNetSampler", "casnet_loss", "load_casnet"]
 
 _MODES = ("hard", "soft")
 _NEIGHBORS = ("ball", "knn")
@@ -215,6 +216,10 @@ class CASNet(nn.Module):
         super().__init__()
         self.num_out = positive_int(num_out, "num_out")
         num_oa_layers = positive_int(num_oa_layers, "num_oa_layers")
+        # what a checkpoint records to rebuild the model (``model_config``)
+        self.config = dict(num_out=num_out, k=k, radius=radius, neighbors=neighbors, num_oa_layers=num_oa_layers,
+                           channels=channels, qk_channels=qk_channels, temperature=temperature, mode=mode,
+                           dedup=dedup, head_activation=head_activation, chunk=chunk)
         qk_channels = positive_int(qk_channels, "qk_channels")
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {list(_MODES)}, got {mode!r}")
@@ -232,6 +237,50 @@ class CASNet(nn.Module):
         ``[p, 0]``: the nearest neighbour, as ball query's first in-radius point is any nearby point)."""
         kwargs = {"k": 1, "neighbors": "knn", "num_oa_layers": 1, **kwargs}
         return cls(num_out, **kwargs)
+
+    @classmethod
+    def from_checkpoint(cls, path: "str | Path", config: Optional[dict] = None, map_location: Any = "cpu",
+                        check_finite: bool = True) -> "CASNet":
+        """A CAS-Net from a file of :meth:`save` (or any checkpoint recording ``model_class: "CASNet"``, its
+        keyword arguments as ``model_config`` and ``model_state``). For the CAS-Net inside a trained
+        ``CASNetPointNet`` or ``CASNetPointPillars`` checkpoint use :func:`load_casnet`."""
+        from lidarops.checkpoint import CheckpointError, model_state, read_checkpoint
+        from lidarops.checkpoint import check_finite as refuse_non_finite
+
+        ckpt = read_checkpoint(path, map_location)
+        name = ckpt.get("model_class")
+        if name not in (None, cls.__name__):
+            raise CheckpointError(f"{path} holds a {name}, not a CASNet: load it with "
+                                  "lidarops.models.casnet.load_casnet(path)")
+        config = ckpt.get("model_config") if config is None else config
+        if not isinstance(config, dict):
+            raise CheckpointError(f"{path}: no model_config dict (CASNet's keyword arguments) in the file")
+        try:
+            model = cls(**config)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"{path}: model_config does not fit CASNet: {e}") from None
+        state = model_state(ckpt, str(path))
+        if check_finite:
+            refuse_non_finite(state, str(path))
+        own = model.state_dict()
+        try:
+            model.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state.items()})
+        except RuntimeError as e:
+            raise CheckpointError(f"{path}: its weights do not fit its model_config: "
+                                  f"{str(e).splitlines()[0]}") from None
+        return model
+
+    def save(self, path: "str | Path", **extra: Any) -> Path:
+        """Writes ``{model_class: "CASNet", model_config, model_state, ...extra}`` (a lidarops checkpoint
+        file; ``extra`` e.g. the task model it was trained for and its evaluation)."""
+        from lidarops.checkpoint import format_fields, save_checkpoint
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        state = {k: v.detach().cpu() for k, v in self.state_dict().items()}
+        save_checkpoint({**format_fields(), "model_class": "CASNet", "model_config": dict(self.config),
+                         "model_state": state, **extra}, [path])
+        return path
 
     @property
     def temperature(self) -> float:
@@ -580,3 +629,43 @@ def casnet_loss(out: CASNetOutput, points: Tensor, task_loss: Tensor, alpha: flo
     task = task_loss.reshape(())
     return {"loss": task + alpha * chamfer + beta * cosine, "loss_task": task, "loss_chamfer": chamfer,
             "loss_cosine": cosine}
+
+
+def load_casnet(source: "str | Path", device: Any = "cpu") -> CASNet:
+    """The CAS-Net of a checkpoint, in eval mode on ``device``.
+
+    Args:
+        source: a shipped checkpoint's name (``lidarops.models.weights.available()``, e.g.
+            ``"casnet_pointnet_d8"``) or a file: a CAS-Net of :meth:`CASNet.save`, or a ``lidarops train``
+            checkpoint of a model holding one as ``.casnet`` (``CASNetPointNet``, ``CASNetPointPillars``).
+        device: where the model goes.
+
+    Raises:
+        FileNotFoundError: neither a file nor a shipped name.
+        lidarops.checkpoint.CheckpointError: a file that holds no CAS-Net, or weights that do not fit.
+    """
+    from lidarops.checkpoint import CheckpointError, read_checkpoint
+    from lidarops.models import MODELS, model_class
+    from lidarops.models import weights
+
+    path = Path(source)
+    if not path.is_file():
+        if isinstance(source, str) and source in weights.available():
+            path = weights.path(source)
+        else:
+            raise FileNotFoundError(f"CAS-Net checkpoint {source}: no such file, nor a shipped checkpoint "
+                                    f"(shipped: {', '.join(weights.available()) or 'none'})")
+    ckpt = read_checkpoint(path)
+    name = ckpt.get("model_class")
+    if name is None:  # a bare {model_config, state_dict} is a CASNet, unless its config is a task model's
+        config = ckpt.get("model_config")
+        name = "model that names no class (a detector's or classifier's config)" \
+            if isinstance(config, dict) and "class_names" in config else "CASNet"
+    if name == "CASNet":
+        return CASNet.from_checkpoint(path).eval().to(device)
+    if name in MODELS:
+        cls = model_class(name)
+        if hasattr(cls, "casnet_of_checkpoint"):
+            return cls.casnet_of_checkpoint(path).eval().to(device)
+    raise CheckpointError(f"{path} holds a {name}, which has no CAS-Net (CASNet, CASNetPointNet and "
+                          "CASNetPointPillars checkpoints do)")

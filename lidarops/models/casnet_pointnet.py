@@ -27,9 +27,9 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
+from lidarops.checkpoint import CheckpointError
 from lidarops.config import ConfigError
-from lidarops.models.base import DictConfig, PredictMixin, as_model_config, read_object_config
+from lidarops.models.base import model_from_checkpoint, DictConfig, PredictMixin, as_model_config, read_object_config
 from lidarops.models.casnet import CASNet, casnet_loss
 from lidarops.models.casnet_losses import COSINE_FORMS
 from lidarops.models.config import _check_value
@@ -37,14 +37,9 @@ from lidarops.models.pointnet import SIM_CLASSES, PointNet, PointNetConfig, _che
 
 __all__ = ["CASNetPointNet", "CASNetPointNetConfig"]
 
-_VARIANTS = ("full", "fast")
-_NEIGHBORS = ("ball", "knn")
-
+# CAS-Net's own MODEL keys, shared by the models that put it in front of a task network:
 # field -> (the config key that sets it, kind, lo, hi, lo open, hi open)
-_SPEC: dict[str, tuple] = {
-    "in_channels": ("DATA_CONFIG.POINT_FEATURE_ENCODING.used_feature_list (its length)", "int", 3, 1024, False, False),
-    "num_points": ("DATA_CONFIG.NUM_POINTS", "int", 1, 1 << 20, False, False),
-    "ratio": ("MODEL.RATIO", "int", 1, 1 << 20, False, False),
+CASNET_SPEC: dict[str, tuple] = {
     "k": ("MODEL.K", "int", 1, 1 << 16, False, False),
     "radius": ("MODEL.RADIUS", "real", 0.0, None, True, False),
     "temperature": ("MODEL.TEMPERATURE", "real", 0.0, None, True, False),
@@ -52,11 +47,18 @@ _SPEC: dict[str, tuple] = {
     "beta": ("MODEL.BETA", "real", 0.0, None, False, False),
 }
 # field -> (the config key, the values it may take)
-_CHOICES: dict[str, tuple] = {
-    "variant": ("MODEL.VARIANT", _VARIANTS),
-    "neighbors": ("MODEL.NEIGHBORS", _NEIGHBORS),
+CASNET_CHOICES: dict[str, tuple] = {
+    "variant": ("MODEL.VARIANT", ("full", "fast")),
+    "neighbors": ("MODEL.NEIGHBORS", ("ball", "knn")),
     "cosine_form": ("MODEL.COSINE_FORM", COSINE_FORMS),
 }
+_SPEC: dict[str, tuple] = {
+    "in_channels": ("DATA_CONFIG.POINT_FEATURE_ENCODING.used_feature_list (its length)", "int", 3, 1024, False, False),
+    "num_points": ("DATA_CONFIG.NUM_POINTS", "int", 1, 1 << 20, False, False),
+    "ratio": ("MODEL.RATIO", "int", 1, 1 << 20, False, False),
+    **CASNET_SPEC,
+}
+_CHOICES = CASNET_CHOICES
 _OTHER_KEYS = {"task_checkpoint": "MODEL.TASK_CHECKPOINT", "task": "MODEL.TASK"}
 _MODEL_KEYS = {"NAME"} | {key.split(".", 1)[1] for key, *_ in [*_SPEC.values(), *_CHOICES.values()]
                           if key.startswith("MODEL.")} | {k.split(".", 1)[1] for k in _OTHER_KEYS.values()}
@@ -230,20 +232,12 @@ class CASNetPointNet(PredictMixin, nn.Module):
         ``final.pth`` or a file of :meth:`save`; it carries its config), or a bare state dict file given
         ``config``. The task checkpoint is not read. A state dict that does not fit, or (with
         ``check_finite``) holds NaN or infinite values, raises :class:`~lidarops.checkpoint.CheckpointError`."""
-        ckpt = read_checkpoint(path, map_location)
-        record = model_record(ckpt, str(path))
-        if record.model_class not in (None, cls.__name__):
-            raise CheckpointError(f"{path} holds a {record.model_class}, not a {cls.__name__}: load it with "
-                                  "lidarops.models.load_model(path)")
-        config = record.config if config is None else config
-        if config is None:
-            raise ConfigError(f"{path} carries no model config: pass config=...")
-        try:
-            model = cls(config, load_task=False)
-        except ConfigError as e:
-            raise ConfigError(f"{path}: {e}") from None
-        model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
-        return model
+        return model_from_checkpoint(cls, path, config, map_location, check_finite, load_task=False)
+
+    @classmethod
+    def casnet_of_checkpoint(cls, path: "str | Path") -> CASNet:
+        """The CAS-Net of a checkpoint of this model (what :func:`lidarops.models.casnet.load_casnet` reads)."""
+        return cls.from_checkpoint(path).casnet
 
     # PointNet's: they read only state_dict(), config.class_names / in_channels / num_classes
     load_weights = PointNet.load_weights

@@ -39,9 +39,9 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from lidarops import checkpoint
-from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
+from lidarops.checkpoint import CheckpointError
 from lidarops.config import ConfigError
-from lidarops.models.base import DictConfig, PredictMixin, as_model_config, read_object_config
+from lidarops.models.base import model_from_checkpoint, DictConfig, PredictMixin, as_model_config, read_object_config
 from lidarops.models.config import _check_value
 from lidarops.ops.validation import describe, run_value_checks, value_checks_enabled
 
@@ -225,20 +225,7 @@ class PointNet(PredictMixin, nn.Module):
         :meth:`save`; it carries its config), or a bare state dict file given ``config``. A state dict that
         does not fit, or (with ``check_finite``) holds NaN or infinite values, raises
         :class:`~lidarops.checkpoint.CheckpointError` naming the keys."""
-        ckpt = read_checkpoint(path, map_location)
-        record = model_record(ckpt, str(path))
-        if record.model_class not in (None, cls.__name__):
-            raise CheckpointError(f"{path} holds a {record.model_class}, not a {cls.__name__}: load it with "
-                                  "lidarops.models.load_model(path)")
-        config = record.config if config is None else config
-        if config is None:
-            raise ConfigError(f"{path} carries no model config: pass config=...")
-        try:
-            model = cls(config)
-        except ConfigError as e:
-            raise ConfigError(f"{path}: {e}") from None
-        model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
-        return model
+        return model_from_checkpoint(cls, path, config, map_location, check_finite)
 
     def load_weights(self, state_dict: Mapping[str, Tensor], source: str = "state dict",
                      check_finite: bool = True) -> None:

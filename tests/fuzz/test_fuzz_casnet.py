@@ -38,10 +38,10 @@ def _net() -> CASNet:
 
 _NET = _net()
 _SAMPLERS = {
-    "random": lambda: RandomSampler(7),
-    "fps": FPSSampler,
-    "chunked_fps": lambda: ChunkedFPSSampler(5),
-    "casnet": lambda: CASNetSampler(_NET, max_points=64),
+    "random": lambda device: RandomSampler(7),
+    "fps": lambda device: FPSSampler(),
+    "chunked_fps": lambda device: ChunkedFPSSampler(5),
+    "casnet": lambda device: CASNetSampler(_NET.to(device), max_points=64),
 }
 
 
@@ -85,7 +85,7 @@ def test_bad_sampler_arguments_name_the_argument(device, data):
     else:
         lengths = data.draw(_bad_lengths(B, N), "bad lengths")
         lengths = lengths.to(device) if isinstance(lengths, torch.Tensor) else lengths
-    _, err = outcome(_SAMPLERS[kind](), points, m, lengths)
+    _, err = outcome(_SAMPLERS[kind](device), points, m, lengths)
     assert_clear_error(err, ValueError, [which], f"{kind}: bad {which}")
 
 
@@ -123,7 +123,7 @@ def test_samplers_return_distinct_rows_of_the_input(device, data):
     m = data.draw(st.integers(1, 30), "m")
     pts = _with_intensity(c.points).to(device)
     lengths = None if c.lengths is None else c.lengths.to(device)
-    idx, err = outcome(_SAMPLERS[kind](), pts, m, lengths)
+    idx, err = outcome(_SAMPLERS[kind](device), pts, m, lengths)
     what = f"{kind}(m={m}) on {tuple(pts.shape)}, lengths {None if c.lengths is None else c.lengths.tolist()}"
     assert_no_error(err, what)
     assert idx.dtype == torch.int64 and tuple(idx.shape) == (pts.shape[0], m) and idx.device == pts.device, what

@@ -22,7 +22,7 @@ SAMPLERS = [RandomSampler(3), FPSSampler(), ChunkedFPSSampler(16)]
 
 def _with_intensity(xyz: torch.Tensor, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
-    return torch.cat([xyz, torch.rand(*xyz.shape[:2], 1, generator=g, dtype=xyz.dtype)], -1)
+    return torch.cat([xyz, torch.rand(*xyz.shape[:2], 1, generator=g, dtype=xyz.dtype).to(xyz.device)], -1)
 
 
 def _assert_valid_sample(idx: torch.Tensor, m: int, lengths: list[int]) -> None:
