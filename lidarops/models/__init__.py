@@ -36,7 +36,7 @@ from lidarops._moved import moved_attributes
 
 __all__ = ["MODELS", "model_class", "load_model", "PointPillars", "PointPillarsConfig", "GraphedPointPillars",
            "SSCATeRPointPillars", "PillarVFE", "PointPillarScatter", "BaseBEVBackbone", "AnchorHeadSingle",
-           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetPointNet", "CASNetPointNetConfig", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
+           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetPointNet", "CASNetPointNetConfig", "CASNetPointPillars", "CASNetPointPillarsConfig", "load_casnet", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
            "chamfer_distance", "selection_cosine_loss", "RandomSampler", "FPSSampler", "ChunkedFPSSampler",
            "sample_features"]
 
@@ -47,6 +47,8 @@ MODELS: dict[str, tuple[str, str]] = {
     "PointPillar": ("lidarops.models.pointpillars", "PointPillars"),  # OpenPCDet's MODEL.NAME
     "PointNet": ("lidarops.models.pointnet", "PointNet"),
     "CASNetPointNet": ("lidarops.models.casnet_pointnet", "CASNetPointNet"),
+    "CASNetPointPillars": ("lidarops.models.casnet_pointpillars", "CASNetPointPillars"),
+    "CASNet": ("lidarops.models.casnet", "CASNet"),
 }
 
 
@@ -112,6 +114,9 @@ __getattr__, __dir__ = lazy_attributes(__name__, {
     "CASNet": ("lidarops.models.casnet", "CASNet"),
     "CASNetPointNet": ("lidarops.models.casnet_pointnet", "CASNetPointNet"),
     "CASNetPointNetConfig": ("lidarops.models.casnet_pointnet", "CASNetPointNetConfig"),
+    "CASNetPointPillars": ("lidarops.models.casnet_pointpillars", "CASNetPointPillars"),
+    "CASNetPointPillarsConfig": ("lidarops.models.casnet_pointpillars", "CASNetPointPillarsConfig"),
+    "load_casnet": ("lidarops.models.casnet", "load_casnet"),
     "CASNetSampler": ("lidarops.models.casnet", "CASNetSampler"),
     "segment_and_sample": ("lidarops.models.casnet", "segment_and_sample"),
     "casnet_loss": ("lidarops.models.casnet", "casnet_loss"),
