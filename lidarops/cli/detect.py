@@ -5,12 +5,20 @@ bird's-eye-view pictures, and prints KITTI AP and the matches per class when the
 The model is the shipped PointPillars (:mod:`lidarops.models.weights`) unless ``--checkpoint`` names
 another file: a lidarops checkpoint says which model it holds; an OpenPCDet one needs ``--config``.
 
+Behind a sampler (issue 37): ``--sampler random|fps|chunked-fps|casnet --ratio D`` keeps ``N // D`` of the
+``N`` points of each frame the detector would see (after the field-of-view filter), every channel, with the
+samplers of ``lidarops sample``, and runs the detector on them; each frame's line, the summary and
+``detect.json`` give the points in and kept and the sampling time. ``--ratio 1`` keeps every point (the
+reference). ``casnet`` reads ``--sampler-checkpoint`` (a file or a shipped name), by default the shipped
+``casnet_pointpillars_d8`` when there is one.
+
 Examples::
 
     lidarops detect --scenario driving_city --frames 20 --out det/          # the shipped model, simulated frames
     lidarops detect data/synth/training/velodyne/000123.bin --out det/
     lidarops detect data/synth --split val --checkpoint runs/pp/final.pth --out det/
     lidarops detect kitti/ --split val --checkpoint pointpillar_7728.pth --config pointpillar.yaml --out det/
+    lidarops detect --scenario driving_city --frames 20 --sampler fps --ratio 8 --out det_fps8/
 """
 from __future__ import annotations
 
@@ -18,6 +26,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -28,6 +37,88 @@ from lidarops.cli.errors import CliError, guarded
 from lidarops.conventions import HELD_OUT_SEED
 
 __all__ = ["register", "detect", "save_detections_png"]
+
+#: the shipped CAS-Net ``--sampler casnet`` reads when no ``--sampler-checkpoint`` is given
+SHIPPED_CASNET = "casnet_pointpillars_d8"
+_CASNET_FILES = ("a CAS-Net file of CASNet.save, a lidarops train checkpoint of CASNetPointNet / CASNetPointPillars, "
+                 "or a shipped name")
+
+
+@dataclass
+class _Sampling:
+    """What ``--sampler`` asks for: the method (``lidarops sample``'s names), ``D``, the random sampler's
+    seed, and the CAS-Net checkpoint (a file, a shipped one resolved to its file)."""
+
+    method: str
+    ratio: int
+    seed: int
+    checkpoint: "str | None"
+
+    def record(self) -> dict:
+        """What ``detect.json`` says about the sampler."""
+        return {"method": self.method, "ratio": self.ratio, **({"seed": self.seed} if self.method == "random" else {}),
+                **({"checkpoint": self.checkpoint} if self.checkpoint else {})}
+
+
+def _sampling(args: argparse.Namespace) -> "_Sampling | None":
+    """The checked ``--sampler``, ``--ratio``, ``--sampler-seed`` and ``--sampler-checkpoint``; None without
+    ``--sampler`` (then the other three must be left out too)."""
+    from lidarops.cli.sample import METHODS, _positive
+
+    if args.sampler is None:
+        for flag, value in (("--ratio", args.ratio), ("--sampler-seed", args.sampler_seed),
+                            ("--sampler-checkpoint", args.sampler_checkpoint)):
+            if value is not None:
+                raise CliError(f"{flag} {value} needs --sampler ({flag} is the sampler's: --sampler "
+                               f"{'|'.join(METHODS)} {flag} ...)")
+        return None
+    if args.sampler not in METHODS:
+        raise CliError(f"--sampler must be one of {', '.join(METHODS)}, got {args.sampler!r}")
+    ratio = _positive(args.ratio, "--ratio") if args.ratio is not None else 8
+    seed = 0
+    if args.sampler_seed is not None:
+        try:
+            seed = int(args.sampler_seed, 10)
+        except (TypeError, ValueError):
+            seed = -1
+        if not 0 <= seed < 2**63:
+            raise CliError(f"--sampler-seed must be an int in [0, 2^63), got {args.sampler_seed!r}")
+    checkpoint = args.sampler_checkpoint
+    if checkpoint is not None and args.sampler != "casnet":
+        raise CliError(f"--sampler-checkpoint {checkpoint} is a CAS-Net's, for --sampler casnet only (got --sampler "
+                       f"{args.sampler})")
+    if args.sampler == "casnet":
+        from lidarops.models import weights
+
+        shipped = weights.available()
+        if checkpoint is None:
+            if SHIPPED_CASNET not in shipped:
+                raise CliError(f"--sampler casnet: no detection CAS-Net is shipped yet ({SHIPPED_CASNET}); give "
+                               f"--sampler-checkpoint: {_CASNET_FILES}")
+            checkpoint = SHIPPED_CASNET
+        if not Path(checkpoint).is_file():
+            if checkpoint not in shipped:
+                why = "is a directory" if Path(checkpoint).is_dir() else "not found"
+                raise CliError(f"--sampler-checkpoint {checkpoint} {why}: give {_CASNET_FILES} (shipped: "
+                               f"{', '.join(shipped) or 'none'})")
+            checkpoint = str(weights.path(checkpoint))
+    return _Sampling(args.sampler, ratio, seed, checkpoint)
+
+
+def _build_sampler(sampling: _Sampling, device):
+    """``lidarops sample``'s sampler for ``sampling`` on ``device``; a CAS-Net checkpoint that cannot be read
+    is a one-line error naming ``--sampler-checkpoint``."""
+    from lidarops.cli.sample import _sampler
+
+    try:
+        return _sampler(sampling.method, sampling.seed, sampling.checkpoint, device)
+    except (ValueError, OSError) as e:
+        if sampling.method != "casnet":
+            raise
+        text = str(e)  # sample's messages name its own flag, --checkpoint
+        text = "--sampler-" + text[2:] if text.startswith("--checkpoint ") else \
+            f"--sampler-checkpoint {sampling.checkpoint}: {text}"
+        raise CliError(text) from None
 
 
 def _load_model(args: argparse.Namespace):
@@ -265,13 +356,18 @@ def detect(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CliError(f"--out {out} is a file; give a folder")
+    sampling = _sampling(args)
     frames = _frames(args)
     model, device, ckpt = _load_model(args)
+    if sampling is not None:
+        from lidarops.cli.sample import _timed_sample, sample_count
+
+        sampler = _build_sampler(sampling, device)
     names = model.config.class_names
     pc_range = list(model.config.point_cloud_range)
     gt_annos, dt_annos, ids, shown = [], [], [], 0
     labelled = True
-    model_seconds = []
+    model_seconds, sample_ms, per_frame = [], [], []
     start = time.perf_counter()
     total = _frame_count(args)
     # a bar only on a terminal, where it redraws in place (a log would keep every redraw)
@@ -279,6 +375,16 @@ def detect(args: argparse.Namespace) -> int:
                        and sys.stderr.isatty(), leave=False)
     for frame_id, frame, calib, label in frames:
         points = frame.points if args.no_fov else frame.points[kitti_fov_mask(frame.points, calib)]
+        points_in = len(points)
+        if sampling is not None:
+            m = sample_count(points_in, sampling.ratio)
+            idx, ms = _timed_sample(sampler, points, m, device) if m else (np.zeros(0, np.int64), 0.0)
+            # in the scan's order, as without a sampler: the pillars' point cap then keeps the same points,
+            # and --ratio 1 is the run without a sampler
+            points = points[np.sort(idx)]
+            sample_ms.append(ms)
+        per_frame.append({"frame": frame_id, "points_in": points_in, "points_kept": len(points),
+                          "sample_ms": round(sample_ms[-1], 3) if sampling is not None else None})
         batch = {"points": torch.from_numpy(np.concatenate([np.zeros((len(points), 1), np.float32), points], 1))
                  .to(device), "batch_size": 1}
         t0 = time.perf_counter()
@@ -308,6 +414,9 @@ def detect(args: argparse.Namespace) -> int:
         count = ours & counted(gt, pc_range) if gt is not None else ours
         if shown < args.print_frames:
             seen = f", {int(count.sum())} labelled in range" if gt is not None else ""
+            if sampling is not None:
+                seen += (f"; {sampling.method} 1/{sampling.ratio}: {points_in:,} -> {len(points):,} points in "
+                         f"{sample_ms[-1]:.1f} ms")
             print(f"{frame_id}: {len(pred['boxes'])} detection(s){seen}")
             for name, score, box in list(zip(det_names, pred["scores"], pred["boxes"]))[:args.print_boxes]:
                 heading = (box[6] + np.pi) % (2 * np.pi) - np.pi  # the model's range is OpenPCDet's; print [-pi, pi)
@@ -316,10 +425,13 @@ def detect(args: argparse.Namespace) -> int:
         if shown < args.png:
             gt_boxes = camera_to_lidar_boxes(gt["location"], gt["dimensions"][:, [1, 2, 0]], gt["rotation_y"],
                                              calib) if gt is not None and len(gt["name"]) else np.zeros((0, 7))
-            png = save_detections_png(out / f"{frame_id}.png", frame.points, pred, names, gt_boxes[count],
-                                      list(gt["name"][count]) if gt is not None else [],
+            kept = "" if sampling is None else \
+                f"; the detector's {len(points):,} of {points_in:,} points ({sampling.method}, 1/{sampling.ratio})"
+            # behind a sampler the picture shows what the detector saw
+            png = save_detections_png(out / f"{frame_id}.png", frame.points if sampling is None else points, pred,
+                                      names, gt_boxes[count], list(gt["name"][count]) if gt is not None else [],
                                       title=f"{frame_id}: {len(pred['boxes'])} detections (solid), "
-                                            f"{int(count.sum())} labelled in range (dashed)",
+                                            f"{int(count.sum())} labelled in range (dashed){kept}",
                                       other_boxes=gt_boxes[ours & ~count], score_floor=args.draw_score)
             print(f"  wrote {png}")
         shown += 1
@@ -333,6 +445,12 @@ def detect(args: argparse.Namespace) -> int:
     print(f"{shown} frame(s) in {wall:.1f} s ({shown / wall:.2f} frames/s with reading and writing); the model: "
           f"{1e3 * sum(steady) / len(steady):.1f} ms per frame on {device}"
           + (f" (first frame {1e3 * model_seconds[0]:.0f} ms)" if len(model_seconds) > 1 else ""))
+    if sampling is not None:
+        steady_ms = sample_ms[1:] or sample_ms
+        print(f"the sampler ({sampling.method}, 1/{sampling.ratio}): {sum(steady_ms) / len(steady_ms):.1f} ms per "
+              f"frame on {device}" + (f" (first frame {sample_ms[0]:.0f} ms)" if len(sample_ms) > 1 else "")
+              + f"; {sum(f['points_in'] for f in per_frame) / shown:,.0f} -> "
+                f"{sum(f['points_kept'] for f in per_frame) / shown:,.0f} points per frame")
     trained = _trained_ids(args, _model_record(ckpt).get("data_recipe"), ids)
     if trained:
         print(f"lidarops detect: warning: {len(trained)} of the {shown} frame(s) are frames of the model's own "
@@ -340,7 +458,9 @@ def detect(args: argparse.Namespace) -> int:
               f"memory, not detection. Unseen frames: --seed {HELD_OUT_SEED} (data synth and detect's default)",
               file=sys.stderr)
     (out / "detect.json").write_text(json.dumps({"checkpoint": str(ckpt), "frames": ids,
-                                                 "frames_of_the_model_recipe": trained}, indent=1))
+                                                 "frames_of_the_model_recipe": trained,
+                                                 "sampler": sampling.record() if sampling is not None else None,
+                                                 "per_frame": per_frame}, indent=1))
     if labelled and gt_annos:
         text, results = kitti_eval.evaluate(gt_annos, dt_annos, names)
         (out / "eval.txt").write_text(text + "\n")
@@ -381,4 +501,14 @@ def register(subparsers) -> None:
     d.add_argument("--draw-score", type=float, default=0.3,
                    help="detections scoring below this are left out of the pictures (default 0.3)")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s = d.add_argument_group("behind a sampler", "keep N // D of each frame's N points (after the field-of-view "
+                             "filter), every channel, before the detector (lidarops sample's samplers)")
+    s.add_argument("--sampler", default=None, metavar="METHOD",
+                   help="random, fps, chunked-fps or casnet (default: none, every point)")
+    s.add_argument("--ratio", default=None, metavar="D", help="keep N // D points of a frame of N (default 8; "
+                   "1 keeps every point, the reference)")
+    s.add_argument("--sampler-checkpoint", default=None, metavar="PATH_OR_NAME",
+                   help=f"--sampler casnet: {_CASNET_FILES} (default: the shipped {SHIPPED_CASNET}, when shipped)")
+    s.add_argument("--sampler-seed", default=None, metavar="S",
+                   help="--sampler random: the generator's seed (default 0); each frame draws new points")
     d.set_defaults(func=guarded("detect", detect))
