@@ -119,6 +119,41 @@ def test_bm_voxelize_quick_cpu_writes_result_rows(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_bm_casnet_quick_cpu_writes_result_rows(tmp_path, capsys):
+    from benchmarks import bm_casnet
+
+    # a CAS-Net checkpoint of the quick size (segments of 512 = 64 x 8 points), timed beside the untrained ones
+    torch.manual_seed(0)
+    ckpt = bm_casnet.CASNet.fast(num_out=64).save(tmp_path / "casnet.pt")
+    threads = torch.get_num_threads()
+    assert bm_casnet.main(["--device", "cpu", "--quick", "--threads", "1", "--json", "--results-dir", str(tmp_path),
+                           "--checkpoint", str(ckpt)]) == 0
+    assert torch.get_num_threads() == threads
+    data = json.loads((tmp_path / common.results_path("cpu").name).read_text())
+    section = data["sections"]["casnet"]
+    assert section["meta"]["device_type"] == "cpu" and section["meta"]["cloud"]["points"] == 2048
+    rows = {r["op"]: r for r in section["rows"]}
+    assert len(rows) == len(section["rows"]), "op names must be unique"
+    sampling = [r for r in rows.values() if r["section"] == "sampling"]
+    assert {r["case"] for r in sampling} == {"sampler", "CASNetSampler", "segment_and_sample"}
+    assert len(sampling) == 3 + 2 * 3  # random, FPS, chunked FPS; full, fast and the checkpoint, two rows each
+    for r in sampling:
+        assert r["status"] == "ok", r
+        assert r["median_ms"] > 0 and r["N"] == 2048 and r.get("commit") == section["meta"].get("commit")
+        if r["case"] != "segment_and_sample":  # the samplers keep m = N // 8 distinct points
+            assert r["m"] == 256 and r["distinct"] == 256, r
+    graphs = [r for r in rows.values() if r["section"] == "cuda_graph"]
+    assert graphs and all(r["status"].startswith("skipped (CUDA only") for r in graphs)
+    whole = [r for r in rows.values() if r["section"] == "whole_cloud"]
+    assert {(r["path"], r["step"]) for r in whole} == {(p, s) for p in ("whole", "segmented")
+                                                       for s in ("inference", "training")}
+    for r in whole:
+        assert r["status"] == "ok" and r["median_ms"] > 0 and r["m"] == r["N"] // 8, r
+        assert "peak_mb" not in r  # CUDA only
+    out = capsys.readouterr().out
+    assert "== 1. sampling" in out and "== 3. whole cloud" in out and "wrote" in out
+
+
 def test_bm_sparse_reports_errors_instead_of_blank_cells():
     from benchmarks import bm_sparse
 
