@@ -30,6 +30,7 @@ _LAZY = {
     "knn": "lidarops.ops.neighbors",
     "ball_query": "lidarops.ops.neighbors",
     "gather": "lidarops.ops.neighbors",
+    "greedy_assign": "lidarops.ops.assign",
     "voxelize": "lidarops.ops.voxelize",
     "box_overlap_bev": "lidarops.ops.boxes",
     "box_iou_bev": "lidarops.ops.boxes",

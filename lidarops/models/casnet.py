@@ -47,6 +47,7 @@ from lidarops._checks import flag, positive_int, real
 from lidarops.models.casnet_losses import chamfer_distance, selection_cosine_loss
 from lidarops.models.offset_attention import OffsetAttention
 from lidarops.models.samplers import Sampler, segment_shares, spatial_segments
+from lidarops.ops.assign import greedy_assign
 from lidarops.ops.neighbors import ball_query, gather, knn
 from lidarops.ops.validation import (check_positive_int, check_tensor, check_values, describe, lengths_or_full,
                                      validation, value_checks_enabled)
@@ -417,7 +418,8 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
     with fewer valid points than rows) keep their plain argmax, a repeat.
 
     Computed per cloud on candidate lists: each row's ``K`` best points (a stable sort on the device), the
-    ``m K`` pairs scanned in order on the host until every row that can be served is. If that happens
+    ``m K`` pairs scanned in order on the host (:func:`lidarops.ops.greedy_assign`, C++) until every row that
+    can be served is. If that happens
     within the lists, the result is the greedy of the whole matrix (a row assigned within its list was
     assigned before any pair beyond it could come up); otherwise ``K`` grows fourfold and the scan
     restarts (``K = N`` is the whole matrix; also from the start when the cloud has fewer valid points
@@ -448,22 +450,14 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
         while True:
             vals = values[b, :, :k].reshape(-1)
             order = torch.sort(vals, descending=True, stable=True).indices  # ties: row-major (lower row first)
-            vals = vals[order].cpu().tolist()
-            rows = (order // k).cpu().tolist()
-            cols = points[b, :, :k].reshape(-1)[order].cpu().tolist()
-            assigned: dict[int, int] = {}
-            taken: set[int] = set()
-            for v, r, c in zip(vals, rows, cols):
-                if v == -math.inf or len(assigned) == can_serve:
-                    break
-                if r not in assigned and c not in taken:
-                    assigned[r] = c
-                    taken.add(c)
-            if len(assigned) == can_serve or k == N:
+            offered = int(torch.isfinite(vals).sum())  # -inf pairs (padding) sort last and are never taken
+            order = order[:offered]
+            assign = greedy_assign(order // k, points[b, :, :k].reshape(-1)[order], m, N, can_serve).cpu()
+            served = int((assign >= 0).sum())
+            if served == can_serve or k == N:
                 break
             k = min(N, 4 * k)
-        for r, c in assigned.items():
-            picks[b, r] = c
+        picks[b] = torch.where(assign >= 0, assign, picks[b])
     return picks.to(scores.device)
 
 

@@ -1,0 +1,56 @@
+// CPU kernel of lidarops::greedy_assign (schema and contract: csrc/ops/assign.cpp).
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/full.h>
+
+#include <cstdint>
+#include <vector>
+
+#include <torch/library.h>
+
+namespace lidarops {
+namespace {
+
+at::Tensor greedy_assign_cpu(const at::Tensor& rows_in, const at::Tensor& cols_in, int64_t num_rows,
+                             int64_t num_cols, int64_t limit) {
+  TORCH_CHECK_VALUE(rows_in.dim() == 1 && cols_in.dim() == 1 && rows_in.size(0) == cols_in.size(0),
+                    "greedy_assign: rows and cols must be 1-D of one length, got ", rows_in.sizes(), " and ",
+                    cols_in.sizes());
+  TORCH_CHECK_VALUE(rows_in.scalar_type() == at::kLong && cols_in.scalar_type() == at::kLong,
+                    "greedy_assign: rows and cols must be int64, got ", rows_in.scalar_type(), " and ",
+                    cols_in.scalar_type());
+  TORCH_CHECK_VALUE(rows_in.device().is_cpu() && cols_in.device().is_cpu(),
+                    "greedy_assign: rows and cols must be on the CPU, got ", rows_in.device(), " and ",
+                    cols_in.device());
+  TORCH_CHECK_VALUE(num_rows >= 0 && num_cols >= 0 && limit >= 0,
+                    "greedy_assign: num_rows, num_cols and limit must be >= 0, got ", num_rows, ", ", num_cols,
+                    ", ", limit);
+  auto rows = rows_in.contiguous();
+  auto cols = cols_in.contiguous();
+  const int64_t L = rows.size(0);
+  const int64_t* rp = rows.data_ptr<int64_t>();
+  const int64_t* cp = cols.data_ptr<int64_t>();
+  for (int64_t i = 0; i < L; ++i) {
+    TORCH_CHECK_VALUE(rp[i] >= 0 && rp[i] < num_rows, "greedy_assign: rows[", i, "] = ", rp[i],
+                      " is outside [0, num_rows=", num_rows, ")");
+    TORCH_CHECK_VALUE(cp[i] >= 0 && cp[i] < num_cols, "greedy_assign: cols[", i, "] = ", cp[i],
+                      " is outside [0, num_cols=", num_cols, ")");
+  }
+  auto out = at::full({num_rows}, -1, rows.options());
+  int64_t* op = out.data_ptr<int64_t>();
+  std::vector<char> taken(static_cast<size_t>(num_cols), 0);
+  int64_t assigned = 0;
+  for (int64_t i = 0; i < L && assigned < limit; ++i) {
+    const int64_t r = rp[i], c = cp[i];
+    if (op[r] >= 0 || taken[c]) continue;
+    op[r] = c;
+    taken[c] = 1;
+    ++assigned;
+  }
+  return out;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(lidarops, CPU, m) { m.impl("greedy_assign", &greedy_assign_cpu); }
+
+}  // namespace lidarops
