@@ -77,6 +77,10 @@ demo: build
 	$(PY) -m lidarops query retrieve demo_index --where "Car>=5" --where "Pedestrian<=3" --compare --html demo_index/answer.html
 	$(PY) -m lidarops query count demo_index --where "Pedestrian>=2" --compare
 	$(PY) -m lidarops query sum demo_index --class Car --compare
+	@echo "[demo] samplers (CAS-Net's baselines): the detector on 8 of those frames keeping 1 point in 8, by random sampling"
+	@echo "       and by farthest point sampling; compare the found / labelled line with the full clouds' above (docs/casnet.md)"
+	$(PY) -m lidarops detect --scenario driving_city --frames 8 --seed 2026 --out demo_detections/random_d8 --print-frames 0 --sampler random --ratio 8
+	$(PY) -m lidarops detect --scenario driving_city --frames 8 --seed 2026 --out demo_detections/fps_d8 --print-frames 0 --sampler fps --ratio 8
 
 train-demo: build
 	@echo "[train-demo] a Car-only PointPillars on 120 simulated frames (seed 100), 6 epochs on the CPU: about 5 minutes on"
