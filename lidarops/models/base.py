@@ -10,7 +10,8 @@ import torch
 
 from lidarops.config import ConfigError, load_config
 
-__all__ = ["as_model_config", "PredictMixin", "DictConfig", "read_object_config", "model_from_checkpoint"]
+__all__ = ["as_model_config", "PredictMixin", "DictConfig", "read_object_config", "model_from_checkpoint",
+           "load_weights_strict"]
 
 
 def as_model_config(config: Any, cls: type):
@@ -116,3 +117,22 @@ def model_from_checkpoint(cls: type, path: "str | Path", config: Any = None, map
         raise ConfigError(f"{path}: {e}") from None
     model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
     return model
+
+
+def load_weights_strict(model, state_dict: Mapping[str, Any], source: str = "state dict", check_finite: bool = True) -> None:
+    """``model.load_state_dict(strict=True)`` after one check of every key and shape (a ``CheckpointError`` naming
+    the missing, unexpected and differently shaped keys) and, with ``check_finite``, of NaN or infinite values;
+    the values are cast to the model's dtypes (float16 shipped weights load into float32 models)."""
+    from lidarops import checkpoint
+    from lidarops.checkpoint import CheckpointError
+
+    own = model.state_dict()
+    missing = [k for k in own if k not in state_dict]
+    unexpected = [k for k in state_dict if k not in own]
+    shapes = [k for k in own if k in state_dict and tuple(state_dict[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or shapes:
+        raise CheckpointError(f"{source} does not fit this {type(model).__name__} config: missing {missing[:6]}, "
+                              f"unexpected {unexpected[:6]}, shape mismatch {shapes[:6]}")
+    if check_finite:
+        checkpoint.check_finite(state_dict, source)
+    model.load_state_dict({k: v.to(own[k].dtype) for k, v in state_dict.items()}, strict=True)

@@ -34,7 +34,8 @@ from torch.nn import functional as F
 
 from lidarops.checkpoint import CheckpointError
 from lidarops.config import ConfigError
-from lidarops.models.base import model_from_checkpoint, DictConfig, PredictMixin, as_model_config
+from lidarops.models.base import (DictConfig, PredictMixin, as_model_config, load_weights_strict,
+                                  model_from_checkpoint)
 from lidarops.models.casnet import CASNet, casnet_loss
 from lidarops.models.casnet_pointnet import CASNET_CHOICES, CASNET_SPEC
 from lidarops.models.config import PointPillarsConfig, _check_value
@@ -257,19 +258,8 @@ class CASNetPointPillars(PredictMixin, nn.Module):
 
     def load_weights(self, state_dict: Mapping[str, Tensor], source: str = "state dict",
                      check_finite: bool = True) -> None:
-        """Strict loading with one error naming every missing, unexpected or differently shaped key."""
-        from lidarops import checkpoint
-
-        own = self.state_dict()
-        missing = [k for k in own if k not in state_dict]
-        unexpected = [k for k in state_dict if k not in own]
-        shapes = [k for k in own if k in state_dict and tuple(state_dict[k].shape) != tuple(own[k].shape)]
-        if missing or unexpected or shapes:
-            raise CheckpointError(f"{source} does not fit this CASNetPointPillars config: missing {missing[:6]}, "
-                                  f"unexpected {unexpected[:6]}, shape mismatch {shapes[:6]}")
-        if check_finite:
-            checkpoint.check_finite(state_dict, source)
-        self.load_state_dict({k: v.to(own[k].dtype) for k, v in state_dict.items()}, strict=True)
+        """Strict loading with one error naming the keys that differ (and, with ``check_finite``, NaN or inf)."""
+        load_weights_strict(self, state_dict, source, check_finite)
 
     def save(self, path: "str | Path", **extra: Any) -> Path:
         """Writes a lidarops checkpoint of the whole model (CAS-Net and detector) with its config."""

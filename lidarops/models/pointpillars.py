@@ -40,7 +40,7 @@ from lidarops.ops.pillars import MAX_ABS_INTENSITY
 from lidarops.ops.validation import (check_positive_int, check_tensor, describe, run_value_checks,
                                       value_checks_enabled)
 
-__all__ = ["PointPillars", "CheckpointMismatchError"]
+__all__ = ["PointPillars", "CheckpointMismatchError", "voxelize_frames"]
 
 # lidarops 0.1's lidarops.models.pointpillars held the backbone and SSCATeR's pillar net: those names moved
 __getattr__ = moved_attributes(__name__, {
@@ -138,20 +138,7 @@ class PointPillars(PredictMixin, nn.Module):
     def voxelize(self, points: Tensor, batch_size: int) -> tuple[Tensor, Tensor, Tensor]:
         """Pillars of every frame: ``voxels (V, N, C)``, ``num_points (V,)``, ``coords (V, 4)`` int32 =
         (batch, z, y, x); pillars beyond the config's max voxels (train / test) are dropped."""
-        from lidarops.ops.voxelize import voxelize
-
-        cfg = self.config
-        max_voxels = cfg.max_voxels_train if self.training else cfg.max_voxels_test
-        frame = points[:, 0].long()
-        voxels, nums, coords = [], [], []
-        for b in range(batch_size):
-            pts = points[frame == b, 1:1 + cfg.num_point_features]
-            v, c, n = voxelize(pts, cfg.voxel_size, cfg.point_cloud_range, cfg.max_points_per_voxel, max_voxels,
-                               overflow="drop")
-            voxels.append(v)
-            nums.append(n)
-            coords.append(F.pad(c, (1, 0), value=b))
-        return torch.cat(voxels), torch.cat(nums), torch.cat(coords)
+        return voxelize_frames(points, batch_size, self.config, self.training)
 
     def network(self, voxels: Tensor, num_points: Tensor, coords: Tensor, batch_size: int) -> dict[str, Tensor]:
         """Pillars -> raw head outputs (the part ``torch.export`` takes)."""
@@ -180,6 +167,26 @@ class PointPillars(PredictMixin, nn.Module):
 
 
 
+
+
+def voxelize_frames(points: Tensor, batch_size: int, cfg: PointPillarsConfig,
+                    training: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """The pillars of every frame of an OpenPCDet batch (``points (P, 1 + C)``, frame index first), with the
+    config's capacities (train or test): ``voxels (V, N, C)``, ``num_points (V,)``, ``coords (V, 4)`` int32 =
+    (batch, z, y, x)."""
+    from lidarops.ops.voxelize import voxelize
+
+    max_voxels = cfg.max_voxels_train if training else cfg.max_voxels_test
+    frame = points[:, 0].long()
+    voxels, nums, coords = [], [], []
+    for b in range(batch_size):
+        pts = points[frame == b, 1:1 + cfg.num_point_features]
+        v, c, n = voxelize(pts, cfg.voxel_size, cfg.point_cloud_range, cfg.max_points_per_voxel, max_voxels,
+                           overflow="drop")
+        voxels.append(v)
+        nums.append(n)
+        coords.append(F.pad(c, (1, 0), value=b))
+    return torch.cat(voxels), torch.cat(nums), torch.cat(coords)
 
 
 def _check_batch(batch: Mapping[str, Any], cfg: PointPillarsConfig, training: bool,
