@@ -18,7 +18,7 @@ REQUIRED = {"numpy": "numpy", "pytest": "pytest", "setuptools": "setuptools>=64"
 OPTIONAL = {"pybind11": "pybind11", "wheel": "wheel", "scipy": "scipy", "hypothesis": "hypothesis", "tqdm": "tqdm", "matplotlib": "matplotlib",
             "h5py": "h5py", "pandas": "pandas", "fpsample": "fpsample", "shapely": "shapely",
             "onnxscript": "onnxscript", "onnxruntime": "onnxruntime", "xdist": "pytest-xdist",
-            "duckdb": "duckdb", "pyarrow": "pyarrow"}
+            "duckdb": "duckdb", "pyarrow": "pyarrow", "skimage": "scikit-image"}
 
 
 def missing(mods: dict) -> list[str]:
