@@ -106,6 +106,19 @@ def _classification_summary(metrics: Mapping[str, float], class_names: Sequence[
     return f"accuracy {metrics['accuracy']:.1f} %, mean class accuracy {metrics['mean_class_accuracy']:.1f} %"
 
 
+def _counting_evaluator(class_names: Sequence[str]):
+    from lidarops.eval.counting import CountingEvaluator
+
+    return CountingEvaluator(class_names)
+
+
+def _counting_summary(metrics: Mapping[str, float], class_names: Sequence[str]) -> str:
+    if "counting_accuracy" not in metrics:
+        return ""
+    return (f"counting accuracy {metrics['counting_accuracy']:.1f} % (exact counts), mean absolute error "
+            f"{metrics['count_mae']:.2f} objects per class and frame")
+
+
 def _simulated_objects(cfg: Mapping) -> bool:
     """Whether the data folder is the object-set cache a first run simulates (rather than data to read)."""
     return cfg.get("DATA_CONFIG", {}).get("DATASET", "SimObjects") == "SimObjects"
@@ -126,6 +139,8 @@ TRAINABLE: dict[str, Trainable] = {
                                 creates_data=_simulated_objects),
     "CASNetPointPillars": Trainable(model="CASNetPointPillars", datasets=_kitti_detection_datasets,
                                     evaluator=_kitti_evaluator, summary=_kitti_summary),
+    "CounterNet": Trainable(model="CounterNet", datasets=_kitti_detection_datasets, evaluator=_counting_evaluator,
+                            summary=_counting_summary),
 }
 
 

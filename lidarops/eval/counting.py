@@ -498,3 +498,46 @@ def aggregation_errors(pred: Any, true: Any, groups: "tuple[Any, Any] | None" = 
     sp, st = cp[starts + lengths] - cp[starts], ct[starts + lengths] - ct[starts]
     out = {"true": st, "pred": sp, "abs_diff": np.abs(sp - st), "q_error": _q_error(sp, st)}
     return {k: v[:, 0] for k, v in out.items()} if one_d else out
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the trainer's evaluator of a counting network
+# ---------------------------------------------------------------------------------------------------------
+class CountingEvaluator:
+    """``evaluator(predictions, frames) -> (metrics, text)`` for :func:`lidarops.train.fit` and a counting
+    network (:class:`lidarops.models.counternet.CounterNet`): per-class counting accuracy (in %), mean absolute
+    error and RETRIEVAL-SINGLE accuracy at 10 % (in %), and their means over the classes.
+
+    ``predictions[i]`` holds ``counts`` (C,) and ``true_counts`` (C,) (``CounterNet.postprocess`` puts the
+    batch's labelled counts beside its own); ``frames`` are not read.
+    """
+
+    def __init__(self, class_names: Sequence[str]) -> None:
+        if isinstance(class_names, str) or not class_names or not all(isinstance(n, str) for n in class_names):
+            raise ValueError(f"class_names must be a non-empty list of names, got {class_names!r}")
+        self.class_names = tuple(class_names)
+
+    def __call__(self, predictions: Sequence[Any], frames: Sequence[Any]) -> tuple[dict[str, float], str]:
+        if not predictions:
+            raise ValueError("predictions is empty: no frame to evaluate")
+        for i, p in enumerate(predictions):
+            if "counts" not in p or "true_counts" not in p:
+                raise ValueError(f"predictions[{i}] needs 'counts' and 'true_counts' (keys {sorted(p)}): the "
+                                 "model's postprocess must see the batch's gt_boxes")
+        pred = np.stack([np.asarray(p["counts"]).reshape(-1) for p in predictions]).astype(np.int64)
+        true = np.stack([np.asarray(p["true_counts"]).reshape(-1) for p in predictions]).astype(np.int64)
+        if pred.shape[1] != len(self.class_names) or true.shape != pred.shape:
+            raise ValueError(f"counts must hold one entry per class ({len(self.class_names)}), got predicted "
+                             f"{pred.shape[1:]} and true {true.shape[1:]}")
+        acc = np.atleast_1d(counting_accuracy(pred, true)) * 100
+        mae = np.atleast_1d(mean_absolute_error(pred, true))
+        r10 = np.atleast_1d(retrieval_single_accuracy(pred, true, 0.1)) * 100
+        metrics: dict[str, float] = {"counting_accuracy": float(acc.mean()), "count_mae": float(mae.mean()),
+                                     "retrieval_single_10": float(r10.mean())}
+        lines = [f"{'class':<12} {'exact %':>8} {'MAE':>7} {'R-single@10% %':>15} {'true/frame':>10}"]
+        for k, name in enumerate(self.class_names):
+            metrics[f"counting_accuracy_{name}"] = float(acc[k])
+            metrics[f"count_mae_{name}"] = float(mae[k])
+            lines.append(f"{name:<12} {acc[k]:8.1f} {mae[k]:7.2f} {r10[k]:15.1f} {true[:, k].mean():10.2f}")
+        lines.append(f"{'mean':<12} {acc.mean():8.1f} {mae.mean():7.2f} {r10.mean():15.1f}   ({len(pred)} frames)")
+        return metrics, "\n".join(lines)

@@ -36,7 +36,7 @@ from lidarops._moved import moved_attributes
 
 __all__ = ["MODELS", "model_class", "load_model", "PointPillars", "PointPillarsConfig", "GraphedPointPillars",
            "SSCATeRPointPillars", "PillarVFE", "PointPillarScatter", "BaseBEVBackbone", "AnchorHeadSingle",
-           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetPointNet", "CASNetPointNetConfig", "CASNetPointPillars", "CASNetPointPillarsConfig", "load_casnet", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
+           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetPointNet", "CASNetPointNetConfig", "CASNetPointPillars", "CASNetPointPillarsConfig", "load_casnet", "CounterNet", "CounterNetConfig", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
            "chamfer_distance", "selection_cosine_loss", "RandomSampler", "FPSSampler", "ChunkedFPSSampler",
            "sample_features"]
 
@@ -49,6 +49,7 @@ MODELS: dict[str, tuple[str, str]] = {
     "CASNetPointNet": ("lidarops.models.casnet_pointnet", "CASNetPointNet"),
     "CASNetPointPillars": ("lidarops.models.casnet_pointpillars", "CASNetPointPillars"),
     "CASNet": ("lidarops.models.casnet", "CASNet"),
+    "CounterNet": ("lidarops.models.counternet", "CounterNet"),
 }
 
 
@@ -117,6 +118,8 @@ __getattr__, __dir__ = lazy_attributes(__name__, {
     "CASNetPointPillars": ("lidarops.models.casnet_pointpillars", "CASNetPointPillars"),
     "CASNetPointPillarsConfig": ("lidarops.models.casnet_pointpillars", "CASNetPointPillarsConfig"),
     "load_casnet": ("lidarops.models.casnet", "load_casnet"),
+    "CounterNet": ("lidarops.models.counternet", "CounterNet"),
+    "CounterNetConfig": ("lidarops.models.counternet", "CounterNetConfig"),
     "CASNetSampler": ("lidarops.models.casnet", "CASNetSampler"),
     "segment_and_sample": ("lidarops.models.casnet", "segment_and_sample"),
     "casnet_loss": ("lidarops.models.casnet", "casnet_loss"),

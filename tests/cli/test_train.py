@@ -50,8 +50,8 @@ def test_unknown_model_name_is_one_line(tmp_path, run_cli):
     unnamed = tmp_path / "unnamed.yaml"
     unnamed.write_text("CLASS_NAMES: ['Car']\nMODEL:\n    VFE:\n        NAME: PillarVFE\n")
     for config, expected in ((unknown, "MODEL.NAME 'CenterPoint' is not a model lidarops trains; "
-                                       "known: CASNetPointNet, CASNetPointPillars, PointNet, PointPillar, PointPillars"),
-                             (unnamed, "names no model (MODEL.NAME); lidarops trains CASNetPointNet, CASNetPointPillars, PointNet, PointPillar, PointPillars")):
+                                       "known: CASNetPointNet, CASNetPointPillars, CounterNet, PointNet, PointPillar, PointPillars"),
+                             (unnamed, "names no model (MODEL.NAME); lidarops trains CASNetPointNet, CASNetPointPillars, CounterNet, PointNet, PointPillar, PointPillars")):
         code, out, err = run_cli(["train", "--config", config, "--out", tmp_path / "run"])
         assert code == 2 and out == "" and expected in one_error_line(err, "train")
     assert not (tmp_path / "run").exists()
@@ -61,4 +61,4 @@ def test_train_help(run_cli, capsys):
     with pytest.raises(SystemExit) as e:
         run_cli(["train", "--help"])
     out = capsys.readouterr().out
-    assert e.value.code == 0 and "--config" in out and "CASNetPointNet, CASNetPointPillars, PointNet, PointPillar, PointPillars" in " ".join(out.split())
+    assert e.value.code == 0 and "--config" in out and "CASNetPointNet, CASNetPointPillars, CounterNet, PointNet, PointPillar, PointPillars" in " ".join(out.split())
