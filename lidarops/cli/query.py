@@ -89,7 +89,7 @@ class _KittiLoader:
 
 def build(args: argparse.Namespace) -> int:
     """Counts frames into an index (under torchrun: each rank its share, the index their union)."""
-    from lidarops.query.build import DetectorSource, LabelsSource, build_index
+    from lidarops.query.build import CounterSource, DetectorSource, LabelsSource, build_index
 
     for flag, value, least in (("--batch", args.batch, 1), ("--part-frames", args.part_frames, 1),
                                ("--workers", args.workers, 0)):
@@ -105,6 +105,9 @@ def build(args: argparse.Namespace) -> int:
     if args.min_points < 0:
         raise CliError(f"--min-points must be >= 0, got {args.min_points}")
     labels_range = None if args.labels_range == "all" else _region_arg(args.labels_range, "--labels-range")
+    if args.source == "counter" and not args.checkpoint:
+        raise CliError("--source counter needs --checkpoint: a trained CounterNet (lidarops train --config "
+                       "configs/counternet/counternet_synth.yaml ...); none is shipped yet")
     from lidarops.cli._device import resolve_device
 
     device = resolve_device(args.device)  # a bad --device is named even where the labels need none
@@ -112,7 +115,7 @@ def build(args: argparse.Namespace) -> int:
     from lidarops.train.distributed import DistContext
 
     # a plain "cuda" becomes cuda:LOCAL_RANK under torchrun
-    ctx = DistContext.from_env((device.type if device.index is None else device) if args.source == "detector" else "cpu")
+    ctx = DistContext.from_env((device.type if device.index is None else device) if args.source != "labels" else "cpu")
     try:
         if args.source == "labels":
             source = LabelsSource(args.classes or DEFAULT_CLASSES, region=labels_range, min_points=args.min_points)
@@ -120,7 +123,12 @@ def build(args: argparse.Namespace) -> int:
             from lidarops.models import load_model, weights
 
             model = load_model(args.checkpoint or weights.path()).to(ctx.device).eval()
-            source = DetectorSource(model, args.score_thresh)
+            counts = type(model).__name__ == "CounterNet"
+            if counts != (args.source == "counter"):
+                raise CliError(f"--checkpoint {args.checkpoint or weights.path()} holds a {type(model).__name__}: "
+                               f"--source {args.source} needs " + ("a CounterNet" if args.source == "counter" else
+                                                                   "a detector (use --source counter for a CounterNet)"))
+            source = CounterSource(model) if counts else DetectorSource(model, args.score_thresh)
         from lidarops._progress import progress_bar
 
         bar = progress_bar(len(ids), f"index {args.source}",
@@ -342,8 +350,10 @@ def register(subparsers) -> None:
                    help="scenario traffic (default: the scenario's own)")
     b.add_argument("--frames-per-scene", type=int, default=1, help="scenario: consecutive sweeps of one drive per "
                                                                    "scene (default 1: a new scene each frame)")
-    b.add_argument("--source", choices=["labels", "detector"], default="labels", help="what counts (default labels)")
-    b.add_argument("--checkpoint", help="detector checkpoint (default: the shipped PointPillars)")
+    b.add_argument("--source", choices=["labels", "detector", "counter"], default="labels",
+                   help="what counts (default labels); counter: a CounterNet checkpoint")
+    b.add_argument("--checkpoint", help="detector checkpoint (default: the shipped PointPillars), or a CounterNet's "
+                                        "for --source counter")
     b.add_argument("--score-thresh", type=float, default=0.5, help="detector: count boxes scoring at least this "
                                                                     "(default 0.5)")
     b.add_argument("--classes", nargs="+", help=f"labels: classes to count (default {' '.join(DEFAULT_CLASSES)})")

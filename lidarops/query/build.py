@@ -7,7 +7,8 @@ A source is any callable ``source(frames) -> list of (counts, centres)`` over a 
 
 - :class:`LabelsSource`: the frames' own boxes (the ground truth);
 - :class:`DetectorSource`: a detector used as a counter, its boxes above a score threshold;
-- a counting network, or any user model, in the same shape.
+- :class:`CounterSource`: a counting network (CounterNet), its heatmap peaks;
+- any user model, in the same shape.
 
 Resumable and idempotent: a part is written to a temporary name and renamed, and a build started again on
 the same index skips the frames its source already holds, so a build killed midway and run again ends with
@@ -25,7 +26,7 @@ import numpy as np
 
 from lidarops.query.index import FrameIndex, QueryError
 
-__all__ = ["LabelsSource", "DetectorSource", "build_index", "BuildReport", "FrameError", "Scan"]
+__all__ = ["LabelsSource", "DetectorSource", "CounterSource", "build_index", "BuildReport", "FrameError", "Scan"]
 
 Counted = tuple[dict[str, int], list[tuple[str, float, float, float]]]
 
@@ -98,25 +99,24 @@ class LabelsSource:
         return out
 
 
-class DetectorSource:
-    """A detector as a counter: its detections scoring at least ``score_thresh``, per class, one batched
-    ``predict`` per call (on the model's device).
+class _ModelSource:
+    """What the model-backed sources share: the frames batched on the model's device, one ``predict`` per call,
+    each frame's prediction turned into ``(counts, centres)`` by :meth:`counted`.
 
     ``stage_seconds`` adds up where the time went: ``to_device`` (batching the points and the copy),
     ``predict`` (the network and its post-processing, synchronised on CUDA) and ``read_back``.
     """
 
-    name = "detector"
     needs_labels = False
 
-    def __init__(self, model, score_thresh: float = 0.5):
-        if not 0 <= score_thresh <= 1:
-            raise QueryError(f"score_thresh must be in [0, 1], got {score_thresh!r}")
+    def __init__(self, model):
         self.model = model
-        self.score_thresh = float(score_thresh)
         self.classes = list(model.config.class_names)
         self.stage_seconds = {"to_device": 0.0, "predict": 0.0, "read_back": 0.0}
         self.pin_memory = next(model.parameters()).device.type == "cuda"  # asks build_index's loader to pin
+
+    def counted(self, pred: dict) -> Counted:
+        raise NotImplementedError
 
     def __call__(self, frames: Sequence[Any]) -> list[Counted]:
         import torch
@@ -136,22 +136,48 @@ class DetectorSource:
             preds = self.model.predict({"points": batch_points, "batch_size": len(frames)})
         sync()
         t2 = time.perf_counter()
-        out = []
-        for pred in preds:
-            keep = pred["scores"] >= self.score_thresh
-            boxes, labels, scores = pred["boxes"][keep].cpu(), pred["labels"][keep].cpu(), pred["scores"][keep].cpu()
-            counts = {c: 0 for c in self.classes}
-            centres = []
-            for box, label, score in zip(boxes.tolist(), labels.tolist(), scores.tolist()):
-                name = self.classes[label - 1]  # 1-based, as OpenPCDet
-                counts[name] += 1
-                centres.append((name, box[0], box[1], score))
-            out.append((counts, centres))
+        out = [self.counted(pred) for pred in preds]
         t3 = time.perf_counter()
         self.stage_seconds["to_device"] += t1 - t0
         self.stage_seconds["predict"] += t2 - t1
         self.stage_seconds["read_back"] += t3 - t2
         return out
+
+
+class DetectorSource(_ModelSource):
+    """A detector as a counter: its detections scoring at least ``score_thresh``, per class, one batched
+    ``predict`` per call (on the model's device); ``stage_seconds`` as :class:`CounterSource`'s."""
+
+    name = "detector"
+
+    def __init__(self, model, score_thresh: float = 0.5):
+        if not 0 <= score_thresh <= 1:
+            raise QueryError(f"score_thresh must be in [0, 1], got {score_thresh!r}")
+        super().__init__(model)
+        self.score_thresh = float(score_thresh)
+
+    def counted(self, pred: dict) -> Counted:
+        keep = pred["scores"] >= self.score_thresh
+        boxes, labels, scores = pred["boxes"][keep].cpu(), pred["labels"][keep].cpu(), pred["scores"][keep].cpu()
+        counts = {c: 0 for c in self.classes}
+        centres = []
+        for box, label, score in zip(boxes.tolist(), labels.tolist(), scores.tolist()):
+            name = self.classes[label - 1]  # 1-based, as OpenPCDet
+            counts[name] += 1
+            centres.append((name, box[0], box[1], score))
+        return counts, centres
+
+
+class CounterSource(_ModelSource):
+    """A counting network (:class:`lidarops.models.counternet.CounterNet`) as the source: its per-class counts
+    and the BEV centres of its heatmap peaks, one batched ``predict`` per call."""
+
+    name = "counter"
+
+    def counted(self, pred: dict) -> Counted:
+        counts = dict(zip(self.classes, (int(n) for n in pred["counts"].cpu().tolist())))
+        centres = [(self.classes[int(c)], x, y, score) for x, y, c, score in pred["centres"].cpu().tolist()]
+        return counts, centres
 
 
 @dataclass
