@@ -279,7 +279,9 @@ class CASNet(nn.Module):
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         state = {k: v.detach().cpu() for k, v in self.state_dict().items()}
-        save_checkpoint({**format_fields(), "model_class": "CASNet", "model_config": dict(self.config),
+        # the settable attributes as they are now
+        config = dict(self.config, temperature=self.temperature, mode=self.mode, dedup=self.dedup)
+        save_checkpoint({**format_fields(), "model_class": "CASNet", "model_config": config,
                          "model_state": state, **extra}, [path])
         return path
 
@@ -419,12 +421,11 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
 
     Computed per cloud on candidate lists: each row's ``K`` best points (a stable sort on the device), the
     ``m K`` pairs scanned in order on the host (:func:`lidarops.ops.greedy_assign`, C++) until every row that
-    can be served is. If that happens
-    within the lists, the result is the greedy of the whole matrix (a row assigned within its list was
-    assigned before any pair beyond it could come up); otherwise ``K`` grows fourfold and the scan
-    restarts (``K = N`` is the whole matrix; also from the start when the cloud has fewer valid points
-    than rows). ``K`` starts at 32: trained rows, which disagree, finish at once; alike rows (an untrained
-    model) need ``K`` about ``m`` and about ``m^2 / 2`` steps of the scan.
+    can be served is. If that happens within the lists, the result is the greedy of the whole matrix (a row
+    assigned within its list was assigned before any pair beyond it could come up); otherwise ``K`` grows
+    fourfold and the scan restarts (``K = N`` is the whole matrix; also from the start when the cloud has
+    fewer valid points than rows). ``K`` starts at 32: rows that disagree finish at once; alike rows (an
+    untrained or a collapsed model) need ``K`` up to ``N``.
 
     Args:
         scores (Tensor[B, m, N]): comparable across rows (log-probabilities of each row's distribution);
