@@ -36,7 +36,7 @@ from lidarops._moved import moved_attributes
 
 __all__ = ["MODELS", "model_class", "load_model", "PointPillars", "PointPillarsConfig", "GraphedPointPillars",
            "SSCATeRPointPillars", "PillarVFE", "PointPillarScatter", "BaseBEVBackbone", "AnchorHeadSingle",
-           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetPointNet", "CASNetPointNetConfig", "CASNetPointPillars", "CASNetPointPillarsConfig", "load_casnet", "CounterNet", "CounterNetConfig", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
+           "weights", "PointNet", "PointNetConfig", "CASNet", "CASNetPointNet", "CASNetPointNetConfig", "CASNetPointPillars", "CASNetPointPillarsConfig", "load_casnet", "CounterNet", "CounterNetConfig", "SelectedCounter", "CASNetSampler", "segment_and_sample", "casnet_loss", "OffsetAttention",
            "chamfer_distance", "selection_cosine_loss", "RandomSampler", "FPSSampler", "ChunkedFPSSampler",
            "sample_features"]
 
@@ -120,6 +120,7 @@ __getattr__, __dir__ = lazy_attributes(__name__, {
     "load_casnet": ("lidarops.models.casnet", "load_casnet"),
     "CounterNet": ("lidarops.models.counternet", "CounterNet"),
     "CounterNetConfig": ("lidarops.models.counternet", "CounterNetConfig"),
+    "SelectedCounter": ("lidarops.models.counternet_selection", "SelectedCounter"),
     "CASNetSampler": ("lidarops.models.casnet", "CASNetSampler"),
     "segment_and_sample": ("lidarops.models.casnet", "segment_and_sample"),
     "casnet_loss": ("lidarops.models.casnet", "casnet_loss"),
