@@ -201,3 +201,30 @@ def test_report_reads_every_section_and_shows_errors(tmp_path):
     assert "| drone | 0.500 | error |" in text
     text = report.section_markdown("voxelize", report.load(tmp_path, "voxelize"))
     assert "| p | a | ok | 1.50 | 1.0x |" in text and "| p | b | error: ValueError: no | error |" in text
+
+
+def test_bm_counternet_quick_cpu_writes_result_rows(tmp_path, capsys):
+    from benchmarks import bm_counternet
+
+    threads = torch.get_num_threads()
+    assert bm_counternet.main(["--device", "cpu", "--quick", "--threads", "1", "--json",
+                               "--results-dir", str(tmp_path)]) == 0
+    assert torch.get_num_threads() == threads
+    data = json.loads((tmp_path / common.results_path("cpu").name).read_text())
+    section = data["sections"]["counternet"]
+    assert section["meta"]["device_type"] == "cpu" and section["meta"]["frames"]["frames"] == 2
+    assert section["meta"]["batch"] == 2
+    rows = {r["op"]: r for r in section["rows"]}
+    assert len(rows) == len(section["rows"]), "op names must be unique"
+    models = ("CN_pt=1", "CN_pt=4^o", "PointPillars counter")
+    assert {(r["model"], r["case"]) for r in rows.values()} == (
+        {(m, c) for m in models for c in ("latency", "throughput")} | {(m, "postprocess") for m in models[:2]})
+    for r in rows.values():
+        assert r["status"] == "ok", r
+        assert r["median_ms"] > 0 and r.get("commit") == section["meta"].get("commit")
+        if r["case"] == "postprocess":
+            assert 0 < r["share_of_latency"] <= 1
+        else:
+            assert r["frames_per_s"] == pytest.approx(r["batch"] * 1e3 / r["median_ms"], rel=1e-3)
+    out = capsys.readouterr().out
+    assert "== CounterNet vs the PointPillars counter" in out and "wrote" in out

@@ -1,0 +1,319 @@
+"""Benchmark of CounterNet inference (lidarops.models.counternet, issue 38) beside the shipped PointPillars
+detector used as a counter, on KITTI-sized frames already in device memory.
+
+    python benchmarks/bm_counternet.py                          # CUDA when available, else CPU
+    python benchmarks/bm_counternet.py --device cuda --json     # write benchmarks/results/<device>.json
+    python benchmarks/bm_counternet.py --device cpu             # CPU: 4 frames, batch 2 (about 1-2 minutes)
+    python benchmarks/bm_counternet.py --device cpu --quick     # smoke test: 2 frames, batch 2
+
+Target (issue 38): at least 1,000 frames/s for CounterNet on CUDA (batched); the seed reports 152 ms per frame
+on an RTX 3080.
+
+The frames: ``lidarops.data.synthetic.SyntheticFrames("driving_city", object_counts="dense", fov_deg=90)``, i.e.
+independent simulated city scenes with dense object counts, cropped to KITTI's camera field of view (``x > 0``
+and ``|atan2(y, x)| < 45`` degrees) as the KITTI dataset gives them (about 31,000 points a frame; the models'
+voxelization drops what lies outside their point cloud range). N frames (16 on CUDA, 4 on CPU, 2 with
+``--quick``; ``--frames``) are held as OpenPCDet batches (``points (P, 1 + 4)``, ``batch_size``) on the device.
+
+The models, in eval mode:
+
+* ``CN_pt=1``: ``CounterNet(configs/counternet/counternet_synth.yaml)`` as configured (PARTITIONS 1);
+* ``CN_pt=4^o``: the same config with PARTITIONS 4 and OVERLAP 0.2 (CN_pt^o: four heatmap branches on
+  overlapping regions, centres found twice merged);
+* ``PointPillars counter``: the shipped detector ``lidarops.models.weights.load("pointpillars_synth")``;
+  its count of a frame = the boxes with score >= 0.5, per class.
+
+CounterNet's weights are random (seeded; no CounterNet checkpoint ships): the network's time does not depend on
+the weights. Its postprocess (Otsu threshold, peaks, centres, merge) depends a little on how many peaks the
+heatmaps hold; untrained heatmaps hold few, so the postprocess times here are a lower bound for a trained model.
+
+Rows, per model:
+
+* ``latency``: batch 1, the eager ``model.predict(batch)`` a user writes, the per-class counts read to the
+  host; the calls cycle over the frames; median (and IQR) over the calls (on CPU: one call per frame).
+* ``throughput``: ``model.predict`` on batches of ``--batch`` frames (8 on CUDA, 2 on CPU), counts read to the
+  host; frames/s = batch / median batch time.
+* for CounterNet also ``postprocess`` alone (batch 1, on the forward's precomputed outputs) and its share of
+  the latency; the rest (batch checks, voxelization, network) is the network's share.
+
+Times are medians in ms with the timers of ``benchmarks/common.py``: on CUDA CUDA events (one cold call,
+warm-up, then as many calls as fit in the budget), on CPU ``time.perf_counter`` with the three models' calls
+interleaved (:func:`~benchmarks.common.time_cpu_interleaved`). A case that fails is reported with its error and
+the others go on. ``--json`` writes the rows (``op`` = ``counternet/<model>/<case>``) as section
+``"counternet"`` of ``benchmarks/results/<device>.json``, replacing that section whole (other sections kept).
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch
+
+from benchmarks.common import (
+    Timing,
+    device_name,
+    env_meta,
+    fmt_ms,
+    print_table,
+    short_status,
+    time_cpu,
+    time_cpu_interleaved,
+    time_cuda,
+    write_results,
+)
+
+import lidarops
+from lidarops import extension
+from lidarops.config import load_config
+from lidarops.models.counternet import CounterNet
+
+SECTION = "counternet"
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "counternet" / "counternet_synth.yaml"
+SCENARIO, SEED, FOV_DEG = "driving_city", 0, 90.0  # full opening: |azimuth| < 45 degrees
+SCORE_THRESHOLD = 0.5  # the PointPillars counter's score threshold
+
+
+# ------------------------------------------------------------------ frames and models
+
+def make_frames(n: int) -> tuple[list[torch.Tensor], dict]:
+    """``n`` simulated dense driving_city frames in KITTI's field of view: (P, 4) float32 each, and their summary."""
+    from lidarops.data.synthetic import SyntheticFrames
+
+    src = SyntheticFrames(SCENARIO, num_frames=n, seed=SEED, object_counts="dense", fov_deg=FOV_DEG)
+    frames, boxes = [], []
+    for i in range(n):
+        f = src[i]
+        frames.append(torch.from_numpy(f.points[:, :4]).float())
+        boxes.append(len(f.boxes))
+    points = [int(p.shape[0]) for p in frames]
+    info = dict(frames=n, points_mean=round(sum(points) / n), points_min=min(points), points_max=max(points),
+                boxes_mean=round(sum(boxes) / n, 1),
+                source=f'SyntheticFrames("{SCENARIO}", num_frames={n}, seed={SEED}, object_counts="dense", '
+                       f'fov_deg={FOV_DEG:g})')
+    return frames, info
+
+
+def make_batch(frames: list[torch.Tensor], device: torch.device) -> dict:
+    """OpenPCDet's batch of ``frames``: ``points (P, 1 + 4)`` (frame index first) and ``batch_size``."""
+    pts = torch.cat([torch.cat([torch.full((len(p), 1), float(i)), p], dim=1) for i, p in enumerate(frames)])
+    return {"points": pts.to(device), "batch_size": len(frames)}
+
+
+def counternet(device: torch.device, partitions: int, overlap: float) -> CounterNet:
+    cfg = load_config(str(CONFIG))
+    cfg["MODEL"]["COUNT_HEAD"].update(PARTITIONS=partitions, OVERLAP=overlap)
+    torch.manual_seed(0)
+    return CounterNet(cfg).to(device).eval()
+
+
+def models(device: torch.device) -> dict[str, tuple[Any, Callable[[Any, dict], Any]]]:
+    """name -> (model, count(model, batch): per-class counts read to the host), or an error string."""
+    def cn_count(model, batch):
+        return torch.stack([f["counts"] for f in model.predict(batch)]).tolist()
+
+    def pp_count(model, batch):
+        c = len(model.config.class_names) + 1  # labels are 1-based
+        return torch.stack([torch.bincount(f["labels"][f["scores"] >= SCORE_THRESHOLD], minlength=c)[1:]
+                            for f in model.predict(batch)]).tolist()
+
+    out: dict[str, Any] = {"CN_pt=1": (counternet(device, 1, 0.0), cn_count),
+                           "CN_pt=4^o": (counternet(device, 4, 0.2), cn_count)}
+    try:
+        from lidarops.models import weights
+
+        out["PointPillars counter"] = (weights.load("pointpillars_synth", map_location=device).to(device).eval(),
+                                       pp_count)
+    except Exception as e:  # noqa: BLE001  (reported in its rows)
+        out["PointPillars counter"] = _error(e)
+    return out
+
+
+# ------------------------------------------------------------------ timing
+
+def _error(e: BaseException) -> str:
+    return f"error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": ")
+
+
+def _cycler(fn: Callable, model: Any, batches: list[dict]) -> Callable[[], Any]:
+    """A call that runs ``fn(model, batch)`` on the next batch of ``batches`` (cycling)."""
+    it = itertools.cycle(batches)
+    return lambda: fn(model, next(it))
+
+
+def time_models(calls: dict[str, Callable | str], n: int, device: torch.device) -> dict[str, Timing | str]:
+    """Median per call of each model's cycling call; on CPU interleaved, ``n`` calls each (one per batch)."""
+    out: dict[str, Timing | str] = {k: v for k, v in calls.items() if isinstance(v, str)}
+    live = {k: v for k, v in calls.items() if not isinstance(v, str)}
+    if device.type == "cuda":
+        for name, call in live.items():
+            try:
+                out[name] = time_cuda(call, (), warmup=max(3, n), min_runs=max(10, n), max_runs=max(100, n),
+                                      budget_s=1.0, rotate=False)
+            except Exception as e:  # noqa: BLE001  (reported in its row)
+                out[name] = _error(e)
+            torch.cuda.empty_cache()
+        return out
+    timed = time_cpu_interleaved([(call, ()) for call in live.values()], min_runs=n, max_runs=n,
+                                 slow_single_s=float("inf"))
+    for name, t in zip(live, timed):
+        out[name] = t if isinstance(t, Timing) else _error(t)
+    return out
+
+
+def time_postprocess(model: CounterNet, batches: list[dict], device: torch.device) -> Timing | str:
+    """CounterNet's postprocess alone, on the forward's precomputed outputs (cycling over the frames)."""
+    try:
+        with torch.no_grad():
+            raws = [(model(b), b) for b in batches]
+        it = itertools.cycle(raws)
+
+        def call():
+            raw, b = next(it)
+            return torch.stack([f["counts"] for f in model.postprocess(raw, b)]).tolist()
+
+        if device.type == "cuda":
+            return time_cuda(call, (), warmup=max(3, len(raws)), min_runs=max(10, len(raws)), budget_s=0.5,
+                             rotate=False)
+        return time_cpu(call, (), min_runs=len(raws), max_runs=10 * len(raws), budget_s=1.0)
+    except Exception as e:  # noqa: BLE001  (reported in its row)
+        return _error(e)
+
+
+def _row(model: str, case: str, batch: int, t: Timing | str, device: torch.device) -> dict:
+    row: dict[str, Any] = dict(section=SECTION, op=f"{SECTION}/{model}/{case}", model=model, case=case,
+                               batch=batch, device=device.type)
+    if isinstance(t, str):
+        return dict(row, status=t, median_ms=None)
+    row.update(status="ok", **t.as_dict())
+    row["frames_per_s"] = float(f"{batch * 1e3 / t.median:.4g}")
+    return row
+
+
+def bench(model_set: dict, frames: list[torch.Tensor], batch: int, device: torch.device) -> list[dict]:
+    singles = [make_batch([f], device) for f in frames]
+    n_batches = max(1, len(frames) // batch)
+    groups = [make_batch([frames[(k * batch + j) % len(frames)] for j in range(batch)], device)
+              for k in range(n_batches)]
+    rows = []
+    for case, batches, bsz in (("latency", singles, 1), ("throughput", groups, batch)):
+        print(f"== {case}: batch {bsz}, {len(batches)} input(s) ...", flush=True)
+        calls = {name: m if isinstance(m, str) else _cycler(m[1], m[0], batches) for name, m in model_set.items()}
+        timed = time_models(calls, len(batches), device)
+        rows += [_row(name, case, bsz, timed[name], device) for name in model_set]
+    latency = {r["model"]: r for r in rows if r["case"] == "latency"}
+    for name, m in model_set.items():
+        if isinstance(m, str) or not isinstance(m[0], CounterNet):
+            continue
+        r = _row(name, "postprocess", 1, time_postprocess(m[0], singles, device), device)
+        r.pop("frames_per_s", None)
+        whole = latency[name].get("median_ms")
+        if r.get("median_ms") and whole:
+            r["share_of_latency"] = round(min(r["median_ms"] / whole, 1.0), 4)
+        rows.append(r)
+    return rows
+
+
+def print_rows(rows: list[dict], info: dict, device: torch.device) -> None:
+    table = []
+    for r in rows:
+        share = r.get("share_of_latency")
+        table.append([r["model"], r["case"], r["batch"],
+                      fmt_ms(r.get("median_ms")) if r["status"] == "ok" else short_status(r["status"]),
+                      fmt_ms(r.get("iqr_ms")), r.get("runs", ""),
+                      f"{r['frames_per_s']:,.1f}" if r.get("frames_per_s") else "",
+                      "" if share is None else f"{100 * share:.0f}% post / {100 * (1 - share):.0f}% net"])
+    print_table(f"== CounterNet vs the PointPillars counter ({device_name(device)}); {info['frames']} frames of "
+                f"{info['points_mean']:,} points on average ({info['boxes_mean']} boxes); ms per call",
+                ["model", "case", "batch", "ms", "IQR", "runs", "frames/s", "share of latency"], table,
+                right=(2, 3, 4, 5, 6))
+    for r in rows:
+        if r["status"] != "ok":
+            print(f"  {r['op']}: {r['status']}")
+    print()
+
+
+# ------------------------------------------------------------------ main
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto",
+                    help="auto = cuda when available, else cpu (default)")
+    ap.add_argument("--quick", action="store_true", help="2 frames, for smoke tests")
+    ap.add_argument("--frames", type=int, default=0, help="frames (default: 16 on CUDA, 4 on CPU, 2 with --quick)")
+    ap.add_argument("--batch", type=int, default=0, help="batch of the throughput rows (default: 8 on CUDA, 2 on CPU)")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="CPU threads (default: torch's choice; on a loaded 2-core machine 1 gives steadier times)")
+    ap.add_argument("--json", action="store_true", help="write the rows into benchmarks/results/<device>.json")
+    ap.add_argument("--results-dir", default=None, help="folder of the result files (default benchmarks/results)")
+    a = ap.parse_args(argv)
+    threads = torch.get_num_threads()
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    try:
+        return _main(a)
+    finally:  # the smoke test calls main() inside pytest's process
+        torch.set_num_threads(threads)
+
+
+def _main(a: argparse.Namespace) -> int:
+    cuda_ok = torch.cuda.is_available() and extension.cuda_available()
+    if a.device == "cuda" and not cuda_ok:
+        print("CUDA asked for but not available (torch sees no GPU or lidarops was built without CUDA)",
+              file=sys.stderr)
+        return 2
+    dev = torch.device("cuda" if a.device == "cuda" or (a.device == "auto" and cuda_ok) else "cpu")
+    cuda = dev.type == "cuda"
+    n = a.frames or (2 if a.quick else 16 if cuda else 4)
+    batch = a.batch or (8 if cuda else 2)
+    t0 = time.perf_counter()
+    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    if not cuda and load0 is not None and load0 > 0.5 * (os.cpu_count() or 1):
+        print(f"warning: load average {load0:.1f} on {os.cpu_count()} cores; other work skews CPU timings",
+              file=sys.stderr)
+    print(f"# {device_name(dev)}: torch {torch.__version__}, lidarops {lidarops.__version__}", flush=True)
+
+    frames, info = make_frames(n)
+    model_set = models(dev)
+    rows = bench(model_set, frames, batch, dev)
+    print_rows(rows, info, dev)
+
+    wall = time.perf_counter() - t0
+    print(f"({dev.type} run took {wall:.0f} s)\n")
+    if a.json:
+        meta = env_meta(dev)
+        flags = " ".join(f for f, on in (("--quick", a.quick), (f"--frames {a.frames}", a.frames),
+                                          (f"--batch {a.batch}", a.batch), (f"--threads {a.threads}", a.threads)) if on)
+        meta.update(
+            benchmark=f"benchmarks/bm_counternet.py --device {dev.type}" + (f" {flags}" if flags else ""),
+            sweep_s=round(wall, 1),
+            load_avg_1m_start=None if load0 is None else round(load0, 2),
+            frames=info, batch=batch, target="CounterNet >= 1,000 frames/s on CUDA (issue 38)",
+            float32_matmul_precision=torch.get_float32_matmul_precision(),
+            notes={
+                "models": "CN_pt=1: configs/counternet/counternet_synth.yaml; CN_pt=4^o: PARTITIONS 4, OVERLAP 0.2; "
+                          "random seeded weights (the network's time does not depend on them; the postprocess's "
+                          "a little, through the number of peaks); PointPillars counter: pointpillars_synth, "
+                          f"boxes with score >= {SCORE_THRESHOLD} counted per class",
+                "latency": "batch 1, eager model.predict(batch), counts read to the host, calls cycling over the "
+                           "frames",
+                "throughput": "model.predict on batches of `batch` frames; frames_per_s = batch / median",
+                "postprocess": "CounterNet.postprocess alone on precomputed outputs, batch 1; share_of_latency = "
+                               "its median / the latency median",
+            },
+        )
+        path = write_results(SECTION, dev, rows, meta, replace_by=None, results_dir=a.results_dir)
+        print(f"wrote {path}\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
