@@ -180,7 +180,26 @@ class CASNetPointNetConfig(DictConfig):
         return cls(**kwargs)
 
 
-class CASNetPointNet(PredictMixin, nn.Module):
+def casnet_of(cfg) -> CASNet:
+    """The hard-sampling CAS-Net a wrapper's config describes (``num_out``, ``variant``, ``k``, ``radius``,
+    ``neighbors``, ``temperature``): the full model or :meth:`CASNet.fast`."""
+    common = dict(temperature=cfg.temperature, mode="hard")
+    if cfg.variant == "fast":
+        return CASNet.fast(cfg.num_out, radius=cfg.radius, **common)
+    return CASNet(cfg.num_out, k=cfg.k, radius=cfg.radius, neighbors=cfg.neighbors, **common)
+
+
+class FrozenTaskMixin:
+    """``train(mode)`` of a CAS-Net in front of a frozen task network ``self.task``: CAS-Net takes the mode, the
+    task stays in eval mode (its BatchNorm statistics are the trained network's and must not move)."""
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.task.eval()
+        return self
+
+
+class CASNetPointNet(FrozenTaskMixin, PredictMixin, nn.Module):
     """CAS-Net sampling ``m`` points of each object for a frozen PointNet (a
     :class:`lidarops.train.TrainableModel`).
 
@@ -214,9 +233,7 @@ class CASNetPointNet(PredictMixin, nn.Module):
             task = PointNet(cfg.task_config())
             cfg = dataclasses.replace(cfg, task=task.config.to_dict())
         self.config = cfg
-        common = dict(temperature=cfg.temperature, mode="hard")
-        self.casnet = CASNet.fast(cfg.num_out, radius=cfg.radius, **common) if cfg.variant == "fast" else \
-            CASNet(cfg.num_out, k=cfg.k, radius=cfg.radius, neighbors=cfg.neighbors, **common)
+        self.casnet = casnet_of(cfg)
         self.task = task.eval().requires_grad_(False)
 
     # ---------------------------------------------------------------- construction
@@ -243,13 +260,6 @@ class CASNetPointNet(PredictMixin, nn.Module):
     load_weights = PointNet.load_weights
     save = PointNet.save
     postprocess = PointNet.postprocess
-
-    def train(self, mode: bool = True) -> "CASNetPointNet":
-        """Sets the CAS-Net's mode; the PointNet stays in eval mode (its BatchNorm statistics are the trained
-        classifier's and must not move)."""
-        super().train(mode)
-        self.task.eval()
-        return self
 
     # ---------------------------------------------------------------- the network
     def forward(self, batch: Mapping[str, Any]) -> "dict[str, Tensor] | Tensor":

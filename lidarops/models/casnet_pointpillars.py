@@ -37,7 +37,7 @@ from lidarops.config import ConfigError
 from lidarops.models.base import (DictConfig, PredictMixin, as_model_config, load_weights_strict,
                                   model_from_checkpoint)
 from lidarops.models.casnet import CASNet, casnet_loss
-from lidarops.models.casnet_pointnet import CASNET_CHOICES, CASNET_SPEC
+from lidarops.models.casnet_pointnet import CASNET_CHOICES, CASNET_SPEC, FrozenTaskMixin, casnet_of
 from lidarops.models.config import PointPillarsConfig, _check_value
 from lidarops.models.pointpillars import PointPillars, _check_batch
 from lidarops.models.samplers import spatial_segments
@@ -211,7 +211,7 @@ def sample_frames(casnet: CASNet, points: Tensor, batch_size: int, segment_point
     return kept.reshape(-1, kept.shape[-1]), out, batch
 
 
-class CASNetPointPillars(PredictMixin, nn.Module):
+class CASNetPointPillars(FrozenTaskMixin, PredictMixin, nn.Module):
     """CAS-Net keeping ``1/D`` of each frame's points for a frozen PointPillars (a
     :class:`lidarops.train.TrainableModel`; OpenPCDet's batch: ``points (P, 1 + C)``, ``batch_size``, in
     training ``gt_boxes``).
@@ -235,9 +235,7 @@ class CASNetPointPillars(PredictMixin, nn.Module):
             task = PointPillars(cfg.task_config())
         cfg = dataclasses.replace(cfg, task=task.config.to_dict())
         self.config = cfg
-        common = dict(temperature=cfg.temperature, mode="hard")
-        self.casnet = CASNet.fast(cfg.num_out, radius=cfg.radius, **common) if cfg.variant == "fast" else \
-            CASNet(cfg.num_out, k=cfg.k, radius=cfg.radius, neighbors=cfg.neighbors, **common)
+        self.casnet = casnet_of(cfg)
         self.task = task.eval().requires_grad_(False)
 
     # ---------------------------------------------------------------- construction
@@ -271,12 +269,6 @@ class CASNetPointPillars(PredictMixin, nn.Module):
                          "class_names": self.config.class_names,
                          "model_state": {k: v.detach().cpu() for k, v in self.state_dict().items()}, **extra}, [path])
         return path
-
-    def train(self, mode: bool = True) -> "CASNetPointPillars":
-        """Sets CAS-Net's mode; the detector stays in eval mode (its BatchNorm statistics must not move)."""
-        super().train(mode)
-        self.task.eval()
-        return self
 
     # ---------------------------------------------------------------- the network
     def pillars(self, points: Tensor, batch_size: int) -> tuple[Tensor, Tensor, Tensor]:
