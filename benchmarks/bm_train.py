@@ -1,7 +1,7 @@
 """Training throughput and accuracy of PointPillars: lidarops beside OpenPCDet's own train.py.
 
     python benchmarks/bm_train.py --data DATA --vs-openpcdet .peers/OpenPCDet [--epochs 5] [--batch-size 8]
-                                  [--workers 8] [--amp none|fp16] [--out OUT] [--json]
+                                  [--workers 8] [--amp none|fp16] [--seeds 0 1 2] [--out OUT] [--json]
 
 DATA: a KITTI-format folder from ``lidarops data synth``, prepared for OpenPCDet by
 ``tools/upstream/openpcdet/prepare_kitti.py`` (its infos and gt database). OpenPCDet's checkout has its
@@ -23,7 +23,8 @@ the first step, neither the checkpoint writes or evaluation), frames/s = frames 
 and the share of it spent waiting for the next batch (OpenPCDet's "Data time"; lidarops' "waiting for
 data"). Accuracy: both final checkpoints scored on the validation split by the same evaluator
 (``lidarops detect --split val``: KITTI AP, R40), and OpenPCDet's own evaluation of its checkpoint
-beside it.
+beside it. ``--seeds``: lidarops trains once per seed (its runs are the cheap side), so the table shows
+the spread one training run has, against which OpenPCDet's single run is judged "equal" or not.
 """
 from __future__ import annotations
 
@@ -82,7 +83,8 @@ def evaluate(checkpoint: Path, data: Path, out: Path, config: Path | None, cwd: 
 
 
 def headline(results: dict, classes=("Car", "Pedestrian", "Cyclist")) -> dict:
-    return {c: results.get(f"{c}_3d_moderate_R40") for c in classes}
+    """3D moderate R40 per class, and Car BEV (the first to move while a short run's boxes are still loose)."""
+    return {**{c: results.get(f"{c}_3d_moderate_R40") for c in classes}, "Car BEV": results.get("Car_bev_moderate_R40")}
 
 
 def openpcdet_train(args, cfg: Path) -> dict:
@@ -127,12 +129,12 @@ def parse_openpcdet_log(log: str) -> dict:
             "own_eval_3d_moderate_R40": own}
 
 
-def lidarops_train(args, cfg: Path) -> dict:
-    out = args.out / "lidarops_run"
+def lidarops_train(args, cfg: Path, seed: int) -> dict:
+    out = args.out / f"lidarops_run_seed{seed}"
     cmd = [sys.executable, "-m", "lidarops", "train", "--config", str(cfg), "--data", str(args.data), "--out",
            str(out), "--epochs", str(args.epochs), "--batch-size", str(args.batch_size), "--workers",
-           str(args.workers), "--amp", args.amp, "--eval-every", "0", "--no-progress"]
-    wall = run(cmd, cfg.parent.parent.parent, args.out / "lidarops_train.log")
+           str(args.workers), "--amp", args.amp, "--eval-every", "0", "--no-progress", "--seed", str(seed)]
+    wall = run(cmd, cfg.parent.parent.parent, args.out / f"lidarops_train_seed{seed}.log")
     text = (out / "train.log").read_text()
     m = re.search(r"(\d+) steps in ([\d.]+) s \((\d+) % waiting for data\)", text)
     steps, step_s, share = int(m.group(1)), float(m.group(2)), float(m.group(3)) / 100
@@ -151,6 +153,7 @@ def main() -> int:
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--workers", type=int, default=8)
     p.add_argument("--amp", choices=["none", "fp16"], default="none")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="lidarops trains once per seed")
     p.add_argument("--out", type=Path, default=Path("bm_train_out"))
     p.add_argument("--json", action="store_true", help="add the rows to benchmarks/results/<device>.json")
     args = p.parse_args()
@@ -162,27 +165,32 @@ def main() -> int:
     args.vs_openpcdet = args.vs_openpcdet.resolve()
     cfg = derived_config(args.vs_openpcdet)
     train_frames = len((args.data / "ImageSets/train.txt").read_text().split())
-    results = {}
-    results["openpcdet"] = openpcdet_train(args, cfg)
-    results["lidarops"] = lidarops_train(args, cfg)
-    results["lidarops"]["frames"] = train_frames * args.epochs
+    partial = args.out / "bm_train_partial.json"  # what is done so far, should the run be cut short
+    results = {"openpcdet": openpcdet_train(args, cfg)}
+    partial.write_text(json.dumps(results, indent=1))
+    for seed in args.seeds:
+        results[f"lidarops seed {seed}"] = {**lidarops_train(args, cfg, seed), "frames": train_frames * args.epochs}
+        partial.write_text(json.dumps(results, indent=1))
     for side, r in results.items():
         r["frames_per_s"] = r["frames"] / r["step_seconds"] if r["step_seconds"] else None
         r["data_share"] = r["data_seconds"] / r["step_seconds"] if r["step_seconds"] else None
-        r["ap"] = headline(evaluate(Path(r["checkpoint"]), args.data, args.out / f"eval_{side}",
+        r["ap"] = headline(evaluate(Path(r["checkpoint"]), args.data, args.out / f"eval_{side.replace(' ', '_')}",
                                     cfg if side == "openpcdet" else None, cfg.parents[2]))
-    speedup = results["lidarops"]["frames_per_s"] / results["openpcdet"]["frames_per_s"]
+    ours = [r for side, r in results.items() if side != "openpcdet"]
+    speedup = sum(r["frames_per_s"] for r in ours) / len(ours) / results["openpcdet"]["frames_per_s"]
     rows = []
-    for side in ("openpcdet", "lidarops"):
-        r = results[side]
+    for side, r in results.items():
         rows.append([side, f"{r['frames']}", f"{r['step_seconds']:.1f}", f"{r['frames_per_s']:.1f}",
                      f"{100 * r['data_share']:.0f} %"] + [f"{v:.1f}" if v is not None else "-" for v in r["ap"].values()])
+    if len(ours) > 1:  # the seeds' range: what one lidarops run may land on
+        lo_hi = [(min(r["ap"][c] or 0 for r in ours), max(r["ap"][c] or 0 for r in ours)) for c in ours[0]["ap"]]
+        rows.append(["lidarops, range over seeds", "", "", "", ""] + [f"{lo:.1f}-{hi:.1f}" for lo, hi in lo_hi])
     print_table(f"PointPillars training, {args.epochs} epochs of {train_frames} frames, batch {args.batch_size}, "
                 f"{args.workers} workers, amp {args.amp}, OpenPCDet with "
                 f"{'its own ops' if args.openpcdet_ops == 'own' else 'lidarops faces'} "
                 f"(lidarops / OpenPCDet frames/s: {speedup:.2f}x)",
-                ["trainer", "frames", "step s", "frames/s", "data wait", "Car 3D", "Ped 3D", "Cyc 3D"], rows,
-                right=range(1, 8))
+                ["trainer", "frames", "step s", "frames/s", "data wait", "Car 3D", "Ped 3D", "Cyc 3D", "Car BEV"],
+                rows, right=range(1, 9))
     own = results["openpcdet"]["own_eval_3d_moderate_R40"]
     print(f"OpenPCDet's own evaluation of its checkpoint (3D moderate R40): {own}")
     report = {"args": {k: str(v) for k, v in vars(args).items()}, "results": results, "speedup": speedup,

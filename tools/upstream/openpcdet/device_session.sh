@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
 # The OpenPCDet checks in one GPU-machine session (README.md here says what each step shows):
 #   bash tools/upstream/openpcdet/device_session.sh [checks|train|all]
+# train's variables: FRAMES ("600 300": driving_city, driving_highway), EPOCHS, BATCH, WORKERS, AMP (none|fp16),
+# SEEDS (lidarops trains once per seed), SBS_FRAMES; NO_OPS_BUILD=1 runs OpenPCDet on lidarops' faces;
+# SAVE_SO=1 brings lidarops' CUDA build back as devbuild.tar.xz
 # Needs, carried with the tree: .peers/openpcdet-src (git archive of OpenPCDet's pcdet/ tools/ setup.py, and
 # COMMIT), .peers/wheels (its pure-Python needs: README.md lists them), .peers/spconv_site.tar.xz
 # (../shared/tools/spconv-bundle.sh). Everything printed goes to $OUT/openpcdet.log; reports to $OUT.
@@ -17,6 +20,9 @@ stamp() { echo "[openpcdet] $1 ($(( $(date +%s) - t0 )) s)"; }
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 make build > /tmp/build.log 2>&1 || { tail -40 /tmp/build.log; tail -40 build/build.log; exit 1; }
 stamp "lidarops built"
+if [ -n "${SAVE_SO:-}" ]; then  # bring the CUDA build back for later sessions (one file <= 16 MiB)
+  tar cJf "$OUT/devbuild.tar.xz" lidarops/_C*.so lidarops/_build_info.json && ls -la "$OUT/devbuild.tar.xz"
+fi
 mkdir -p /tmp/site && tar xJf .peers/spconv_site.tar.xz -C /tmp/site
 python3 -m pip install -q --no-index --no-deps --target /tmp/site .peers/wheels/*.whl
 python3 -m pip install -q --no-index --no-deps --no-build-isolation --target /tmp/site .peers/wheels/SharedArray-*.tar.gz
@@ -54,7 +60,7 @@ print(f'OpenPCDet PointPillar inference, its own ops vs lidarops faces: {len(a)}
 fi
 
 if [ "$what" = train ] || [ "$what" = all ]; then
-  FRAMES=${FRAMES:-"600 300"} EPOCHS=${EPOCHS:-3} BATCH=${BATCH:-8} WORKERS=${WORKERS:-12} AMP=${AMP:-none}
+  FRAMES=${FRAMES:-"600 300"} EPOCHS=${EPOCHS:-3} BATCH=${BATCH:-8} WORKERS=${WORKERS:-12} AMP=${AMP:-none} SEEDS=${SEEDS:-0}
   python3 -m lidarops data synth --scenario driving_city driving_highway --frames $FRAMES --seed 7000 \
     --val-fraction 0.1 --out /tmp/bm_data --workers 16 --no-progress
   python3 $HERE/prepare_kitti.py "$SRC" /tmp/bm_data --workers 16 ${NO_OPS_BUILD:+--faces} > /tmp/prep_bm.log 2>&1 || { tail -30 /tmp/prep_bm.log; exit 1; }
@@ -64,9 +70,11 @@ if [ "$what" = train ] || [ "$what" = all ]; then
   [ -n "${NO_OPS_BUILD:-}" ] && { ops=faces; faces=--faces; echo "[openpcdet] its ops not built: they are lidarops faces"; }
   [ $ops = own ] && { python3 $HERE/cpu_op_probe.py "$SRC" || { ops=faces; faces=--faces
     echo "[openpcdet] its CPU box IoU failed: its pipeline runs on lidarops faces"; }; }
-  python3 benchmarks/bm_train.py --data /tmp/bm_data --vs-openpcdet "$SRC" --epochs $EPOCHS --batch-size $BATCH \
-    --workers $WORKERS --amp $AMP --out /tmp/bm_train --json --openpcdet-ops $ops
-  cp /tmp/bm_train/bm_train.json /tmp/bm_train/*.log "$OUT/" 2>/dev/null
+  timeout ${BM_TIMEOUT:-100000} python3 benchmarks/bm_train.py --data /tmp/bm_data --vs-openpcdet "$SRC" --epochs $EPOCHS --batch-size $BATCH \
+    --workers $WORKERS --amp $AMP --seeds $SEEDS --out /tmp/bm_train --json --openpcdet-ops $ops
+  cp /tmp/bm_train/bm_train.json /tmp/bm_train/bm_train_partial.json "$OUT/" 2>/dev/null  # the logs as one file: at most 8 come back
+  (cd /tmp/bm_train && tar cJf "$OUT/bm_train_logs.tar.xz" *.log lidarops_run_seed*/train.log lidarops_run_seed*/log.csv \
+    eval_*/eval.json 2>/dev/null)
   cp benchmarks/results/cuda-*.json "$OUT/" 2>/dev/null
   stamp "training comparison"
   ck=$(ls "$SRC"/output/kitti_models/pointpillar_lidarops_bm/*/ckpt/checkpoint_epoch_$EPOCHS.pth | head -1)
