@@ -1,16 +1,20 @@
 """Benchmark building a frame index with the detector as the counter: frames/s from KITTI-format ``.bin``
 scans on disk, reading included, and each stage's share (reading the scans, counting, writing the parts;
-within counting: batching and the copy to the device, the network with its post-processing, the read-back).
+within counting: the host time of the copy to the device, of the network with its post-processing and of the
+read-back; on CUDA the copies run on a side stream beside the network, and what they hide is not counted).
 
-    python benchmarks/bm_index_build.py --device cuda --frames 3000 --json
+    python benchmarks/bm_index_build.py --device cuda --frames 3000 --batch 16 --workers 12 \\
+        --precision default,fp32,tf32,fp16 --json
     python benchmarks/bm_index_build.py --device cpu --frames 16 --distinct 4 --workers 0 --batch 1,4
 
 The scans: ``--distinct`` simulated frames (held-out seed) written as KITTI velodyne files, copied to make
-``--frames`` files (every file read from disk by the build). Rows: one per (batch, workers), plus the loop
+``--frames`` files (every file read from disk by the build). Rows: one per (precision, batch, workers), plus the loop
 a user writes first (one frame per call, read in the same process) as the baseline. Each row is a whole
 ``build_index`` into a fresh index, as ``lidarops index build --source detector`` runs it, after one
-warm-up build of 2 batches. ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under
-``"query_build"``. Target (issue 36): >= 500 frames/s on one H100/H200.
+warm-up build of 2 batches, for each ``--precision`` (``default``: torch's settings, as the command without
+``--precision``; ``fp32``, ``tf32``, ``fp16``: ``DetectorSource(precision=...)``). ``--json`` merges the rows
+into ``benchmarks/results/<device>.json`` under ``"query_build"``. Target (issue 36): >= 500 frames/s on one
+H100/H200.
 """
 from __future__ import annotations
 
@@ -50,10 +54,18 @@ def main() -> int:
     p.add_argument("--distinct", type=int, default=64)
     p.add_argument("--batch", default="8,16,32", help="frames per detector call, comma-separated")
     p.add_argument("--workers", default="8", help="DataLoader processes, comma-separated")
+    p.add_argument("--precision", default="default",
+                   help="the network's arithmetic, comma-separated: default (torch's settings), fp32, tf32, fp16")
     p.add_argument("--baseline-frames", type=int, default=200, help="frames of the one-at-a-time baseline")
     p.add_argument("--data", type=Path, help="folder for the scans (default: a temporary one)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
+    precisions = args.precision.split(",")
+    for precision in precisions:
+        if precision not in ("default", "fp32", "tf32", "fp16"):
+            p.error(f"--precision: {precision!r} is not one of default, fp32, tf32, fp16")
+        if precision == "fp16" and args.device == "cpu":
+            p.error("--precision fp16 needs --device cuda (float16 on the CPU is far slower than float32)")
 
     from lidarops.cli.query import _KittiLoader
     from lidarops.data.formats.kitti import KittiDataset
@@ -72,8 +84,8 @@ def main() -> int:
     model = load_model(weights.path()).to(args.device).eval()
     points = sum(os.path.getsize(data / "velodyne" / f"{n}.bin") for n in names[:args.distinct]) / 16 / args.distinct
 
-    def run(batch: int, workers: int, n: int, label: str) -> dict:
-        source = DetectorSource(model, 0.5)
+    def run(batch: int, workers: int, n: int, label: str, precision: str = "default") -> dict:
+        source = DetectorSource(model, 0.5, precision=None if precision == "default" else precision)
         build_index(tmp / "warm", ids[:2 * batch], load, source, batch=batch, workers=workers)  # warm-up
         shutil.rmtree(tmp / "warm")
         source.stage_seconds = dict.fromkeys(source.stage_seconds, 0.0)
@@ -82,17 +94,22 @@ def main() -> int:
         shutil.rmtree(tmp / "idx")
         count = report.stage_seconds["count"] or 1e-9
         row = {"op": "index_build_detector", "case": label, "frames": n, "batch": batch, "workers": workers,
+               "precision": precision,
                "points_per_frame": round(points), "frames_per_s": round(report.frames_per_second, 1),
                **{f"share_{k}": round(v / report.seconds, 3) for k, v in report.stage_seconds.items()},
                **{f"count_share_{k}": round(v / count, 3) for k, v in source.stage_seconds.items()}}
-        print(f"{label}: {row['frames_per_s']} frames/s ({report.shares()})", flush=True)
+        within = ", ".join(f"{k} {100 * v / count:.0f} %" for k, v in source.stage_seconds.items())
+        print(f"{label}: {row['frames_per_s']} frames/s ({report.shares()}; counting: {within})", flush=True)
         return row
 
     rows = [run(1, 0, min(args.baseline_frames, args.frames), "one frame per call, read in-process")]
-    for workers in (int(w) for w in args.workers.split(",")):
-        for batch in (int(b) for b in args.batch.split(",")):
-            rows.append(run(batch, workers, args.frames, f"batch {batch}, {workers} workers"))
-    keys = ["case", "frames_per_s", "share_load", "share_count", "share_write", "count_share_predict"]
+    for precision in precisions:
+        for workers in (int(w) for w in args.workers.split(",")):
+            for batch in (int(b) for b in args.batch.split(",")):
+                label = f"batch {batch}, {workers} workers" + ("" if precision == "default" else f", {precision}")
+                rows.append(run(batch, workers, args.frames, label, precision))
+    keys = ["case", "frames_per_s", "share_load", "share_count", "share_write", "count_share_to_device",
+            "count_share_predict", "count_share_read_back"]
     print_table(f"index build, detector source, {args.device}", keys, [[r[k] for k in keys] for r in rows],
                 right=range(1, len(keys)))
     if args.json:

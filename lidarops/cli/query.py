@@ -111,6 +111,9 @@ def build(args: argparse.Namespace) -> int:
     from lidarops.cli._device import resolve_device
 
     device = resolve_device(args.device)  # a bad --device is named even where the labels need none
+    if args.precision == "fp16" and args.source != "labels" and device.type != "cuda":
+        raise CliError(f"--precision fp16 needs a CUDA device, got --device {args.device} ({device.type}): "
+                       "float16 on the CPU is far slower than float32")
     ids, load = _frames_of(args, needs_labels=args.source == "labels")
     from lidarops.train.distributed import DistContext
 
@@ -128,7 +131,8 @@ def build(args: argparse.Namespace) -> int:
                 raise CliError(f"--checkpoint {args.checkpoint or weights.path()} holds a {type(model).__name__}: "
                                f"--source {args.source} needs " + ("a CounterNet" if args.source == "counter" else
                                                                    "a detector (use --source counter for a CounterNet)"))
-            source = CounterSource(model) if counts else DetectorSource(model, args.score_thresh)
+            source = CounterSource(model, args.precision) if counts else \
+                DetectorSource(model, args.score_thresh, args.precision)
         from lidarops._progress import progress_bar
 
         bar = progress_bar(len(ids), f"index {args.source}",
@@ -363,6 +367,9 @@ def register(subparsers) -> None:
     b.add_argument("--min-points", type=int, default=1, help="labels: count boxes holding at least this many points "
                                                              "(default 1: what a LiDAR can see)")
     b.add_argument("--device", default="auto", help="detector: auto (default), cpu, cuda")
+    b.add_argument("--precision", choices=["fp32", "tf32", "fp16"], default=None,
+                   help="detector, counter: the network's arithmetic on CUDA: fp32 (no TF32), tf32, fp16 (float16 "
+                        "autocast); default: torch's settings (cuDNN convolutions in TF32)")
     b.add_argument("--batch", type=int, default=8, help="frames per detector call (default 8)")
     b.add_argument("--workers", type=int, default=2, help="DataLoader processes reading frames (default 2; 0: "
                                                           "read in this process)")

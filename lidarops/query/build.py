@@ -10,6 +10,11 @@ A source is any callable ``source(frames) -> list of (counts, centres)`` over a 
 - :class:`CounterSource`: a counting network (CounterNet), its heatmap peaks;
 - any user model, in the same shape.
 
+The model sources also split a call into ``submit`` (the copy to the device), ``run`` (the network, the
+batch's counts gathered on the device) and ``finish`` (the batch's one read-back): :func:`build_index` runs
+them three batches deep, so on CUDA the copies of the next and the previous batch run on a side stream
+while the network works on the current one.
+
 Resumable and idempotent: a part is written to a temporary name and renamed, and a build started again on
 the same index skips the frames its source already holds, so a build killed midway and run again ends with
 every frame once. Under ``torchrun`` each rank counts its share of the frames and writes its own parts
@@ -99,85 +104,256 @@ class LabelsSource:
         return out
 
 
-class _ModelSource:
-    """What the model-backed sources share: the frames batched on the model's device, one ``predict`` per call,
-    each frame's prediction turned into ``(counts, centres)`` by :meth:`counted`.
+class _SideStream:
+    """A CUDA stream beside the model's current one, for the copies between host and device, so that they run
+    while the network computes; on the CPU every method is a no-op and the copies run in place."""
 
-    ``stage_seconds`` adds up where the time went: ``to_device`` (batching the points and the copy),
-    ``predict`` (the network and its post-processing, synchronised on CUDA) and ``read_back``.
+    def __init__(self, device):
+        import torch
+
+        self.device = device
+        self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
+
+    def enqueue(self):
+        """The context whose work goes to the side stream."""
+        import contextlib
+
+        import torch
+
+        return torch.cuda.stream(self.stream) if self.stream is not None else contextlib.nullcontext()
+
+    def mark(self):
+        """An event at the end of the work queued so far on the side stream (None on the CPU)."""
+        import torch
+
+        if self.stream is None:
+            return None
+        event = torch.cuda.Event()
+        event.record(self.stream)
+        return event
+
+    def main_waits(self, event, tensor) -> None:
+        """The current stream waits for ``event`` and then uses ``tensor`` (made on the side stream): the
+        allocator must not reuse its memory before the current stream is done with it."""
+        import torch
+
+        if self.stream is not None:
+            main = torch.cuda.current_stream(self.device)
+            main.wait_event(event)
+            tensor.record_stream(main)
+
+    def side_waits(self, tensor) -> None:
+        """The side stream waits for the work queued on the current stream and then reads ``tensor``."""
+        import torch
+
+        if self.stream is not None:
+            self.stream.wait_stream(torch.cuda.current_stream(self.device))
+            tensor.record_stream(self.stream)
+
+
+@dataclass
+class _Staged:
+    """A batch between the steps of a model source: its points on the device, then its packed results on the
+    host once their copy (``done``) has completed."""
+
+    frames: int  # frames in the batch
+    full: list[int]  # the frames holding points, in order
+    points: Any = None  # Tensor[P, 5] on the device: the full frames' rows (index among them, x, y, z, intensity)
+    done: Any = None  # CUDA event: the copy to the device, then the read-back, is complete (None on the CPU)
+    host: Any = None  # Tensor[R] float64 (pinned on CUDA): the results read back, packed
+    shapes: list = field(default_factory=list)  # the shapes of the tensors packed in ``host``
+    meta: Any = None  # what the source needs besides them (rows per frame)
+
+
+class _ModelSource:
+    """What the model-backed sources share: frames counted a batch at a time on the model's device, in three
+    steps that :func:`build_index` overlaps across batches (calling the source runs them in a row):
+
+    - :meth:`submit`: the frames' points copied to the device as one batch (on CUDA on a side stream, from the
+      loader's pinned memory: the copy of the next batch runs while the network works on this one);
+    - :meth:`run`: one batched ``predict`` under ``precision``, the source's results gathered on the device into
+      one tensor (counts by one scatter over the batch), its copy to the host started on the side stream;
+    - :meth:`finish`: waits for that copy (the batch's only read-back) and turns it into ``(counts, centres)``.
+
+    A frame without points is predicted apart, as a batch of one empty frame (a batch's frames must each hold
+    a point), once per call whatever the number of such frames.
+
+    Args:
+        precision: the network's arithmetic (:func:`lidarops.models.cuda_graph.precision_mode`, as
+            ``benchmarks/bm_detector.py`` and ``GraphedPointPillars`` take it): ``"fp32"`` (float32, no TF32),
+            ``"tf32"`` (TF32 matmuls and convolutions) or ``"fp16"`` (float16 autocast); None (default): torch's
+            settings as they are (on CUDA, torch lets cuDNN's convolutions use TF32 by default). ``tf32`` and
+            ``fp16`` are for CUDA: ``tf32`` changes nothing on the CPU and the CPU's float16 is far slower.
+
+    ``stage_seconds`` adds up the host time of each step: ``to_device`` (:meth:`submit`), ``predict``
+    (:meth:`run`: the network and its post-processing, whose host reads wait for the GPU) and ``read_back``
+    (:meth:`finish`). Nothing is synchronised for the timing: what the side stream hides under the network
+    is not counted.
     """
 
     needs_labels = False
 
-    def __init__(self, model):
+    def __init__(self, model, precision: str | None = None):
+        from lidarops.models.cuda_graph import PRECISIONS
+
+        if precision is not None and precision not in PRECISIONS:
+            raise QueryError(f"precision must be one of {', '.join(map(repr, PRECISIONS))} or None, got {precision!r}")
         self.model = model
+        self.precision = precision
         self.classes = list(model.config.class_names)
         self.stage_seconds = {"to_device": 0.0, "predict": 0.0, "read_back": 0.0}
         self.pin_memory = next(model.parameters()).device.type == "cuda"  # asks build_index's loader to pin
+        self._side: _SideStream | None = None
 
-    def counted(self, pred: dict) -> Counted:
+    def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
+        """The batch's predictions (one dict per frame, on the device) as tensors to read back and what
+        :meth:`_results` needs besides them; nothing read to the host here."""
+        raise NotImplementedError
+
+    def _results(self, arrays: list[np.ndarray], meta: Any) -> list[Counted]:
+        """``(counts, centres)`` per frame from :meth:`_gather`'s tensors, read back."""
         raise NotImplementedError
 
     def __call__(self, frames: Sequence[Any]) -> list[Counted]:
+        return self.finish(self.run(self.submit(frames)))
+
+    def submit(self, frames: Sequence[Any]) -> _Staged:
+        """Starts the copy of the frames' points to the model's device, as one batch."""
         import torch
 
+        t = time.perf_counter()
         device = next(self.model.parameters()).device
-        sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-        t0 = time.perf_counter()
+        if self._side is None or self._side.device != device:
+            self._side = _SideStream(device)
         points = [f.points[:, :4].float() if isinstance(f.points, torch.Tensor)
                   else torch.from_numpy(np.ascontiguousarray(f.points[:, :4], np.float32)) for f in frames]
-        # each frame to the device as it is (pinned by the loader: asynchronous), batched there
-        points = [p.to(device, non_blocking=p.is_pinned()) for p in points]
-        batch_points = torch.cat([torch.cat([torch.full((len(p), 1), float(i), device=device), p], 1)
-                                  for i, p in enumerate(points)])
-        sync()
-        t1 = time.perf_counter()
-        with torch.inference_mode():
-            preds = self.model.predict({"points": batch_points, "batch_size": len(frames)})
-        sync()
-        t2 = time.perf_counter()
-        out = [self.counted(pred) for pred in preds]
-        t3 = time.perf_counter()
-        self.stage_seconds["to_device"] += t1 - t0
-        self.stage_seconds["predict"] += t2 - t1
-        self.stage_seconds["read_back"] += t3 - t2
+        full = [i for i, p in enumerate(points) if len(p)]
+        with self._side.enqueue():
+            batch = torch.empty((sum(len(points[i]) for i in full), 5), device=device)
+            row = 0
+            for j, i in enumerate(full):  # each frame as it is (pinned by the loader: asynchronous)
+                n = len(points[i])
+                batch[row:row + n, 0] = j
+                batch[row:row + n, 1:].copy_(points[i], non_blocking=True)
+                row += n
+        staged = _Staged(len(frames), full, batch, self._side.mark())
+        self.stage_seconds["to_device"] += time.perf_counter() - t
+        return staged
+
+    def run(self, staged: _Staged) -> _Staged:
+        """The network on a submitted batch, its results gathered on the device and their read-back started."""
+        import contextlib
+
+        import torch
+
+        from lidarops.models.cuda_graph import precision_mode
+
+        t = time.perf_counter()
+        points, staged.points = staged.points, None
+        side = self._side
+        side.main_waits(staged.done, points)
+        weights = next(self.model.parameters())
+        precision = contextlib.nullcontext() if self.precision is None else \
+            precision_mode(self.precision, weights.device.type, autocast=weights.dtype != torch.float16)
+        with torch.inference_mode(), precision:
+            preds = self.model.predict({"points": points, "batch_size": len(staged.full)}) if staged.full else []
+            if len(staged.full) < staged.frames:
+                empty = self.model.predict({"points": points.new_zeros((0, 5)), "batch_size": 1})[0]
+                by_frame = dict(zip(staged.full, preds))
+                preds = [by_frame.get(i, empty) for i in range(staged.frames)]
+            if preds:
+                tensors, staged.meta = self._gather(preds)
+                staged.shapes = [tuple(x.shape) for x in tensors]
+                packed = torch.cat([x.reshape(-1).double() for x in tensors])
+                side.side_waits(packed)
+                with side.enqueue():
+                    staged.host = torch.empty(packed.shape, dtype=packed.dtype, pin_memory=side.stream is not None)
+                    staged.host.copy_(packed, non_blocking=True)
+                staged.done = side.mark()
+        self.stage_seconds["predict"] += time.perf_counter() - t
+        return staged
+
+    def finish(self, staged: _Staged) -> list[Counted]:
+        """Waits for a batch's read-back: ``(counts, centres)`` per frame."""
+        t = time.perf_counter()
+        if staged.host is None:  # no frames
+            return []
+        if staged.done is not None:
+            staged.done.synchronize()
+        flat, arrays = staged.host.numpy(), []
+        for shape in staged.shapes:
+            size = int(np.prod(shape))
+            arrays.append(flat[:size].reshape(shape))
+            flat = flat[size:]
+        out = self._results(arrays, staged.meta)
+        self.stage_seconds["read_back"] += time.perf_counter() - t
         return out
 
 
 class DetectorSource(_ModelSource):
     """A detector as a counter: its detections scoring at least ``score_thresh``, per class, one batched
-    ``predict`` per call (on the model's device); ``stage_seconds`` as :class:`CounterSource`'s."""
+    ``predict`` per call (on the model's device), the counts of the whole batch made by one scatter on the device
+    and read back with the centres in one copy; ``precision`` and ``stage_seconds`` as :class:`_ModelSource`'s.
+    Labels are 1-based into the model's ``class_names`` (OpenPCDet's); others are not counted."""
 
     name = "detector"
 
-    def __init__(self, model, score_thresh: float = 0.5):
+    def __init__(self, model, score_thresh: float = 0.5, precision: str | None = None):
         if not 0 <= score_thresh <= 1:
             raise QueryError(f"score_thresh must be in [0, 1], got {score_thresh!r}")
-        super().__init__(model)
+        super().__init__(model, precision)
         self.score_thresh = float(score_thresh)
 
-    def counted(self, pred: dict) -> Counted:
-        keep = pred["scores"] >= self.score_thresh
-        boxes, labels, scores = pred["boxes"][keep].cpu(), pred["labels"][keep].cpu(), pred["scores"][keep].cpu()
-        counts = {c: 0 for c in self.classes}
-        centres = []
-        for box, label, score in zip(boxes.tolist(), labels.tolist(), scores.tolist()):
-            name = self.classes[label - 1]  # 1-based, as OpenPCDet
-            counts[name] += 1
-            centres.append((name, box[0], box[1], score))
-        return counts, centres
+    def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
+        import torch
+
+        classes = len(self.classes)
+        scores = torch.cat([p["scores"] for p in preds])
+        labels = torch.cat([p["labels"] for p in preds]).long()
+        # the (frame, class) cell of each detection, frame by frame: index_add_ below (not bincount, which reads
+        # its maximum back to the host on CUDA)
+        cells = torch.cat([p["labels"].long() + (b * classes - 1) for b, p in enumerate(preds)])
+        keep = (scores >= self.score_thresh) & (labels >= 1) & (labels <= classes)
+        counts = torch.zeros(len(preds) * classes, dtype=torch.int64, device=scores.device)
+        counts.index_add_(0, torch.where(keep, cells, 0), keep.long())
+        xy = torch.cat([p["boxes"][:, :2] for p in preds]).double()  # float64 holds every float32/16 value
+        rows = torch.stack([keep.double(), labels.double(), xy[:, 0], xy[:, 1], scores.double()], 1)
+        return [counts.view(len(preds), classes), rows], [len(p["scores"]) for p in preds]
+
+    def _results(self, arrays: list[np.ndarray], meta: Any) -> list[Counted]:
+        counts, rows = arrays
+        out, start = [], 0
+        for frame_counts, n in zip(counts.astype(np.int64).tolist(), meta):
+            kept = rows[start:start + n]
+            start += n
+            centres = [(self.classes[int(label) - 1], x, y, score)
+                       for _, label, x, y, score in kept[kept[:, 0] > 0].tolist()]
+            out.append((dict(zip(self.classes, frame_counts)), centres))
+        return out
 
 
 class CounterSource(_ModelSource):
     """A counting network (:class:`lidarops.models.counternet.CounterNet`) as the source: its per-class counts
-    and the BEV centres of its heatmap peaks, one batched ``predict`` per call."""
+    and the BEV centres of its heatmap peaks, one batched ``predict`` per call and one read-back; ``precision``
+    and ``stage_seconds`` as :class:`_ModelSource`'s."""
 
     name = "counter"
 
-    def counted(self, pred: dict) -> Counted:
-        counts = dict(zip(self.classes, (int(n) for n in pred["counts"].cpu().tolist())))
-        centres = [(self.classes[int(c)], x, y, score) for x, y, c, score in pred["centres"].cpu().tolist()]
-        return counts, centres
+    def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
+        import torch
+
+        return [torch.stack([p["counts"] for p in preds]), torch.cat([p["centres"] for p in preds])], \
+            [len(p["centres"]) for p in preds]
+
+    def _results(self, arrays: list[np.ndarray], meta: Any) -> list[Counted]:
+        counts, centres = arrays
+        out, start = [], 0
+        for frame_counts, n in zip(counts.tolist(), meta):
+            rows = centres[start:start + n].tolist()
+            start += n
+            out.append((dict(zip(self.classes, (int(c) for c in frame_counts))),
+                        [(self.classes[int(c)], x, y, score) for x, y, c, score in rows]))
+        return out
 
 
 @dataclass
@@ -229,6 +405,36 @@ def _batches(loading: _Loading, batch: int, workers: int, pin: bool):
 
     yield from DataLoader(loading, batch_size=batch, num_workers=workers, collate_fn=list,
                           prefetch_factor=4, persistent_workers=False, pin_memory=pin)
+
+
+class _Pipeline:
+    """Runs a source over batches of frames, results in order. A source with ``submit``, ``run`` and ``finish``
+    (the model sources) is run three batches deep: batch k+1's copy to the device is started before the network
+    runs on batch k, and batch k-1's read-back, started after its network, is taken after batch k's network,
+    so on CUDA both copies run beside the network. Any other source is called on each batch as it comes."""
+
+    def __init__(self, source):
+        self.source = source
+        self.staged = all(callable(getattr(source, step, None)) for step in ("submit", "run", "finish"))
+        self.copying = self.reading = None  # (key, staged batch) in each step
+
+    def push(self, key: Any, frames: list) -> list[tuple[Any, list[Counted]]]:
+        """Hands in a batch (``key`` comes back with its results); returns the batches done, oldest first."""
+        if not self.staged:
+            return [(key, self.source(frames) if frames else [])]
+        copying, self.copying = self.copying, (key, self.source.submit(frames))
+        reading, self.reading = self.reading, copying and (copying[0], self.source.run(copying[1]))
+        return [(reading[0], self.source.finish(reading[1]))] if reading else []
+
+    def drain(self) -> list[tuple[Any, list[Counted]]]:
+        """The batches still in flight, run to the end."""
+        if not self.staged:
+            return []
+        copying, reading, self.copying, self.reading = self.copying, self.reading, None, None
+        done = [(reading[0], self.source.finish(reading[1]))] if reading else []
+        if copying:
+            done.append((copying[0], self.source.finish(self.source.run(copying[1]))))
+        return done
 
 
 def _frame_facts(frame) -> tuple:
@@ -333,6 +539,23 @@ def build_index(root: "str | Path", ids: Sequence[int], load: Callable[[int], An
         report.stage_seconds["write"] += time.perf_counter() - t
 
     extra: dict[int, tuple] = {}  # frame id -> (path, sequence, timestamp)
+
+    def take(done: list) -> None:
+        """Queues counted batches for writing: ``done`` holds ``((frames, loaded), counted)``, ``frames`` a list
+        of ``(frame id, facts)``, ``loaded`` the batch's size with its failed frames."""
+        for (good, loaded), counted in done:
+            if len(counted) != len(good):
+                raise QueryError(f"source {name!r} returned {len(counted)} results for {len(good)} frames")
+            for (fid, facts), result in zip(good, counted):
+                pending_ids.append(fid)
+                pending.append(result)
+                extra[fid] = facts
+            while len(pending_ids) >= part_frames:
+                flush(part_frames)
+            if progress is not None:
+                progress(loaded)
+
+    pipeline = _Pipeline(source)
     t = time.perf_counter()
     pin = bool(getattr(source, "pin_memory", False))
     for loaded in _batches(_Loading(mine.tolist(), load), batch, workers, pin):
@@ -346,19 +569,15 @@ def build_index(root: "str | Path", ids: Sequence[int], load: Callable[[int], An
             else:
                 good.append((int(fid), frame))
         t = time.perf_counter()
-        counted = source([f for _, f in good]) if good else []
-        if len(counted) != len(good):
-            raise QueryError(f"source {name!r} returned {len(counted)} results for {len(good)} frames")
+        done = pipeline.push(([(fid, _frame_facts(frame)) for fid, frame in good], len(loaded)),
+                             [frame for _, frame in good])
         report.stage_seconds["count"] += time.perf_counter() - t
-        for (fid, frame), result in zip(good, counted):
-            pending_ids.append(fid)
-            pending.append(result)
-            extra[fid] = _frame_facts(frame)
-        while len(pending_ids) >= part_frames:
-            flush(part_frames)
-        if progress is not None:
-            progress(len(loaded))
+        take(done)
         t = time.perf_counter()
+    t = time.perf_counter()
+    done = pipeline.drain()
+    report.stage_seconds["count"] += time.perf_counter() - t
+    take(done)
     flush(len(pending_ids))
     barrier()
     report.seconds = time.perf_counter() - start

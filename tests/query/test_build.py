@@ -388,6 +388,177 @@ def test_detector_source_batches_frames_and_thresholds_scores(as_tensor):
         assert centres[0][0] == "Car" and np.allclose(centres[0][1:3], c[:, :2].mean(0), atol=1e-5)
 
 
+class _RaggedDetector:
+    """A stand-in detector with a real one's contract: a batch whose frames do not each hold a point is
+    refused (an empty scan is a batch of its own). Per frame, one detection per point above z = 1: label
+    1 + (its row mod 3), centre its x, y, score its intensity; a frame with no point above z = 1 has none.
+    Records the autocast and TF32 settings it ran under."""
+
+    class config:
+        class_names = ["Car", "Pedestrian", "Cyclist"]
+
+    def __init__(self):
+        self.seen = []
+
+    def parameters(self):
+        import torch
+        yield torch.zeros(1)
+
+    def predict(self, batch):
+        import torch
+        self.seen.append((torch.is_autocast_enabled("cpu"), torch.backends.cudnn.allow_tf32,
+                          torch.backends.cuda.matmul.allow_tf32))
+        pts, out = batch["points"], []
+        for i in range(batch["batch_size"]):
+            p = pts[pts[:, 0] == i, 1:]
+            if batch["batch_size"] > 1 and not len(p):
+                raise ValueError(f"frame {i} of the batch holds no point")
+            tall = p[p[:, 2] > 1]
+            boxes = torch.zeros(len(tall), 7)
+            boxes[:, :2] = tall[:, :2]
+            out.append({"boxes": boxes, "labels": 1 + torch.arange(len(tall)) % 3, "scores": tall[:, 3].clone()})
+        return out
+
+
+def _counted_reference(model, frames_, score_thresh):
+    """A plain per-frame loop: each frame alone through ``predict``, its detections read one by one."""
+    import torch
+
+    out = []
+    for f in frames_:
+        p = torch.as_tensor(f.points[:, :4]).float()
+        pred = model.predict({"points": torch.cat([torch.zeros(len(p), 1), p], 1), "batch_size": 1})[0]
+        keep = pred["scores"] >= score_thresh
+        counts = {c: 0 for c in model.config.class_names}
+        centres = []
+        for box, label, score in zip(pred["boxes"][keep].tolist(), pred["labels"][keep].tolist(),
+                                     pred["scores"][keep].tolist()):
+            counts[model.config.class_names[label - 1]] += 1
+            centres.append((model.config.class_names[label - 1], box[0], box[1], score))
+        out.append((counts, centres))
+    return out
+
+
+def _ragged_scans():
+    """Scans of ragged sizes, one with no points, one with points but none above z = 1 (no detections)."""
+    import torch
+
+    from lidarops.query.build import Scan
+
+    rng = np.random.default_rng(11)
+    out = []
+    for n in (7, 0, 30, 1, 12, 5, 0, 18, 9):
+        c = rng.uniform(-5, 5, (n, 4)).astype(np.float32)
+        c[:, 3] = rng.uniform(0, 1, n)
+        out.append(Scan(torch.from_numpy(c)))
+    out[5].points[:, 2] = -1.0  # points, none above z = 1: no detections
+    return out
+
+
+@pytest.mark.parametrize("score_thresh", [0.0, 0.25, 0.5])
+def test_detector_source_equals_a_per_frame_loop(score_thresh):
+    """One batched predict, counts scattered on the device, one read-back: the same counts and centres, in the
+    same order, as predicting each frame alone and reading its detections one by one."""
+    from lidarops.query.build import DetectorSource
+
+    scans = _ragged_scans()
+    want = _counted_reference(_RaggedDetector(), scans, score_thresh)
+    assert want[1] == ({"Car": 0, "Pedestrian": 0, "Cyclist": 0}, []) and want[5][1] == []
+    assert sum(len(c) for _, c in want) > 5
+    source = DetectorSource(_RaggedDetector(), score_thresh)
+    assert source(scans) == want
+    assert source(scans[1:2]) == [want[1]] and source([]) == []
+    for counts, centres in source(scans):  # the counts are the centres, class by class
+        assert counts == {c: sum(k == c for k, *_ in centres) for c in CLASSES}
+
+
+@pytest.mark.parametrize("batch", [1, 2, 4, 9])
+def test_build_with_the_detector_equals_a_per_frame_loop(tmp_path, batch):
+    """build_index runs a model source three batches deep (copy, network, read-back overlapped on CUDA): the
+    index holds the per-frame loop's counts and centres, whatever the batch, with a batch whose frames all
+    failed to load."""
+    from lidarops.query.build import DetectorSource
+
+    scans = dict(enumerate(_ragged_scans()))
+    bad = {2, 3}  # with batch=2, the whole second batch
+
+    def load(fid):
+        if fid in bad:
+            raise FrameError(f"frame {fid}: unreadable")
+        return scans[fid]
+
+    report = build_index(tmp_path / "idx", list(scans), load, DetectorSource(_RaggedDetector(), 0.25), batch=batch,
+                         part_frames=3, on_error="skip")
+    assert report.indexed == len(scans) - len(bad) and sorted(f for f, _ in report.failed) == sorted(bad)
+    want = dict(zip(scans, _counted_reference(_RaggedDetector(), list(scans.values()), 0.25)))
+    idx = FrameIndex.open(tmp_path / "idx")
+    assert stored(idx, "detector") == {f: counts for f, (counts, _) in want.items() if f not in bad}
+    got = idx.sql("SELECT frame_id, class, x, y, score FROM centres WHERE source = 'detector'")
+    rows = sorted((int(r.frame_id), r["class"], r.x, r.y, r.score) for _, r in got.iterrows())
+    assert rows == sorted((f, *c) for f, (_, cs) in want.items() if f not in bad for c in cs)
+
+
+def test_detector_source_precision():
+    """``precision`` runs predict under lidarops.models.cuda_graph.precision_mode (bm_detector's and
+    GraphedPointPillars' mechanism) and puts torch's settings back; None leaves them as they are; anything
+    else is refused, naming the argument."""
+    import torch
+
+    from lidarops.query.build import CounterSource, DetectorSource
+
+    scans = _ragged_scans()[:3]
+    before = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    want = {None: (False, *before), "fp32": (False, False, False), "tf32": (False, True, True),
+            "fp16": (True, False, False)}
+    for precision, settings in want.items():
+        model = _RaggedDetector()
+        assert DetectorSource(model, 0.25, precision=precision)(scans) == _counted_reference(model, scans, 0.25)
+        assert set(model.seen[:2]) == {settings}, precision
+        assert (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32) == before
+    for bad in ("fp8", "FP16", "", "half", 16, True):
+        for make in (lambda p: DetectorSource(_RaggedDetector(), precision=p),
+                     lambda p: CounterSource(_RaggedDetector(), p)):
+            with pytest.raises(QueryError, match=r"precision must be one of 'fp32', 'tf32', 'fp16' or None, got"):
+                make(bad)
+
+
+@pytest.mark.slow  # the shipped PointPillars on the CPU: seconds
+def test_shipped_detector_source_equals_a_per_frame_loop():
+    """The shipped PointPillars: a batch of ragged frames (one empty, one outside the detector's range) counted
+    by the source equals each frame predicted alone and read one detection at a time."""
+    import torch
+
+    from lidarops.data.synthetic import SyntheticFrames
+    from lidarops.models import load_model, weights
+    from lidarops.query.build import DetectorSource, Scan
+
+    model = load_model(weights.path()).eval()
+    sim = SyntheticFrames("driving_city", num_frames=2, seed=3)
+    first = torch.from_numpy(sim[0].points[:, :4]).float()
+    scans = [Scan(first[first[:, 0] > 0][::4].contiguous()), Scan(torch.zeros(0, 4)),
+             Scan(torch.from_numpy(sim[1].points[:, :4]).float()[::9].contiguous()),
+             Scan(torch.tensor([[-50.0, 0.0, 0.0, 0.5]]))]  # behind the detector: nothing to find
+    want = _counted_reference(model, scans, 0.3)
+    assert sum(len(c) for _, c in want) > 0 and want[1][1] == want[3][1] == []
+    got = DetectorSource(model, 0.3)(scans)
+    assert [counts for counts, _ in got] == [counts for counts, _ in want]
+    for (_, centres), (_, ref) in zip(got, want):
+        assert [c[0] for c in centres] == [c[0] for c in ref]
+        np.testing.assert_allclose([c[1:] for c in centres], [c[1:] for c in ref], rtol=1e-5, atol=1e-5)
+
+
+def test_cli_precision_fp16_needs_cuda(tmp_path, capsys):
+    base = ["index", "build", "--scenario", "driving_city", "--frames", "1", "--out", str(tmp_path / "i"),
+            "--no-progress", "--device", "cpu", "--source", "detector"]
+    assert main(base + ["--precision", "fp16"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--precision fp16 needs a CUDA device" in err[0], err
+    with pytest.raises(SystemExit) as e:
+        main(base + ["--precision", "fp8"])
+    assert e.value.code == 2 and "argument --precision: invalid choice: 'fp8'" in capsys.readouterr().err
+    assert not (tmp_path / "i").exists()
+
+
 def test_cli_compare_html_and_evaluate(tmp_path, capsys):
     """--compare puts each source's answer beside the labels' (numbers worked out from the tables here);
     --html writes the page; evaluate prints its tables and writes JSON."""
