@@ -205,6 +205,10 @@ class _ModelSource:
         self.pin_memory = next(model.parameters()).device.type == "cuda"  # asks build_index's loader to pin
         self._side: _SideStream | None = None
 
+    def _predict(self, batch: dict) -> list[dict]:
+        """The model's predictions, one dict per frame (its ``predict``)."""
+        return self.model.predict(batch)
+
     def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
         """The batch's predictions (one dict per frame, on the device) as tensors to read back and what
         :meth:`_results` needs besides them; nothing read to the host here."""
@@ -256,9 +260,9 @@ class _ModelSource:
         precision = contextlib.nullcontext() if self.precision is None else \
             precision_mode(self.precision, weights.device.type, autocast=weights.dtype != torch.float16)
         with torch.inference_mode(), precision:
-            preds = self.model.predict({"points": points, "batch_size": len(staged.full)}) if staged.full else []
+            preds = self._predict({"points": points, "batch_size": len(staged.full)}) if staged.full else []
             if len(staged.full) < staged.frames:
-                empty = self.model.predict({"points": points.new_zeros((0, 5)), "batch_size": 1})[0]
+                empty = self._predict({"points": points.new_zeros((0, 5)), "batch_size": 1})[0]
                 by_frame = dict(zip(staged.full, preds))
                 preds = [by_frame.get(i, empty) for i in range(staged.frames)]
             if preds:
@@ -303,6 +307,24 @@ class DetectorSource(_ModelSource):
             raise QueryError(f"score_thresh must be in [0, 1], got {score_thresh!r}")
         super().__init__(model, precision)
         self.score_thresh = float(score_thresh)
+
+    def _predict(self, batch: dict) -> list[dict]:
+        """A PointPillars-style detector's detections through ``postprocess_padded``: the same rows as its
+        ``predict``, each frame's padded to a fixed number with label 0 (not counted), and no host read per
+        frame (``postprocess`` reads each frame's kept count back)."""
+        from lidarops.models.postprocess import postprocess_padded
+        from lidarops.models.pointpillars import PointPillars
+
+        if not isinstance(self.model, PointPillars):
+            return self.model.predict(batch)
+        was_training = self.model.training
+        self.model.eval()
+        try:
+            padded = postprocess_padded(*self.model.dense_head.decode(self.model(batch)), self.model.config)
+        finally:
+            self.model.train(was_training)
+        return [{"boxes": padded["boxes"][b], "scores": padded["scores"][b], "labels": padded["labels"][b]}
+                for b in range(padded["count"].shape[0])]
 
     def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
         import torch
