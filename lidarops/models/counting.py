@@ -175,9 +175,15 @@ def gaussian_radius(dx: Tensor, dy: Tensor, min_overlap: float = 0.1) -> Tensor:
     return _gaussian_radius(w, h, o)
 
 
+def _div(a: Tensor, b: float) -> Tensor:
+    """``a / b`` rounded once, on every device: CUDA divides a tensor by a Python number as a product with its
+    reciprocal (off by an ulp where ``1 / b`` is not exact: 6, 7), a tensor divisor is a true division."""
+    return a / torch.tensor(b, dtype=a.dtype, device=a.device)
+
+
 def _gaussian_radius(w: Tensor, h: Tensor, o: float) -> Tensor:
     b1 = h + w
-    c1 = w * h * (1 - o) / (1 + o)
+    c1 = _div(w * h * (1 - o), 1 + o)
     r1 = (b1 + torch.sqrt(b1 ** 2 - 4 * c1)) / 2
     b2 = 2 * (h + w)
     c2 = (1 - o) * w * h
@@ -261,8 +267,8 @@ def heatmap_targets(boxes: Tensor, num_classes: int, point_cloud_range, voxel_si
     if H * W == 0:
         return out[:-1].reshape(B, C, H, W)
     cell_x, cell_y = vs[0] * s, vs[1] * s
-    cx = torch.floor((b64[..., 0] - pcr[0]) / cell_x)
-    cy = torch.floor((b64[..., 1] - pcr[1]) / cell_y)
+    cx = torch.floor(_div(b64[..., 0] - pcr[0], cell_x))
+    cy = torch.floor(_div(b64[..., 1] - pcr[1], cell_y))
     drawn = real_row & class_ok & (cx >= 0) & (cx < W) & (cy >= 0) & (cy < H)
     sel = drawn.reshape(-1).nonzero().squeeze(1)
     if sel.numel() == 0:
@@ -271,8 +277,8 @@ def heatmap_targets(boxes: Tensor, num_classes: int, point_cloud_range, voxel_si
     frame = sel // M
     channel = cls.reshape(-1)[sel].long() - 1
     cx, cy = cx.reshape(-1)[sel].long(), cy.reshape(-1)[sel].long()
-    size_x = torch.nan_to_num(flat[:, 3].clamp(min=0) / cell_x, nan=0.0)
-    size_y = torch.nan_to_num(flat[:, 4].clamp(min=0) / cell_y, nan=0.0)
+    size_x = torch.nan_to_num(_div(flat[:, 3].clamp(min=0), cell_x), nan=0.0)
+    size_y = torch.nan_to_num(_div(flat[:, 4].clamp(min=0), cell_y), nan=0.0)
     radius = torch.nan_to_num(_gaussian_radius(size_x, size_y, o), nan=math.inf)  # inf - inf in r3: a huge box
     r = torch.floor(radius).clamp(min=min_r, max=2.0**40).long()
     base = (frame * C + channel) * H
@@ -314,7 +320,7 @@ def _draw_gaussians(out: Tensor, base: Tensor, cx: Tensor, cy: Tensor, r: Tensor
     """Max the (2k+1)^2 windows (masked to each object's own r) into ``out`` (flat, its last entry a sink)."""
     offsets = torch.arange(-k, k + 1, device=out.device)
     oy, ox = offsets.view(1, -1, 1), offsets.view(1, 1, -1)
-    sigma = (2 * r + 1).to(torch.float64) / 6
+    sigma = _div((2 * r + 1).to(torch.float64), 6)
     gauss = torch.exp(-(ox * ox + oy * oy).to(torch.float64) / (2 * sigma * sigma).view(-1, 1, 1))
     x, y = cx.view(-1, 1, 1) + ox, cy.view(-1, 1, 1) + oy
     rr = r.view(-1, 1, 1)
@@ -651,8 +657,8 @@ def _linspace_rows(lo: Tensor, hi: Tensor, n_bins: int) -> Tensor:
     step that underflows to 0, and the exact last edge)."""
     k = torch.arange(n_bins + 1, dtype=lo.dtype, device=lo.device)
     delta = (hi - lo)[:, None]
-    step = delta / n_bins
-    y = torch.where(step == 0, k / n_bins * delta, k * step) + lo[:, None]
+    step = _div(delta, n_bins)
+    y = torch.where(step == 0, _div(k, n_bins) * delta, k * step) + lo[:, None]
     y[:, -1] = hi
     return y
 
