@@ -45,7 +45,10 @@ def _frames_of(args: argparse.Namespace, needs_labels: bool):
     if needs_labels and not (data.split_dir / "label_2").is_dir():
         raise CliError(f"{data.split_dir} has no label_2/ folder: --source labels counts the labels "
                        "(use --source detector to count with a detector)")
-    return [int(n) for n in names], _KittiLoader(data, names, needs_labels)
+    if not needs_labels and args.fov == "camera" and not (data.split_dir / "calib").is_dir():
+        raise CliError(f"{data.split_dir} has no calib/ folder: --fov camera (the default) keeps the points the "
+                       "camera sees, as KITTI detectors are trained and evaluated; pass --fov all to count whole scans")
+    return [int(n) for n in names], _KittiLoader(data, names, needs_labels, fov=args.fov == "camera")
 
 
 class _ScenarioLoader:
@@ -63,8 +66,8 @@ class _ScenarioLoader:
 class _KittiLoader:
     """``frame_id -> Frame`` over a KITTI folder (a class, not a closure, so DataLoader workers can take it)."""
 
-    def __init__(self, data, names: list[str], needs_labels: bool):
-        self.data, self.needs_labels = data, needs_labels
+    def __init__(self, data, names: list[str], needs_labels: bool, fov: bool = False):
+        self.data, self.needs_labels, self.fov = data, needs_labels, fov
         where = {n: i for i, n in enumerate(data.ids)}
         self.position = {int(n): where[n] for n in names}
 
@@ -81,10 +84,24 @@ class _KittiLoader:
             from lidarops.query.build import Scan
 
             scan = (self.data.split_dir / "velodyne" / f"{name}.bin").resolve()
-            return Scan(points=torch.from_numpy(read_velodyne(scan)), source=str(scan), frame_index=i)
+            points = read_velodyne(scan)
+            if self.fov:  # what a KITTI detector (FOV_POINTS_ONLY) was trained on, and what the labels cover
+                points = points[self._fov_mask(points, name)]
+            return Scan(points=torch.from_numpy(points), source=str(scan), frame_index=i)
         if not label.is_file():
             raise FrameError(f"frame {name}: no labels ({label} is missing)")
         return self.data[i]
+
+    def _fov_mask(self, points, name: str):
+        from lidarops.data.formats.kitti import KITTI_IMAGE_SIZE, kitti_fov_mask, png_size, read_calib
+        from lidarops.query.build import FrameError
+
+        calib = self.data.split_dir / "calib" / f"{name}.txt"
+        if not calib.is_file():
+            raise FrameError(f"frame {name}: no calibration ({calib} is missing; --fov camera needs it, --fov all "
+                             "counts the whole scan)")
+        size = png_size(self.data.split_dir / "image_2" / f"{name}.png") or KITTI_IMAGE_SIZE
+        return kitti_fov_mask(points, read_calib(calib), size)
 
 
 def build(args: argparse.Namespace) -> int:
@@ -366,6 +383,9 @@ def register(subparsers) -> None:
                                                                  f"{SHIPPED_RANGE}, what it can count)")
     b.add_argument("--min-points", type=int, default=1, help="labels: count boxes holding at least this many points "
                                                              "(default 1: what a LiDAR can see)")
+    b.add_argument("--fov", choices=["camera", "all"], default="camera",
+                   help="detector/counter on a KITTI folder: the points the camera sees (default: what KITTI "
+                        "detectors are trained on and the labels cover; needs calib/), or the whole scan")
     b.add_argument("--device", default="auto", help="detector: auto (default), cpu, cuda")
     b.add_argument("--precision", choices=["fp32", "tf32", "fp16"], default=None,
                    help="detector, counter: the network's arithmetic on CUDA: fp32 (no TF32), tf32, fp16 (float16 "

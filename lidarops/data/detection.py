@@ -77,6 +77,7 @@ from lidarops.data.formats.kitti import (
     camera_to_lidar_boxes,
     kitti_difficulty,
     kitti_fov_mask,
+    png_size,
     read_calib,
     read_velodyne,
 )
@@ -339,18 +340,6 @@ def _read_recipe(path: Path) -> dict:
     return recipe
 
 
-def _png_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) from a PNG header, without decoding the image."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(24)
-    except OSError:
-        return None
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        return None
-    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-
-
 def _annos(labels: KittiLabels) -> dict[str, np.ndarray]:
     """The label file's fields (DontCare included) for evaluation; ``dimensions_hwl`` in the file's h, w, l."""
     annos = {
@@ -466,7 +455,7 @@ class KittiDetectionDataset(Dataset):
 
     def image_size(self, index: int) -> tuple[int, int]:
         """(width, height) of frame ``index``'s image: from ``image_2/<id>.png`` when present, else KITTI's."""
-        return _png_size(self.split_dir / "image_2" / f"{self.ids[index]}.png") or KITTI_IMAGE_SIZE
+        return png_size(self.split_dir / "image_2" / f"{self.ids[index]}.png") or KITTI_IMAGE_SIZE
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         index = int(index)

@@ -105,6 +105,7 @@ COMMANDS: dict[str, tuple[list[str], dict[str, list[str]]]] = {
         "--workers": _INT_JUNK + ["-1"],
         "--score-thresh": _FLOAT_JUNK + ["-0.5", "1.5"],
         "--precision": ["fp8", "", "FP16", "half", "bf16"],
+        "--fov": ["", "Camera", "none", "360"],
         "--classes": ["", "two words", "1st"],
         "--labels-range": ["1,2,3", "a,b,c,d", "1,1,0,0", "nan,0,1,1", ""],
         "--min-points": _INT_JUNK + ["-1"],

@@ -597,3 +597,44 @@ def test_cli_compare_html_and_evaluate(tmp_path, capsys):
     assert data["aggregation"]["true"]["Car"] == true and data["aggregation"]["pred"]["Car"] == pred
     assert data["aggregation"]["q_error"]["Car"] == pytest.approx(max(true, pred) / min(true, pred))
     assert data["frames"] == n
+
+
+def test_kitti_scans_cropped_to_the_camera_view_unless_fov_all(tmp_path):
+    """A model source on a KITTI folder sees the points the camera sees (what KITTI detectors are trained on and
+    the labels cover): none behind the camera or outside the image; --fov all keeps the whole scan."""
+    from lidarops.cli.query import _KittiLoader
+    from lidarops.data.formats.kitti import KittiDataset, read_velodyne
+    from lidarops.query.build import FrameError
+
+    kitti_folder(tmp_path / "kitti", 2, seed=4, points=2000)
+    data = KittiDataset(tmp_path / "kitti")
+    calib = KittiCalib.default()
+    for fid, name in ((100, "000100"), (101, "000101")):
+        every = read_velodyne(tmp_path / "kitti" / "velodyne" / f"{name}.bin")
+        kept = _KittiLoader(data, data.ids, needs_labels=False, fov=True)(fid).points.numpy()
+        assert 0 < len(kept) < len(every) and (every[:, 0] < 0).any()
+        # independently: in the rectified camera frame in front of the camera, projected inside 1242 x 375
+        xyz1 = np.concatenate([kept[:, :3], np.ones((len(kept), 1))], 1).astype(np.float64)
+        cam = xyz1 @ calib.Tr_velo_to_cam.T @ calib.R0_rect.T
+        uvw = np.concatenate([cam, np.ones((len(cam), 1))], 1) @ calib.P2.T
+        u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+        assert (cam[:, 2] > 0).all() and (u >= -1e-3).all() and (u < 1242 + 1e-3).all()
+        assert (v >= -1e-3).all() and (v < 375 + 1e-3).all()
+        whole = _KittiLoader(data, data.ids, needs_labels=False, fov=False)(fid).points.numpy()
+        np.testing.assert_array_equal(whole, every)
+    (tmp_path / "kitti" / "calib" / "000101.txt").unlink()
+    with pytest.raises(FrameError, match=r"frame 000101: no calibration .*--fov all"):
+        _KittiLoader(data, data.ids, needs_labels=False, fov=True)(101)
+
+
+def test_cli_fov_camera_needs_calib(tmp_path, capsys):
+    import shutil
+
+    kitti_folder(tmp_path / "kitti", 1)
+    shutil.rmtree(tmp_path / "kitti" / "calib")
+    base = ["index", "build", str(tmp_path / "kitti"), "--out", str(tmp_path / "idx"), "--no-progress",
+            "--source", "detector", "--device", "cpu"]
+    assert main(base) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has no calib/ folder" in err[0] and "--fov all" in err[0], err
+    assert not (tmp_path / "idx").exists()

@@ -39,6 +39,7 @@ __all__ = [
     "camera_to_lidar_boxes",
     "lidar_to_camera_boxes",
     "kitti_fov_mask",
+    "png_size",
     "forward_fov_mask",
     "KittiDataset",
     "read_kitti_frame",
@@ -407,6 +408,18 @@ def lidar_to_camera_boxes(boxes: np.ndarray, calib: KittiCalib) -> tuple[np.ndar
     dimensions = np.stack([boxes[:, 5], boxes[:, 4], boxes[:, 3]], axis=1)
     rotation_y = wrap_angle(-boxes[:, 6] - np.pi / 2)
     return location, dimensions, rotation_y
+
+
+def png_size(path: str | Path) -> tuple[int, int] | None:
+    """(width, height) of a PNG image from its header, without decoding it; None when ``path`` is not a readable PNG."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
 
 
 def kitti_fov_mask(points: np.ndarray, calib: KittiCalib, image_size: tuple[int, int] = KITTI_IMAGE_SIZE,
