@@ -56,7 +56,8 @@ def _kitti_detection_datasets(root: Path, class_names: Sequence[str], cfg: Mappi
     data_cfg = DetectionConfig.from_openpcdet(cfg.get("DATA_CONFIG", {}))
     gt_database = None
     if args.gt_database_frames:  # OpenPCDet builds it from every training frame; a subset is quicker
-        ids = KittiDetectionDataset(root, "train", class_names, data_cfg).ids[:args.gt_database_frames]
+        # training=False: the ids alone (a training dataset would first build the database from every frame)
+        ids = KittiDetectionDataset(root, "train", class_names, data_cfg, training=False).ids[:args.gt_database_frames]
         gt_database = build_gt_database(root, ids, class_names)
     train_set, val_set = train_val_datasets(root, class_names, data_cfg, seed=args.seed or 0, gt_database=gt_database)
     if args.max_train_frames:

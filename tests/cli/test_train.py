@@ -62,3 +62,28 @@ def test_train_help(run_cli, capsys):
         run_cli(["train", "--help"])
     out = capsys.readouterr().out
     assert e.value.code == 0 and "--config" in out and "CASNetPointNet, CASNetPointPillars, CounterNet, PointNet, PointPillar, PointPillars" in " ".join(out.split())
+
+
+def test_gt_database_frames_builds_from_those_frames_only(synth_kitti, monkeypatch):
+    """--gt-database-frames N: the gt database is built once, from the first N training frames (before, looking
+    up the ids made a training dataset, which built the database from every frame first)."""
+    import argparse
+
+    import lidarops.data.augment as augment
+    import lidarops.data.detection as detection
+    from lidarops.cli.train import _kitti_detection_datasets
+    from lidarops.config import load_config
+
+    built = []
+    real = augment.build_gt_database
+
+    def recording(source, ids=None, *a, **kw):
+        built.append(None if ids is None else list(ids))
+        return real(source, ids, *a, **kw)
+
+    monkeypatch.setattr(detection, "build_gt_database", recording)
+    cfg = load_config(repo_config("pointpillars_synth.yaml"))
+    args = argparse.Namespace(gt_database_frames=2, seed=0, max_train_frames=None, max_val_frames=None)
+    train_set, _, _ = _kitti_detection_datasets(synth_kitti, ["Car", "Pedestrian", "Cyclist"], cfg, args)
+    first_two = (synth_kitti / "ImageSets" / "train.txt").read_text().split()[:2]
+    assert built == [first_two] and train_set.sampler is not None
