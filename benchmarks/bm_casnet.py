@@ -81,6 +81,10 @@ import torch
 
 from benchmarks.common import (
     Skip,
+    add_common_args,
+    bench_device,
+    load_average_warning,
+    run_with_threads,
     available_memory,
     device_name,
     env_meta,
@@ -94,7 +98,6 @@ from benchmarks.common import (
 )
 
 import lidarops
-from lidarops import extension
 from lidarops.models.casnet import CASNet, CASNetSampler, casnet_loss, segment_and_sample
 from lidarops.models.offset_attention import _rows_per_chunk
 from lidarops.models.samplers import ChunkedFPSSampler, FPSSampler, RandomSampler, spatial_segments
@@ -579,40 +582,22 @@ def print_whole_cloud(rows: list[dict], device: torch.device) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto",
-                    help="auto = cuda when available, else cpu (default)")
+    add_common_args(ap)
     ap.add_argument("--quick", action="store_true", help="tiny clouds and models, for smoke tests")
     ap.add_argument("--full", action="store_true", help="on CPU: the CUDA sizes (section 3 at 20,000 and 65,536 "
                                                         "points, section 2's eager rows); long")
     ap.add_argument("--checkpoint", default=None, metavar="PATH",
                     help="also time this CAS-Net (lidarops.models.casnet.load_casnet: a file or a shipped name)")
-    ap.add_argument("--threads", type=int, default=0,
-                    help="CPU threads (default: torch's choice; on a loaded 2-core machine 1 gives steadier times)")
-    ap.add_argument("--json", action="store_true", help="merge the rows into benchmarks/results/<device>.json")
-    ap.add_argument("--results-dir", default=None, help="folder of the result files (default benchmarks/results)")
-    a = ap.parse_args(argv)
-    threads = torch.get_num_threads()
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    try:
-        return _main(a)
-    finally:  # the smoke test calls main() inside pytest's process
-        torch.set_num_threads(threads)
+    return run_with_threads(_main, ap.parse_args(argv))
 
 
 def _main(a: argparse.Namespace) -> int:
-    cuda_ok = torch.cuda.is_available() and extension.cuda_available()
-    if a.device == "cuda" and not cuda_ok:
-        print("CUDA asked for but not available (torch sees no GPU or lidarops was built without CUDA)",
-              file=sys.stderr)
+    dev = bench_device(a.device)
+    if dev is None:
         return 2
-    dev = torch.device("cuda" if a.device == "cuda" or (a.device == "auto" and cuda_ok) else "cpu")
     sizes = sizes_for(dev, a.quick, a.full)
     t0 = time.perf_counter()
-    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    if dev.type == "cpu" and load0 is not None and load0 > 0.5 * (os.cpu_count() or 1):
-        print(f"warning: load average {load0:.1f} on {os.cpu_count()} cores; other work skews CPU timings",
-              file=sys.stderr)
+    load0 = load_average_warning(dev)
     run = Runner(dev, quick=a.quick)
     print(f"# {device_name(dev)}: torch {torch.__version__}, lidarops {lidarops.__version__}", flush=True)
 

@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import os
 import sys
 import time
 from pathlib import Path
@@ -59,6 +58,10 @@ import torch
 
 from benchmarks.common import (
     Timing,
+    add_common_args,
+    bench_device,
+    load_average_warning,
+    run_with_threads,
     device_name,
     env_meta,
     fmt_ms,
@@ -71,7 +74,6 @@ from benchmarks.common import (
 )
 
 import lidarops
-from lidarops import extension
 from lidarops.config import load_config
 from lidarops.models.counternet import CounterNet
 
@@ -245,40 +247,22 @@ def print_rows(rows: list[dict], info: dict, device: torch.device) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto",
-                    help="auto = cuda when available, else cpu (default)")
+    add_common_args(ap)
     ap.add_argument("--quick", action="store_true", help="2 frames, for smoke tests")
     ap.add_argument("--frames", type=int, default=0, help="frames (default: 16 on CUDA, 4 on CPU, 2 with --quick)")
     ap.add_argument("--batch", type=int, default=0, help="batch of the throughput rows (default: 8 on CUDA, 2 on CPU)")
-    ap.add_argument("--threads", type=int, default=0,
-                    help="CPU threads (default: torch's choice; on a loaded 2-core machine 1 gives steadier times)")
-    ap.add_argument("--json", action="store_true", help="write the rows into benchmarks/results/<device>.json")
-    ap.add_argument("--results-dir", default=None, help="folder of the result files (default benchmarks/results)")
-    a = ap.parse_args(argv)
-    threads = torch.get_num_threads()
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    try:
-        return _main(a)
-    finally:  # the smoke test calls main() inside pytest's process
-        torch.set_num_threads(threads)
+    return run_with_threads(_main, ap.parse_args(argv))
 
 
 def _main(a: argparse.Namespace) -> int:
-    cuda_ok = torch.cuda.is_available() and extension.cuda_available()
-    if a.device == "cuda" and not cuda_ok:
-        print("CUDA asked for but not available (torch sees no GPU or lidarops was built without CUDA)",
-              file=sys.stderr)
+    dev = bench_device(a.device)
+    if dev is None:
         return 2
-    dev = torch.device("cuda" if a.device == "cuda" or (a.device == "auto" and cuda_ok) else "cpu")
     cuda = dev.type == "cuda"
     n = a.frames or (2 if a.quick else 16 if cuda else 4)
     batch = a.batch or (8 if cuda else 2)
     t0 = time.perf_counter()
-    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    if not cuda and load0 is not None and load0 > 0.5 * (os.cpu_count() or 1):
-        print(f"warning: load average {load0:.1f} on {os.cpu_count()} cores; other work skews CPU timings",
-              file=sys.stderr)
+    load0 = load_average_warning(dev)
     print(f"# {device_name(dev)}: torch {torch.__version__}, lidarops {lidarops.__version__}", flush=True)
 
     frames, info = make_frames(n)

@@ -454,3 +454,46 @@ def lidar_clouds(B: int, N: int, seed: int = 0, device: str | torch.device = "cp
     from lidarops.data.clouds import simulated_sweep
     clouds = [simulated_sweep(N, seed + b)[0] for b in range(B)]
     return torch.stack(clouds).to(device=device, dtype=dtype)
+
+
+def add_common_args(ap) -> None:
+    """``--device``, ``--threads``, ``--json`` and ``--results-dir``, as the model benchmarks take them."""
+    ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto",
+                    help="auto = cuda when available, else cpu (default)")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="CPU threads (default: torch's choice; on a loaded 2-core machine 1 gives steadier times)")
+    ap.add_argument("--json", action="store_true", help="merge the rows into benchmarks/results/<device>.json")
+    ap.add_argument("--results-dir", default=None, help="folder of the result files (default benchmarks/results)")
+
+
+def run_with_threads(main: Callable[[Any], int], a) -> int:
+    """``main(a)`` with ``a.threads`` CPU threads, torch's own count restored after (smoke tests call benchmarks
+    inside pytest's process)."""
+    threads = torch.get_num_threads()
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    try:
+        return main(a)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def bench_device(asked: str) -> torch.device | None:
+    """The device of ``--device cpu|cuda|auto``; None (after saying why) when CUDA is asked for and missing."""
+    from lidarops import extension
+
+    cuda_ok = torch.cuda.is_available() and extension.cuda_available()
+    if asked == "cuda" and not cuda_ok:
+        print("CUDA asked for but not available (torch sees no GPU or lidarops was built without CUDA)",
+              file=sys.stderr)
+        return None
+    return torch.device("cuda" if asked == "cuda" or (asked == "auto" and cuda_ok) else "cpu")
+
+
+def load_average_warning(device: torch.device) -> float | None:
+    """The 1-minute load average, with a warning on stderr when it skews CPU timings."""
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    if device.type == "cpu" and load is not None and load > 0.5 * (os.cpu_count() or 1):
+        print(f"warning: load average {load:.1f} on {os.cpu_count()} cores; other work skews CPU timings",
+              file=sys.stderr)
+    return load
