@@ -87,6 +87,28 @@ def test_kitti_velodyne(tmp_path, data):
 
 @fuzz
 @given(data=st.data())
+def test_png_size(tmp_path, data):
+    """``png_size`` (the image size the camera-view crop uses): the header's width and height, or None for
+    anything that is not a readable PNG header, never an exception; checked against struct's parse."""
+    import struct
+    import zlib
+
+    from lidarops.data.formats.kitti import png_size
+
+    w, h = data.draw(st.integers(0, 2**31 - 1), "width"), data.draw(st.integers(0, 2**31 - 1), "height")
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    valid = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    raw = data.draw(file_bytes(valid), "bytes")
+    path = _write(tmp_path, "image_2/000000.png", raw)
+    got, err = outcome(png_size, path)
+    assert err is None, f"png_size({len(raw)} bytes) raised {type(err).__name__}: {err}"
+    ok = len(raw) >= 24 and raw[:8] == b"\x89PNG\r\n\x1a\n" and raw[12:16] == b"IHDR"
+    assert got == (struct.unpack(">II", raw[16:24]) if ok else None)
+    assert png_size(tmp_path / "missing.png") is None
+
+
+@fuzz
+@given(data=st.data())
 def test_nuscenes_bin(tmp_path, data):
     from lidarops.data.formats import read_nuscenes_bin
 
