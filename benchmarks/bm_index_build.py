@@ -8,11 +8,12 @@ read-back; on CUDA the copies run on a side stream beside the network, and what 
     python benchmarks/bm_index_build.py --device cpu --frames 16 --distinct 4 --workers 0 --batch 1,4
 
 The scans: ``--distinct`` simulated frames (held-out seed) written as KITTI velodyne files, copied to make
-``--frames`` files (every file read from disk by the build). Rows: one per (precision, batch, workers), plus the loop
+``--frames`` files (every file read from disk by the build). Rows: one per (mode, precision, batch, workers), plus the loop
 a user writes first (one frame per call, read in the same process) as the baseline. Each row is a whole
 ``build_index`` into a fresh index, as ``lidarops index build --source detector`` runs it, after one
 warm-up build of 2 batches, for each ``--precision`` (``default``: torch's settings, as the command without
-``--precision``; ``fp32``, ``tf32``, ``fp16``: ``DetectorSource(precision=...)``). ``--json`` merges the rows
+``--precision``; ``fp32``, ``tf32``, ``fp16``: ``DetectorSource(precision=...)``) and ``--mode`` (``eager``: each
+batch as eager calls; ``graph``: as one replayed CUDA graph, the command's default on CUDA). ``--json`` merges the rows
 into ``benchmarks/results/<device>.json`` under ``"query_build"``. Target (issue 36): >= 500 frames/s on one
 H100/H200.
 """
@@ -57,9 +58,14 @@ def main() -> int:
     p.add_argument("--precision", default="default",
                    help="the network's arithmetic, comma-separated: default (torch's settings), fp32, tf32, fp16")
     p.add_argument("--baseline-frames", type=int, default=200, help="frames of the one-at-a-time baseline")
+    p.add_argument("--mode", default=None, help="eager, graph or both, comma-separated: each batch as eager calls "
+                                                 "or as one replayed CUDA graph (default: both on CUDA, eager on CPU)")
     p.add_argument("--data", type=Path, help="folder for the scans (default: a temporary one)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
+    modes = (args.mode or ("eager,graph" if args.device.startswith("cuda") else "eager")).split(",")
+    if any(m not in ("eager", "graph") for m in modes) or ("graph" in modes and args.device == "cpu"):
+        p.error(f"--mode: {args.mode!r}: eager and graph, comma-separated; graph needs --device cuda")
     precisions = args.precision.split(",")
     for precision in precisions:
         if precision not in ("default", "fp32", "tf32", "fp16"):
@@ -84,8 +90,9 @@ def main() -> int:
     model = load_model(weights.path()).to(args.device).eval()
     points = sum(os.path.getsize(data / "velodyne" / f"{n}.bin") for n in names[:args.distinct]) / 16 / args.distinct
 
-    def run(batch: int, workers: int, n: int, label: str, precision: str = "default") -> dict:
-        source = DetectorSource(model, 0.5, precision=None if precision == "default" else precision)
+    def run(batch: int, workers: int, n: int, label: str, precision: str = "default", mode: str = "eager") -> dict:
+        source = DetectorSource(model, 0.5, precision=None if precision == "default" else precision,
+                                graph=mode == "graph")
         build_index(tmp / "warm", ids[:2 * batch], load, source, batch=batch, workers=workers)  # warm-up
         shutil.rmtree(tmp / "warm")
         source.stage_seconds = dict.fromkeys(source.stage_seconds, 0.0)
@@ -94,7 +101,7 @@ def main() -> int:
         shutil.rmtree(tmp / "idx")
         count = report.stage_seconds["count"] or 1e-9
         row = {"op": "index_build_detector", "case": label, "frames": n, "batch": batch, "workers": workers,
-               "precision": precision,
+               "precision": precision, "mode": mode,
                "points_per_frame": round(points), "frames_per_s": round(report.frames_per_second, 1),
                **{f"share_{k}": round(v / report.seconds, 3) for k, v in report.stage_seconds.items()},
                **{f"count_share_{k}": round(v / count, 3) for k, v in source.stage_seconds.items()}}
@@ -103,11 +110,13 @@ def main() -> int:
         return row
 
     rows = [run(1, 0, min(args.baseline_frames, args.frames), "one frame per call, read in-process")]
-    for precision in precisions:
-        for workers in (int(w) for w in args.workers.split(",")):
-            for batch in (int(b) for b in args.batch.split(",")):
-                label = f"batch {batch}, {workers} workers" + ("" if precision == "default" else f", {precision}")
-                rows.append(run(batch, workers, args.frames, label, precision))
+    for mode in modes:
+        for precision in precisions:
+            for workers in (int(w) for w in args.workers.split(",")):
+                for batch in (int(b) for b in args.batch.split(",")):
+                    label = f"batch {batch}, {workers} workers" + ("" if precision == "default" else f", {precision}") \
+                        + (", CUDA graph" if mode == "graph" else "")
+                    rows.append(run(batch, workers, args.frames, label, precision, mode))
     keys = ["case", "frames_per_s", "share_load", "share_count", "share_write", "count_share_to_device",
             "count_share_predict", "count_share_read_back"]
     print_table(f"index build, detector source, {args.device}", keys, [[r[k] for k in keys] for r in rows],

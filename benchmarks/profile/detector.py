@@ -1,9 +1,12 @@
-"""Where the GPU time of one PointPillars frame goes, stage by stage, in the graphed inference
+"""Where the GPU time of PointPillars frames goes, stage by stage, in the graphed inference
 (:class:`lidarops.models.GraphedPointPillars`): the graph's body run eagerly under torch.profiler, each
 stage in a ``record_function`` range, kernel time summed per stage; then the top kernels, and the
 graph's replay time for comparison.
 
-    python benchmarks/profile/detector.py [--precision fp16] [--runs 20]
+    python benchmarks/profile/detector.py [--precision fp16] [--runs 20] [--batch 16] [--whole-scan]
+
+``--batch B`` profiles B frames per call (the batched graph the index build replays); ``--whole-scan`` takes
+the whole simulated sweep (what ``bm_index_build`` writes to disk) instead of the camera's view.
 """
 from __future__ import annotations
 
@@ -16,65 +19,60 @@ import torch
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
-import lidarops  # noqa: E402
 from benchmarks.bm_detector import kitti_like_frame, load_model  # noqa: E402
-from lidarops.models.postprocess import postprocess_padded  # noqa: E402
-from lidarops.models.cuda_graph import GraphedPointPillars, precision_mode  # noqa: E402
-from lidarops.ops.voxelize import voxelize  # noqa: E402
+from lidarops.models.cuda_graph import GraphedPointPillars, padded_inference, precision_mode  # noqa: E402
 
 STAGES = ("voxelize", "pfn", "scatter", "backbone", "head", "decode", "postprocess")
 
 
-def body(model, points, precision):
-    cfg = model.config
-    rf = torch.profiler.record_function
-    with torch.no_grad(), precision_mode(precision), lidarops.validation(False):
-        with rf("voxelize"):
-            v, c, n = voxelize(points, cfg.voxel_size, cfg.point_cloud_range, cfg.max_points_per_voxel,
-                               cfg.max_voxels_test, overflow="drop", padded=True)
-            coords = torch.cat([(c[:, :1] >= 0).to(c.dtype) - 1, c], 1)
-        with rf("pfn"):
-            feats = model.vfe(v, n, coords)
-        with rf("scatter"):
-            x = model.map_to_bev(feats, coords, 1)
-        with rf("backbone"):
-            x = model.backbone_2d(x)
-        with rf("head"):
-            raw = model.dense_head(x)
-        with rf("decode"):
-            cls, boxes = model.dense_head.decode(raw)
-        with rf("postprocess"):
-            return postprocess_padded(cls, boxes, cfg)
+def body(model, points, precision, rows=None):
+    """``points (B, N, 4)``: :func:`lidarops.models.cuda_graph.padded_inference` (its stages are profiler ranges)."""
+    with torch.no_grad(), precision_mode(precision):
+        return padded_inference(model, points, rows)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--precision", default="fp16", choices=("fp32", "tf32", "fp16"))
     ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--batch", type=int, default=1, help="frames per call")
+    ap.add_argument("--whole-scan", action="store_true", help="the whole sweep, not the camera's view")
+    ap.add_argument("--all-rows", action="store_true", help="pillar rows for every frame's capacity, not a quarter "
+                                                            "more than the frames need (the index build's sizing)")
     args = ap.parse_args(argv)
-    frame = kitti_like_frame().cuda()
+    if args.whole_scan:
+        from lidarops.data.synthetic import Simulator
+
+        frame = torch.from_numpy(Simulator("driving_city", seed=0).sweep(0).points[:, :4]).float().cuda()
+    else:
+        frame = kitti_like_frame().cuda()
+    frames = frame[None].repeat(args.batch, 1, 1)
     model = load_model("cuda", "dense")
+    needed = int(body(model, frames, args.precision)["pillars"])
+    rows = None if args.all_rows else -(-(needed + needed // 4 + 1) // 8192) * 8192
     for _ in range(5):
-        body(model, frame, args.precision)
+        body(model, frames, args.precision, rows)
     torch.cuda.synchronize()
     acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
     with torch.profiler.profile(activities=acts) as prof:
         for _ in range(args.runs):
-            body(model, frame, args.precision)
+            body(model, frames, args.precision, rows)
         torch.cuda.synchronize()
     per_stage = {s: 0.0 for s in STAGES}
     for e in prof.events():
         if e.name in per_stage:
             per_stage[e.name] += e.device_time_total / args.runs / 1e3
     total = sum(per_stage.values())
-    print(f"{frame.shape[0]} points, {args.precision}: GPU kernel time per frame by stage (ms)")
+    print(f"{args.batch} frame(s) of {frame.shape[0]} points ({needed} pillars, {rows or 'all'} rows), "
+          f"{args.precision}: GPU kernel time per call by stage (ms)")
     for s, t in per_stage.items():
         print(f"  {s:12s} {t:7.3f}  {100 * t / total:4.0f}%")
     print(f"  {'total':12s} {total:7.3f}")
     print(prof.key_averages().table(sort_by="device_time_total", row_limit=25))
-    graphed = GraphedPointPillars(model, capacity=int(frame.shape[0]), precision=args.precision)
+    graphed = GraphedPointPillars(model, capacity=int(frame.shape[0]), precision=args.precision, batch_size=args.batch,
+                                  max_pillars=rows)
     for _ in range(5):
-        graphed(frame)
+        graphed([frame] * args.batch)
     times = []
     for _ in range(50):
         a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
@@ -84,7 +82,8 @@ def main(argv=None) -> int:
         torch.cuda.synchronize()
         times.append(a.elapsed_time(b))
     times.sort()
-    print(f"graph replay alone (GPU, CUDA events): median {times[len(times) // 2]:.3f} ms")
+    med = times[len(times) // 2]
+    print(f"graph replay alone (GPU, CUDA events): median {med:.3f} ms per call, {1e3 * args.batch / med:.0f} frames/s")
     return 0
 
 

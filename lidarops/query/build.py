@@ -158,6 +158,7 @@ class _Staged:
 
     frames: int  # frames in the batch
     full: list[int]  # the frames holding points, in order
+    lengths: list[int]  # the points of each of those frames
     points: Any = None  # Tensor[P, 5] on the device: the full frames' rows (index among them, x, y, z, intensity)
     done: Any = None  # CUDA event: the copy to the device, then the read-back, is complete (None on the CPU)
     host: Any = None  # Tensor[R] float64 (pinned on CUDA): the results read back, packed
@@ -209,6 +210,16 @@ class _ModelSource:
         """The model's predictions, one dict per frame (its ``predict``)."""
         return self.model.predict(batch)
 
+    def _predict_staged(self, points, staged: _Staged) -> list[dict]:
+        """The predictions of a staged batch's frames, in order: the full frames as one batch, the empty ones
+        from one batch of one empty frame."""
+        preds = self._predict({"points": points, "batch_size": len(staged.full)}) if staged.full else []
+        if len(staged.full) < staged.frames:
+            empty = self._predict({"points": points.new_zeros((0, 5)), "batch_size": 1})[0]
+            by_frame = dict(zip(staged.full, preds))
+            preds = [by_frame.get(i, empty) for i in range(staged.frames)]
+        return preds
+
     def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
         """The batch's predictions (one dict per frame, on the device) as tensors to read back and what
         :meth:`_results` needs besides them; nothing read to the host here."""
@@ -240,7 +251,7 @@ class _ModelSource:
                 batch[row:row + n, 0] = j
                 batch[row:row + n, 1:].copy_(points[i], non_blocking=True)
                 row += n
-        staged = _Staged(len(frames), full, batch, self._side.mark())
+        staged = _Staged(len(frames), full, [len(points[i]) for i in full], batch, self._side.mark())
         self.stage_seconds["to_device"] += time.perf_counter() - t
         return staged
 
@@ -260,11 +271,7 @@ class _ModelSource:
         precision = contextlib.nullcontext() if self.precision is None else \
             precision_mode(self.precision, weights.device.type, autocast=weights.dtype != torch.float16)
         with torch.inference_mode(), precision:
-            preds = self._predict({"points": points, "batch_size": len(staged.full)}) if staged.full else []
-            if len(staged.full) < staged.frames:
-                empty = self._predict({"points": points.new_zeros((0, 5)), "batch_size": 1})[0]
-                by_frame = dict(zip(staged.full, preds))
-                preds = [by_frame.get(i, empty) for i in range(staged.frames)]
+            preds = self._predict_staged(points, staged)
             if preds:
                 tensors, staged.meta = self._gather(preds)
                 staged.shapes = [tuple(x.shape) for x in tensors]
@@ -298,15 +305,34 @@ class DetectorSource(_ModelSource):
     """A detector as a counter: its detections scoring at least ``score_thresh``, per class, one batched
     ``predict`` per call (on the model's device), the counts of the whole batch made by one scatter on the device
     and read back with the centres in one copy; ``precision`` and ``stage_seconds`` as :class:`_ModelSource`'s.
-    Labels are 1-based into the model's ``class_names`` (OpenPCDet's); others are not counted."""
+    Labels are 1-based into the model's ``class_names`` (OpenPCDet's); others are not counted.
+
+    ``graph``: run each batch as one replayed CUDA graph (:class:`~lidarops.models.cuda_graph.GraphedPointPillars`
+    with ``batch_size``: voxelization to NMS without a host read or a launch per kernel); None (default): where it
+    can, a PointPillars with the dense backbone on a CUDA device. The detections are the eager call's."""
 
     name = "detector"
 
-    def __init__(self, model, score_thresh: float = 0.5, precision: str | None = None):
+    def __init__(self, model, score_thresh: float = 0.5, precision: str | None = None, graph: bool | None = None):
         if not 0 <= score_thresh <= 1:
             raise QueryError(f"score_thresh must be in [0, 1], got {score_thresh!r}")
+        if graph not in (None, True, False):
+            raise QueryError(f"graph must be True, False or None (on where it can run), got {graph!r}")
         super().__init__(model, precision)
         self.score_thresh = float(score_thresh)
+        from lidarops.models.pointpillars import PointPillars
+
+        capturable = isinstance(model, PointPillars) and model.config.backbone_mode == "dense" and \
+            next(model.parameters()).device.type == "cuda"
+        if graph and not capturable:
+            raise QueryError("graph=True needs a PointPillars with backbone_mode='dense' on a CUDA device, got "
+                             f"{type(model).__name__} on {next(model.parameters()).device}")
+        self.graph = capturable if graph is None else graph
+        self._graphed = None  # GraphedPointPillars, made at the first batch and again when it no longer fits
+        self._pillars = 0  # the most pillar rows a batch has needed
+        self._regraph = False  # a batch needed more pillar rows than the graph holds
+        self.pillar_step = 8192  # pillar rows are rounded up to a multiple of this
+        self.eager_batches = 0  # batches counted eagerly because they needed more pillar rows
 
     def _predict(self, batch: dict) -> list[dict]:
         """A PointPillars-style detector's detections through ``postprocess_padded``: the same rows as its
@@ -326,6 +352,44 @@ class DetectorSource(_ModelSource):
         return [{"boxes": padded["boxes"][b], "scores": padded["scores"][b], "labels": padded["labels"][b]}
                 for b in range(padded["count"].shape[0])]
 
+    def _predict_staged(self, points, staged: _Staged) -> list[dict]:
+        """Through a CUDA graph of the whole batch (``graph``): each frame's points copied into the graph's
+        padded input, one replay, the padded outputs gathered where they lie.
+
+        The graph is recorded for the largest batch and frame seen so far (frames rounded up to 32k points with a
+        quarter more room) and, once a batch has shown how many pillars the frames make, with a quarter more
+        pillar rows than the most seen (the pillar net then works on those rather than on every frame's
+        capacity): a build records it a few times. A batch needing more pillar rows is counted again eagerly
+        (:meth:`_results`) and the next batch records a larger graph."""
+        if not self.graph:
+            return super()._predict_staged(points, staged)
+        import torch
+
+        from lidarops.models.cuda_graph import GraphedPointPillars
+
+        most = max(staged.lengths, default=0)
+        g = self._graphed
+        step = self.pillar_step
+        rows = None if not self._pillars else -(-(self._pillars + self._pillars // 4 + 1) // step) * step
+        if g is None or g.batch_size < staged.frames or g.capacity < most or self._regraph or \
+                (rows is not None and (g.max_pillars is None or g.max_pillars > rows + rows // 2)):
+            capacity = -(-max(most + most // 4, g.capacity if g is not None else 0, 1) // 32768) * 32768
+            batch = max(staged.frames, g.batch_size if g is not None else 1)
+            if rows is not None:
+                rows = min(rows, batch * min(self.model.config.max_voxels_test, capacity))
+            if g is not None:  # its outputs may still be read by queued work: let it finish before the memory goes
+                torch.cuda.synchronize(points.device)
+            self._graphed = g = None
+            g = self._graphed = GraphedPointPillars(self.model, capacity, self.precision, batch, rows)
+            self._regraph = False
+        frames, row = [points[:0, 1:]] * staged.frames, 0
+        for i, n in zip(staged.full, staged.lengths):
+            frames[i] = points[row:row + n, 1:]
+            row += n
+        out = g.replay(frames)
+        return [{"boxes": out["boxes"][b], "scores": out["scores"][b], "labels": out["labels"][b],
+                 "read": out["read"][b], "points": frames[b]} for b in range(staged.frames)]
+
     def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
         import torch
 
@@ -340,10 +404,33 @@ class DetectorSource(_ModelSource):
         counts.index_add_(0, torch.where(keep, cells, 0), keep.long())
         xy = torch.cat([p["boxes"][:, :2] for p in preds]).double()  # float64 holds every float32/16 value
         rows = torch.stack([keep.double(), labels.double(), xy[:, 0], xy[:, 1], scores.double()], 1)
-        return [counts.view(len(preds), classes), rows], [len(p["scores"]) for p in preds]
+        tensors = [counts.view(len(preds), classes), rows]
+        sizes = [len(p["scores"]) for p in preds]
+        if "read" not in preds[0]:
+            return tensors, sizes
+        # the graph's value check of each frame and the batch's pillars, read back with the counts; the frames
+        # kept for a batch that needed more pillar rows than the graph has
+        tensors.append(torch.stack([p["read"] for p in preds]))
+        return tensors, (sizes, [p["points"] for p in preds])
 
     def _results(self, arrays: list[np.ndarray], meta: Any) -> list[Counted]:
-        counts, rows = arrays
+        from lidarops.ops.pillars import MAX_ABS_INTENSITY
+        from lidarops.ops.validation import value_checks_enabled
+
+        counts, rows = arrays[:2]
+        if len(arrays) > 2:  # through the graph: (count, bad, overflow, pillars) per frame
+            read, (meta, frames) = arrays[2], meta
+            if read[:, 1].any() and value_checks_enabled():
+                # the eager call's check (lidarops.models.pointpillars), which the graph ran on the device
+                raise ValueError(f"frame(s) {np.flatnonzero(read[:, 1]).tolist()} of this batch: batch['points'][:, "
+                                 f"4:] (intensity and other features) must be finite with |value| <= "
+                                 f"{MAX_ABS_INTENSITY:g}; drop such points first (lidarops.stream.invalid_points "
+                                 "gives the mask for intensity)")
+            self._pillars = max(self._pillars, int(read[0, 3]))
+            if read[0, 2]:  # more pillars than the graph's rows: this batch eagerly, a larger graph next
+                self._regraph = True
+                self.eager_batches += 1
+                return self._eager_results(frames)
         out, start = [], 0
         for frame_counts, n in zip(counts.astype(np.int64).tolist(), meta):
             kept = rows[start:start + n]
@@ -353,6 +440,23 @@ class DetectorSource(_ModelSource):
             out.append((dict(zip(self.classes, frame_counts)), centres))
         return out
 
+
+    def _eager_results(self, frames: list) -> list[Counted]:
+        """``(counts, centres)`` of frames (device tensors of x, y, z, intensity) from the eager model, each frame
+        alone, under ``precision``."""
+        import contextlib
+
+        import torch
+
+        from lidarops.models.cuda_graph import precision_mode
+
+        precision = contextlib.nullcontext() if self.precision is None else \
+            precision_mode(self.precision, "cuda", autocast=next(self.model.parameters()).dtype != torch.float16)
+        with torch.inference_mode(), precision:
+            preds = [self._predict({"points": torch.nn.functional.pad(f, (1, 0)), "batch_size": 1})[0]
+                     for f in frames]
+            tensors, meta = self._gather(preds)
+        return self._results([t.cpu().numpy() for t in tensors], meta)
 
 class CounterSource(_ModelSource):
     """A counting network (:class:`lidarops.models.counternet.CounterNet`) as the source: its per-class counts

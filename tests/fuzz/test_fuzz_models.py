@@ -242,3 +242,44 @@ def test_batch_dicts_give_one_result_per_frame_or_name_the_key(tiny_model, data)
     assert len(out) == batch_size
     for o in out:  # a detector's boxes, or a counter's counts
         assert torch.isfinite(o["boxes"]).all() if "boxes" in o else bool((o["counts"] >= 0).all())
+
+
+@fuzz
+@given(data=st.data())
+def test_padded_inference_gives_each_frame_or_names_the_argument(data):
+    """:func:`lidarops.models.cuda_graph.padded_inference` on drawn padded batches (ragged frames, empty
+    ones, wrong ranks, too few columns, integer points, zero frames, bad ``max_pillars``): a ``ValueError``
+    naming ``points``, ``max_pillars`` or ``model``, or one frame per row with each frame's predict."""
+    from torch.nn import functional as F
+
+    from lidarops.models.cuda_graph import padded_inference
+
+    shape = data.draw(st.sampled_from([(2, 30, 4), (1, 0, 4), (3, 12, 5), (0, 5, 4), (2, 5, 3), (30, 4), (2, 3, 4, 1)]),
+                      label="shape")
+    dtype = data.draw(st.sampled_from([torch.float32, torch.float64, torch.int32]), label="dtype")
+    rows = data.draw(st.sampled_from([None, None, 1, 64, 0, -3, 2.5, True]), label="max_pillars")
+    g = torch.Generator().manual_seed(data.draw(st.integers(0, 99), label="seed"))
+    pts = (torch.rand(shape, generator=g) * 8 - torch.tensor([0.0, 4, 3, 0, 0][:shape[-1]] if shape[-1] <= 5
+                                                                else 0)).to(dtype)
+    tiny_model = _tiny_pointpillars()
+    model = data.draw(st.sampled_from([tiny_model, tiny_model, "a model"]), label="model")
+    with torch.no_grad():
+        out, err = outcome(padded_inference, model, pts, rows)
+    if err is not None:
+        assert_clear_error(err, (ValueError,), ["points", "max_pillars", "model"],
+                           f"padded_inference({shape}, {dtype}, max_pillars={rows!r})")
+        return
+    assert len(shape) == 3 and shape[0] >= 1 and shape[2] >= 4 and dtype.is_floating_point
+    assert out["count"].shape == (shape[0],)
+    if bool(out["overflow"]):
+        return  # too few rows: flagged (GraphedPointPillars then runs predict)
+    for b in range(shape[0]):
+        want = tiny_model.predict({"points": F.pad(pts[b, :, :4], (1, 0)), "batch_size": 1})[0]
+        k = int(out["count"][b])
+        assert out["labels"][b, :k].tolist() == want["labels"].tolist()
+        assert torch.allclose(out["scores"][b, :k].double(), want["scores"].double(), atol=1e-5)
+
+
+def _tiny_pointpillars():
+    torch.manual_seed(0)
+    return PointPillars(TINY).eval()

@@ -602,6 +602,15 @@ def test_padded_network_captures_in_a_cuda_graph():
         assert torch.allclose(got, ref, atol=1e-5, rtol=1e-5)
 
 
+def _same_as_predict(model, frame, det, what: str) -> int:
+    """Asserts ``det`` holds the detections of ``model.predict`` on ``frame`` alone; returns how many."""
+    want = model.predict({"points": F.pad(frame, (1, 0)), "batch_size": 1})[0]
+    assert det["labels"].tolist() == want["labels"].tolist(), what
+    assert torch.allclose(det["scores"], want["scores"], atol=1e-5), what
+    assert torch.allclose(det["boxes"], want["boxes"], atol=1e-4), what
+    return len(want["labels"])
+
+
 @pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
                     reason="needs a GPU and lidarops built with CUDA kernels")
 def test_graphed_pointpillars_equals_predict():
@@ -619,12 +628,7 @@ def test_graphed_pointpillars_equals_predict():
     graphed = GraphedPointPillars(model, capacity=1000)
     kept = 0
     for i, f in enumerate(frames):
-        got = graphed(f)
-        want = model.predict({"points": torch.nn.functional.pad(f, (1, 0)), "batch_size": 1})[0]
-        assert got["labels"].tolist() == want["labels"].tolist(), f"frame {i}"
-        assert torch.allclose(got["scores"], want["scores"], atol=1e-5), f"frame {i}"
-        assert torch.allclose(got["boxes"], want["boxes"], atol=1e-4), f"frame {i}"
-        kept += len(want["labels"])
+        kept += _same_as_predict(model, f, graphed(f), f"frame {i}")
     assert kept > 0, "the case must keep boxes"
     with pytest.raises(ValueError, match="more than capacity=1000"):
         graphed(torch.zeros(1001, 4, device="cuda"))
@@ -634,3 +638,89 @@ def test_graphed_pointpillars_equals_predict():
         graphed(bad)
     with pytest.raises(ValueError, match="backbone_mode='dense'"):
         GraphedPointPillars(PointPillars({**TINY, "backbone_mode": "sparse"}).cuda())
+
+
+@pytest.mark.parametrize("multi", [False, True])
+def test_padded_inference_equals_per_frame_predict(multi):
+    """The graph's body run eagerly (any device): a batch of frames padded to one size gives each frame's own
+    predict, frames over the pillar capacity (which drop their last pillars on their own, not the batch's),
+    an empty frame and duplicate points included; the value check flags the bad frame only."""
+    from lidarops.models.cuda_graph import padded_inference
+
+    torch.manual_seed(1)
+    cfg = {**TINY, "class_names": ["Car", "Pedestrian"], "score_thresh": 0.3, "nms_thresh": 0.1,
+           "multi_classes_nms": multi, "max_voxels_test": 20,
+           "anchor_generator_config": TINY["anchor_generator_config"] + [
+               {**TINY["anchor_generator_config"][0], "class_name": "Pedestrian", "anchor_sizes": [[0.8, 0.6, 1.7]]}]}
+    model = PointPillars(cfg).eval()
+    with torch.no_grad():  # scores around 0.5 instead of the prior's 0.01, so that boxes pass 0.3
+        model.dense_head.conv_cls.bias.zero_()
+    g = torch.Generator().manual_seed(3)
+    sizes = (300, 0, 40, 7, 300)
+    frames = [torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0])
+              for n in sizes]
+    frames[2] = torch.cat([frames[2], frames[2][:10]])  # duplicate points
+    n = max(len(f) for f in frames)
+    pad = torch.tensor([1000.0, 0, 0, 0])
+    buffer = torch.stack([torch.cat([f, pad.expand(n - len(f), 4)]) for f in frames])
+    buffer[4, 5, 3] = float("inf")  # frame 4: a bad intensity
+    with torch.no_grad():
+        out = padded_inference(model, buffer)
+    assert out["bad"].tolist() == [False, False, False, False, True]
+    kept = 0
+    for b, f in enumerate(frames[:4]):
+        want = model.predict({"points": F.pad(f, (1, 0)), "batch_size": 1})[0]
+        k = int(out["count"][b])
+        assert out["labels"][b, :k].tolist() == want["labels"].tolist(), f"frame {b}"
+        assert torch.allclose(out["scores"][b, :k], want["scores"], atol=1e-5), f"frame {b}"
+        assert torch.allclose(out["boxes"][b, :k], want["boxes"], atol=1e-4), f"frame {b}"
+        assert (out["labels"][b, k:] == 0).all()
+        kept += k
+    assert kept > 0, "the case must keep boxes"
+    # frames 0 and 4 hold more pillars than max_voxels_test: each keeps its own first 20
+    pillars = [int((f[:, 0].floor() * 8 + (f[:, 1] + 4).floor()).unique().numel()) for f in frames]
+    assert pillars[0] > cfg["max_voxels_test"]
+    needed = sum(min(n, cfg["max_voxels_test"]) for n in pillars)
+    assert int(out["pillars"]) == needed and not bool(out["overflow"])
+    # packed into exactly the rows needed: the same detections; one row fewer: flagged
+    with torch.no_grad():
+        tight = padded_inference(model, buffer, max_pillars=needed)
+        short = padded_inference(model, buffer, max_pillars=needed - 1)
+    for key in ("count", "labels", "scores", "boxes"):
+        assert torch.allclose(tight[key].double(), out[key].double(), atol=1e-5), key
+    assert not bool(tight["overflow"]) and bool(short["overflow"]) and int(short["pillars"]) == needed
+
+
+@pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
+                    reason="needs a GPU and lidarops built with CUDA kernels")
+def test_batched_graph_equals_predict():
+    """A graph of 3 frames per replay: each frame's detections are its own predict's, over replays with
+    fewer frames than the batch and frames of other sizes; replay's padded outputs hold the same rows."""
+    from lidarops.models.cuda_graph import GraphedPointPillars
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1}).cuda().eval()
+    with torch.no_grad():
+        model.dense_head.conv_cls.bias.zero_()
+    g = torch.Generator().manual_seed(7)
+    frames = [(torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0])
+               + torch.tensor([0, -4.0, -3, 0])).cuda() for n in (400, 1000, 0, 37, 999)]
+    graphed = GraphedPointPillars(model, capacity=1000, batch_size=3)
+    kept = 0
+    for group in (frames[:3], frames[3:], frames[1:2]):
+        got = graphed(group)
+        assert len(got) == len(group)
+        for i, (f, det) in enumerate(zip(group, got)):
+            kept += _same_as_predict(model, f, det, f"frame {i}")
+    assert kept > 0, "the case must keep boxes"
+    out = graphed.replay(frames[:2])
+    assert out["count"][2].item() == graphed([frames[2]])[0]["labels"].numel()
+    # too few pillar rows for a replay: flagged, and a call gives the eager detections all the same
+    small = GraphedPointPillars(model, capacity=1000, batch_size=3, max_pillars=8)
+    assert bool(small.replay(frames[:2])["overflow"]) and int(small.replay(frames[:2])["pillars"]) > 8
+    for f, det in zip(frames[:2], small(frames[:2])):
+        _same_as_predict(model, f, det, "eager fallback")
+    with pytest.raises(ValueError, match="1 to batch_size=3"):
+        graphed(frames[:4])
+    with pytest.raises(ValueError, match=r"frames\[1\] has 1001 rows"):
+        graphed([frames[0], torch.zeros(1001, 4, device="cuda")])

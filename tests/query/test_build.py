@@ -547,6 +547,66 @@ def test_shipped_detector_source_equals_a_per_frame_loop():
         np.testing.assert_allclose([c[1:] for c in centres], [c[1:] for c in ref], rtol=1e-5, atol=1e-5)
 
 
+
+def test_detector_source_graph_needs_a_dense_pointpillars_on_cuda():
+    import torch
+
+    from lidarops.models.pointpillars import PointPillars
+    from lidarops.query.build import DetectorSource
+
+    from helpers.models import TINY
+
+    assert DetectorSource(_RaggedDetector()).graph is False  # not a PointPillars: eager
+    cpu = PointPillars(TINY)
+    assert DetectorSource(cpu).graph is False  # on the CPU: eager
+    with pytest.raises(QueryError, match="graph=True needs a PointPillars with backbone_mode='dense' on a CUDA device"):
+        DetectorSource(cpu, graph=True)
+    with pytest.raises(QueryError, match="graph must be True, False or None"):
+        DetectorSource(cpu, graph="yes")
+    if torch.cuda.is_available():
+        assert DetectorSource(cpu.cuda()).graph is True
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a GPU")
+@pytest.mark.parametrize("precision", [None, "fp16"])
+def test_graph_detector_source_equals_the_eager_one(tmp_path, precision):
+    """The CUDA-graph path counts what the eager path counts, batch by batch through build_index (ragged
+    frames, an empty one, a larger frame that makes the graph be recorded again, a batch with more pillars than the
+    graph's rows, a last batch shorter than the graph's); a bad intensity raises the eager check's message."""
+    import torch
+
+    from lidarops.models.pointpillars import PointPillars
+    from lidarops.query.build import DetectorSource, Scan
+
+    from helpers.models import TINY
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "class_names": ["Car", "Pedestrian", "Cyclist"], "score_thresh": 0.3,
+                          "anchor_generator_config": [{**TINY["anchor_generator_config"][0], "class_name": c}
+                                                      for c in CLASSES]}).cuda().eval()
+    with torch.no_grad():
+        model.dense_head.conv_cls.bias.zero_()
+    g = torch.Generator().manual_seed(5)
+    scans = {i: Scan(torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0]))
+             for i, n in enumerate((300, 0, 40, 7, 12, 5, 900, 30, 300, 40000, 300, 300, 20))}
+    eager = DetectorSource(model, 0.3, precision, graph=False)
+    graph = DetectorSource(model, 0.3, precision, graph=True)
+    graph.pillar_step = 1  # pillar rows sized to the first batch (from the third on): the third needs more
+    for source in (eager, graph):
+        build_index(tmp_path / "idx", list(scans), scans.__getitem__, source, source_name=f"s{source.graph}", batch=4)
+    idx = FrameIndex.open(tmp_path / "idx")
+    want = stored(idx, "sFalse")
+    assert sum(sum(c.values()) for c in want.values()) > 0, "the case must count objects"
+    assert stored(idx, "sTrue") == want
+    assert graph._graphed.capacity >= 40000 and graph._graphed.batch_size == 4
+    # the second batch needed more pillar rows than the first's graph: counted eagerly, the graph recorded again
+    assert graph.eager_batches >= 1 and graph._graphed.max_pillars >= graph._pillars > 64
+    bad = Scan(scans[0].points.clone())
+    bad.points[3, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"frame\(s\) \[1\] of this batch: batch\['points'\]\[:, 4:\] \(intensity"):
+        graph([scans[2], bad])
+
+
 def test_cli_precision_fp16_needs_cuda(tmp_path, capsys):
     base = ["index", "build", "--scenario", "driving_city", "--frames", "1", "--out", str(tmp_path / "i"),
             "--no-progress", "--device", "cpu", "--source", "detector"]
