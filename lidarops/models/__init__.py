@@ -83,6 +83,10 @@ def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu"
     ckpt = read_checkpoint(path, map_location)
     record = model_record(ckpt, str(path))
     name = record.model_class
+    if name == "SelectedCounter":  # CounterNets behind a per-frame choice: their checkpoints, not weights
+        from lidarops.models.counternet_selection import SelectedCounter
+
+        return SelectedCounter.load(path, map_location).eval()
     if name is not None and name not in MODELS:
         raise CheckpointError(f"{path}: model_class {name!r} is not a model this lidarops builds "
                               f"({', '.join(sorted(MODELS))}); a newer lidarops may")

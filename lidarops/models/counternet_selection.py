@@ -17,9 +17,17 @@ first): the models' own shared convs differ, so one of them must describe the fr
 
     counter = SelectedCounter([cn, cn_pt, cn_pt_o]).fit(train_batches, epsilon=0.5)
     frames = counter.predict(batch)          # [{"counts", "centres", "model", ...}, ...]
+    counter.save("selection.pth", ["cn.pth", "cn_pt.pth", "cn_pt_o.pth"])   # the members' checkpoints
+    counter = lidarops.models.load_model("selection.pth")                  # or SelectedCounter.load(...)
+
+The file :meth:`SelectedCounter.save` writes holds the fitted selector and where the members' checkpoints are
+(paths relative to the file's folder, absolute paths, or names of shipped weights), not their weights, so
+``lidarops index build --source counter --checkpoint selection.pth`` counts each frame with its model and records
+the model's name per frame (the index's ``model`` column).
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import torch
@@ -58,10 +66,88 @@ class SelectedCounter:
         self.selector = selector
         self.feature_model = feature_model
         self.config = models[0].config
+        self.names = [f"model{i}" for i in range(len(models))]  # each member's name (its file's, once loaded)
 
     def parameters(self):
         for m in self.models:
             yield from m.parameters()
+
+    def eval(self) -> "SelectedCounter":
+        for m in self.models:
+            m.eval()
+        return self
+
+    def to(self, device) -> "SelectedCounter":
+        """The members and the selector on ``device``."""
+        self.models = [m.to(device) for m in self.models]
+        return self
+
+    def save(self, path: "str | Path", members: Sequence["str | Path"]) -> Path:
+        """Writes the selection to ``path``: the fitted selector, ``feature_model`` and, for each member in order,
+        where its checkpoint is (``members``: paths, written relative to ``path``'s folder when inside it, or
+        names of shipped weights), not its weights."""
+        from lidarops.checkpoint import format_fields, save_checkpoint
+
+        if len(members) != len(self.models):
+            raise ValueError(f"members must name the {len(self.models)} models' checkpoints, got {len(members)}")
+        if self.selector is None and len(self.models) > 1:
+            raise ValueError("no selector: call fit(batches, epsilon) before save")
+        path = Path(path)
+        refs = []
+        for m in members:
+            p = Path(m)
+            if p.suffix in (".pth", ".xz", ".pt") or p.exists():
+                p = p.resolve()
+                try:
+                    p = p.relative_to(path.resolve().parent)
+                except ValueError:
+                    pass
+            refs.append(str(p))
+        record = {**format_fields(), "model_class": "SelectedCounter", "class_names": list(self.config.class_names),
+                  "model_config": {"members": refs, "feature_model": self.feature_model,
+                                   "class_names": list(self.config.class_names)},
+                  "selector": None if self.selector is None else self.selector.state_dict()}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(record, [path])
+        return path
+
+    @classmethod
+    def load(cls, path: "str | Path", map_location: Any = "cpu") -> "SelectedCounter":
+        """The selection :meth:`save` wrote, its members loaded from their checkpoints (``ValueError`` naming a
+        member that cannot be found or is not a CounterNet)."""
+        from lidarops.checkpoint import CheckpointError, read_checkpoint
+        from lidarops.models import load_model, weights
+
+        path = Path(path)
+        ckpt = read_checkpoint(path, map_location)
+        cfg = ckpt.get("model_config") or {}
+        refs = cfg.get("members")
+        if ckpt.get("model_class") != "SelectedCounter" or not isinstance(refs, list) or not refs:
+            raise CheckpointError(f"{path}: not a SelectedCounter file (model_class {ckpt.get('model_class')!r})")
+        models, names = [], []
+        for ref in refs:
+            p = Path(ref)
+            p = p if p.is_absolute() else path.parent / p
+            if not p.is_file():
+                if str(ref) not in weights.available():
+                    raise CheckpointError(f"{path}: member {ref!r} is neither a file (looked for {p}) nor a shipped "
+                                          f"checkpoint ({', '.join(weights.available())})")
+                p = weights.path(str(ref))
+            model = load_model(p, map_location=map_location)
+            if type(model).__name__ != "CounterNet":
+                raise CheckpointError(f"{path}: member {ref!r} holds a {type(model).__name__}, not a CounterNet")
+            models.append(model)
+            names.append(Path(str(ref)).name.split(".pth")[0])
+        selector = None if ckpt.get("selector") is None else ChernoffSelector.from_state(ckpt["selector"])
+        out = cls(models, selector, int(cfg.get("feature_model", 0)))
+        out.names = names
+        return out
+
+    @classmethod
+    def from_checkpoint(cls, path: "str | Path", config: Any = None, map_location: Any = "cpu",
+                        check_finite: bool = True) -> "SelectedCounter":
+        """:meth:`load` under :func:`lidarops.models.load_model`'s signature (``config``: unused)."""
+        return cls.load(path, map_location)
 
     @torch.no_grad()
     def features(self, batch: Mapping[str, Any]) -> Tensor:
@@ -115,11 +201,11 @@ class SelectedCounter:
     @torch.no_grad()
     def predict(self, batch: Mapping[str, Any]) -> list[dict]:
         """Each frame counted by its chosen model (the models chosen by no frame of the batch are not run):
-        the chosen model's per-frame output, with ``model`` (its index) added."""
+        the chosen model's per-frame output, with ``model`` (its index) and ``model_name`` added."""
         choice = self.choose(batch)
         out: list[dict | None] = [None] * len(choice)
         for m in torch.unique(choice).tolist():
             frames = self.models[m].predict(batch)
             for b in torch.nonzero(choice == m).flatten().tolist():
-                out[b] = {**frames[b], "model": m}
+                out[b] = {**frames[b], "model": m, "model_name": self.names[m]}
         return out  # type: ignore[return-value]

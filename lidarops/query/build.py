@@ -33,6 +33,7 @@ from lidarops.query.index import FrameIndex, QueryError
 
 __all__ = ["LabelsSource", "DetectorSource", "CounterSource", "build_index", "BuildReport", "FrameError", "Scan"]
 
+# (counts per class, centres (class, x, y, score)); a model selection adds the name of the model that counted
 Counted = tuple[dict[str, int], list[tuple[str, float, float, float]]]
 
 
@@ -468,17 +469,20 @@ class CounterSource(_ModelSource):
     def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
         import torch
 
+        # a model selection (SelectedCounter) names each frame's model: kept on the host, nothing to read back
         return [torch.stack([p["counts"] for p in preds]), torch.cat([p["centres"] for p in preds])], \
-            [len(p["centres"]) for p in preds]
+            ([len(p["centres"]) for p in preds], [p.get("model_name") for p in preds])
 
     def _results(self, arrays: list[np.ndarray], meta: Any) -> list[Counted]:
         counts, centres = arrays
+        sizes, models = meta
         out, start = [], 0
-        for frame_counts, n in zip(counts.tolist(), meta):
+        for frame_counts, n, model in zip(counts.tolist(), sizes, models):
             rows = centres[start:start + n].tolist()
             start += n
-            out.append((dict(zip(self.classes, (int(c) for c in frame_counts))),
-                        [(self.classes[int(c)], x, y, score) for x, y, c, score in rows]))
+            counted = (dict(zip(self.classes, (int(c) for c in frame_counts))),
+                       [(self.classes[int(c)], x, y, score) for x, y, c, score in rows])
+            out.append(counted if model is None else (*counted, model))
         return out
 
 
@@ -649,11 +653,13 @@ def build_index(root: "str | Path", ids: Sequence[int], load: Callable[[int], An
         ids_ = np.array(pending_ids[:n], np.int64)
         part = pending[:n]
         counts = {"frame_id": ids_, **{c: np.array([k[0].get(c, 0) for k in part], np.int64) for c in classes}}
+        if any(len(k) > 2 for k in part):  # the model that counted each frame (a model selection)
+            counts["model"] = [k[2] if len(k) > 2 else None for k in part]
         for j, column in enumerate(("path", "sequence", "timestamp")):
             values = [extra[int(i)][j] for i in ids_]
             if any(v is not None for v in values):
                 counts[column] = values if j < 2 else np.array([np.nan if v is None else v for v in values])
-        rows = [(int(fid), c, x, y, s) for fid, (_, cs) in zip(ids_, part) for c, x, y, s in cs]
+        rows = [(int(fid), c, x, y, s) for fid, counted in zip(ids_, part) for c, x, y, s in counted[1]]
         centres = {"frame_id": np.array([r[0] for r in rows], np.int64), "class": [r[1] for r in rows],
                    "x": np.array([r[2] for r in rows], np.float64), "y": np.array([r[3] for r in rows], np.float64),
                    "score": np.array([r[4] for r in rows], np.float64)}

@@ -4,8 +4,9 @@ more sources, as Parquet files, queried through DuckDB views.
 Layout of an index folder::
 
     index.json                          classes, sources, format version
-    counts/<source>/part-00000.parquet  source, frame_id (int64), sequence, timestamp, path, one int32 column
-                                        per class (part-r001-00000.parquet: written by torchrun rank 1)
+    counts/<source>/part-00000.parquet  source, frame_id (int64), sequence, timestamp, path, model (the member of a
+                                        model selection that counted the frame), one int32 column per class
+                                        (part-r001-00000.parquet: written by torchrun rank 1)
     centres/<source>/part-00000.parquet source, frame_id, class, x, y (metres, BEV), score
     index.duckdb                        a cache of the parts as DuckDB tables, remade on open when they change
 
@@ -34,7 +35,7 @@ FORMAT_VERSION = 1
 OPERATORS = ("<", "<=", "=", ">=", ">")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")  # class and source names: SQL identifiers, folder names
 #: the columns of a counts table that are not classes
-_META_COLUMNS = ("frame_id", "sequence", "timestamp", "path", "source")
+_META_COLUMNS = ("frame_id", "sequence", "timestamp", "path", "source", "model")
 _WRITER = re.compile(r"^[a-z0-9]*$")
 
 
@@ -422,7 +423,7 @@ class FrameIndex:
                 classes = ", ".join(f'NULL::INTEGER AS "{c}"' for c in self.meta["classes"])
                 self.con.execute("CREATE OR REPLACE VIEW counts AS SELECT NULL::VARCHAR AS source, NULL::BIGINT AS "
                                  "frame_id, NULL::VARCHAR AS sequence, NULL::DOUBLE AS timestamp, NULL::VARCHAR AS "
-                                 f"path, {classes} WHERE FALSE")
+                                 f"path, NULL::VARCHAR AS model, {classes} WHERE FALSE")
             else:
                 self.con.execute("CREATE OR REPLACE VIEW centres AS SELECT NULL::VARCHAR AS source, NULL::BIGINT AS "
                                  "frame_id, NULL::VARCHAR AS class, NULL::FLOAT AS x, NULL::FLOAT AS y, "
@@ -535,7 +536,10 @@ class FrameIndex:
                  "timestamp": pa.array(np.asarray(cols["timestamp"], np.float64), from_pandas=True) if "timestamp" in cols
                  else pa.nulls(n, pa.float64()),
                  "path": pa.array([None if v is None else str(v) for v in cols["path"]], pa.string())
-                 if "path" in cols else pa.nulls(n, pa.string())}
+                 if "path" in cols else pa.nulls(n, pa.string()),
+                 # the member of a model selection that counted the frame (SelectedCounter); null otherwise
+                 "model": pa.array([None if v is None else str(v) for v in cols["model"]], pa.string())
+                 if "model" in cols else pa.nulls(n, pa.string())}
         for c in classes:
             values = _int_column(cols[c], f"counts' column {c}", minimum=0).reshape(-1) if c in cols \
                 else np.zeros(n, np.int64)

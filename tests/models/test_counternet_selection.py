@@ -86,7 +86,61 @@ def test_selected_counter_is_a_count_source():
     frames = [_Frame(batch["points"][batch["points"][:, 0] == b, 1:]) for b in range(2)]
     out = CounterSource(counter)(frames)
     want = counter.predict({"points": batch["points"], "batch_size": 2})
-    assert [list(c.values()) for c, _ in out] == [w["counts"].tolist() for w in want]
+    assert [list(c.values()) for c, _, _ in out] == [w["counts"].tolist() for w in want]
+    assert [name for _, _, name in out] == [f"model{w['model']}" for w in want]  # the model of each frame
+
+
+def _save_members(tmp_path, models):
+    from lidarops.checkpoint import format_fields, save_checkpoint
+
+    paths = []
+    for i, m in enumerate(models):
+        paths.append(tmp_path / f"member{i}.pth")
+        save_checkpoint({**format_fields(), "model_class": "CounterNet", "model_config": m.config.to_dict(),
+                         "class_names": m.config.class_names, "model_state": m.state_dict()}, [paths[-1]])
+    return paths
+
+
+def test_selection_saved_and_loaded_counts_the_same_and_indexes_each_frames_model(tmp_path):
+    """save / load (lidarops.models.load_model) give the same choices and counts; the members are named by their
+    files; build_index with the loaded selection writes each frame's model in the index's ``model`` column."""
+    pytest.importorskip("duckdb")
+    from lidarops.checkpoint import CheckpointError
+    from lidarops.models import load_model
+    from lidarops.query import FrameIndex
+    from lidarops.query.build import CounterSource, Scan, build_index
+
+    models = _models()
+    counter = SelectedCounter(models).fit(BATCHES, epsilon=0.5)
+    paths = _save_members(tmp_path, models)
+    counter.save(tmp_path / "sel" / "selection.pth", paths)
+    loaded = load_model(tmp_path / "sel" / "selection.pth")
+    assert type(loaded).__name__ == "SelectedCounter" and loaded.names == ["member0", "member1"]
+    for batch in BATCHES:
+        assert loaded.choose(batch).tolist() == counter.choose(batch).tolist()
+        got, want = loaded.predict(batch), counter.predict(batch)
+        assert [g["counts"].tolist() for g in got] == [w["counts"].tolist() for w in want]
+    # moved with its members: relative paths still resolve
+    (tmp_path / "moved").mkdir()
+    for f in (tmp_path / "sel" / "selection.pth", *paths):
+        f.rename(tmp_path / "moved" / f.name)
+    counter.save(tmp_path / "moved" / "selection.pth", [tmp_path / "moved" / p.name for p in paths])
+    moved = SelectedCounter.load(tmp_path / "moved" / "selection.pth")
+    frames = {}
+    for batch in BATCHES:
+        for b in range(int(batch["batch_size"])):
+            frames[len(frames)] = Scan(batch["points"][batch["points"][:, 0] == b, 1:].contiguous())
+    build_index(tmp_path / "idx", list(frames), frames.__getitem__, CounterSource(moved), batch=2)
+    rows = FrameIndex.open(tmp_path / "idx").sql("SELECT frame_id, model FROM counts ORDER BY frame_id")
+    chosen = []
+    for start in range(0, len(frames), 2):
+        pts = torch.cat([torch.cat([torch.full((len(frames[i].points), 1), float(i - start)), frames[i].points], 1)
+                         for i in range(start, min(start + 2, len(frames)))])
+        chosen += moved.choose({"points": pts, "batch_size": min(2, len(frames) - start)}).tolist()
+    assert rows["model"].tolist() == [f"member{m}" for m in chosen]
+    (tmp_path / "moved" / "member1.pth").unlink()
+    with pytest.raises(CheckpointError, match="member 'member1.pth' is neither a file"):
+        load_model(tmp_path / "moved" / "selection.pth")
 
 
 class _FakeCounter(torch.nn.Module):
@@ -109,7 +163,7 @@ class _FakeCounter(torch.nn.Module):
 def test_frames_go_to_the_model_that_counts_their_kind_best():
     # crowded frames (features near (5, 5)): model 1 counts them right; sparse ones (near (0, 0)): model 0
     g = torch.Generator().manual_seed(0)
-    crowded = torch.rand(6) < 0.5
+    crowded = torch.tensor([True, False, True, False, False, True])  # both kinds, whatever the global RNG holds
     feats = torch.where(crowded[:, None], torch.tensor([5.0, 5.0]), torch.tensor([0.0, 0.0])) + \
         0.3 * torch.randn(6, 2, generator=g)
     true = torch.randint(0, 20, (6, 2), generator=g)
