@@ -77,6 +77,13 @@ demo: build
 	$(PY) -m lidarops query retrieve demo_index --where "Car>=5" --where "Pedestrian<=3" --compare --html demo_index/answer.html
 	$(PY) -m lidarops query count demo_index --where "Pedestrian>=2" --compare
 	$(PY) -m lidarops query sum demo_index --class Car --compare
+	@echo "[demo] CounterNet: the shipped counter (lidarops/weights/counternet_road7, seven road classes) on 4 dense simulated"
+	@echo "       frames it never saw, its counts beside the labels, and its answers to two queries (demo_counter_index/)"
+	$(PY) -m lidarops index build --scenario driving_city --object-counts dense --frames 4 --out demo_counter_index --no-progress --classes Car Truck Bus Pedestrian Cyclist Barrier TrafficCone
+	$(PY) -m lidarops index build --scenario driving_city --object-counts dense --frames 4 --out demo_counter_index --no-progress --source counter
+	$(PY) -m lidarops query retrieve demo_counter_index --where "Car>=1" --counts
+	$(PY) -m lidarops query retrieve demo_counter_index --where "Pedestrian>=3" --compare
+	$(PY) -m lidarops query sum demo_counter_index --class Car --compare
 	@echo "[demo] samplers (CAS-Net's baselines): the detector on 8 of those frames keeping 1 point in 8, by random sampling"
 	@echo "       and by farthest point sampling; compare the found / labelled line with the full clouds' above (docs/casnet.md)"
 	$(PY) -m lidarops detect --scenario driving_city --frames 8 --seed 2026 --out demo_detections/random_d8 --print-frames 0 --sampler random --ratio 8

@@ -244,7 +244,7 @@ class LidaropsBuildExtension(BuildExtension):
 setup(
     ext_modules=[make_extension()],
     cmdclass={"build_ext": LidaropsBuildExtension.with_options(use_ninja=True)},
-    package_data={"lidarops": ["_build_info.json", "weights/*.pth", "configs/*/*.yaml"]},
+    package_data={"lidarops": ["_build_info.json", "weights/*.pth", "weights/*.pth.xz", "configs/*/*.yaml"]},
     # An explicit root makes an editable install a plain .pth entry for this folder instead of an
     # import hook that maps `lidarops.*` here: under the hook, a copy of the package elsewhere (one
     # without a built library, say) imported this checkout's lidarops._C.

@@ -13,6 +13,7 @@ from lidarops.conventions import HELD_OUT_SEED
 _WHERE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(<=|>=|<|>|=)\s*(-?\d+)\s*$")
 DEFAULT_CLASSES = ("Car", "Pedestrian", "Cyclist")
 SHIPPED_RANGE = "0,-39.68,69.12,39.68"  # the shipped PointPillars' BEV point cloud range (configs/pointpillars)
+SHIPPED_COUNTER = "counternet_road7"  # lidarops/weights/: CounterNet, partitions 4, overlap 0.2
 
 
 def _frames_of(args: argparse.Namespace, needs_labels: bool):
@@ -122,9 +123,6 @@ def build(args: argparse.Namespace) -> int:
     if args.min_points < 0:
         raise CliError(f"--min-points must be >= 0, got {args.min_points}")
     labels_range = None if args.labels_range == "all" else _region_arg(args.labels_range, "--labels-range")
-    if args.source == "counter" and not args.checkpoint:
-        raise CliError("--source counter needs --checkpoint: a trained CounterNet (lidarops train --config "
-                       "configs/counternet/counternet_synth.yaml ...); none is shipped yet")
     from lidarops.cli._device import resolve_device
 
     device = resolve_device(args.device)  # a bad --device is named even where the labels need none
@@ -142,10 +140,11 @@ def build(args: argparse.Namespace) -> int:
         else:
             from lidarops.models import load_model, weights
 
-            model = load_model(args.checkpoint or weights.path()).to(ctx.device).eval()
-            counts = type(model).__name__ == "CounterNet"
+            checkpoint = args.checkpoint or weights.path(SHIPPED_COUNTER if args.source == "counter" else weights.DEFAULT)
+            model = load_model(checkpoint).to(ctx.device).eval()
+            counts = type(model).__name__ in ("CounterNet", "SelectedCounter")
             if counts != (args.source == "counter"):
-                raise CliError(f"--checkpoint {args.checkpoint or weights.path()} holds a {type(model).__name__}: "
+                raise CliError(f"--checkpoint {checkpoint} holds a {type(model).__name__}: "
                                f"--source {args.source} needs " + ("a CounterNet" if args.source == "counter" else
                                                                    "a detector (use --source counter for a CounterNet)"))
             source = CounterSource(model, args.precision) if counts else \
@@ -260,9 +259,26 @@ def query(args: argparse.Namespace) -> int:
         print(f"{len(answer)} frame(s): {shown}" if answer else "0 frames")
     else:
         print(answer if answer is not None else "no frames")
+    if getattr(args, "counts", False) and answer:
+        _counts_table(idx, answer[:args.show])
     if args.html:
         _answer_page(idx, args, answer, ask, where, frames, region)
     return 0
+
+
+def _counts_table(idx, frame_ids: list) -> None:
+    """--counts: each frame's count per class, every source's side by side (the labels first)."""
+    sources = ["labels"] * ("labels" in idx.sources) + [s for s in idx.sources if s != "labels"]
+    got = idx.sql("SELECT * FROM counts WHERE frame_id IN (SELECT UNNEST(?)) AND source IN (SELECT UNNEST(?))",
+                  [list(map(int, frame_ids)), sources])
+    cells = {(int(r["frame_id"]), r["source"]): r for _, r in got.iterrows()}
+    header = ["frame"] + list(idx.classes)
+    rows = [[str(f)] + [" / ".join("-" if (f, s) not in cells else str(int(cells[f, s][c])) for s in sources)
+                        for c in idx.classes] for f in frame_ids]
+    widths = [max(len(r[i]) for r in rows + [header]) for i in range(len(header))]
+    print(f"counts per frame ({' / '.join(sources)}):")
+    for r in [header] + rows:
+        print("  ".join(v.rjust(w) for v, w in zip(r, widths)))
 
 
 def _output_file(path: "str | None", flag: str) -> None:
@@ -372,9 +388,10 @@ def register(subparsers) -> None:
     b.add_argument("--frames-per-scene", type=int, default=1, help="scenario: consecutive sweeps of one drive per "
                                                                    "scene (default 1: a new scene each frame)")
     b.add_argument("--source", choices=["labels", "detector", "counter"], default="labels",
-                   help="what counts (default labels); counter: a CounterNet checkpoint")
+                   help="what counts (default labels); detector: a detector's boxes; counter: a CounterNet")
     b.add_argument("--checkpoint", help="detector checkpoint (default: the shipped PointPillars), or a CounterNet's "
-                                        "for --source counter")
+                                        f"for --source counter (default: the shipped {SHIPPED_COUNTER}, seven road "
+                                        "classes)")
     b.add_argument("--score-thresh", type=float, default=0.5, help="detector: count boxes scoring at least this "
                                                                     "(default 0.5)")
     b.add_argument("--classes", nargs="+", help=f"labels: classes to count (default {' '.join(DEFAULT_CLASSES)})")
@@ -421,6 +438,8 @@ def register(subparsers) -> None:
         k.add_argument("--region", help="X0,Y0,X1,Y1 metres: count only objects inside")
         if kind == "retrieve":
             k.add_argument("--show", type=int, default=20, help="frame ids printed (default 20)")
+            k.add_argument("--counts", action="store_true", help="also print the shown frames' counts per class, "
+                                                                 "every source's side by side")
         k.add_argument("--compare", action="store_true", help="the answer of every source of the index, beside the "
                                                               "labels'")
         k.add_argument("--html", metavar="PATH", help="also write the answer page: one self-contained HTML file "

@@ -1,9 +1,15 @@
-"""Shipped checkpoints (``lidarops/weights/*.pth``): models trained on the simulator's data, loaded
-without any download.
+"""Shipped checkpoints (``lidarops/weights/*.pth``, or ``*.pth.xz``): models trained on the simulator's
+data, loaded without any download.
 
     from lidarops.models import weights
     model = weights.load("pointpillars_synth")          # PointPillars, Car / Pedestrian / Cyclist
+    counter = weights.load("counternet_road7")           # CounterNet, seven road classes
     weights.available()                                  # names of the shipped checkpoints
+
+A checkpoint too large for the 10 MB a shipped file may take is stored xz-compressed (``<name>.pth.xz``):
+:func:`path` unpacks it once into a cache folder (``$LIDAROPS_CACHE``, default ``~/.cache/lidarops``, a
+temporary folder where that cannot be written), named by the compressed file's SHA-256 so a changed file is
+unpacked again.
 
 Each file is a :mod:`lidarops.checkpoint` file: ``model_state`` (float16 weights), the model's class and
 resolved config, ``class_names``, the lidarops version, the data recipe, the training command and the
@@ -22,15 +28,48 @@ __all__ = ["WEIGHTS_DIR", "DEFAULT", "available", "path", "info", "load", "expor
 
 def available() -> list[str]:
     """Names of the shipped checkpoints."""
-    return sorted(p.stem for p in WEIGHTS_DIR.glob("*.pth"))
+    return sorted({p.stem for p in WEIGHTS_DIR.glob("*.pth")} | {p.name[:-len(".pth.xz")]
+                                                                 for p in WEIGHTS_DIR.glob("*.pth.xz")})
 
 
 def path(name: str = DEFAULT) -> Path:
-    """The file of a shipped checkpoint (``FileNotFoundError`` naming the available ones)."""
+    """The file of a shipped checkpoint (``FileNotFoundError`` naming the available ones); a compressed one
+    unpacked into the cache."""
     p = WEIGHTS_DIR / f"{name}.pth"
-    if not p.is_file():
+    if p.is_file():
+        return p
+    packed = WEIGHTS_DIR / f"{name}.pth.xz"
+    if not packed.is_file():
         raise FileNotFoundError(f"no shipped checkpoint {name!r} in {WEIGHTS_DIR} (available: {available() or 'none'})")
-    return p
+    return _unpacked(packed)
+
+
+def _unpacked(packed: Path) -> Path:
+    """``packed`` (``<name>.pth.xz``) unpacked into the cache, once per content."""
+    import hashlib
+    import lzma
+    import os
+    import tempfile
+
+    digest = hashlib.sha256(packed.read_bytes()).hexdigest()[:16]
+    name = f"{packed.name[:-len('.pth.xz')]}-{digest}.pth"
+    roots = [Path(os.environ.get("LIDAROPS_CACHE") or Path.home() / ".cache" / "lidarops") / "weights",
+             Path(tempfile.gettempdir()) / "lidarops-weights"]
+    for root in roots:
+        out = root / name
+        if out.is_file():
+            return out
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            # written beside and renamed: a reader never sees half a file, two writers never clash
+            fd, tmp = tempfile.mkstemp(dir=root, suffix=".part")
+            with os.fdopen(fd, "wb") as f:
+                f.write(lzma.decompress(packed.read_bytes()))
+            os.replace(tmp, out)
+            return out
+        except OSError:
+            continue
+    raise OSError(f"cannot unpack {packed}: neither {roots[0]} nor {roots[1]} can be written (set LIDAROPS_CACHE)")
 
 
 def info(name: str = DEFAULT) -> dict:

@@ -698,3 +698,23 @@ def test_cli_fov_camera_needs_calib(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "has no calib/ folder" in err[0] and "--fov all" in err[0], err
     assert not (tmp_path / "idx").exists()
+
+
+def test_cli_retrieve_counts_prints_every_source_side_by_side(tmp_path, capsys):
+    """``query retrieve --counts``: the shown frames' counts per class, labels first, each source's value as
+    stored; a frame one source lacks shows '-'."""
+    rng = np.random.default_rng(4)
+    ids = np.arange(0, 30, 3)
+    labels = {"frame_id": ids, **{c: rng.integers(0, 6, len(ids)) for c in CLASSES}}
+    other = {"frame_id": ids[:-1], **{c: rng.integers(0, 6, len(ids) - 1) for c in CLASSES}}
+    idx = FrameIndex.create(tmp_path / "idx", labels)
+    idx.append(other, source="counter")
+    assert main(["query", "retrieve", str(tmp_path / "idx"), "--where", "Car>=0", "--counts", "--show", "50"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[1] == "counts per frame (labels / counter):" and lines[2].split() == ["frame", *CLASSES]
+    table = {int(line.split()[0]): line.split()[1:] for line in lines[3:]}
+    assert sorted(table) == ids.tolist()
+    for i, fid in enumerate(ids):
+        for j, c in enumerate(CLASSES):
+            want = f"{labels[c][i]} / " + (str(other[c][i]) if i < len(ids) - 1 else "-")
+            assert " ".join(table[fid][3 * j:3 * j + 3]) == want, (fid, c)

@@ -1,0 +1,53 @@
+"""Shipped checkpoints (lidarops.models.weights): every file within the 10 MB a shipped file may take, the
+compressed ones unpacked once into the cache (or a temporary folder where the cache cannot be written), each
+loading to the model its file names."""
+from __future__ import annotations
+
+import lzma
+
+import pytest
+
+from lidarops.models import weights
+
+ROAD7 = ["Car", "Truck", "Bus", "Pedestrian", "Cyclist", "Barrier", "TrafficCone"]
+
+
+def test_every_shipped_file_is_within_10_mb():
+    files = sorted(weights.WEIGHTS_DIR.glob("*.pth*"))
+    assert {f.name.split(".pth")[0] for f in files} == set(weights.available())
+    for f in files:
+        assert f.stat().st_size <= 10_000_000, f"{f.name}: {f.stat().st_size} bytes"
+
+
+def test_compressed_checkpoint_unpacked_once_into_the_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("LIDAROPS_CACHE", str(tmp_path / "cache"))
+    packed = weights.WEIGHTS_DIR / "counternet_road7.pth.xz"
+    first = weights.path("counternet_road7")
+    assert first.parent == tmp_path / "cache" / "weights" and first.name.startswith("counternet_road7-")
+    assert first.read_bytes() == lzma.decompress(packed.read_bytes())
+    stamp = first.stat().st_mtime_ns
+    assert weights.path("counternet_road7") == first and first.stat().st_mtime_ns == stamp  # not written again
+    assert not list(first.parent.glob("*.part"))
+    # a cache that cannot be written: a temporary folder instead
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    monkeypatch.setenv("LIDAROPS_CACHE", str(blocked))
+    other = weights.path("counternet_road7")
+    assert other.read_bytes() == first.read_bytes() and not str(other).startswith(str(blocked))
+
+
+def test_unknown_name_lists_the_shipped_ones():
+    with pytest.raises(FileNotFoundError, match=r"no shipped checkpoint 'nope'.*counternet_road7.*pointpillars_synth"):
+        weights.path("nope")
+
+
+@pytest.mark.parametrize("name, partitions, overlap", [("counternet_road7", 4, 0.2), ("counternet_road7_pt1", 1, 0.0)])
+def test_shipped_counternets_load_with_their_record(tmp_path, monkeypatch, name, partitions, overlap):
+    monkeypatch.setenv("LIDAROPS_CACHE", str(tmp_path))
+    model = weights.load(name)
+    assert type(model).__name__ == "CounterNet" and not model.training
+    assert model.config.class_names == list(weights.info(name)["class_names"]) == ROAD7
+    assert (model.config.partitions, model.config.delta) == (partitions, overlap)
+    info = weights.info(name)
+    assert "lidarops train --config configs/counternet/counternet_synth.yaml" in info["train_command"]
+    assert info["evaluation"]["metrics"]["counting_accuracy"] > 50
