@@ -331,8 +331,9 @@ class CounterNet(PredictMixin, nn.Module):
             c = torch.cat(centres[b]) if centres[b] else heatmaps[0].new_zeros(0, 4)
             if cfg.delta > 0 and c.shape[0]:
                 c = merge_centres(c, cfg.merge_radius)
-            counts = torch.bincount(c[:, 2].long(), minlength=C) if c.shape[0] else \
-                torch.zeros(C, dtype=torch.int64, device=c.device)
+            # index_add_, not bincount: on CUDA bincount reads its maximum back to the host, once per frame
+            counts = torch.zeros(C, dtype=torch.int64, device=c.device).index_add_(
+                0, c[:, 2].long(), torch.ones(c.shape[0], dtype=torch.int64, device=c.device))
             out.append({"counts": counts, "centres": c, "features": raw["features"][b]})
         if batch is not None and isinstance(batch.get("gt_boxes"), Tensor):
             for b, true in enumerate(self.true_counts(batch["gt_boxes"])):
