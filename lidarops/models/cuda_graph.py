@@ -80,7 +80,7 @@ def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | Non
         ``bad (B,)`` bool: frames whose features fail the eager call's value check; ``pillars`` (0-d int64):
         the rows the batch needs; ``overflow`` (0-d bool): more than ``max_pillars``.
     """
-    from lidarops.ops.voxelize import _grid_size
+    from lidarops.ops.voxelize import voxel_grid_shape
 
     if not isinstance(model, PointPillars) or model.config.backbone_mode != "dense":
         raise ValueError(f"model must be a PointPillars with backbone_mode='dense', got {type(model).__name__}"
@@ -96,8 +96,7 @@ def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | Non
         raise ValueError(f"points is on {points.device} but the model is on {param.device}")
     points = points.to(param.dtype)  # as predict does: the weights' dtype
     B, N, c = points.shape
-    vs, pr = [float(v) for v in cfg.voxel_size], [float(v) for v in cfg.point_cloud_range]
-    nx, ny, nz = _grid_size(vs, pr)
+    nz, ny, nx = voxel_grid_shape(cfg.voxel_size, cfg.point_cloud_range)
     if nz != 1:
         raise ValueError(f"padded_inference needs pillars (one voxel along z), got a grid of {nz} along z")
     per_frame = min(cfg.max_voxels_test, max(N, 1))
@@ -133,11 +132,11 @@ def _batch_pillars(points: Tensor, cfg, rows: int) -> tuple[Tensor, Tensor, Tens
     """The pillars of a padded batch (:func:`padded_inference`) packed into ``rows`` rows: ``voxels (rows, P, C)``,
     ``num_points (rows,)``, ``coords (rows, 4)`` int32 (frame, 0, y, x; -1 for the rows left over) and the rows
     needed (0-d)."""
-    from lidarops.ops.voxelize import _assign, _grid_size
+    from lidarops.ops.voxelize import voxel_assignment, voxel_grid_shape
 
     B, N, _ = points.shape
     vs, pr = [float(v) for v in cfg.voxel_size], [float(v) for v in cfg.point_cloud_range]
-    nx, ny, _ = _grid_size(vs, pr)
+    _, ny, nx = voxel_grid_shape(vs, pr)
     per_frame = min(cfg.max_voxels_test, max(N, 1))
     flat = points.reshape(B * N, points.shape[2])[:, :cfg.num_point_features]
     # frame b's in-range points in the middle of the b-th slab; the op's own z test, in its float32
@@ -150,9 +149,8 @@ def _batch_pillars(points: Tensor, cfg, rows: int) -> tuple[Tensor, Tensor, Tens
     slab = (frame.to(torch.float64) + 0.5) * vs[2] + pr[2]
     xyz = torch.cat([xyz[:, :2], torch.where(inside, slab, math.nan).to(torch.float32)[:, None]], 1)
     # every pillar of every frame gets a row here (16 bytes a row): none is dropped before the per-frame cap
-    coords, nums, point_voxel, point_slot, _ = _assign(
-        xyz, vs, pr[:5] + [pr[2] + B * vs[2]], [nx, ny, B], cfg.max_points_per_voxel,
-        B * min(N, nx * ny) if N else 1, "drop", True)
+    coords, nums, point_voxel, point_slot = voxel_assignment(
+        xyz, vs, pr[:5] + [pr[2] + B * vs[2]], cfg.max_points_per_voxel, B * min(N, nx * ny) if N else 1)
     T = coords.shape[0]
     valid = coords[:, 0] >= 0
     owner = coords[:, 0].long().clamp(min=0)

@@ -33,7 +33,7 @@ from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.ops.validation import check_tensor, describe
 from lidarops.sscater.delta import DeltaBackbone, LayerStats
 
-__all__ = ["SSCATeRPointPillars", "StepStats", "PillarFeatureNet"]
+__all__ = ["SSCATeRPointPillars", "StepStats", "PillarFeatureNet", "DetectorPFN"]
 
 
 # SSCATeR's own pillar net, kept until SSCATeR runs the detector's PillarVFE: the stream gathers 9-feature
@@ -86,6 +86,36 @@ class PillarFeatureNet(nn.Module):
             out[mask] = x
         # post-ReLU values are >= 0, so zero padding never wins the max over a non-empty pillar
         return out.amax(dim=1)
+
+
+class DetectorPFN(nn.Module):
+    """A trained detector's pillar net (OpenPCDet's ``PillarVFE``) on the stream's pillars: their points (x, y,
+    z, intensity: the first four decorated features) and counts, with the VFE's own decorations and padding
+    (empty slots enter its max, as in the detector), so a pillar's features are the detector's for the same
+    points. An emptied pillar (no points) gives zeros: the detector's BEV image holds zeros where no pillar is.
+
+    Args:
+        vfe (lidarops.models.pillar_vfe.PillarVFE): the detector's ``vfe``, in eval mode.
+        max_points (int): the detector's ``MAX_POINTS_PER_VOXEL``: its slots per pillar (the stream must hold as
+            many, so that the padding entering the max is the same).
+    """
+
+    def __init__(self, vfe: nn.Module, max_points: int):
+        super().__init__()
+        self.vfe = vfe
+        self.max_points = int(max_points)
+        self.out_channels = int(vfe.pfn_layers[-1].linear.out_features * (1 if vfe.pfn_layers[-1].last_vfe else 2))
+
+    def forward(self, pillars) -> Tensor:
+        features, num_points = pillars.features, pillars.num_points
+        if features.dim() != 3 or features.shape[1] != self.max_points:
+            raise ValueError(f"pillars.features must be (P, {self.max_points}, C) (the detector's slots per pillar), "
+                             f"got {describe(features)}")
+        weight = self.vfe.pfn_layers[0].linear.weight
+        coords = pillars.coords.to(torch.int32)
+        coords4 = torch.cat([coords[:, :1], torch.zeros_like(coords[:, :1]), coords[:, 1:]], 1)
+        out = self.vfe(features[:, :, :4].to(weight.dtype), num_points, coords4)
+        return torch.where(num_points[:, None] > 0, out, out.new_zeros(()))
 
 
 
@@ -177,7 +207,7 @@ class SSCATeRPointPillars:
     def __init__(self, pfn: PillarFeatureNet, backbone: BaseBEVBackbone, grid, window: float = 0.1,
                  max_points_per_pillar: int = 100, max_pillars: int = 12000, refresh_every: int = 25,
                  dtype: torch.dtype = torch.float32, device=None, profile: bool = False, guard: bool = True,
-                 guard_ratio: Optional[float] = None, overflow: str = "raise"):
+                 guard_ratio: Optional[float] = None, overflow: str = "raise", dense: bool = False):
         from lidarops.stream import PillarStream
         if pfn.training or backbone.training:
             raise ValueError("pfn and backbone must be in eval mode (call .eval()): SSCATeR folds BatchNorm's "
@@ -199,6 +229,14 @@ class SSCATeRPointPillars:
                                    overflow=overflow)
         self.delta = DeltaBackbone(backbone, grid.shape, dtype, self.device, state_check=guard)
         self.guard, self.guard_ratio = bool(guard), float(guard_ratio)
+        if dense not in (True, False):
+            raise ValueError(f"dense must be True or False, got {dense!r}")
+        # dense: every pillar site is active (zero features where no pillar is), so each convolution is the
+        # dense backbone's (zero padding at the map's edges, BatchNorm's shift everywhere), as a detector
+        # trained with the dense backbone computes it
+        self.dense = bool(dense)
+        self.detector = None  # the PointPillars whose head and post-processing turn the map into boxes
+        self._all_sites: Optional[Tensor] = None  # (H * W, 2) every site, for the dense mode's refresh
         self.stats = StepStats()
         self._since_refresh: Optional[int] = None
         self._state_peak = self._state_prev = 0.0  # max |acc|: largest since the last refresh, last step's
@@ -251,16 +289,19 @@ class SSCATeRPointPillars:
                 feats = self._pfn(pillars)
                 pfn_points = pfn_points_full = pillars.num_points.sum()
                 m2 = self._mark()
-                out = self.delta.refresh(pillars.coords[:, 1:], feats)
+                out = self._refresh(pillars, feats)
                 self._since_refresh = 0
             else:
                 # the PFN on every changed pillar, the emptied ones included (zero points: their rows
-                # are ignored by the update), so that nothing waits for the device to pick them out
+                # are ignored by the update, or zero in the dense mode), so that nothing waits for the
+                # device to pick them out
                 changed = self.stream.pillars(upd.changed, check=False)
                 feats = self._pfn(changed)
                 pfn_points, pfn_points_full = changed.num_points.sum(), self.stream.num_points
                 m2 = self._mark()
-                out = self.delta.update(changed.coords[:, 1:], feats, upd.removed, profile=self.profile, check=False)
+                # dense: an emptied pillar stays a site, its input back to zero
+                removed = torch.zeros_like(upd.removed) if self.dense else upd.removed
+                out = self.delta.update(changed.coords[:, 1:], feats, removed, profile=self.profile, check=False)
                 self._since_refresh += 1
             st.guard = self._check_state(refresh)
             if st.guard and refresh:  # nothing to recycle from: the input or the weights are not finite
@@ -269,7 +310,7 @@ class SSCATeRPointPillars:
                 pillars = self.stream.pillars(upd.active, check=False)
                 feats = self._pfn(pillars)
                 pfn_points = pfn_points + pillars.num_points.sum()
-                out = self.delta.refresh(pillars.coords[:, 1:], feats)
+                out = self._refresh(pillars, feats)
                 self._since_refresh = 0
                 st.guard_refreshes += 1
                 refresh = True
@@ -286,6 +327,70 @@ class SSCATeRPointPillars:
         st.state_max = self.delta.state_max
         self.stats = st
         return out
+
+    def _refresh(self, pillars, feats: Tensor) -> Tensor:
+        """Every layer recomputed from the window's pillars; in the dense mode from every site of the grid."""
+        if not self.dense:
+            return self.delta.refresh(pillars.coords[:, 1:], feats)
+        H, W = self.grid.shape
+        if self._all_sites is None:
+            yy, xx = torch.meshgrid(torch.arange(H, device=self.device), torch.arange(W, device=self.device),
+                                    indexing="ij")
+            self._all_sites = torch.stack([yy.reshape(-1), xx.reshape(-1)], 1).to(torch.int32)
+        full = feats.new_zeros(H * W, feats.shape[1])
+        keys = pillars.coords[:, 1].long() * W + pillars.coords[:, 2].long()
+        full[keys] = feats
+        return self.delta.refresh(self._all_sites, full)
+
+    def detect(self) -> dict:
+        """Boxes of the current window (after :meth:`step`): the detector's head on the recycled BEV map, its
+        decode and post-processing (:meth:`from_detector` models only). One dict of ``boxes (K, 7)``, ``scores
+        (K,)``, ``labels (K,)`` (1-based into the detector's ``class_names``), as ``detector.predict`` gives."""
+        if self.detector is None:
+            raise ValueError("detect() needs a model made by SSCATeRPointPillars.from_detector(detector)")
+        head = self.detector.dense_head
+        with torch.no_grad():
+            raw = head(self.delta.out.to(head.conv_cls.weight.dtype))
+            return self.detector.postprocess(raw)[0]
+
+    def window_points(self) -> Tensor:
+        """The points the stream holds (x, y, z, intensity), pillar by pillar in key order, each pillar's in time
+        order: what the detector must see to equal the stream (``detector.predict`` on them voxelizes the same
+        pillars with the same points in the same slots)."""
+        pillars = self.stream.pillars()
+        n = pillars.features.shape[1]
+        keep = torch.arange(n, device=pillars.features.device) < pillars.num_points[:, None].long()
+        return pillars.features[:, :, :4][keep]
+
+    @classmethod
+    def from_detector(cls, detector, window: float = 0.1, refresh_every: int = 25, dtype: torch.dtype = torch.float32,
+                      device=None, **kwargs) -> "SSCATeRPointPillars":
+        """Streaming detection with a trained PointPillars (``backbone_mode="dense"``): its grid, its own pillar net
+        (:class:`DetectorPFN`) on the pillars that changed, its backbone recycled over every site (``dense=True``)
+        and, by :meth:`detect`, its head and post-processing. Each step's boxes equal ``detector.predict`` on
+        :meth:`window_points` (float rounding aside: the recycled sums add in another order).
+
+        The stream holds the detector's ``MAX_POINTS_PER_VOXEL`` points per pillar and ``MAX_NUMBER_OF_VOXELS``
+        (test) pillars, dropping what does not fit (``overflow="drop"``, the stream's rule), unless given.
+        """
+        from lidarops.models.pointpillars import PointPillars
+        from lidarops.stream import PillarGrid
+
+        if not isinstance(detector, PointPillars):
+            raise TypeError(f"detector must be a PointPillars, got {type(detector).__name__}")
+        cfg = detector.config
+        if cfg.backbone_mode != "dense":
+            raise ValueError(f"from_detector needs a detector with backbone_mode='dense', got {cfg.backbone_mode!r}")
+        detector.eval()
+        grid = PillarGrid(cfg.point_cloud_range, cfg.voxel_size)
+        kwargs.setdefault("max_points_per_pillar", cfg.max_points_per_voxel)
+        kwargs.setdefault("max_pillars", cfg.max_voxels_test)
+        kwargs.setdefault("overflow", "drop")
+        pfn = DetectorPFN(detector.vfe, kwargs["max_points_per_pillar"]).eval()
+        model = cls(pfn, detector.backbone_2d, grid, window, refresh_every=refresh_every, dtype=dtype, device=device,
+                    dense=True, **kwargs)
+        model.detector = detector
+        return model
 
     def _check_state(self, refreshed: bool) -> str:
         """The guard, on the host (``state_max`` came with the step's figures): why the state must be

@@ -52,7 +52,8 @@ from lidarops.ops.validation import check_output_size, check_positive_int, check
 extension.load()
 from lidarops.ops import _registrations  # noqa: E402,F401  (fake kernels, autograd)
 
-__all__ = ["voxelize", "VoxelizeResult", "VoxelizeInfo", "VoxelOverflowError", "voxel_grid_shape"]
+__all__ = ["voxelize", "VoxelizeResult", "VoxelizeInfo", "VoxelOverflowError", "voxel_grid_shape",
+           "voxel_assignment", "VoxelAssignment"]
 
 _METHODS = {"auto": 0, "dense": 1, "hash": 2}
 _MAX_DIM = 1 << 24
@@ -277,6 +278,17 @@ def voxelize_checked(points: Tensor, voxel_size: list[float], point_cloud_range:
     return VoxelizeResult(voxels, coords, num_points, info)
 
 
+def _checked(points, voxel_size, point_cloud_range, max_points_per_voxel, max_voxels):
+    """The arguments :func:`voxelize` and :func:`voxel_assignment` share, checked: voxel size, range, grid
+    (x, y, z cells) and the two capacities."""
+    check_points(points)
+    vs = _check_voxel_size(voxel_size)
+    pr = _check_point_range(point_cloud_range)
+    grid = _grid_size(vs, pr)
+    return (vs, pr, grid, check_capacity(max_points_per_voxel, "max_points_per_voxel"),
+            check_capacity(max_voxels, "max_voxels"))
+
+
 @renamed_kwargs(point_range="point_cloud_range")
 def voxelize(points: Tensor, voxel_size: Sequence[float], point_cloud_range: Sequence[float], max_points_per_voxel: int,
              max_voxels: int, overflow: str = "raise", *, padded: bool = False,
@@ -321,18 +333,45 @@ def voxelize(points: Tensor, voxel_size: Sequence[float], point_cloud_range: Seq
     in float32, same coords layout and dtypes, first-seen order as in their CPU paths; see
     ``lidarops.compat.spconv_utils.PointToVoxel`` for the drop-in face.
     """
-    check_points(points)
-    vs = _check_voxel_size(voxel_size)
-    pr = _check_point_range(point_cloud_range)
-    grid = _grid_size(vs, pr)
-    P = check_capacity(max_points_per_voxel, "max_points_per_voxel")
-    M = check_capacity(max_voxels, "max_voxels")
+    vs, pr, grid, P, M = _checked(points, voxel_size, point_cloud_range, max_points_per_voxel, max_voxels)
     check_overflow(overflow, padded)
     if not isinstance(method, str) or method not in _METHODS:
         raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
     if points.device.type == "meta" and not padded:
         raise ValueError("points on the meta device: the voxel count is data, so meta tensors need padded=True")
     return voxelize_checked(points, vs, pr, grid, P, M, overflow, padded, _METHODS[method])
+
+
+class VoxelAssignment(NamedTuple):
+    """:func:`voxel_assignment`'s result: where each point goes, without the voxel table."""
+
+    coords: Tensor       # (max_voxels, 3) int32: (z, y, x) of each voxel, first seen first; -1 rows unused
+    num_points: Tensor   # (max_voxels,) int32: points stored per voxel (0 in unused rows)
+    point_voxel: Tensor  # (N,) int64: the row of each point's voxel, -1 if not returned
+    point_slot: Tensor   # (N,) int64: the slot of each point in its voxel, -1 if not stored
+
+
+@renamed_kwargs(point_range="point_cloud_range")
+def voxel_assignment(points: Tensor, voxel_size: Sequence[float], point_cloud_range: Sequence[float],
+                     max_points_per_voxel: int, max_voxels: int) -> VoxelAssignment:
+    """The first half of :func:`voxelize` with ``padded=True, overflow="drop"``: which voxel row and slot each
+    point takes, and the voxels' coords and counts, without building the ``(max_voxels, P, C)`` table and
+    without reading anything back from the device (CUDA-graph capturable). Rows hold 16 bytes each, so a
+    generous ``max_voxels`` costs little; the table can then be built for the rows wanted
+    (``torch.ops.lidarops.voxelize_scatter(features, point_voxel, point_slot, rows, P)``).
+
+    Args: as :func:`voxelize` (x, y, z are read from ``points``; other columns are ignored).
+
+    Returns:
+        VoxelAssignment: ``coords``, ``num_points`` (``voxelize(..., padded=True)``'s, row for row), and the
+        per-point ``point_voxel`` and ``point_slot`` (its ``info``'s).
+
+    Raises:
+        ValueError: as :func:`voxelize`.
+    """
+    vs, pr, grid, P, M = _checked(points, voxel_size, point_cloud_range, max_points_per_voxel, max_voxels)
+    coords, num_points, point_voxel, point_slot, _ = _assign(points, vs, pr, grid, P, M, "drop", True)
+    return VoxelAssignment(coords, num_points, point_voxel, point_slot)
 
 
 # ---- pure-Python reference (dict-based first-seen loop), used by the tests ----

@@ -93,6 +93,35 @@ def test_voxelize(device, data):
     assert int(info.num_out_of_range) == points.shape[0] - ref["num_in_range"], what
 
 
+
+@fuzz
+@given(data=st.data())
+def test_voxel_assignment(device, data):
+    """voxel_assignment against the reference: voxelize's coords, counts and per-point rows and slots (the drop
+    rule of ``overflow="drop"``), padded to max_voxels rows; bad grids and capacities named."""
+    from lidarops.ops.voxelize import voxel_assignment
+
+    dtype = data.draw(st.sampled_from([torch.float32, torch.float64]), "dtype")
+    points, regime = data.draw(point_rows(3, dtype, -4.5, 4.5), "points")
+    if data.draw(st.integers(0, 7)) == 0:
+        (vs, bad_name), pr = data.draw(st.sampled_from(_BAD)), _GRIDS[0][1]
+    else:
+        (vs, pr), bad_name = data.draw(st.sampled_from(_GRIDS)), None
+    P = data.draw(st.sampled_from([1, 2, 4, 0, -1]), "max_points_per_voxel")
+    M = data.draw(st.sampled_from([1, 5, 20, 0, 2.5]), "max_voxels")
+    what = f"voxel_assignment({regime} {tuple(points.shape)} {dtype}, {vs}, {pr}, P={P}, M={M})"
+    res, err = outcome(voxel_assignment, points.to(device), vs, pr, P, M)
+    if bad_name or P < 1 or not isinstance(M, int) or M < 1:
+        return assert_clear_error(err, ValueError, [bad_name or "max_points_per_voxel", "max_voxels"], what)
+    assert_no_error(err, what)
+    ref = _voxelize_reference(points, vs, pr, P, M)
+    V = ref["coords"].shape[0]
+    assert res.coords.shape == (M, 3) and bool((res.coords[V:] == -1).all()) and bool((res.num_points[V:] == 0).all())
+    assert_same(res.coords[:V], torch.from_numpy(ref["coords"]), what + " coords")
+    assert_same(res.num_points[:V], torch.from_numpy(ref["num_points"]), what + " num_points")
+    assert_same(res.point_voxel, torch.from_numpy(ref["point_voxel"]), what + " point_voxel")
+    assert_same(res.point_slot, torch.from_numpy(ref["point_slot"]), what + " point_slot")
+
 _PILLAR_GRIDS = [PillarGrid((0.0, 0.0, -2.0, 4.0, 4.0, 2.0), (1.0, 1.0)),
                  PillarGrid((-0.8, -0.48, -1.0, 0.8, 0.48, 1.0), (0.16, 0.16)),
                  PillarGrid((-3.0, -1.0, -3.0, 3.0, 1.0, 3.0), (1.5, 0.5))]

@@ -1,0 +1,115 @@
+"""Streaming detection with a trained-style PointPillars (SSCATeRPointPillars.from_detector): every step's
+head outputs and boxes equal the detector's own eager call on the points the stream holds (its dense
+backbone: zero padding, BatchNorm's shift at every site), while only the changed pillars and the sites their
+changes reach are recomputed."""
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.nn import functional as F
+
+from lidarops.models.pointpillars import PointPillars
+from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
+
+from helpers.models import TINY, randomize_bn
+
+#: a 32 x 32 grid of 0.5 m pillars (divisible by the backbone's strides 2, 2, 2), two classes
+CFG = {**TINY, "class_names": ["Car", "Pedestrian"], "point_cloud_range": [0.0, -8.0, -3.0, 16.0, 8.0, 1.0],
+       "voxel_size": [0.5, 0.5, 4.0], "max_points_per_voxel": 6, "score_thresh": 0.2, "nms_thresh": 0.2,
+       "anchor_generator_config": [
+           {**TINY["anchor_generator_config"][0], "class_name": "Car"},
+           {**TINY["anchor_generator_config"][0], "class_name": "Pedestrian", "anchor_sizes": [[0.8, 0.6, 1.7]]}]}
+
+
+def _detector(dtype, seed=0):
+    torch.manual_seed(seed)
+    model = PointPillars(CFG)
+    randomize_bn(model.backbone_2d, seed)  # BatchNorm statistics away from identity: ReLU zeros, shifts
+    randomize_bn(model.vfe, seed + 1)
+    with torch.no_grad():
+        model.dense_head.conv_cls.bias.fill_(-0.5)  # scores near 0.4: boxes pass the threshold
+    return model.to(dtype).eval()
+
+
+def _slices(steps, seed=0, per_slice=40):
+    """Slices of 10 ms: points in the grid (and a few outside it), some pillars crowded past their slots."""
+    g = torch.Generator().manual_seed(seed)
+    for k in range(steps):
+        pts = torch.rand(per_slice, 4, generator=g) * torch.tensor([16.0, 16.0, 4.0, 1.0]) + torch.tensor([0, -8.0, -3, 0])
+        hot = torch.rand(per_slice // 4, 4, generator=g) * torch.tensor([1.0, 1.0, 4.0, 1.0]) + torch.tensor([4.0, 0, -3, 0])
+        out = torch.tensor([[20.0, 0.0, 0.0, 0.5], [3.0, 1.0, 5.0, 0.5]])  # beyond x, above z
+        pts = torch.cat([pts, hot, out])
+        t = 0.01 * k + torch.rand(len(pts), generator=g, dtype=torch.float64) * 0.01
+        yield pts.float(), t
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_streamed_boxes_equal_the_detector_on_the_window(device, dtype, tol):
+    detector = _detector(dtype).to(device)
+    stream = SSCATeRPointPillars.from_detector(detector, window=0.1, refresh_every=7, dtype=dtype)
+    boxes_seen = recycled = 0
+    for k, (pts, t) in enumerate(_slices(30)):
+        stream.step(pts.to(device), t.to(device))
+        recycled += not stream.stats.refreshed
+        window = stream.window_points()
+        batch = {"points": F.pad(window.to(dtype), (1, 0)), "batch_size": 1}
+        with torch.no_grad():
+            raw = detector(batch)
+            got_raw = detector.dense_head(stream.delta.out.to(dtype))
+        for key in ("cls_preds", "box_preds", "dir_cls_preds"):
+            scale = raw[key].abs().max().item() or 1.0
+            err = (got_raw[key] - raw[key]).abs().max().item() / scale
+            assert err <= tol, (k, key, err)
+        got, want = stream.detect(), detector.postprocess(raw)[0]
+        assert got["labels"].tolist() == want["labels"].tolist(), k
+        assert torch.allclose(got["scores"], want["scores"], atol=tol * 10), k
+        assert torch.allclose(got["boxes"], want["boxes"], atol=tol * 100), k
+        boxes_seen += len(want["labels"])
+    assert recycled >= 20 and boxes_seen > 0, (recycled, boxes_seen)
+    assert stream.stats.pillars_changed < stream.stats.pillars_active + stream.stats.points_out
+
+
+def test_stream_holds_the_detectors_slots_and_drops_the_rest():
+    detector = _detector(torch.float32)
+    stream = SSCATeRPointPillars.from_detector(detector)
+    assert stream.stream.max_points_per_pillar == CFG["max_points_per_voxel"] and stream.stream.overflow == "drop"
+    for pts, t in _slices(3):
+        stream.step(pts, t)
+    assert stream.stats.points_dropped > 0  # the crowded pillars
+    window = stream.window_points()
+    assert window.shape[1] == 4 and len(window) == stream.stream.num_points
+
+
+def test_from_detector_refuses_what_it_cannot_stream():
+    with pytest.raises(TypeError, match="detector must be a PointPillars"):
+        SSCATeRPointPillars.from_detector(torch.nn.Linear(2, 2))
+    with pytest.raises(ValueError, match="backbone_mode='dense'"):
+        SSCATeRPointPillars.from_detector(PointPillars({**CFG, "backbone_mode": "sparse"}))
+    plain = SSCATeRPointPillars.from_detector(_detector(torch.float32))
+    plain.detector = None
+    with pytest.raises(ValueError, match="detect\\(\\) needs a model made by"):
+        plain.detect()
+
+
+def test_cli_stream_with_a_checkpoint_prints_boxes_and_checks_them(tmp_path, capsys):
+    """``lidarops stream --checkpoint``: a step per slice with its boxes, every check the detector's own boxes on
+    the same points (exit 0), the figures in --json."""
+    import json
+
+    from lidarops.checkpoint import format_fields, save_checkpoint
+    from lidarops.cli import main
+
+    detector = _detector(torch.float32)
+    path = tmp_path / "pp.pth"
+    save_checkpoint({**format_fields(), "model_class": "PointPillars", "model_config": detector.config.to_dict(),
+                     "class_names": list(detector.config.class_names), "model_state": detector.state_dict()}, [path])
+    rc = main(["stream", "--checkpoint", str(path), "--seconds", "0.08", "--check-every", "3", "--device", "cpu",
+               "--json", str(tmp_path / "steps.json")])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    steps = json.loads((tmp_path / "steps.json").read_text())["steps"]
+    assert [s["step"] for s in steps] == list(range(8))
+    checks = [s["same_as_detector"] for s in steps if "same_as_detector" in s]
+    assert checks == [True, True] and "2 check(s) against the detector: all the same boxes" in out
+    assert sum(sum(s["boxes"].values()) for s in steps) > 0 and any(not s["refreshed"] for s in steps)
+    assert main(["stream", "--checkpoint", str(tmp_path / "missing.pth"), "--device", "cpu"]) == 2
