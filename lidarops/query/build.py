@@ -441,7 +441,6 @@ class DetectorSource(_ModelSource):
             out.append((dict(zip(self.classes, frame_counts)), centres))
         return out
 
-
     def _eager_results(self, frames: list) -> list[Counted]:
         """``(counts, centres)`` of frames (device tensors of x, y, z, intensity) from the eager model, each frame
         alone, under ``precision``."""
