@@ -113,3 +113,27 @@ def test_cli_stream_with_a_checkpoint_prints_boxes_and_checks_them(tmp_path, cap
     assert checks == [True, True] and "2 check(s) against the detector: all the same boxes" in out
     assert sum(sum(s["boxes"].values()) for s in steps) > 0 and any(not s["refreshed"] for s in steps)
     assert main(["stream", "--checkpoint", str(tmp_path / "missing.pth"), "--device", "cpu"]) == 2
+
+
+@pytest.mark.slow  # the shipped detector on the CPU: about half a minute
+def test_shipped_detector_streamed_gives_its_own_boxes():
+    """The trained checkpoint (pointpillars_synth) on a short driving_city stream: at each checked step the same
+    labels as the detector on the stream's points, scores within float32 rounding, boxes found."""
+    from lidarops.data.synthetic import Simulator
+    from lidarops.models import weights
+
+    detector = weights.load("pointpillars_synth")
+    stream = SSCATeRPointPillars.from_detector(detector)
+    sim = Simulator("driving_city", seed=3)
+    found = 0
+    for k in range(9):
+        pts, t = sim.stream(0.01 * k, 0.01 * (k + 1))
+        stream.step(torch.from_numpy(pts), torch.from_numpy(t))
+        if k % 4 == 0 or k == 8:
+            got = stream.detect()
+            want = detector.predict({"points": F.pad(stream.window_points(), (1, 0)), "batch_size": 1})[0]
+            assert got["labels"].tolist() == want["labels"].tolist(), k
+            assert torch.allclose(got["scores"], want["scores"], atol=1e-5), k
+            assert torch.allclose(got["boxes"], want["boxes"], atol=1e-4), k
+            found += len(want["labels"])
+    assert found > 0 and not stream.stats.refreshed
