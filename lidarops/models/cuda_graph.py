@@ -42,9 +42,13 @@ PRECISIONS = ("fp32", "tf32", "fp16")
 
 
 @contextlib.contextmanager
-def precision_mode(precision: str, device_type: str = "cuda", autocast: bool = True):
+def precision_mode(precision: str | None, device_type: str = "cuda", autocast: bool = True):
     """``"fp32"``: float32 without TF32; ``"tf32"``: TF32 matmuls and convolutions; ``"fp16"``: float16
-    autocast (``autocast=False``: no autocast, for a model already converted with ``.half()``)."""
+    autocast (``autocast=False``: no autocast, for a model already converted with ``.half()``); None: torch's
+    settings as they are."""
+    if precision is None:
+        yield
+        return
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
@@ -229,8 +233,7 @@ class GraphedPointPillars:
         half_model = self.dtype == torch.float16
 
         def body():
-            mode = contextlib.nullcontext() if precision is None else precision_mode(precision, autocast=not half_model)
-            with torch.no_grad(), mode:
+            with torch.no_grad(), precision_mode(precision, autocast=not half_model):
                 out = padded_inference(model, self._points, max_pillars)
                 # the one host read: each frame's number of boxes and value check, the batch's pillars
                 out["read"] = torch.stack([out["count"], out["bad"].to(torch.int64),
@@ -293,9 +296,7 @@ class GraphedPointPillars:
         reads = out["read"][:len(frames)].tolist()  # the one host read
         if reads[0][2]:  # more pillars than max_pillars: the eager call, frame by frame, in the graph's precision
             c = self.model.config.num_point_features
-            mode = contextlib.nullcontext() if self.precision is None else \
-                precision_mode(self.precision, autocast=self.dtype != torch.float16)
-            with mode:
+            with precision_mode(self.precision, autocast=self.dtype != torch.float16):
                 dets = [self.model.predict({"points": torch.nn.functional.pad(f[:, :c], (1, 0)), "batch_size": 1})[0]
                         for f in frames]
             return dets[0] if one else dets

@@ -258,8 +258,6 @@ class _ModelSource:
 
     def run(self, staged: _Staged) -> _Staged:
         """The network on a submitted batch, its results gathered on the device and their read-back started."""
-        import contextlib
-
         import torch
 
         from lidarops.models.cuda_graph import precision_mode
@@ -269,9 +267,8 @@ class _ModelSource:
         side = self._side
         side.main_waits(staged.done, points)
         weights = next(self.model.parameters())
-        precision = contextlib.nullcontext() if self.precision is None else \
-            precision_mode(self.precision, weights.device.type, autocast=weights.dtype != torch.float16)
-        with torch.inference_mode(), precision:
+        with torch.inference_mode(), precision_mode(self.precision, weights.device.type,
+                                                    autocast=weights.dtype != torch.float16):
             preds = self._predict_staged(points, staged)
             if preds:
                 tensors, staged.meta = self._gather(preds)
@@ -444,15 +441,12 @@ class DetectorSource(_ModelSource):
     def _eager_results(self, frames: list) -> list[Counted]:
         """``(counts, centres)`` of frames (device tensors of x, y, z, intensity) from the eager model, each frame
         alone, under ``precision``."""
-        import contextlib
-
         import torch
 
         from lidarops.models.cuda_graph import precision_mode
 
-        precision = contextlib.nullcontext() if self.precision is None else \
-            precision_mode(self.precision, "cuda", autocast=next(self.model.parameters()).dtype != torch.float16)
-        with torch.inference_mode(), precision:
+        with torch.inference_mode(), precision_mode(self.precision, "cuda",
+                                                    autocast=next(self.model.parameters()).dtype != torch.float16):
             preds = [self._predict({"points": torch.nn.functional.pad(f, (1, 0)), "batch_size": 1})[0]
                      for f in frames]
             tensors, meta = self._gather(preds)
