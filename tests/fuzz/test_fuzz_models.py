@@ -283,3 +283,53 @@ def test_padded_inference_gives_each_frame_or_names_the_argument(data):
 def _tiny_pointpillars():
     torch.manual_seed(0)
     return PointPillars(TINY).eval()
+
+
+@pytest.fixture(scope="module")
+def selection_file(tmp_path_factory):
+    """A saved SelectedCounter of two tiny CounterNets (one model needs no selector) and a PointPillars file."""
+    from lidarops.models.counternet_selection import SelectedCounter
+
+    root = tmp_path_factory.mktemp("selection")
+    paths = []
+    for i in range(2):
+        m = _tiny_counternet().eval()
+        paths.append(root / f"cn{i}.pth")
+        save_checkpoint({**format_fields(), **model_fields(m), "model_state": m.state_dict()}, [paths[-1]])
+    pp = PointPillars(TINY)
+    save_checkpoint({**format_fields(), **model_fields(pp), "model_state": pp.state_dict()}, [root / "pp.pth"])
+    SelectedCounter([_tiny_counternet()]).save(root / "one.pth", [paths[0]])
+    return root
+
+
+@fuzz
+@given(data=st.data())
+def test_damaged_selection_files_are_refused_by_name(selection_file, data):
+    """A SelectedCounter file damaged one way (members missing, empty, naming a missing file or a detector; another
+    model_class; truncated bytes) is refused by load_model with a ValueError naming the file; an undamaged one
+    loads."""
+    from lidarops.checkpoint import read_checkpoint
+
+    good = read_checkpoint(selection_file / "one.pth")
+    kind = data.draw(st.sampled_from(["none", "no_members", "empty", "missing", "detector", "class", "truncated"]))
+    path = selection_file / f"damaged_{kind}.pth"
+    ckpt = {**good, "model_config": dict(good["model_config"])}
+    if kind == "no_members":
+        del ckpt["model_config"]["members"]
+    elif kind == "empty":
+        ckpt["model_config"]["members"] = []
+    elif kind == "missing":
+        ckpt["model_config"]["members"] = ["not_there.pth"]
+    elif kind == "detector":
+        ckpt["model_config"]["members"] = ["pp.pth"]
+    elif kind == "class":
+        ckpt["model_class"] = data.draw(st.sampled_from(["SelectedCounters", "PointPillars"]))
+    save_checkpoint(ckpt, [path])
+    if kind == "truncated":
+        raw = path.read_bytes()
+        path.write_bytes(raw[:data.draw(st.integers(0, len(raw) - 1))])
+    model, err = outcome(load_model, path)
+    if kind == "none":
+        assert err is None and type(model).__name__ == "SelectedCounter", err
+        return
+    assert_clear_error(err, (ValueError, FileNotFoundError), [str(path), path.name], f"load_model({kind})")
