@@ -54,6 +54,9 @@ class FitResult:
         train_seconds: wall time of those steps.
         data_seconds: of ``train_seconds``, the time this process waited for its next batch (the data
             pipeline's share: near 0 when loading keeps up with the GPU).
+        eval_seconds, checkpoint_seconds: time spent evaluating and writing checkpoints in this call (not in
+            ``train_seconds``).
+        wall_seconds: the whole call, start-up included.
         losses: the last logged loss terms (rank 0).
         metrics: the last evaluation's metrics (every rank), or None.
     """
@@ -71,6 +74,9 @@ class FitResult:
     frames_per_s_total: float
     train_seconds: float
     data_seconds: float
+    eval_seconds: float = 0.0
+    checkpoint_seconds: float = 0.0
+    wall_seconds: float = 0.0
     losses: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, float] | None = None
 
@@ -190,6 +196,7 @@ class _Run:
         self.step_estimate = 0.0
         self.ckpt_seconds = 0.0
         self.eval_seconds = 0.0
+        self.ckpt_total = self.eval_total = 0.0  # this call's sums (the two above are the last ones)
         self.last_ckpt = self.call_start
         self.losses: dict[str, float] = {}
         self.metrics: dict[str, float] | None = None
@@ -248,6 +255,7 @@ class _Run:
         self.ctx.barrier()
         self.last_ckpt = _clock()
         self.ckpt_seconds = self.last_ckpt - t0
+        self.ckpt_total += self.ckpt_seconds
 
     def elapsed(self) -> float:
         return self.elapsed_before + (_clock() - self.call_start)
@@ -317,6 +325,7 @@ class _Run:
             self.metrics, text = _evaluate(self.module, self.val_dataset, self.collate_fn, self.evaluator,
                                            self.config.batch_size, self.config.num_workers, self.ctx)
         self.eval_seconds = _clock() - t0
+        self.eval_total += self.eval_seconds
         self.eval_pending = False
         if self.ctx.is_main:
             report = {"epoch": self.epoch, "global_step": self.global_step, "metrics": self.metrics, "text": text}
@@ -409,6 +418,26 @@ def _share(part: float, whole: float) -> str:
     return f"{100 * part / whole:.0f} %" if whole > 0 else "0 %"
 
 
+def _write_summary(path: Path, run: "_Run", reason: str, ctx: DistContext, fps_total: float, wall: float,
+                   ranks: list[dict]) -> None:
+    """``summary.json``: what this call of :func:`fit` did and where its time went, every process's share
+    beside the others' (the slowest data pipeline or a straggler shows there)."""
+    device = ctx.device
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    c = run.config
+    summary = {
+        "stop_reason": reason, "epoch": run.epoch, "global_step": run.global_step, "steps": run.steps,
+        "world_size": ctx.world_size, "device": name, "batch_size_per_process": c.batch_size,
+        "global_batch_size": c.batch_size * ctx.world_size, "lr": c.lr, "amp": c.amp, "sync_bn": c.sync_bn,
+        "num_workers": c.num_workers, "trainable_parameters": sum(p.numel() for p in run.params),
+        "frames": sum(r["frames"] for r in ranks),
+        "frames_per_s_total": fps_total, "train_seconds": run.train_seconds, "eval_seconds": run.eval_total,
+        "checkpoint_seconds": run.ckpt_total, "wall_seconds": wall, "ranks": ranks,
+        "losses": run.losses, "metrics": run.metrics,
+    }
+    path.write_text(json.dumps(summary, indent=2) + "\n")
+
+
 def _seed_all(seed: int) -> None:
     torch.manual_seed(seed)
     np.random.seed(seed % 2**32)
@@ -477,6 +506,12 @@ def fit(model: nn.Module, train_dataset: Dataset, collate_fn: Callable | None, c
             torch.cuda.synchronize(ctx.device)
         fps, fps_total = run.throughput()
         checkpoint = out / ("final.pth" if reason == "finished" else "latest.pth")
+        wall = _clock() - run.call_start
+        ranks = ctx.gather_to_main({"rank": ctx.rank, "frames": run.frames, "steps": run.steps,
+                                    "train_seconds": run.train_seconds, "data_seconds": run.data_seconds,
+                                    "frames_per_s": fps})
+        if ctx.is_main:
+            _write_summary(out / "summary.json", run, reason, ctx, fps_total, wall, ranks)
         log.say(f"{reason} at epoch {run.epoch}, step {run.step_in_epoch} (global step {run.global_step}); "
                 f"{run.steps} steps in {run.train_seconds:.1f} s ({_share(run.data_seconds, run.train_seconds)} "
                 f"waiting for data), {fps:.1f} frames/s per process, {fps_total:.1f} in all; checkpoint {checkpoint}"
@@ -484,8 +519,9 @@ def fit(model: nn.Module, train_dataset: Dataset, collate_fn: Callable | None, c
         return FitResult(out_dir=out, checkpoint=checkpoint, finished=reason == "finished", stop_reason=reason,
                          epoch=run.epoch, step_in_epoch=run.step_in_epoch, global_step=run.global_step,
                          steps=run.steps, world_size=ctx.world_size, frames_per_s=fps, frames_per_s_total=fps_total,
-                         train_seconds=run.train_seconds, data_seconds=run.data_seconds, losses=run.losses,
-                         metrics=run.metrics)
+                         train_seconds=run.train_seconds, data_seconds=run.data_seconds,
+                         eval_seconds=run.eval_total, checkpoint_seconds=run.ckpt_total, wall_seconds=wall,
+                         losses=run.losses, metrics=run.metrics)
     finally:
         if log is not None:
             log.close()

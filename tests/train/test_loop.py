@@ -284,7 +284,7 @@ def test_checkpoint_contents(tmp_path):
     result = fit(model, ToyFrames(10), collate, config(epochs=2), tmp_path, extra_checkpoint=extra)
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["checkpoint_epoch_1.pth", "checkpoint_epoch_2.pth", "final.pth", "latest.pth", "log.csv",
-                     "train.log"]  # no temporary files left behind
+                     "summary.json", "train.log"]  # no temporary files left behind
     assert result.checkpoint == tmp_path / "final.pth" and result.global_step == 6
     ckpt = load_checkpoint(tmp_path / "final.pth")
     assert ckpt["format"] == "lidarops.checkpoint" and ckpt["format_version"] == 2
@@ -480,20 +480,50 @@ def test_throughput_is_reported(tmp_path):
     assert all(float(r["frames_per_s"]) > 0 for r in rows)
 
 
+class SlowFrames(ToyFrames):
+    """Frames whose loading moves a fake clock 0.25 s each."""
+
+    def __init__(self, n: int, clock: FakeClock) -> None:
+        super().__init__(n)
+        self.clock = clock
+
+    def __getitem__(self, i: int) -> dict:
+        self.clock.t += 0.25
+        return super().__getitem__(i)
+
+
 def test_data_wait_is_measured(tmp_path, monkeypatch):
     """The time spent fetching batches (a loader in the main process here, on a clock only loading moves)."""
     clock = FakeClock()
     monkeypatch.setattr(train_loop, "_clock", clock)
 
-    class SlowFrames(ToyFrames):
-        def __getitem__(self, i: int) -> dict:
-            clock.t += 0.25
-            return super().__getitem__(i)
-
-    result = fit(ToyModel(), SlowFrames(8), collate, config(epochs=2), tmp_path)
+    result = fit(ToyModel(), SlowFrames(8, clock), collate, config(epochs=2), tmp_path)
     assert result.data_seconds == pytest.approx(0.25 * 16)
     assert result.train_seconds == pytest.approx(result.data_seconds)  # nothing else moved the clock
     assert "(100 % waiting for data)" in (tmp_path / "train.log").read_text()
+
+
+def test_summary_json_says_where_the_time_went(tmp_path, monkeypatch):
+    """summary.json: training (data wait within it), evaluation and checkpoint time apart, on a clock only
+    loading (0.25 s a frame), steps (2 s each) and the evaluator (3 s a call) move."""
+    clock = FakeClock()
+    monkeypatch.setattr(train_loop, "_clock", clock)
+
+    def evaluator(predictions, frames):
+        clock.t += 3.0
+        return {"frames": float(len(predictions))}, ""
+
+    result = fit(ToyModel(clock=clock, step_seconds=2.0), SlowFrames(8, clock), collate, config(epochs=2, eval_every=1),
+                 tmp_path, val_dataset=ToyFrames(5, seed=3), evaluator=evaluator)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    # 2 epochs x 2 steps of 4 frames: 16 frames loaded (4 s), 4 steps (8 s); 2 evaluations (6 s)
+    assert summary["frames"] == 16 and summary["steps"] == 4 and summary["world_size"] == 1
+    assert summary["train_seconds"] == pytest.approx(12.0) and summary["eval_seconds"] == pytest.approx(6.0)
+    assert summary["ranks"] == [{"rank": 0, "frames": 16, "steps": 4, "train_seconds": pytest.approx(12.0),
+                                 "data_seconds": pytest.approx(4.0), "frames_per_s": pytest.approx(12 / 9)}]
+    assert summary["wall_seconds"] == pytest.approx(18.0)  # nothing else moved the clock
+    assert summary["global_batch_size"] == 4 and summary["metrics"] == {"frames": 5.0}
+    assert result.eval_seconds == pytest.approx(6.0) and result.wall_seconds == pytest.approx(18.0)
 
 
 # ---- DDP on CPU (gloo, 2 processes) ----
@@ -555,6 +585,11 @@ def test_ddp_matches_one_process_on_the_concatenated_batch(ddp_run, tmp_path):
     results = [json.loads((ddp_run / f"result_{r}.json").read_text()) for r in range(2)]
     assert all(r["world_size"] == 2 and r["global_step"] == 3 for r in results)
     assert results[0]["fps_total"] == pytest.approx(results[0]["fps"] + results[1]["fps"])
+    summary = json.loads((ddp_run / "summary.json").read_text())  # written once, by rank 0, of both ranks
+    assert summary["world_size"] == 2 and summary["global_batch_size"] == 2 * DDP_BATCH
+    assert [r["rank"] for r in summary["ranks"]] == [0, 1]
+    assert [r["frames"] for r in summary["ranks"]] == [3 * DDP_BATCH] * 2 and summary["frames"] == 6 * DDP_BATCH
+    assert summary["frames_per_s_total"] == pytest.approx(results[0]["fps_total"])
 
 
 @pytest.mark.slow
