@@ -238,9 +238,9 @@ def allreduce_rows(gpus: int, args: argparse.Namespace, params: dict[str, int]) 
     ms = {int(k): v for k, v in json.loads(out.read_text()).items()}
     rows = []
     for task, numel in params.items():
+        bus = 2 * (gpus - 1) / gpus * 4 * numel / ms[numel] / 1e6  # ring all-reduce bus bandwidth, GB/s
         rows.append({"op": "scaling", "case": f"allreduce_{task}", "task": "allreduce", "gpus": gpus,
-                     "parameters": numel, "allreduce_ms": round(ms[numel], 3),
-                     "bus_gb_per_s": round(2 * (gpus - 1) / gpus * 4 * numel / ms[numel] / 1e6, 1) if gpus > 1 else None})
+                     "parameters": numel, "allreduce_ms": round(ms[numel], 3), "bus_gb_per_s": round(bus, 1)})
         print(f"all-reduce of {task}'s {numel / 1e6:.2f} M gradients on {gpus}: {ms[numel]:.3f} ms", flush=True)
     return rows
 

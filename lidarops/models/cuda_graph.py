@@ -249,7 +249,9 @@ class GraphedPointPillars:
                     body()
             torch.cuda.current_stream().wait_stream(side)
             self._graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(self._graph):
+            # thread_local: a DataLoader's pin-memory thread allocating pinned buffers meanwhile (the index
+            # build) must not invalidate this capture, as the default global mode lets it
+            with torch.cuda.graph(self._graph, capture_error_mode="thread_local"):
                 self._out = body()
 
     def _check(self, points: Tensor, name: str) -> None:

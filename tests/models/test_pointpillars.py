@@ -640,6 +640,45 @@ def test_graphed_pointpillars_equals_predict():
         GraphedPointPillars(PointPillars({**TINY, "backbone_mode": "sparse"}).cuda())
 
 
+@pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
+                    reason="needs a GPU and lidarops built with CUDA kernels")
+def test_graph_records_while_another_thread_pins_memory():
+    """The index build records its graph while its DataLoader's pin-memory thread pins batches: a capture
+    in torch's default (global) mode is invalidated by that thread's CUDA calls; the graph must still be
+    recorded and give predict's detections."""
+    import threading
+
+    from lidarops.models.cuda_graph import GraphedPointPillars
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1}).cuda().eval()
+    with torch.no_grad():
+        model.dense_head.conv_cls.bias.zero_()
+    stop, started = threading.Event(), threading.Event()
+
+    def pin_loop():
+        i = 0
+        while not stop.is_set():  # sizes the host allocator has not cached yet, and copies from them
+            batch = torch.empty(4096 * (1 + i % 256) + i, dtype=torch.float32).pin_memory()
+            batch[:8].cuda()
+            started.set()
+            i += 1
+
+    thread = threading.Thread(target=pin_loop, daemon=True)
+    thread.start()
+    try:
+        started.wait(30)
+        graphed = GraphedPointPillars(model, capacity=1000, batch_size=2)
+    finally:
+        stop.set()
+        thread.join()
+    g = torch.Generator().manual_seed(7)
+    frames = [(torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0])
+               + torch.tensor([0, -4.0, -3, 0])).cuda() for n in (400, 1000)]
+    kept = [_same_as_predict(model, f, det, f"frame {i}") for i, (f, det) in enumerate(zip(frames, graphed(frames)))]
+    assert sum(kept) > 0, "the case must keep boxes"
+
+
 @pytest.mark.parametrize("multi", [False, True])
 def test_padded_inference_equals_per_frame_predict(multi):
     """The graph's body run eagerly (any device): a batch of frames padded to one size gives each frame's own
