@@ -205,7 +205,7 @@ def allreduce_probe(numels: list[int], out: Path) -> None:
     device = torch.device("cuda", local) if cuda else torch.device("cpu")
     if cuda:
         torch.cuda.set_device(device)
-    dist.init_process_group("nccl" if cuda else "gloo")
+    dist.init_process_group("nccl" if cuda else "gloo", device_id=device if cuda else None)
     results = {}
     for numel in numels:
         x = torch.ones(numel, dtype=torch.float32, device=device)
@@ -272,24 +272,26 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cases = [c for c in dict.fromkeys(r["case"] for r in rows) if not c.startswith("allreduce")
-             and c != "train_pointpillars_syncbn"]
+    ones = {r["case"] for r in rows if r["gpus"] == 1}  # cases measured on 1 GPU and more: the scaling curves
+    cases = [c for c in dict.fromkeys(r["case"] for r in rows) if c in ones and len({r["gpus"] for r in rows if r["case"] == c}) > 1]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     gmax = max(r["gpus"] for r in rows)
+    axes[0].plot([1, gmax], [1, gmax], ":", color="gray", lw=1)
     for case in cases:
         pts = sorted((r["gpus"], r["frames_per_s"], r.get("efficiency", 1.0)) for r in rows if r["case"] == case)
         g, fps, eff = zip(*pts)
-        axes[0].plot(g, fps, "o-", label=case)
-        axes[0].plot([1, gmax], [fps[0], fps[0] * gmax], ":", color=axes[0].lines[-1].get_color(), lw=1)
+        label = f"{case} ({' / '.join(f'{f:.0f}' for f in fps)} frames/s)"
+        axes[0].plot(g, [f / fps[0] for f in fps], "o-", label=label)
         axes[1].plot(g, [100 * e for e in eff], "o-", label=case)
-    axes[0].set(xlabel="GPUs", ylabel="frames/s (all GPUs)", title="throughput (dotted: linear)")
+    axes[0].set(xlabel="GPUs", ylabel="speed-up over 1 GPU", title="speed-up (dotted: linear)")
+    axes[0].legend(fontsize=7, loc="upper left")
     axes[1].axhline(90, color="gray", ls="--", lw=1)
     axes[1].set(xlabel="GPUs", ylabel="scaling efficiency (%)", title="efficiency (dashed: 90 % target)",
                 ylim=(0, 110))
     for ax in axes:
         ax.set_xticks(sorted({r["gpus"] for r in rows}))
         ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=8, loc="lower left")
+
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -318,7 +320,8 @@ def main() -> int:
     p.add_argument("--json", action="store_true")
     p.add_argument("--plot", type=Path, default=None)
     p.add_argument("--prepare", action="store_true", help="only make the data and scans of --tasks, then stop")
-    p.add_argument("--replot", action="store_true", help="only draw --plot from the device's result file")
+    p.add_argument("--replot", type=Path, default=None, metavar="RESULTS_JSON",
+                   help="only draw --plot from the 'scaling' rows of a result file")
     p.add_argument("--allreduce-probe", default=None, help=argparse.SUPPRESS)
     p.add_argument("--probe-out", type=Path, default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -326,11 +329,11 @@ def main() -> int:
         allreduce_probe([int(n) for n in args.allreduce_probe.split(",")], args.probe_out)
         return 0
     if args.replot:
-        from benchmarks.common import read_results, results_path
+        from benchmarks.common import read_results
 
         if not args.plot:
             p.error("--replot needs --plot PATH")
-        rows = read_results(results_path(args.device))["sections"]["scaling"]["rows"]
+        rows = read_results(args.replot)["sections"]["scaling"]["rows"]
         plot([r for r in rows if "frames_per_s" in r], args.plot)
         return 0
     gpus = [int(g) for g in args.gpus.split(",")]

@@ -228,3 +228,51 @@ def test_bm_counternet_quick_cpu_writes_result_rows(tmp_path, capsys):
             assert r["frames_per_s"] == pytest.approx(r["batch"] * 1e3 / r["median_ms"], rel=1e-3)
     out = capsys.readouterr().out
     assert "== CounterNet vs the PointPillars counter" in out and "wrote" in out
+
+
+def _counts_index(root, frames, cars, source="detector"):
+    from lidarops.query import FrameIndex
+
+    return FrameIndex.create(root, {"frame_id": list(frames), "Car": list(cars), "Pedestrian": [1] * len(frames)},
+                             source=source)
+
+
+def test_bm_scaling_union_check_finds_missing_duplicated_and_changed_frames(tmp_path):
+    """compare_indexes: a faithful union passes; a frame left out, a frame counted differently and a part
+    written twice (two ranks counting the same frames) are each found."""
+    pytest.importorskip("duckdb")
+    import shutil
+
+    from benchmarks.bm_scaling import compare_indexes
+
+    _counts_index(tmp_path / "one", range(10), range(10))
+    _counts_index(tmp_path / "same", range(10), range(10))
+    assert compare_indexes(tmp_path / "one", tmp_path / "same", range(10)) == {
+        "frames": 10, "missing": 0, "extra": 0, "duplicated": 0, "counts_differ": 0, "compared": 10}
+    cars = list(range(9))
+    cars[3] = 7
+    _counts_index(tmp_path / "bad", range(9), cars)
+    got = compare_indexes(tmp_path / "one", tmp_path / "bad", range(10))
+    assert (got["missing"], got["extra"], got["duplicated"], got["counts_differ"]) == (1, 0, 0, 1)
+    _counts_index(tmp_path / "twice", range(10), range(10))
+    parts = tmp_path / "twice" / "counts" / "detector"
+    shutil.copy(next(parts.glob("*.parquet")), parts / "part-r001-00000.parquet")
+    got = compare_indexes(tmp_path / "one", tmp_path / "twice", list(range(10)) + [11])
+    assert (got["frames"], got["missing"], got["duplicated"], got["counts_differ"]) == (20, 1, 10, 0)
+
+
+@pytest.mark.slow
+def test_bm_scaling_allreduce_probe_under_torchrun(tmp_path, capsys):
+    """The all-reduce bound, as the benchmark launches it: 2 gloo processes under torchrun, the sum checked
+    inside the probe, one row with the detector's gradient size."""
+    from benchmarks import bm_scaling
+
+    argv = sys.argv
+    sys.argv = ["bm_scaling.py", "--device", "cpu", "--gpus", "1,2", "--tasks", "allreduce", "--work", str(tmp_path)]
+    try:
+        assert bm_scaling.main() == 0
+    finally:
+        sys.argv = argv
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [(r["case"], r["gpus"]) for r in rows] == [("allreduce_pointpillars", 2)]
+    assert rows[0]["parameters"] > 4_000_000 and rows[0]["allreduce_ms"] > 0

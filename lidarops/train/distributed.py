@@ -62,7 +62,9 @@ class DistContext:
         ctx = cls(rank=rank, world_size=world, local_rank=local_rank, device=dev)
         if world > 1:
             if not dist.is_initialized():
-                dist.init_process_group(backend="nccl" if dev.type == "cuda" else "gloo")
+                # device_id binds this rank's GPU: NCCL need not guess it from the rank, and barriers use it
+                dist.init_process_group(backend="nccl" if dev.type == "cuda" else "gloo",
+                                        device_id=dev if dev.type == "cuda" else None)
                 owns = True
             ctx.owns_group = owns
             ctx.control_group = (dist.new_group(backend="gloo") if dist.get_backend() != "gloo"
