@@ -276,3 +276,27 @@ def test_bm_scaling_allreduce_probe_under_torchrun(tmp_path, capsys):
     rows = json.loads((tmp_path / "rows.json").read_text())
     assert [(r["case"], r["gpus"]) for r in rows] == [("allreduce_pointpillars", 2)]
     assert rows[0]["parameters"] > 4_000_000 and rows[0]["allreduce_ms"] > 0
+
+
+def test_bm_sim2real_frame_figures_on_a_hand_made_frame():
+    """A car detected 0.4 m too low (3D IoU 1.1 / 1.9 = 0.58: found at 0.5, not at 0.7; found in bird's-eye
+    view), a second detection of it (one-to-one: not found twice, not a false positive), a detection on a
+    labelled Van (not a Car, not a false positive), and two detections on nothing (false positives at 0.55
+    and 0.4)."""
+    import numpy as np
+
+    from benchmarks.bm_sim2real import frame_figures
+
+    car = [10.0, 0.0, -0.8, 4.0, 1.7, 1.5, 0.0]
+    gt = np.array([car, [5.0, 3.0, -0.9, 0.8, 0.6, 1.7, 0.0], [20.0, 5.0, -0.6, 5.0, 2.0, 2.0, 0.3]])
+    low = car[:2] + [car[2] - 0.4] + car[3:]
+    det = np.array([low, low, [20.0, 5.0, -0.6, 5.0, 2.0, 2.0, 0.3], [40.0, -10.0, -0.8, 4.0, 1.7, 1.5, 0.0],
+                    [5.0, 6.0, -0.9, 0.8, 0.6, 1.7, 0.0]])
+    scores = np.array([0.9, 0.6, 0.8, 0.55, 0.4])
+    out = frame_figures(gt, ["Car", "Pedestrian", "Van"], det, scores, ["Car", "Car", "Car", "Car", "Pedestrian"])
+    assert out["labelled"] == {"Car": 1, "Pedestrian": 1, "Cyclist": 0}
+    assert out["found"][("Car", "3d", 0.5)] == 1 and out["found"][("Car", "3d", 0.7)] == 0
+    assert out["found"][("Car", "bev", 0.5)] == 1 and out["found"][("Pedestrian", "bev", 0.5)] == 0
+    assert out["fp"] == {0.3: 2, 0.5: 1}
+    np.testing.assert_allclose(out["errors"]["Car"], [[-0.4, -0.4, -0.4, 0.0, 0.0, 0.0]], atol=1e-9)
+    assert out["errors"]["Pedestrian"].shape == (0, 6)

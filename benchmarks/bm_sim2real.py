@@ -1,0 +1,265 @@
+"""The detector on real LiDAR scans, and simulated against real statistics side by side: the yardstick of the
+simulator's realism (issue 40).
+
+    bash tools/sim2real/kitti_real_frames.sh                       # 6 real KITTI frames out of OpenPCDet's history
+    python tools/sim2real/mmdet3d_demo_frame.py MMDET3D_GIT .peers/kitti_real   # and mmdetection3d's frame 000008
+    python benchmarks/bm_sim2real.py --real .peers/kitti_real --plot docs/img/sim2real.png --json
+
+The real frames are KITTI's (non-commercial, share-alike licence): they are brought to the machine at run time
+and never committed. For each ``--checkpoint`` (default: the shipped ``pointpillars_synth``) and each real frame
+(points the camera sees, as the detector was trained):
+
+* **found / labelled** per class: labelled objects matched one-to-one (greedy by score, same class) by a
+  detection of 3D IoU >= each threshold (Car 0.5 and KITTI's 0.7; Pedestrian and Cyclist 0.25 and 0.5), and of
+  bird's-eye IoU >= 0.5;
+* **false positives per frame** above scores 0.3 and 0.5: detections whose bird's-eye IoU with every labelled
+  box (any type: Van, Truck, Misc too; DontCare has no box) is below 0.1;
+* **errors of the found boxes** (bird's-eye IoU >= 0.5): centre height, bottom, top, length, width, height,
+  detection minus label, in metres.
+
+And the statistics of the real frames beside ``--sim-frames`` simulated ``driving_city`` frames (held-out seed,
+the same camera view): intensity of all points and of points on cars, the share of car returns with intensity
+0, points per car against range, and the share of a car's returns in the bottom, middle and top third of its
+height. ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.common import env_meta, print_table, write_results  # noqa: E402
+
+CLASSES = ("Car", "Pedestrian", "Cyclist")
+THRESHOLDS_3D = {"Car": (0.5, 0.7), "Pedestrian": (0.25, 0.5), "Cyclist": (0.25, 0.5)}
+FP_SCORES = (0.3, 0.5)
+BANDS = ("bottom", "middle", "top")
+
+
+def greedy_match(iou: np.ndarray, scores: np.ndarray, thresh: float) -> np.ndarray:
+    """One-to-one matches of detections (rows, taken by falling score) to labels (columns) with IoU >=
+    ``thresh``; returns, per label, the matched detection's row or -1."""
+    matched = np.full(iou.shape[1], -1, np.int64)
+    for d in np.argsort(-scores, kind="stable"):
+        if iou.shape[1] == 0:
+            break
+        free = np.where(matched < 0, iou[d], -1.0)
+        j = int(np.argmax(free))
+        if free[j] >= thresh:
+            matched[j] = d
+    return matched
+
+
+def frame_figures(gt_boxes: np.ndarray, gt_names: list[str], det_boxes: np.ndarray, det_scores: np.ndarray,
+                  det_names: list[str]) -> dict:
+    """One frame's counts: ``found[(class, kind, thresh)]``, ``labelled[class]``, ``fp[score]`` and the
+    errors of the boxes found at bird's-eye IoU 0.5, ``errors[class]`` (rows of centre-z, bottom, top, dx, dy,
+    dz differences)."""
+    from lidarops import box_iou_3d, box_iou_bev
+
+    t = lambda a: torch.as_tensor(np.asarray(a, np.float64).reshape(-1, 7))  # noqa: E731
+    out: dict = {"found": {}, "labelled": {}, "fp": {}, "errors": {}}
+    for cls in CLASSES:
+        g = [i for i, n in enumerate(gt_names) if n == cls]
+        d = [i for i, n in enumerate(det_names) if n == cls]
+        out["labelled"][cls] = len(g)
+        gb, db, ds = gt_boxes[g], det_boxes[d], det_scores[d]
+        iou3 = box_iou_3d(t(db), t(gb)).numpy() if len(g) and len(d) else np.zeros((len(d), len(g)))
+        bev = box_iou_bev(t(db), t(gb)).numpy() if len(g) and len(d) else np.zeros((len(d), len(g)))
+        for th in THRESHOLDS_3D[cls]:
+            out["found"][(cls, "3d", th)] = int((greedy_match(iou3, ds, th) >= 0).sum())
+        m = greedy_match(bev, ds, 0.5)
+        out["found"][(cls, "bev", 0.5)] = int((m >= 0).sum())
+        rows = []
+        for j, k in enumerate(m):
+            if k >= 0:
+                a, b = db[k], gb[j]
+                rows.append([a[2] - b[2], (a[2] - a[5] / 2) - (b[2] - b[5] / 2), (a[2] + a[5] / 2) - (b[2] + b[5] / 2),
+                             a[3] - b[3], a[4] - b[4], a[5] - b[5]])
+        out["errors"][cls] = np.asarray(rows, np.float64).reshape(-1, 6)
+    any_bev = box_iou_bev(t(det_boxes), t(gt_boxes)).numpy() if len(gt_boxes) and len(det_boxes) else \
+        np.zeros((len(det_boxes), len(gt_boxes)))
+    alone = any_bev.max(axis=1) < 0.1 if any_bev.shape[1] else np.ones(len(det_boxes), bool)
+    for s in FP_SCORES:
+        out["fp"][s] = int((alone & (det_scores >= s)).sum())
+    return out
+
+
+def object_stats(points: np.ndarray, boxes: np.ndarray, names: list[str]) -> dict:
+    """Per car: range, points, their intensities and the share in each height band."""
+    from lidarops import points_in_boxes
+
+    cars = [i for i, n in enumerate(names) if n == "Car"]
+    if not cars or not len(points):
+        return {"range": [], "points": [], "intensity": np.zeros(0), "bands": np.zeros((0, 3))}
+    idx = points_in_boxes(torch.as_tensor(points[:, :3], dtype=torch.float64),
+                          torch.as_tensor(boxes[cars], dtype=torch.float64)).numpy()
+    rng, npts, inten, bands = [], [], [], []
+    for k, i in enumerate(cars):
+        p = points[idx == k]
+        b = boxes[i]
+        rng.append(float(np.hypot(b[0], b[1])))
+        npts.append(len(p))
+        inten.append(p[:, 3])
+        if len(p):
+            h = np.clip((p[:, 2] - (b[2] - b[5] / 2)) / b[5], 0, 0.999)
+            bands.append(np.bincount((h * 3).astype(int), minlength=3) / len(p))
+    return {"range": rng, "points": npts, "intensity": np.concatenate(inten) if inten else np.zeros(0),
+            "bands": np.asarray(bands).reshape(-1, 3)}
+
+
+def real_frames(root: Path):
+    from lidarops.data.formats.kitti import KittiDataset
+
+    ds = KittiDataset(root, image_set="val", unknown="keep", fov="camera")
+    for i in range(len(ds)):
+        f = ds[i]
+        names = list(f.meta["kitti"].names) if "kitti" in f.meta else []  # KITTI's types: Van, Truck, Misc too
+        yield f.meta["frame_id"], f.points, f.boxes, names
+
+
+def sim_frames(n: int):
+    from lidarops.conventions import HELD_OUT_SEED
+    from lidarops.data.formats.kitti import KittiCalib, kitti_fov_mask
+    from lidarops.data.synthetic import SyntheticFrames
+
+    sim = SyntheticFrames("driving_city", num_frames=n, seed=HELD_OUT_SEED + 4242)
+    calib = KittiCalib.default()
+    for i in range(n):
+        f = sim[i]
+        keep = kitti_fov_mask(f.points, calib)
+        names = [f.class_names[k] if k >= 0 else "Other" for k in f.labels]
+        yield f"sim{i}", f.points[keep], f.boxes, names
+
+
+def detections(model, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    names = list(model.config.class_names)
+    pts = torch.as_tensor(points[:, :4], dtype=torch.float32)
+    with torch.no_grad():
+        det = model.predict({"points": torch.nn.functional.pad(pts, (1, 0)), "batch_size": 1})[0]
+    return (det["boxes"].double().numpy(), det["scores"].double().numpy(),
+            [names[k - 1] for k in det["labels"].tolist()])
+
+
+def summarize(figs: list[dict]) -> dict:
+    row: dict = {"frames": len(figs)}
+    for cls in CLASSES:
+        n = sum(f["labelled"][cls] for f in figs)
+        row[f"{cls}_labelled"] = n
+        for key in [k for k in figs[0]["found"] if k[0] == cls]:
+            found = sum(f["found"][key] for f in figs)
+            row[f"{cls}_found_{key[1]}{key[2]}"] = found
+        errs = np.concatenate([f["errors"][cls] for f in figs]) if figs else np.zeros((0, 6))
+        if len(errs):
+            for j, name in enumerate(("z_centre", "bottom", "top", "dx", "dy", "dz")):
+                row[f"{cls}_err_{name}_m"] = round(float(errs[:, j].mean()), 3)
+    for s in FP_SCORES:
+        row[f"fp_per_frame_above_{s}"] = round(sum(f["fp"][s] for f in figs) / max(len(figs), 1), 2)
+    return row
+
+
+def data_stats(frames) -> dict:
+    allint, cars = [], []
+    for _, points, boxes, names in frames:
+        allint.append(points[:, 3])
+        cars.append(object_stats(points, boxes, names))
+    inten = np.concatenate(allint)
+    car_int = np.concatenate([c["intensity"] for c in cars])
+    bands = np.concatenate([c["bands"] for c in cars])
+    return {"intensity": inten, "car_intensity": car_int, "range": sum((c["range"] for c in cars), []),
+            "points": sum((c["points"] for c in cars), []), "bands": bands,
+            "row": {"points": int(len(inten)), "median_intensity": round(float(np.median(inten)), 3),
+                    "zero_intensity_share": round(float((inten == 0).mean()), 3),
+                    "car_points": int(len(car_int)),
+                    "car_median_intensity": round(float(np.median(car_int)), 3) if len(car_int) else None,
+                    "car_zero_intensity_share": round(float((car_int == 0).mean()), 3) if len(car_int) else None,
+                    **{f"car_share_{b}": round(float(bands[:, k].mean()), 3) if len(bands) else None
+                       for k, b in enumerate(BANDS)}}}
+
+
+def plot(real: dict, sim: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(2, 2, figsize=(10, 7.5))
+    bins = np.linspace(0, 1, 41)
+    for a, key, title in ((ax[0, 0], "intensity", "intensity, all points the camera sees"),
+                          (ax[0, 1], "car_intensity", "intensity of the returns on cars")):
+        for d, name in ((real, "real KITTI"), (sim, "simulated")):
+            if len(d[key]):
+                a.hist(d[key], bins=bins, density=True, histtype="step", lw=1.5,
+                       label=f"{name} (median {np.median(d[key]):.2f}, {100 * (d[key] == 0).mean():.0f} % zero)")
+        a.set(title=title, xlabel="intensity", ylabel="density")
+        a.legend(fontsize=8)
+    for d, name, m in ((real, "real KITTI", "o"), (sim, "simulated", "x")):
+        ax[1, 0].scatter(d["range"], d["points"], marker=m, s=18, label=name)
+    ax[1, 0].set(title="points per car against range", xlabel="range (m)", ylabel="points in the box", yscale="log")
+    ax[1, 0].legend(fontsize=8)
+    x = np.arange(3)
+    for k, (d, name) in enumerate(((real, "real KITTI"), (sim, "simulated"))):
+        if len(d["bands"]):
+            ax[1, 1].bar(x + 0.38 * k, d["bands"].mean(0), width=0.38, label=name)
+    ax[1, 1].set_xticks(x + 0.19, BANDS)
+    ax[1, 1].set(title="share of a car's returns by height third", ylabel="share")
+    ax[1, 1].legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    print(f"plot: {path}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--real", type=Path, default=ROOT / ".peers" / "kitti_real",
+                   help="KITTI folder of real frames (ImageSets/val.txt, training/velodyne, calib, label_2)")
+    p.add_argument("--checkpoint", nargs="+", default=["pointpillars_synth"], help="detectors: files or shipped names")
+    p.add_argument("--sim-frames", type=int, default=40)
+    p.add_argument("--plot", type=Path, default=None)
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    if not (args.real / "ImageSets" / "val.txt").is_file():
+        p.error(f"--real {args.real}: no ImageSets/val.txt; bring the real frames with "
+                "tools/sim2real/kitti_real_frames.sh (they are not in git)")
+    from lidarops.models import load_model, weights
+
+    real = list(real_frames(args.real))
+    rows = []
+    for ck in args.checkpoint:
+        path = weights.path(ck) if ck in weights.available() else ck
+        model = load_model(path).eval()
+        figs, top = [], 0.0
+        for fid, points, boxes, names in real:
+            db, ds, dn = detections(model, points)
+            figs.append(frame_figures(boxes.astype(np.float64), names, db, ds, dn))
+            top = max([top, *ds.tolist()])
+        row = {"op": "sim2real", "case": f"real_kitti:{Path(str(ck)).name}", "checkpoint": str(ck), **summarize(figs),
+               "max_score": round(top, 3)}
+        rows.append(row)
+        print(f"{ck}: " + ", ".join(f"{c} {row[f'{c}_found_3d{THRESHOLDS_3D[c][0]}']}/{row[f'{c}_labelled']} at 3D "
+                                    f"{THRESHOLDS_3D[c][0]}" for c in CLASSES)
+              + f"; false positives per frame above 0.5: {row['fp_per_frame_above_0.5']}", flush=True)
+    rstats = data_stats(real)
+    sstats = data_stats(sim_frames(args.sim_frames))
+    rows.append({"op": "sim2real", "case": "stats:real_kitti", "frames": len(real), **rstats["row"]})
+    rows.append({"op": "sim2real", "case": "stats:simulated_driving_city", "frames": args.sim_frames, **sstats["row"]})
+    keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
+            "car_share_bottom", "car_share_middle", "car_share_top"]
+    print_table("real against simulated", keys, [[r.get(k, "") for k in keys] for r in rows[-2:]],
+                right=range(1, len(keys)))
+    if args.plot:
+        plot(rstats, sstats, args.plot)
+    if args.json:
+        print("results:", write_results("sim2real", "cpu", rows, env_meta("cpu"), replace_by="case"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
