@@ -124,12 +124,12 @@ def real_frames(root: Path):
         yield f.meta["frame_id"], f.points, f.boxes, names
 
 
-def sim_frames(n: int):
+def sim_frames(n: int, realism: str | None = None):
     from lidarops.conventions import HELD_OUT_SEED
     from lidarops.data.formats.kitti import KittiCalib, kitti_fov_mask
     from lidarops.data.synthetic import SyntheticFrames
 
-    sim = SyntheticFrames("driving_city", num_frames=n, seed=HELD_OUT_SEED + 4242)
+    sim = SyntheticFrames("driving_city", num_frames=n, seed=HELD_OUT_SEED + 4242, realism=realism)
     calib = KittiCalib.default()
     for i in range(n):
         f = sim[i]
@@ -183,7 +183,11 @@ def data_stats(frames) -> dict:
                        for k, b in enumerate(BANDS)}}}
 
 
-def plot(real: dict, sim: dict, path: Path) -> None:
+def _sim_name(profile: str | None) -> str:
+    return "simulated" + (f", realism {profile}" if profile else "")
+
+
+def plot(real: dict, sims: dict, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -193,21 +197,23 @@ def plot(real: dict, sim: dict, path: Path) -> None:
     bins = np.linspace(0, 1, 41)
     for a, key, title in ((ax[0, 0], "intensity", "intensity, all points the camera sees"),
                           (ax[0, 1], "car_intensity", "intensity of the returns on cars")):
-        for d, name in ((real, "real KITTI"), (sim, "simulated")):
+        for d, name in ((real, "real KITTI"), *((v, _sim_name(k)) for k, v in sims.items())):
             if len(d[key]):
                 a.hist(d[key], bins=bins, density=True, histtype="step", lw=1.5,
                        label=f"{name} (median {np.median(d[key]):.2f}, {100 * (d[key] == 0).mean():.0f} % zero)")
         a.set(title=title, xlabel="intensity", ylabel="density")
         a.legend(fontsize=8)
-    for d, name, m in ((real, "real KITTI", "o"), (sim, "simulated", "x")):
+    for (d, name), m in zip(((real, "real KITTI"), *((v, _sim_name(k)) for k, v in sims.items())), "ox+^"):
         ax[1, 0].scatter(d["range"], d["points"], marker=m, s=18, label=name)
     ax[1, 0].set(title="points per car against range", xlabel="range (m)", ylabel="points in the box", yscale="log")
     ax[1, 0].legend(fontsize=8)
     x = np.arange(3)
-    for k, (d, name) in enumerate(((real, "real KITTI"), (sim, "simulated"))):
+    series = ((real, "real KITTI"), *((v, _sim_name(k)) for k, v in sims.items()))
+    w = 0.8 / len(series)
+    for k, (d, name) in enumerate(series):
         if len(d["bands"]):
-            ax[1, 1].bar(x + 0.38 * k, d["bands"].mean(0), width=0.38, label=name)
-    ax[1, 1].set_xticks(x + 0.19, BANDS)
+            ax[1, 1].bar(x + w * k, d["bands"].mean(0), width=w, label=name)
+    ax[1, 1].set_xticks(x + 0.4 - w / 2, BANDS)
     ax[1, 1].set(title="share of a car's returns by height third", ylabel="share")
     ax[1, 1].legend(fontsize=8)
     fig.tight_layout()
@@ -222,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="KITTI folder of real frames (ImageSets/val.txt, training/velodyne, calib, label_2)")
     p.add_argument("--checkpoint", nargs="+", default=["pointpillars_synth"], help="detectors: files or shipped names")
     p.add_argument("--sim-frames", type=int, default=40)
+    p.add_argument("--realism", nargs="*", default=[None], help="the simulator's realism profiles to compare "
+                                                                   "(none: as cast; kitti)")
     p.add_argument("--plot", type=Path, default=None)
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
@@ -247,15 +255,18 @@ def main(argv: list[str] | None = None) -> int:
                                     f"{THRESHOLDS_3D[c][0]}" for c in CLASSES)
               + f"; false positives per frame above 0.5: {row['fp_per_frame_above_0.5']}", flush=True)
     rstats = data_stats(real)
-    sstats = data_stats(sim_frames(args.sim_frames))
     rows.append({"op": "sim2real", "case": "stats:real_kitti", "frames": len(real), **rstats["row"]})
-    rows.append({"op": "sim2real", "case": "stats:simulated_driving_city", "frames": args.sim_frames, **sstats["row"]})
+    sims = {}
+    for profile in [None if r in (None, "none") else r for r in args.realism]:
+        sims[profile] = data_stats(sim_frames(args.sim_frames, profile))
+        rows.append({"op": "sim2real", "case": "stats:simulated_driving_city" + (f":{profile}" if profile else ""),
+                     "frames": args.sim_frames, "realism": profile, **sims[profile]["row"]})
     keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
             "car_share_bottom", "car_share_middle", "car_share_top"]
-    print_table("real against simulated", keys, [[r.get(k, "") for k in keys] for r in rows[-2:]],
+    print_table("real against simulated", keys, [[r.get(k, "") for k in keys] for r in rows[-1 - len(sims):]],
                 right=range(1, len(keys)))
     if args.plot:
-        plot(rstats, sstats, args.plot)
+        plot(rstats, sims, args.plot)
     if args.json:
         print("results:", write_results("sim2real", "cpu", rows, env_meta("cpu"), replace_by="case"))
     return 0

@@ -167,6 +167,8 @@ def _command_line(args: argparse.Namespace) -> str:
         words += ["--sensor", args.sensor]
     if args.object_counts is not None:
         words += ["--object-counts", args.object_counts]
+    if getattr(args, "realism", None):
+        words += ["--realism", args.realism]
     if args.format == "kitti":
         words += ["--frames-per-scene", str(args.frames_per_scene), "--split", args.split,
                   "--val-fraction", repr(args.val_fraction), "--workers", str(args.workers)]
@@ -180,7 +182,8 @@ def _write_recipe(out: Path, args: argparse.Namespace, **fields) -> None:
     import lidarops
 
     recipe = {"format": args.format, "lidarops_version": lidarops.__version__, "command": _command_line(args),
-              "seed": args.seed, "sensor": args.sensor, "object_counts": args.object_counts, **fields}
+              "seed": args.seed, "sensor": args.sensor, "object_counts": args.object_counts,
+              "realism": getattr(args, "realism", None), **fields}
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2) + "\n")
 
 
@@ -190,7 +193,7 @@ def _synth_kitti(args: argparse.Namespace, out: Path, counts) -> None:
     tasks = []
     for entry in plan:
         source = {"scenario": entry["scenario"], "num_frames": entry["frames"], "seed": entry["seed"],
-                  "frames_per_scene": k, "sensor": args.sensor, "object_counts": counts}
+                  "frames_per_scene": k, "sensor": args.sensor, "object_counts": counts, "realism": args.realism}
         for lo in range(0, entry["frames"], k):  # a scene at a time, in chunks
             for start in range(lo, min(lo + k, entry["frames"]), _CHUNK_FRAMES):
                 tasks.append({"source": source, "out": str(out), "split": args.split, "first_id": entry["first_id"],
@@ -233,7 +236,7 @@ def synth(args: argparse.Namespace) -> int:
     if len(args.scenario) != 1 or len(args.frames) != 1:
         raise ValueError("--format pandaset writes one sequence: give one --scenario and one --frames")
     scenario, n_frames = args.scenario[0], args.frames[0]
-    sim = Simulator(scenario, seed=args.seed, sensor=args.sensor, object_counts=counts)
+    sim = Simulator(scenario, seed=args.seed, sensor=args.sensor, object_counts=counts, realism=args.realism)
     seq_dir = out / args.sequence
     poses, stamps = [], []
     for i in progress(range(n_frames), n_frames, f"{scenario} -> PandaSet", not args.no_progress):
@@ -324,6 +327,9 @@ def register(subparsers) -> None:
                    help=f"first scenario's seed (default {HELD_OUT_SEED}: frames no shipped model was trained on)")
     s.add_argument("--sensor", choices=("hdl64", "pandar64", "avia"), default=None,
                    help="sensor preset (default: the scenario's)")
+    s.add_argument("--realism", default=None, choices=("kitti",),
+                   help="a real sensor's intensity response and real vehicles' surfaces (glass, dark paint) on the "
+                        "returns: kitti (calibrated against KITTI's HDL-64E scans); default: as ray-cast")
     s.add_argument("--object-counts", default=None,
                    help="'dense', 'empty' or JSON such as '{\"Car\": 35, \"Pedestrian\": [0, 5]}' (default: the "
                         "scenario's)")

@@ -31,6 +31,7 @@ from lidarops.data._checks import integer, real
 from lidarops.data._raycast import cast_rays
 from lidarops.data.frame import CLASSES, Frame
 from lidarops.data.geometry import count_points_in_boxes, pose_matrix, wrap_angle
+from lidarops.data.realism import Realism, make_realism
 from lidarops.data.scenarios import SCENARIOS, build_scenario
 from lidarops.data.scene import SURFACE_KINDS, BoxSet, Scenario, _rng
 from lidarops.data.sensors import LidarSensor, RisleyLidar, SpinningLidar, avia, hdl64, make_sensor, pandar64
@@ -118,6 +119,8 @@ class Simulator:
             20 ms for spinning sensors and 50 ms for Risley sensors.  Results depend on it (it seeds the
             noise), not on how spans are requested.
         cache_blocks (int): how many generated blocks to keep in memory.
+        realism (str or Realism or None): a real sensor's intensity response and real vehicles' surfaces
+            applied to the returns (:mod:`lidarops.data.realism`; ``"kitti"``); ``None`` (default): as cast.
         **scenario_options: passed to the scenario builder (``ego_speed=...`` for driving scenes).
 
     Attributes:
@@ -127,9 +130,10 @@ class Simulator:
 
     def __init__(self, scenario: str = "driving_city", seed: int = 0, sensor: "str | LidarSensor | None" = None,
                  object_counts=None, block_duration: float | None = None, cache_blocks: int = 48,
-                 **scenario_options) -> None:
+                 realism: "str | Realism | None" = None, **scenario_options) -> None:
         self._init_args = dict(scenario=scenario, seed=seed, sensor=sensor, object_counts=object_counts,
-                               block_duration=block_duration, cache_blocks=cache_blocks, **scenario_options)
+                               block_duration=block_duration, cache_blocks=cache_blocks, realism=realism,
+                               **scenario_options)
         if not isinstance(scenario, str) or scenario not in SCENARIOS:
             raise ValueError(f"unknown scenario {scenario!r}: scenario must be one of {sorted(SCENARIOS)}")
         self.seed = integer(seed, "seed", 0)
@@ -150,6 +154,14 @@ class Simulator:
         self._cache: OrderedDict[int, dict] = OrderedDict()
         self._boxes_of: tuple | None = None  # (static primitives, their boxes + the objects)
         self._cache_blocks = int(cache_blocks)
+        self.realism = make_realism(realism)
+        if self.realism is not None:  # its own random streams: frames without it stay what they were
+            name = self.scenario.name
+            self._beam_gain = self.realism.beam_gains(_rng(self.seed, name, "realism", "beams", self.sensor.name), 1024)
+            n_obj = len(self.scenario.objects)
+            vehicles = [CLASSES.index(c) for c in self.realism.vehicle_classes if c in CLASSES]
+            self._vehicle = np.isin(self.scenario.object_labels, vehicles)
+            self._dark = _rng(self.seed, name, "realism", "paint").random(n_obj) < self.realism.dark_paint
 
     def __getstate__(self) -> dict:
         # the scene holds closures (tile and material functions): pickle the arguments, rebuild on load
@@ -297,6 +309,8 @@ class Simulator:
         rng_m = distance + range_noise
         p_drop = 1.0 - (1.0 - sensor.dropout) * (1.0 - hits.extra_dropout[hit])
         keep = (distance <= detect_range) & (rng_m >= sensor.min_range) & (rng_m <= max_range) & (u >= p_drop)
+        if self.realism is not None:
+            zero = self._vehicle_surfaces(b, hits, hit, keep, origins, dirs_world, t, distance)
         sel = np.flatnonzero(keep)
         idx = hit[sel]
         rng_k = rng_m[sel]
@@ -305,6 +319,10 @@ class Simulator:
             refl[sel] * (0.3 + 0.7 * cos[sel])
             * np.exp((rng_k * (-1.0 / sensor.intensity_range_scale)).astype(np.float32))
             + intensity_noise, 0.0, 1.0)
+        if self.realism is not None:
+            weak = distance[sel] > self.realism.weak_from * detect_range[sel]
+            intensity = self.realism.intensity(intensity, hits.surface[idx], self._beam_gain[ring[idx % n_per]],
+                                               weak, zero[sel])
         points = np.empty((idx.size, 4), dtype=np.float32)
         for c in range(3):  # per component: NumPy's loops over [n, 3] arrays are several times slower
             np.multiply(dirs_sensor[idx, c], rng_k, out=points[:, c], casting="same_kind")
@@ -320,6 +338,26 @@ class Simulator:
             "object_visible": hits.object_visible,
             "rays": t.shape[0],
         }
+
+    def _vehicle_surfaces(self, b: int, hits, hit: np.ndarray, keep: np.ndarray, origins: np.ndarray,
+                          dirs: np.ndarray, t: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """Drops the vehicle returns that glass and round roofs lose (``keep`` in place); returns, per hit,
+        whether it reads zero intensity (dark paint, glass, tyres)."""
+        zero = np.zeros(hit.size, bool)
+        obj = hits.object_index[hit]
+        v = np.flatnonzero(keep & (obj >= 0))
+        v = v[self._vehicle[obj[v]]]
+        if v.size:
+            o, rays = obj[v], hit[v]
+            objects = self.scenario.objects
+            z = origins[rays, 2] + dirs[rays, 2] * distance[v]
+            bottom = objects.center[o, 2] + objects.velocity[o, 2] * t[rays] - objects.half[o, 2]
+            height = (z - bottom) / (2.0 * objects.half[o, 2])
+            rng = _rng(self.seed, self.scenario.name, "realism", "block", self.sensor.name, b)
+            back, reads_zero = self.realism.vehicle_returns(rng, height, self._dark[o])
+            keep[v[~back]] = False
+            zero[v] = reads_zero
+        return zero
 
     def _span(self, k0: int, k1: int) -> dict:
         """Concatenated block data for firings ``[k0, k1)``."""

@@ -1,0 +1,120 @@
+"""What a real spinning LiDAR reports that the ray caster alone does not: a sensor's intensity response and
+the surfaces of real vehicles (NumPy only).
+
+The ray caster sees a vehicle as a box and reports intensity as reflectivity, incidence and range. Real scans
+differ in ways measured by ``benchmarks/bm_sim2real.py`` on real KITTI frames ([docs/data.md]):
+
+* **Intensity.** KITTI's HDL-64E reports asphalt at about 0.27 near the car, falling with range. Weak
+  returns are reported as exactly 0: 72 % of the returns beyond 40 m and half of those on cars. Values come in
+  steps of 0.01.
+* **Vehicles are not boxes.** Windows return little (glass), and a rounded roof sends grazing rays away. So
+  only 14 % of a real car's returns lie in the top third of its box, against 45 % for a box.
+
+A :class:`Realism` applies these effects to the caster's returns:
+
+* it drops greenhouse returns (upper part of a vehicle's box);
+* it reads dark paint, glass and tyres as zero intensity;
+* it scales intensity per surface kind and per beam, zeroes weak returns near the detection limit, and
+  quantises.
+
+The simulator takes it as ``Simulator(..., realism="kitti")``. Its random numbers come from a stream of their
+own, so frames without it are exactly those of before.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from lidarops.data._checks import real
+
+__all__ = ["Realism", "REALISM_PRESETS", "make_realism"]
+
+
+@dataclass(frozen=True)
+class Realism:
+    """Effects of a real sensor and real vehicles on the simulated returns.
+
+    Attributes:
+        vehicle_classes (tuple[str, ...]): classes whose boxes get a vehicle's surfaces.
+        greenhouse_from (float): height fraction of the box above which lie windows and roof.
+        greenhouse_keep (float): probability that a greenhouse return comes back at all.
+        greenhouse_zero (float): probability that a greenhouse return that comes back reads 0 (glass).
+        dark_paint (float): share of vehicles with dark paint.
+        dark_zero, light_zero (float): probability that a body return of a dark or light vehicle reads 0.
+        tyre_band (float): height fraction below which lie tyres, bumpers and the shadowed underbody.
+        tyre_zero (float): probability that a return there reads 0.
+        surface_gain (tuple[float, ...]): intensity gain per ``SURFACE_KINDS`` code (none, ground,
+            structure, pole, vegetation, object).
+        beam_gain_std (float): spread of the per-beam intensity calibration (a gain drawn once per beam).
+        weak_from (float): returns beyond this fraction of their surface's detection range read 0.
+        quantum (float): intensity is reported in steps of this size (0: not quantised).
+    """
+
+    vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")
+    greenhouse_from: float = 0.62
+    greenhouse_keep: float = 0.12
+    greenhouse_zero: float = 0.7
+    dark_paint: float = 0.45
+    dark_zero: float = 0.75
+    light_zero: float = 0.1
+    tyre_band: float = 0.25
+    tyre_zero: float = 0.5
+    surface_gain: tuple[float, ...] = (1.0, 6.0, 1.5, 1.0, 1.0, 1.0)
+    beam_gain_std: float = 0.1
+    weak_from: float = 0.75
+    quantum: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name in ("greenhouse_from", "greenhouse_keep", "greenhouse_zero", "dark_paint", "dark_zero",
+                     "light_zero", "tyre_band", "tyre_zero", "weak_from"):
+            real(getattr(self, name), name, 0, 1)
+        real(self.beam_gain_std, "beam_gain_std", 0, 1)
+        real(self.quantum, "quantum", 0, 0.5)
+        if len(self.surface_gain) != 6:
+            raise ValueError(f"surface_gain must hold one gain per surface kind (6), got {self.surface_gain!r}")
+        for g in self.surface_gain:
+            real(g, "surface_gain", 0, 100)
+        if not self.vehicle_classes or not all(isinstance(c, str) for c in self.vehicle_classes):
+            raise ValueError(f"vehicle_classes must be class names, got {self.vehicle_classes!r}")
+
+    def beam_gains(self, rng: np.random.Generator, beams: int) -> np.ndarray:
+        """One intensity gain per beam (a sensor's calibration table), positive."""
+        return np.clip(1.0 + self.beam_gain_std * rng.standard_normal(beams), 0.5, 1.5)
+
+    def vehicle_returns(self, rng: np.random.Generator, height: np.ndarray, dark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For returns on vehicles at ``height`` (fraction of the box, 0 bottom, 1 top) of vehicles painted
+        ``dark`` (bool per return): which come back, and which of those read 0."""
+        u_keep, u_zero = rng.random(height.size), rng.random(height.size)
+        glass = height >= self.greenhouse_from
+        keep = ~glass | (u_keep < self.greenhouse_keep)
+        p_zero = np.where(dark, self.dark_zero, self.light_zero)
+        p_zero = np.where(height < self.tyre_band, np.maximum(p_zero, self.tyre_zero), p_zero)
+        p_zero = np.where(glass, self.greenhouse_zero, p_zero)
+        return keep, u_zero < p_zero
+
+    def intensity(self, raw: np.ndarray, surface: np.ndarray, beam_gain: np.ndarray, weak: np.ndarray,
+                  zero: np.ndarray) -> np.ndarray:
+        """The reported intensity: ``raw`` scaled per surface and beam, 0 where ``weak`` or ``zero``, quantised."""
+        gain = np.asarray(self.surface_gain, np.float32)[surface] * beam_gain.astype(np.float32)
+        x = raw * gain
+        # a soft knee above 0.6: bright markings amplified by the gains approach 1 instead of piling up on it
+        out = np.where(x < 0.6, x, 0.6 + 0.4 * np.tanh((x - 0.6) / 0.4)).astype(np.float32)
+        out[weak | zero] = 0.0
+        if self.quantum > 0:
+            out = np.round(out / self.quantum) * self.quantum
+        return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+#: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans).
+REALISM_PRESETS = {"kitti": Realism()}
+
+
+def make_realism(realism: "str | Realism | None") -> Realism | None:
+    """``None``, a preset name or a :class:`Realism` (returned as is)."""
+    if realism is None or isinstance(realism, Realism):
+        return realism
+    if isinstance(realism, str) and realism in REALISM_PRESETS:
+        return dataclasses.replace(REALISM_PRESETS[realism])
+    raise ValueError(f"realism must be None, a Realism or one of {sorted(REALISM_PRESETS)}, got {realism!r}")

@@ -1,0 +1,120 @@
+"""The simulator's realism profile (lidarops.data.realism): frames without it unchanged, frames with it a
+function of the seed, and the statistics it is calibrated for moved the way real KITTI scans have them
+(benchmarks/bm_sim2real.py measures them against the real scans themselves)."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from lidarops.data.frame import CLASSES
+from lidarops.data.realism import Realism, make_realism
+from lidarops.data.scene import SURFACE_GROUND, SURFACE_OBJECT
+from lidarops.data.synthetic import Simulator
+
+SEED = 7
+
+#: every effect off: the returns and their intensities as cast (below the knee at 0.6)
+NEUTRAL = Realism(greenhouse_keep=1.0, greenhouse_zero=0.0, dark_zero=0.0, light_zero=0.0, tyre_zero=0.0,
+                  surface_gain=(1.0,) * 6, beam_gain_std=0.0, weak_from=1.0, quantum=0.0)
+
+
+@pytest.fixture(scope="module")
+def sweeps():
+    kw = dict(object_counts="dense")
+    return {name: Simulator("driving_city", seed=SEED, realism=r, **kw).sweep(0)
+            for name, r in (("cast", None), ("neutral", NEUTRAL), ("kitti", "kitti"))}
+
+
+def _vehicle_stats(frame):
+    """Per vehicle return: its height fraction in its box, and its intensity."""
+    on = (frame.instance >= 0) & np.isin(frame.labels[np.maximum(frame.instance, 0)],
+                                         [CLASSES.index(c) for c in ("Car", "Truck", "Bus")])
+    box = frame.boxes[frame.instance[on]]
+    height = (frame.points[on, 2] - (box[:, 2] - box[:, 5] / 2)) / box[:, 5]
+    return np.clip(height, 0, 0.999), frame.points[on, 3]
+
+
+def test_without_realism_the_frames_are_those_of_before(sweeps):
+    """A neutral profile draws its own random numbers: the same returns, in the same order, with the same
+    positions and (below its knee) intensities as no profile at all."""
+    cast, neutral = sweeps["cast"], sweeps["neutral"]
+    np.testing.assert_array_equal(cast.points[:, :3], neutral.points[:, :3])
+    low = cast.points[:, 3] < 0.6
+    np.testing.assert_allclose(cast.points[low, 3], neutral.points[low, 3], rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(cast.instance, neutral.instance)
+
+
+def test_same_seed_same_frame_and_independent_of_request_order():
+    a = Simulator("driving_city", seed=SEED, realism="kitti")
+    b = Simulator("driving_city", seed=SEED, realism="kitti")
+    f1 = b.sweep(1)  # b generates frame 1 first
+    f0 = b.sweep(0)
+    np.testing.assert_array_equal(a.sweep(0).points, f0.points)
+    np.testing.assert_array_equal(a.sweep(1).points, f1.points)
+    other = Simulator("driving_city", seed=SEED + 1, realism="kitti").sweep(0)
+    assert other.points.shape != f0.points.shape or not np.array_equal(other.points, f0.points)
+
+
+def test_vehicles_lose_their_greenhouse_and_read_zero_as_real_cars_do(sweeps):
+    h_cast, i_cast = _vehicle_stats(sweeps["cast"])
+    h_real, i_real = _vehicle_stats(sweeps["kitti"])
+    top = lambda h: float((h >= 2 / 3).mean())  # noqa: E731
+    assert top(h_cast) > 0.28, "the box-shaped vehicles' roofs give many returns"
+    assert top(h_real) < min(0.2, top(h_cast) / 2), \
+        f"top third {top(h_real):.2f} (cast {top(h_cast):.2f}): glass and round roofs return little"
+    assert (i_cast == 0).mean() < 0.05
+    assert 0.3 < (i_real == 0).mean() < 0.7, "dark paint, glass and tyres read 0 on about half the returns"
+    assert len(h_real) < len(h_cast)  # the greenhouse returns dropped, not moved
+
+
+def test_intensity_is_calibrated_quantised_and_zero_when_weak(sweeps):
+    cast, real = sweeps["cast"], sweeps["kitti"]
+    i = real.points[:, 3]
+    assert ((i >= 0) & (i <= 1)).all()
+    np.testing.assert_allclose(i * 100, np.round(i * 100), atol=1e-3)  # steps of 0.01
+    ground_cast = np.median(cast.points[cast.surface == SURFACE_GROUND, 3])
+    ground_real = np.median(i[real.surface == SURFACE_GROUND])
+    assert ground_cast < 0.1 and 0.15 < ground_real < 0.4, (ground_cast, ground_real)
+    r = np.hypot(real.points[:, 0], real.points[:, 1])
+    far = (r > 45) & (real.surface == SURFACE_GROUND)
+    assert far.any() and (i[far] == 0).mean() > (i[(r < 15) & (real.surface == SURFACE_GROUND)] == 0).mean()
+    assert (i[real.surface == SURFACE_OBJECT] == 1.0).mean() < 0.01
+
+
+def test_vehicle_returns_follow_their_probabilities():
+    r = Realism()
+    rng = np.random.default_rng(0)
+    n = 200_000
+    height = rng.random(n)
+    dark = rng.random(n) < 0.5
+    keep, zero = r.vehicle_returns(np.random.default_rng(1), height, dark)
+    glass = height >= r.greenhouse_from
+    assert keep[~glass].all()
+    assert abs(keep[glass].mean() - r.greenhouse_keep) < 0.01
+    body = ~glass & (height >= r.tyre_band)
+    assert abs(zero[body & dark].mean() - r.dark_zero) < 0.01
+    assert abs(zero[body & ~dark].mean() - r.light_zero) < 0.01
+    tyre = height < r.tyre_band
+    assert abs(zero[tyre & ~dark].mean() - max(r.light_zero, r.tyre_zero)) < 0.01
+    assert abs(zero[glass].mean() - r.greenhouse_zero) < 0.01
+
+
+@pytest.mark.parametrize("field,value", [("greenhouse_keep", 1.5), ("dark_paint", -0.1), ("weak_from", float("nan")),
+                                         ("quantum", 0.9), ("beam_gain_std", 2.0)])
+def test_bad_parameters_are_named(field, value):
+    with pytest.raises(ValueError, match=field):
+        dataclasses.replace(Realism(), **{field: value})
+
+
+def test_bad_profiles_are_refused():
+    with pytest.raises(ValueError, match="surface_gain"):
+        Realism(surface_gain=(1.0, 2.0))
+    with pytest.raises(ValueError, match="vehicle_classes"):
+        Realism(vehicle_classes=())
+    with pytest.raises(ValueError, match="kitti"):
+        make_realism("carla")
+    with pytest.raises(ValueError, match="realism"):
+        Simulator("driving_city", seed=0, realism=3)
+    assert make_realism(None) is None and make_realism("kitti") == Realism()

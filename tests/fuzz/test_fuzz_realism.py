@@ -1,0 +1,71 @@
+"""Fuzz: the simulator's realism profile (lidarops.data.realism). Any parameter in its documented range gives
+intensities in [0, 1] on the quantum's grid, zero wherever a return is weak or reads zero, and a keep mask that
+never drops a return below the greenhouse; a parameter out of range (negative, above its bound, NaN, infinite)
+raises a ValueError naming it; a Simulator refuses what is not a profile.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from lidarops.data.realism import Realism, make_realism
+
+from .fuzzing import assert_clear_error, assert_no_error, fuzz, outcome
+
+UNIT = ("greenhouse_from", "greenhouse_keep", "greenhouse_zero", "dark_paint", "dark_zero", "light_zero",
+        "tyre_band", "tyre_zero", "weak_from")
+
+
+@st.composite
+def profiles(draw):
+    kw = {name: draw(st.floats(0, 1), name) for name in UNIT}
+    kw["beam_gain_std"] = draw(st.floats(0, 1), "beam_gain_std")
+    kw["quantum"] = draw(st.sampled_from([0.0, 0.01, 0.05, 0.5]), "quantum")
+    kw["surface_gain"] = tuple(draw(st.lists(st.floats(0, 100), min_size=6, max_size=6), "surface_gain"))
+    return Realism(**kw)
+
+
+@fuzz
+@given(profile=profiles(), n=st.integers(0, 300), seed=st.integers(0, 2**16))
+def test_any_profile_gives_intensities_on_its_grid(profile, n, seed):
+    rng = np.random.default_rng(seed)
+    raw = rng.random(n, dtype=np.float32) * rng.choice([0.1, 1.0, 3.0])
+    surface = rng.integers(0, 6, n)
+    beams = profile.beam_gains(rng, 64)
+    assert ((beams >= 0.5) & (beams <= 1.5)).all()
+    weak, zero = rng.random(n) < 0.2, rng.random(n) < 0.2
+    out, err = outcome(profile.intensity, raw, surface, beams[rng.integers(0, 64, n)], weak, zero)
+    assert_no_error(err, "intensity")
+    assert out.shape == (n,) and out.dtype == np.float32 and np.isfinite(out).all()
+    assert ((out >= 0) & (out <= 1)).all() and (out[weak | zero] == 0).all()
+    if profile.quantum > 0:
+        steps = out / profile.quantum
+        assert np.allclose(steps, np.round(steps), atol=1e-3)
+    height, dark = rng.random(n), rng.random(n) < 0.5
+    keep, reads_zero = profile.vehicle_returns(rng, height, dark)
+    assert keep.dtype == bool and reads_zero.dtype == bool and keep.shape == reads_zero.shape == (n,)
+    assert keep[height < profile.greenhouse_from].all()
+
+
+@fuzz
+@given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum")),
+       value=st.sampled_from([-0.5, 1.5, 2.0, float("nan"), float("inf"), -float("inf")]))
+def test_out_of_range_parameters_are_named(name, value):
+    _, err = outcome(dataclasses.replace, Realism(), **{name: value})
+    assert_clear_error(err, ValueError, [name], f"Realism({name}={value})")
+
+
+@fuzz
+@given(value=st.one_of(st.integers(), st.text(max_size=8), st.floats(allow_nan=True), st.none()))
+def test_make_realism_takes_profiles_and_names_only(value):
+    out, err = outcome(make_realism, value)
+    if value is None:
+        assert_no_error(err, "make_realism(None)")
+        assert out is None
+    elif value == "kitti":
+        assert out == Realism()
+    else:
+        assert_clear_error(err, ValueError, ["realism"], f"make_realism({value!r})")
