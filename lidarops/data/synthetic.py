@@ -161,6 +161,8 @@ class Simulator:
             n_obj = len(self.scenario.objects)
             vehicles = [CLASSES.index(c) for c in self.realism.vehicle_classes if c in CLASSES]
             self._vehicle = np.isin(self.scenario.object_labels, vehicles)
+            self._shaped = np.isin(self.scenario.object_labels,
+                                   [CLASSES.index(c) for c in self.realism.shaped_classes if c in CLASSES])
             self._dark = _rng(self.seed, name, "realism", "paint").random(n_obj) < self.realism.dark_paint
 
     def __getstate__(self) -> dict:
@@ -310,7 +312,8 @@ class Simulator:
         p_drop = 1.0 - (1.0 - sensor.dropout) * (1.0 - hits.extra_dropout[hit])
         keep = (distance <= detect_range) & (rng_m >= sensor.min_range) & (rng_m <= max_range) & (u >= p_drop)
         if self.realism is not None:
-            zero = self._vehicle_surfaces(b, hits, hit, keep, origins, dirs_world, t, distance)
+            zero = self._vehicle_surfaces(b, hits, hit, keep, origins, dirs_world, t, distance, rng_m, cos)
+            keep &= (distance <= detect_range) & (rng_m <= max_range)  # hoods and trunks lie farther
         sel = np.flatnonzero(keep)
         idx = hit[sel]
         rng_k = rng_m[sel]
@@ -340,9 +343,11 @@ class Simulator:
         }
 
     def _vehicle_surfaces(self, b: int, hits, hit: np.ndarray, keep: np.ndarray, origins: np.ndarray,
-                          dirs: np.ndarray, t: np.ndarray, distance: np.ndarray) -> np.ndarray:
-        """Drops the vehicle returns that glass and round roofs lose (``keep`` in place); returns, per hit,
-        whether it reads zero intensity (dark paint, glass, tyres)."""
+                          dirs: np.ndarray, t: np.ndarray, distance: np.ndarray, rng_m: np.ndarray,
+                          cos: np.ndarray) -> np.ndarray:
+        """Moves the returns of rays over a car's hood or trunk onto it and drops those that pass the car
+        (``distance``, ``rng_m``, ``cos`` and ``keep`` in place); drops the vehicle returns that glass and round
+        roofs lose; returns, per hit, whether it reads zero intensity (dark paint, glass, tyres)."""
         zero = np.zeros(hit.size, bool)
         obj = hits.object_index[hit]
         v = np.flatnonzero(keep & (obj >= 0))
@@ -350,9 +355,23 @@ class Simulator:
         if v.size:
             o, rays = obj[v], hit[v]
             objects = self.scenario.objects
-            z = origins[rays, 2] + dirs[rays, 2] * distance[v]
-            bottom = objects.center[o, 2] + objects.velocity[o, 2] * t[rays] - objects.half[o, 2]
-            height = (z - bottom) / (2.0 * objects.half[o, 2])
+            centre = objects.center[o] + objects.velocity[o] * t[rays, None]
+            yaw = objects.yaw[o] + objects.yaw_rate[o] * t[rays]
+            c, s = np.cos(yaw), np.sin(yaw)
+            rel = origins[rays] + dirs[rays] * distance[v, None] - centre
+            d = dirs[rays]
+            local = np.stack([c * rel[:, 0] + s * rel[:, 1], c * rel[:, 1] - s * rel[:, 0], rel[:, 2]], 1)
+            ldir = np.stack([c * d[:, 0] + s * d[:, 1], c * d[:, 1] - s * d[:, 0], d[:, 2]], 1)
+            shaped = np.flatnonzero(self._shaped[o])
+            if shaped.size:
+                extra, meets = self.realism.car_profile(local[shaped], ldir[shaped], objects.half[o[shaped]])
+                moved = shaped[extra > 0]
+                distance[v[moved]] += extra[extra > 0]
+                rng_m[v[moved]] += extra[extra > 0]
+                cos[v[moved]] = np.abs(d[moved, 2])  # the hood and the trunk lid are horizontal
+                local[shaped] += ldir[shaped] * extra[:, None]
+                keep[v[shaped[~meets]]] = False
+            height = local[:, 2] / (2.0 * objects.half[o, 2]) + 0.5
             rng = _rng(self.seed, self.scenario.name, "realism", "block", self.sensor.name, b)
             back, reads_zero = self.realism.vehicle_returns(rng, height, self._dark[o])
             keep[v[~back]] = False
