@@ -15,7 +15,8 @@ A :class:`Realism` applies these effects to the caster's returns:
 * it drops greenhouse returns (upper part of a vehicle's box);
 * it reads dark paint, glass and tyres as zero intensity;
 * it scales intensity per surface kind and per beam, zeroes weak returns near the detection limit, and
-  quantises.
+  quantises;
+* it adds street furniture and roadside clutter to city scenes (the scenario option ``street_clutter``).
 
 The simulator takes it as ``Simulator(..., realism="kitti")``. Its random numbers come from a stream of their
 own, so frames without it are exactly those of before.
@@ -56,6 +57,9 @@ class Realism:
         beam_gain_std (float): spread of the per-beam intensity calibration (a gain drawn once per beam).
         weak_from (float): returns beyond this fraction of their surface's detection range read 0.
         quantum (float): intensity is reported in steps of this size (0: not quantised).
+        street_clutter (float): density of the street furniture and roadside clutter added to ``driving_city``
+            scenes (kerbs, bollards, bins, parking meters, parked bicycles, bushes; the scenario option
+            ``street_clutter``, 1 about one piece per 6 m of pavement; 0 none).
     """
 
     vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")
@@ -75,6 +79,7 @@ class Realism:
     beam_gain_std: float = 0.1
     weak_from: float = 0.75
     quantum: float = 0.01
+    street_clutter: float = 1.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.cabin, tuple) and len(self.cabin) == 2
@@ -86,6 +91,7 @@ class Realism:
             real(getattr(self, name), name, 0, 1)
         real(self.beam_gain_std, "beam_gain_std", 0, 1)
         real(self.quantum, "quantum", 0, 0.5)
+        real(self.street_clutter, "street_clutter", 0, 10)
         if len(self.surface_gain) != 6:
             raise ValueError(f"surface_gain must hold one gain per surface kind (6), got {self.surface_gain!r}")
         for g in self.surface_gain:

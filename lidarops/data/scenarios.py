@@ -304,8 +304,63 @@ def _city_tile(ground: Ground, tile_length: float) -> Callable[[int, np.random.G
     return build
 
 
-def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, **unused) -> Scenario:
+def _street_clutter(ground: Ground, seed: int, density: float, k: int, x0: float, x1: float) -> StaticPrimitives:
+    """A city tile's street furniture and roadside clutter, the kind a detector must learn not to take for
+    objects: a kerb, and bollards, bins, parking meters and parked bicycles on the strip between the kerb and
+    the walkers, bushes along the facades. Everything keeps clear of the parking lane (|y| < 10.5) and of the
+    pedestrians' lanes (|y| 11.3 to 14.4), so no labelled box holds clutter. It draws from a random stream of
+    its own: without it, the tile's other primitives are what they were."""
+    rng = _rng(seed, "driving_city", "clutter", k)
+    b = _StaticBuilder(ground)
+    for side in (-1.0, 1.0):
+        x = x0
+        while x < x1:  # the kerb, in segments broken by driveways
+            length = min(rng.uniform(6.0, 25.0), x1 - x)
+            b.box_on_ground(x + length / 2, side * 10.7, length, 0.25, 0.14, refl=rng.uniform(0.25, 0.4), bury=0.1)
+            x += length + rng.uniform(0.0, 4.0)
+        n = rng.poisson(density * (x1 - x0) / 6.0)
+        for x in np.sort(rng.uniform(x0, x1, n)):
+            kind = rng.random()
+            if kind < 0.3:  # a row of bollards
+                for j in range(int(rng.integers(1, 5))):
+                    b.cylinder(x + 1.5 * j, side * 10.95, rng.uniform(0.06, 0.12), rng.uniform(0.7, 1.1),
+                               refl=rng.uniform(0.2, 0.6))
+            elif kind < 0.45:  # a rubbish bin
+                b.cylinder(x, side * 10.98, rng.uniform(0.2, 0.28), rng.uniform(0.9, 1.2), refl=rng.uniform(0.1, 0.4),
+                           kind=SURFACE_STRUCTURE)
+            elif kind < 0.55:  # a parking meter: a post and its head at chest height
+                b.cylinder(x, side * 10.95, 0.05, 1.2, refl=0.4)
+                g = float(ground.height(np.array([x]), np.array([side * 10.95]))[0])
+                b.box(x, side * 10.95, g + 1.35, 0.2, 0.15, 0.35, refl=0.35, kind=SURFACE_POLE)
+            elif kind < 0.7:  # a parked bicycle along the kerb
+                b.box_on_ground(x, side * 11.05, 1.7, 0.08, rng.uniform(0.9, 1.1), heading=rng.uniform(-0.15, 0.15),
+                                refl=rng.uniform(0.2, 0.5), bury=0.0)
+            else:  # a bush along a facade: many weak, scattered returns
+                r = rng.uniform(0.4, 1.0)
+                y = side * 15.3
+                g = float(ground.height(np.array([x]), np.array([y]))[0])
+                b.ellipsoid(x, y, g + r * 0.8, r, min(0.6, r), r * rng.uniform(0.7, 1.1), refl=rng.uniform(0.3, 0.6),
+                            mean_free_path=0.3)
+    return b.build()
+
+
+def _cluttered(tile_fn, ground: Ground, seed: int, density: float, tile_length: float):
+    """``tile_fn`` with each tile's street clutter added (``density`` 0: the tiles as they are)."""
+    if density <= 0:
+        return tile_fn
+
+    def build(k: int, rng: np.random.Generator) -> StaticPrimitives:
+        base = tile_fn(k, rng)
+        return StaticPrimitives.concat([base, _street_clutter(ground, seed, density, k, k * tile_length,
+                                                              (k + 1) * tile_length)])
+
+    return build
+
+
+def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
+                  **unused) -> Scenario:
     _no_unused(unused, "driving_city")
+    street_clutter = real(street_clutter, "street_clutter", 0, 10)
     rng = _rng(seed, "driving_city", "scene")
     ground = Ground.random(rng, material=_city_material)
     speed = float(rng.uniform(3.0, 12.0)) if ego_speed is None else _ego_speed(ego_speed)
@@ -347,7 +402,7 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
     objects, labels = placed.build()
     tile_length = 40.0
     return Scenario("driving_city", seed, "hdl64", ground, ego, objects, labels, 80.0, tile_length,
-                    _city_tile(ground, tile_length), done)
+                    _cluttered(_city_tile(ground, tile_length), ground, seed, street_clutter, tile_length), done)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -138,6 +138,9 @@ class Simulator:
             raise ValueError(f"unknown scenario {scenario!r}: scenario must be one of {sorted(SCENARIOS)}")
         self.seed = integer(seed, "seed", 0)
         cache_blocks = integer(cache_blocks, "cache_blocks", 0)
+        self.realism = make_realism(realism)
+        if self.realism is not None and scenario == "driving_city" and "street_clutter" not in scenario_options:
+            scenario_options = {**scenario_options, "street_clutter": self.realism.street_clutter}
         self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)
         self.sensor: LidarSensor = make_sensor(sensor if sensor is not None else self.scenario.default_sensor)
         if block_duration is None:  # batch sizes that run fastest: spinning 20 ms (72 deg of azimuth), Risley 50 ms
@@ -154,7 +157,6 @@ class Simulator:
         self._cache: OrderedDict[int, dict] = OrderedDict()
         self._boxes_of: tuple | None = None  # (static primitives, their boxes + the objects)
         self._cache_blocks = int(cache_blocks)
-        self.realism = make_realism(realism)
         if self.realism is not None:  # its own random streams: frames without it stay what they were
             name = self.scenario.name
             self._beam_gain = self.realism.beam_gains(_rng(self.seed, name, "realism", "beams", self.sensor.name), 1024)
