@@ -2,18 +2,21 @@
 # Trains the shipped PointPillars (lidarops/weights/pointpillars_synth.pth): the data recipe, the training
 # command and the export, in one script (docs/detector.md quotes it).
 #   bash tools/train_pointpillars_synth.sh OUT_DIR            # environment: GPUS (1), EPOCHS, BATCH, WORKERS, DATA
+#   REALISM=kitti bash tools/train_pointpillars_synth.sh OUT  # the real-scan model: data with --realism kitti,
+#                                                             # configs/pointpillars/pointpillars_synth_real.yaml
 # Runs on the GPU machine; writes OUT_DIR/run (checkpoints, log.csv, evaluations) and
 # OUT_DIR/pointpillars_synth.pth (float16 weights with their config, recipe, command and evaluation).
 set -euo pipefail
 OUT=${1:-runs/pointpillars_synth}
-GPUS=${GPUS:-1}; EPOCHS=${EPOCHS:-20}; BATCH=${BATCH:-8}; DATA=${DATA:-/tmp/synth}
+GPUS=${GPUS:-1}; EPOCHS=${EPOCHS:-20}; BATCH=${BATCH:-8}; DATA=${DATA:-/tmp/synth${REALISM:+_$REALISM}}
+NAME=pointpillars_synth${REALISM:+_real}
 WORKERS=${WORKERS:-$(( $(nproc) / GPUS - 2 ))}
 s=$(date +%s)
 # 3,600 frames: driving_city 2,400 and driving_highway 1,200, each its own scene; 500 held out for val
 python3 -m lidarops data synth --scenario driving_city driving_highway --frames 2400 1200 --seed 0 \
-    --val-fraction 0.1389 --workers "$(nproc)" --out "$DATA" --no-progress
+    --val-fraction 0.1389 --workers "$(nproc)" --out "$DATA" --no-progress ${REALISM:+--realism $REALISM}
 echo "[train] data: $(( $(date +%s) - s )) s"
-TRAIN=(--config configs/pointpillars/pointpillars_synth.yaml --data "$DATA" --out "$OUT/run" --amp bf16 --batch-size "$BATCH"
+TRAIN=(--config configs/pointpillars/$NAME.yaml --data "$DATA" --out "$OUT/run" --amp bf16 --batch-size "$BATCH"
        --workers "$WORKERS" --epochs "$EPOCHS" --eval-every 5 --gt-database-frames 1000 --no-progress
        ${MAX_MINUTES:+--max-minutes $MAX_MINUTES} ${RESUME:+--resume})
 export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1   # the DataLoader workers' numpy/torch: one thread each
@@ -25,5 +28,5 @@ fi
 echo "[train] total: $(( $(date +%s) - s )) s"
 last=$(ls "$OUT"/run/eval_epoch_*.json 2>/dev/null | sort -V | tail -1 || true)
 if [ -f "$OUT/run/final.pth" ]; then
-    python3 -m lidarops.models.weights "$OUT/run/final.pth" "$OUT/pointpillars_synth.pth" ${last:+"$last"}
+    python3 -m lidarops.models.weights "$OUT/run/final.pth" "$OUT/$NAME.pth" ${last:+"$last"}
 fi

@@ -85,6 +85,10 @@ from lidarops.data.geometry import box_corners, wrap_angle
 
 __all__ = [
     "DetectionConfig",
+    "TRANSFER_AUGMENTATIONS",
+    "drop_points",
+    "perturb_intensity",
+    "drop_alternate_beams",
     "KittiDetectionDataset",
     "train_val_datasets",
     "collate_batch",
@@ -99,7 +103,10 @@ log = logging.getLogger(__name__)
 __getattr__ = moved_attributes(__name__, {"DEFAULT_CLASS_NAMES": ("lidarops.conventions", "KITTI_CLASSES")})
 
 #: The augmentations supported, by their OpenPCDet ``AUG_CONFIG_LIST`` names (and pointpillar.yaml's order).
-AUGMENTATIONS: tuple[str, ...] = ("gt_sampling", "random_world_flip", "random_world_rotation", "random_world_scaling")
+#: lidarops' own, for transfer from simulated to real scans (OpenPCDet has none of them; off unless listed)
+TRANSFER_AUGMENTATIONS: tuple[str, ...] = ("random_point_dropout", "random_intensity", "random_beam_drop")
+_OPENPCDET_AUGMENTATIONS = ("gt_sampling", "random_world_flip", "random_world_rotation", "random_world_scaling")
+AUGMENTATIONS: tuple[str, ...] = _OPENPCDET_AUGMENTATIONS + TRANSFER_AUGMENTATIONS
 _PROCESSORS = ("mask_points_and_boxes_outside_range", "shuffle_points", "transform_points_to_voxels")
 _MAX_RESAMPLES = 20  # OpenPCDet redraws without bound; a set without labels must not hang the trainer
 
@@ -122,7 +129,8 @@ class DetectionConfig:
         point_cloud_range (tuple of 6 float): ``x0, y0, z0, x1, y1, z1`` (``POINT_CLOUD_RANGE``).
         fov_points_only (bool): keep only the points that project into the camera image (``FOV_POINTS_ONLY``).
         augmentations (tuple of str): the training augmentations, in order (names of ``AUG_CONFIG_LIST``,
-            a subset of :data:`AUGMENTATIONS`; leave one out to disable it).
+            a subset of :data:`AUGMENTATIONS`; leave one out to disable it). Default: OpenPCDet's four;
+            :data:`TRANSFER_AUGMENTATIONS` only when listed.
         sample_groups (dict[str, int]): gt sampling, objects drawn per class (``SAMPLE_GROUPS``, 'Car:15').
         min_points (dict[str, int]): gt sampling, database objects with fewer points are never drawn
             (``PREPARE.filter_by_min_points``).
@@ -135,6 +143,15 @@ class DetectionConfig:
         flip_axes (tuple of str): ``random_world_flip`` axes, ``"x"`` (y -> -y) and/or ``"y"`` (``ALONG_AXIS_LIST``).
         rotation_range (tuple of 2 float): ``random_world_rotation`` angle range, radians (``WORLD_ROT_ANGLE``).
         scale_range (tuple of 2 float): ``random_world_scaling`` factor range (``WORLD_SCALE_RANGE``).
+        point_dropout_range (tuple of 2 float): ``random_point_dropout`` (lidarops): each frame drops each point
+            with a probability drawn from this range (``DROP_RANGE``).
+        intensity_scale_range (tuple of 2 float), intensity_jitter (float), intensity_zero_range (tuple of 2
+            float): ``random_intensity`` (lidarops): each frame's intensities are multiplied by a factor from
+            ``SCALE_RANGE``, get Gaussian noise of ``JITTER``, and a share from ``ZERO_RANGE`` of them reads 0;
+            clipped to [0, 1].
+        beam_drop_prob (float), beam_bin_deg (float): ``random_beam_drop`` (lidarops): with probability
+            ``PROB`` a frame keeps every other beam, the beams told apart by their elevation seen from the
+            sensor in bins of ``BIN_DEG`` degrees (a 64-beam scan made to look like a 32-beam one).
         mask_outside_range (bool): run ``mask_points_and_boxes_outside_range`` (points: x and y in the range).
         remove_outside_boxes (bool): in training, drop the boxes :func:`mask_boxes_outside_range` rejects
             (``REMOVE_OUTSIDE_BOXES``).
@@ -147,7 +164,7 @@ class DetectionConfig:
 
     point_cloud_range: tuple[float, ...] = (0.0, -39.68, -3.0, 69.12, 39.68, 1.0)
     fov_points_only: bool = True
-    augmentations: tuple[str, ...] = AUGMENTATIONS
+    augmentations: tuple[str, ...] = _OPENPCDET_AUGMENTATIONS
     sample_groups: dict[str, int] = field(default_factory=lambda: {"Car": 15, "Pedestrian": 15, "Cyclist": 15})
     min_points: dict[str, int] = field(default_factory=lambda: {"Car": 5, "Pedestrian": 5, "Cyclist": 5})
     remove_difficulty: tuple[int, ...] = (-1,)
@@ -156,6 +173,12 @@ class DetectionConfig:
     flip_axes: tuple[str, ...] = ("x",)
     rotation_range: tuple[float, float] = (-math.pi / 4, math.pi / 4)
     scale_range: tuple[float, float] = (0.95, 1.05)
+    point_dropout_range: tuple[float, float] = (0.0, 0.3)
+    intensity_scale_range: tuple[float, float] = (0.6, 1.4)
+    intensity_jitter: float = 0.05
+    intensity_zero_range: tuple[float, float] = (0.0, 0.3)
+    beam_drop_prob: float = 0.2
+    beam_bin_deg: float = 0.42
     mask_outside_range: bool = True
     remove_outside_boxes: bool = True
     use_center_to_filter: bool = True
@@ -186,6 +209,19 @@ class DetectionConfig:
         self.scale_range = _pair(self.scale_range, "scale_range")
         if self.scale_range[0] <= 0:
             raise ValueError(f"scale_range must be positive, got {list(self.scale_range)}")
+        for name in ("point_dropout_range", "intensity_zero_range"):
+            lo, hi = _pair(getattr(self, name), name)
+            if not (0 <= lo and hi <= 1):
+                raise ValueError(f"{name} must lie in [0, 1], got {[lo, hi]}")
+            setattr(self, name, (lo, hi))
+        self.intensity_scale_range = _pair(self.intensity_scale_range, "intensity_scale_range")
+        if not self.intensity_scale_range[0] >= 0:
+            raise ValueError(f"intensity_scale_range must be >= 0, got {list(self.intensity_scale_range)}")
+        for name, hi in (("intensity_jitter", 1.0), ("beam_drop_prob", 1.0), ("beam_bin_deg", 10.0)):
+            v = float(getattr(self, name))
+            if not 0 <= v <= hi or (name == "beam_bin_deg" and v == 0):
+                raise ValueError(f"{name} must be in {'(0' if name == 'beam_bin_deg' else '[0'}, {hi}], got {v}")
+            setattr(self, name, v)
         if not isinstance(self.use_center_to_filter, (bool, np.bool_)):
             raise ValueError(f"use_center_to_filter must be True or False, got {self.use_center_to_filter!r}")
         self.use_center_to_filter = bool(self.use_center_to_filter)
@@ -276,12 +312,44 @@ def _augmentor_options(name: str, entry: Mapping[str, Any]) -> dict[str, Any]:
         return {"rotation_range": tuple(angle) if isinstance(angle, (list, tuple)) else (-float(angle), float(angle))}
     if name == "random_world_scaling":
         return {"scale_range": tuple(entry["WORLD_SCALE_RANGE"])}
+    if name == "random_point_dropout":
+        return {"point_dropout_range": tuple(entry.get("DROP_RANGE", (0.0, 0.3)))}
+    if name == "random_intensity":
+        return {"intensity_scale_range": tuple(entry.get("SCALE_RANGE", (0.6, 1.4))),
+                "intensity_jitter": float(entry.get("JITTER", 0.05)),
+                "intensity_zero_range": tuple(entry.get("ZERO_RANGE", (0.0, 0.3)))}
+    if name == "random_beam_drop":
+        return {"beam_drop_prob": float(entry.get("PROB", 0.2)), "beam_bin_deg": float(entry.get("BIN_DEG", 0.42))}
     raise ValueError(f"augmentation {name!r} is not supported (supported: {list(AUGMENTATIONS)})")
 
 
 # ---------------------------------------------------------------------------------------------
 # processing and augmentation (NumPy; boxes are (M, 7 + C) x, y, z, dx, dy, dz, heading, ...)
 # ---------------------------------------------------------------------------------------------
+def drop_points(points: np.ndarray, p: float, rng: np.random.Generator) -> np.ndarray:
+    """Each point kept with probability ``1 - p`` (order kept)."""
+    return points[rng.random(points.shape[0]) >= p] if p > 0 else points
+
+
+def perturb_intensity(points: np.ndarray, scale: float, jitter: float, zero: float,
+                      rng: np.random.Generator) -> np.ndarray:
+    """Column 3 multiplied by ``scale``, plus Gaussian noise of ``jitter``, a share ``zero`` of the points set
+    to 0, clipped to [0, 1] (a copy; the other columns untouched)."""
+    out = points.copy()
+    n = out.shape[0]
+    value = out[:, 3].astype(np.float64) * scale + jitter * rng.standard_normal(n)
+    value[rng.random(n) < zero] = 0.0
+    out[:, 3] = np.clip(value, 0.0, 1.0)
+    return out
+
+
+def drop_alternate_beams(points: np.ndarray, bin_deg: float, parity: int) -> np.ndarray:
+    """Keeps the points of every other beam, beams told apart by their elevation from the sensor (at the
+    origin) in bins of ``bin_deg`` degrees; ``parity`` picks the even or the odd bins."""
+    elevation = np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
+    return points[np.floor(elevation / bin_deg).astype(np.int64) % 2 == parity]
+
+
 def mask_points_by_range(points: np.ndarray, point_cloud_range: Sequence[float]) -> np.ndarray:
     """OpenPCDet's ``mask_points_by_range``: ``x0 <= x <= x1`` and ``y0 <= y <= y1``.
 
@@ -521,6 +589,18 @@ class KittiDetectionDataset(Dataset):
             elif name == "random_world_scaling" and cfg.scale_range[1] - cfg.scale_range[0] >= 1e-3:  # OpenPCDet's test
                 info["scale"] = float(rng.uniform(*cfg.scale_range))
                 points, boxes = scale_world(points, boxes, info["scale"])
+            elif name == "random_point_dropout":
+                info["point_dropout"] = float(rng.uniform(*cfg.point_dropout_range))
+                points = drop_points(points, info["point_dropout"], rng)
+            elif name == "random_intensity":
+                info["intensity_scale"] = float(rng.uniform(*cfg.intensity_scale_range))
+                info["intensity_zero"] = float(rng.uniform(*cfg.intensity_zero_range))
+                points = perturb_intensity(points, info["intensity_scale"], cfg.intensity_jitter, info["intensity_zero"],
+                                           rng)
+            elif name == "random_beam_drop":
+                info["beam_drop"] = bool(rng.random() < cfg.beam_drop_prob)
+                if info["beam_drop"]:
+                    points = drop_alternate_beams(points, cfg.beam_bin_deg, int(rng.integers(2)))
         boxes = boxes.copy()
         boxes[:, 6] = wrap_angle(boxes[:, 6].astype(np.float64))
         return points, boxes, names, info

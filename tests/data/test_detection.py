@@ -280,6 +280,65 @@ def test_dataset_augmentations_follow_reported_draws(synth):
     assert seen_flip == {False, True} and len(set(angles)) == 6
 
 
+def test_transfer_augmentations_follow_reported_draws(synth):
+    """random_point_dropout, random_intensity and random_beam_drop (lidarops' own, from an OpenPCDet-style
+    AUG_CONFIG_LIST): the kept points are a subset of the frame's in its order, at about the reported rate;
+    the intensities are the reported scale and zero share of the originals (jitter off here); a beam drop
+    keeps every other elevation bin; boxes are untouched; OpenPCDet configs without them are unchanged."""
+    root, _ = synth
+    entries = [{"NAME": "random_point_dropout", "DROP_RANGE": [0.1, 0.4]},
+               {"NAME": "random_intensity", "SCALE_RANGE": [0.5, 1.5], "JITTER": 0.0, "ZERO_RANGE": [0.1, 0.3]},
+               {"NAME": "random_beam_drop", "PROB": 0.5, "BIN_DEG": 0.42}]
+    cfg = DetectionConfig.from_openpcdet({"DATA_AUGMENTOR": {"AUG_CONFIG_LIST": entries}, "FOV_POINTS_ONLY": False,
+                                          "DATA_PROCESSOR": [{"NAME": "transform_points_to_voxels"}]})
+    assert cfg.augmentations == ("random_point_dropout", "random_intensity", "random_beam_drop")
+    assert DetectionConfig().augmentations == ("gt_sampling", "random_world_flip", "random_world_rotation",
+                                               "random_world_scaling")
+    base = KittiDetectionDataset(root, "train", training=False, config=DetectionConfig(**NO_AUG))
+    ds = KittiDetectionDataset(root, "train", training=True, config=cfg)
+    ref = base[0]["points"].astype(np.float64)
+    drops = set()
+    for epoch in range(8):
+        ds.set_epoch(epoch)
+        item = ds[0]
+        aug = item["augmentation"]
+        assert 0.1 <= aug["point_dropout"] <= 0.4 and 0.5 <= aug["intensity_scale"] <= 1.5
+        assert 0.1 <= aug["intensity_zero"] <= 0.3
+        drops.add(aug["beam_drop"])
+        # each kept point is one of the frame's, in the frame's order: match on xyz
+        key = {tuple(p): i for i, p in enumerate(np.round(ref[:, :3], 5))}
+        idx = np.array([key[tuple(p)] for p in np.round(item["points"][:, :3].astype(np.float64), 5)])
+        assert (np.diff(idx) > 0).all()
+        kept = len(idx) / len(ref)
+        expect = (1 - aug["point_dropout"]) * (0.5 if aug["beam_drop"] else 1.0)
+        assert abs(kept - expect) < 0.08, (kept, expect)
+        i_new, i_old = item["points"][:, 3].astype(np.float64), ref[idx, 3]
+        zero = i_new == 0
+        assert abs(zero.mean() - aug["intensity_zero"]) < 0.05 + (i_old == 0).mean()
+        np.testing.assert_allclose(i_new[~zero], np.clip(i_old[~zero] * aug["intensity_scale"], 0, 1), atol=1e-6)
+        np.testing.assert_array_equal(item["gt_boxes"], base[0]["gt_boxes"])
+    assert drops == {False, True}
+
+
+def test_beam_drop_keeps_every_other_elevation_bin():
+    from lidarops.data.detection import drop_alternate_beams
+
+    elev = np.radians(np.array([0.1, 0.5, 0.9, -0.1, -0.5]))  # bins of 0.42 deg: 0, 1, 2, -1, -2
+    pts = np.stack([10 * np.cos(elev), np.zeros(5), 10 * np.sin(elev), np.ones(5)], 1).astype(np.float32)
+    np.testing.assert_array_equal(drop_alternate_beams(pts, 0.42, 0), pts[[0, 2, 4]])
+    np.testing.assert_array_equal(drop_alternate_beams(pts, 0.42, 1), pts[[1, 3]])
+
+
+@pytest.mark.parametrize("kw,name", [({"point_dropout_range": (0.2, 1.5)}, "point_dropout_range"),
+                                     ({"intensity_zero_range": (-0.1, 0.2)}, "intensity_zero_range"),
+                                     ({"intensity_scale_range": (1.2, 0.8)}, "intensity_scale_range"),
+                                     ({"intensity_jitter": float("nan")}, "intensity_jitter"),
+                                     ({"beam_drop_prob": 2.0}, "beam_drop_prob"), ({"beam_bin_deg": 0.0}, "beam_bin_deg")])
+def test_transfer_augmentation_options_are_checked(kw, name):
+    with pytest.raises(ValueError, match=name):
+        DetectionConfig(**kw)
+
+
 # ---------------------------------------------------------------------------------------------
 # gt database and sampling
 # ---------------------------------------------------------------------------------------------

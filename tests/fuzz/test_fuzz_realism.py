@@ -69,3 +69,24 @@ def test_make_realism_takes_profiles_and_names_only(value):
         assert out == Realism()
     else:
         assert_clear_error(err, ValueError, ["realism"], f"make_realism({value!r})")
+
+
+# ---- the transfer augmentations of lidarops.data.detection ----
+@fuzz
+@given(n=st.integers(0, 400), seed=st.integers(0, 2**16), p=st.floats(0, 1), scale=st.floats(0, 3),
+       jitter=st.floats(0, 1), zero=st.floats(0, 1), bin_deg=st.floats(0.05, 10), parity=st.integers(0, 1))
+def test_transfer_augmentations_keep_rows_and_ranges(n, seed, p, scale, jitter, zero, bin_deg, parity):
+    from lidarops.data.detection import drop_alternate_beams, drop_points, perturb_intensity
+
+    rng = np.random.default_rng(seed)
+    pts = np.concatenate([rng.normal(0, 20, (n, 3)), rng.random((n, 1))], 1).astype(np.float32)
+    rows = {tuple(r): i for i, r in enumerate(pts.tolist())}
+    for out in (drop_points(pts, p, rng), drop_alternate_beams(pts, bin_deg, parity)):
+        idx = [rows[tuple(r)] for r in out.tolist()]
+        assert out.dtype == pts.dtype and out.shape[1] == 4 and idx == sorted(set(idx))
+    if p == 0:
+        assert drop_points(pts, p, rng).shape == pts.shape
+    out = perturb_intensity(pts, scale, jitter, zero, rng)
+    assert out.shape == pts.shape and out.dtype == pts.dtype
+    np.testing.assert_array_equal(out[:, :3], pts[:, :3])
+    assert ((out[:, 3] >= 0) & (out[:, 3] <= 1)).all()
