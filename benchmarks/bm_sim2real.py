@@ -3,7 +3,7 @@ simulator's realism (issue 40).
 
     bash tools/sim2real/kitti_real_frames.sh                       # 6 real KITTI frames out of OpenPCDet's history
     python tools/sim2real/mmdet3d_demo_frame.py MMDET3D_GIT .peers/kitti_real   # and mmdetection3d's frame 000008
-    python benchmarks/bm_sim2real.py --real .peers/kitti_real --plot docs/img/sim2real.png --json
+    python benchmarks/bm_sim2real.py --real .peers/kitti_real --realism none kitti --plot docs/img/sim2real.png --json
 
 The real frames are KITTI's (non-commercial, share-alike licence): they are brought to the machine at run time
 and never committed. For each ``--checkpoint`` (default: the shipped ``pointpillars_synth``) and each real frame
