@@ -12,7 +12,8 @@ differ in ways measured by ``benchmarks/bm_sim2real.py`` on real KITTI frames ([
 
 A :class:`Realism` applies these effects to the caster's returns:
 
-* it drops greenhouse returns (upper part of a vehicle's box);
+* it gives cars a profile: a ray over the hood or the trunk is followed down onto it, or lost past the car;
+* it drops window and roof returns (the greenhouse: the upper part of a vehicle's box);
 * it reads dark paint, glass and tyres as zero intensity;
 * it scales intensity per surface kind and per beam, zeroes weak returns near the detection limit, and
   quantises;
