@@ -150,9 +150,9 @@ class Realism:
         # a soft knee above 0.6: bright markings amplified by the gains approach 1 instead of piling up on it
         out = np.where(x < 0.6, x, 0.6 + 0.4 * np.tanh((x - 0.6) / 0.4)).astype(np.float32)
         out[weak | zero] = 0.0
-        if self.quantum > 0:
-            out = np.round(out / self.quantum) * self.quantum
-        return np.clip(out, 0.0, 1.0).astype(np.float32)
+        if self.quantum > 0:  # a quantum that does not divide 1 can round past it: clipped back
+            out = np.clip(np.round(out / self.quantum) * self.quantum, 0.0, 1.0)
+        return out.astype(np.float32)
 
 
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans).

@@ -161,10 +161,9 @@ class Simulator:
             name = self.scenario.name
             self._beam_gain = self.realism.beam_gains(_rng(self.seed, name, "realism", "beams", self.sensor.name), 1024)
             n_obj = len(self.scenario.objects)
-            vehicles = [CLASSES.index(c) for c in self.realism.vehicle_classes if c in CLASSES]
-            self._vehicle = np.isin(self.scenario.object_labels, vehicles)
-            self._shaped = np.isin(self.scenario.object_labels,
-                                   [CLASSES.index(c) for c in self.realism.shaped_classes if c in CLASSES])
+            labels = self.scenario.object_labels
+            self._vehicle = np.isin(labels, [CLASSES.index(c) for c in self.realism.vehicle_classes if c in CLASSES])
+            self._shaped = np.isin(labels, [CLASSES.index(c) for c in self.realism.shaped_classes if c in CLASSES])
             self._dark = _rng(self.seed, name, "realism", "paint").random(n_obj) < self.realism.dark_paint
 
     def __getstate__(self) -> dict:
