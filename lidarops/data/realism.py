@@ -12,7 +12,8 @@ differ in ways measured by ``benchmarks/bm_sim2real.py`` on real KITTI frames ([
 
 A :class:`Realism` applies these effects to the caster's returns:
 
-* it gives cars a profile: a ray over the hood or the trunk is followed down onto it, or lost past the car;
+* it gives the labelled objects their shapes (:mod:`lidarops.data.shapes`): a ray that meets a box is
+  followed onto the car, truck, bus, pedestrian or cyclist inside it, or on past it;
 * it drops window and roof returns (the greenhouse: the upper part of a vehicle's box);
 * it reads dark paint, glass and tyres as zero intensity;
 * it scales intensity per surface kind and per beam, zeroes weak returns near the detection limit, and
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidarops.data._checks import real
+from lidarops.data.shapes import SHAPES
 
 __all__ = ["Realism", "REALISM_PRESETS", "make_realism"]
 
@@ -40,10 +42,9 @@ class Realism:
 
     Attributes:
         vehicle_classes (tuple[str, ...]): classes whose boxes get a vehicle's surfaces.
-        shaped_classes (tuple[str, ...]): classes whose box gets a car's profile. Below ``hood_height`` (a
-            fraction of the box's height) the body fills the box. Above it only the cabin does, from
-            ``cabin[0]`` to ``cabin[1]`` of the length (fractions from the rear). A ray that meets the box above
-            the hood or the trunk goes on to the hood's or trunk's top, or past the car.
+        shaped_classes (tuple[str, ...]): classes whose boxes hold their real shapes
+            (:data:`lidarops.data.shapes.SHAPES`: a car's hood, cabin and wheels, a walking pedestrian, a
+            cyclist on a bicycle...): a ray that meets the box goes on to the shape, or past the object.
         greenhouse_from (float): height fraction of the box above which lie windows and roof.
         greenhouse_keep (float): probability that a return from a window (the greenhouse's sides) comes back.
         roof_keep (float): probability that a return from the roof (the box's top) comes back: a rounded roof
@@ -64,12 +65,10 @@ class Realism:
     """
 
     vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")
-    shaped_classes: tuple[str, ...] = ("Car",)
-    hood_height: float = 0.62
-    cabin: tuple[float, float] = (0.18, 0.80)
+    shaped_classes: tuple[str, ...] = ("Car", "Truck", "Bus", "Pedestrian", "Cyclist")
     greenhouse_from: float = 0.62
-    greenhouse_keep: float = 0.5
-    roof_keep: float = 0.9
+    greenhouse_keep: float = 0.2
+    roof_keep: float = 0.3
     greenhouse_zero: float = 0.7
     dark_paint: float = 0.45
     dark_zero: float = 0.7
@@ -83,11 +82,7 @@ class Realism:
     street_clutter: float = 1.0
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.cabin, tuple) and len(self.cabin) == 2
-                and all(isinstance(c, (int, float)) for c in self.cabin) and 0 <= self.cabin[0] < self.cabin[1] <= 1):
-            raise ValueError(f"cabin must be (start, end) fractions of the length with 0 <= start < end <= 1, "
-                             f"got {self.cabin!r}")
-        for name in ("hood_height", "greenhouse_from", "greenhouse_keep", "roof_keep", "greenhouse_zero", "dark_paint", "dark_zero",
+        for name in ("greenhouse_from", "greenhouse_keep", "roof_keep", "greenhouse_zero", "dark_paint", "dark_zero",
                      "light_zero", "tyre_band", "tyre_zero", "weak_from"):
             real(getattr(self, name), name, 0, 1)
         real(self.beam_gain_std, "beam_gain_std", 0, 1)
@@ -99,32 +94,8 @@ class Realism:
             real(g, "surface_gain", 0, 100)
         if not self.vehicle_classes or not all(isinstance(c, str) for c in self.vehicle_classes):
             raise ValueError(f"vehicle_classes must be class names, got {self.vehicle_classes!r}")
-        if not all(isinstance(c, str) for c in self.shaped_classes):
-            raise ValueError(f"shaped_classes must be class names, got {self.shaped_classes!r}")
-
-    def car_profile(self, local: np.ndarray, dirs: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Where rays that met a car's box (at ``local`` points, box frame: x forward, z up from the centre, with
-        ``dirs`` in that frame and the box's ``half`` sizes) meet the car's profile: the extra distance along
-        each ray (0 for a return on the body or the cabin) and whether it meets the car at all."""
-        length = (local[:, 0] / (2 * half[:, 0]) + 0.5)
-        height = (local[:, 2] / (2 * half[:, 2]) + 0.5)
-        air = (height > self.hood_height + 1e-9) & ((length < self.cabin[0]) | (length > self.cabin[1]))
-        extra = np.zeros(len(local))
-        hits = np.ones(len(local), bool)
-        if air.any():
-            a = np.flatnonzero(air)
-            hood = (self.hood_height - 0.5) * 2 * half[a, 2]  # the hood's top in the box frame
-            down = dirs[a, 2] < 0
-            step = np.where(down, (hood - local[a, 2]) / np.where(down, dirs[a, 2], -1.0), np.inf)
-            at = local[a] + dirs[a] * np.where(np.isfinite(step), step, 0.0)[:, None]
-            frac = at[:, 0] / (2 * half[a, 0]) + 0.5
-            # on the hood or the trunk: inside the footprint and outside the cabin; otherwise the ray meets
-            # the windscreen (glass: lost) or leaves the car (what lies behind is not cast again: lost)
-            on = down & (np.abs(at[:, 1]) <= half[a, 1]) & (frac >= 0) & (frac <= 1) \
-                & ((frac < self.cabin[0]) | (frac > self.cabin[1]))
-            extra[a] = np.where(on, step, 0.0)
-            hits[a] = on
-        return extra, hits
+        if not isinstance(self.shaped_classes, tuple) or not all(c in SHAPES for c in self.shaped_classes):
+            raise ValueError(f"shaped_classes must be a tuple of names from {sorted(SHAPES)}, got {self.shaped_classes!r}")
 
     def beam_gains(self, rng: np.random.Generator, beams: int) -> np.ndarray:
         """One intensity gain per beam (a sensor's calibration table), positive."""

@@ -33,7 +33,8 @@ from lidarops.data.frame import CLASSES, Frame
 from lidarops.data.geometry import count_points_in_boxes, pose_matrix, wrap_angle
 from lidarops.data.realism import Realism, make_realism
 from lidarops.data.scenarios import SCENARIOS, build_scenario
-from lidarops.data.scene import SURFACE_KINDS, BoxSet, Scenario, _rng
+from lidarops.data.scene import SURFACE_KINDS, SURFACE_NONE, BoxSet, Scenario, _rng
+from lidarops.data.shapes import trace
 from lidarops.data.sensors import LidarSensor, RisleyLidar, SpinningLidar, avia, hdl64, make_sensor, pandar64
 
 __all__ = [
@@ -163,7 +164,11 @@ class Simulator:
             n_obj = len(self.scenario.objects)
             labels = self.scenario.object_labels
             self._vehicle = np.isin(labels, [CLASSES.index(c) for c in self.realism.vehicle_classes if c in CLASSES])
-            self._shaped = np.isin(labels, [CLASSES.index(c) for c in self.realism.shaped_classes if c in CLASSES])
+            shaped = [c for c in self.realism.shaped_classes if c in CLASSES]
+            self._shape_of = np.array([shaped.index(CLASSES[k]) if 0 <= k < len(CLASSES) and CLASSES[k] in shaped else -1
+                                       for k in labels], np.int64).reshape(-1)
+            self._shape_names = shaped
+            self._shape_u = _rng(self.seed, name, "realism", "shape").random((n_obj, 4))
             self._dark = _rng(self.seed, name, "realism", "paint").random(n_obj) < self.realism.dark_paint
 
     def __getstate__(self) -> dict:
@@ -299,6 +304,8 @@ class Simulator:
         rng = _rng(self.seed, scenario.name, "block", sensor.name, b)
         hits = cast_rays(origins, dirs_world, t, scenario.ground, boxes, static.cylinders, static.ellipsoids,
                          max_range, rng, len(scenario.objects), origin_samples=pos)
+        if self.realism is not None and self._shape_names:
+            self._shape_objects(b, hits, origins, dirs_world, t, boxes, static, max_range)
 
         # only rays that hit something can return: their dropout draws and range noise, in ray order, then
         # the intensity noise of the returns kept
@@ -313,8 +320,7 @@ class Simulator:
         p_drop = 1.0 - (1.0 - sensor.dropout) * (1.0 - hits.extra_dropout[hit])
         keep = (distance <= detect_range) & (rng_m >= sensor.min_range) & (rng_m <= max_range) & (u >= p_drop)
         if self.realism is not None:
-            zero = self._vehicle_surfaces(b, hits, hit, keep, origins, dirs_world, t, distance, rng_m, cos)
-            keep &= (distance <= detect_range) & (rng_m <= max_range)  # hoods and trunks lie farther
+            zero = self._vehicle_surfaces(b, hits, hit, keep, origins, dirs_world, t, distance)
         sel = np.flatnonzero(keep)
         idx = hit[sel]
         rng_k = rng_m[sel]
@@ -343,12 +349,63 @@ class Simulator:
             "rays": t.shape[0],
         }
 
+    def _object_frame(self, o: np.ndarray, rays: np.ndarray, origins: np.ndarray, dirs: np.ndarray, t: np.ndarray,
+                      distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where rays ``rays`` are at ``distance`` along them, and their directions, in the frames of objects
+        ``o`` at the rays' times."""
+        objects = self.scenario.objects
+        centre = objects.center[o] + objects.velocity[o] * t[rays, None]
+        yaw = objects.yaw[o] + objects.yaw_rate[o] * t[rays]
+        c, s = np.cos(yaw), np.sin(yaw)
+        rel = origins[rays] + dirs[rays] * distance[:, None] - centre
+        d = dirs[rays]
+        local = np.stack([c * rel[:, 0] + s * rel[:, 1], c * rel[:, 1] - s * rel[:, 0], rel[:, 2]], 1)
+        ldir = np.stack([c * d[:, 0] + s * d[:, 1], c * d[:, 1] - s * d[:, 0], d[:, 2]], 1)
+        return local, ldir
+
+    def _shape_objects(self, b: int, hits, origins: np.ndarray, dirs: np.ndarray, t: np.ndarray, boxes: BoxSet,
+                       static, max_range: float) -> None:
+        """Follows the rays that hit a shaped object's box onto its shape (:mod:`lidarops.data.shapes`), and
+        sends those that miss it on into the scene from inside the box (the caster does not see a box from
+        within it), in place in ``hits``; a ray passing several shaped objects is followed up to three times."""
+        objects, n_obj = self.scenario.objects, len(self.scenario.objects)
+        todo = np.flatnonzero(hits.object_index >= 0)
+        for round_ in range(3):
+            todo = todo[(hits.distance[todo] <= max_range) & (self._shape_of[hits.object_index[todo]] >= 0)]
+            if not todo.size:
+                return
+            o = hits.object_index[todo]
+            local, ldir = self._object_frame(o, todo, origins, dirs, t, hits.distance[todo])
+            miss = np.zeros(todo.size, bool)
+            for k, name in enumerate(self._shape_names):
+                g = np.flatnonzero(self._shape_of[o] == k)
+                if not g.size:
+                    continue
+                step, on, cos = trace(name, local[g], ldir[g], objects.half[o[g]], self._shape_u[o[g]])
+                hits.distance[todo[g[on]]] += step[on]
+                hits.cos_incidence[todo[g[on]]] = cos[on]
+                miss[g[~on]] = True
+            gone = todo[miss]
+            if not gone.size:
+                return
+            np.subtract.at(hits.object_visible, hits.object_index[gone], 1)
+            start = hits.distance[gone] + 1e-3  # just inside the box: its faces are behind
+            rng = _rng(self.seed, self.scenario.name, "realism", "recast", self.sensor.name, b, round_)
+            again = cast_rays(origins[gone] + dirs[gone] * start[:, None], dirs[gone], t[gone], self.scenario.ground,
+                              boxes, static.cylinders, static.ellipsoids, max_range, rng, n_obj)
+            far = again.distance + start > max_range
+            again.distance[far], again.surface[far], again.object_index[far] = np.inf, SURFACE_NONE, -1
+            hits.distance[gone] = again.distance + start
+            for field in ("surface", "object_index", "cos_incidence", "reflectivity", "extra_dropout"):
+                getattr(hits, field)[gone] = getattr(again, field)
+            seen = again.object_index[again.object_index >= 0]
+            np.add.at(hits.object_visible, seen, 1)
+            todo = gone[again.object_index >= 0]
+
     def _vehicle_surfaces(self, b: int, hits, hit: np.ndarray, keep: np.ndarray, origins: np.ndarray,
-                          dirs: np.ndarray, t: np.ndarray, distance: np.ndarray, rng_m: np.ndarray,
-                          cos: np.ndarray) -> np.ndarray:
-        """Moves the returns of rays over a car's hood or trunk onto it and drops those that pass the car
-        (``distance``, ``rng_m``, ``cos`` and ``keep`` in place); drops the vehicle returns that glass and round
-        roofs lose; returns, per hit, whether it reads zero intensity (dark paint, glass, tyres)."""
+                          dirs: np.ndarray, t: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """Drops the vehicle returns that glass and round roofs lose (``keep`` in place); returns, per hit,
+        whether it reads zero intensity (dark paint, glass, tyres)."""
         zero = np.zeros(hit.size, bool)
         obj = hits.object_index[hit]
         v = np.flatnonzero(keep & (obj >= 0))
@@ -356,22 +413,7 @@ class Simulator:
         if v.size:
             o, rays = obj[v], hit[v]
             objects = self.scenario.objects
-            centre = objects.center[o] + objects.velocity[o] * t[rays, None]
-            yaw = objects.yaw[o] + objects.yaw_rate[o] * t[rays]
-            c, s = np.cos(yaw), np.sin(yaw)
-            rel = origins[rays] + dirs[rays] * distance[v, None] - centre
-            d = dirs[rays]
-            local = np.stack([c * rel[:, 0] + s * rel[:, 1], c * rel[:, 1] - s * rel[:, 0], rel[:, 2]], 1)
-            ldir = np.stack([c * d[:, 0] + s * d[:, 1], c * d[:, 1] - s * d[:, 0], d[:, 2]], 1)
-            shaped = np.flatnonzero(self._shaped[o])
-            if shaped.size:
-                extra, meets = self.realism.car_profile(local[shaped], ldir[shaped], objects.half[o[shaped]])
-                moved = shaped[extra > 0]
-                distance[v[moved]] += extra[extra > 0]
-                rng_m[v[moved]] += extra[extra > 0]
-                cos[v[moved]] = np.abs(d[moved, 2])  # the hood and the trunk lid are horizontal
-                local[shaped] += ldir[shaped] * extra[:, None]
-                keep[v[shaped[~meets]]] = False
+            local, _ = self._object_frame(o, rays, origins, dirs, t, distance[v])
             height = local[:, 2] / (2.0 * objects.half[o, 2]) + 0.5
             rng = _rng(self.seed, self.scenario.name, "realism", "block", self.sensor.name, b)
             back, reads_zero = self.realism.vehicle_returns(rng, height, self._dark[o])

@@ -117,32 +117,14 @@ def test_bad_profiles_are_refused():
         Realism(vehicle_classes=())
     with pytest.raises(ValueError, match="shaped_classes"):
         Realism(shaped_classes=(1,))
-    for cabin in ((0.8, 0.2), (0.2,), (-0.1, 0.5), (0.2, float("nan"))):
-        with pytest.raises(ValueError, match="cabin"):
-            Realism(cabin=cabin)
+    for shaped in (("Car", "Boat"), ["Car"], ("Barrier",)):
+        with pytest.raises(ValueError, match="shaped_classes"):
+            Realism(shaped_classes=shaped)
     with pytest.raises(ValueError, match="kitti"):
         make_realism("carla")
     with pytest.raises(ValueError, match="realism"):
         Simulator("driving_city", seed=0, realism=3)
     assert make_realism(None) is None and make_realism("kitti") == Realism()
-
-
-def test_car_profile_moves_rays_over_the_hood_onto_it():
-    """A 4 x 1.6 x 1.5 m box (hood top at 0.62 of the height: z = 0.18 m in the box frame); hand-computed rays."""
-    r = Realism()
-    half = np.tile([2.0, 0.8, 0.75], (6, 1))
-    local = np.array([[2.0, 0.0, 0.5],     # front face above the hood, going back and down: onto the hood
-                      [2.0, 0.0, 0.5],     # the same, nearly level: past the hood into the windscreen (lost)
-                      [2.0, 0.0, 0.5],     # the same, going up: past the car (lost)
-                      [2.0, 0.0, -0.3],    # the bumper, below the hood line: a return as cast
-                      [0.0, 0.8, 0.6],     # the cabin's side (a window): as cast
-                      [1.8, 0.7, 0.75]])   # the box's top over the hood, going down and sideways: off the side
-    dirs = np.array([[-0.8, 0, -0.6], [-1.0, 0, -0.05], [-0.8, 0, 0.6], [-1.0, 0, 0], [0, -1.0, 0], [0, 0.8, -0.6]])
-    extra, meets = r.car_profile(local, dirs, half)
-    np.testing.assert_allclose(extra, [0.32 / 0.6, 0, 0, 0, 0, 0], atol=1e-12)
-    assert meets.tolist() == [True, False, False, True, True, False]
-    landed = local[0] + dirs[0] * extra[0]
-    assert abs(landed[2] - 0.18) < 1e-12 and (landed[0] / 4 + 0.5) > r.cabin[1]  # on the hood, ahead of the cabin
 
 
 def test_street_clutter_adds_furniture_and_keeps_clear_of_labelled_boxes():
