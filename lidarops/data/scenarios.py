@@ -304,6 +304,19 @@ def _city_tile(ground: Ground, tile_length: float) -> Callable[[int, np.random.G
     return build
 
 
+def _shrub(b: _StaticBuilder, rng: np.random.Generator, ground: Ground, x: float, y: float, size: float,
+           spread_y: float) -> None:
+    """A shrub: a few overlapping foliage blobs, irregular as real ones are (one ellipsoid reads as a smooth
+    dome), kept within ``spread_y`` of ``y`` across the road."""
+    g = float(ground.height(np.array([x]), np.array([y]))[0])
+    for _ in range(int(rng.integers(2, 6))):
+        r = size * rng.uniform(0.35, 0.7)
+        ry = min(r, spread_y)
+        b.ellipsoid(x + rng.uniform(-size, size) * 0.6, y + rng.uniform(-1, 1) * max(spread_y - ry, 0.0),
+                    g + rng.uniform(0.3, 1.0) * size, r, ry, r * rng.uniform(0.6, 1.2), refl=rng.uniform(0.25, 0.65),
+                    mean_free_path=rng.uniform(0.15, 0.4))
+
+
 def _street_clutter(ground: Ground, seed: int, density: float, k: int, x0: float, x1: float) -> StaticPrimitives:
     """A city tile's street furniture and roadside clutter, the kind a detector must learn not to take for
     objects: a kerb, and bollards, bins, parking meters and parked bicycles on the strip between the kerb and
@@ -335,24 +348,56 @@ def _street_clutter(ground: Ground, seed: int, density: float, k: int, x0: float
             elif kind < 0.7:  # a parked bicycle along the kerb
                 b.box_on_ground(x, side * 11.05, 1.7, 0.08, rng.uniform(0.9, 1.1), heading=rng.uniform(-0.15, 0.15),
                                 refl=rng.uniform(0.2, 0.5), bury=0.0)
-            else:  # a bush along a facade: many weak, scattered returns
-                r = rng.uniform(0.4, 1.0)
-                y = side * 15.3
-                g = float(ground.height(np.array([x]), np.array([y]))[0])
-                b.ellipsoid(x, y, g + r * 0.8, r, min(0.6, r), r * rng.uniform(0.7, 1.1), refl=rng.uniform(0.3, 0.6),
-                            mean_free_path=0.3)
+            elif kind < 0.8:  # a fire hydrant, a post box or a sign post: pedestrian-sized, not pedestrians
+                if rng.random() < 0.5:
+                    b.cylinder(x, side * 10.98, rng.uniform(0.1, 0.2), rng.uniform(0.6, 1.3), refl=rng.uniform(0.2, 0.7),
+                               kind=SURFACE_STRUCTURE)
+                else:
+                    b.cylinder(x, side * 10.98, 0.04, rng.uniform(1.8, 2.6), refl=0.4)
+                    g = float(ground.height(np.array([x]), np.array([side * 10.98]))[0])
+                    b.box(x, side * 10.98, g + rng.uniform(1.6, 2.4), 0.04, rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.6),
+                          refl=rng.uniform(0.5, 0.9), kind=SURFACE_POLE)
+            else:  # a shrub along a facade: many weak, scattered returns
+                _shrub(b, rng, ground, x, side * 15.2, rng.uniform(0.4, 1.1), 0.45)
     return b.build()
 
 
-def _cluttered(tile_fn, ground: Ground, seed: int, density: float, tile_length: float):
-    """``tile_fn`` with each tile's street clutter added (``density`` 0: the tiles as they are)."""
+def _roadside_clutter(ground: Ground, seed: int, density: float, k: int, x0: float, x1: float) -> StaticPrimitives:
+    """A highway tile's verge beyond the guard rails and the barrier lane: shrubs, saplings and delineator
+    posts close to the road (the kind of roadside a detector sees false pedestrians in), clear of every
+    labelled lane (|y| < 13.3 on the right, < 14.0 on the left). Its own random stream."""
+    rng = _rng(seed, "driving_highway", "clutter", k)
+    b = _StaticBuilder(ground)
+    for y_lo, y_hi in ((-17.0, -13.5), (14.3, 15.7), (16.4, 19.5)):
+        n = rng.poisson(density * (x1 - x0) / 8.0 * (y_hi - y_lo) / 3.5)
+        for x in np.sort(rng.uniform(x0, x1, n)):
+            y = rng.uniform(y_lo + 0.3, y_hi - 0.3)
+            room = min(y - y_lo, y_hi - y)  # to the zone's edges: nothing reaches a lane
+            kind = rng.random()
+            if kind < 0.55:
+                _shrub(b, rng, ground, x, y, rng.uniform(0.3, 1.3), room)
+            elif kind < 0.75:  # a sapling: a thin trunk and a small crown
+                h = rng.uniform(1.2, 2.5)
+                b.cylinder(x, y, rng.uniform(0.03, 0.08), h, refl=rng.uniform(0.25, 0.4))
+                g = float(ground.height(np.array([x]), np.array([y]))[0])
+                r = rng.uniform(0.4, 0.9)
+                b.ellipsoid(x, y, g + h + r * 0.5, r, min(r, room), r, refl=rng.uniform(0.4, 0.6),
+                            mean_free_path=0.3)
+            else:  # a delineator or a marker post
+                b.cylinder(x, y, rng.uniform(0.05, 0.1), rng.uniform(0.9, 1.6), refl=rng.uniform(0.3, 0.9))
+    return b.build()
+
+
+def _cluttered(tile_fn, ground: Ground, seed: int, density: float, tile_length: float, clutter=None):
+    """``tile_fn`` with each tile's ``clutter`` (default: the city's street clutter) added (``density`` 0: the
+    tiles as they are)."""
     if density <= 0:
         return tile_fn
 
     def build(k: int, rng: np.random.Generator) -> StaticPrimitives:
         base = tile_fn(k, rng)
-        return StaticPrimitives.concat([base, _street_clutter(ground, seed, density, k, k * tile_length,
-                                                              (k + 1) * tile_length)])
+        return StaticPrimitives.concat([base, (clutter or _street_clutter)(ground, seed, density, k, k * tile_length,
+                                                                           (k + 1) * tile_length)])
 
     return build
 
@@ -472,8 +517,10 @@ def _highway_tile(ground: Ground, tile_length: float) -> Callable[[int, np.rando
     return build
 
 
-def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = None, **unused) -> Scenario:
+def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
+                     **unused) -> Scenario:
     _no_unused(unused, "driving_highway")
+    street_clutter = real(street_clutter, "street_clutter", 0, 10)
     rng = _rng(seed, "driving_highway", "scene")
     ground = Ground.random(rng, max_slope=0.02, roughness=0.02, material=_highway_material)
     speeds = rng.uniform([24.0, 27.0, 30.0], [26.0, 30.0, 34.0])  # right, middle, left lane
@@ -502,7 +549,8 @@ def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = No
     objects, labels = placed.build()
     tile_length = 50.0
     return Scenario("driving_highway", seed, "hdl64", ground, ego, objects, labels, 100.0, tile_length,
-                    _highway_tile(ground, tile_length), done)
+                    _cluttered(_highway_tile(ground, tile_length), ground, seed, street_clutter, tile_length,
+                               _roadside_clutter), done)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -182,20 +182,36 @@ def _cyclist(p, h, u):
 SHAPES = {"Car": _car, "Truck": _truck, "Bus": _bus, "Pedestrian": _pedestrian, "Cyclist": _cyclist}
 
 
-def shape_distance(name: str, p: np.ndarray, half: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Signed distance (m; negative inside) from points ``p`` [N, 3] in their boxes' frames to the shape of
-    class ``name`` in boxes of half sizes ``half`` [N, 3], per-object numbers ``u`` [N, 4] in [0, 1). The
-    shape is cut to its box."""
+def _checked(name: str, **arrays) -> list[np.ndarray]:
     if name not in SHAPES:
         raise ValueError(f"name must be one of {sorted(SHAPES)}, got {name!r}")
-    p, half, u = (np.asarray(a, np.float64) for a in (p, half, u))
-    for arg, a, k in (("p", p, 3), ("half", half, 3), ("u", u, 4)):
-        if a.ndim != 2 or a.shape[1] != k or a.shape[0] != p.shape[0]:
-            raise ValueError(f"{arg} must be [N, {k}] with N = {p.shape[0] if p.ndim == 2 else '?'}, got {a.shape}")
+    out, n = [], None
+    for arg, a in arrays.items():
+        a = np.asarray(a, np.float64)
+        k = 4 if arg == "u" else 3
+        n = a.shape[0] if n is None and a.ndim == 2 else n
+        if a.ndim != 2 or a.shape[1] != k or a.shape[0] != n:
+            raise ValueError(f"{arg} must be [N, {k}] with N = {n}, got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{arg} must be finite")
+        out.append(a)
+    if (out[-2] <= 0).any():
+        raise ValueError("half must be positive (half sizes of the boxes)")
+    return out
+
+
+def _distance(name: str, p: np.ndarray, half: np.ndarray, u: np.ndarray) -> np.ndarray:
     if not len(p):
         return np.zeros(0)
     box = _round_box(p, np.zeros_like(p), half, np.zeros(len(p)))
     return np.maximum(SHAPES[name](p, half, u), box)
+
+
+def shape_distance(name: str, p: np.ndarray, half: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Signed distance (m; negative inside) from points ``p`` [N, 3] in their boxes' frames to the shape of
+    class ``name`` in boxes of half sizes ``half`` [N, 3], per-object numbers ``u`` [N, 4] in [0, 1). The
+    shape is cut to its box."""
+    return _distance(name, *_checked(name, p=p, half=half, u=u))
 
 
 def box_exit(p: np.ndarray, d: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -215,7 +231,7 @@ def trace(name: str, entry: np.ndarray, d: np.ndarray, half: np.ndarray, u: np.n
         hit (bool[N]): whether the ray meets the shape before it leaves the box.
         cos (float64[N]): |cos| of the angle between the ray and the shape's normal there.
     """
-    entry, d, half, u = (np.asarray(a, np.float64) for a in (entry, d, half, u))
+    entry, d, half, u = _checked(name, entry=entry, d=d, half=half, u=u)
     n = len(entry)
     t, before, hit = np.zeros(n), np.zeros(n), np.zeros(n, bool)
     exit_t = box_exit(entry, d, half)
@@ -223,7 +239,7 @@ def trace(name: str, entry: np.ndarray, d: np.ndarray, half: np.ndarray, u: np.n
     for _ in range(_STEPS):
         if not active.size:
             break
-        dist = shape_distance(name, entry[active] + d[active] * t[active, None], half[active], u[active])
+        dist = _distance(name, entry[active] + d[active] * t[active, None], half[active], u[active])
         on = dist < _HIT
         hit[active[on]] = True
         # steps of at least 1 cm, so that grazing rays finish; a step can sink up to 1 cm into the shape,
@@ -235,13 +251,13 @@ def trace(name: str, entry: np.ndarray, d: np.ndarray, half: np.ndarray, u: np.n
     lo, hi = before[k], t[k]
     for _ in range(_BISECT):
         mid = (lo + hi) / 2
-        inside = shape_distance(name, entry[k] + d[k] * mid[:, None], half[k], u[k]) <= 0
+        inside = _distance(name, entry[k] + d[k] * mid[:, None], half[k], u[k]) <= 0
         lo, hi = np.where(inside, lo, mid), np.where(inside, mid, hi)
     t[k] = hi
     cos = np.zeros(n)
     if k.size:
         p, e = entry[k] + d[k] * t[k, None], 5e-3
-        grad = np.stack([shape_distance(name, p + e * ax, half[k], u[k]) - shape_distance(name, p - e * ax, half[k], u[k])
+        grad = np.stack([_distance(name, p + e * ax, half[k], u[k]) - _distance(name, p - e * ax, half[k], u[k])
                          for ax in np.eye(3)], axis=1)
         norm = _norm(grad)
         cos = np.zeros(n)

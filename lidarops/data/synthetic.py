@@ -140,7 +140,8 @@ class Simulator:
         self.seed = integer(seed, "seed", 0)
         cache_blocks = integer(cache_blocks, "cache_blocks", 0)
         self.realism = make_realism(realism)
-        if self.realism is not None and scenario == "driving_city" and "street_clutter" not in scenario_options:
+        if self.realism is not None and scenario in ("driving_city", "driving_highway") \
+                and "street_clutter" not in scenario_options:
             scenario_options = {**scenario_options, "street_clutter": self.realism.street_clutter}
         self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)
         self.sensor: LidarSensor = make_sensor(sensor if sensor is not None else self.scenario.default_sensor)
@@ -367,7 +368,9 @@ class Simulator:
                        static, max_range: float) -> None:
         """Follows the rays that hit a shaped object's box onto its shape (:mod:`lidarops.data.shapes`), and
         sends those that miss it on into the scene from inside the box (the caster does not see a box from
-        within it), in place in ``hits``; a ray passing several shaped objects is followed up to three times."""
+        within it), in place in ``hits``; a ray passing several shaped objects is followed up to three times.
+        The objects' visibility counts stay those of their boxes: occlusion is judged by an object's outline,
+        as KITTI's annotators judge it, not by the gaps between a pedestrian's legs."""
         objects, n_obj = self.scenario.objects, len(self.scenario.objects)
         todo = np.flatnonzero(hits.object_index >= 0)
         for round_ in range(3):
@@ -388,7 +391,6 @@ class Simulator:
             gone = todo[miss]
             if not gone.size:
                 return
-            np.subtract.at(hits.object_visible, hits.object_index[gone], 1)
             start = hits.distance[gone] + 1e-3  # just inside the box: its faces are behind
             rng = _rng(self.seed, self.scenario.name, "realism", "recast", self.sensor.name, b, round_)
             again = cast_rays(origins[gone] + dirs[gone] * start[:, None], dirs[gone], t[gone], self.scenario.ground,
@@ -398,8 +400,6 @@ class Simulator:
             hits.distance[gone] = again.distance + start
             for field in ("surface", "object_index", "cos_incidence", "reflectivity", "extra_dropout"):
                 getattr(hits, field)[gone] = getattr(again, field)
-            seen = again.object_index[again.object_index >= 0]
-            np.add.at(hits.object_visible, seen, 1)
             todo = gone[again.object_index >= 0]
 
     def _vehicle_surfaces(self, b: int, hits, hit: np.ndarray, keep: np.ndarray, origins: np.ndarray,

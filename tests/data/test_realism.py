@@ -156,5 +156,27 @@ def test_street_clutter_adds_furniture_and_keeps_clear_of_labelled_boxes():
         .cylinders.center_xy.shape[0]
     with pytest.raises(ValueError, match="street_clutter"):
         Simulator("driving_city", seed=SEED, street_clutter=-1.0)
-    with pytest.raises(TypeError, match="street_clutter"):  # a city option, as an unexpected keyword is
+    with pytest.raises(TypeError, match="street_clutter"):  # a driving option, as an unexpected keyword is
         Simulator("drone_bridge", seed=SEED, street_clutter=1.0)
+
+
+def test_highway_verges_get_shrubs_and_posts_clear_of_the_lanes():
+    """The highway's clutter (beyond the barrier lane and the rails): more vegetation and pole returns,
+    none inside labelled boxes, the scene as it was at density 0, and on with the realism profile."""
+    import torch
+
+    from lidarops import points_in_boxes
+    from lidarops.data.scene import SURFACE_POLE, SURFACE_VEGETATION
+
+    plain = Simulator("driving_highway", seed=SEED).sweep(0)
+    np.testing.assert_array_equal(Simulator("driving_highway", seed=SEED, street_clutter=0.0).sweep(0).points,
+                                  plain.points)
+    busy = Simulator("driving_highway", seed=SEED, street_clutter=2.0).sweep(0)
+    verge = lambda f: int(np.isin(f.surface, [SURFACE_POLE, SURFACE_VEGETATION]).sum())  # noqa: E731
+    assert verge(busy) > verge(plain) + 300, (verge(busy), verge(plain))
+    idx = points_in_boxes(torch.as_tensor(busy.points[:, :3], dtype=torch.float64),
+                          torch.as_tensor(busy.boxes, dtype=torch.float64)).numpy()
+    assert ((idx >= 0) & (busy.instance != idx) & (busy.surface != SURFACE_GROUND)).sum() == 0
+    kitti = Simulator("driving_highway", seed=SEED, realism="kitti")
+    assert kitti.scenario.tile(0).ellipsoids.center.shape[0] > Simulator("driving_highway", seed=SEED).scenario \
+        .tile(0).ellipsoids.center.shape[0]

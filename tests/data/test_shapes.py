@@ -119,10 +119,12 @@ def test_bad_arguments_are_named():
     assert t.shape == hit.shape == cos.shape == (0,)
 
 
+KW = dict(seed=11, object_counts={"Car": 20, "Pedestrian": 15, "Cyclist": 12, "Truck": 2, "Bus": 2})
+
+
 @pytest.fixture(scope="module")
 def frames():
-    kw = dict(seed=11, object_counts={"Car": 20, "Pedestrian": 15, "Cyclist": 12, "Truck": 2, "Bus": 2})
-    return Simulator("driving_city", **kw).sweep(0), Simulator("driving_city", realism="kitti", **kw).sweep(0)
+    return Simulator("driving_city", **KW).sweep(0), Simulator("driving_city", realism="kitti", **KW).sweep(0)
 
 
 def _points_in_own_box(frame, cls):
@@ -158,3 +160,14 @@ def test_rays_that_miss_a_shape_go_on_into_the_scene(frames):
         return (idx[on] == f.instance[on]).mean()
 
     assert in_own_box(shaped) >= in_own_box(cast) - 0.005  # the shapes lie inside the boxes
+
+
+def test_occlusion_is_judged_by_the_boxes_outline(frames):
+    """KITTI's occlusion levels (and so the difficulty of each label) come from the share of an object's
+    outline that is seen: a ray between a pedestrian's legs does not make it more occluded."""
+    from lidarops.data.realism import Realism
+
+    cast, _ = frames
+    shaped = Simulator("driving_city", realism=Realism(street_clutter=0.0), **KW).sweep(0)  # clutter occludes
+    np.testing.assert_array_equal(shaped.visibility, cast.visibility)
+    assert np.isfinite(cast.visibility).sum() > 20

@@ -12,6 +12,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from lidarops.data.realism import Realism, make_realism
+from lidarops.data.shapes import SHAPES, box_exit, shape_distance, trace
 
 from .fuzzing import assert_clear_error, assert_no_error, fuzz, outcome
 
@@ -90,3 +91,47 @@ def test_transfer_augmentations_keep_rows_and_ranges(n, seed, p, scale, jitter, 
     assert out.shape == pts.shape and out.dtype == pts.dtype
     np.testing.assert_array_equal(out[:, :3], pts[:, :3])
     assert ((out[:, 3] >= 0) & (out[:, 3] <= 1)).all()
+
+
+@fuzz
+@given(name=st.sampled_from(sorted(SHAPES)), n=st.integers(0, 60), seed=st.integers(0, 2**16),
+       scale=st.floats(0.05, 8.0))
+def test_any_box_and_rays_give_hits_on_the_shape_inside_the_box(name, n, seed, scale):
+    """Boxes of any size (including ones far from the class's own), rays from anywhere on their faces: a hit
+    lies in the box and on the shape, before the ray leaves the box; cos in [0, 1]."""
+    rng = np.random.default_rng(seed)
+    half = rng.uniform(0.05, 1.0, (n, 3)) * scale + 0.01
+    face = rng.integers(0, 3, n)
+    entry = rng.uniform(-1, 1, (n, 3)) * half
+    entry[np.arange(n), face] = np.where(rng.random(n) < 0.5, -1, 1) * half[np.arange(n), face]
+    d = -entry / np.linalg.norm(entry, axis=1, keepdims=True) + rng.normal(0, 0.3, (n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    u = rng.random((n, 4))
+    out, err = outcome(trace, name, entry, d, half, u)
+    assert_no_error(err, f"trace({name!r}, {n} rays)")
+    t, hit, cos = out
+    assert t.shape == hit.shape == cos.shape == (n,)
+    assert np.isfinite(t).all() and ((cos >= 0) & (cos <= 1)).all()
+    assert (t[hit] <= box_exit(entry[hit], d[hit], half[hit]) + 1e-9).all()
+    p = entry[hit] + d[hit] * t[hit, None]
+    assert (np.abs(p) <= half[hit] + 1e-6).all()
+    assert (np.abs(shape_distance(name, p, half[hit], u[hit])) < 2e-3).all()
+
+
+@fuzz
+@given(name=st.sampled_from(sorted(SHAPES) + ["Boat", ""]), bad=st.sampled_from(["nan", "inf", "shape", "half"]))
+def test_bad_shape_inputs_are_named(name, bad):
+    p, half, u = np.zeros((3, 3)), np.ones((3, 3)), np.zeros((3, 4))
+    if bad == "nan":
+        p[1, 2] = np.nan
+    elif bad == "inf":
+        u[0, 0] = np.inf
+    elif bad == "shape":
+        half = np.ones((3, 2))
+    else:
+        half[2, 1] = 0.0
+    expect = "name" if name not in SHAPES else {"nan": "p", "inf": "u", "shape": "half", "half": "half"}[bad]
+    _, err = outcome(shape_distance, name, p, half, u)
+    assert_clear_error(err, ValueError, [expect], f"shape_distance({name!r}, {bad})")
+    _, err = outcome(trace, name, p, np.full((3, 3), 3 ** -0.5), half, u)
+    assert_clear_error(err, ValueError, ["entry" if expect == "p" else expect], f"trace({name!r}, {bad})")
