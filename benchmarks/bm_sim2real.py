@@ -6,8 +6,8 @@ simulator's realism (issue 40).
     python benchmarks/bm_sim2real.py --real .peers/kitti_real --realism none kitti --plot docs/img/sim2real.png --json
 
 The real frames are KITTI's (non-commercial, share-alike licence): they are brought to the machine at run time
-and never committed. For each ``--checkpoint`` (default: the shipped ``pointpillars_synth``) and each real frame
-(points the camera sees, as the detector was trained):
+and never committed. For each ``--checkpoint`` (default: the shipped ``pointpillars_synth`` and
+``pointpillars_synth_real``) and each real frame (points the camera sees, as the detector was trained):
 
 * **found / labelled** per class: labelled objects matched one-to-one (greedy by score, same class) by a
   detection of 3D IoU >= each threshold (Car 0.5 and KITTI's 0.7; Pedestrian and Cyclist 0.25 and 0.5), and of
@@ -226,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--real", type=Path, default=ROOT / ".peers" / "kitti_real",
                    help="KITTI folder of real frames (ImageSets/val.txt, training/velodyne, calib, label_2)")
-    p.add_argument("--checkpoint", nargs="+", default=["pointpillars_synth"], help="detectors: files or shipped names")
+    p.add_argument("--checkpoint", nargs="+", default=["pointpillars_synth", "pointpillars_synth_real"],
+                   help="detectors: files or shipped names")
     p.add_argument("--sim-frames", type=int, default=40)
     p.add_argument("--realism", nargs="*", default=[None], help="the simulator's realism profiles to compare "
                                                                    "(none: as cast; kitti)")

@@ -1,6 +1,6 @@
 """Explanatory figures of docs/ that are drawn, not measured.
 
-    python benchmarks/figures.py        # docs/img/boxes_convention.png, docs/img/detector_training.png
+    python benchmarks/figures.py        # docs/img/boxes_convention.png, detector_training.png, shapes.png
 """
 from __future__ import annotations
 
@@ -122,9 +122,49 @@ def detector_training(path: Path) -> None:
     print(f"wrote {path}")
 
 
+def shapes(path: Path) -> None:
+    """The realism profile's object shapes (lidarops.data.shapes) inside their labelled boxes, as a sensor
+    8 m away and 1.7 m up sees them: the returns of a dense fan of rays traced onto each shape."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lidarops.data.shapes import SHAPES, trace
+
+    sizes = {"Car": (4.2, 1.75, 1.5), "Truck": (8.0, 2.5, 3.2), "Bus": (11.0, 2.6, 3.2),
+             "Pedestrian": (0.8, 0.6, 1.75), "Cyclist": (1.76, 0.6, 1.73)}
+    rng = np.random.default_rng(0)
+    fig, axes = plt.subplots(1, len(SHAPES), figsize=(16, 3.4), gridspec_kw={"width_ratios": [4.2, 8, 11, 1.6, 2.4]})
+    for ax, (name, size) in zip(axes, sizes.items()):
+        half = np.asarray(size) / 2
+        o = np.array([-0.3 * half[0], -8.0, 1.7 - half[2]])  # the sensor, beside the object's left flank
+        aim = rng.uniform(-1, 1, (80_000, 3)) * half
+        d = aim - o
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (-half - o) / d, (half - o) / d
+        near = np.minimum(t1, t2).max(1)
+        entry = o + d * near[:, None]
+        t, hit, cos = trace(name, entry, d, np.tile(half, (len(d), 1)), np.tile([0.3, 0.5, 0.5, 0.5], (len(d), 1)))
+        q = entry[hit] + d[hit] * t[hit, None]
+        ax.scatter(q[:, 0], q[:, 2], s=0.2, c=cos[hit], cmap="viridis", vmin=0, vmax=1)
+        ax.plot([-half[0], half[0], half[0], -half[0], -half[0]], [-half[2], -half[2], half[2], half[2], -half[2]],
+                color="tab:red", lw=0.8)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name}: {100 * hit.mean():.0f} % of the rays", fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle("shapes inside their labelled boxes (red), seen from the side; colour: cos of incidence", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    print(f"wrote {path}")
+
+
 def main() -> int:
     boxes_convention(ROOT / "docs" / "img" / "boxes_convention.png")
     detector_training(ROOT / "docs" / "img" / "detector_training.png")
+    shapes(ROOT / "docs" / "img" / "shapes.png")
     return 0
 
 

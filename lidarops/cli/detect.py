@@ -2,8 +2,11 @@
 simulator makes on the spot); prints the boxes, writes KITTI result files (``OUT/data/<id>.txt``) and
 bird's-eye-view pictures, and prints KITTI AP and the matches per class when the frames have labels.
 
-The model is the shipped PointPillars (:mod:`lidarops.models.weights`) unless ``--checkpoint`` names
-another file: a lidarops checkpoint says which model it holds; an OpenPCDet one needs ``--config``.
+The model is a shipped PointPillars (:mod:`lidarops.models.weights`) unless ``--checkpoint`` names another
+file or shipped name: ``pointpillars_synth_real`` (trained on the simulator with its realism profile) for
+scans, ``pointpillars_synth`` for the simulator's ray-cast frames (``--scenario``, or a folder ``data synth``
+wrote without ``--realism``). A lidarops checkpoint says which model it holds; an OpenPCDet one needs
+``--config``.
 
 Behind a sampler (issue 37): ``--sampler random|fps|chunked-fps|casnet --ratio D`` keeps ``N // D`` of the
 ``N`` points of each frame the detector would see (after the field-of-view filter), every channel, with the
@@ -121,15 +124,42 @@ def _build_sampler(sampling: _Sampling, device):
         raise CliError(text) from None
 
 
+#: the shipped detector for real scans, and the one for the simulator's ray-cast frames (docs/detector.md)
+SHIPPED_REAL, SHIPPED_CAST = "pointpillars_synth_real", "pointpillars_synth"
+
+
+def _default_checkpoint(args: argparse.Namespace) -> str:
+    """The shipped detector for the input: the simulator's ray-cast frames (``--scenario``, or a ``data synth``
+    folder made without ``--realism``) get the model trained on them; everything else, a user's own scans
+    above all, the model trained for real scans."""
+    if args.scenario:
+        return SHIPPED_CAST
+    recipe = Path(args.input) / "recipe.json" if args.input else None
+    if recipe is not None and recipe.is_file():
+        try:
+            if json.loads(recipe.read_text()).get("realism") is None:
+                return SHIPPED_CAST
+        except (OSError, ValueError, AttributeError):
+            pass
+    return SHIPPED_REAL
+
+
 def _load_model(args: argparse.Namespace):
     """(the model in eval mode on its device, the device, the checkpoint's path)."""
     from lidarops.cli._device import resolve_device
     from lidarops.models import load_model, weights
 
     device = resolve_device(args.device)
-    path = Path(args.checkpoint) if args.checkpoint else weights.path()
+    name = args.checkpoint or _default_checkpoint(args)
+    path = Path(name)
+    if not path.is_file() and name in weights.available():  # a shipped name
+        path = weights.path(name)
+    if not args.checkpoint:
+        print(f"model: the shipped {name} ({'for real scans' if name == SHIPPED_REAL else 'for ray-cast simulated frames'}"
+              f"; --checkpoint {SHIPPED_CAST if name == SHIPPED_REAL else SHIPPED_REAL} for "
+              f"{'the simulator without --realism' if name == SHIPPED_REAL else 'real scans'})")
     if not path.is_file():
-        raise CliError(f"checkpoint {path} not found")
+        raise CliError(f"checkpoint {path} not found (shipped: {', '.join(weights.available())})")
     model = load_model(path, config=args.config, map_location="cpu").to(device)
     if args.score_thresh is not None:
         model.config.score_thresh = float(args.score_thresh)
@@ -487,7 +517,9 @@ def register(subparsers) -> None:
     d.add_argument("--seed", type=int, default=HELD_OUT_SEED,
                    help=f"scenario seed (default {HELD_OUT_SEED}: frames no shipped model was trained on)")
     d.add_argument("--split", default=None, help="KITTI folder: an ImageSets name (train, val)")
-    d.add_argument("--checkpoint", default=None, help="checkpoint (default: the shipped pointpillars_synth)")
+    d.add_argument("--checkpoint", default=None, help="checkpoint file or shipped name (default: the shipped "
+                   "pointpillars_synth_real for scans, pointpillars_synth for --scenario and folders data synth "
+                   "made without --realism)")
     d.add_argument("--config", default=None, help="config for an OpenPCDet checkpoint (lidarops ones carry theirs)")
     d.add_argument("--out", default="detections", help="output folder (default ./detections)")
     d.add_argument("--score-thresh", type=float, default=None,

@@ -48,6 +48,58 @@ def test_shipped_model_finds_the_cars_of_an_unseen_scene():
     assert found.float().mean() >= 0.8, found
 
 
+@pytest.mark.slow
+def test_real_scan_model_finds_the_cars_of_an_unseen_realism_scene():
+    """The shipped real-scan detector: trained on frames the realism profile shapes (its recorded recipe),
+    it finds most labelled cars of a realism frame from an unseen seed, boxes at 3D IoU 0.5."""
+    import lidarops
+    from lidarops.data.formats.kitti import KittiCalib, kitti_fov_mask
+    from lidarops.data.synthetic import SyntheticFrames
+    from lidarops.models import weights
+
+    info = weights.info("pointpillars_synth_real")
+    assert info["data_recipe"]["realism"] == "kitti" and info["config_path"].endswith("pointpillars_synth_real.yaml")
+    assert weights.path("pointpillars_synth_real").stat().st_size <= 20 * 2**20  # the issue's cap
+    frame = SyntheticFrames("driving_city", num_frames=1, seed=424243, realism="kitti")[0]
+    calib = KittiCalib.default()
+    pts = frame.points[kitti_fov_mask(frame.points, calib)]
+    cars = frame.boxes[(frame.labels == 0) & (frame.num_points_in_box >= 50)
+                       & kitti_fov_mask(frame.boxes[:, :3], calib) & (frame.boxes[:, 0] < 60)]
+    assert len(cars) >= 3
+    batch = {"points": torch.from_numpy(np.concatenate([np.zeros((len(pts), 1), np.float32), pts], 1)),
+             "batch_size": 1}
+    pred = weights.load("pointpillars_synth_real").predict(batch)[0]
+    found = lidarops.box_iou_3d(torch.from_numpy(cars), pred["boxes"][pred["labels"] == 1]).amax(1) > 0.5
+    assert found.float().mean() >= 0.8, found
+
+
+@pytest.mark.slow
+def test_detect_picks_the_shipped_model_for_its_input(tmp_path, run_cli):
+    """A scan file gets the real-scan model, the simulator's ray-cast frames (--scenario, a data synth
+    folder without --realism) the model trained on them, a realism folder the real-scan one; --checkpoint
+    takes a shipped name."""
+    from lidarops.data.synthetic import SyntheticFrames
+
+    scan = tmp_path / "000000.bin"
+    SyntheticFrames("driving_city", num_frames=1, seed=5001)[0].points.astype(np.float32).tofile(scan)
+    cases = [([scan], "pointpillars_synth_real"),
+             (["--scenario", "driving_city", "--frames", "1"], "pointpillars_synth ")]
+    for realism, name in ((None, "pointpillars_synth "), ("kitti", "pointpillars_synth_real")):
+        folder = tmp_path / f"synth_{realism}"
+        assert run_cli(["data", "synth", "--scenario", "driving_city", "--frames", "1", "--seed", "5002",
+                        "--val-fraction", "0", "--out", folder, "--no-progress",
+                        *(["--realism", realism] if realism else [])])[0] == 0
+        cases.append(([folder, "--frames", "1"], name))
+    for k, (args, name) in enumerate(cases):
+        code, out, err = run_cli(["detect", *args, "--png", "0", "--device", "cpu", "--out", tmp_path / f"d{k}",
+                                  "--no-progress", "--print-frames", "0"])
+        assert code == 0 and f"model: the shipped {name}" in out + " ", (args, out, err)
+    code, out, err = run_cli(["detect", scan, "--checkpoint", "pointpillars_synth", "--png", "0", "--device", "cpu",
+                              "--out", tmp_path / "named", "--no-progress", "--print-frames", "0"])
+    assert code == 0 and "model: the shipped" not in out
+    assert "pointpillars_synth.pth" in json.loads((tmp_path / "named" / "detect.json").read_text())["checkpoint"]
+
+
 @pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
 def test_detect_on_a_scenario(tmp_path, run_cli):
     """The shipped model on one simulated frame: boxes printed, a result file, a picture, AP and matches."""
