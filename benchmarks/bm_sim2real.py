@@ -2,7 +2,9 @@
 simulator's realism (issue 40).
 
     bash tools/sim2real/kitti_real_frames.sh                       # 6 real KITTI frames out of OpenPCDet's history
-    python tools/sim2real/mmdet3d_demo_frame.py MMDET3D_GIT .peers/kitti_real   # and mmdetection3d's frame 000008
+    python tools/sim2real/mmdet3d_demo_frame.py MMDET3D_GIT .peers/kitti_real   # mmdetection3d's frame 000008
+    bash tools/sim2real/more_real_frames.sh /work/.mirror          # 8 more (000008 whole) from PointRCNN,
+                                                                   # Open3D-ML and PointPillars
     python benchmarks/bm_sim2real.py --real .peers/kitti_real --realism none kitti --plot docs/img/sim2real.png --json
 
 The real frames are KITTI's (non-commercial, share-alike licence): they are brought to the machine at run time
@@ -11,7 +13,7 @@ and never committed. For each ``--checkpoint`` (default: the shipped ``pointpill
 
 * **found / labelled** per class: labelled objects matched one-to-one (greedy by score, same class) by a
   detection of 3D IoU >= each threshold (Car 0.5 and KITTI's 0.7; Pedestrian and Cyclist 0.25 and 0.5), and of
-  bird's-eye IoU >= 0.5;
+  bird's-eye IoU >= 0.5; and among the easy and moderate ones (KITTI's difficulty), at the first threshold;
 * **false positives per frame** above scores 0.3 and 0.5: detections whose bird's-eye IoU with every labelled
   box (any type: Van, Truck, Misc too; DontCare has no box) is below 0.1;
 * **errors of the found boxes** (bird's-eye IoU >= 0.5): centre height, bottom, top, length, width, height,
@@ -57,14 +59,15 @@ def greedy_match(iou: np.ndarray, scores: np.ndarray, thresh: float) -> np.ndarr
 
 
 def frame_figures(gt_boxes: np.ndarray, gt_names: list[str], det_boxes: np.ndarray, det_scores: np.ndarray,
-                  det_names: list[str]) -> dict:
+                  det_names: list[str], difficulty: np.ndarray | None = None) -> dict:
     """One frame's counts: ``found[(class, kind, thresh)]``, ``labelled[class]``, ``fp[score]`` and the
     errors of the boxes found at bird's-eye IoU 0.5, ``errors[class]`` (rows of centre-z, bottom, top, dx, dy,
-    dz differences)."""
+    dz differences). With the labels' KITTI ``difficulty``, also the easy and moderate ones (0 or 1) found at
+    the class's first 3D threshold, ``found_em[class]`` of ``labelled_em[class]``."""
     from lidarops import box_iou_3d, box_iou_bev
 
     t = lambda a: torch.as_tensor(np.asarray(a, np.float64).reshape(-1, 7))  # noqa: E731
-    out: dict = {"found": {}, "labelled": {}, "fp": {}, "errors": {}}
+    out: dict = {"found": {}, "labelled": {}, "fp": {}, "errors": {}, "found_em": {}, "labelled_em": {}}
     for cls in CLASSES:
         g = [i for i, n in enumerate(gt_names) if n == cls]
         d = [i for i, n in enumerate(det_names) if n == cls]
@@ -74,6 +77,10 @@ def frame_figures(gt_boxes: np.ndarray, gt_names: list[str], det_boxes: np.ndarr
         bev = box_iou_bev(t(db), t(gb)).numpy() if len(g) and len(d) else np.zeros((len(d), len(g)))
         for th in THRESHOLDS_3D[cls]:
             out["found"][(cls, "3d", th)] = int((greedy_match(iou3, ds, th) >= 0).sum())
+        if difficulty is not None:
+            em = (difficulty[g] >= 0) & (difficulty[g] <= 1)
+            out["labelled_em"][cls] = int(em.sum())
+            out["found_em"][cls] = int(((greedy_match(iou3, ds, THRESHOLDS_3D[cls][0]) >= 0) & em).sum())
         m = greedy_match(bev, ds, 0.5)
         out["found"][(cls, "bev", 0.5)] = int((m >= 0).sum())
         rows = []
@@ -115,13 +122,16 @@ def object_stats(points: np.ndarray, boxes: np.ndarray, names: list[str]) -> dic
 
 
 def real_frames(root: Path):
-    from lidarops.data.formats.kitti import KittiDataset
+    """(frame id, points, boxes, KITTI type names, KITTI difficulty) of each real frame."""
+    from lidarops.data.formats.kitti import KittiDataset, kitti_difficulty
 
     ds = KittiDataset(root, image_set="val", unknown="keep", fov="camera")
     for i in range(len(ds)):
         f = ds[i]
-        names = list(f.meta["kitti"].names) if "kitti" in f.meta else []  # KITTI's types: Van, Truck, Misc too
-        yield f.meta["frame_id"], f.points, f.boxes, names
+        labels = f.meta.get("kitti")
+        names = list(labels.names) if labels is not None else []  # KITTI's types: Van, Truck, Misc too
+        difficulty = kitti_difficulty(labels) if labels is not None else np.zeros(0, np.int64)
+        yield f.meta["frame_id"], f.points, f.boxes, names, difficulty
 
 
 def sim_frames(n: int, realism: str | None = None):
@@ -152,6 +162,9 @@ def summarize(figs: list[dict]) -> dict:
     for cls in CLASSES:
         n = sum(f["labelled"][cls] for f in figs)
         row[f"{cls}_labelled"] = n
+        if figs and cls in figs[0]["labelled_em"]:
+            row[f"{cls}_labelled_easy_moderate"] = sum(f["labelled_em"][cls] for f in figs)
+            row[f"{cls}_found_3d{THRESHOLDS_3D[cls][0]}_easy_moderate"] = sum(f["found_em"][cls] for f in figs)
         for key in [k for k in figs[0]["found"] if k[0] == cls]:
             found = sum(f["found"][key] for f in figs)
             row[f"{cls}_found_{key[1]}{key[2]}"] = found
@@ -166,7 +179,7 @@ def summarize(figs: list[dict]) -> dict:
 
 def data_stats(frames) -> dict:
     allint, cars = [], []
-    for _, points, boxes, names in frames:
+    for _, points, boxes, names, *_ in frames:
         allint.append(points[:, 3])
         cars.append(object_stats(points, boxes, names))
     inten = np.concatenate(allint)
@@ -245,15 +258,17 @@ def main(argv: list[str] | None = None) -> int:
         path = weights.path(ck) if ck in weights.available() else ck
         model = load_model(path).eval()
         figs, top = [], 0.0
-        for fid, points, boxes, names in real:
+        for fid, points, boxes, names, difficulty in real:
             db, ds, dn = detections(model, points)
-            figs.append(frame_figures(boxes.astype(np.float64), names, db, ds, dn))
+            figs.append(frame_figures(boxes.astype(np.float64), names, db, ds, dn, difficulty))
             top = max([top, *ds.tolist()])
         row = {"op": "sim2real", "case": f"real_kitti:{Path(str(ck)).name}", "checkpoint": str(ck), **summarize(figs),
                "max_score": round(top, 3)}
         rows.append(row)
         print(f"{ck}: " + ", ".join(f"{c} {row[f'{c}_found_3d{THRESHOLDS_3D[c][0]}']}/{row[f'{c}_labelled']} at 3D "
-                                    f"{THRESHOLDS_3D[c][0]}" for c in CLASSES)
+                                    f"{THRESHOLDS_3D[c][0]} (easy and moderate: "
+                                    f"{row[f'{c}_found_3d{THRESHOLDS_3D[c][0]}_easy_moderate']}/"
+                                    f"{row[f'{c}_labelled_easy_moderate']})" for c in CLASSES)
               + f"; false positives per frame above 0.5: {row['fp_per_frame_above_0.5']}", flush=True)
     rstats = data_stats(real)
     rows.append({"op": "sim2real", "case": "stats:real_kitti", "frames": len(real), **rstats["row"]})

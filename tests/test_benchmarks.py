@@ -300,3 +300,9 @@ def test_bm_sim2real_frame_figures_on_a_hand_made_frame():
     assert out["fp"] == {0.3: 2, 0.5: 1}
     np.testing.assert_allclose(out["errors"]["Car"], [[-0.4, -0.4, -0.4, 0.0, 0.0, 0.0]], atol=1e-9)
     assert out["errors"]["Pedestrian"].shape == (0, 6)
+    # the car hard (difficulty 2): it leaves the easy-and-moderate count; moderate, it stays in it
+    for level, counted in ((2, 0), (1, 1)):
+        out = frame_figures(gt, ["Car", "Pedestrian", "Van"], det, scores, ["Car", "Car", "Car", "Car", "Pedestrian"],
+                            np.array([level, 0, 0]))
+        assert out["labelled_em"]["Car"] == counted and out["found_em"]["Car"] == counted
+        assert out["labelled_em"]["Pedestrian"] == 1 and out["found_em"]["Pedestrian"] == 0
