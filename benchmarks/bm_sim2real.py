@@ -14,6 +14,9 @@ and never committed. For each ``--checkpoint`` (default: the shipped ``pointpill
 * **found / labelled** per class: labelled objects matched one-to-one (greedy by score, same class) by a
   detection of 3D IoU >= each threshold (Car 0.5 and KITTI's 0.7; Pedestrian and Cyclist 0.25 and 0.5), and of
   bird's-eye IoU >= 0.5; and among the easy and moderate ones (KITTI's difficulty), at the first threshold;
+* **taken for**: per labelled object, the class of the highest-scoring detection over it at bird's-eye IoU
+  >= the class's first threshold (Car 0.5, Pedestrian and Cyclist 0.25), counted where it is another class or
+  none (``Pedestrian_taken_for_Cyclist``...);
 * **false positives per frame** above scores 0.3 and 0.5: detections whose bird's-eye IoU with every labelled
   box (any type: Van, Truck, Misc too; DontCare has no box) is below 0.1;
 * **errors of the found boxes** (bird's-eye IoU >= 0.5): centre height, bottom, top, length, width, height,
@@ -95,6 +98,14 @@ def frame_figures(gt_boxes: np.ndarray, gt_names: list[str], det_boxes: np.ndarr
     alone = any_bev.max(axis=1) < 0.1 if any_bev.shape[1] else np.ones(len(det_boxes), bool)
     for s in FP_SCORES:
         out["fp"][s] = int((alone & (det_scores >= s)).sum())
+    # what each labelled Car / Pedestrian / Cyclist is taken for: the class of the highest-scoring detection of
+    # any class over it at bird's-eye IoU >= the class's first threshold ("none" when there is none)
+    out["taken_for"] = {}
+    for j, name in enumerate(gt_names):
+        if name in CLASSES:
+            over = np.flatnonzero(any_bev[:, j] >= THRESHOLDS_3D[name][0]) if any_bev.size else np.zeros(0, np.int64)
+            got = det_names[over[np.argmax(det_scores[over])]] if over.size else "none"
+            out["taken_for"][(name, got)] = out["taken_for"].get((name, got), 0) + 1
     return out
 
 
@@ -168,6 +179,9 @@ def summarize(figs: list[dict]) -> dict:
         for key in [k for k in figs[0]["found"] if k[0] == cls]:
             found = sum(f["found"][key] for f in figs)
             row[f"{cls}_found_{key[1]}{key[2]}"] = found
+        for other in (*CLASSES, "none"):
+            if other != cls:
+                row[f"{cls}_taken_for_{other}"] = sum(f["taken_for"].get((cls, other), 0) for f in figs)
         errs = np.concatenate([f["errors"][cls] for f in figs]) if figs else np.zeros((0, 6))
         if len(errs):
             for j, name in enumerate(("z_centre", "bottom", "top", "dx", "dy", "dz")):

@@ -300,6 +300,12 @@ def test_bm_sim2real_frame_figures_on_a_hand_made_frame():
     assert out["fp"] == {0.3: 2, 0.5: 1}
     np.testing.assert_allclose(out["errors"]["Car"], [[-0.4, -0.4, -0.4, 0.0, 0.0, 0.0]], atol=1e-9)
     assert out["errors"]["Pedestrian"].shape == (0, 6)
+    # the car is taken for a car, the pedestrian (a detection 3 m off) for nothing, the Van is not counted
+    assert out["taken_for"] == {("Car", "Car"): 1, ("Pedestrian", "none"): 1}
+    ped = np.array([[5.0, 3.0, -0.9, 0.8, 0.6, 1.7, 0.0]])
+    out = frame_figures(ped, ["Pedestrian"], np.array([[5.1, 3.0, -0.9, 1.6, 0.6, 1.7, 0.0], ped[0]]),
+                        np.array([0.7, 0.2]), ["Cyclist", "Pedestrian"])
+    assert out["taken_for"] == {("Pedestrian", "Cyclist"): 1}  # the higher score decides
     # the car hard (difficulty 2): it leaves the easy-and-moderate count; moderate, it stays in it
     for level, counted in ((2, 0), (1, 1)):
         out = frame_figures(gt, ["Car", "Pedestrian", "Van"], det, scores, ["Car", "Car", "Car", "Car", "Pedestrian"],
