@@ -233,6 +233,8 @@ def trace(name: str, entry: np.ndarray, d: np.ndarray, half: np.ndarray, u: np.n
     """
     entry, d, half, u = _checked(name, entry=entry, d=d, half=half, u=u)
     n = len(entry)
+    if n and np.abs(_norm(d) - 1.0).max() > 1e-6:
+        raise ValueError("d must hold unit directions (rows of length 1)")
     t, before, hit = np.zeros(n), np.zeros(n), np.zeros(n, bool)
     exit_t = box_exit(entry, d, half)
     active = np.arange(n)

@@ -115,6 +115,8 @@ def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="u must"):
         shape_distance("Car", np.zeros((2, 3)), np.ones((2, 3)), np.zeros((2, 3)))
     assert shape_distance("Car", np.zeros((0, 3)), np.ones((0, 3)), np.zeros((0, 4))).shape == (0,)
+    with pytest.raises(ValueError, match="d must hold unit directions"):
+        trace("Car", np.zeros((1, 3)), np.zeros((1, 3)), np.ones((1, 3)), np.zeros((1, 4)))
     t, hit, cos = trace("Cyclist", np.zeros((0, 3)), np.zeros((0, 3)), np.ones((0, 3)), np.zeros((0, 4)))
     assert t.shape == hit.shape == cos.shape == (0,)
 
