@@ -18,7 +18,7 @@ A :class:`Realism` applies these effects to the caster's returns:
 * it reads dark paint, glass and tyres as zero intensity;
 * it scales intensity per surface kind and per beam, zeroes weak returns near the detection limit, and
   quantises;
-* it adds street furniture and roadside clutter to city scenes (the scenario option ``street_clutter``).
+* it adds street furniture and roadside clutter to driving scenes (the scenario option ``street_clutter``).
 
 The simulator takes it as ``Simulator(..., realism="kitti")``. Its random numbers come from a stream of their
 own, so frames without it are exactly those of before.
@@ -59,9 +59,9 @@ class Realism:
         beam_gain_std (float): spread of the per-beam intensity calibration (a gain drawn once per beam).
         weak_from (float): returns beyond this fraction of their surface's detection range read 0.
         quantum (float): intensity is reported in steps of this size (0: not quantised).
-        street_clutter (float): density of the street furniture and roadside clutter added to ``driving_city``
-            scenes (kerbs, bollards, bins, parking meters, parked bicycles, bushes; the scenario option
-            ``street_clutter``, 1 about one piece per 6 m of pavement; 0 none).
+        street_clutter (float): density of the clutter added to driving scenes: street furniture and shrubs in
+            ``driving_city``, shrubs, saplings and posts on ``driving_highway``'s verges (the scenario option
+            ``street_clutter``; 1 about one piece per 6 m of pavement; 0 none).
     """
 
     vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")

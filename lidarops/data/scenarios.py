@@ -31,7 +31,10 @@ from lidarops.data.scene import (
     _uniform_material,
 )
 
-__all__ = ["SCENARIOS", "MAX_OBJECTS", "build_scenario", "sample_object_counts"]
+__all__ = ["SCENARIOS", "CLUTTERED_SCENARIOS", "MAX_OBJECTS", "build_scenario", "sample_object_counts"]
+
+#: The scenarios that take the option ``street_clutter`` (roadside clutter a detector must learn to reject).
+CLUTTERED_SCENARIOS: tuple[str, ...] = ("driving_city", "driving_highway")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -388,16 +391,14 @@ def _roadside_clutter(ground: Ground, seed: int, density: float, k: int, x0: flo
     return b.build()
 
 
-def _cluttered(tile_fn, ground: Ground, seed: int, density: float, tile_length: float, clutter=None):
-    """``tile_fn`` with each tile's ``clutter`` (default: the city's street clutter) added (``density`` 0: the
-    tiles as they are)."""
+def _cluttered(tile_fn, clutter, ground: Ground, seed: int, density: float, tile_length: float):
+    """``tile_fn`` with each tile's ``clutter`` added (``density`` 0: the tiles as they are)."""
     if density <= 0:
         return tile_fn
 
     def build(k: int, rng: np.random.Generator) -> StaticPrimitives:
         base = tile_fn(k, rng)
-        return StaticPrimitives.concat([base, (clutter or _street_clutter)(ground, seed, density, k, k * tile_length,
-                                                                           (k + 1) * tile_length)])
+        return StaticPrimitives.concat([base, clutter(ground, seed, density, k, k * tile_length, (k + 1) * tile_length)])
 
     return build
 
@@ -447,7 +448,8 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
     objects, labels = placed.build()
     tile_length = 40.0
     return Scenario("driving_city", seed, "hdl64", ground, ego, objects, labels, 80.0, tile_length,
-                    _cluttered(_city_tile(ground, tile_length), ground, seed, street_clutter, tile_length), done)
+                    _cluttered(_city_tile(ground, tile_length), _street_clutter, ground, seed, street_clutter,
+                               tile_length), done)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -549,8 +551,8 @@ def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = No
     objects, labels = placed.build()
     tile_length = 50.0
     return Scenario("driving_highway", seed, "hdl64", ground, ego, objects, labels, 100.0, tile_length,
-                    _cluttered(_highway_tile(ground, tile_length), ground, seed, street_clutter, tile_length,
-                               _roadside_clutter), done)
+                    _cluttered(_highway_tile(ground, tile_length), _roadside_clutter, ground, seed, street_clutter,
+                               tile_length), done)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -232,9 +232,14 @@ def trace(name: str, entry: np.ndarray, d: np.ndarray, half: np.ndarray, u: np.n
         cos (float64[N]): |cos| of the angle between the ray and the shape's normal there.
     """
     entry, d, half, u = _checked(name, entry=entry, d=d, half=half, u=u)
-    n = len(entry)
-    if n and np.abs(_norm(d) - 1.0).max() > 1e-6:
+    if len(d) and np.abs(_norm(d) - 1.0).max() > 1e-6:
         raise ValueError("d must hold unit directions (rows of length 1)")
+    return _trace(name, entry, d, half, u)
+
+
+def _trace(name, entry, d, half, u):
+    """:func:`trace` on checked float64 arrays (the simulator's own calls)."""
+    n = len(entry)
     t, before, hit = np.zeros(n), np.zeros(n), np.zeros(n, bool)
     exit_t = box_exit(entry, d, half)
     active = np.arange(n)

@@ -32,9 +32,9 @@ from lidarops.data._raycast import cast_rays
 from lidarops.data.frame import CLASSES, Frame
 from lidarops.data.geometry import count_points_in_boxes, pose_matrix, wrap_angle
 from lidarops.data.realism import Realism, make_realism
-from lidarops.data.scenarios import SCENARIOS, build_scenario
+from lidarops.data.scenarios import CLUTTERED_SCENARIOS, SCENARIOS, build_scenario
 from lidarops.data.scene import SURFACE_KINDS, SURFACE_NONE, BoxSet, Scenario, _rng
-from lidarops.data.shapes import trace
+from lidarops.data.shapes import _trace
 from lidarops.data.sensors import LidarSensor, RisleyLidar, SpinningLidar, avia, hdl64, make_sensor, pandar64
 
 __all__ = [
@@ -140,8 +140,7 @@ class Simulator:
         self.seed = integer(seed, "seed", 0)
         cache_blocks = integer(cache_blocks, "cache_blocks", 0)
         self.realism = make_realism(realism)
-        if self.realism is not None and scenario in ("driving_city", "driving_highway") \
-                and "street_clutter" not in scenario_options:
+        if self.realism is not None and scenario in CLUTTERED_SCENARIOS and "street_clutter" not in scenario_options:
             scenario_options = {**scenario_options, "street_clutter": self.realism.street_clutter}
         self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)
         self.sensor: LidarSensor = make_sensor(sensor if sensor is not None else self.scenario.default_sensor)
@@ -384,7 +383,7 @@ class Simulator:
                 g = np.flatnonzero(self._shape_of[o] == k)
                 if not g.size:
                     continue
-                step, on, cos = trace(name, local[g], ldir[g], objects.half[o[g]], self._shape_u[o[g]])
+                step, on, cos = _trace(name, local[g], ldir[g], objects.half[o[g]], self._shape_u[o[g]])
                 hits.distance[todo[g[on]]] += step[on]
                 hits.cos_incidence[todo[g[on]]] = cos[on]
                 miss[g[~on]] = True
