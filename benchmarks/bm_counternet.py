@@ -17,15 +17,14 @@ voxelization drops what lies outside their point cloud range). N frames (16 on C
 
 The models, in eval mode:
 
-* ``CN_pt=1``: ``CounterNet(configs/counternet/counternet_synth.yaml)`` as configured (PARTITIONS 1);
-* ``CN_pt=4^o``: the same config with PARTITIONS 4 and OVERLAP 0.2 (CN_pt^o: four heatmap branches on
+* ``CN_pt=1``: the shipped ``counternet_road7_pt1`` (PARTITIONS 1, no overlap);
+* ``CN_pt=4^o``: the shipped ``counternet_road7`` (CN_pt^o: PARTITIONS 4, OVERLAP 0.2: four heatmap branches on
   overlapping regions, centres found twice merged);
 * ``PointPillars counter``: the shipped detector ``lidarops.models.weights.load("pointpillars_synth")``;
   its count of a frame = the boxes with score >= 0.5, per class.
 
-CounterNet's weights are random (seeded; no CounterNet checkpoint ships): the network's time does not depend on
-the weights. Its postprocess (Otsu threshold, peaks, centres, merge) depends a little on how many peaks the
-heatmaps hold; untrained heatmaps hold few, so the postprocess times here are a lower bound for a trained model.
+The trained CounterNets find the frames' objects as peaks, so the post-processing (thresholds, peaks, centres,
+merge) works on as many peaks as a user's frames give.
 
 Rows, per model:
 
@@ -33,6 +32,10 @@ Rows, per model:
   host; the calls cycle over the frames; median (and IQR) over the calls (on CPU: one call per frame).
 * ``throughput``: ``model.predict`` on batches of ``--batch`` frames (8 on CUDA, 2 on CPU), counts read to the
   host; frames/s = batch / median batch time.
+* ``graph <precision>`` (CUDA): each model as one replayed CUDA graph of a whole batch
+  (:class:`~lidarops.models.cuda_graph.GraphedCounterNet`, :class:`~lidarops.models.cuda_graph.GraphedPointPillars`,
+  as ``lidarops index build`` runs them), called on a list of frames, for each of ``--graph-batches`` (8, 32) and
+  ``--graph-precisions`` (fp32, fp16);
 * for CounterNet also ``postprocess`` alone (batch 1, on the forward's precomputed outputs) and its share of
   the latency; the rest (batch checks, voxelization, network) is the network's share.
 
@@ -74,11 +77,9 @@ from benchmarks.common import (
 )
 
 import lidarops
-from lidarops.config import load_config
 from lidarops.models.counternet import CounterNet
 
 SECTION = "counternet"
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "counternet" / "counternet_synth.yaml"
 SCENARIO, SEED, FOV_DEG = "driving_city", 0, 90.0  # full opening: |azimuth| < 45 degrees
 SCORE_THRESHOLD = 0.5  # the PointPillars counter's score threshold
 
@@ -109,11 +110,11 @@ def make_batch(frames: list[torch.Tensor], device: torch.device) -> dict:
     return {"points": pts.to(device), "batch_size": len(frames)}
 
 
-def counternet(device: torch.device, partitions: int, overlap: float) -> CounterNet:
-    cfg = load_config(str(CONFIG))
-    cfg["MODEL"]["COUNT_HEAD"].update(PARTITIONS=partitions, OVERLAP=overlap)
-    torch.manual_seed(0)
-    return CounterNet(cfg).to(device).eval()
+def counternet(device: torch.device, name: str) -> CounterNet:
+    """A shipped CounterNet, in float32."""
+    from lidarops.models import weights
+
+    return weights.load(name, map_location=device).float().to(device).eval()
 
 
 def models(device: torch.device) -> dict[str, tuple[Any, Callable[[Any, dict], Any]]]:
@@ -126,8 +127,12 @@ def models(device: torch.device) -> dict[str, tuple[Any, Callable[[Any, dict], A
         return torch.stack([torch.bincount(f["labels"][f["scores"] >= SCORE_THRESHOLD], minlength=c)[1:]
                             for f in model.predict(batch)]).tolist()
 
-    out: dict[str, Any] = {"CN_pt=1": (counternet(device, 1, 0.0), cn_count),
-                           "CN_pt=4^o": (counternet(device, 4, 0.2), cn_count)}
+    out: dict[str, Any] = {}
+    for name, shipped in (("CN_pt=1", "counternet_road7_pt1"), ("CN_pt=4^o", "counternet_road7")):
+        try:
+            out[name] = (counternet(device, shipped), cn_count)
+        except Exception as e:  # noqa: BLE001  (reported in its rows)
+            out[name] = _error(e)
     try:
         from lidarops.models import weights
 
@@ -223,6 +228,50 @@ def bench(model_set: dict, frames: list[torch.Tensor], batch: int, device: torch
     return rows
 
 
+def graph_count(model: Any, graphed: Any, group: list[torch.Tensor]) -> list:
+    """The per-class counts of ``group`` through a graphed model, read to the host once."""
+    dets = graphed(group)
+    if isinstance(model, CounterNet):
+        return torch.stack([d["counts"] for d in dets]).tolist()
+    c = len(model.config.class_names) + 1  # labels are 1-based
+    counts = [torch.zeros(c, dtype=torch.int64, device=d["labels"].device).index_add_(
+        0, d["labels"].long(), (d["scores"] >= SCORE_THRESHOLD).long())[1:] for d in dets]
+    return torch.stack(counts).tolist()
+
+
+def bench_graphs(model_set: dict, frames: list[torch.Tensor], batches: list[int], precisions: list[str],
+                 device: torch.device) -> list[dict]:
+    """Each model as one replayed CUDA graph per batch (``GraphedCounterNet`` / ``GraphedPointPillars``, what
+    ``lidarops index build`` runs), called on lists of frames as a user calls it: frames/s = batch / median."""
+    from lidarops.models.cuda_graph import GraphedCounterNet, GraphedPointPillars
+
+    on_device = [f.to(device) for f in frames]
+    capacity = -(-max(len(f) for f in frames) // 4096) * 4096
+    rows = []
+    for precision in precisions:
+        for bsz in batches:
+            groups = [[on_device[(k * bsz + j) % len(frames)] for j in range(bsz)]
+                      for k in range(max(1, len(frames) // bsz))]
+            print(f"== graph {precision}: batch {bsz} ...", flush=True)
+            for name, m in model_set.items():
+                case = f"graph {precision}"
+                if isinstance(m, str):
+                    rows.append(_row(name, case, bsz, m, device))
+                    continue
+                model = m[0]
+                try:
+                    kind = GraphedCounterNet if isinstance(model, CounterNet) else GraphedPointPillars
+                    graphed = kind(model, capacity, precision, batch_size=bsz)
+                    t = time_cuda(lambda m=model, g=graphed, it=itertools.cycle(groups): graph_count(m, g, next(it)),
+                                  (), warmup=3, min_runs=10, max_runs=200, budget_s=1.0, rotate=False)
+                    graphed = None  # its memory goes before the next is recorded
+                except Exception as e:  # noqa: BLE001  (reported in its row)
+                    t = _error(e)
+                rows.append(_row(name, case, bsz, t, device))
+                torch.cuda.empty_cache()
+    return rows
+
+
 def print_rows(rows: list[dict], info: dict, device: torch.device) -> None:
     table = []
     for r in rows:
@@ -251,6 +300,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="2 frames, for smoke tests")
     ap.add_argument("--frames", type=int, default=0, help="frames (default: 16 on CUDA, 4 on CPU, 2 with --quick)")
     ap.add_argument("--batch", type=int, default=0, help="batch of the throughput rows (default: 8 on CUDA, 2 on CPU)")
+    ap.add_argument("--graph-batches", default="8,32", help="CUDA: batches of the CUDA-graph rows (default 8,32)")
+    ap.add_argument("--graph-precisions", default="fp32,fp16", help="CUDA: precisions of the CUDA-graph rows")
     return run_with_threads(_main, ap.parse_args(argv))
 
 
@@ -268,6 +319,9 @@ def _main(a: argparse.Namespace) -> int:
     frames, info = make_frames(n)
     model_set = models(dev)
     rows = bench(model_set, frames, batch, dev)
+    if cuda:
+        rows += bench_graphs(model_set, frames, [int(b) for b in a.graph_batches.split(",") if b],
+                             [p for p in a.graph_precisions.split(",") if p], dev)
     print_rows(rows, info, dev)
 
     wall = time.perf_counter() - t0
@@ -283,15 +337,18 @@ def _main(a: argparse.Namespace) -> int:
             frames=info, batch=batch, target="CounterNet >= 1,000 frames/s on CUDA (issue 38)",
             float32_matmul_precision=torch.get_float32_matmul_precision(),
             notes={
-                "models": "CN_pt=1: configs/counternet/counternet_synth.yaml; CN_pt=4^o: PARTITIONS 4, OVERLAP 0.2; "
-                          "random seeded weights (the network's time does not depend on them; the postprocess's "
-                          "a little, through the number of peaks); PointPillars counter: pointpillars_synth, "
+                "models": "CN_pt=1: the shipped counternet_road7_pt1; CN_pt=4^o: the shipped counternet_road7 "
+                          "(PARTITIONS 4, OVERLAP 0.2); PointPillars counter: pointpillars_synth, "
                           f"boxes with score >= {SCORE_THRESHOLD} counted per class",
                 "latency": "batch 1, eager model.predict(batch), counts read to the host, calls cycling over the "
                            "frames",
                 "throughput": "model.predict on batches of `batch` frames; frames_per_s = batch / median",
                 "postprocess": "CounterNet.postprocess alone on precomputed outputs, batch 1; share_of_latency = "
                                "its median / the latency median",
+                "graph": "case 'graph <precision>': GraphedCounterNet / GraphedPointPillars(model, capacity, "
+                         "precision, batch_size=batch) called on a list of `batch` device frames (copy into the "
+                         "graph's input, one replay, one host read), counts read to the host; frames_per_s = "
+                         "batch / median",
             },
         )
         path = write_results(SECTION, dev, rows, meta, replace_by=None, results_dir=a.results_dir)

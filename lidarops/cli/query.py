@@ -147,8 +147,9 @@ def build(args: argparse.Namespace) -> int:
                 raise CliError(f"--checkpoint {checkpoint} holds a {type(model).__name__}: "
                                f"--source {args.source} needs " + ("a CounterNet" if args.source == "counter" else
                                                                    "a detector (use --source counter for a CounterNet)"))
-            source = CounterSource(model, args.precision) if counts else \
-                DetectorSource(model, args.score_thresh, args.precision, graph=False if args.no_graph else None)
+            graph = False if args.no_graph else None
+            source = CounterSource(model, args.precision, graph=graph) if counts else \
+                DetectorSource(model, args.score_thresh, args.precision, graph=graph)
         from lidarops._progress import progress_bar
 
         bar = progress_bar(len(ids), f"index {args.source}",
@@ -408,8 +409,9 @@ def register(subparsers) -> None:
                    help="detector, counter: the network's arithmetic on CUDA: fp32 (no TF32), tf32, fp16 (float16 "
                         "autocast); default: torch's settings (cuDNN convolutions in TF32)")
     b.add_argument("--batch", type=int, default=8, help="frames per detector call (default 8)")
-    b.add_argument("--no-graph", action="store_true", help="detector: run each batch eagerly, not as one replayed "
-                                                           "CUDA graph (the default for PointPillars on CUDA)")
+    b.add_argument("--no-graph", action="store_true", help="detector, counter: run each batch eagerly, not as one "
+                                                           "replayed CUDA graph (the default for PointPillars and "
+                                                           "CounterNet on CUDA)")
     b.add_argument("--workers", type=int, default=2, help="DataLoader processes reading frames (default 2; 0: "
                                                           "read in this process)")
     b.add_argument("--part-frames", type=int, default=1024, help="frames per Parquet part, the most a killed build "

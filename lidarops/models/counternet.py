@@ -200,11 +200,12 @@ class CountHead(nn.Module):
             nn.init.constant_(branch[-1].bias, -2.19)
             self.heatmaps.append(branch)
 
-    def forward(self, bev: Tensor, boxes: Tensor) -> tuple[Tensor, list[Tensor]]:
-        """``(shared features (B, S, H, W), [logits of region p on its box (B, C, h_p, w_p)])``."""
+    def forward(self, bev: Tensor, boxes) -> tuple[Tensor, list[Tensor]]:
+        """``(shared features (B, S, H, W), [logits of region p on its box (B, C, h_p, w_p)])``; ``boxes``: the
+        regions' ``[y0, y1, x0, x1]``, a (P, 4) tensor or a list of P such sequences."""
         shared = self.shared_conv(bev)
         out = []
-        for branch, (y0, y1, x0, x1) in zip(self.heatmaps, boxes.tolist()):
+        for branch, (y0, y1, x0, x1) in zip(self.heatmaps, boxes.tolist() if isinstance(boxes, Tensor) else boxes):
             out.append(branch(shared[:, :, y0:y1, x0:x1]))
         return shared, out
 
@@ -235,7 +236,10 @@ class CounterNet(PredictMixin, nn.Module):
         self.map_size = (ny // cfg.feature_map_stride, nx // cfg.feature_map_stride)  # (H, W) of the heatmaps
         from lidarops.models.counting import partition_boxes
 
-        self.register_buffer("regions", partition_boxes(*self.map_size, cfg.partitions, cfg.delta), persistent=False)
+        regions = partition_boxes(*self.map_size, cfg.partitions, cfg.delta)
+        self.register_buffer("regions", regions, persistent=False)
+        # the same boxes as Python ints: slicing by them reads nothing back from the device (a CUDA graph holds it)
+        self.region_boxes: list[tuple[int, int, int, int]] = [tuple(r) for r in regions.tolist()]
         self.count_head = CountHead(self.backbone_2d.out_channels, cfg.num_classes, cfg.shared_channels,
                                     cfg.head_channels, cfg.partitions)
 
@@ -260,7 +264,7 @@ class CounterNet(PredictMixin, nn.Module):
         """Pillars -> ``(shared features, [logits per region])``."""
         features = self.vfe(voxels, num_points, coords)
         bev = self.backbone_2d(self.map_to_bev(features, coords, batch_size))
-        return self.count_head(bev, self.regions)
+        return self.count_head(bev, self.region_boxes)
 
     def forward(self, batch: Mapping[str, Any]) -> dict:
         floor = self.config.floor_config()
@@ -288,7 +292,7 @@ class CounterNet(PredictMixin, nn.Module):
         cfg = self.config
         target = self.targets(gt_boxes).to(heatmaps[0].dtype)
         hm_losses, count_errors, true_counts = [], [], []
-        for pred, (y0, y1, x0, x1) in zip(heatmaps, self.regions.tolist()):
+        for pred, (y0, y1, x0, x1) in zip(heatmaps, self.region_boxes):
             t = target[:, :, y0:y1, x0:x1]
             hm_losses.append(focal_loss(pred, t))
             true = (t == 1).sum(dim=(2, 3)).to(pred.dtype)  # (B, C): the centres in this region
@@ -315,7 +319,7 @@ class CounterNet(PredictMixin, nn.Module):
         B, C = heatmaps[0].shape[:2]
         centres: list[list[Tensor]] = [[] for _ in range(B)]
         vs = floor.voxel_size
-        for pred, (y0, y1, x0, x1) in zip(heatmaps, self.regions.tolist()):
+        for pred, (y0, y1, x0, x1) in zip(heatmaps, self.region_boxes):
             thresh = pred.new_full((B, 1, 1, 1), cfg.threshold)
             if cfg.otsu:
                 otsu = otsu_threshold(pred.reshape(B, -1)).nan_to_num(cfg.threshold)

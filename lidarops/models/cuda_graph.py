@@ -31,12 +31,13 @@ import torch
 from torch import Tensor
 
 import lidarops
+from lidarops.models.counternet import CounterNet
 from lidarops.models.pointpillars import PointPillars, _check_batch
 from lidarops.models.postprocess import postprocess_padded
 from lidarops.ops.pillars import MAX_ABS_INTENSITY
 from lidarops.ops.validation import check_tensor, describe, value_checks_enabled
 
-__all__ = ["GraphedPointPillars", "PRECISIONS", "padded_inference"]
+__all__ = ["GraphedCounterNet", "GraphedPointPillars", "PRECISIONS", "padded_counting", "padded_inference"]
 
 PRECISIONS = ("fp32", "tf32", "fp16")
 
@@ -84,30 +85,13 @@ def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | Non
         ``bad (B,)`` bool: frames whose features fail the eager call's value check; ``pillars`` (0-d int64):
         the rows the batch needs; ``overflow`` (0-d bool): more than ``max_pillars``.
     """
-    from lidarops.ops.voxelize import voxel_grid_shape
-
     if not isinstance(model, PointPillars) or model.config.backbone_mode != "dense":
         raise ValueError(f"model must be a PointPillars with backbone_mode='dense', got {type(model).__name__}"
                          + (f" ({model.config.backbone_mode!r})" if isinstance(model, PointPillars) else ""))
     cfg = model.config
-    check_tensor(points, "points")
+    points, rows = _padded_points(model, cfg, points, max_pillars)
+    B = points.shape[0]
     c = cfg.num_point_features
-    if points.dim() != 3 or points.shape[2] < c or not points.is_floating_point() or points.shape[0] < 1:
-        raise ValueError(f"points must be a floating (B >= 1, N, C >= {c}) tensor (frame b's x, y, z, intensity in "
-                         f"points[b]), got {describe(points)}")
-    param = next(model.parameters())
-    if points.device != param.device:
-        raise ValueError(f"points is on {points.device} but the model is on {param.device}")
-    points = points.to(param.dtype)  # as predict does: the weights' dtype
-    B, N, c = points.shape
-    nz, ny, nx = voxel_grid_shape(cfg.voxel_size, cfg.point_cloud_range)
-    if nz != 1:
-        raise ValueError(f"padded_inference needs pillars (one voxel along z), got a grid of {nz} along z")
-    per_frame = min(cfg.max_voxels_test, max(N, 1))
-    if max_pillars is not None and (isinstance(max_pillars, bool) or not isinstance(max_pillars, int)
-                                    or max_pillars < 1):
-        raise ValueError(f"max_pillars must be an int >= 1 or None, got {max_pillars!r}")
-    rows = B * min(per_frame, nx * ny) if max_pillars is None else max_pillars
     stage = torch.profiler.record_function  # ranges for benchmarks/profile/detector.py; nothing in a graph
     with stage("voxelize"):
         voxels, count, coords, needed = _batch_pillars(points, cfg, rows)
@@ -124,12 +108,41 @@ def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | Non
             x = model.dense_head.decode(x)
         with stage("postprocess"):
             out = postprocess_padded(*x, cfg)
-    feats = points[:, :, 3:c]
-    out["bad"] = ~(feats.abs() <= MAX_ABS_INTENSITY).flatten(1).all(1) if feats.shape[2] else \
-        torch.zeros(B, dtype=torch.bool, device=points.device)
+    out["bad"] = _bad_features(points, c)
     out["pillars"] = needed
     out["overflow"] = needed > rows
     return out
+
+
+def _padded_points(model, cfg, points: Tensor, max_pillars: int | None) -> tuple[Tensor, int]:
+    """A padded batch checked for a graph body (``points`` in the weights' dtype) and its pillar rows."""
+    from lidarops.ops.voxelize import voxel_grid_shape
+
+    check_tensor(points, "points")
+    c = cfg.num_point_features
+    if points.dim() != 3 or points.shape[2] < c or not points.is_floating_point() or points.shape[0] < 1:
+        raise ValueError(f"points must be a floating (B >= 1, N, C >= {c}) tensor (frame b's x, y, z, intensity in "
+                         f"points[b]), got {describe(points)}")
+    param = next(model.parameters())
+    if points.device != param.device:
+        raise ValueError(f"points is on {points.device} but the model is on {param.device}")
+    points = points.to(param.dtype)  # as predict does: the weights' dtype
+    B, N, _ = points.shape
+    nz, ny, nx = voxel_grid_shape(cfg.voxel_size, cfg.point_cloud_range)
+    if nz != 1:
+        raise ValueError(f"the padded batch needs pillars (one voxel along z), got a grid of {nz} along z")
+    per_frame = min(cfg.max_voxels_test, max(N, 1))
+    if max_pillars is not None and (isinstance(max_pillars, bool) or not isinstance(max_pillars, int)
+                                    or max_pillars < 1):
+        raise ValueError(f"max_pillars must be an int >= 1 or None, got {max_pillars!r}")
+    return points, B * min(per_frame, nx * ny) if max_pillars is None else max_pillars
+
+
+def _bad_features(points: Tensor, c: int) -> Tensor:
+    """``(B,)`` bool: frames whose features fail the eager call's value check."""
+    feats = points[:, :, 3:c]
+    return ~(feats.abs() <= MAX_ABS_INTENSITY).flatten(1).all(1) if feats.shape[2] else \
+        torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
 
 
 def _batch_pillars(points: Tensor, cfg, rows: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -176,7 +189,121 @@ def _batch_pillars(points: Tensor, cfg, rows: int) -> tuple[Tensor, Tensor, Tens
     return voxels, count[:rows], packed[:rows], needed
 
 
-class GraphedPointPillars:
+class _GraphedFrames:
+    """What the graphed models share: a padded input of ``batch_size`` frames of up to ``capacity`` points,
+    a graph of ``body(points)`` recorded once on it, and :meth:`replay` copying frames into the input."""
+
+    what = "model"
+
+    def __init__(self, model, floor, capacity: int, precision: str | None, batch_size: int,
+                 max_pillars: int | None, body):
+        param = next(model.parameters())
+        if param.device.type != "cuda":
+            raise ValueError(f"{type(self).__name__} needs the model on a CUDA device, got {param.device}")
+        if floor.backbone_mode != "dense":
+            raise ValueError(f"{type(self).__name__} needs backbone_mode='dense', got {floor.backbone_mode!r}: the "
+                             "sparse backbone builds its kernel maps with host reads, which a CUDA graph cannot hold")
+        for name, value in (("capacity", capacity), ("batch_size", batch_size)) + \
+                (() if max_pillars is None else (("max_pillars", max_pillars),)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+        if precision is not None and precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS} or None, got {precision!r}")
+        self.model, self.capacity, self.precision, self.batch_size = model.eval(), capacity, precision, batch_size
+        self.max_pillars = max_pillars
+        self.device, self.dtype = param.device, param.dtype
+        self._features = c = floor.num_point_features
+        # rows past the frame: outside the point range, so voxelization leaves them out
+        self._pad = torch.zeros(c, device=self.device, dtype=self.dtype)
+        self._pad[0] = floor.point_cloud_range[3] + 1000.0
+        self._points = self._pad.expand(batch_size, capacity, c).clone()
+        self._filled = [0] * batch_size  # rows holding each slot's last frame's points
+        half_model = self.dtype == torch.float16
+
+        def run():
+            with torch.no_grad(), precision_mode(precision, autocast=not half_model):
+                return body(self._points)
+
+        with torch.cuda.device(self.device):
+            side = torch.cuda.Stream()
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):  # warm-up: cuDNN picks its algorithms, the allocator its blocks
+                for _ in range(2):
+                    run()
+            torch.cuda.current_stream().wait_stream(side)
+            self._graph = torch.cuda.CUDAGraph()
+            # thread_local: a DataLoader's pin-memory thread allocating pinned buffers meanwhile (the index
+            # build) must not invalidate this capture, as the default global mode lets it
+            with torch.cuda.graph(self._graph, capture_error_mode="thread_local"):
+                self._out = run()
+
+    def _check(self, points: Tensor, name: str) -> None:
+        check_tensor(points, name)
+        c = self._features
+        if points.dim() != 2 or points.shape[1] < c or not points.is_floating_point():
+            raise ValueError(f"{name} must be a floating (P, C >= {c}) tensor (x, y, z, intensity), got {describe(points)}")
+        if points.device != self.device:
+            raise ValueError(f"{name} is on {points.device} but the model is on {self.device}")
+        if points.shape[0] > self.capacity:
+            raise ValueError(f"{name} has {points.shape[0]} rows, more than capacity={self.capacity}: build a "
+                             f"{type(self).__name__} with a larger capacity")
+
+    def _replay(self, frames: Sequence[Tensor]) -> dict[str, Tensor]:
+        if not isinstance(frames, (list, tuple)) or not 1 <= len(frames) <= self.batch_size:
+            raise ValueError(f"frames must be a list of 1 to batch_size={self.batch_size} point tensors, "
+                             f"got {type(frames).__name__}" + (f" of {len(frames)}" if isinstance(frames, (list, tuple))
+                                                               else ""))
+        for i, f in enumerate(frames):
+            self._check(f, f"frames[{i}]")
+        c = self._features
+        for b in range(self.batch_size):
+            p = frames[b].shape[0] if b < len(frames) else 0
+            if p:
+                self._points[b, :p].copy_(frames[b][:, :c])
+            if self._filled[b] > p:  # the rows of a larger previous frame become padding again
+                self._points[b, p:self._filled[b]].copy_(self._pad.expand(self._filled[b] - p, c))
+            self._filled[b] = p
+        self._graph.replay()
+        return self._out
+
+    def _eager(self, frames: Sequence[Tensor]) -> list[dict]:
+        """The model's own ``predict``, frame by frame, in the graph's precision."""
+        with precision_mode(self.precision, autocast=self.dtype != torch.float16):
+            return [self.model.predict({"points": torch.nn.functional.pad(f[:, :self._features], (1, 0)),
+                                        "batch_size": 1})[0] for f in frames]
+
+    def _raise_bad(self, frames: Sequence[Tensor], bad: Sequence) -> None:
+        """With the value checks on, the eager call's error for a frame the graph flagged."""
+        if value_checks_enabled():
+            floor = self._floor()
+            for f, b in zip(frames, bad):
+                if b:
+                    _check_batch({"points": torch.nn.functional.pad(f[:, :self._features], (1, 0)), "batch_size": 1},
+                                 floor, False, self.dtype)
+
+    def __call__(self, points: Tensor | Sequence[Tensor]) -> dict[str, Tensor] | list[dict[str, Tensor]]:
+        one = isinstance(points, Tensor)
+        if one:
+            self._check(points, "points")
+        frames = [points] if one else points
+        out = self._replay(frames)
+        reads = out["read"][:len(frames)].tolist()  # the one host read: (rows, bad, redo, pillars) per frame
+        if any(r[2] for r in reads):  # rows too few (or a merge unsettled): the eager call, in the graph's precision
+            results = self._eager(frames)
+        else:
+            self._raise_bad(frames, [r[1] for r in reads])
+            results = self._frame_results(out, reads)
+        return results[0] if one else results
+
+    def _frame_results(self, out: dict[str, Tensor], reads: list) -> list[dict[str, Tensor]]:
+        """Each frame's results, cut from the padded outputs by its row of ``read``."""
+        raise NotImplementedError
+
+    def _floor(self):
+        raise NotImplementedError
+
+
+class GraphedPointPillars(_GraphedFrames):
     """A PointPillars model's inference on one frame, or on ``batch_size`` frames at once, as a replayed
     CUDA graph.
 
@@ -208,106 +335,196 @@ class GraphedPointPillars:
                  batch_size: int = 1, max_pillars: int | None = None):
         if not isinstance(model, PointPillars):
             raise TypeError(f"model must be a PointPillars, got {type(model).__name__}")
-        param = next(model.parameters())
-        if param.device.type != "cuda":
-            raise ValueError(f"GraphedPointPillars needs the model on a CUDA device, got {param.device}")
-        cfg = model.config
-        if cfg.backbone_mode != "dense":
-            raise ValueError(f"GraphedPointPillars needs backbone_mode='dense', got {cfg.backbone_mode!r}: the sparse "
-                             "backbone builds its kernel maps with host reads, which a CUDA graph cannot hold")
-        for name, value in (("capacity", capacity), ("batch_size", batch_size)) + \
-                (() if max_pillars is None else (("max_pillars", max_pillars),)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-        if precision is not None and precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS} or None, got {precision!r}")
-        self.model, self.capacity, self.precision, self.batch_size = model.eval(), capacity, precision, batch_size
-        self.max_pillars = max_pillars
-        self.device, self.dtype = param.device, param.dtype
-        c = cfg.num_point_features
-        # rows past the frame: outside the point range, so voxelization leaves them out
-        self._pad = torch.zeros(c, device=self.device, dtype=self.dtype)
-        self._pad[0] = cfg.point_cloud_range[3] + 1000.0
-        self._points = self._pad.expand(batch_size, capacity, c).clone()
-        self._filled = [0] * batch_size  # rows holding each slot's last frame's points
-        half_model = self.dtype == torch.float16
 
-        def body():
-            with torch.no_grad(), precision_mode(precision, autocast=not half_model):
-                out = padded_inference(model, self._points, max_pillars)
-                # the one host read: each frame's number of boxes and value check, the batch's pillars
-                out["read"] = torch.stack([out["count"], out["bad"].to(torch.int64),
-                                           out["overflow"].to(torch.int64).expand(batch_size),
-                                           out["pillars"].expand(batch_size)], 1)
-                return out
+        def body(points):
+            out = padded_inference(model, points, max_pillars)
+            # the one host read: each frame's number of boxes and value check, the batch's pillars
+            out["read"] = torch.stack([out["count"], out["bad"].to(torch.int64),
+                                       out["overflow"].to(torch.int64).expand(batch_size),
+                                       out["pillars"].expand(batch_size)], 1)
+            return out
 
-        with torch.cuda.device(self.device):
-            side = torch.cuda.Stream()
-            side.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(side):  # warm-up: cuDNN picks its algorithms, the allocator its blocks
-                for _ in range(2):
-                    body()
-            torch.cuda.current_stream().wait_stream(side)
-            self._graph = torch.cuda.CUDAGraph()
-            # thread_local: a DataLoader's pin-memory thread allocating pinned buffers meanwhile (the index
-            # build) must not invalidate this capture, as the default global mode lets it
-            with torch.cuda.graph(self._graph, capture_error_mode="thread_local"):
-                self._out = body()
+        super().__init__(model, model.config, capacity, precision, batch_size, max_pillars, body)
 
-    def _check(self, points: Tensor, name: str) -> None:
-        check_tensor(points, name)
-        c = self.model.config.num_point_features
-        if points.dim() != 2 or points.shape[1] < c or not points.is_floating_point():
-            raise ValueError(f"{name} must be a floating (P, C >= {c}) tensor (x, y, z, intensity), got {describe(points)}")
-        if points.device != self.device:
-            raise ValueError(f"{name} is on {points.device} but the model is on {self.device}")
-        if points.shape[0] > self.capacity:
-            raise ValueError(f"{name} has {points.shape[0]} rows, more than capacity={self.capacity}: build a "
-                             "GraphedPointPillars with a larger capacity")
+    def _floor(self):
+        return self.model.config
 
     def replay(self, frames: Sequence[Tensor]) -> dict[str, Tensor]:
         """Runs the graph on up to ``batch_size`` frames (each ``Tensor[P, C]`` as for a call) and returns its
         padded outputs on the device without reading anything back: ``boxes (B, K, 7)``, ``scores``,
         ``labels``, ``count (B,)``, ``bad (B,)``, ``pillars`` and ``overflow`` (0-d: the pillar rows the frames
         needed, more than ``max_pillars``: the detections are then incomplete) and ``read (B, 4)`` (count, bad,
-        overflow, pillars), row b for frame b (rows past the frames given: empty frames). They are overwritten by the next replay: gather or copy them
-        first (work queued on the current stream before the next replay is)."""
-        if not isinstance(frames, (list, tuple)) or not 1 <= len(frames) <= self.batch_size:
-            raise ValueError(f"frames must be a list of 1 to batch_size={self.batch_size} point tensors, "
-                             f"got {type(frames).__name__}" + (f" of {len(frames)}" if isinstance(frames, (list, tuple))
-                                                               else ""))
-        for i, f in enumerate(frames):
-            self._check(f, f"frames[{i}]")
-        c = self.model.config.num_point_features
-        for b in range(self.batch_size):
-            p = frames[b].shape[0] if b < len(frames) else 0
-            if p:
-                self._points[b, :p].copy_(frames[b][:, :c])
-            if self._filled[b] > p:  # the rows of a larger previous frame become padding again
-                self._points[b, p:self._filled[b]].copy_(self._pad.expand(self._filled[b] - p, c))
-            self._filled[b] = p
-        self._graph.replay()
-        return self._out
+        overflow, pillars), row b for frame b (rows past the frames given: empty frames). They are overwritten by
+        the next replay: gather or copy them first (work queued on the current stream before the next replay is)."""
+        return self._replay(frames)
 
-    def __call__(self, points: Tensor | Sequence[Tensor]) -> dict[str, Tensor] | list[dict[str, Tensor]]:
-        one = isinstance(points, Tensor)
-        if one:
-            self._check(points, "points")
-        frames = [points] if one else points
-        out = self.replay(frames)
-        reads = out["read"][:len(frames)].tolist()  # the one host read
-        if reads[0][2]:  # more pillars than max_pillars: the eager call, frame by frame, in the graph's precision
-            c = self.model.config.num_point_features
-            with precision_mode(self.precision, autocast=self.dtype != torch.float16):
-                dets = [self.model.predict({"points": torch.nn.functional.pad(f[:, :c], (1, 0)), "batch_size": 1})[0]
-                        for f in frames]
-            return dets[0] if one else dets
-        if value_checks_enabled():
-            for f, (_, bad, _, _) in zip(frames, reads):
-                if bad:  # the eager call's check and message
-                    _check_batch({"points": torch.nn.functional.pad(f[:, :self.model.config.num_point_features],
-                                                                    (1, 0)), "batch_size": 1},
-                                 self.model.config, False, self.dtype)
-        dets = [{"boxes": out["boxes"][b, :k].clone(), "scores": out["scores"][b, :k].clone(),
+    def _frame_results(self, out: dict[str, Tensor], reads: list) -> list[dict[str, Tensor]]:
+        return [{"boxes": out["boxes"][b, :k].clone(), "scores": out["scores"][b, :k].clone(),
                  "labels": out["labels"][b, :k].clone()} for b, (k, *_) in enumerate(reads)]
-        return dets[0] if one else dets
+
+
+def padded_counting(model: CounterNet, points: Tensor, max_pillars: int | None = None, max_peaks: int = 1024,
+                    merge_iterations: int = 16, exact_otsu: bool = False) -> dict[str, Tensor]:
+    """:meth:`CounterNet.predict` on a batch of frames padded to one size, with outputs of sizes fixed by the
+    shapes and nothing read back to the host: the body :class:`GraphedCounterNet` records, usable eagerly too
+    (any device).
+
+    The pillars as :func:`padded_inference` packs them, the network, then per region the threshold
+    ``max(Otsu, THRESHOLD)`` and the peaks as :meth:`CounterNet.postprocess` finds them. Each frame's peaks
+    (regions in order, then class, row, column) fill ``max_peaks`` rows. With overlapping regions the centres
+    are merged as :func:`~lidarops.models.counting.merge_centres` merges them (greedy by decreasing score,
+    same class within ``MERGE_RADIUS``), here as a fixed point: a centre is kept when no kept centre before it
+    conflicts with it, iterated ``merge_iterations`` times from "all kept"; after t rounds every centre at the
+    end of a chain of fewer than t conflicts has its greedy answer, and a frame still changing is flagged.
+
+    Args:
+        model: an eval-mode CounterNet whose floor has ``backbone_mode="dense"``.
+        points (Tensor[B, N, C]): as :func:`padded_inference`'s.
+        max_pillars: as :func:`padded_inference`'s.
+        max_peaks (int >= 1): peak rows per frame; a frame with more sets ``peak_overflow`` (its counts stay
+            exact without overlap, where they are the peaks' number; with overlap they come from the rows).
+        merge_iterations (int >= 1): rounds of the merge (with overlap).
+        exact_otsu (bool): :func:`~lidarops.models.counting.otsu_threshold`'s ``exact``; the default False
+            keeps the threshold on the device (``True``, the eager call's, reads its sums back to the host:
+            no graph can hold it). The two differ only where two splits tie to within rounding.
+
+    Returns:
+        dict of ``counts (B, C)`` int64, ``centres (B, max_peaks, 4)`` (x, y, class 0-based, score; the rows
+        :meth:`CounterNet.postprocess` gives first, zeros after), ``num_centres (B,)``, ``features (B, S)``;
+        ``bad (B,)`` bool as :func:`padded_inference`'s; ``peaks (B,)`` the peaks found before any merge;
+        ``peak_overflow (B,)`` bool (more than ``max_peaks``); ``unmerged (B,)`` bool (the merge still changing
+        after ``merge_iterations``); ``pillars`` and ``overflow`` (0-d) as :func:`padded_inference`'s.
+    """
+    from lidarops.models.counting import find_peaks, otsu_threshold
+
+    if not isinstance(model, CounterNet) or model.config.floor_config().backbone_mode != "dense":
+        raise ValueError(f"model must be a CounterNet with backbone_mode='dense', got {type(model).__name__}")
+    for name, value in (("max_peaks", max_peaks), ("merge_iterations", merge_iterations)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    if not isinstance(exact_otsu, bool):
+        raise ValueError(f"exact_otsu must be True or False, got {exact_otsu!r}")
+    cfg = model.config
+    floor = cfg.floor_config()
+    points, rows = _padded_points(model, floor, points, max_pillars)
+    B, K = points.shape[0], max_peaks
+    voxels, count, coords, needed = _batch_pillars(points, floor, rows)
+    with lidarops.validation(False):
+        shared, logits = model.network(voxels, count, coords, B)
+        heatmaps = [torch.sigmoid(x) for x in logits]
+        C = heatmaps[0].shape[1]
+        dev = heatmaps[0].device
+        ct = torch.float64 if heatmaps[0].dtype == torch.float64 else torch.float32
+        vs, stride, pcr = floor.voxel_size, cfg.feature_map_stride, floor.point_cloud_range
+        masks, scores, xs, ys, classes = [], [], [], [], []
+        counts = torch.zeros(B, C, dtype=torch.int64, device=dev)
+        for pred, (y0, y1, x0, x1) in zip(heatmaps, model.region_boxes):
+            thresh = pred.new_full((B, 1, 1, 1), cfg.threshold)
+            if cfg.otsu:
+                otsu = otsu_threshold(pred.reshape(B, -1), exact=exact_otsu).nan_to_num(cfg.threshold)
+                thresh = torch.maximum(thresh, otsu.view(B, 1, 1, 1))
+            peaks = find_peaks(pred, thresh, cfg.peak_radius)
+            counts += peaks.sum(dim=(2, 3))
+            h, w = pred.shape[2:]
+            # postprocess's arithmetic, operation for operation: float64 from the region's origin, then the
+            # heatmap's compute dtype
+            col = (torch.arange(w, device=dev, dtype=torch.float64) + 0.5) * vs[0] * stride + \
+                (pcr[0] + x0 * vs[0] * stride)
+            row = (torch.arange(h, device=dev, dtype=torch.float64) + 0.5) * vs[1] * stride + \
+                (pcr[1] + y0 * vs[1] * stride)
+            xs.append(col.to(ct).expand(C, h, w).reshape(-1))
+            ys.append(row.to(ct)[:, None].expand(C, h, w).reshape(-1))
+            classes.append(torch.arange(C, device=dev, dtype=ct)[:, None, None].expand(C, h, w).reshape(-1))
+            masks.append(peaks.reshape(B, -1))
+            scores.append(pred.reshape(B, -1).to(ct))
+        mask, score = torch.cat(masks, 1), torch.cat(scores, 1)  # (B, L): regions, then class, row, column
+        table = torch.stack([torch.cat(xs), torch.cat(ys), torch.cat(classes)], 1)  # (L, 3)
+        L = mask.shape[1]
+        found = mask.sum(1)
+        # the first K peaks of each frame, in order, into K rows (row K takes the rest)
+        slot = torch.where(mask, torch.cumsum(mask, 1) - 1, K).clamp(max=K)
+        cell = torch.full((B, K + 1), L, dtype=torch.int64, device=dev)
+        cell.scatter_(1, slot, torch.arange(L, device=dev).expand(B, L))
+        cell = cell[:, :K]
+        valid = cell < L
+        at = cell.clamp(max=L - 1)
+        centres = torch.cat([table[at], torch.gather(score, 1, at)[:, :, None]], 2)
+        centres = torch.where(valid[:, :, None], centres, 0)
+        unmerged = torch.zeros(B, dtype=torch.bool, device=dev)
+        if cfg.delta > 0:
+            # merge_centres: by decreasing score, stable; the rows past the peaks stay last
+            order = torch.sort(torch.where(valid, centres[:, :, 3], -math.inf), dim=1, descending=True,
+                               stable=True).indices
+            centres = torch.gather(centres, 1, order[:, :, None].expand(B, K, 4))
+            valid = torch.gather(valid, 1, order)
+            xy = centres[:, :, :2].to(torch.float64)
+            near = torch.hypot(xy[:, :, None, 0] - xy[:, None, :, 0], xy[:, :, None, 1] - xy[:, None, :, 1]) \
+                <= cfg.merge_radius
+            later = torch.ones(K, K, dtype=torch.bool, device=dev).triu(1)  # [i, j]: j comes after i
+            conflict = near & later & (centres[:, :, None, 2] == centres[:, None, :, 2]) & valid[:, :, None] \
+                & valid[:, None, :]
+            keep = valid
+            for _ in range(merge_iterations):
+                last = keep
+                keep = valid & ~(conflict & keep[:, :, None]).any(1)
+            unmerged = (keep != last).any(1)
+            counts = torch.zeros(B, C, dtype=torch.int64, device=dev).scatter_add_(
+                1, torch.where(keep, centres[:, :, 2].long(), 0), keep.long())
+            # the kept rows first, in their order
+            slot = torch.where(keep, torch.cumsum(keep, 1) - 1, K)
+            packed = centres.new_zeros(B, K + 1, 4).scatter_(1, slot[:, :, None].expand(B, K, 4), centres)
+            centres, valid = packed[:, :K], keep
+        out = {"counts": counts, "centres": centres, "num_centres": valid.sum(1), "features": shared.amax(dim=(2, 3)),
+               "bad": _bad_features(points, floor.num_point_features), "peaks": found, "peak_overflow": found > K,
+               "unmerged": unmerged, "pillars": needed, "overflow": needed > rows}
+    return out
+
+
+class GraphedCounterNet(_GraphedFrames):
+    """A CounterNet's counting of ``batch_size`` frames at once as a replayed CUDA graph: voxelization, the
+    network, the thresholds, the peaks and (with overlapping regions) the merge (:func:`padded_counting`), with
+    one host read per replay.
+
+    Args:
+        model (CounterNet): an eval-mode model on a CUDA device whose floor is dense; its weights are read at
+            each replay (in-place updates are seen).
+        capacity, precision, batch_size, max_pillars: as :class:`GraphedPointPillars`'.
+        max_peaks (int): peak rows per frame (:func:`padded_counting`).
+        merge_iterations (int): rounds of the merge.
+
+    Calling it with a frame ``points (Tensor[P, C])`` or a list of up to ``batch_size`` frames returns what
+    :meth:`CounterNet.predict` returns for each: ``counts (C,)``, ``centres (K, 4)``, ``features (S,)``. A
+    replay whose frames need more pillar rows or peak rows than the graph holds, or whose merge has not settled,
+    is redone by the eager ``predict``. The counts are the eager call's except where Otsu's threshold ties
+    between two splits to within rounding (the graph computes it on the device: ``exact=False``).
+    """
+
+    def __init__(self, model: CounterNet, capacity: int = 150_000, precision: str | None = "fp32",
+                 batch_size: int = 1, max_pillars: int | None = None, max_peaks: int = 1024,
+                 merge_iterations: int = 16):
+        if not isinstance(model, CounterNet):
+            raise TypeError(f"model must be a CounterNet, got {type(model).__name__}")
+        self.max_peaks = max_peaks
+
+        def body(points):
+            out = padded_counting(model, points, max_pillars, max_peaks, merge_iterations)
+            redo = out["overflow"].expand(batch_size) | out["peak_overflow"] | out["unmerged"]
+            # the one host read: each frame's centres and value check, and whether the replay must be redone
+            out["read"] = torch.stack([out["num_centres"], out["bad"].to(torch.int64), redo.to(torch.int64),
+                                       out["pillars"].expand(batch_size)], 1)
+            return out
+
+        super().__init__(model, model.config.floor_config(), capacity, precision, batch_size, max_pillars, body)
+
+    def _floor(self):
+        return self.model.config.floor_config()
+
+    def replay(self, frames: Sequence[Tensor]) -> dict[str, Tensor]:
+        """Runs the graph on up to ``batch_size`` frames and returns :func:`padded_counting`'s outputs on the
+        device, with ``read (B, 4)``: centres, bad, redo (pillar or peak rows too few, or the merge unsettled:
+        these outputs are then not the eager call's), pillars. Overwritten by the next replay."""
+        return self._replay(frames)
+
+    def _frame_results(self, out: dict[str, Tensor], reads: list) -> list[dict[str, Tensor]]:
+        return [{"counts": out["counts"][b].clone(), "centres": out["centres"][b, :k].clone(),
+                 "features": out["features"][b].clone()} for b, (k, *_) in enumerate(reads)]

@@ -167,6 +167,18 @@ class _Staged:
     meta: Any = None  # what the source needs besides them (rows per frame)
 
 
+def _raise_bad_frames(flags: np.ndarray) -> None:
+    """The eager call's check of the points' features (lidarops.models.pointpillars), which a graph ran on the
+    device: ``flags`` per frame of the batch."""
+    from lidarops.ops.pillars import MAX_ABS_INTENSITY
+    from lidarops.ops.validation import value_checks_enabled
+
+    if flags.any() and value_checks_enabled():
+        raise ValueError(f"frame(s) {np.flatnonzero(flags).tolist()} of this batch: batch['points'][:, 4:] "
+                         f"(intensity and other features) must be finite with |value| <= {MAX_ABS_INTENSITY:g}; "
+                         "drop such points first (lidarops.stream.invalid_points gives the mask for intensity)")
+
+
 class _ModelSource:
     """What the model-backed sources share: frames counted a batch at a time on the model's device, in three
     steps that :func:`build_index` overlaps across batches (calling the source runs them in a row):
@@ -206,6 +218,72 @@ class _ModelSource:
         self.stage_seconds = {"to_device": 0.0, "predict": 0.0, "read_back": 0.0}
         self.pin_memory = next(model.parameters()).device.type == "cuda"  # asks build_index's loader to pin
         self._side: _SideStream | None = None
+        self.graph = False  # each batch as one replayed CUDA graph (set by the sources that can)
+        self._graphed = None  # the graph, made at the first batch and again when it no longer fits
+        self._pillars = 0  # the most pillar rows a batch has needed
+        self._regraph = False  # a batch needed more rows than the graph holds
+        self.pillar_step = 8192  # pillar rows are rounded up to a multiple of this
+        self.eager_batches = 0  # batches counted eagerly because the graph could not hold them
+
+    def _use_graph(self, graph: bool | None, capturable: bool, what: str) -> None:
+        if graph is not None and not isinstance(graph, bool):
+            raise QueryError(f"graph must be True, False or None (on where it can run), got {graph!r}")
+        if graph and not capturable:
+            raise QueryError(f"graph=True needs {what} on a CUDA device, got {type(self.model).__name__} on "
+                             f"{next(self.model.parameters()).device}")
+        self.graph = capturable if graph is None else graph
+
+    def _new_graph(self, capacity: int, batch: int, rows: int | None):
+        raise NotImplementedError
+
+    def _replay_staged(self, points, staged: _Staged):
+        """A staged batch through the source's CUDA graph: each frame's points copied into the graph's padded
+        input, one replay; ``(padded outputs, the frames' points)``.
+
+        The graph is recorded for the largest batch and frame seen so far (frames rounded up to 32k points with a
+        quarter more room) and, once a batch has shown how many pillars the frames make, with a quarter more
+        pillar rows than the most seen (the pillar net then works on those rather than on every frame's
+        capacity): a build records it a few times. A batch the graph cannot hold is counted again eagerly (the
+        sources' ``_results``) and the next batch records a larger graph."""
+        import torch
+
+        most = max(staged.lengths, default=0)
+        g = self._graphed
+        step = self.pillar_step
+        rows = None if not self._pillars else -(-(self._pillars + self._pillars // 4 + 1) // step) * step
+        if g is None or g.batch_size < staged.frames or g.capacity < most or self._regraph or \
+                (rows is not None and (g.max_pillars is None or g.max_pillars > rows + rows // 2)):
+            capacity = -(-max(most + most // 4, g.capacity if g is not None else 0, 1) // 32768) * 32768
+            batch = max(staged.frames, g.batch_size if g is not None else 1)
+            if rows is not None:
+                rows = min(rows, batch * min(self._max_voxels(), capacity))
+            if g is not None:  # its outputs may still be read by queued work: let it finish before the memory goes
+                torch.cuda.synchronize(points.device)
+            self._graphed = g = None
+            g = self._graphed = self._new_graph(capacity, batch, rows)
+            self._regraph = False
+        frames, row = [points[:0, 1:]] * staged.frames, 0
+        for i, n in zip(staged.full, staged.lengths):
+            frames[i] = points[row:row + n, 1:]
+            row += n
+        return g.replay(frames), frames
+
+    def _max_voxels(self) -> int:
+        return self.model.config.max_voxels_test
+
+    def _eager_results(self, frames: list) -> list[Counted]:
+        """``(counts, centres)`` of frames (device tensors of x, y, z, intensity) from the eager model, each frame
+        alone, under ``precision``."""
+        import torch
+
+        from lidarops.models.cuda_graph import precision_mode
+
+        with torch.inference_mode(), precision_mode(self.precision, "cuda",
+                                                    autocast=next(self.model.parameters()).dtype != torch.float16):
+            preds = [self._predict({"points": torch.nn.functional.pad(f, (1, 0)), "batch_size": 1})[0]
+                     for f in frames]
+            tensors, meta = self._gather(preds)
+        return self._results([t.cpu().numpy() for t in tensors], meta)
 
     def _predict(self, batch: dict) -> list[dict]:
         """The model's predictions, one dict per frame (its ``predict``)."""
@@ -314,23 +392,13 @@ class DetectorSource(_ModelSource):
     def __init__(self, model, score_thresh: float = 0.5, precision: str | None = None, graph: bool | None = None):
         if not 0 <= score_thresh <= 1:
             raise QueryError(f"score_thresh must be in [0, 1], got {score_thresh!r}")
-        if graph not in (None, True, False):
-            raise QueryError(f"graph must be True, False or None (on where it can run), got {graph!r}")
         super().__init__(model, precision)
         self.score_thresh = float(score_thresh)
         from lidarops.models.pointpillars import PointPillars
 
         capturable = isinstance(model, PointPillars) and model.config.backbone_mode == "dense" and \
             next(model.parameters()).device.type == "cuda"
-        if graph and not capturable:
-            raise QueryError("graph=True needs a PointPillars with backbone_mode='dense' on a CUDA device, got "
-                             f"{type(model).__name__} on {next(model.parameters()).device}")
-        self.graph = capturable if graph is None else graph
-        self._graphed = None  # GraphedPointPillars, made at the first batch and again when it no longer fits
-        self._pillars = 0  # the most pillar rows a batch has needed
-        self._regraph = False  # a batch needed more pillar rows than the graph holds
-        self.pillar_step = 8192  # pillar rows are rounded up to a multiple of this
-        self.eager_batches = 0  # batches counted eagerly because they needed more pillar rows
+        self._use_graph(graph, capturable, "a PointPillars with backbone_mode='dense'")
 
     def _predict(self, batch: dict) -> list[dict]:
         """A PointPillars-style detector's detections through ``postprocess_padded``: the same rows as its
@@ -351,42 +419,18 @@ class DetectorSource(_ModelSource):
                 for b in range(padded["count"].shape[0])]
 
     def _predict_staged(self, points, staged: _Staged) -> list[dict]:
-        """Through a CUDA graph of the whole batch (``graph``): each frame's points copied into the graph's
-        padded input, one replay, the padded outputs gathered where they lie.
-
-        The graph is recorded for the largest batch and frame seen so far (frames rounded up to 32k points with a
-        quarter more room) and, once a batch has shown how many pillars the frames make, with a quarter more
-        pillar rows than the most seen (the pillar net then works on those rather than on every frame's
-        capacity): a build records it a few times. A batch needing more pillar rows is counted again eagerly
-        (:meth:`_results`) and the next batch records a larger graph."""
+        """Through a CUDA graph of the whole batch (``graph``: :meth:`_replay_staged`), the padded outputs
+        gathered where they lie."""
         if not self.graph:
             return super()._predict_staged(points, staged)
-        import torch
-
-        from lidarops.models.cuda_graph import GraphedPointPillars
-
-        most = max(staged.lengths, default=0)
-        g = self._graphed
-        step = self.pillar_step
-        rows = None if not self._pillars else -(-(self._pillars + self._pillars // 4 + 1) // step) * step
-        if g is None or g.batch_size < staged.frames or g.capacity < most or self._regraph or \
-                (rows is not None and (g.max_pillars is None or g.max_pillars > rows + rows // 2)):
-            capacity = -(-max(most + most // 4, g.capacity if g is not None else 0, 1) // 32768) * 32768
-            batch = max(staged.frames, g.batch_size if g is not None else 1)
-            if rows is not None:
-                rows = min(rows, batch * min(self.model.config.max_voxels_test, capacity))
-            if g is not None:  # its outputs may still be read by queued work: let it finish before the memory goes
-                torch.cuda.synchronize(points.device)
-            self._graphed = g = None
-            g = self._graphed = GraphedPointPillars(self.model, capacity, self.precision, batch, rows)
-            self._regraph = False
-        frames, row = [points[:0, 1:]] * staged.frames, 0
-        for i, n in zip(staged.full, staged.lengths):
-            frames[i] = points[row:row + n, 1:]
-            row += n
-        out = g.replay(frames)
+        out, frames = self._replay_staged(points, staged)
         return [{"boxes": out["boxes"][b], "scores": out["scores"][b], "labels": out["labels"][b],
                  "read": out["read"][b], "points": frames[b]} for b in range(staged.frames)]
+
+    def _new_graph(self, capacity: int, batch: int, rows: int | None):
+        from lidarops.models.cuda_graph import GraphedPointPillars
+
+        return GraphedPointPillars(self.model, capacity, self.precision, batch, rows)
 
     def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
         import torch
@@ -412,18 +456,10 @@ class DetectorSource(_ModelSource):
         return tensors, (sizes, [p["points"] for p in preds])
 
     def _results(self, arrays: list[np.ndarray], meta: Any) -> list[Counted]:
-        from lidarops.ops.pillars import MAX_ABS_INTENSITY
-        from lidarops.ops.validation import value_checks_enabled
-
         counts, rows = arrays[:2]
         if len(arrays) > 2:  # through the graph: (count, bad, overflow, pillars) per frame
             read, (meta, frames) = arrays[2], meta
-            if read[:, 1].any() and value_checks_enabled():
-                # the eager call's check (lidarops.models.pointpillars), which the graph ran on the device
-                raise ValueError(f"frame(s) {np.flatnonzero(read[:, 1]).tolist()} of this batch: batch['points'][:, "
-                                 f"4:] (intensity and other features) must be finite with |value| <= "
-                                 f"{MAX_ABS_INTENSITY:g}; drop such points first (lidarops.stream.invalid_points "
-                                 "gives the mask for intensity)")
+            _raise_bad_frames(read[:, 1])
             self._pillars = max(self._pillars, int(read[0, 3]))
             if read[0, 2]:  # more pillars than the graph's rows: this batch eagerly, a larger graph next
                 self._regraph = True
@@ -438,46 +474,81 @@ class DetectorSource(_ModelSource):
             out.append((dict(zip(self.classes, frame_counts)), centres))
         return out
 
-    def _eager_results(self, frames: list) -> list[Counted]:
-        """``(counts, centres)`` of frames (device tensors of x, y, z, intensity) from the eager model, each frame
-        alone, under ``precision``."""
-        import torch
-
-        from lidarops.models.cuda_graph import precision_mode
-
-        with torch.inference_mode(), precision_mode(self.precision, "cuda",
-                                                    autocast=next(self.model.parameters()).dtype != torch.float16):
-            preds = [self._predict({"points": torch.nn.functional.pad(f, (1, 0)), "batch_size": 1})[0]
-                     for f in frames]
-            tensors, meta = self._gather(preds)
-        return self._results([t.cpu().numpy() for t in tensors], meta)
-
 class CounterSource(_ModelSource):
     """A counting network (:class:`lidarops.models.counternet.CounterNet`) as the source: its per-class counts
     and the BEV centres of its heatmap peaks, one batched ``predict`` per call and one read-back; ``precision``
-    and ``stage_seconds`` as :class:`_ModelSource`'s."""
+    and ``stage_seconds`` as :class:`_ModelSource`'s.
+
+    ``graph``: run each batch as one replayed CUDA graph (:class:`~lidarops.models.cuda_graph.GraphedCounterNet`:
+    voxelization to the merged peaks without a host read); None (default): where it can, a CounterNet with the
+    dense backbone on a CUDA device (a model selection counts eagerly). The counts are the eager call's, except
+    where Otsu's threshold ties between two splits to within rounding (the graph's is computed on the device)."""
 
     name = "counter"
+
+    def __init__(self, model, precision: str | None = None, graph: bool | None = None):
+        super().__init__(model, precision)
+        from lidarops.models.counternet import CounterNet
+
+        capturable = isinstance(model, CounterNet) and model.config.floor_config().backbone_mode == "dense" and \
+            next(model.parameters()).device.type == "cuda"
+        self._use_graph(graph, capturable, "a CounterNet with backbone_mode='dense'")
+        self.max_peaks = 1024  # peak rows per frame of the graph; doubled when a frame holds more
+
+    def _max_voxels(self) -> int:
+        return self.model.config.floor_config().max_voxels_test
+
+    def _new_graph(self, capacity: int, batch: int, rows: int | None):
+        from lidarops.models.cuda_graph import GraphedCounterNet
+
+        return GraphedCounterNet(self.model, capacity, self.precision, batch, rows, self.max_peaks)
+
+    def _predict_staged(self, points, staged: _Staged) -> list[dict]:
+        """Through a CUDA graph of the whole batch (``graph``: :meth:`_replay_staged`): every frame's padded
+        peak rows, their number read back with the counts."""
+        if not self.graph:
+            return super()._predict_staged(points, staged)
+        out, frames = self._replay_staged(points, staged)
+        return [{"counts": out["counts"][b], "centres": out["centres"][b], "read": out["read"][b],
+                 "peaks": out["peaks"][b], "points": frames[b]} for b in range(staged.frames)]
 
     def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
         import torch
 
+        tensors = [torch.stack([p["counts"] for p in preds]), torch.cat([p["centres"] for p in preds])]
+        if "read" in preds[0]:  # the graph's padded rows: how many hold centres comes back with them
+            tensors.append(torch.cat([torch.stack([p["read"] for p in preds]),
+                                      torch.stack([p["peaks"] for p in preds])[:, None]], 1))
+            return tensors, ([len(p["centres"]) for p in preds], [p["points"] for p in preds])
         # a model selection (SelectedCounter) names each frame's model: kept on the host, nothing to read back
-        return [torch.stack([p["counts"] for p in preds]), torch.cat([p["centres"] for p in preds])], \
-            ([len(p["centres"]) for p in preds], [p.get("model_name") for p in preds])
+        return tensors, ([len(p["centres"]) for p in preds], [p.get("model_name") for p in preds])
 
     def _results(self, arrays: list[np.ndarray], meta: Any) -> list[Counted]:
-        counts, centres = arrays
+        counts, centres = arrays[:2]
         sizes, models = meta
+        kept = sizes
+        if len(arrays) > 2:  # through the graph: (centres, bad, redo, pillars, peaks) per frame
+            read, frames = arrays[2], models
+            models = [None] * len(sizes)
+            _raise_bad_frames(read[:, 1])
+            self._pillars = max(self._pillars, int(read[0, 3]))
+            if read[:, 2].any():  # too few pillar or peak rows, or a merge not settled: this batch eagerly
+                g = self._graphed
+                if int(read[0, 3]) > (g.max_pillars or 0) or int(read[:, 4].max()) > g.max_peaks:
+                    self._regraph = True
+                    while self.max_peaks < int(read[:, 4].max()):
+                        self.max_peaks *= 2
+                self.eager_batches += 1
+                return self._eager_results(frames)
+            kept = read[:, 0].astype(np.int64).tolist()
         out, start = [], 0
-        for frame_counts, n, model in zip(counts.tolist(), sizes, models):
-            rows = centres[start:start + n].tolist()
+        for frame_counts, n, k, model in zip(counts.tolist(), sizes, kept, models):
+            rows = centres[start:start + k].tolist()
             start += n
             counted = (dict(zip(self.classes, (int(c) for c in frame_counts))),
                        [(self.classes[int(c)], x, y, score) for x, y, c, score in rows])
             out.append(counted if model is None else (*counted, model))
         return out
-
 
 @dataclass
 class BuildReport:

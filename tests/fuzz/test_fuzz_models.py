@@ -280,6 +280,46 @@ def test_padded_inference_gives_each_frame_or_names_the_argument(data):
         assert torch.allclose(out["scores"][b, :k].double(), want["scores"].double(), atol=1e-5)
 
 
+@fuzz
+@given(data=st.data())
+def test_padded_counting_gives_each_frame_or_names_the_argument(data):
+    """:func:`lidarops.models.cuda_graph.padded_counting` on drawn padded batches (ragged frames, empty ones, wrong
+    ranks, too few columns, integer points, bad ``max_pillars`` / ``max_peaks`` / ``merge_iterations`` /
+    ``exact_otsu``, a model that is no CounterNet): a ``ValueError`` naming the argument, or each frame's predict
+    (unless a flag says the rows were too few or the merge unsettled)."""
+    from torch.nn import functional as F
+
+    from lidarops.models.cuda_graph import padded_counting
+
+    shape = data.draw(st.sampled_from([(2, 30, 4), (1, 0, 4), (3, 12, 5), (0, 5, 4), (2, 5, 3), (30, 4)]), label="shape")
+    dtype = data.draw(st.sampled_from([torch.float32, torch.float64, torch.int32]), label="dtype")
+    kwargs = {"max_pillars": data.draw(st.sampled_from([None, None, 1, 64, 0, 2.5]), label="max_pillars"),
+              "max_peaks": data.draw(st.sampled_from([1024, 1024, 1, 0, -2, True]), label="max_peaks"),
+              "merge_iterations": data.draw(st.sampled_from([16, 16, 1, 0]), label="merge_iterations"),
+              "exact_otsu": data.draw(st.sampled_from([True, True, False, 1]), label="exact_otsu")}
+    g = torch.Generator().manual_seed(data.draw(st.integers(0, 99), label="seed"))
+    pts = (torch.rand(shape, generator=g) * 8 - torch.tensor([0.0, 4, 3, 0, 0][:shape[-1]] if shape[-1] <= 5
+                                                            else 0)).to(dtype)
+    torch.manual_seed(0)
+    tiny = _tiny_counternet().eval()
+    model = data.draw(st.sampled_from([tiny, tiny, _tiny_pointpillars()]), label="model")
+    with torch.no_grad():
+        out, err = outcome(padded_counting, model, pts, **kwargs)
+    if err is not None:
+        assert_clear_error(err, (ValueError,), ["points", "max_pillars", "max_peaks", "merge_iterations",
+                                                "exact_otsu", "model"], f"padded_counting({shape}, {dtype}, {kwargs})")
+        return
+    assert len(shape) == 3 and shape[0] >= 1 and shape[2] >= 4 and dtype.is_floating_point
+    assert out["counts"].shape == (shape[0], tiny.config.num_classes)
+    if bool(out["overflow"]) or not kwargs["exact_otsu"]:
+        return
+    for b in range(shape[0]):
+        if out["peak_overflow"][b] or out["unmerged"][b]:
+            continue
+        want = tiny.predict({"points": F.pad(pts[b, :, :4], (1, 0)), "batch_size": 1})[0]
+        assert out["counts"][b].tolist() == want["counts"].tolist()
+
+
 def _tiny_pointpillars():
     torch.manual_seed(0)
     return PointPillars(TINY).eval()

@@ -567,6 +567,16 @@ def test_detector_source_graph_needs_a_dense_pointpillars_on_cuda():
         assert DetectorSource(cpu.cuda()).graph is True
 
 
+def _same_counts_both_ways(tmp_path, scans, eager, graph) -> None:
+    """The eager and the graph source index the scans (4 frames a batch) and store the same counts."""
+    for source in (eager, graph):
+        build_index(tmp_path / "idx", list(scans), scans.__getitem__, source, source_name=f"s{source.graph}", batch=4)
+    idx = FrameIndex.open(tmp_path / "idx")
+    want = stored(idx, "sFalse")
+    assert sum(sum(c.values()) for c in want.values()) > 0, "the case must count objects"
+    assert stored(idx, "sTrue") == want
+
+
 @pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a GPU")
 @pytest.mark.parametrize("precision", [None, "fp16"])
 def test_graph_detector_source_equals_the_eager_one(tmp_path, precision):
@@ -592,15 +602,57 @@ def test_graph_detector_source_equals_the_eager_one(tmp_path, precision):
     eager = DetectorSource(model, 0.3, precision, graph=False)
     graph = DetectorSource(model, 0.3, precision, graph=True)
     graph.pillar_step = 1  # pillar rows sized to the first batch (from the third on): the third needs more
-    for source in (eager, graph):
-        build_index(tmp_path / "idx", list(scans), scans.__getitem__, source, source_name=f"s{source.graph}", batch=4)
-    idx = FrameIndex.open(tmp_path / "idx")
-    want = stored(idx, "sFalse")
-    assert sum(sum(c.values()) for c in want.values()) > 0, "the case must count objects"
-    assert stored(idx, "sTrue") == want
+    _same_counts_both_ways(tmp_path, scans, eager, graph)
     assert graph._graphed.capacity >= 40000 and graph._graphed.batch_size == 4
     # the second batch needed more pillar rows than the first's graph: counted eagerly, the graph recorded again
     assert graph.eager_batches >= 1 and graph._graphed.max_pillars >= graph._pillars > 64
+    bad = Scan(scans[0].points.clone())
+    bad.points[3, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"frame\(s\) \[1\] of this batch: batch\['points'\]\[:, 4:\] \(intensity"):
+        graph([scans[2], bad])
+
+
+def test_counter_source_graph_needs_a_dense_counternet_on_cuda():
+    import torch
+
+    from lidarops.models.counternet import CounterNet
+    from lidarops.query.build import CounterSource
+
+    from tests.models.test_counternet import _tiny_cfg
+
+    cpu = CounterNet(_tiny_cfg()).eval()
+    assert CounterSource(cpu).graph is False  # on the CPU: eager
+    with pytest.raises(QueryError, match="graph=True needs a CounterNet with backbone_mode='dense' on a CUDA device"):
+        CounterSource(cpu, graph=True)
+    with pytest.raises(QueryError, match="graph must be True, False or None"):
+        CounterSource(cpu, graph=1)
+    if torch.cuda.is_available():
+        assert CounterSource(cpu.cuda()).graph is True
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a GPU")
+@pytest.mark.parametrize("partitions, delta", [(1, 0.0), (4, 0.2)])
+def test_graph_counter_source_equals_the_eager_one(tmp_path, partitions, delta):
+    """CounterNet through its CUDA graph counts what the eager source counts, through build_index (ragged
+    frames, an empty one, a larger frame recording the graph again, a batch needing more pillar rows, one
+    needing more peak rows); a bad intensity raises the eager check's message."""
+    import torch
+
+    from lidarops.query.build import CounterSource, Scan
+
+    from tests.models.test_counternet_graph import _model
+
+    model = _model(partitions, delta).cuda()
+    g = torch.Generator().manual_seed(5)
+    scans = {i: Scan(torch.rand(n, 4, generator=g) * torch.tensor([15.0, 15.0, 3.0, 1.0])
+                     + torch.tensor([0, -7.5, -2.5, 0]))
+             for i, n in enumerate((300, 0, 40, 7, 12, 5, 900, 30, 300, 40000, 300, 300, 20))}
+    eager = CounterSource(model, graph=False)
+    graph = CounterSource(model, graph=True)
+    graph.pillar_step = 1
+    graph.max_peaks = 64  # frames with more peaks are counted eagerly, then the graph gets more rows
+    _same_counts_both_ways(tmp_path, scans, eager, graph)
+    assert graph.eager_batches >= 1 and graph.max_peaks > 64 and graph._graphed.capacity >= 40000
     bad = Scan(scans[0].points.clone())
     bad.points[3, 3] = float("nan")
     with pytest.raises(ValueError, match=r"frame\(s\) \[1\] of this batch: batch\['points'\]\[:, 4:\] \(intensity"):
