@@ -177,8 +177,9 @@ def gaussian_radius(dx: Tensor, dy: Tensor, min_overlap: float = 0.1) -> Tensor:
 
 def _div(a: Tensor, b: float) -> Tensor:
     """``a / b`` rounded once, on every device: CUDA divides a tensor by a Python number as a product with its
-    reciprocal (off by an ulp where ``1 / b`` is not exact: 6, 7), a tensor divisor is a true division."""
-    return a / torch.tensor(b, dtype=a.dtype, device=a.device)
+    reciprocal (off by an ulp where ``1 / b`` is not exact: 6, 7), a tensor divisor is a true division. (``full``,
+    not ``tensor``: a fill on the device, which a CUDA graph can hold; ``tensor`` copies from the host.)"""
+    return a / torch.full((), b, dtype=a.dtype, device=a.device)
 
 
 def _gaussian_radius(w: Tensor, h: Tensor, o: float) -> Tensor:
@@ -578,7 +579,7 @@ def otsu_threshold(values: Tensor, bins: int = 256, mask: Tensor | None = None, 
     v = values.detach().to(ct).reshape(-1, N)
     R = v.shape[0]
     m = torch.ones_like(v, dtype=torch.bool) if mask is None else mask.reshape(-1, N)
-    inf = torch.tensor(math.inf, dtype=ct, device=v.device)
+    inf = torch.full((), math.inf, dtype=ct, device=v.device)
     vmin = torch.where(m, v, inf).amin(1)
     vmax = torch.where(m, v, -inf).amax(1)
     has_nan = (m & torch.isnan(v)).any(1)

@@ -612,53 +612,6 @@ def test_graph_detector_source_equals_the_eager_one(tmp_path, precision):
         graph([scans[2], bad])
 
 
-def test_counter_source_graph_needs_a_dense_counternet_on_cuda():
-    import torch
-
-    from lidarops.models.counternet import CounterNet
-    from lidarops.query.build import CounterSource
-
-    from tests.models.test_counternet import _tiny_cfg
-
-    cpu = CounterNet(_tiny_cfg()).eval()
-    assert CounterSource(cpu).graph is False  # on the CPU: eager
-    with pytest.raises(QueryError, match="graph=True needs a CounterNet with backbone_mode='dense' on a CUDA device"):
-        CounterSource(cpu, graph=True)
-    with pytest.raises(QueryError, match="graph must be True, False or None"):
-        CounterSource(cpu, graph=1)
-    if torch.cuda.is_available():
-        assert CounterSource(cpu.cuda()).graph is True
-
-
-@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a GPU")
-@pytest.mark.parametrize("partitions, delta", [(1, 0.0), (4, 0.2)])
-def test_graph_counter_source_equals_the_eager_one(tmp_path, partitions, delta):
-    """CounterNet through its CUDA graph counts what the eager source counts, through build_index (ragged
-    frames, an empty one, a larger frame recording the graph again, a batch needing more pillar rows, one
-    needing more peak rows); a bad intensity raises the eager check's message."""
-    import torch
-
-    from lidarops.query.build import CounterSource, Scan
-
-    from tests.models.test_counternet_graph import _model
-
-    model = _model(partitions, delta).cuda()
-    g = torch.Generator().manual_seed(5)
-    scans = {i: Scan(torch.rand(n, 4, generator=g) * torch.tensor([15.0, 15.0, 3.0, 1.0])
-                     + torch.tensor([0, -7.5, -2.5, 0]))
-             for i, n in enumerate((300, 0, 40, 7, 12, 5, 900, 30, 300, 40000, 300, 300, 20))}
-    eager = CounterSource(model, graph=False)
-    graph = CounterSource(model, graph=True)
-    graph.pillar_step = 1
-    graph.max_peaks = 64  # frames with more peaks are counted eagerly, then the graph gets more rows
-    _same_counts_both_ways(tmp_path, scans, eager, graph)
-    assert graph.eager_batches >= 1 and graph.max_peaks > 64 and graph._graphed.capacity >= 40000
-    bad = Scan(scans[0].points.clone())
-    bad.points[3, 3] = float("nan")
-    with pytest.raises(ValueError, match=r"frame\(s\) \[1\] of this batch: batch\['points'\]\[:, 4:\] \(intensity"):
-        graph([scans[2], bad])
-
-
 def test_cli_precision_fp16_needs_cuda(tmp_path, capsys):
     base = ["index", "build", "--scenario", "driving_city", "--frames", "1", "--out", str(tmp_path / "i"),
             "--no-progress", "--device", "cpu", "--source", "detector"]
