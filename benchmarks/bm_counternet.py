@@ -34,8 +34,9 @@ Rows, per model:
   host; frames/s = batch / median batch time.
 * ``graph <precision>`` (CUDA): each model as one replayed CUDA graph of a whole batch
   (:class:`~lidarops.models.cuda_graph.GraphedCounterNet`, :class:`~lidarops.models.cuda_graph.GraphedPointPillars`,
-  as ``lidarops index build`` runs them), called on a list of frames, for each of ``--graph-batches`` (8, 32) and
-  ``--graph-precisions`` (fp32, fp16);
+  as ``lidarops index build`` runs them), called on a list of frames, for each of ``--graph-batches`` (8, 32, 64) and
+  ``--graph-precisions`` (fp32, fp16); ``graph <precision> optimized``: the same with ``optimize=True`` (a copy of
+  the model with BatchNorm folded into the convolutions, channels-last);
 * for CounterNet also ``postprocess`` alone (batch 1, on the forward's precomputed outputs) and its share of
   the latency; the rest (batch checks, voxelization, network) is the network's share.
 
@@ -248,20 +249,20 @@ def bench_graphs(model_set: dict, frames: list[torch.Tensor], batches: list[int]
     on_device = [f.to(device) for f in frames]
     capacity = -(-max(len(f) for f in frames) // 4096) * 4096
     rows = []
-    for precision in precisions:
+    for precision, optimize in [(p, o) for p in precisions for o in (False, True)]:
         for bsz in batches:
             groups = [[on_device[(k * bsz + j) % len(frames)] for j in range(bsz)]
                       for k in range(max(1, len(frames) // bsz))]
-            print(f"== graph {precision}: batch {bsz} ...", flush=True)
+            case = f"graph {precision}" + (" optimized" if optimize else "")
+            print(f"== {case}: batch {bsz} ...", flush=True)
             for name, m in model_set.items():
-                case = f"graph {precision}"
                 if isinstance(m, str):
                     rows.append(_row(name, case, bsz, m, device))
                     continue
                 model = m[0]
                 try:
                     kind = GraphedCounterNet if isinstance(model, CounterNet) else GraphedPointPillars
-                    graphed = kind(model, capacity, precision, batch_size=bsz)
+                    graphed = kind(model, capacity, precision, batch_size=bsz, optimize=optimize)
                     t = time_cuda(lambda m=model, g=graphed, it=itertools.cycle(groups): graph_count(m, g, next(it)),
                                   (), warmup=3, min_runs=10, max_runs=200, budget_s=1.0, rotate=False)
                     graphed = None  # its memory goes before the next is recorded
@@ -300,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="2 frames, for smoke tests")
     ap.add_argument("--frames", type=int, default=0, help="frames (default: 16 on CUDA, 4 on CPU, 2 with --quick)")
     ap.add_argument("--batch", type=int, default=0, help="batch of the throughput rows (default: 8 on CUDA, 2 on CPU)")
-    ap.add_argument("--graph-batches", default="8,32", help="CUDA: batches of the CUDA-graph rows (default 8,32)")
+    ap.add_argument("--graph-batches", default="8,32,64", help="CUDA: batches of the CUDA-graph rows (default 8,32,64)")
     ap.add_argument("--graph-precisions", default="fp32,fp16", help="CUDA: precisions of the CUDA-graph rows")
     return run_with_threads(_main, ap.parse_args(argv))
 
@@ -346,7 +347,8 @@ def _main(a: argparse.Namespace) -> int:
                 "postprocess": "CounterNet.postprocess alone on precomputed outputs, batch 1; share_of_latency = "
                                "its median / the latency median",
                 "graph": "case 'graph <precision>': GraphedCounterNet / GraphedPointPillars(model, capacity, "
-                         "precision, batch_size=batch) called on a list of `batch` device frames (copy into the "
+                         "precision, batch_size=batch[, optimize=True]) called on a list of `batch` device frames "
+                         "(copy into the "
                          "graph's input, one replay, one host read), counts read to the host; frames_per_s = "
                          "batch / median",
             },

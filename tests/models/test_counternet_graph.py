@@ -46,7 +46,7 @@ def _frames(empty: bool = True) -> list[torch.Tensor]:
 
 def _padded(frames: list[torch.Tensor]) -> torch.Tensor:
     n = max(len(f) for f in frames)
-    return torch.stack([torch.cat([f, PAD.expand(n - len(f), 4)]) for f in frames])
+    return torch.stack([torch.cat([f, PAD.to(f.device).expand(n - len(f), 4)]) for f in frames])
 
 
 def _predict(model, frame):
@@ -164,6 +164,38 @@ def test_device_otsu_gives_the_same_counts_here():
     assert torch.equal(exact["counts"], fast["counts"]) and torch.equal(exact["centres"], fast["centres"])
 
 
+def test_inference_copy_folds_batchnorm_and_leaves_the_model_alone():
+    """BatchNorm after a (transposed) convolution folds into it: the copy's heatmaps equal the model's (float64 to
+    1e-10), its convolutions are channels-last, the model keeps its modules and weights."""
+    from lidarops.models.cuda_graph import inference_copy, padded_counting
+
+    model = _model(4, 0.2).double()
+    with torch.no_grad():  # BatchNorm statistics away from (0, 1), so that folding them is seen
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.uniform_(0.5, 1.5)
+                m.bias.uniform_(-0.2, 0.2)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    fast = inference_copy(model)
+    assert all(torch.equal(v, before[k]) for k, v in model.state_dict().items())
+    bns = [m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    assert bns and not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
+    convs = [m for m in fast.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
+    assert all(c.weight.is_contiguous(memory_format=torch.channels_last) for c in convs)
+    buffer = _padded(_frames(empty=False)).double()
+    with torch.no_grad():
+        a = padded_counting(model, buffer, max_peaks=1536, exact_otsu=True)
+        b = padded_counting(fast, buffer, max_peaks=1536, exact_otsu=True)
+        ha = model({"points": F.pad(_frames()[0].double(), (1, 0)), "batch_size": 1})["heatmaps"]
+        hb = fast({"points": F.pad(_frames()[0].double(), (1, 0)), "batch_size": 1})["heatmaps"]
+    assert all(torch.allclose(x, y, rtol=0, atol=1e-10) for x, y in zip(ha, hb))
+    assert torch.equal(a["counts"], b["counts"]) and int(a["counts"].sum()) > 0
+    with pytest.raises(TypeError, match="model"):
+        inference_copy("a model")
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"max_peaks": 0}, "max_peaks"), ({"max_peaks": True}, "max_peaks"), ({"merge_iterations": 0}, "merge_iterations"),
     ({"exact_otsu": 1}, "exact_otsu"), ({"max_pillars": 0}, "max_pillars")])
@@ -196,6 +228,8 @@ def test_graphed_counternet_needs_cuda():
 
     with pytest.raises(TypeError, match="CounterNet"):
         GraphedCounterNet(torch.nn.Linear(2, 2))
+    with pytest.raises(ValueError, match="optimize"):
+        GraphedCounterNet(_model(), optimize=1)
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="CUDA"):
             GraphedCounterNet(_model())
@@ -205,7 +239,7 @@ def test_graphed_counternet_needs_cuda():
                     reason="needs a GPU and lidarops built with CUDA kernels")
 @pytest.mark.parametrize("partitions, delta", [(1, 0.0), (4, 0.2)])
 def test_graphed_counternet_equals_the_body_and_predict(partitions, delta):
-    from lidarops.models.cuda_graph import GraphedCounterNet, padded_counting
+    from lidarops.models.cuda_graph import GraphedCounterNet, padded_counting, precision_mode
 
     model = _model(partitions, delta).cuda()
     frames = [f.cuda() for f in _frames(empty=delta == 0)]
@@ -215,16 +249,23 @@ def test_graphed_counternet_equals_the_body_and_predict(partitions, delta):
         with torch.no_grad():
             body = padded_counting(model, _padded(group), max_peaks=1536, exact_otsu=True)
         for b, f in enumerate(group):
-            want = _predict(model, f)
+            with precision_mode("fp32"):  # the graph's arithmetic: no TF32
+                want = _predict(model, f)
             assert got[b]["counts"].tolist() == want["counts"].tolist() == body["counts"][b].tolist()
             assert torch.allclose(got[b]["centres"], want["centres"], atol=1e-6)
             assert torch.allclose(got[b]["features"], want["features"], atol=1e-5)
+    with precision_mode("fp32"):
+        wants = [_predict(model, f) for f in frames]
     one = graphed(frames[0])
-    assert one["counts"].tolist() == _predict(model, frames[0])["counts"].tolist()
+    assert one["counts"].tolist() == wants[0]["counts"].tolist()
     # too few peak rows: the replay is redone eagerly
     few = GraphedCounterNet(model, capacity=1000, batch_size=2, max_peaks=2)
     for b, got in enumerate(few(frames[:2])):
-        assert got["counts"].tolist() == _predict(model, frames[b])["counts"].tolist()
+        assert got["counts"].tolist() == wants[b]["counts"].tolist()
+    # the folded, channels-last copy: the same counts here, the model untouched
+    fast = GraphedCounterNet(model, capacity=1000, batch_size=len(frames), max_peaks=1536, optimize=True)
+    assert [d["counts"].tolist() for d in fast(frames)] == [w["counts"].tolist() for w in wants]
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
     bad = frames[0].clone()
     bad[0, 3] = math.inf
     with pytest.raises(ValueError, match="intensity"):
