@@ -34,7 +34,8 @@ Rows, per model:
   host; frames/s = batch / median batch time.
 * ``graph <precision>`` (CUDA): each model as one replayed CUDA graph of a whole batch
   (:class:`~lidarops.models.cuda_graph.GraphedCounterNet`, :class:`~lidarops.models.cuda_graph.GraphedPointPillars`,
-  as ``lidarops index build`` runs them), called on a list of frames, for each of ``--graph-batches`` (8, 32, 64) and
+  as ``lidarops index build`` runs them, pillar rows sized as it sizes them: a quarter more than the batches need),
+  called on a list of frames, for each of ``--graph-batches`` (8, 32, 64) and
   ``--graph-precisions`` (fp32, fp16); ``graph <precision> optimized``: the same with ``optimize=True`` (a copy of
   the model with BatchNorm folded into the convolutions, channels-last);
 * for CounterNet also ``postprocess`` alone (batch 1, on the forward's precomputed outputs) and its share of
@@ -240,10 +241,28 @@ def graph_count(model: Any, graphed: Any, group: list[torch.Tensor]) -> list:
     return torch.stack(counts).tolist()
 
 
+def pillar_rows(model: Any, groups: list[list[torch.Tensor]]) -> int:
+    """Pillar rows for a graph of these batches, as ``lidarops index build`` sizes them: a quarter more than the
+    most a batch needs (each frame's pillars, at most the config's ``max_voxels_test``), in steps of 8,192."""
+    cfg = model.config.floor_config() if isinstance(model, CounterNet) else model.config
+    x0, y0, z0, x1, y1, z1 = cfg.point_cloud_range
+    vx, vy = cfg.voxel_size[:2]
+    most = 0
+    for group in groups:
+        need = 0
+        for f in group:
+            inside = (f[:, 0] >= x0) & (f[:, 0] < x1) & (f[:, 1] >= y0) & (f[:, 1] < y1) & (f[:, 2] >= z0) & (f[:, 2] < z1)
+            cells = ((f[inside, 1] - y0) / vy).floor().long() * 100_000 + ((f[inside, 0] - x0) / vx).floor().long()
+            need += min(int(cells.unique().numel()), cfg.max_voxels_test)
+        most = max(most, need)
+    return -(-(most + most // 4 + 1) // 8192) * 8192
+
+
 def bench_graphs(model_set: dict, frames: list[torch.Tensor], batches: list[int], precisions: list[str],
                  device: torch.device) -> list[dict]:
     """Each model as one replayed CUDA graph per batch (``GraphedCounterNet`` / ``GraphedPointPillars``, what
-    ``lidarops index build`` runs), called on lists of frames as a user calls it: frames/s = batch / median."""
+    ``lidarops index build`` runs, with pillar rows sized as it sizes them), called on lists of frames as a user
+    calls it: frames/s = batch / median."""
     from lidarops.models.cuda_graph import GraphedCounterNet, GraphedPointPillars
 
     on_device = [f.to(device) for f in frames]
@@ -262,7 +281,8 @@ def bench_graphs(model_set: dict, frames: list[torch.Tensor], batches: list[int]
                 model = m[0]
                 try:
                     kind = GraphedCounterNet if isinstance(model, CounterNet) else GraphedPointPillars
-                    graphed = kind(model, capacity, precision, batch_size=bsz, optimize=optimize)
+                    graphed = kind(model, capacity, precision, batch_size=bsz, optimize=optimize,
+                                   max_pillars=pillar_rows(model, groups))
                     t = time_cuda(lambda m=model, g=graphed, it=itertools.cycle(groups): graph_count(m, g, next(it)),
                                   (), warmup=3, min_runs=10, max_runs=200, budget_s=1.0, rotate=False)
                     graphed = None  # its memory goes before the next is recorded
@@ -347,7 +367,8 @@ def _main(a: argparse.Namespace) -> int:
                 "postprocess": "CounterNet.postprocess alone on precomputed outputs, batch 1; share_of_latency = "
                                "its median / the latency median",
                 "graph": "case 'graph <precision>': GraphedCounterNet / GraphedPointPillars(model, capacity, "
-                         "precision, batch_size=batch[, optimize=True]) called on a list of `batch` device frames "
+                         "precision, batch_size=batch, max_pillars=a quarter more than the batches need (as the "
+                         "index build sizes them)[, optimize=True]) called on a list of `batch` device frames "
                          "(copy into the "
                          "graph's input, one replay, one host read), counts read to the host; frames_per_s = "
                          "batch / median",

@@ -437,10 +437,19 @@ def padded_counting(model: CounterNet, points: Tensor, max_pillars: int | None =
     floor = cfg.floor_config()
     points, rows = _padded_points(model, floor, points, max_pillars)
     B, K = points.shape[0], max_peaks
-    voxels, count, coords, needed = _batch_pillars(points, floor, rows)
-    with lidarops.validation(False):
-        shared, logits = model.network(voxels, count, coords, B)
-        heatmaps = [torch.sigmoid(x) for x in logits]
+    stage = torch.profiler.record_function  # ranges for a profile; nothing in a graph
+    with stage("voxelize"):
+        voxels, count, coords, needed = _batch_pillars(points, floor, rows)
+    with lidarops.validation(False), stage("counting"):
+        with stage("pfn"):
+            x = model.vfe(voxels, count, coords)
+        with stage("scatter"):
+            x = model.map_to_bev(x, coords, B)
+        with stage("backbone"):
+            x = model.backbone_2d(x)
+        with stage("head"):
+            shared, logits = model.count_head(x, model.region_boxes)
+            heatmaps = [torch.sigmoid(x) for x in logits]
         C = heatmaps[0].shape[1]
         dev = heatmaps[0].device
         ct = torch.float64 if heatmaps[0].dtype == torch.float64 else torch.float32
