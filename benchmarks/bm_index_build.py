@@ -1,4 +1,4 @@
-"""Benchmark building a frame index with the detector as the counter: frames/s from KITTI-format ``.bin``
+"""Benchmark building a frame index with the detector (or CounterNet, ``--source counter``) as the counter: frames/s from KITTI-format ``.bin``
 scans on disk, reading included, and each stage's share (reading the scans, counting, writing the parts;
 within counting: the host time of the copy to the device, of the network with its post-processing and of the
 read-back; on CUDA the copies run on a side stream beside the network, and what they hide is not counted).
@@ -15,7 +15,8 @@ warm-up build of 2 batches, for each ``--precision`` (``default``: torch's setti
 ``--precision``; ``fp32``, ``tf32``, ``fp16``: ``DetectorSource(precision=...)``) and ``--mode`` (``eager``: each
 batch as eager calls; ``graph``: as one replayed CUDA graph, the command's default on CUDA). ``--json`` merges the rows
 into ``benchmarks/results/<device>.json`` under ``"query_build"``. Target (issue 36): >= 500 frames/s on one
-H100/H200.
+H100/H200. ``--source counter`` counts with the shipped ``counternet_road7`` (``CounterSource``);
+``--mode graph-optimized`` records the graph of a BatchNorm-folded, channels-last copy (``optimize=True``).
 """
 from __future__ import annotations
 
@@ -60,12 +61,15 @@ def main() -> int:
     p.add_argument("--baseline-frames", type=int, default=200, help="frames of the one-at-a-time baseline")
     p.add_argument("--mode", default=None, help="eager, graph or both, comma-separated: each batch as eager calls "
                                                  "or as one replayed CUDA graph (default: both on CUDA, eager on CPU)")
+    p.add_argument("--source", choices=["detector", "counter"], default="detector",
+                   help="the shipped PointPillars (default) or the shipped CounterNet counternet_road7")
     p.add_argument("--data", type=Path, help="folder for the scans (default: a temporary one)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
     modes = (args.mode or ("eager,graph" if args.device.startswith("cuda") else "eager")).split(",")
-    if any(m not in ("eager", "graph") for m in modes) or ("graph" in modes and args.device == "cpu"):
-        p.error(f"--mode: {args.mode!r}: eager and graph, comma-separated; graph needs --device cuda")
+    if any(m not in ("eager", "graph", "graph-optimized") for m in modes) or \
+            (any(m.startswith("graph") for m in modes) and args.device == "cpu"):
+        p.error(f"--mode: {args.mode!r}: eager, graph and graph-optimized, comma-separated; graph needs --device cuda")
     precisions = args.precision.split(",")
     for precision in precisions:
         if precision not in ("default", "fp32", "tf32", "fp16"):
@@ -76,7 +80,7 @@ def main() -> int:
     from lidarops.cli.query import _KittiLoader
     from lidarops.data.formats.kitti import KittiDataset
     from lidarops.models import load_model, weights
-    from lidarops.query.build import DetectorSource, build_index
+    from lidarops.query.build import CounterSource, DetectorSource, build_index
 
     tmp = Path(tempfile.mkdtemp(prefix="bm_index_"))
     data = args.data or tmp / "kitti"
@@ -87,12 +91,14 @@ def main() -> int:
     names = kitti.ids[:args.frames]
     ids = [int(n) for n in names]
     load = _KittiLoader(kitti, names, needs_labels=False)
-    model = load_model(weights.path()).to(args.device).eval()
+    model = load_model(weights.path("counternet_road7" if args.source == "counter" else weights.DEFAULT))
+    model = model.to(args.device).eval()
     points = sum(os.path.getsize(data / "velodyne" / f"{n}.bin") for n in names[:args.distinct]) / 16 / args.distinct
 
     def run(batch: int, workers: int, n: int, label: str, precision: str = "default", mode: str = "eager") -> dict:
-        source = DetectorSource(model, 0.5, precision=None if precision == "default" else precision,
-                                graph=mode == "graph")
+        kw = dict(precision=None if precision == "default" else precision, graph=mode.startswith("graph"),
+                  optimize=mode == "graph-optimized")
+        source = CounterSource(model, **kw) if args.source == "counter" else DetectorSource(model, 0.5, **kw)
         build_index(tmp / "warm", ids[:2 * batch], load, source, batch=batch, workers=workers)  # warm-up
         shutil.rmtree(tmp / "warm")
         source.stage_seconds = dict.fromkeys(source.stage_seconds, 0.0)
@@ -100,7 +106,7 @@ def main() -> int:
                              part_frames=1024)
         shutil.rmtree(tmp / "idx")
         count = report.stage_seconds["count"] or 1e-9
-        row = {"op": "index_build_detector", "case": label, "frames": n, "batch": batch, "workers": workers,
+        row = {"op": f"index_build_{args.source}", "case": label if args.source == "detector" else f"counter: {label}", "frames": n, "batch": batch, "workers": workers,
                "precision": precision, "mode": mode,
                "points_per_frame": round(points), "frames_per_s": round(report.frames_per_second, 1),
                **{f"share_{k}": round(v / report.seconds, 3) for k, v in report.stage_seconds.items()},
@@ -115,11 +121,11 @@ def main() -> int:
             for workers in (int(w) for w in args.workers.split(",")):
                 for batch in (int(b) for b in args.batch.split(",")):
                     label = f"batch {batch}, {workers} workers" + ("" if precision == "default" else f", {precision}") \
-                        + (", CUDA graph" if mode == "graph" else "")
+                        + {"eager": "", "graph": ", CUDA graph", "graph-optimized": ", CUDA graph, optimized"}[mode]
                     rows.append(run(batch, workers, args.frames, label, precision, mode))
     keys = ["case", "frames_per_s", "share_load", "share_count", "share_write", "count_share_to_device",
             "count_share_predict", "count_share_read_back"]
-    print_table(f"index build, detector source, {args.device}", keys, [[r[k] for k in keys] for r in rows],
+    print_table(f"index build, {args.source} source, {args.device}", keys, [[r[k] for k in keys] for r in rows],
                 right=range(1, len(keys)))
     if args.json:
         meta = env_meta(args.device)

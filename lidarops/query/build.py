@@ -219,15 +219,19 @@ class _ModelSource:
         self.pin_memory = next(model.parameters()).device.type == "cuda"  # asks build_index's loader to pin
         self._side: _SideStream | None = None
         self.graph = False  # each batch as one replayed CUDA graph (set by the sources that can)
+        self.optimize = False  # the graph records a BatchNorm-folded, channels-last copy of the model
         self._graphed = None  # the graph, made at the first batch and again when it no longer fits
         self._pillars = 0  # the most pillar rows a batch has needed
         self._regraph = False  # a batch needed more rows than the graph holds
         self.pillar_step = 8192  # pillar rows are rounded up to a multiple of this
         self.eager_batches = 0  # batches counted eagerly because the graph could not hold them
 
-    def _use_graph(self, graph: bool | None, capturable: bool, what: str) -> None:
+    def _use_graph(self, graph: bool | None, capturable: bool, what: str, optimize: bool = False) -> None:
         if graph is not None and not isinstance(graph, bool):
             raise QueryError(f"graph must be True, False or None (on where it can run), got {graph!r}")
+        if not isinstance(optimize, bool):
+            raise QueryError(f"optimize must be True or False, got {optimize!r}")
+        self.optimize = optimize
         if graph and not capturable:
             raise QueryError(f"graph=True needs {what} on a CUDA device, got {type(self.model).__name__} on "
                              f"{next(self.model.parameters()).device}")
@@ -385,11 +389,14 @@ class DetectorSource(_ModelSource):
 
     ``graph``: run each batch as one replayed CUDA graph (:class:`~lidarops.models.cuda_graph.GraphedPointPillars`
     with ``batch_size``: voxelization to NMS without a host read or a launch per kernel); None (default): where it
-    can, a PointPillars with the dense backbone on a CUDA device. The detections are the eager call's."""
+    can, a PointPillars with the dense backbone on a CUDA device. The detections are the eager call's.
+    ``optimize``: the graph records :func:`~lidarops.models.cuda_graph.inference_copy` of the model (BatchNorm
+    folded, channels-last): faster, the scores round differently."""
 
     name = "detector"
 
-    def __init__(self, model, score_thresh: float = 0.5, precision: str | None = None, graph: bool | None = None):
+    def __init__(self, model, score_thresh: float = 0.5, precision: str | None = None, graph: bool | None = None,
+                 optimize: bool = False):
         if not 0 <= score_thresh <= 1:
             raise QueryError(f"score_thresh must be in [0, 1], got {score_thresh!r}")
         super().__init__(model, precision)
@@ -398,7 +405,7 @@ class DetectorSource(_ModelSource):
 
         capturable = isinstance(model, PointPillars) and model.config.backbone_mode == "dense" and \
             next(model.parameters()).device.type == "cuda"
-        self._use_graph(graph, capturable, "a PointPillars with backbone_mode='dense'")
+        self._use_graph(graph, capturable, "a PointPillars with backbone_mode='dense'", optimize)
 
     def _predict(self, batch: dict) -> list[dict]:
         """A PointPillars-style detector's detections through ``postprocess_padded``: the same rows as its
@@ -430,7 +437,7 @@ class DetectorSource(_ModelSource):
     def _new_graph(self, capacity: int, batch: int, rows: int | None):
         from lidarops.models.cuda_graph import GraphedPointPillars
 
-        return GraphedPointPillars(self.model, capacity, self.precision, batch, rows)
+        return GraphedPointPillars(self.model, capacity, self.precision, batch, rows, self.optimize)
 
     def _gather(self, preds: list[dict]) -> tuple[list[Any], Any]:
         import torch
@@ -482,17 +489,18 @@ class CounterSource(_ModelSource):
     ``graph``: run each batch as one replayed CUDA graph (:class:`~lidarops.models.cuda_graph.GraphedCounterNet`:
     voxelization to the merged peaks without a host read); None (default): where it can, a CounterNet with the
     dense backbone on a CUDA device (a model selection counts eagerly). The counts are the eager call's, except
-    where Otsu's threshold ties between two splits to within rounding (the graph's is computed on the device)."""
+    where Otsu's threshold ties between two splits to within rounding (the graph's is computed on the device).
+    ``optimize`` as :class:`DetectorSource`'s."""
 
     name = "counter"
 
-    def __init__(self, model, precision: str | None = None, graph: bool | None = None):
+    def __init__(self, model, precision: str | None = None, graph: bool | None = None, optimize: bool = False):
         super().__init__(model, precision)
         from lidarops.models.counternet import CounterNet
 
         capturable = isinstance(model, CounterNet) and model.config.floor_config().backbone_mode == "dense" and \
             next(model.parameters()).device.type == "cuda"
-        self._use_graph(graph, capturable, "a CounterNet with backbone_mode='dense'")
+        self._use_graph(graph, capturable, "a CounterNet with backbone_mode='dense'", optimize)
         self.max_peaks = 1024  # peak rows per frame of the graph; doubled when a frame holds more
 
     def _max_voxels(self) -> int:
@@ -501,7 +509,8 @@ class CounterSource(_ModelSource):
     def _new_graph(self, capacity: int, batch: int, rows: int | None):
         from lidarops.models.cuda_graph import GraphedCounterNet
 
-        return GraphedCounterNet(self.model, capacity, self.precision, batch, rows, self.max_peaks)
+        return GraphedCounterNet(self.model, capacity, self.precision, batch, rows, self.max_peaks,
+                                 optimize=self.optimize)
 
     def _predict_staged(self, points, staged: _Staged) -> list[dict]:
         """Through a CUDA graph of the whole batch (``graph``: :meth:`_replay_staged`): every frame's padded

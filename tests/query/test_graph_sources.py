@@ -21,6 +21,8 @@ def test_counter_source_graph_needs_a_dense_counternet_on_cuda():
         CounterSource(cpu, graph=True)
     with pytest.raises(QueryError, match="graph must be True, False or None"):
         CounterSource(cpu, graph=1)
+    with pytest.raises(QueryError, match="optimize must be True or False"):
+        CounterSource(cpu, optimize=1)
     if torch.cuda.is_available():
         assert CounterSource(cpu.cuda()).graph is True
 
