@@ -392,7 +392,7 @@ class GraphedPointPillars(_GraphedFrames):
                  "labels": out["labels"][b, :k].clone()} for b, (k, *_) in enumerate(reads)]
 
 
-def padded_counting(model: CounterNet, points: Tensor, max_pillars: int | None = None, max_peaks: int = 1024,
+def padded_counting(model: CounterNet, points: Tensor, max_pillars: int | None = None, max_peaks: int = 256,
                     merge_iterations: int = 16, exact_otsu: bool = False) -> dict[str, Tensor]:
     """:meth:`CounterNet.predict` on a batch of frames padded to one size, with outputs of sizes fixed by the
     shapes and nothing read back to the host: the body :class:`GraphedCounterNet` records, usable eagerly too
@@ -538,7 +538,7 @@ class GraphedCounterNet(_GraphedFrames):
     """
 
     def __init__(self, model: CounterNet, capacity: int = 150_000, precision: str | None = "fp32",
-                 batch_size: int = 1, max_pillars: int | None = None, max_peaks: int = 1024,
+                 batch_size: int = 1, max_pillars: int | None = None, max_peaks: int = 256,
                  merge_iterations: int = 16, optimize: bool = False):
         if not isinstance(model, CounterNet):
             raise TypeError(f"model must be a CounterNet, got {type(model).__name__}")

@@ -501,7 +501,9 @@ class CounterSource(_ModelSource):
         capturable = isinstance(model, CounterNet) and model.config.floor_config().backbone_mode == "dense" and \
             next(model.parameters()).device.type == "cuda"
         self._use_graph(graph, capturable, "a CounterNet with backbone_mode='dense'", optimize)
-        self.max_peaks = 1024  # peak rows per frame of the graph; doubled when a frame holds more
+        # peak rows per frame of the graph (the simulator's dense city frames hold 27 objects on average); doubled
+        # when a frame holds more
+        self.max_peaks = 256
 
     def _max_voxels(self) -> int:
         return self.model.config.floor_config().max_voxels_test
