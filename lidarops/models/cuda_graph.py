@@ -195,7 +195,9 @@ def inference_copy(model: nn.Module) -> nn.Module:
     """A copy of an eval-mode model for inference only: each ``Conv2d`` / ``ConvTranspose2d`` followed by a
     ``BatchNorm2d`` in an ``nn.Sequential`` folded into one convolution with a bias (``torch.nn.utils.fusion``),
     and 4-D weights channels-last, so that cuDNN runs the BEV network without layout transposes or separate
-    BatchNorm passes. The same function up to rounding; the model itself is not changed."""
+    BatchNorm passes; in a CounterNet the count head's first convolution also reads the backbone's upsampled maps
+    one by one instead of their concatenation. The same function up to rounding; the model itself is not
+    changed."""
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
     if not isinstance(model, nn.Module):
@@ -208,7 +210,58 @@ def inference_copy(model: nn.Module) -> nn.Module:
                     and bn.track_running_stats:
                 seq[i] = fuse_conv_bn_eval(conv, bn, transpose=isinstance(conv, nn.ConvTranspose2d))
                 seq[i + 1] = nn.Identity()
+    if isinstance(copy_, CounterNet) and copy_.config.floor_config().backbone_mode == "dense":
+        # the count head's first convolution reads the three upsampled maps one by one instead of their
+        # 384-channel concatenation, which would be written and read once more
+        sizes = [d[0].out_channels for d in copy_.backbone_2d.deblocks]
+        copy_.backbone_2d = _PartsBackbone(copy_.backbone_2d)
+        copy_.count_head.shared_conv[0] = _PartsConv2d(copy_.count_head.shared_conv[0], sizes)
     return copy_.to(memory_format=torch.channels_last)
+
+
+class _Parts(list):
+    """A backbone's upsampled maps, not yet concatenated along the channels."""
+
+
+class _PartsBackbone(nn.Module):
+    """A dense ``BaseBEVBackbone`` returning its upsampled maps as :class:`_Parts` (for :class:`_PartsConv2d`)."""
+
+    def __init__(self, backbone: nn.Module):
+        super().__init__()
+        self.inner = backbone
+        self.out_channels = backbone.out_channels
+
+    def forward(self, x: Tensor) -> _Parts:
+        parts = _Parts()
+        for block, deblock in zip(self.inner.blocks, self.inner.deblocks):
+            x = block(x)
+            parts.append(deblock(x))
+        return parts
+
+
+class _PartsConv2d(nn.Module):
+    """A convolution of the concatenation of :class:`_Parts` as the sum of each part's convolution with its slice
+    of the input channels (a tensor input is convolved whole)."""
+
+    def __init__(self, conv: nn.Conv2d, sizes: Sequence[int]):
+        super().__init__()
+        self.whole = conv
+        self.parts = nn.ModuleList()
+        start = 0
+        for c in sizes:
+            part = nn.Conv2d(c, conv.out_channels, conv.kernel_size, conv.stride, conv.padding, conv.dilation,
+                             bias=False)
+            part.weight = nn.Parameter(conv.weight.detach()[:, start:start + c].clone())
+            self.parts.append(part)
+            start += c
+
+    def forward(self, x):
+        if not isinstance(x, _Parts):
+            return self.whole(x)
+        out = self.parts[0](x[0])
+        for conv, part in zip(self.parts[1:], x[1:]):
+            out = out + conv(part)
+        return out if self.whole.bias is None else out + self.whole.bias.view(1, -1, 1, 1).to(out.dtype)
 
 
 class _GraphedFrames:

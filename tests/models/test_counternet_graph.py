@@ -165,8 +165,9 @@ def test_device_otsu_gives_the_same_counts_here():
 
 
 def test_inference_copy_folds_batchnorm_and_leaves_the_model_alone():
-    """BatchNorm after a (transposed) convolution folds into it: the copy's heatmaps equal the model's (float64 to
-    1e-10), its convolutions are channels-last, the model keeps its modules and weights."""
+    """BatchNorm after a (transposed) convolution folds into it and the count head reads the backbone's maps by
+    parts: the copy's heatmaps equal the model's (float64 to 1e-10), its convolutions are channels-last, the model
+    keeps its modules and weights."""
     from lidarops.models.cuda_graph import inference_copy, padded_counting
 
     model = _model(4, 0.2).double()
@@ -180,6 +181,8 @@ def test_inference_copy_folds_batchnorm_and_leaves_the_model_alone():
     before = {k: v.clone() for k, v in model.state_dict().items()}
     fast = inference_copy(model)
     assert all(torch.equal(v, before[k]) for k, v in model.state_dict().items())
+    # the count head's first convolution reads the upsampled maps one by one
+    assert not isinstance(fast.count_head.shared_conv[0], torch.nn.Conv2d)
     bns = [m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)]
     assert bns and not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
     convs = [m for m in fast.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
