@@ -18,7 +18,8 @@ moves between them: an accumulated cloud) and cut the same way. Sampling ratio D
    ``RandomSampler(seed=0)``, ``FPSSampler()``, ``ChunkedFPSSampler()`` (chunks of 8,192) and
    ``CASNetSampler`` (dedup on, its default) around an untrained CAS-Net in eval mode, the full variant
    ``CASNet(num_out=1024, k=32, radius=2.0)`` (segments of 8,192 = 1,024 x 8 points, as the paper) and
-   ``CASNet.fast(num_out=1024)``; for each also ``segment_and_sample(model, points, 8, dedup=False)``, the
+   ``CASNet.fast(num_out=1024)``, each also with ``chunk="fused"`` (the offset attention through torch's fused
+   attention kernels); for each also ``segment_and_sample(model, points, 8, dedup=False)``, the
    paper's raw picks (``segments x 1,024`` rows, repeats included: ``m`` is then that count). ``--checkpoint``
    adds the same two rows for ``load_casnet(PATH, device)``. Columns: ``distinct`` = distinct points picked;
    ``x FPS`` = median / FPSSampler's median.
@@ -32,7 +33,8 @@ moves between them: an accumulated cloud) and cut the same way. Sampling ratio D
    graph-captured: what a capture saves where one is possible. This section runs last, so that a failed
    capture cannot disturb the others.
 3. ``whole_cloud``: a CAS-Net with ``num_out = N // 8`` (k = 32, r = 2 m, ``chunk="auto"``: blocks of query
-   rows, never an N x N matrix) on the whole cloud, beside the segmented path (the full variant, segments of
+   rows, never an N x N matrix; and the same weights with ``chunk="fused"``: torch's fused attention) on the
+   whole cloud, beside the segmented path (the full variant, segments of
    8,192, ``segment_and_sample(..., num_samples=N // 8, dedup=False)``: the same number of points kept), for
    N = 20,000 and 65,536: inference (eval, no grad) and one training step (train mode, hard forward,
    ``casnet_loss`` = Chamfer + cosine with a zero task loss, backward; no optimiser step; the segmented step
@@ -293,7 +295,13 @@ def paper_models(segment: int, device: torch.device) -> dict[str, CASNet]:
     full = CASNet(num_out=num_out, k=32, radius=2.0).eval().to(device)
     torch.manual_seed(0)
     fast = CASNet.fast(num_out=num_out).eval().to(device)
-    return {f"full CASNet(num_out={num_out}, k=32, radius=2.0)": full, f"fast CASNet.fast(num_out={num_out})": fast}
+    torch.manual_seed(0)
+    full_fused = CASNet(num_out=num_out, k=32, radius=2.0, chunk="fused").eval().to(device)
+    torch.manual_seed(0)
+    fast_fused = CASNet.fast(num_out=num_out, chunk="fused").eval().to(device)
+    return {f"full CASNet(num_out={num_out}, k=32, radius=2.0)": full, f"fast CASNet.fast(num_out={num_out})": fast,
+            f"full CASNet(num_out={num_out}, k=32, radius=2.0, chunk='fused')": full_fused,
+            f"fast CASNet.fast(num_out={num_out}, chunk='fused')": fast_fused}
 
 
 # ------------------------------------------------------------------ 1. sampling
@@ -521,6 +529,9 @@ def bench_whole_cloud(run: Runner, clouds: FovClouds, sizes: Sizes) -> tuple[lis
         m = n // RATIO
         torch.manual_seed(0)
         whole = CASNet(num_out=m, k=32, radius=2.0, chunk="auto").to(dev)
+        torch.manual_seed(0)
+        fused = CASNet(num_out=m, k=32, radius=2.0, chunk="fused").to(dev)
+        fused_name = f"whole cloud: CASNet(num_out={m}, k=32, radius=2.0, chunk='fused')"
         seg_batch, seg_lengths = padded_segments(cloud, sizes.segment)
         S = seg_batch.shape[0]
         attn_rows = _rows_per_chunk("auto", 1, n)
@@ -542,6 +553,8 @@ def bench_whole_cloud(run: Runner, clouds: FovClouds, sizes: Sizes) -> tuple[lis
         base = dict(N=n, m=m, sweeps=info["sweeps"])
         cases = [Case(_row("whole_cloud", f"N={n} inference", whole_name, path="whole", step="inference",
                            attention_rows=attn_rows, **base), infer_whole, mem=5 * mn),
+                 Case(_row("whole_cloud", f"N={n} inference", fused_name, path="whole, fused", step="inference",
+                           attention_rows="fused", **base), lambda model=fused: infer_whole(model), mem=5 * mn),
                  Case(_row("whole_cloud", f"N={n} inference", seg_name, path="segmented", step="inference",
                            segments=S, attention_rows=seg_rows, **base), infer_seg, mem=5 * sm)]
         run.run(cases)
@@ -552,6 +565,9 @@ def bench_whole_cloud(run: Runner, clouds: FovClouds, sizes: Sizes) -> tuple[lis
         cases = [Case(_row("whole_cloud", f"N={n} training step", whole_name, path="whole", step="training",
                            attention_rows=attn_rows, **base),
                       lambda model=whole, x=cloud.unsqueeze(0): _train_step(model, x, None, zero), mem=16 * mn),
+                 Case(_row("whole_cloud", f"N={n} training step", fused_name, path="whole, fused", step="training",
+                           attention_rows="fused", **base),
+                      lambda model=fused, x=cloud.unsqueeze(0): _train_step(model, x, None, zero), mem=16 * mn),
                  Case(_row("whole_cloud", f"N={n} training step", seg_name, path="segmented", step="training",
                            segments=S, attention_rows=seg_rows, **base),
                       lambda b=seg_batch, lens=seg_lengths: _train_step(seg_model, b, lens, zero), mem=16 * sm,
@@ -560,7 +576,7 @@ def bench_whole_cloud(run: Runner, clouds: FovClouds, sizes: Sizes) -> tuple[lis
         for c in cases:
             c.result.clear()
         rows += [c.row for c in cases]
-        del whole, cloud, seg_batch, seg_lengths, cases
+        del whole, fused, cloud, seg_batch, seg_lengths, cases
         if dev.type == "cuda":
             torch.cuda.empty_cache()
     return rows, infos

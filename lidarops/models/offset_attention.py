@@ -11,7 +11,7 @@ The layer, for features ``x (B, C, N)``::
     x_r   = V A                          x_r[:, j] = sum_i V[:, i] A[i, j]
     out   = x + ReLU(BN(Conv1x1(x - x_r)))
 
-Two paths compute ``x_r`` (:func:`column_normalized_attention`):
+Three paths compute ``x_r`` (:func:`column_normalized_attention`):
 
 * **plain** (``chunk=None``): the formula above with ``torch.bmm``; autograd keeps the N x N matrices.
 * **chunked** (``chunk=r`` rows, or ``"auto"``): ``A``'s normalisation divides column j by a number, so
@@ -24,6 +24,9 @@ Two paths compute ``x_r`` (:func:`column_normalized_attention`):
       dV = H P^T,    dP = V^T H + 1 g_D^T,    dE = P * (dP - rowsum(P * dP)),    dQ = K dE^T,    dK = Q dE
 
   (Q and K are one tensor here; autograd adds the two). Same result as the plain path up to rounding.
+* **fused** (``chunk="fused"``): the row log-sum-exps of ``E`` in blocks, then ``x_r`` as one call of torch's
+  ``scaled_dot_product_attention`` with the roles of rows and columns swapped (``_attention_fused`` states the
+  algebra); its flash and memory-efficient kernels hold no N x N matrix, forward or backward.
 
 Padding (``mask (B, N)``, True = a real point): padded points neither attend nor are attended. A padded key
 column j gets ``P[i, j] = 0`` (left out of every softmax over j); a padded query row i gets ``P[i, :] = 0``
@@ -89,16 +92,18 @@ def _check_mask(mask, B: int, N: int, like: Tensor) -> None:
         raise ValueError(f"mask is on {mask.device} but the features are on {like.device}; move them to one device")
 
 
+_CHUNK_HELP = "None (plain path), 'auto', 'fused' or an int >= 1 (rows per block)"
+
+
 def _check_chunk(chunk) -> "int | str | None":
-    if chunk is None or (isinstance(chunk, str) and chunk == "auto"):
+    if chunk is None or (isinstance(chunk, str) and chunk in ("auto", "fused")):
         return chunk
     if isinstance(chunk, str):
-        raise ValueError(f"chunk must be None (plain path), 'auto' or an int >= 1 (rows per block), got {chunk!r}")
+        raise ValueError(f"chunk must be {_CHUNK_HELP}, got {chunk!r}")
     try:
         return positive_int(chunk, "chunk")
     except ValueError:
-        raise ValueError(f"chunk must be None (plain path), 'auto' or an int >= 1 (rows per block), "
-                         f"got {chunk!r}") from None
+        raise ValueError(f"chunk must be {_CHUNK_HELP}, got {chunk!r}") from None
 
 
 def _rows_per_chunk(chunk, B: int, N: int) -> "int | None":
@@ -236,6 +241,98 @@ class _ChunkedColumnAttention(torch.autograd.Function):
         return dq, dk, dv, None, None
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# the fused path
+# ---------------------------------------------------------------------------------------------------------------
+class _RowLogSumExp(torch.autograd.Function):
+    """``lse_i = log sum_j exp(q_i . k_j)`` over the real keys, in blocks of query rows (0 at padded rows), with
+    its gradient by blocks too: ``dq_i = g_i sum_j P_ij k_j``, ``dk_j = sum_i g_i P_ij q_i``."""
+
+    @staticmethod
+    def forward(ctx, q: Tensor, k: Tensor, mask: "Tensor | None", rows: int) -> Tensor:
+        ct = _compute_dtype(q.dtype)
+        with torch.autocast(q.device.type, enabled=False):
+            qc, kc = q.to(ct), k.to(ct)
+            B, _, N = qc.shape
+            lse = qc.new_empty(B, N)
+            for start in range(0, N, rows):
+                r = slice(start, min(N, start + rows))
+                e = torch.bmm(qc[:, :, r].transpose(1, 2), kc)
+                if mask is not None:
+                    e.masked_fill_(~mask[:, None, :], -math.inf)
+                lse[:, r] = torch.logsumexp(e, dim=-1)
+                del e
+            if mask is not None:
+                lse.masked_fill_(~mask, 0.0)
+        ctx.rows, ctx.dtypes = rows, (q.dtype, k.dtype)
+        ctx.save_for_backward(qc, kc, mask, lse)
+        return lse
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        q, k, mask, lse = ctx.saved_tensors
+        with torch.autocast(q.device.type, enabled=False):
+            g = grad.to(q.dtype)
+            if mask is not None:
+                g = g.masked_fill(~mask, 0.0)
+            dq, dk = torch.empty_like(q), torch.zeros_like(k)
+            N = q.shape[2]
+            for start in range(0, N, ctx.rows):
+                r = slice(start, min(N, start + ctx.rows))
+                p = torch.bmm(q[:, :, r].transpose(1, 2), k)
+                if mask is not None:
+                    p.masked_fill_(~mask[:, None, :], -math.inf)
+                p.sub_(lse[:, r, None]).exp_()  # P of the block: exp(e - lse)
+                if mask is not None:
+                    p.masked_fill_(~mask[:, r, None], 0.0)
+                p.mul_(g[:, r, None])  # g_i P_ij
+                dq[:, :, r] = torch.bmm(k, p.transpose(1, 2))
+                dk.baddbmm_(q[:, :, r], p)
+                del p
+        return dq.to(ctx.dtypes[0]), dk.to(ctx.dtypes[1]), None, None
+
+
+def _attention_fused(q: Tensor, k: Tensor, v: Tensor, mask: "Tensor | None", rows: int) -> Tensor:
+    """``x_r`` by one call of torch's fused attention (``scaled_dot_product_attention``), which never holds the
+    N x N matrix (flash or memory-efficient kernels on CUDA, blocked kernels on the CPU).
+
+    With the row log-sum-exps ``lse_i`` of ``E = Q^T K`` (:class:`_RowLogSumExp`), ``P_ij = exp(e_ij - lse_i)``,
+    and ``x_r[:, j] = sum_i V_i P_ij / (1e-9 + sum_i P_ij)`` is an attention of query j over keys i with scores
+    ``s_ji = k_j . q_i - lse_i``, normalised over i: the keys ``[q_i, -lse_i]`` meet the queries ``[k_j, 1]``
+    (``lse`` split into a float16-exact high part and the rest, two coordinates, so that half precision keeps it),
+    and one more key of score ``log(1e-9)`` and value 0 adds PCT's 1e-9 to every denominator. Padded rows i are
+    keys of score -inf (the extra key keeps every softmax finite); padded columns j are set to 0."""
+    B, d, N = q.shape
+    C = v.shape[1]
+    lse = _RowLogSumExp.apply(q, k, mask, rows)
+    dt = q.dtype if not torch.is_autocast_enabled(q.device.type) else torch.get_autocast_dtype(q.device.type)
+    # float16's rounding of lse (exact in every dtype the kernels take) and the rest, which carries the gradient
+    # (through a float16 cast the gradient would be rounded too)
+    hi = lse.detach().to(torch.float16).to(lse.dtype)
+    lo = lse - hi
+    width = -(-max(d + 2, C) // 8) * 8  # the fused kernels want one head size for all three, a multiple of 8
+    queries = q.new_zeros(B, N, width, dtype=dt)
+    queries[:, :, :d] = k.transpose(1, 2).to(dt)
+    queries[:, :, d:d + 2] = 1.0
+    keys = q.new_zeros(B, N + 1, width, dtype=dt)
+    keys[:, :N, :d] = q.transpose(1, 2).to(dt)
+    keys[:, :N, d] = -hi.to(dt)
+    keys[:, :N, d + 1] = -lo.to(dt)
+    keys[:, N, d] = math.log(COLUMN_EPS)
+    if mask is not None:  # padded rows i: keys that no query reaches; padded columns j: zero queries (finite)
+        keys[:, :N] = keys[:, :N].masked_fill(~mask[:, :, None], 0.0)
+        keys[:, :N, d] = keys[:, :N, d].masked_fill(~mask, -torch.finfo(dt).max / 4)
+        queries = queries.masked_fill(~mask[:, :, None], 0.0)
+    values = v.new_zeros(B, N + 1, width, dtype=dt)  # flash kernels want the values' size too
+    values[:, :N, :C] = v.transpose(1, 2).to(dt)
+    out = F.scaled_dot_product_attention(queries[:, None], keys[:, None], values[:, None], scale=1.0)[:, 0, :, :C]
+    x_r = out.transpose(1, 2).to(v.dtype if not torch.is_autocast_enabled(q.device.type) else out.dtype)
+    if mask is not None:
+        x_r = x_r.masked_fill(~mask[:, None, :], 0.0)
+    return x_r
+
+
 def column_normalized_attention(q: Tensor, k: Tensor, v: Tensor, mask: "Tensor | None" = None,
                                 chunk: "int | str | None" = None) -> Tensor:
     """``x_r = V A`` of offset attention: ``A = P / (1e-9 + P.sum(dim=1))``, ``P = softmax(Q^T K, dim=-1)``.
@@ -246,7 +343,8 @@ def column_normalized_attention(q: Tensor, k: Tensor, v: Tensor, mask: "Tensor |
         mask (Tensor[B, N] bool, optional): True = a real point; padded keys get no weight and padded queries
             take no part in the column sums (their columns of ``x_r`` are 0).
         chunk: ``None`` (plain path, N x N matrices), an int (the chunked path with blocks of that many query
-            rows; never an N x N matrix, forward or backward) or ``"auto"`` (see :data:`AUTO_ENTRIES`).
+            rows; never an N x N matrix, forward or backward), ``"auto"`` (see :data:`AUTO_ENTRIES`) or
+            ``"fused"`` (torch's fused attention kernels; never an N x N matrix either, see :func:`_attention_fused`).
 
     Returns:
         Tensor[B, C, N]: ``x_r`` in v's dtype (the chunked path computes float16/bfloat16 in float32).
@@ -257,9 +355,12 @@ def column_normalized_attention(q: Tensor, k: Tensor, v: Tensor, mask: "Tensor |
     _check_qkv(q, k, v)
     B, _, N = q.shape
     _check_mask(mask, B, N, q)
-    rows = _rows_per_chunk(_check_chunk(chunk), B, N)
+    chunk = _check_chunk(chunk)
     if B == 0 or N == 0:
         return v * 0  # empty
+    if chunk == "fused":
+        return _attention_fused(q, k, v, mask, _rows_per_chunk("auto", B, N) or N)
+    rows = _rows_per_chunk(chunk, B, N)
     if rows is None:
         return _attention_plain(q, k, v, mask)
     return _ChunkedColumnAttention.apply(q, k, v, mask, rows)
@@ -275,8 +376,9 @@ class OffsetAttention(nn.Module):
     Args:
         channels (int): C, the feature channels in and out.
         qk_channels (int): d, the shared query/key projection's channels (PCT: C / 4).
-        chunk: the default path of :meth:`forward`: ``None`` (plain), an int (rows per block of the chunked path)
-            or ``"auto"`` (plain for small inputs, chunked for large ones; see :data:`AUTO_ENTRIES`).
+        chunk: the default path of :meth:`forward`: ``None`` (plain), an int (rows per block of the chunked path),
+            ``"auto"`` (plain for small inputs, chunked for large ones; see :data:`AUTO_ENTRIES`) or ``"fused"``
+            (torch's fused attention, :func:`column_normalized_attention`).
 
     Shapes: ``x (B, C, N)`` -> ``(B, C, N)``; ``mask (B, N)`` bool, True = a real point (see the module docstring:
     padded points neither attend nor are attended, BatchNorm's statistics skip them, their output is ``x``).

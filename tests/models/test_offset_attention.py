@@ -61,7 +61,7 @@ def grads(layer: OffsetAttention, x, mask=None, chunk=None, seed=9):
 # ------------------------------------------------------------------------------------------ against PCT's formula
 @pytest.mark.parametrize("training", [True, False], ids=["train", "eval"])
 @pytest.mark.parametrize("masked", [False, True], ids=["full", "masked"])
-@pytest.mark.parametrize("chunk", [None, 4], ids=["plain", "chunk4"])
+@pytest.mark.parametrize("chunk", [None, 4, "fused"], ids=["plain", "chunk4", "fused"])
 def test_layer_matches_literal_pct_reference(training, masked, chunk):
     layer = make_layer(training=training, seed=1)
     x = random_input(3, 6, 19, seed=2)
@@ -150,6 +150,44 @@ def test_gradcheck_chunked_attention(masked):
     assert torch.autograd.gradcheck(lambda q, v: column_normalized_attention(q, q, v, mask, chunk=3), (q, v))
 
 
+@pytest.mark.parametrize("N", [1, 7, 33])
+@pytest.mark.parametrize("masked", [False, True], ids=["full", "masked"])
+def test_fused_matches_plain_forward_and_gradients(N, masked):
+    """torch's fused attention with the row log-sum-exps as a key coordinate and a sink key for PCT's 1e-9: the
+    plain path's x_r and every gradient."""
+    layer = make_layer(seed=12)
+    x = random_input(2, 6, N, seed=13)
+    mask = random_mask(2, N, seed=14) if masked else None
+    plain, g_plain = grads(layer, x, mask, chunk=None)
+    fused, g_fused = grads(layer, x, mask, chunk="fused")
+    assert_close_report(fused, plain, 1e-11, 1e-12, f"forward N={N}")
+    for a, b in zip(g_fused, g_plain):
+        assert_close_report(a, b, 1e-9, 1e-11, f"gradients N={N}")
+
+
+@pytest.mark.parametrize("masked", [False, True], ids=["full", "masked"])
+def test_gradcheck_fused_attention(masked):
+    g = torch.Generator().manual_seed(7 + int(masked))
+    q = torch.randn(2, 2, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    k = torch.randn(2, 2, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    v = torch.randn(2, 3, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    mask = random_mask(2, 5, seed=5) if masked else None
+    assert torch.autograd.gradcheck(lambda q, k, v: column_normalized_attention(q, k, v, mask, chunk="fused"),
+                                    (q, k, v))
+    assert torch.autograd.gradcheck(lambda q, v: column_normalized_attention(q, q, v, mask, chunk="fused"), (q, v))
+
+
+def test_fused_column_eps_is_pcts():
+    """A column that no query attends to (its sum of P far below 1e-9) comes out near 0, as PCT's 1e-9 makes it,
+    not as the mean of the values a plain normalisation would give."""
+    q = torch.zeros(1, 1, 3, dtype=torch.float64)
+    q[0, 0] = torch.tensor([6.0, 6.0, -6.0])  # e = q_i q_j: column 2 gets exp(-36 - lse) from rows 0 and 1
+    v = torch.tensor([[[1.0, 2.0, 3.0]]], dtype=torch.float64)
+    want = column_normalized_attention(q, q, v, chunk=None)
+    got = column_normalized_attention(q, q, v, chunk="fused")
+    assert_close_report(got, want, 1e-12, 1e-12, "tiny column")
+
+
 @pytest.mark.parametrize("training", [True, False], ids=["train", "eval"])
 def test_gradcheck_layer_chunked(training):
     layer = make_layer(C=2, d=1, seed=4, training=training)
@@ -159,7 +197,7 @@ def test_gradcheck_layer_chunked(training):
 
 
 # ------------------------------------------------------------------------------------------ padding
-@pytest.mark.parametrize("chunk", [None, 3], ids=["plain", "chunk3"])
+@pytest.mark.parametrize("chunk", [None, 3, "fused"], ids=["plain", "chunk3", "fused"])
 @pytest.mark.parametrize("training", [True, False], ids=["train", "eval"])
 def test_padding_neither_attends_nor_is_attended(chunk, training):
     layer = make_layer(seed=8, training=training)
@@ -241,6 +279,19 @@ def test_chunked_path_never_holds_n_by_n(masked):
     assert sizes[rows] <= max(B * rows * N, B * (C + 1) * N), sizes
 
 
+@pytest.mark.parametrize("masked", [False, True], ids=["full", "masked"])
+def test_fused_path_never_holds_n_by_n(masked, monkeypatch):
+    """float32 on the CPU (torch's blocked flash kernel), the row log-sum-exps in blocks of 4 rows."""
+    B, C, N = 2, 4, 48
+    monkeypatch.setattr(oa, "AUTO_ENTRIES", B * 4 * N)
+    layer = make_layer(C=C, d=2, seed=20, dtype=torch.float32)
+    x = random_input(B, C, N, seed=21, dtype=torch.float32).requires_grad_(True)
+    mask = random_mask(B, N, seed=22) if masked else None
+    with _LargestTensor() as probe:
+        layer(x, mask, chunk="fused").square().sum().backward()
+    assert probe.largest < B * N * N, probe.largest
+
+
 def test_auto_chunks_large_inputs(monkeypatch):
     assert oa._rows_per_chunk("auto", 1, 4096) is None  # 2^24 entries: plain
     rows = oa._rows_per_chunk("auto", 2, 20000)
@@ -278,7 +329,7 @@ def test_state_dict_has_pct_names_and_shares_q_and_k():
     assert sum(p.numel() for p in layer.parameters()) == 8 * 2 + (8 * 8 + 8) * 2 + 8 * 2
 
 
-@pytest.mark.parametrize("chunk", [None, 5], ids=["plain", "chunk5"])
+@pytest.mark.parametrize("chunk", [None, 5, "fused"], ids=["plain", "chunk5", "fused"])
 def test_device_matches_cpu(device, chunk):
     layer = make_layer(seed=26, training=True)
     x = random_input(2, 6, 17, seed=27)
@@ -300,6 +351,19 @@ def test_cuda_autocast_chunked_is_close_to_float32():
         got = layer(x, chunk=64)
     assert torch.isfinite(got).all()
     assert_close_report(got.float(), want, 5e-2, 5e-2, "autocast f16 (q, v rounded to half before the attention)")
+
+
+@requires_cuda
+def test_cuda_autocast_fused_is_close_to_float32():
+    """float16 autocast on CUDA runs the flash kernel; the row log-sum-exps stay float32 (split across two
+    half-precision coordinates)."""
+    layer = make_layer(C=16, d=4, seed=29, dtype=torch.float32, device="cuda")
+    x = random_input(2, 16, 500, seed=30, dtype=torch.float32, device="cuda")
+    want = layer(x, chunk=None)
+    with torch.autocast("cuda", dtype=torch.float16):
+        got = layer(x, chunk="fused")
+    assert torch.isfinite(got).all()
+    assert_close_report(got.float(), want, 5e-2, 5e-2, "autocast f16 fused")
 
 
 # ------------------------------------------------------------------------------------------ errors
