@@ -309,7 +309,8 @@ def _attention_fused(q: Tensor, k: Tensor, v: Tensor, mask: "Tensor | None", row
     dt = q.dtype if not torch.is_autocast_enabled(q.device.type) else torch.get_autocast_dtype(q.device.type)
     # float16's rounding of lse (exact in every dtype the kernels take) and the rest, which carries the gradient
     # (through a float16 cast the gradient would be rounded too)
-    hi = lse.detach().to(torch.float16).to(lse.dtype)
+    half = torch.finfo(torch.float16).max
+    hi = lse.detach().clamp(-half, half).to(torch.float16).to(lse.dtype)
     lo = lse - hi
     width = -(-max(d + 2, C) // 8) * 8  # the fused kernels want one head size for all three, a multiple of 8
     queries = q.new_zeros(B, N, width, dtype=dt)

@@ -20,7 +20,7 @@ from lidarops.ops.validation import coordinate_bound
 
 from .fuzzing import Cloud, assert_clear_error, assert_close, assert_no_error, clouds, fuzz, outcome
 
-_CHUNKS = st.none() | st.just("auto") | st.integers(1, 14)
+_CHUNKS = st.none() | st.just("auto") | st.just("fused") | st.integers(1, 14)
 
 
 # ---------------------------------------------------------------------------------------------- offset attention
