@@ -19,7 +19,7 @@ moves between them: an accumulated cloud) and cut the same way. Sampling ratio D
    ``CASNetSampler`` (dedup on, its default) around an untrained CAS-Net in eval mode, the full variant
    ``CASNet(num_out=1024, k=32, radius=2.0)`` (segments of 8,192 = 1,024 x 8 points, as the paper) and
    ``CASNet.fast(num_out=1024)``, each also with ``chunk="fused"`` (the offset attention through torch's fused
-   attention kernels); for each also ``segment_and_sample(model, points, 8, dedup=False)``, the
+   attention kernels; on CUDA also under float16 autocast, the flash kernels); for each also ``segment_and_sample(model, points, 8, dedup=False)``, the
    paper's raw picks (``segments x 1,024`` rows, repeats included: ``m`` is then that count). ``--checkpoint``
    adds the same two rows for ``load_casnet(PATH, device)``. Columns: ``distinct`` = distinct points picked;
    ``x FPS`` = median / FPSSampler's median.
@@ -331,6 +331,13 @@ def bench_sampling(run: Runner, points: torch.Tensor, sizes: Sizes, models: dict
                           lambda mod=model: segment_and_sample(mod, points, RATIO, max_points=sizes.segment,
                                                                dedup=False),
                           skip=skip if isinstance(model, str) else None))
+        if points.device.type == "cuda" and "fused" in name:  # float16 autocast: the flash kernels
+            def half(mod=model):
+                with torch.autocast("cuda", dtype=torch.float16):
+                    return segment_and_sample(mod, points, RATIO, max_points=sizes.segment, dedup=False)
+
+            cases.append(Case(_row("sampling", "segment_and_sample, fp16 autocast", name, N=N, m=raw_m, variant=kind,
+                                   dedup=False, ratio=RATIO, segments=segs), half))
     run.run(cases)
     for c in cases:
         _picks(c)
@@ -515,6 +522,11 @@ def _train_step(model: CASNet, points: torch.Tensor, lengths: torch.Tensor | Non
     return loss.detach()
 
 
+def _autocast_cuda(fn: Callable, *args):
+    with torch.autocast("cuda", dtype=torch.float16):
+        return fn(*args)
+
+
 def bench_whole_cloud(run: Runner, clouds: FovClouds, sizes: Sizes) -> tuple[list[dict], list[dict]]:
     dev = run.device
     rows, infos = [], []
@@ -555,6 +567,10 @@ def bench_whole_cloud(run: Runner, clouds: FovClouds, sizes: Sizes) -> tuple[lis
                            attention_rows=attn_rows, **base), infer_whole, mem=5 * mn),
                  Case(_row("whole_cloud", f"N={n} inference", fused_name, path="whole, fused", step="inference",
                            attention_rows="fused", **base), lambda model=fused: infer_whole(model), mem=5 * mn),
+                 Case(_row("whole_cloud", f"N={n} inference", fused_name + ", fp16 autocast", path="whole, fused, fp16",
+                           step="inference", attention_rows="fused", **base),
+                      lambda model=fused: _autocast_cuda(infer_whole, model), mem=5 * mn,
+                      skip=None if dev.type == "cuda" else "CUDA only"),
                  Case(_row("whole_cloud", f"N={n} inference", seg_name, path="segmented", step="inference",
                            segments=S, attention_rows=seg_rows, **base), infer_seg, mem=5 * sm)]
         run.run(cases)
