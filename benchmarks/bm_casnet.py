@@ -570,7 +570,7 @@ def bench_whole_cloud(run: Runner, clouds: FovClouds, sizes: Sizes) -> tuple[lis
                  Case(_row("whole_cloud", f"N={n} inference", fused_name + ", fp16 autocast", path="whole, fused, fp16",
                            step="inference", attention_rows="fused", **base),
                       lambda model=fused: _autocast_cuda(infer_whole, model), mem=5 * mn,
-                      skip=None if dev.type == "cuda" else "CUDA only"),
+                      skip=None if dev.type == "cuda" else "skipped (CUDA only: float16 autocast)"),
                  Case(_row("whole_cloud", f"N={n} inference", seg_name, path="segmented", step="inference",
                            segments=S, attention_rows=seg_rows, **base), infer_seg, mem=5 * sm)]
         run.run(cases)

@@ -136,7 +136,9 @@ def test_bm_casnet_quick_cpu_writes_result_rows(tmp_path, capsys):
     assert len(rows) == len(section["rows"]), "op names must be unique"
     sampling = [r for r in rows.values() if r["section"] == "sampling"]
     assert {r["case"] for r in sampling} == {"sampler", "CASNetSampler", "segment_and_sample"}
-    assert len(sampling) == 3 + 2 * 3  # random, FPS, chunked FPS; full, fast and the checkpoint, two rows each
+    # random, FPS, chunked FPS; full, fast, both with chunk='fused', and the checkpoint, two rows each (the float16
+    # autocast rows are CUDA only)
+    assert len(sampling) == 3 + 2 * 5
     for r in sampling:
         assert r["status"] == "ok", r
         assert r["median_ms"] > 0 and r["N"] == 2048 and r.get("commit") == section["meta"].get("commit")
@@ -145,9 +147,12 @@ def test_bm_casnet_quick_cpu_writes_result_rows(tmp_path, capsys):
     graphs = [r for r in rows.values() if r["section"] == "cuda_graph"]
     assert graphs and all(r["status"].startswith("skipped (CUDA only") for r in graphs)
     whole = [r for r in rows.values() if r["section"] == "whole_cloud"]
-    assert {(r["path"], r["step"]) for r in whole} == {(p, s) for p in ("whole", "segmented")
-                                                       for s in ("inference", "training")}
-    for r in whole:
+    assert {(r["path"], r["step"]) for r in whole} == {(p, s) for p in ("whole", "whole, fused", "segmented")
+                                                       for s in ("inference", "training")} | {
+        ("whole, fused, fp16", "inference")}
+    half = [r for r in whole if r["path"] == "whole, fused, fp16"]
+    assert len(half) == 1 and half[0]["status"].startswith("skipped (CUDA only"), half
+    for r in (r for r in whole if r not in half):
         assert r["status"] == "ok" and r["median_ms"] > 0 and r["m"] == r["N"] // 8, r
         assert "peak_mb" not in r  # CUDA only
     out = capsys.readouterr().out
@@ -312,3 +317,20 @@ def test_bm_sim2real_frame_figures_on_a_hand_made_frame():
                             np.array([level, 0, 0]))
         assert out["labelled_em"]["Car"] == counted and out["found_em"]["Car"] == counted
         assert out["labelled_em"]["Pedestrian"] == 1 and out["found_em"]["Pedestrian"] == 0
+
+
+def test_sscater_sparsity_figures_by_hand():
+    """Two 2 x 2 maps of 3 channels: one site changes one channel, another two; zeros counted over everything."""
+    from benchmarks.sscater_sparsity import figures
+
+    prev = torch.zeros(2, 2, 3)
+    prev[0, 0] = torch.tensor([1.0, 0.0, 2.0])
+    feats = prev.clone()
+    feats[0, 0, 1] = 5.0           # site (0, 0): one channel of three changed
+    feats[1, 1] = torch.tensor([0.0, 3.0, 4.0])  # site (1, 1): two of three
+    zeros, changed, zero_delta, any_change = figures(feats, prev).tolist()
+    assert zeros == pytest.approx(7 / 12)       # 12 values; non-zero: 1, 5, 2 at (0, 0) and 3, 4 at (1, 1)
+    assert changed == pytest.approx(2 / 4)
+    assert zero_delta == pytest.approx(3 / 6)   # at the two changed sites, 6 channels, 3 unchanged
+    assert any_change == 1.0
+    assert figures(prev, prev).tolist()[1:] == [0.0, 0.0, 0.0]
