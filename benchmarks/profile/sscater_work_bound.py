@@ -2,9 +2,12 @@
 
     python benchmarks/profile/sscater_work_bound.py       # drone_bridge, 30 steps, CPU
     python benchmarks/profile/sscater_work_bound.py --steps 60 --relu-zeros 0.5 --scenario driving_city
+    python benchmarks/profile/sscater_work_bound.py --checkpoint shipped --scenario driving_city   # a trained detector
 
 Runs the recycling backbone of ``benchmarks/bm_sscater.py`` (same seeded weights, BatchNorm calibrated
-to the same share of ReLU zeros) and counts, per convolution and step, the multiply-adds:
+to the same share of ReLU zeros; or, with ``--checkpoint``, a trained PointPillars streamed by
+``SSCATeRPointPillars.from_detector``: its own weights, every site of the dense map active) and counts, per
+convolution and step, the multiply-adds:
 
 * full: what the sparse layer does, one per (active output, active input under its kernel, Cin, Cout);
 * SSCATeR: what the delta scatter does, one per (changed input, active output it reaches, Cin, Cout),
@@ -49,6 +52,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", default="drone_bridge")
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--relu-zeros", type=float, default=0.5)
+    ap.add_argument("--checkpoint", default=None, help="a trained PointPillars: 'shipped', a shipped name or a file "
+                                                       "(its own activations; --relu-zeros is then unused)")
     a = ap.parse_args(argv)
     from benchmarks.bm_sscater import _model
     from lidarops.models.sscater_calibration import calibrate_on_window
@@ -56,7 +61,15 @@ def main(argv=None) -> int:
     from lidarops.sscater.delta import DeltaBackbone
 
     dev = torch.device("cpu")
-    model, _ = _model(a.scenario, dev, a.relu_zeros)
+    if a.checkpoint:
+        from lidarops.models import load_model, weights
+        from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
+
+        path = weights.path() if a.checkpoint == "shipped" else \
+            (weights.path(a.checkpoint) if a.checkpoint in weights.available() else Path(a.checkpoint))
+        model = SSCATeRPointPillars.from_detector(load_model(path).float().eval(), device=dev)
+    else:
+        model, _ = _model(a.scenario, dev, a.relu_zeros)
     delta = model.delta
     assert not delta.sync_free  # trimmed lists on CPU: every row of a change is a real site
     work: dict = {}
@@ -91,14 +104,16 @@ def main(argv=None) -> int:
     slices = list(Simulator(a.scenario, seed=0).slices(0.0, 0.01 * (20 + a.steps), 0.01))
     for i, (p, t) in enumerate(slices[:10]):
         model.step(torch.from_numpy(p), torch.from_numpy(t), now=0.01 * (i + 1))
-    calibrate_on_window(model, a.relu_zeros)
+    if not a.checkpoint:
+        calibrate_on_window(model, a.relu_zeros)
     for i, (p, t) in enumerate(slices):
         recording[0] = i >= 20 and not (model._since_refresh is not None and model.refresh_every
                                         and model._since_refresh + 1 >= model.refresh_every)
         model.step(torch.from_numpy(p), torch.from_numpy(t), now=0.01 * (i + 1))
     DeltaBackbone._layer_step = original
     n = a.steps
-    print(f"{a.scenario}, {n} steps, ReLU zeros {a.relu_zeros:.0%}: multiply-adds per step (millions)")
+    what = f"the trained {a.checkpoint}" if a.checkpoint else f"ReLU zeros {a.relu_zeros:.0%}"
+    print(f"{a.scenario}, {n} steps, {what}: multiply-adds per step (millions)")
     print(f"{'layer':16s} {'active':>7s} {'changed in':>10s} {'full':>8s} {'SSCATeR':>8s} {'skip 0 ch':>9s}")
     tot = [0.0, 0.0, 0.0]
     for name, (full, ss, sk, act, ch) in work.items():
