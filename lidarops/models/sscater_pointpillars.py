@@ -28,6 +28,7 @@ from typing import Optional
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.ops.validation import check_tensor, describe
@@ -236,6 +237,8 @@ class SSCATeRPointPillars:
         # trained with the dense backbone computes it
         self.dense = bool(dense)
         self.detector = None  # the PointPillars whose head and post-processing turn the map into boxes
+        self._head: Optional[dict] = None  # the head's output maps on the recycled map (detect)
+        self._head_sites: Optional[list] = None  # output sites changed since the last detect; None: all
         self._all_sites: Optional[Tensor] = None  # (H * W, 2) every site, for the dense mode's refresh
         self.stats = StepStats()
         self._since_refresh: Optional[int] = None
@@ -253,6 +256,7 @@ class SSCATeRPointPillars:
         self._since_refresh = None
         self._state_peak = self._state_prev = 0.0
         self.stats = StepStats()
+        self._head = self._head_sites = None
 
     def _pfn(self, pillars) -> Tensor:
         with torch.no_grad():
@@ -317,6 +321,8 @@ class SSCATeRPointPillars:
                 if self._check_state(True):
                     st.guard += ("; the full recomputation is not finite either: the pillar features or the "
                                  "weights hold NaN or inf")
+        if self.detector is not None:
+            self._note_head_sites(refresh)
         m3 = self._mark()
         if self.device.type == "cuda":
             m3.synchronize()
@@ -342,15 +348,48 @@ class SSCATeRPointPillars:
         full[keys] = feats
         return self.delta.refresh(self._all_sites, full)
 
-    def detect(self) -> dict:
-        """Boxes of the current window (after :meth:`step`): the detector's head on the recycled BEV map, its
-        decode and post-processing (:meth:`from_detector` models only). One dict of ``boxes (K, 7)``, ``scores
-        (K,)``, ``labels (K,)`` (1-based into the detector's ``class_names``), as ``detector.predict`` gives."""
+    def _note_head_sites(self, refreshed: bool) -> None:
+        """After a step: the output sites it changed, for the head (a refresh, or a step whose site lists are
+        padded on the device, makes the head recompute everything)."""
+        if refreshed or self.delta.sync_free or self._head_sites is None:
+            self._head_sites = None
+            return
+        for change in self.delta.up_changes:
+            self._head_sites += [change.sites, change.added, change.removed]
+
+    def head_outputs(self) -> dict:
+        """The detector's head (1x1 convolutions) on the recycled BEV map: ``cls_preds``, ``box_preds`` (and
+        ``dir_cls_preds``) as ``dense_head`` gives them, recomputed only at the output sites that changed since
+        the last call (all of them after a refresh, and on CUDA, where the step's site lists stay on the device).
+        The maps are kept: valid until the next call."""
         if self.detector is None:
             raise ValueError("detect() needs a model made by SSCATeRPointPillars.from_detector(detector)")
         head = self.detector.dense_head
+        dtype = head.conv_cls.weight.dtype
         with torch.no_grad():
-            raw = head(self.delta.out.to(head.conv_cls.weight.dtype))
+            if self._head is None or self._head_sites is None:
+                self._head = head(self.delta.out.to(dtype))
+            elif self._head_sites:
+                W = self.delta.out.shape[3]
+                keys = torch.unique(torch.cat(self._head_sites).long() @ torch.tensor([W, 1], device=self.device))
+                ys, xs = keys // W, keys % W
+                # (n, C): the changed sites' features, rows of the channels-last map
+                feats = self.delta.out[0].permute(1, 2, 0)[ys, xs].to(dtype)
+                convs = {"cls_preds": head.conv_cls, "box_preds": head.conv_box, "dir_cls_preds": head.conv_dir_cls}
+                for key, conv in convs.items():
+                    if conv is not None:
+                        self._head[key][0, ys, xs] = F.linear(feats, conv.weight.view(conv.out_channels, -1),
+                                                              conv.bias)
+        self._head_sites = []
+        return self._head
+
+    def detect(self) -> dict:
+        """Boxes of the current window (after :meth:`step`): the detector's head on the recycled BEV map
+        (:meth:`head_outputs`: at the sites that changed), its decode and post-processing (:meth:`from_detector`
+        models only). One dict of ``boxes (K, 7)``, ``scores (K,)``, ``labels (K,)`` (1-based into the
+        detector's ``class_names``), as ``detector.predict`` gives."""
+        raw = self.head_outputs()
+        with torch.no_grad():
             return self.detector.postprocess(raw)[0]
 
     def window_points(self) -> Tensor:

@@ -407,9 +407,12 @@ class DeltaBackbone:
             counts.append(c)
             layer.stats.ms = self._tock(t0, profile)
             block_change[layer.block] = change
+        self.up_changes = []  # what each upsampling layer changed in the output map (read by a head on changed sites)
         for layer in self.up_layers:
             t0 = self._tick(profile)
-            counts.append(self._layer_step(layer, block_change[layer.block])[1])
+            change, c = self._layer_step(layer, block_change[layer.block])
+            counts.append(c)
+            self.up_changes.append(change)
             layer.stats.ms = self._tock(t0, profile)
         sums: dict = {}  # a block's layers share one active map: count it once
         active = torch.stack([sums.setdefault(id(layer.active), layer.active.sum())

@@ -69,6 +69,29 @@ def test_streamed_boxes_equal_the_detector_on_the_window(device, dtype, tol):
     assert stream.stats.pillars_changed < stream.stats.pillars_active + stream.stats.points_out
 
 
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_head_on_changed_sites_equals_the_head_on_the_whole_map(device, dtype, tol):
+    """The head recomputed only where the recycled map changed since the last call (detect every step, or after
+    several steps, across refreshes) equals the head run on the whole map."""
+    detector = _detector(dtype, seed=2).to(device)
+    stream = SSCATeRPointPillars.from_detector(detector, window=0.1, refresh_every=9, dtype=dtype)
+    partial = 0
+    for k, (pts, t) in enumerate(_slices(40, seed=3)):
+        stream.step(pts.to(device), t.to(device))
+        if k % 3 == 1:  # some steps pass without a call: their changes add up
+            continue
+        partial += stream._head_sites is not None and len(stream._head_sites) > 0
+        got = stream.head_outputs()
+        with torch.no_grad():
+            want = detector.dense_head(stream.delta.out.to(dtype))
+        for key in ("cls_preds", "box_preds", "dir_cls_preds"):
+            scale = want[key].abs().max().item() or 1.0
+            err = (got[key] - want[key]).abs().max().item() / scale
+            assert err <= tol, (k, key, err)
+    if not stream.delta.sync_free:  # on the CPU the head worked on the changed sites only
+        assert partial >= 10, partial
+
+
 def test_stream_holds_the_detectors_slots_and_drops_the_rest():
     detector = _detector(torch.float32)
     stream = SSCATeRPointPillars.from_detector(detector)
