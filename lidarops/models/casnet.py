@@ -204,7 +204,8 @@ class CASNet(nn.Module):
         dedup (bool): default for :meth:`forward`: reassign repeated picks (see the module docstring).
         head_activation (bool): a LeakyReLU between the head's two layers (not in the issue's recipe).
         chunk: each :class:`OffsetAttention`'s path: ``"auto"`` (plain for small inputs, blocks of query
-            rows that never hold N x N for large ones), ``None`` (plain) or an int (rows per block).
+            rows that never hold N x N for large ones), ``None`` (plain), an int (rows per block) or ``"fused"``
+            (torch's fused attention kernels; the flash kernels under float16 autocast on CUDA).
 
     Attributes: ``embedding`` (:class:`FeatureEmbedding`), ``attention`` (``nn.ModuleList`` of
     :class:`OffsetAttention`), ``head`` (:class:`SamplingHead`).
