@@ -563,6 +563,8 @@ def test_detector_source_graph_needs_a_dense_pointpillars_on_cuda():
         DetectorSource(cpu, graph=True)
     with pytest.raises(QueryError, match="graph must be True, False or None"):
         DetectorSource(cpu, graph="yes")
+    with pytest.raises(QueryError, match="optimize must be True or False"):
+        DetectorSource(cpu, optimize="yes")
     if torch.cuda.is_available():
         assert DetectorSource(cpu.cuda()).graph is True
 
