@@ -92,18 +92,10 @@ def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | Non
                          + (f" ({model.config.backbone_mode!r})" if isinstance(model, PointPillars) else ""))
     cfg = model.config
     points, rows = _padded_points(model, cfg, points, max_pillars)
-    B = points.shape[0]
     c = cfg.num_point_features
     stage = torch.profiler.record_function  # ranges for benchmarks/profile/detector.py; nothing in a graph
-    with stage("voxelize"):
-        voxels, count, coords, needed = _batch_pillars(points, cfg, rows)
+    x, needed = _padded_bev(model, cfg, points, rows)
     with lidarops.validation(False):
-        with stage("pfn"):
-            x = model.vfe(voxels, count, coords)
-        with stage("scatter"):
-            x = model.map_to_bev(x, coords, B)
-        with stage("backbone"):
-            x = model.backbone_2d(x)
         with stage("head"):
             x = model.dense_head(x)
         with stage("decode"):
@@ -138,6 +130,21 @@ def _padded_points(model, cfg, points: Tensor, max_pillars: int | None) -> tuple
                                     or max_pillars < 1):
         raise ValueError(f"max_pillars must be an int >= 1 or None, got {max_pillars!r}")
     return points, B * min(per_frame, nx * ny) if max_pillars is None else max_pillars
+
+
+def _padded_bev(model, cfg, points: Tensor, rows: int) -> tuple[Tensor, Tensor]:
+    """The BEV features of a padded batch through a PointPillars floor (``vfe``, ``map_to_bev``,
+    ``backbone_2d``), with a profiler range per stage, and the pillar rows the batch needs (0-d)."""
+    stage = torch.profiler.record_function
+    with stage("voxelize"):
+        voxels, count, coords, needed = _batch_pillars(points, cfg, rows)
+    with lidarops.validation(False):
+        with stage("pfn"):
+            x = model.vfe(voxels, count, coords)
+        with stage("scatter"):
+            x = model.map_to_bev(x, coords, points.shape[0])
+        with stage("backbone"):
+            return model.backbone_2d(x), needed
 
 
 def _bad_features(points: Tensor, c: int) -> Tensor:
@@ -491,15 +498,8 @@ def padded_counting(model: CounterNet, points: Tensor, max_pillars: int | None =
     points, rows = _padded_points(model, floor, points, max_pillars)
     B, K = points.shape[0], max_peaks
     stage = torch.profiler.record_function  # ranges for a profile; nothing in a graph
-    with stage("voxelize"):
-        voxels, count, coords, needed = _batch_pillars(points, floor, rows)
+    x, needed = _padded_bev(model, floor, points, rows)
     with lidarops.validation(False), stage("counting"):
-        with stage("pfn"):
-            x = model.vfe(voxels, count, coords)
-        with stage("scatter"):
-            x = model.map_to_bev(x, coords, B)
-        with stage("backbone"):
-            x = model.backbone_2d(x)
         with stage("head"):
             shared, logits = model.count_head(x, model.region_boxes)
             heatmaps = [torch.sigmoid(x) for x in logits]
