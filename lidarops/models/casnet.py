@@ -48,15 +48,16 @@ from lidarops.models.casnet_losses import chamfer_distance, selection_cosine_los
 from lidarops.models.offset_attention import OffsetAttention
 from lidarops.models.samplers import Sampler, segment_shares, spatial_segments
 from lidarops.ops.assign import greedy_assign
-from lidarops.ops.neighbors import ball_query, gather, knn
+from lidarops.ops.neighbors import ball_query, fps, gather, knn
 from lidarops.ops.validation import (check_positive_int, check_tensor, check_values, describe, lengths_or_full,
                                      validation, value_checks_enabled)
 
-__all__ = ["CASNet", "CASNetOutput", "FeatureEmbedding", "SamplingHead", "matrix_sample", "greedy_distinct_rows",
+__all__ = ["CASNet", "CASNetOutput", "FeatureEmbedding", "SamplingHead", "AnchoredHead", "matrix_sample", "greedy_distinct_rows",
            "count_duplicates", "segment_and_sample", "CASNetSampler", "casnet_loss", "load_casnet"]
 
 _MODES = ("hard", "soft")
 _NEIGHBORS = ("ball", "knn")
+_HEADS = ("matrix", "anchored")
 
 
 @dataclass
@@ -187,6 +188,72 @@ class SamplingHead(nn.Module):
         return out.transpose(1, 2)
 
 
+class AnchoredHead(nn.Module):
+    """Ours (not the paper's): a sampling matrix whose ``m`` rows are anchored at the cloud's farthest point
+    samples, so that its picks start spread out and cannot collapse onto a few points.
+
+    Row ``i`` is a distribution over the ``candidates`` nearest points of anchor ``a_i`` (:func:`lidarops.fps`
+    of the cloud; the anchor is its own nearest candidate) with logits
+
+        ``-d(a_i, j)^2 / (s^2 exp(log_scale)) + <q(F_a_i), k(F_j)> / sqrt(qk) + u(F_j)``
+
+    (``s^2`` the cloud's mean squared candidate distance, detached; ``q``, ``k``, ``u`` 1x1 convolutions of a
+    shared 1x1 conv + BN + LeakyReLU(0.2) of ``concat(F, xyz)``). ``k`` and ``u`` start at zero, so an
+    untrained head picks each anchor itself: farthest point sampling; training moves a pick to a
+    neighbour the task prefers. The rows have no fixed count: ``m`` is chosen per call, so one model
+    serves any cloud size and ratio (the paper's head fixes ``m`` by its last layer's width).
+    Points off a row's candidate list get ``-inf`` logits (probability 0).
+    """
+
+    def __init__(self, in_channels: int, candidates: int = 16, hidden: int = 64, qk_channels: int = 16):
+        super().__init__()
+        self.candidates = positive_int(candidates, "candidates")
+        self.hidden = nn.Sequential(nn.Conv1d(in_channels, hidden, 1, bias=False), nn.BatchNorm1d(hidden),
+                                    nn.LeakyReLU(0.2))
+        self.query = nn.Conv1d(hidden, qk_channels, 1)
+        self.key = nn.Conv1d(hidden, qk_channels, 1)
+        self.score = nn.Conv1d(hidden, 1, 1)
+        self.log_scale = nn.Parameter(torch.zeros(()))
+        for layer in (self.key, self.score):  # the untrained head is farthest point sampling
+            nn.init.zeros_(layer.weight)
+            nn.init.zeros_(layer.bias)
+        self.qk_channels = qk_channels
+
+    def forward(self, x: Tensor, xyz: Tensor, lengths: Tensor, num_out: int,
+                mask: Optional[Tensor] = None) -> Tensor:
+        """Args: x (Tensor[B, in, N]); xyz (Tensor[B, N, 3]); lengths (Tensor[B]); num_out (int) ``m``;
+        mask (Tensor[B, N] bool, optional). Returns: logits Tensor[B, m, N], ``-inf`` off each row's
+        candidates (a cloud of fewer than ``m`` points repeats its anchors cyclically)."""
+        B, _, N = x.shape
+        if mask is None:
+            z = self.hidden(x)
+        else:  # BatchNorm statistics of the valid points only
+            h = self.hidden(x.transpose(1, 2)[mask].t().unsqueeze(0)).squeeze(0).t()
+            z = h.new_zeros(B, N, h.shape[1]).index_put((mask,), h).transpose(1, 2)
+        with validation(False), torch.no_grad():
+            anchors = fps(xyz.detach(), num_out, lengths)  # (B, m), -1 past a cloud's size
+            pos = torch.arange(num_out, device=xyz.device).unsqueeze(0)
+            anchors = torch.where(anchors >= 0, anchors, anchors.gather(1, pos % lengths.clamp(min=1).unsqueeze(1)))
+            K = min(self.candidates, N)
+            anchor_xyz = gather(xyz.detach(), anchors)
+            dist, cand = knn(anchor_xyz, xyz.detach(), K, None, lengths)  # (B, m, K), -1 padding
+        valid = cand >= 0
+        cand = cand.clamp(min=0)
+        with validation(False):
+            d2 = (gather(xyz, cand) - gather(xyz, anchors).unsqueeze(2)).square().sum(-1)  # (B, m, K)
+        scale = (d2.detach() * valid).sum(dim=(1, 2)) / valid.sum(dim=(1, 2)).clamp(min=1)
+        scale = scale.clamp(min=torch.finfo(d2.dtype).tiny).view(B, 1, 1) * self.log_scale.exp()
+        with validation(False):
+            q = gather(self.query(z).transpose(1, 2), anchors)  # (B, m, qk)
+            k = gather(self.key(z).transpose(1, 2), cand)  # (B, m, K, qk)
+            u = gather(self.score(z).transpose(1, 2), cand).squeeze(-1)  # (B, m, K)
+        logits = -d2 / scale + (k * q.unsqueeze(2)).sum(-1) / math.sqrt(self.qk_channels) + u
+        logits = logits.masked_fill(~valid, -math.inf)
+        dense = logits.new_full((B, num_out, N), -math.inf)
+        # amax: a padded slot (-inf, clamped to point 0) never overrides a real candidate at point 0
+        return dense.scatter_reduce(2, cand, logits, reduce="amax", include_self=True)
+
+
 class CASNet(nn.Module):
     """CAS-Net: ``m`` points out of each cloud, chosen by attention (issue 37).
 
@@ -206,6 +273,10 @@ class CASNet(nn.Module):
         chunk: each :class:`OffsetAttention`'s path: ``"auto"`` (plain for small inputs, blocks of query
             rows that never hold N x N for large ones), ``None`` (plain), an int (rows per block) or ``"fused"``
             (torch's fused attention kernels; the flash kernels under float16 autocast on CUDA).
+        head (str): ``"matrix"`` (the paper's :class:`SamplingHead`, ``m`` fixed by its last layer) or
+            ``"anchored"`` (ours, :class:`AnchoredHead`: rows anchored at farthest point samples; ``m``
+            free per call, ``num_out`` its default).
+        candidates (int): the anchored head's candidates per row (16).
 
     Attributes: ``embedding`` (:class:`FeatureEmbedding`), ``attention`` (``nn.ModuleList`` of
     :class:`OffsetAttention`), ``head`` (:class:`SamplingHead`).
@@ -214,7 +285,7 @@ class CASNet(nn.Module):
     def __init__(self, num_out: int, k: int = 32, radius: float = 2.0, neighbors: str = "ball",
                  num_oa_layers: int = 3, channels: int = 64, qk_channels: int = 16, temperature: float = 1.0,
                  mode: str = "hard", dedup: bool = False, head_activation: bool = False,
-                 chunk: "int | str | None" = "auto"):
+                 chunk: "int | str | None" = "auto", head: str = "matrix", candidates: int = 16):
         super().__init__()
         self.num_out = positive_int(num_out, "num_out")
         num_oa_layers = positive_int(num_oa_layers, "num_oa_layers")
@@ -222,6 +293,11 @@ class CASNet(nn.Module):
         self.config = dict(num_out=num_out, k=k, radius=radius, neighbors=neighbors, num_oa_layers=num_oa_layers,
                            channels=channels, qk_channels=qk_channels, temperature=temperature, mode=mode,
                            dedup=dedup, head_activation=head_activation, chunk=chunk)
+        if head not in _HEADS:
+            raise ValueError(f"head must be one of {list(_HEADS)}, got {head!r}")
+        if head != "matrix":  # older checkpoints' configs stay as they were
+            self.config.update(head=head, candidates=candidates)
+        self.head_kind = head
         qk_channels = positive_int(qk_channels, "qk_channels")
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {list(_MODES)}, got {mode!r}")
@@ -231,7 +307,10 @@ class CASNet(nn.Module):
         self.embedding = FeatureEmbedding(k, radius, neighbors, channels)
         self.attention = nn.ModuleList([OffsetAttention(channels, qk_channels, chunk=chunk)
                                         for _ in range(num_oa_layers)])
-        self.head = SamplingHead(channels * num_oa_layers + 3, self.num_out, flag(head_activation, "head_activation"))
+        if head == "matrix":
+            self.head = SamplingHead(channels * num_oa_layers + 3, self.num_out, flag(head_activation, "head_activation"))
+        else:
+            self.head = AnchoredHead(channels * num_oa_layers + 3, candidates, channels, qk_channels)
 
     @classmethod
     def fast(cls, num_out: int, **kwargs: Any) -> "CASNet":
@@ -295,7 +374,7 @@ class CASNet(nn.Module):
         self._temperature = real(value, "temperature", 0.0, lo_open=True)
 
     def forward(self, points: Tensor, lengths: Optional[Tensor] = None, mode: Optional[str] = None,
-                dedup: Optional[bool] = None) -> CASNetOutput:
+                dedup: Optional[bool] = None, num_out: Optional[int] = None) -> CASNetOutput:
         """Sample ``m`` points of each cloud.
 
         Args:
@@ -306,17 +385,25 @@ class CASNet(nn.Module):
                 neither neighbours, attention keys nor candidates).
             mode (str, optional): ``"hard"`` or ``"soft"``; default the model's.
             dedup (bool, optional): reassign repeated picks (hard mode); default the model's.
+            num_out (int, optional): ``m`` for this call (the anchored head only; default ``self.num_out``).
 
         Returns:
             :class:`CASNetOutput`.
 
         Raises:
-            ValueError: naming ``points``, ``lengths``, ``mode`` or ``dedup``.
+            ValueError: naming ``points``, ``lengths``, ``mode``, ``dedup`` or ``num_out``.
         """
         mode = self.mode if mode is None else mode
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {list(_MODES)}, got {mode!r}")
         dedup = self.dedup if dedup is None else flag(dedup, "dedup")
+        if num_out is None or (self.head_kind == "matrix" and num_out == self.num_out):
+            num_out = self.num_out
+        elif self.head_kind == "matrix":
+            raise ValueError(f"num_out={num_out!r}: the paper's head gives num_out={self.num_out} rows, fixed by its "
+                             "last layer (head='anchored' takes any num_out)")
+        else:
+            num_out = check_positive_int(num_out, "num_out")
         lengths = self._check_input(points, lengths)
         B, N, _ = points.shape
         mask = None
@@ -331,7 +418,11 @@ class CASNet(nn.Module):
         for layer in self.attention:
             x = layer(x) if mask is None else layer(x, mask=mask)
             feats.append(x)
-        logits = self.head(torch.cat(feats + [xyz.transpose(1, 2)], dim=1), mask) / self.temperature
+        h = torch.cat(feats + [xyz.transpose(1, 2)], dim=1)
+        if self.head_kind == "matrix":
+            logits = self.head(h, mask) / self.temperature
+        else:
+            logits = self.head(h, xyz, lengths, num_out, mask) / self.temperature
         sampled, indices, soft = matrix_sample(logits, points, mode=mode, dedup=dedup, mask=mask)
         return CASNetOutput(sampled=sampled, indices=indices, soft_matrix=soft, logits=logits, lengths=lengths,
                             num_duplicates=None if indices is None else count_duplicates(indices), mode=mode)
@@ -425,7 +516,8 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
     can be served is. If that happens within the lists, the result is the greedy of the whole matrix (a row
     assigned within its list was assigned before any pair beyond it could come up); otherwise ``K`` grows
     fourfold and the scan restarts (``K = N`` is the whole matrix; also from the start when the cloud has
-    fewer valid points than rows). ``K`` starts at 32: rows that disagree finish at once; alike rows (an
+    fewer valid points than rows), unless no row has a finite score beyond its ``K`` (rows of few candidates:
+    the lists then hold every pair). ``K`` starts at 32: rows that disagree finish at once; alike rows (an
     untrained or a collapsed model) need ``K`` up to ``N``.
 
     Args:
@@ -456,7 +548,9 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
             order = order[:offered]
             assign = greedy_assign(order // k, points[b, :, :k].reshape(-1)[order], m, N, can_serve).cpu()
             served = int((assign >= 0).sum())
-            if served == can_serve or k == N:
+            # rows whose lists end within k (sparse rows: the anchored head) have offered every pair they have
+            exhausted = k == N or not bool(torch.isfinite(values[b, :, k]).any())
+            if served == can_serve or exhausted:
                 break
             k = min(N, 4 * k)
         picks[b] = torch.where(assign >= 0, assign, picks[b])
@@ -475,7 +569,9 @@ def segment_and_sample(model: CASNet, points: Tensor, ratio: int, max_points: in
     (hard mode). Every segment gives ``m`` picks, so the effective ratio is ``n / (segments * m) <= ratio``;
     ``num_samples`` keeps exactly that many instead: per segment its share (proportional to its size,
     :func:`~lidarops.models.samplers.segment_shares`, at most ``min(m, segment size)``), the most confident
-    rows (largest ``S~`` at their pick) first, preferring rows whose point is not kept yet.
+    rows (largest ``S~`` at their pick) first, preferring rows whose point is not kept yet. The anchored head
+    (whose row count is free) is run with as many rows as the largest share, and each segment keeps its first
+    ``share`` rows: the ones anchored at its first farthest point samples.
 
     Args:
         model (CASNet): in the mode you want (``eval()`` for inference: BatchNorm's running statistics).
@@ -514,6 +610,13 @@ def segment_and_sample(model: CASNet, points: Tensor, ratio: int, max_points: in
     for i, seg in enumerate(segments):
         batch[i, :seg.numel()] = points[seg]
     lengths = torch.tensor(sizes, dtype=torch.int64, device=points.device)
+    if model.head_kind == "anchored" and num_samples is not None:
+        # rows come in farthest-point order, so each segment's first `share` rows are its best spread ones
+        if num_samples > n:
+            raise ValueError(f"num_samples={num_samples}: the cloud has only {n} points")
+        shares = segment_shares(sizes, num_samples, caps=sizes)
+        out = model(batch, lengths, mode="hard", dedup=dedup, num_out=max(shares))
+        return torch.cat([seg[out.indices[i, :share]] for i, (seg, share) in enumerate(zip(segments, shares))])
     out = model(batch, lengths, mode="hard", dedup=dedup)
     picks = [seg[out.indices[i]] for i, seg in enumerate(segments)]
     if num_samples is None:
@@ -552,11 +655,19 @@ class CASNetSampler(Sampler):
             whose segments give fewer than ``m`` points is refused (``ValueError`` naming ``m``).
         max_points (int): most points per segment.
         dedup (bool): distinct picks.
+        whole (bool): no segments: the whole cloud in one forward with ``m`` rows (the anchored head only,
+            whose row count is free; offset attention over all ``n`` points, without ever holding n x n).
+            With ``dedup``, a row whose candidates are all taken keeps a repeat.
     """
 
-    def __init__(self, model: CASNet, ratio: Optional[int] = None, max_points: int = 8192, dedup: bool = True):
+    def __init__(self, model: CASNet, ratio: Optional[int] = None, max_points: int = 8192, dedup: bool = True,
+                 whole: bool = False):
         if not isinstance(model, CASNet):
             raise ValueError(f"model must be a CASNet, got {type(model).__name__}")
+        self.whole = flag(whole, "whole")
+        if self.whole and model.head_kind != "anchored":
+            raise ValueError("whole=True needs a CASNet with head='anchored' (the paper's head fixes m to its "
+                             f"num_out={model.num_out}, so a whole cloud needs segments)")
         self.model = model
         self.ratio = None if ratio is None else check_positive_int(ratio, "ratio")
         self.max_points = check_positive_int(max_points, "max_points")
@@ -572,6 +683,10 @@ class CASNetSampler(Sampler):
             if n == 0:
                 continue
             want = min(m, n)
+            if self.whole:
+                idx = self.model(points[b:b + 1, :n], mode="hard", dedup=self.dedup, num_out=want).indices[0]
+                out[b, :want] = idx
+                continue
             ratio = self.ratio if self.ratio is not None else min(max(1, n // m), cap)
             while True:
                 segs = math.ceil(n / (self.model.num_out * ratio))
@@ -588,7 +703,7 @@ class CASNetSampler(Sampler):
         return out
 
     def __repr__(self) -> str:
-        return f"CASNetSampler(ratio={self.ratio}, max_points={self.max_points}, dedup={self.dedup})"
+        return f"CASNetSampler(ratio={self.ratio}, max_points={self.max_points}, dedup={self.dedup}, whole={self.whole})"
 
 
 def casnet_loss(out: CASNetOutput, points: Tensor, task_loss: Tensor, alpha: float = 1.0, beta: float = 1.0,

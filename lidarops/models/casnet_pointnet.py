@@ -45,12 +45,14 @@ CASNET_SPEC: dict[str, tuple] = {
     "temperature": ("MODEL.TEMPERATURE", "real", 0.0, None, True, False),
     "alpha": ("MODEL.ALPHA", "real", 0.0, None, False, False),
     "beta": ("MODEL.BETA", "real", 0.0, None, False, False),
+    "candidates": ("MODEL.CANDIDATES", "int", 1, 1 << 16, False, False),
 }
 # field -> (the config key, the values it may take)
 CASNET_CHOICES: dict[str, tuple] = {
     "variant": ("MODEL.VARIANT", ("full", "fast")),
     "neighbors": ("MODEL.NEIGHBORS", ("ball", "knn")),
     "cosine_form": ("MODEL.COSINE_FORM", COSINE_FORMS),
+    "head": ("MODEL.HEAD", ("matrix", "anchored")),
 }
 _SPEC: dict[str, tuple] = {
     "in_channels": ("DATA_CONFIG.POINT_FEATURE_ENCODING.used_feature_list (its length)", "int", 3, 1024, False, False),
@@ -82,6 +84,9 @@ class CASNetPointNetConfig(DictConfig):
         alpha, beta (float): [MODEL.ALPHA, MODEL.BETA] weights of the Chamfer and cosine losses (paper 1, 1).
         cosine_form (str): [MODEL.COSINE_FORM] ``"paper"`` or ``"frobenius"``
             (:func:`~lidarops.models.casnet_losses.selection_cosine_loss`).
+        head (str): [MODEL.HEAD] ``"matrix"`` (the paper's sampling matrix) or ``"anchored"`` (ours: rows
+            anchored at farthest point samples, :class:`~lidarops.models.casnet.AnchoredHead`).
+        candidates (int): [MODEL.CANDIDATES] the anchored head's candidates per row (16).
         task_checkpoint (str | None): [MODEL.TASK_CHECKPOINT] the trained PointNet (a ``lidarops train`` run's
             ``final.pth``, a path as given, i.e. relative to the working directory); None: a fresh PointNet
             (tests, or weights that come from a CASNetPointNet checkpoint).
@@ -103,6 +108,8 @@ class CASNetPointNetConfig(DictConfig):
     alpha: float = 1.0
     beta: float = 1.0
     cosine_form: str = "paper"
+    head: str = "matrix"
+    candidates: int = 16
     task_checkpoint: Optional[str] = None
     task: Optional[dict] = None
 
@@ -182,8 +189,8 @@ class CASNetPointNetConfig(DictConfig):
 
 def casnet_of(cfg) -> CASNet:
     """The hard-sampling CAS-Net a wrapper's config describes (``num_out``, ``variant``, ``k``, ``radius``,
-    ``neighbors``, ``temperature``): the full model or :meth:`CASNet.fast`."""
-    common = dict(temperature=cfg.temperature, mode="hard")
+    ``neighbors``, ``temperature``, ``head``, ``candidates``): the full model or :meth:`CASNet.fast`."""
+    common = dict(temperature=cfg.temperature, mode="hard", head=cfg.head, candidates=cfg.candidates)
     if cfg.variant == "fast":
         return CASNet.fast(cfg.num_out, radius=cfg.radius, **common)
     return CASNet(cfg.num_out, k=cfg.k, radius=cfg.radius, neighbors=cfg.neighbors, **common)

@@ -66,6 +66,8 @@ class CASNetPointPillarsConfig(DictConfig):
         temperature (float): [MODEL.TEMPERATURE] of the sampling softmax.
         alpha, beta (float): [MODEL.ALPHA, MODEL.BETA] the Chamfer and cosine weights (1, 1).
         cosine_form (str): [MODEL.COSINE_FORM] ``"paper"`` or ``"frobenius"``.
+        head (str), candidates (int): [MODEL.HEAD, MODEL.CANDIDATES] the sampling matrix: ``"matrix"`` (the
+            paper's) or ``"anchored"`` (ours, :class:`~lidarops.models.casnet.AnchoredHead`, ``candidates`` per row).
         dedup (bool): [MODEL.DEDUP] in training, reassign repeated picks so that the detector sees ``m``
             distinct points per segment, and in inference keep distinct points (:meth:`CASNetPointPillars.keep`)
             (ours; off in the paper, whose rows may pick one point many times).
@@ -85,6 +87,8 @@ class CASNetPointPillarsConfig(DictConfig):
     alpha: float = 1.0
     beta: float = 1.0
     cosine_form: str = "paper"
+    head: str = "matrix"
+    candidates: int = 16
     dedup: bool = False
     task_checkpoint: Optional[str] = "pointpillars_synth"
     task: Optional[dict] = None

@@ -109,8 +109,8 @@ def main(argv=None) -> int:
     from lidarops.config import load_config
     from lidarops.data.detection import DetectionConfig, KittiDetectionDataset, collate_batch
     from lidarops.models import weights
-    from lidarops.models.casnet import CASNetSampler, load_casnet
-    from lidarops.models.samplers import FPSSampler, RandomSampler
+    from lidarops.models.casnet import CASNet, CASNetSampler, load_casnet
+    from lidarops.models.samplers import ChunkedFPSSampler, FPSSampler, RandomSampler
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="a KITTI-format folder (every frame of --split)")
@@ -126,6 +126,11 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--casnet-dedup", type=int, choices=(0, 1), default=0,
                    help="0: CAS-Net's raw picks, the most confident first, repeats allowed (the paper); 1: distinct")
+    p.add_argument("--chunked-fps", action="store_true", help="also FPS in chunks of --segment-points (the paper's FPS)")
+    p.add_argument("--anchored-init", action="store_true",
+                   help="also an untrained anchored-head CAS-Net at each ratio (where its training starts: FPS per segment)")
+    p.add_argument("--whole", action="store_true",
+                   help="also each anchored-head CAS-Net on the whole cloud (no segments), beside its segmented row")
     p.add_argument("--out", required=True)
     p.add_argument("--plot", default=None)
     args = p.parse_args(argv)
@@ -152,11 +157,21 @@ def main(argv=None) -> int:
     for ratio in args.ratios:
         samplers = [("all points", None, None)] if ratio == 1 else \
             [("random", RandomSampler(args.seed), None), ("fps", FPSSampler(), None)]
+        if ratio > 1 and args.chunked_fps:
+            samplers.append(("chunked fps", ChunkedFPSSampler(args.segment_points), None))
+        if ratio > 1 and args.anchored_init:
+            torch.manual_seed(args.seed)
+            init = CASNet(args.segment_points // ratio, head="anchored").eval().to(device)
+            samplers.append(("anchored, untrained", CASNetSampler(init, ratio=ratio, max_points=args.segment_points,
+                                                                  dedup=bool(args.casnet_dedup)), None))
         for r, label, path, model in casnets:
             if r == ratio > 1:
                 name = "casnet" if sum(c[0] == ratio for c in casnets) == 1 else f"casnet ({label})"
                 samplers.append((name, CASNetSampler(model, ratio=ratio, max_points=args.segment_points,
                                                      dedup=bool(args.casnet_dedup)), str(path)))
+                if args.whole and model.head_kind == "anchored":
+                    samplers.append((f"{name}, whole cloud", CASNetSampler(model, dedup=bool(args.casnet_dedup),
+                                                                           whole=True), str(path)))
         for name, sampler, path in samplers:
             row = {"method": name, "ratio": ratio, "checkpoint": path, **run(detector, sampler, ratio, frames, device)}
             report["rows"].append(row)

@@ -2,6 +2,8 @@
 # CAS-Net's experiments in one GPU-machine session (issue 37; docs/casnet.md quotes the results):
 #   bash tools/casnet/device_session.sh classify   # CUDA tests + sanitizer, PointNet, CAS-Net at D = 2..32, the table
 #   bash tools/casnet/device_session.sh detect     # CAS-Net in front of pointpillars_synth at D = 2, 4, 8, Table I
+# The anchored head (ours): CAS_SET="MODEL.HEAD anchored" (classify), DET_SET="MODEL.HEAD anchored" and
+# TABLE_ARGS="--casnet-dedup 1 --chunked-fps --anchored-init --whole" (detect).
 # classify builds the object-set cache in data/objects with 15 processes (or finds it there: `lidarops train --config
 # configs/casnet/pointnet_objects.yaml` builds it, about 6 minutes on 2 cores). Set LIDAROPS_SO=.devbuild to
 # reuse a CUDA build carried from an earlier session (.devbuild/_C*.so, same machine kind); otherwise it builds.
@@ -57,7 +59,7 @@ if [ "$what" = classify ]; then
     $L train --config configs/casnet/casnet_pointnet_objects.yaml --data data/objects --out $RUNS/cas_d${D}_$V \
       --epochs $CAS_EPOCHS --batch-size $CAS_BATCH --lr $CAS_LR --workers 1 --eval-every 0 --no-progress \
       --max-minutes $CAS_MIN --set MODEL.RATIO $D MODEL.VARIANT $V MODEL.TASK_CHECKPOINT $RUNS/pointnet/final.pth \
-      OPTIMIZATION.DECAY_STEP_LIST "[20]" > $RUNS/cas_d${D}_$V.log 2>&1 & pids+=($!)
+      OPTIMIZATION.DECAY_STEP_LIST "[20]" ${CAS_SET:-} > $RUNS/cas_d${D}_$V.log 2>&1 & pids+=($!)
   done; done
   for p in "${pids[@]}"; do wait $p; done
   for f in $RUNS/cas_*.log; do echo "$(basename $f): $(grep -E 'finished|stopped|Error' $f | tail -1)"; done
@@ -113,11 +115,13 @@ if [ "$what" = detect ]; then
     --val-fraction 0 --out /tmp/val --workers 16 --no-progress > /tmp/val.log 2>&1 || tail /tmp/val.log
   stamp "data"
   RUNS=/tmp/runs; mkdir -p $RUNS; pids=()
+  # each run: name:D:dedup[:variant]; DET_SET adds --set pairs to every run (e.g. "MODEL.HEAD anchored")
   for run in ${DET_RUNS:-"d2:2:False" "d4:4:False" "d8:8:False" "d8_dedup:8:True"}; do
-    IFS=: read name D dedup <<< "$run"
+    IFS=: read name D dedup variant <<< "$run"
     $L train --config configs/casnet/casnet_pointpillars_synth.yaml --data /tmp/synth --out $RUNS/det_$name \
       --epochs ${DET_EPOCHS:-4} --workers 3 --eval-every 0 --no-progress --gt-database-frames 300 \
-      --max-minutes ${DET_MIN:-4} --set MODEL.RATIO $D MODEL.DEDUP $dedup > $RUNS/det_$name.log 2>&1 & pids+=($!)
+      --max-minutes ${DET_MIN:-4} --set MODEL.RATIO $D MODEL.DEDUP $dedup MODEL.VARIANT ${variant:-full} \
+      ${DET_SET:-} > $RUNS/det_$name.log 2>&1 & pids+=($!)
   done
   for p in "${pids[@]}"; do wait $p; done
   for f in $RUNS/det_*.log; do echo "$(basename $f): $(grep -E 'finished|stopped|Error' $f | tail -1)"; done
@@ -135,7 +139,7 @@ load_casnet(sys.argv[1]).save(sys.argv[2], task='pointpillars_synth', model_conf
   tail -n 4 $RUNS/*.log > /tmp/ship/train_logs.txt
   tar cf "$OUT/casnet_detection_runs.tar" -C /tmp/ship . && ls -la "$OUT/casnet_detection_runs.tar"
   timeout ${TABLE_TIMEOUT:-200} python3 tools/casnet/detection_table.py --data /tmp/val --casnet /tmp/ship/casnet_det_*.pth \
-    --ratios 1 2 4 8 --device cuda --out "$OUT/casnet_detection.json" --plot "$OUT/casnet_detection.png"
+    --ratios 1 2 4 8 --device cuda --out "$OUT/casnet_detection.json" --plot "$OUT/casnet_detection.png" ${TABLE_ARGS:-}
   stamp "table"
   if [ -n "${BM:-}" ]; then
     timeout ${BM_TIMEOUT:-150} python3 benchmarks/bm_casnet.py --device cuda --json --results-dir "$OUT" 2>&1 | tail -45

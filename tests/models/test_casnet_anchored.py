@@ -1,0 +1,226 @@
+"""CAS-Net's anchored head (lidarops.models.casnet.AnchoredHead, ours): the logits against a float64 re-statement
+(farthest point samples, brute-force nearest candidates, the formula), an untrained head equal to farthest point
+sampling, any number of rows, padding, the straight-through gradient, distinct picks on sparse rows, segments
+and the whole-cloud sampler, the config keys."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import lidarops
+from lidarops.config import ConfigError
+from lidarops.models.casnet import AnchoredHead, CASNet, CASNetSampler, greedy_distinct_rows, segment_and_sample
+from lidarops.models.casnet_pointnet import CASNetPointNetConfig, casnet_of
+from lidarops.models.samplers import segment_shares, spatial_segments
+
+from helpers.compare import assert_close_report
+from helpers.models import randomize_bn
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def anchored(num_out: int = 8, seed: int = 0, trained: bool = True, device="cpu", **kw) -> CASNet:
+    """A small anchored CAS-Net in float64, eval mode; ``trained``: its zero-initialised layers drawn at random
+    (so that the feature terms matter), BatchNorm statistics far from the identity."""
+    torch.manual_seed(seed)
+    net = CASNet(num_out, k=4, radius=0.5, head="anchored", **{"candidates": 5, **kw})
+    randomize_bn(net, seed)
+    if trained:
+        with torch.no_grad():
+            for layer in (net.head.key, net.head.score):
+                layer.weight.normal_(0, 0.5)
+                layer.bias.normal_(0, 0.5)
+            net.head.log_scale.fill_(0.3)
+    return net.to(device, torch.float64).eval()
+
+
+def cloud(B: int, N: int, seed: int = 0, device="cpu") -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    xyz = torch.rand(B, N, 3, generator=g, dtype=torch.float64) * 1.5
+    return torch.cat([xyz, torch.rand(B, N, 1, generator=g, dtype=torch.float64)], -1).to(device)
+
+
+def reference_logits(net: CASNet, points: torch.Tensor, n: int, m: int) -> torch.Tensor:
+    """The anchored head's logits (m, N) for the first ``n`` points of one cloud, restated in float64: the
+    anchors by lidarops.fps (its own tests hold it to a reference), the candidates by sorting all distances."""
+    head = net.head
+    xyz = points[:n, :3]
+    with torch.no_grad():
+        x = net.embedding(xyz.unsqueeze(0), torch.tensor([n]))
+        feats = []
+        for layer in net.attention:
+            x = layer(x)
+            feats.append(x)
+        z = head.hidden(torch.cat(feats + [xyz.t().unsqueeze(0)], 1))[0]  # (hidden, n)
+        q, k, u = head.query.weight[:, :, 0] @ z + head.query.bias[:, None], \
+            head.key.weight[:, :, 0] @ z + head.key.bias[:, None], head.score.weight[0, :, 0] @ z + head.score.bias
+    anchors = lidarops.fps(xyz.unsqueeze(0), m)[0]
+    anchors = torch.where(anchors >= 0, anchors, anchors[torch.arange(m) % n])
+    K = min(head.candidates, n)
+    d2_all = ((xyz[anchors][:, None, :] - xyz[None]) ** 2).sum(-1)  # (m, n)
+    cand = torch.sort(d2_all, dim=1, stable=True).indices[:, :K]
+    d2 = d2_all.gather(1, cand)
+    scale = d2.mean() * head.log_scale.exp()
+    out = torch.full((m, points.shape[0]), -math.inf, dtype=torch.float64)
+    for i in range(m):
+        for c in range(K):
+            j = int(cand[i, c])
+            out[i, j] = -d2[i, c] / scale + float(q[:, anchors[i]] @ k[:, j]) / math.sqrt(head.qk_channels) + u[j]
+    return out / net.temperature
+
+
+@pytest.mark.parametrize("m", [3, 8, 13])
+def test_logits_equal_the_restated_formula(m):
+    net = anchored(seed=1)
+    pts = cloud(1, 40, seed=2)
+    out = net(pts, num_out=m)
+    assert out.logits.shape == (1, m, 40)
+    assert_close_report(out.logits[0], reference_logits(net, pts[0], 40, m), 1e-10, 1e-10, "anchored logits")
+    # every pick is one of its row's candidates, the softmax's argmax among them
+    finite = torch.isfinite(out.logits[0])
+    assert (finite.sum(1) == net.head.candidates).all()
+    assert finite.gather(1, out.indices[0].unsqueeze(1)).all()
+
+
+def test_untrained_head_is_farthest_point_sampling(device):
+    torch.manual_seed(0)
+    net = CASNet(16, k=4, radius=0.5, head="anchored").to(device).eval()
+    pts = cloud(2, 90, seed=3, device=device).float()
+    lengths = torch.tensor([90, 41], device=device)
+    out = net(pts, lengths)
+    expected = lidarops.fps(pts[..., :3], 16, lengths)
+    assert torch.equal(out.indices, expected)
+    assert int(out.num_duplicates.sum()) == 0
+    # the same in training mode (batch statistics do not change an untrained head's picks)
+    assert torch.equal(net.train()(pts, lengths).indices, expected)
+
+
+def test_rows_are_free_and_short_clouds_repeat_their_anchors():
+    net = anchored()
+    pts = cloud(2, 30, seed=4)
+    lengths = torch.tensor([30, 6])
+    for m in (1, 7, 25):
+        out = net(pts, lengths, num_out=m)
+        assert out.indices.shape == (2, m) and out.soft_matrix.shape == (2, m, 30)
+        assert bool((out.indices[1] < 6).all())
+        assert torch.allclose(out.soft_matrix.sum(-1), torch.ones(2, m, dtype=torch.float64))
+    out = net(pts, lengths, num_out=9)  # the short cloud's rows past 6 reuse anchors 0, 1, 2
+    assert torch.equal(out.indices[1, 6:9], out.indices[1, :3])
+
+
+def test_padded_cloud_equals_the_cloud_alone():
+    net = anchored(seed=5)
+    pts = cloud(2, 50, seed=6)
+    pts[1, 33:] = float("nan")
+    out = net(pts, torch.tensor([50, 33]), num_out=10)
+    alone = net(pts[1:, :33], num_out=10)
+    assert torch.equal(out.indices[1], alone.indices[0])
+    assert_close_report(out.logits[1, :, :33], alone.logits[0], 1e-10, 1e-10, "padded logits")
+    assert bool(torch.isinf(out.logits[1, :, 33:]).all()) and bool((out.soft_matrix[1, :, 33:] == 0).all())
+
+
+def test_straight_through_gradient_reaches_the_head_and_the_output_is_a_subset():
+    net = anchored(seed=7).train()
+    pts = cloud(2, 60, seed=8)
+    out = net(pts, num_out=12)
+    for b in range(2):
+        assert torch.equal(out.sampled[b], pts[b, out.indices[b]])
+    upstream = torch.randn_like(out.sampled)
+    (out.sampled * upstream).sum().backward()
+    for name in ("key.weight", "score.weight", "query.weight", "log_scale"):
+        g = dict(net.head.named_parameters())[name].grad
+        assert g is not None and bool(g.abs().sum() > 0), name
+    # the logits' gradient is soft mode's: upstream @ features^T through the softmax
+    net.zero_grad()
+    out = net(pts, num_out=12)
+    logits = out.logits
+    g_hard = torch.autograd.grad((out.sampled * upstream).sum(), logits, retain_graph=True)[0]
+    soft = torch.softmax(logits, -1)
+    g_soft = torch.autograd.grad((torch.bmm(soft, pts) * upstream).sum(), logits)[0]
+    assert_close_report(g_hard, g_soft, 1e-10, 1e-10, "straight-through gradient")
+
+
+def _finite_greedy(scores: torch.Tensor) -> torch.Tensor:
+    """The sequential greedy over the finite pairs only; rows left over keep their argmax."""
+    B, m, N = scores.shape
+    out = scores.argmax(-1).clone()
+    for b in range(B):
+        pairs = sorted(((float(scores[b, i, j]), i, j) for i in range(m) for j in range(N)
+                        if math.isfinite(float(scores[b, i, j]))), key=lambda t: -t[0])
+        rows, cols = set(), set()
+        for _, i, j in pairs:
+            if i not in rows and j not in cols:
+                out[b, i] = j
+                rows.add(i)
+                cols.add(j)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_distinct_picks_on_sparse_rows_equal_the_greedy(seed):
+    net = anchored(seed=seed, candidates=3)
+    pts = cloud(2, 40, seed=10 + seed)
+    out = net(pts, num_out=15)
+    scores = torch.log_softmax(out.logits.detach(), -1)
+    got = greedy_distinct_rows(scores)
+    assert torch.equal(got, _finite_greedy(scores))
+    assert torch.equal(net(pts, num_out=15, dedup=True).indices, got)
+
+
+def test_segments_keep_each_segments_first_anchors():
+    torch.manual_seed(0)
+    net = CASNet(16, k=4, radius=0.5, head="anchored").double().eval()
+    pts = cloud(1, 200, seed=12)[0]
+    got = segment_and_sample(net, pts, ratio=4, num_samples=37)
+    segs = spatial_segments(pts, 64)
+    shares = segment_shares([s.numel() for s in segs], 37, caps=[s.numel() for s in segs])
+    expected = torch.cat([seg[lidarops.fps(pts[seg][None, :, :3], share)[0]]
+                          for seg, share in zip(segs, shares) if share])
+    assert torch.equal(got, expected)
+
+
+def test_whole_cloud_sampler():
+    torch.manual_seed(0)
+    net = CASNet(16, k=4, radius=0.5, head="anchored").double().eval()
+    pts = cloud(2, 120, seed=13)
+    lengths = torch.tensor([120, 70])
+    idx = CASNetSampler(net, whole=True)(pts, 30, lengths)
+    assert torch.equal(idx, lidarops.fps(pts[..., :3], 30, lengths))
+    trained = anchored(seed=3)
+    idx = CASNetSampler(trained, whole=True)(pts, 30, lengths)
+    assert all(idx[b].unique().numel() == 30 for b in range(2))
+    with pytest.raises(ValueError, match="head='anchored'"):
+        CASNetSampler(CASNet(8, k=4), whole=True)
+
+
+def test_errors():
+    with pytest.raises(ValueError, match="head must be one of"):
+        CASNet(8, head="rows")
+    with pytest.raises(ValueError, match="candidates"):
+        CASNet(8, head="anchored", candidates=0)
+    with pytest.raises(ValueError, match="num_out=5.*fixed"):
+        CASNet(8, k=4)(cloud(1, 20).float(), num_out=5)
+    with pytest.raises(ValueError, match="num_out"):
+        anchored()(cloud(1, 20), num_out=0)
+    assert isinstance(AnchoredHead(10).candidates, int)
+
+
+def test_config_keys():
+    cfg = CASNetPointNetConfig(head="anchored", candidates=7, task_checkpoint=None)
+    net = casnet_of(cfg)
+    assert net.head_kind == "anchored" and net.head.candidates == 7
+    assert casnet_of(CASNetPointNetConfig(task_checkpoint=None)).head_kind == "matrix"
+    with pytest.raises(ConfigError, match="MODEL.HEAD"):
+        CASNetPointNetConfig(head="rows", task_checkpoint=None)
+    with pytest.raises(ConfigError, match="MODEL.CANDIDATES"):
+        CASNetPointNetConfig(candidates=0, task_checkpoint=None)
+
+
+def test_save_and_load_keep_the_head(tmp_path):
+    net = anchored(seed=2)
+    path = net.save(tmp_path / "a.pth")
+    back = CASNet.from_checkpoint(path).double().eval()
+    pts = cloud(1, 40, seed=1)
+    assert back.head_kind == "anchored" and torch.equal(back(pts, num_out=9).indices, net(pts, num_out=9).indices)
