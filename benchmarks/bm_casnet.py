@@ -304,6 +304,16 @@ def paper_models(segment: int, device: torch.device) -> dict[str, CASNet]:
             f"fast CASNet.fast(num_out={num_out}, chunk='fused')": fast_fused}
 
 
+def anchored_models(dev: torch.device) -> dict[str, CASNet]:
+    """The anchored head (ours), full and fast, fused attention, untrained (seeded): the row count is set per call."""
+    torch.manual_seed(0)
+    full = CASNet(num_out=1, k=32, radius=2.0, chunk="fused", head="anchored").eval().to(dev)
+    torch.manual_seed(0)
+    fast = CASNet.fast(num_out=1, chunk="fused", head="anchored").eval().to(dev)
+    return {"full CASNet(k=32, radius=2.0, chunk='fused', head='anchored')": full,
+            "fast CASNet.fast(chunk='fused', head='anchored')": fast}
+
+
 # ------------------------------------------------------------------ 1. sampling
 
 def bench_sampling(run: Runner, points: torch.Tensor, sizes: Sizes, models: dict[str, Any]) -> list[dict]:
@@ -338,6 +348,20 @@ def bench_sampling(run: Runner, points: torch.Tensor, sizes: Sizes, models: dict
 
             cases.append(Case(_row("sampling", "segment_and_sample, fp16 autocast", name, N=N, m=raw_m, variant=kind,
                                    dedup=False, ratio=RATIO, segments=segs), half))
+    for name, model in anchored_models(dev=points.device).items():  # ours: the whole cloud, m free per call
+        kind = name.split(" ")[0]
+        for dedup in (True, False):
+            sampler = CASNetSampler(model, dedup=dedup, whole=True)
+            tag = "" if dedup else ", raw"
+            cases.append(Case(_row("sampling", f"CASNetSampler(whole=True{tag})", name, N=N, m=m, variant=kind,
+                                   dedup=dedup, head="anchored"), lambda s=sampler: s(batch, m)))
+            if points.device.type == "cuda":
+                def half(s=sampler):
+                    with torch.autocast("cuda", dtype=torch.float16):
+                        return s(batch, m)
+
+                cases.append(Case(_row("sampling", f"CASNetSampler(whole=True{tag}), fp16 autocast", name, N=N, m=m,
+                                       variant=kind, dedup=dedup, head="anchored"), half))
     run.run(cases)
     for c in cases:
         _picks(c)

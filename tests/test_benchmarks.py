@@ -135,14 +135,15 @@ def test_bm_casnet_quick_cpu_writes_result_rows(tmp_path, capsys):
     rows = {r["op"]: r for r in section["rows"]}
     assert len(rows) == len(section["rows"]), "op names must be unique"
     sampling = [r for r in rows.values() if r["section"] == "sampling"]
-    assert {r["case"] for r in sampling} == {"sampler", "CASNetSampler", "segment_and_sample"}
-    # random, FPS, chunked FPS; full, fast, both with chunk='fused', and the checkpoint, two rows each (the float16
-    # autocast rows are CUDA only)
-    assert len(sampling) == 3 + 2 * 5
+    assert {r["case"] for r in sampling} == {"sampler", "CASNetSampler", "segment_and_sample",
+                                             "CASNetSampler(whole=True)", "CASNetSampler(whole=True, raw)"}
+    # random, FPS, chunked FPS; full, fast, both with chunk='fused', and the checkpoint, two rows each; the anchored
+    # head's full and fast on the whole cloud, with and without distinct picks (the float16 autocast rows are CUDA only)
+    assert len(sampling) == 3 + 2 * 5 + 2 * 2
     for r in sampling:
         assert r["status"] == "ok", r
         assert r["median_ms"] > 0 and r["N"] == 2048 and r.get("commit") == section["meta"].get("commit")
-        if r["case"] != "segment_and_sample":  # the samplers keep m = N // 8 distinct points
+        if r["case"] not in ("segment_and_sample", "CASNetSampler(whole=True, raw)"):  # m = N // 8 distinct points
             assert r["m"] == 256 and r["distinct"] == 256, r
     graphs = [r for r in rows.values() if r["section"] == "cuda_graph"]
     assert graphs and all(r["status"].startswith("skipped (CUDA only") for r in graphs)

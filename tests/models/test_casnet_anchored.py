@@ -16,6 +16,7 @@ from lidarops.models.casnet_pointnet import CASNetPointNetConfig, casnet_of
 from lidarops.models.samplers import segment_shares, spatial_segments
 
 from helpers.compare import assert_close_report
+from helpers.devices import requires_cuda
 from helpers.models import randomize_bn
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -224,3 +225,18 @@ def test_save_and_load_keep_the_head(tmp_path):
     back = CASNet.from_checkpoint(path).double().eval()
     pts = cloud(1, 40, seed=1)
     assert back.head_kind == "anchored" and torch.equal(back(pts, num_out=9).indices, net(pts, num_out=9).indices)
+
+
+@requires_cuda
+def test_cpu_cuda_parity():
+    net = anchored(seed=4)
+    pts = cloud(2, 300, seed=14)
+    lengths = torch.tensor([300, 170])
+    cpu = net(pts, lengths, num_out=40, dedup=True)
+    gpu = net.to("cuda")(pts.cuda(), lengths.cuda(), num_out=40, dedup=True)
+    assert torch.equal(gpu.indices.cpu(), cpu.indices)
+    finite = torch.isfinite(cpu.logits)
+    assert torch.equal(torch.isfinite(gpu.logits).cpu(), finite)
+    assert_close_report(gpu.logits.cpu()[finite], cpu.logits[finite], 1e-9, 1e-9, "anchored logits, CUDA")
+    whole = CASNetSampler(net, whole=True)(pts.cuda(), 50, lengths.cuda())
+    assert torch.equal(whole.cpu(), CASNetSampler(net.cpu(), whole=True)(pts, 50, lengths))

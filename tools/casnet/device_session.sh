@@ -32,12 +32,12 @@ L="python3 -m lidarops"
 
 cuda_tests() {  # the CAS-Net tests on CUDA (LIDAROPS_TEST_REQUIRE_CUDA: a skipped CUDA case fails), then memcheck
   LIDAROPS_TEST_REQUIRE_CUDA=1 OMP_NUM_THREADS=2 timeout 400 python3 -m pytest -q -p no:cacheprovider -rfE \
-    tests/models/test_casnet.py tests/models/test_casnet_losses.py tests/models/test_offset_attention.py \
+    tests/models/test_casnet.py tests/models/test_casnet_anchored.py tests/models/test_casnet_losses.py tests/models/test_offset_attention.py \
     tests/models/test_samplers.py tests/models/test_pointnet.py tests/models/test_casnet_pointnet.py \
     tests/models/test_casnet_pointpillars.py tests/fuzz/test_fuzz_casnet*.py > /tmp/cuda_tests.log 2>&1
   echo "[casnet] CUDA tests exit $?" >> /tmp/cuda_tests.log
   timeout 300 compute-sanitizer --tool memcheck --error-exitcode 9 python3 -m pytest -q -p no:cacheprovider \
-    tests/models/test_casnet.py tests/models/test_offset_attention.py tests/models/test_samplers.py \
+    tests/models/test_casnet.py tests/models/test_casnet_anchored.py tests/models/test_offset_attention.py tests/models/test_samplers.py \
     -k "cuda and not slow" -x > /tmp/sanitizer.log 2>&1
   echo "[casnet] compute-sanitizer memcheck exit $?" >> /tmp/sanitizer.log
 }
