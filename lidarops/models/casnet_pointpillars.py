@@ -181,7 +181,7 @@ def _load_task(cfg: CASNetPointPillarsConfig) -> PointPillars:
 
 
 def sample_frames(casnet: CASNet, points: Tensor, batch_size: int, segment_points: int,
-                  mode: str = "hard", dedup: bool = False) -> tuple[Tensor, Any, Tensor]:
+                  mode: str = "hard", dedup: bool = False, ratio: Optional[int] = None) -> tuple[Tensor, Any, Tensor]:
     """Every frame of an OpenPCDet batch sampled by ``casnet``, segment by segment.
 
     Args:
@@ -191,6 +191,9 @@ def sample_frames(casnet: CASNet, points: Tensor, batch_size: int, segment_point
         segment_points (int): segment size (each frame's points cut by
             :func:`~lidarops.models.samplers.spatial_segments`, padded to it, masked).
         mode (str), dedup (bool): passed to the model.
+        ratio (int, optional): the anchored head only: each segment of ``n`` points keeps ``max(1, n // ratio)``
+            rows (its first, anchored at its first farthest point samples), as inference does; without it
+            (and with the paper's head) every segment keeps ``casnet.num_out``.
 
     Returns:
         ``(kept (Tensor[P', 1 + C]), out (CASNetOutput of the segments), segments (Tensor[S, segment_points, C]))``:
@@ -208,8 +211,14 @@ def sample_frames(casnet: CASNet, points: Tensor, batch_size: int, segment_point
     batch = points.new_zeros(len(segs), segment_points, points.shape[1] - 1)
     for i, s in enumerate(segs):
         batch[i, :s.shape[0]] = s
-    out = casnet(batch, lengths, mode=mode, dedup=dedup)
     owner = torch.tensor(owners, dtype=points.dtype, device=points.device)
+    if ratio is not None and casnet.head_kind == "anchored":
+        shares = [max(1, s.shape[0] // ratio) for s in segs]
+        out = casnet(batch, lengths, mode=mode, dedup=dedup, num_out=max(shares))
+        kept = torch.cat([torch.cat([owner[i].view(1, 1).expand(share, 1), out.sampled[i, :share]], dim=1)
+                          for i, share in enumerate(shares)])
+        return kept, out, batch
+    out = casnet(batch, lengths, mode=mode, dedup=dedup)
     kept = torch.cat([owner.view(-1, 1, 1).expand(-1, out.sampled.shape[1], 1), out.sampled], dim=2)
     # frames in order: segments were appended frame by frame
     return kept.reshape(-1, kept.shape[-1]), out, batch
@@ -300,7 +309,8 @@ class CASNetPointPillars(FrozenTaskMixin, PredictMixin, nn.Module):
     def sample(self, points: Tensor, batch_size: int) -> tuple[Tensor, Any, Tensor]:
         """``(kept points (P', 1 + C), CASNetOutput, padded segments)``: :func:`sample_frames` with this
         model's CAS-Net and segment size."""
-        return sample_frames(self.casnet, points, batch_size, self.config.segment_points, dedup=self.config.dedup)
+        return sample_frames(self.casnet, points, batch_size, self.config.segment_points, dedup=self.config.dedup,
+                             ratio=self.config.ratio)
 
     def forward(self, batch: Mapping[str, Any]) -> "dict[str, Tensor]":
         dtype = self.task.vfe.pfn_layers[0].linear.weight.dtype

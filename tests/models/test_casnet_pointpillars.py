@@ -208,3 +208,25 @@ def test_one_step_of_the_trainer_on_simulated_frames(tmp_path):
     for k, v in model.task.state_dict().items():
         assert torch.equal(v, task_state[k]), k
     assert any(k.startswith("Car_3d") for k in result.metrics)
+
+
+def test_anchored_head_trains_on_the_share_inference_keeps(tmp_path):
+    from lidarops.models.samplers import spatial_segments
+
+    model = _model(tmp_path, head="anchored", candidates=6).train()
+    batch = _frames()
+    kept, out, segments = model.sample(batch["points"], 2)
+    frames = [batch["points"][batch["points"][:, 0] == b] for b in range(2)]
+    # each segment of n points keeps n // ratio rows (not num_out), each a row of its own frame
+    for b in range(2):
+        want = sum(seg.numel() // 4 for seg in spatial_segments(frames[b][:, 1:4], 256))
+        rows = kept[kept[:, 0] == b]
+        assert rows.shape[0] == want and _rows_of(rows, frames[b])
+    assert segments.shape[1] == 256 and out.indices.shape[1] == max(int(n) // 4 for n in out.lengths)
+    out = model(batch)
+    out["loss"].backward()
+    assert model.casnet.head.key.weight.grad.abs().sum() > 0
+    # inference keeps the same budget per frame: n // ratio
+    model.eval()
+    kept_eval = model.keep(batch["points"], 2)
+    assert [int((kept_eval[:, 0] == b).sum()) for b in range(2)] == [f.shape[0] // 4 for f in frames]

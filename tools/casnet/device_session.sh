@@ -115,12 +115,12 @@ if [ "$what" = detect ]; then
     --val-fraction 0 --out /tmp/val --workers 16 --no-progress > /tmp/val.log 2>&1 || tail /tmp/val.log
   stamp "data"
   RUNS=/tmp/runs; mkdir -p $RUNS; pids=()
-  # each run: name:D:dedup[:variant]; DET_SET adds --set pairs to every run (e.g. "MODEL.HEAD anchored")
+  # each run: name:D:dedup[:variant[:lr]]; DET_SET adds --set pairs to every run (e.g. "MODEL.HEAD anchored")
   for run in ${DET_RUNS:-"d2:2:False" "d4:4:False" "d8:8:False" "d8_dedup:8:True"}; do
-    IFS=: read name D dedup variant <<< "$run"
+    IFS=: read name D dedup variant lr <<< "$run"
     $L train --config configs/casnet/casnet_pointpillars_synth.yaml --data /tmp/synth --out $RUNS/det_$name \
       --epochs ${DET_EPOCHS:-4} --workers 3 --eval-every 0 --no-progress --gt-database-frames 300 \
-      --max-minutes ${DET_MIN:-4} --set MODEL.RATIO $D MODEL.DEDUP $dedup MODEL.VARIANT ${variant:-full} \
+      --max-minutes ${DET_MIN:-4} ${lr:+--lr $lr} --set MODEL.RATIO $D MODEL.DEDUP $dedup MODEL.VARIANT ${variant:-full} \
       ${DET_SET:-} > $RUNS/det_$name.log 2>&1 & pids+=($!)
   done
   for p in "${pids[@]}"; do wait $p; done
