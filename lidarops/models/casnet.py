@@ -685,7 +685,7 @@ class CASNetSampler(Sampler):
             want = min(m, n)
             if self.whole:
                 idx = self.model(points[b:b + 1, :n], mode="hard", dedup=self.dedup, num_out=want).indices[0]
-                out[b, :want] = idx
+                out[b, :want] = _fill_repeats(points[b, :n, :3], idx) if self.dedup else idx
                 continue
             ratio = self.ratio if self.ratio is not None else min(max(1, n // m), cap)
             while True:
@@ -704,6 +704,27 @@ class CASNetSampler(Sampler):
 
     def __repr__(self) -> str:
         return f"CASNetSampler(ratio={self.ratio}, max_points={self.max_points}, dedup={self.dedup}, whole={self.whole})"
+
+
+def _fill_repeats(xyz: Tensor, idx: Tensor) -> Tensor:
+    """``idx`` with each repeat (after its first occurrence) replaced by the unpicked point nearest to the
+    repeated one, in row order: distinct picks when ``len(idx) <= len(xyz)`` (rows whose candidates were all
+    taken by other rows; rare unless nearly every point is kept)."""
+    order = torch.sort(idx, stable=True)
+    repeat = torch.zeros_like(idx, dtype=torch.bool)
+    repeat[order.indices[1:]] = order.values[1:] == order.values[:-1]
+    rows = torch.nonzero(repeat).flatten().tolist()
+    if not rows:
+        return idx
+    idx = idx.clone()
+    free = torch.ones(xyz.shape[0], dtype=torch.bool, device=xyz.device)
+    free[idx] = False
+    for r in rows:
+        d = (xyz.double() - xyz[idx[r]].double()).square().sum(-1).masked_fill(~free, math.inf)
+        j = int(torch.argmin(d))
+        idx[r] = j
+        free[j] = False
+    return idx
 
 
 def casnet_loss(out: CASNetOutput, points: Tensor, task_loss: Tensor, alpha: float = 1.0, beta: float = 1.0,

@@ -36,8 +36,20 @@ def _net() -> CASNet:
     return net.eval()
 
 
+def _anchored() -> CASNet:
+    torch.manual_seed(0)
+    net = CASNet(4, k=4, radius=1.5, head="anchored", candidates=3)
+    randomize_bn(net, 0)
+    with torch.no_grad():  # the feature terms away from their zero start
+        net.head.key.weight.normal_()
+        net.head.score.weight.normal_()
+    return net.eval()
+
+
 _NET = _net()
+_ANCHORED = _anchored()
 _SAMPLERS = {
+    "casnet_anchored_whole": lambda device: CASNetSampler(_ANCHORED.to(device), whole=True),
     "random": lambda device: RandomSampler(7),
     "fps": lambda device: FPSSampler(),
     "chunked_fps": lambda device: ChunkedFPSSampler(5),

@@ -240,3 +240,21 @@ def test_cpu_cuda_parity():
     assert_close_report(gpu.logits.cpu()[finite], cpu.logits[finite], 1e-9, 1e-9, "anchored logits, CUDA")
     whole = CASNetSampler(net, whole=True)(pts.cuda(), 50, lengths.cuda())
     assert torch.equal(whole.cpu(), CASNetSampler(net.cpu(), whole=True)(pts, 50, lengths))
+
+
+def test_whole_cloud_picks_stay_distinct_when_candidates_run_out():
+    from lidarops.models.casnet import _fill_repeats
+
+    xyz = torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [10, 0, 0]])
+    # rows 2 and 3 repeat point 1: each gets the free point nearest to point 1 (2, then 3... 0 is nearer)
+    assert _fill_repeats(xyz, torch.tensor([1, 4, 1, 1])).tolist() == [1, 4, 0, 2]
+    net = anchored(seed=6, candidates=4)
+    pts = cloud(2, 30, seed=15)
+    raw = torch.randint(0, 30, (2, 30), generator=torch.Generator().manual_seed(0))  # picks with repeats
+    assert all(raw[b].unique().numel() < 30 for b in range(2))
+    for b in range(2):
+        filled = _fill_repeats(pts[b, :, :3], raw[b])
+        first = torch.tensor([int(raw[b, i]) not in raw[b, :i].tolist() for i in range(30)])
+        assert filled.unique().numel() == 30 and torch.equal(filled[first], raw[b][first])
+    idx = CASNetSampler(net, whole=True)(pts, 30)
+    assert all(idx[b].unique().numel() == 30 for b in range(2))
