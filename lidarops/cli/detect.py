@@ -37,12 +37,11 @@ import numpy as np
 
 from lidarops._progress import progress_bar
 from lidarops.cli.errors import CliError, guarded
+from lidarops.cli.sample import SHIPPED_CASNET  # --sampler casnet without --sampler-checkpoint
 from lidarops.conventions import HELD_OUT_SEED
 
 __all__ = ["register", "detect", "save_detections_png"]
 
-#: the shipped CAS-Net ``--sampler casnet`` reads when no ``--sampler-checkpoint`` is given
-SHIPPED_CASNET = "casnet_pointpillars_d8"
 _CASNET_FILES = ("a CAS-Net file of CASNet.save, a lidarops train checkpoint of CASNetPointNet / CASNetPointPillars, "
                  "or a shipped name")
 
@@ -96,7 +95,7 @@ def _sampling(args: argparse.Namespace) -> "_Sampling | None":
         shipped = weights.available()
         if checkpoint is None:
             if SHIPPED_CASNET not in shipped:
-                raise CliError(f"--sampler casnet: no detection CAS-Net is shipped yet ({SHIPPED_CASNET}); give "
+                raise CliError(f"--sampler casnet: the shipped detection CAS-Net ({SHIPPED_CASNET}) is missing; give "
                                f"--sampler-checkpoint: {_CASNET_FILES}")
             checkpoint = SHIPPED_CASNET
         if not Path(checkpoint).is_file():
@@ -540,7 +539,7 @@ def register(subparsers) -> None:
     s.add_argument("--ratio", default=None, metavar="D", help="keep N // D points of a frame of N (default 8; "
                    "1 keeps every point, the reference)")
     s.add_argument("--sampler-checkpoint", default=None, metavar="PATH_OR_NAME",
-                   help=f"--sampler casnet: {_CASNET_FILES} (default: the shipped {SHIPPED_CASNET}, when shipped)")
+                   help=f"--sampler casnet: {_CASNET_FILES} (default: the shipped {SHIPPED_CASNET})")
     s.add_argument("--sampler-seed", default=None, metavar="S",
                    help="--sampler random: the generator's seed (default 0); each frame draws new points")
     d.set_defaults(func=guarded("detect", detect))

@@ -10,10 +10,11 @@ input. Output: ``OUT/<stem>_<method>_d<D>.bin`` (and ``.png``) for a file; ``OUT
 ``OUT/pictures/<id>_<method>_d<D>.png``) for a folder. One line per scan: points in -> out and the time of
 the sampling call (the first scan's includes one-time start-up costs).
 
-``--method casnet`` needs ``--checkpoint``: no CAS-Net is shipped yet. The file is a ``torch.save`` dict
-``{"model_config": {CASNet's keyword arguments}, "state_dict": ...}`` (``model_state`` is read too, and
-``model_class``, when present, must be ``"CASNet"``), or a checkpoint of ``lidarops train`` holding a
-``CASNetPointNet`` (its CAS-Net is used); read with ``weights_only=True``.
+``--method casnet`` uses the shipped detection CAS-Net (``casnet_pointpillars_d8``, trained on the simulator's
+driving scans) unless ``--checkpoint`` names another: a file of ``CASNet.save``, a checkpoint of ``lidarops
+train`` holding a ``CASNetPointNet`` or ``CASNetPointPillars`` (its CAS-Net is used), a torch file
+``{"model_config": {CASNet's keyword arguments}, "state_dict": ...}``, or a shipped name. A CAS-Net with the
+anchored head samples each scan whole; one with the paper's head cuts it into segments of at most 8,192 points.
 
 Examples::
 
@@ -28,13 +29,14 @@ import math
 import time
 from pathlib import Path
 
-from lidarops.cli.errors import CliError, guarded
+from lidarops.cli.errors import guarded
 
 __all__ = ["register", "sample", "METHODS", "sample_count", "save_before_after"]
 
 #: ``--method`` values, in the order of the help
 METHODS = ("random", "fps", "chunked-fps", "casnet")
-_NO_CASNET = "no CAS-Net is shipped yet: give --checkpoint, a model trained with lidarops train"
+#: the CAS-Net ``--method casnet`` reads without ``--checkpoint``
+SHIPPED_CASNET = "casnet_pointpillars_d8"
 
 
 def sample_count(n: int, ratio: int) -> int:
@@ -94,8 +96,10 @@ def _sampler(method: str, seed: int, checkpoint: "str | None", device):
         return ChunkedFPSSampler()
     from lidarops.models.casnet import CASNetSampler
 
-    # the ratio per cloud is the sampler's (n // m, lowered until the picks are distinct)
-    return CASNetSampler(_load_casnet(Path(checkpoint), device))
+    model = _load_casnet(Path(checkpoint), device)
+    # the anchored head takes any number of rows: the whole cloud at once (better than segments, docs/casnet.md);
+    # the paper's head: segments, the ratio per cloud the sampler's (n // m, lowered until the picks are distinct)
+    return CASNetSampler(model, whole=model.head_kind == "anchored")
 
 
 def _timed_sample(sampler, points, m: int, device) -> "tuple[object, float]":
@@ -155,13 +159,17 @@ def sample(args: argparse.Namespace) -> int:
         raise ValueError(f"--method must be one of {', '.join(METHODS)}, got {args.method!r}")
     ratio = _positive(args.ratio, "--ratio")
     frames = None if args.frames is None else _positive(args.frames, "--frames")
-    if args.method == "casnet" and not args.checkpoint:
-        raise CliError(f"--method casnet: {_NO_CASNET}")
     if args.checkpoint and args.method != "casnet":
         raise ValueError(f"--checkpoint is a CAS-Net's, for --method casnet only (got --method {args.method})")
-    if args.checkpoint and not Path(args.checkpoint).is_file():
-        raise FileNotFoundError(f"--checkpoint {args.checkpoint} not found" +
-                                (" (a directory)" if Path(args.checkpoint).is_dir() else ""))
+    checkpoint = args.checkpoint
+    if args.method == "casnet":
+        from lidarops.models import weights
+
+        checkpoint = checkpoint or SHIPPED_CASNET
+        if not Path(checkpoint).is_file() and checkpoint not in weights.available():
+            raise FileNotFoundError(f"--checkpoint {checkpoint} not found" +
+                                    (" (a directory)" if Path(checkpoint).is_dir() else "") +
+                                    f": give a CAS-Net file or a shipped name ({', '.join(weights.available())})")
     path = Path(args.path)
     scans, split = _scans(path, frames)
     tag = f"{args.method}_d{ratio}"
@@ -171,7 +179,7 @@ def sample(args: argparse.Namespace) -> int:
     if split is not None and out.resolve() == split.resolve():
         raise ValueError(f"--out {out} is the input folder: its velodyne/ scans would be overwritten")
     device = resolve_device(args.device)
-    sampler = _sampler(args.method, args.seed, args.checkpoint, device)
+    sampler = _sampler(args.method, args.seed, checkpoint, device)
     if not args.no_picture:
         from lidarops.data.viz import new_figure
 
@@ -211,11 +219,10 @@ def register(subparsers) -> None:
                     "bird's-eye picture per scan.")
     p.add_argument("path", help="a KITTI velodyne .bin or a KITTI folder (velodyne/ or training/velodyne/ inside)")
     p.add_argument("--method", default="random", metavar="METHOD",
-                   help=f"one of {', '.join(METHODS)} (default random); casnet needs --checkpoint")
+                   help=f"one of {', '.join(METHODS)} (default random)")
     p.add_argument("--ratio", default="8", metavar="D", help="keep N // D points of a scan of N (default 8)")
     p.add_argument("--checkpoint", default=None,
-                   help="--method casnet: a torch file {'model_config': {CASNet's arguments}, 'state_dict': ...} "
-                        "(no CAS-Net is shipped yet)")
+                   help=f"--method casnet: a CAS-Net file or a shipped name (default {SHIPPED_CASNET})")
     p.add_argument("--seed", type=int, default=0, help="--method random: the generator's seed (default 0)")
     p.add_argument("--out", default=None,
                    help="output folder (default: . for a file, ./<folder>_<method>_d<D> for a folder)")

@@ -174,7 +174,7 @@ def test_casnet_without_a_shipped_one_asks_for_a_checkpoint(scene, tmp_path, run
     code, _, err = run_cli(["detect", scene["scan"], "--checkpoint", scene["detector"], "--device", "cpu",
                             "--out", tmp_path / "out", "--sampler", "casnet"])
     line = one_error_line(err, "detect")
-    assert code == 2 and "--sampler casnet: no detection CAS-Net is shipped yet" in line
+    assert code == 2 and "--sampler casnet: the shipped detection CAS-Net" in line
     assert "--sampler-checkpoint" in line and "CASNet.save" in line and "CASNetPointPillars" in line
     assert not (tmp_path / "out").exists()
 

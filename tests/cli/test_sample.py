@@ -175,14 +175,30 @@ def test_errors_are_one_line_naming_the_argument(run_cli, scan, tmp_path):
         _error(run_cli, [scan, "--ratio", value, *base], "--ratio")
     _error(run_cli, [scan, "--frames", "0", *base], "--frames")
     _error(run_cli, [scan, "--method", "voxel", *base], "--method")
-    line = _error(run_cli, [scan, "--method", "casnet", *base], "--checkpoint")
-    assert "no CAS-Net is shipped yet" in line and "lidarops train" in line
     _error(run_cli, [scan, "--method", "casnet", "--checkpoint", tmp_path / "none.pth", *base], "--checkpoint")
     _error(run_cli, [scan, "--method", "casnet", "--checkpoint", bad, *base], "bad.bin")
     _error(run_cli, [scan, "--method", "fps", "--checkpoint", bad, *base], "--checkpoint")
     _error(run_cli, [scan, "--out", bad, "--device", "cpu"], "--out")
     _error(run_cli, [scan, "--device", "tpu", "--out", out], "--device")
     assert not out.exists()  # nothing written by a refused command
+
+
+def test_casnet_defaults_to_the_shipped_detection_casnet(run_cli, scan, tmp_path, monkeypatch):
+    from lidarops.cli.sample import SHIPPED_CASNET
+    from lidarops.models import weights
+    from lidarops.models.casnet import CASNetSampler, load_casnet
+
+    out = tmp_path / "out"
+    code, stdout, err = run_cli(["sample", scan, "--method", "casnet", "--out", out, "--device", "cpu", "--no-picture"])
+    assert code == 0, err
+    kept = read_velodyne(out / "000007_casnet_d8.bin")
+    points = torch.from_numpy(read_velodyne(scan)).unsqueeze(0)
+    # the whole scan through the shipped model (its anchored head takes the scan at once)
+    idx = CASNetSampler(load_casnet(SHIPPED_CASNET), whole=True)(points, points.shape[1] // 8)[0]
+    assert np.array_equal(kept, points[0, idx].numpy())
+    monkeypatch.setattr(weights, "WEIGHTS_DIR", tmp_path / "no-weights")
+    line = _error(run_cli, [scan, "--method", "casnet", "--out", out, "--device", "cpu"], "--checkpoint")
+    assert SHIPPED_CASNET in line and "not found" in line
 
 
 def test_casnet_checkpoint_errors(run_cli, scan, tmp_path):

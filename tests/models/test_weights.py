@@ -51,3 +51,28 @@ def test_shipped_counternets_load_with_their_record(tmp_path, monkeypatch, name,
     info = weights.info(name)
     assert "lidarops train --config configs/counternet/counternet_synth.yaml" in info["train_command"]
     assert info["evaluation"]["metrics"]["counting_accuracy"] > 50
+
+
+def test_shipped_casnets_load_and_sample():
+    import torch
+
+    from lidarops.models.casnet import CASNet, CASNetSampler, load_casnet
+    from lidarops.models.casnet_pointnet import CASNetPointNet
+
+    det = weights.load("casnet_pointpillars_d8")
+    assert isinstance(det, CASNet) and det.head_kind == "anchored" and not det.training
+    info = weights.info("casnet_pointpillars_d8")
+    assert info["task"] == "pointpillars_synth" and "MODEL.HEAD anchored" in info["train_command"]
+    assert info["evaluation"]["casnet_whole_cloud"]["mAP_3d_moderate_R40"] > info["evaluation"]["random"][
+        "mAP_3d_moderate_R40"]
+    g = torch.Generator().manual_seed(0)
+    points = torch.rand(1, 3000, 4, generator=g) * torch.tensor([40.0, 40.0, 2.0, 1.0]) - torch.tensor([0, 20, 1.5, 0])
+    idx = CASNetSampler(load_casnet("casnet_pointpillars_d8"), whole=True)(points, 375)[0]
+    assert idx.unique().numel() == 375 and bool(((idx >= 0) & (idx < 3000)).all())
+
+    cls = weights.load("casnet_pointnet_d8")
+    assert isinstance(cls, CASNetPointNet) and cls.config.ratio == 8 and cls.casnet.head_kind == "anchored"
+    assert load_casnet("casnet_pointnet_d8").num_out == 128
+    objects = torch.rand(2, 1024, 3, generator=g) - 0.5
+    preds = cls.predict({"points": objects})
+    assert len(preds) == 2 and all(0 <= p["label"] < len(cls.config.class_names) for p in preds)
