@@ -114,11 +114,14 @@ def plot(report: dict, path: Path) -> None:
         by_method.setdefault(row["method"], []).append((row["ratio"], row["accuracy"]))
     styles = {"random": ("tab:orange", "o"), "fps": ("tab:blue", "s"), "casnet-full": ("tab:green", "^"),
               "casnet-fast": ("tab:olive", "v"), "casnet-full-dedup": ("tab:red", "^"),
-              "casnet-fast-dedup": ("tab:purple", "v")}
+              "casnet-fast-dedup": ("tab:purple", "v"), "casnet-full-anchored": ("tab:green", "^"),
+              "casnet-fast-anchored": ("tab:red", "v"), "casnet-full-anchored-dedup": ("tab:olive", "^"),
+              "casnet-fast-anchored-dedup": ("tab:purple", "v")}
     for method, pts in by_method.items():
         pts.sort()
         colour, marker = styles.get(method, (None, "x"))
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, color=colour, label=method)
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, color=colour, label=method,
+                ls="--" if method.endswith("-dedup") else "-")
     ax.set_xscale("log", base=2)
     ax.set_xticks(report["ratios"], [str(r) for r in report["ratios"]])
     ax.set_xlabel("sampling ratio D (points kept: N / D)")
@@ -138,7 +141,7 @@ def main(argv=None) -> int:
     from lidarops.models.samplers import FPSSampler, RandomSampler
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--pointnet", required=True, help="the trained PointNet (lidarops train's final.pth)")
+    p.add_argument("--pointnet", help="the trained PointNet (lidarops train's final.pth)")
     p.add_argument("--casnet", nargs="*", default=[], help="trained CASNetPointNet checkpoints (any ratios)")
     p.add_argument("--config", default=str(ROOT / "configs/casnet/pointnet_objects.yaml"))
     p.add_argument("--data", default=None, help="the object-set cache (default: the config's DATA_PATH)")
@@ -150,9 +153,17 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0, help="random sampling's seed")
     p.add_argument("--dedup", type=int, nargs="+", choices=(0, 1), default=[0, 1],
                    help="CAS-Net rows: 0 raw picks (the paper), 1 repeats reassigned (default both)")
-    p.add_argument("--out", required=True, help="JSON report")
+    p.add_argument("--out", help="JSON report")
     p.add_argument("--plot", default=None, help="PNG of accuracy against the ratio")
+    p.add_argument("--replot", default=None, metavar="JSON", help="only redraw --plot from a report of this script")
     args = p.parse_args(argv)
+    if args.replot:
+        if not args.plot:
+            p.error("--replot needs --plot")
+        plot(json.loads(Path(args.replot).read_text()), Path(args.plot))
+        return 0
+    if not args.pointnet or not args.out:
+        p.error("--pointnet and --out are required (unless --replot)")
     device = torch.device(args.device)
     cfg = load_config(args.config)
     _, test_set, collate = datasets_from_config(cfg, data_path=args.data)

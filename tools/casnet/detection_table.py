@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import statistics
 import sys
 import time
@@ -79,19 +80,27 @@ def plot(report: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    styles = {"random": ("tab:orange", "o"), "fps": ("tab:blue", "s"), "casnet": ("tab:green", "^")}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
+    styles = {"random": ("tab:orange", "o", "-"), "fps": ("tab:blue", "s", "-"), "chunked fps": ("tab:cyan", "s", "-"),
+              "anchored, untrained": ("grey", "x", ":"), "casnet": ("tab:green", "^", "-"),
+              "casnet, whole cloud": ("tab:red", "v", "-"), "casnet fast": ("tab:olive", "^", "--"),
+              "casnet fast, whole cloud": ("tab:purple", "v", "--")}
+
+    def family(method: str) -> str:  # one line per sampler kind: the checkpoints' labels say full or fast only
+        return re.sub(r" \(([^)]*)\)", lambda m: " fast" if "fast" in m.group(1) else "", method)
+
     ref = next((r for r in report["rows"] if r["ratio"] == 1), None)
     for ax, key, title in ((axes[0], "mAP_3d_moderate_R40", "moderate 3D mAP (R40)"),
                            (axes[1], "mAP_bev_moderate_R40", "moderate BEV mAP (R40)")):
         if ref is not None:
             ax.axhline(ref[key], color="grey", ls="--", lw=1, label=f"all points ({ref[key]:.1f})")
-        methods = sorted({r["method"] for r in report["rows"] if r["ratio"] > 1})
+        methods = sorted({family(r["method"]) for r in report["rows"] if r["ratio"] > 1})
         for method in methods:
-            colour, marker = styles.get(method, ("tab:red", "v"))
-            pts = sorted((r["ratio"], r[key]) for r in report["rows"] if r["method"] == method and r["ratio"] > 1)
+            colour, marker, line = styles.get(method, (None, "d", "-"))
+            pts = sorted((r["ratio"], r[key]) for r in report["rows"]
+                         if family(r["method"]) == method and r["ratio"] > 1)
             if pts:
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, color=colour, label=method)
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, color=colour, ls=line, label=method)
         ax.set_xscale("log", base=2)
         ax.set_xticks([d for d in report["ratios"] if d > 1], [str(d) for d in report["ratios"] if d > 1])
         ax.set_xlabel("sampling ratio D")
@@ -113,7 +122,7 @@ def main(argv=None) -> int:
     from lidarops.models.samplers import ChunkedFPSSampler, FPSSampler, RandomSampler
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", required=True, help="a KITTI-format folder (every frame of --split)")
+    p.add_argument("--data", help="a KITTI-format folder (every frame of --split)")
     p.add_argument("--split", default=None, help="an ImageSets name (default: train and val together)")
     p.add_argument("--casnet", nargs="*", default=[], help="CAS-Net files, one per ratio")
     p.add_argument("--detector", default="pointpillars_synth", help="a shipped name or a checkpoint")
@@ -131,9 +140,17 @@ def main(argv=None) -> int:
                    help="also an untrained anchored-head CAS-Net at each ratio (where its training starts: FPS per segment)")
     p.add_argument("--whole", action="store_true",
                    help="also each anchored-head CAS-Net on the whole cloud (no segments), beside its segmented row")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out")
     p.add_argument("--plot", default=None)
+    p.add_argument("--replot", default=None, metavar="JSON", help="only redraw --plot from a report of this script")
     args = p.parse_args(argv)
+    if args.replot:
+        if not args.plot:
+            p.error("--replot needs --plot")
+        plot(json.loads(Path(args.replot).read_text()), Path(args.plot))
+        return 0
+    if not args.data or not args.out:
+        p.error("--data and --out are required (unless --replot)")
     device = torch.device(args.device)
     detector_path = Path(args.detector) if Path(args.detector).is_file() else weights.path(args.detector)
     from lidarops.models import load_model
