@@ -224,6 +224,15 @@ class AnchoredHead(nn.Module):
         """Args: x (Tensor[B, in, N]); xyz (Tensor[B, N, 3]); lengths (Tensor[B]); num_out (int) ``m``;
         mask (Tensor[B, N] bool, optional). Returns: logits Tensor[B, m, N], ``-inf`` off each row's
         candidates (a cloud of fewer than ``m`` points repeats its anchors cyclically)."""
+        logits, cand = self.sparse(x, xyz, lengths, num_out, mask)
+        dense = logits.new_full((x.shape[0], num_out, x.shape[2]), -math.inf)
+        # amax: a padded slot (-inf, clamped to point 0) never overrides a real candidate at point 0
+        return dense.scatter_reduce(2, cand, logits, reduce="amax", include_self=True)
+
+    def sparse(self, x: Tensor, xyz: Tensor, lengths: Tensor, num_out: int,
+               mask: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
+        """:meth:`forward`'s logits on the candidates only: ``(logits (B, m, K), candidates (B, m, K) int64)``,
+        ``-inf`` logits at padding slots (whose candidate index is 0)."""
         B, _, N = x.shape
         if mask is None:
             z = self.hidden(x)
@@ -248,10 +257,7 @@ class AnchoredHead(nn.Module):
             k = gather(self.key(z).transpose(1, 2), cand)  # (B, m, K, qk)
             u = gather(self.score(z).transpose(1, 2), cand).squeeze(-1)  # (B, m, K)
         logits = -d2 / scale + (k * q.unsqueeze(2)).sum(-1) / math.sqrt(self.qk_channels) + u
-        logits = logits.masked_fill(~valid, -math.inf)
-        dense = logits.new_full((B, num_out, N), -math.inf)
-        # amax: a padded slot (-inf, clamped to point 0) never overrides a real candidate at point 0
-        return dense.scatter_reduce(2, cand, logits, reduce="amax", include_self=True)
+        return logits.masked_fill(~valid, -math.inf), cand
 
 
 class CASNet(nn.Module):
@@ -397,14 +403,28 @@ class CASNet(nn.Module):
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {list(_MODES)}, got {mode!r}")
         dedup = self.dedup if dedup is None else flag(dedup, "dedup")
+        num_out = self._num_out(num_out)
+        lengths = self._check_input(points, lengths)
+        h, xyz, mask = self._features(points, lengths)
+        if self.head_kind == "matrix":
+            logits = self.head(h, mask) / self.temperature
+        else:
+            logits = self.head(h, xyz, lengths, num_out, mask) / self.temperature
+        sampled, indices, soft = matrix_sample(logits, points, mode=mode, dedup=dedup, mask=mask)
+        return CASNetOutput(sampled=sampled, indices=indices, soft_matrix=soft, logits=logits, lengths=lengths,
+                            num_duplicates=None if indices is None else count_duplicates(indices), mode=mode)
+
+    def _num_out(self, num_out) -> int:
         if num_out is None or (self.head_kind == "matrix" and num_out == self.num_out):
-            num_out = self.num_out
-        elif self.head_kind == "matrix":
+            return self.num_out
+        if self.head_kind == "matrix":
             raise ValueError(f"num_out={num_out!r}: the paper's head gives num_out={self.num_out} rows, fixed by its "
                              "last layer (head='anchored' takes any num_out)")
-        else:
-            num_out = check_positive_int(num_out, "num_out")
-        lengths = self._check_input(points, lengths)
+        return check_positive_int(num_out, "num_out")
+
+    def _features(self, points: Tensor, lengths: Tensor) -> tuple[Tensor, Tensor, Optional[Tensor]]:
+        """``(concat(attention features, xyz) (B, C, N), xyz (B, N, 3) in the parameters' dtype, mask or None)``
+        of checked points."""
         B, N, _ = points.shape
         mask = None
         if bool((lengths < N).any()):
@@ -418,14 +438,34 @@ class CASNet(nn.Module):
         for layer in self.attention:
             x = layer(x) if mask is None else layer(x, mask=mask)
             feats.append(x)
-        h = torch.cat(feats + [xyz.transpose(1, 2)], dim=1)
+        return torch.cat(feats + [xyz.transpose(1, 2)], dim=1), xyz, mask
+
+    @torch.no_grad()
+    def pick(self, points: Tensor, lengths: Optional[Tensor] = None, num_out: Optional[int] = None,
+             dedup: Optional[bool] = None) -> Tensor:
+        """The hard picks alone (inference): :meth:`forward`'s ``indices`` in hard mode, without its
+        ``(B, m, N)`` matrices where the head allows. The anchored head scores each row's candidates only
+        (memory ``O(m K)`` instead of ``O(m N)``), with the same picks as :meth:`forward` (ties included;
+        distinct picks: the same greedy on the same pairs, up to the rounding of the log-softmax).
+
+        Args: as :meth:`forward` (``mode`` is hard). Returns: Tensor[B, m] int64.
+        """
+        dedup = self.dedup if dedup is None else flag(dedup, "dedup")
         if self.head_kind == "matrix":
-            logits = self.head(h, mask) / self.temperature
-        else:
-            logits = self.head(h, xyz, lengths, num_out, mask) / self.temperature
-        sampled, indices, soft = matrix_sample(logits, points, mode=mode, dedup=dedup, mask=mask)
-        return CASNetOutput(sampled=sampled, indices=indices, soft_matrix=soft, logits=logits, lengths=lengths,
-                            num_duplicates=None if indices is None else count_duplicates(indices), mode=mode)
+            return self.forward(points, lengths, mode="hard", dedup=dedup, num_out=num_out).indices
+        num_out = self._num_out(num_out)
+        lengths = self._check_input(points, lengths)
+        h, xyz, mask = self._features(points, lengths)
+        logits, cand = self.head.sparse(h, xyz, lengths, num_out, mask)
+        logits = logits / self.temperature
+        N = points.shape[1]
+        # forward's argmax over N: the lowest point among a row's best candidates
+        best = logits.amax(dim=-1, keepdim=True)
+        plain = torch.where(logits == best, cand, N).amin(dim=-1)
+        if not dedup:
+            return plain
+        scores = torch.log_softmax(logits, dim=-1)
+        return _greedy_candidates(scores, cand, plain, N)
 
     def _check_input(self, points, lengths) -> Tensor:
         check_tensor(points, "points")
@@ -538,7 +578,7 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
     values, points = torch.sort(s, dim=2, descending=True, stable=True)  # ties: the lower point first
     picks = out.cpu()
     for b in range(B):
-        valid = int(torch.isfinite(values[b, 0]).sum())
+        valid = int(torch.isfinite(s[b]).any(dim=0).sum())  # points some row may take
         can_serve = min(m, valid)
         k = min(N, 32) if valid >= m else N  # fewer points than rows: which rows go unserved needs all pairs
         while True:
@@ -553,6 +593,25 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
             if served == can_serve or exhausted:
                 break
             k = min(N, 4 * k)
+        picks[b] = torch.where(assign >= 0, assign, picks[b])
+    return picks.to(scores.device)
+
+
+def _greedy_candidates(scores: Tensor, cand: Tensor, plain: Tensor, num_points: int) -> Tensor:
+    """:func:`greedy_distinct_rows` on sparse rows: ``scores (B, m, K)`` of the points ``cand (B, m, K)`` (``-inf``
+    at padding). Pairs in the order the dense greedy takes them (decreasing score; ties: lower row, then lower
+    point); rows left without a free candidate keep ``plain``."""
+    B, m, K = scores.shape
+    picks = plain.cpu().clone()
+    by_point = torch.sort(cand, dim=2, stable=True)
+    vals = scores.gather(2, by_point.indices)
+    by_value = torch.sort(vals, dim=2, descending=True, stable=True)  # ties: the lower point first
+    vals, points = by_value.values, by_point.values.gather(2, by_value.indices)
+    for b in range(B):
+        flat = vals[b].reshape(-1)
+        order = torch.sort(flat, descending=True, stable=True).indices  # ties: the lower row first
+        order = order[:int(torch.isfinite(flat).sum())]
+        assign = greedy_assign(order // K, points[b].reshape(-1)[order], m, num_points).cpu()
         picks[b] = torch.where(assign >= 0, assign, picks[b])
     return picks.to(scores.device)
 
@@ -615,8 +674,8 @@ def segment_and_sample(model: CASNet, points: Tensor, ratio: int, max_points: in
         if num_samples > n:
             raise ValueError(f"num_samples={num_samples}: the cloud has only {n} points")
         shares = segment_shares(sizes, num_samples, caps=sizes)
-        out = model(batch, lengths, mode="hard", dedup=dedup, num_out=max(shares))
-        return torch.cat([seg[out.indices[i, :share]] for i, (seg, share) in enumerate(zip(segments, shares))])
+        picks = model.pick(batch, lengths, num_out=max(shares), dedup=dedup)
+        return torch.cat([seg[picks[i, :share]] for i, (seg, share) in enumerate(zip(segments, shares))])
     out = model(batch, lengths, mode="hard", dedup=dedup)
     picks = [seg[out.indices[i]] for i, seg in enumerate(segments)]
     if num_samples is None:
@@ -684,7 +743,7 @@ class CASNetSampler(Sampler):
                 continue
             want = min(m, n)
             if self.whole:
-                idx = self.model(points[b:b + 1, :n], mode="hard", dedup=self.dedup, num_out=want).indices[0]
+                idx = self.model.pick(points[b:b + 1, :n], num_out=want, dedup=self.dedup)[0]
                 out[b, :want] = _fill_repeats(points[b, :n, :3], idx) if self.dedup else idx
                 continue
             ratio = self.ratio if self.ratio is not None else min(max(1, n // m), cap)

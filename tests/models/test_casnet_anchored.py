@@ -160,14 +160,43 @@ def _finite_greedy(scores: torch.Tensor) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_distinct_picks_on_sparse_rows_equal_the_greedy(seed):
+@pytest.mark.parametrize("m", [15, 30])
+def test_distinct_picks_on_sparse_rows_equal_the_greedy(seed, m):
     net = anchored(seed=seed, candidates=3)
     pts = cloud(2, 40, seed=10 + seed)
-    out = net(pts, num_out=15)
+    out = net(pts, num_out=m)
     scores = torch.log_softmax(out.logits.detach(), -1)
     got = greedy_distinct_rows(scores)
-    assert torch.equal(got, _finite_greedy(scores))
-    assert torch.equal(net(pts, num_out=15, dedup=True).indices, got)
+    expected = _finite_greedy(scores)
+    assert torch.equal(got, expected)
+    assert torch.equal(net(pts, num_out=m, dedup=True).indices, got)
+    assert torch.equal(net.pick(pts, num_out=m, dedup=True), got)
+
+
+def test_distinct_picks_serve_every_row_when_rows_see_few_points():
+    # four rows of three candidates each, all preferring point 0: every row still gets its own point
+    inf = math.inf
+    scores = torch.tensor([[[-1.0, -2.0, -3.0, -inf, -inf, -inf],
+                            [-1.5, -inf, -2.5, -3.5, -inf, -inf],
+                            [-1.2, -inf, -inf, -2.2, -3.2, -inf],
+                            [-1.1, -inf, -inf, -inf, -2.1, -3.1]]])
+    got = greedy_distinct_rows(scores)
+    assert got.tolist() == [[0, 2, 3, 4]] and torch.equal(got, _finite_greedy(scores))
+
+
+@pytest.mark.parametrize("regime", ["random", "duplicates"])
+def test_pick_equals_the_forward_picks(regime):
+    net = anchored(seed=8, candidates=4)
+    pts = cloud(3, 50, seed=16)
+    if regime == "duplicates":  # ties everywhere: every point twice
+        pts[:, 25:] = pts[:, :25]
+    lengths = torch.tensor([50, 31, 9])
+    for dedup in (False, True):
+        for m in (5, 12):
+            want = net(pts, lengths, num_out=m, dedup=dedup).indices
+            assert torch.equal(net.pick(pts, lengths, num_out=m, dedup=dedup), want), (dedup, m)
+    matrix = CASNet(6, k=4, radius=0.5).double().eval()
+    assert torch.equal(matrix.pick(pts), matrix(pts).indices)
 
 
 def test_segments_keep_each_segments_first_anchors():
