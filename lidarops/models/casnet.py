@@ -15,6 +15,9 @@ ICME 2023). Read it top to bottom:
   ``S~`` itself (``mode="soft"``, ASSN); either samples any per-point features (x, y, z, intensity, ...).
 - Losses: :func:`casnet_loss` = task loss + alpha * Chamfer(sampled xyz, input xyz) + beta * the cosine
   loss of the rows of ``S~`` (:mod:`lidarops.models.casnet_losses`).
+- ``head="anchored"`` (ours): :class:`AnchoredHead` instead of the sampling matrix's head: each row anchored at a
+  farthest point sample, choosing among its nearest points; an untrained head is FPS, and ``m`` is free per call.
+  :meth:`CASNet.pick` gives its picks without the ``(B, m, N)`` matrices.
 - Large clouds: :func:`segment_and_sample` (segments of at most 8,192 points, as the paper);
   :class:`CASNetSampler` puts the model behind the samplers' interface (:mod:`lidarops.models.samplers`).
 
@@ -52,8 +55,9 @@ from lidarops.ops.neighbors import ball_query, fps, gather, knn
 from lidarops.ops.validation import (check_positive_int, check_tensor, check_values, describe, lengths_or_full,
                                      validation, value_checks_enabled)
 
-__all__ = ["CASNet", "CASNetOutput", "FeatureEmbedding", "SamplingHead", "AnchoredHead", "matrix_sample", "greedy_distinct_rows",
-           "count_duplicates", "segment_and_sample", "CASNetSampler", "casnet_loss", "load_casnet"]
+__all__ = ["CASNet", "CASNetOutput", "FeatureEmbedding", "SamplingHead", "AnchoredHead", "matrix_sample",
+           "greedy_distinct_rows", "count_duplicates", "segment_and_sample", "CASNetSampler", "casnet_loss",
+           "load_casnet"]
 
 _MODES = ("hard", "soft")
 _NEIGHBORS = ("ball", "knn")
@@ -245,7 +249,7 @@ class AnchoredHead(nn.Module):
             anchors = torch.where(anchors >= 0, anchors, anchors.gather(1, pos % lengths.clamp(min=1).unsqueeze(1)))
             K = min(self.candidates, N)
             anchor_xyz = gather(xyz.detach(), anchors)
-            dist, cand = knn(anchor_xyz, xyz.detach(), K, None, lengths)  # (B, m, K), -1 padding
+            _, cand = knn(anchor_xyz, xyz.detach(), K, None, lengths)  # (B, m, K), -1 padding
         valid = cand >= 0
         cand = cand.clamp(min=0)
         with validation(False):
@@ -285,7 +289,7 @@ class CASNet(nn.Module):
         candidates (int): the anchored head's candidates per row (16).
 
     Attributes: ``embedding`` (:class:`FeatureEmbedding`), ``attention`` (``nn.ModuleList`` of
-    :class:`OffsetAttention`), ``head`` (:class:`SamplingHead`).
+    :class:`OffsetAttention`), ``head`` (:class:`SamplingHead` or :class:`AnchoredHead`), ``head_kind``.
     """
 
     def __init__(self, num_out: int, k: int = 32, radius: float = 2.0, neighbors: str = "ball",
@@ -314,7 +318,8 @@ class CASNet(nn.Module):
         self.attention = nn.ModuleList([OffsetAttention(channels, qk_channels, chunk=chunk)
                                         for _ in range(num_oa_layers)])
         if head == "matrix":
-            self.head = SamplingHead(channels * num_oa_layers + 3, self.num_out, flag(head_activation, "head_activation"))
+            self.head = SamplingHead(channels * num_oa_layers + 3, self.num_out,
+                                     flag(head_activation, "head_activation"))
         else:
             self.head = AnchoredHead(channels * num_oa_layers + 3, candidates, channels, qk_channels)
 
@@ -715,8 +720,9 @@ class CASNetSampler(Sampler):
         max_points (int): most points per segment.
         dedup (bool): distinct picks.
         whole (bool): no segments: the whole cloud in one forward with ``m`` rows (the anchored head only,
-            whose row count is free; offset attention over all ``n`` points, without ever holding n x n).
-            With ``dedup``, a row whose candidates are all taken keeps a repeat.
+            whose row count is free; offset attention over all ``n`` points, without ever holding n x n;
+            :meth:`CASNet.pick`). With ``dedup``, a row whose candidates are all taken gets the free point
+            nearest to its pick.
     """
 
     def __init__(self, model: CASNet, ratio: Optional[int] = None, max_points: int = 8192, dedup: bool = True,
@@ -762,7 +768,8 @@ class CASNetSampler(Sampler):
         return out
 
     def __repr__(self) -> str:
-        return f"CASNetSampler(ratio={self.ratio}, max_points={self.max_points}, dedup={self.dedup}, whole={self.whole})"
+        return (f"CASNetSampler(ratio={self.ratio}, max_points={self.max_points}, dedup={self.dedup}, "
+                f"whole={self.whole})")
 
 
 def _fill_repeats(xyz: Tensor, idx: Tensor) -> Tensor:

@@ -195,7 +195,8 @@ def main(argv=None) -> int:
             row = {"method": name, "ratio": ratio, "checkpoint": path and str(path),
                    **evaluate(pointnet, sampler, m, test_set, collate, args.batch, device, args.latency_objects)}
             report["rows"].append(row)
-            print(f"D={ratio:>2} {name:<22} accuracy {row['accuracy']:6.2f} %  mean class {row['mean_class_accuracy']:6.2f} %"
+            print(f"D={ratio:>2} {name:<22} accuracy {row['accuracy']:6.2f} %  "
+                  f"mean class {row['mean_class_accuracy']:6.2f} %"
                   f"  distinct {row['distinct_points']:7.1f}/{m}  {row['sample_ms_per_object_batched']:.3f} ms/object "
                   f"(batched), {row['sample_ms_one_object']:.2f} ms one object", flush=True)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -135,9 +135,11 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--casnet-dedup", type=int, choices=(0, 1), default=0,
                    help="0: CAS-Net's raw picks, the most confident first, repeats allowed (the paper); 1: distinct")
-    p.add_argument("--chunked-fps", action="store_true", help="also FPS in chunks of --segment-points (the paper's FPS)")
+    p.add_argument("--chunked-fps", action="store_true",
+                   help="also FPS in chunks of --segment-points (the paper's FPS)")
     p.add_argument("--anchored-init", action="store_true",
-                   help="also an untrained anchored-head CAS-Net at each ratio (where its training starts: FPS per segment)")
+                   help="also an untrained anchored-head CAS-Net at each ratio (where its training starts: FPS "
+                        "per segment)")
     p.add_argument("--whole", action="store_true",
                    help="also each anchored-head CAS-Net on the whole cloud (no segments), beside its segmented row")
     p.add_argument("--out")
