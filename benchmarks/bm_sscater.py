@@ -13,6 +13,9 @@ Sections (``--only``):
   pillars + recycling backbone) against the full sparse recomputation (pillarize + PFN + sparse
   backbone) and the dense backbone (pillarize + PFN + scatter + cuDNN), with the identity of SSCATeR
   and the full recomputation checked on every timed step.
+* ``detector`` (``--only detector``; ``--checkpoint``, default the shipped detector): the trained PointPillars
+  streamed on ``driving_city`` with its boxes every 10 ms (``SSCATeRPointPillars.from_detector``), against the
+  detector on the same window, stage by stage; the boxes compared on every timed step.
 * ``layer``: one 3x3 submanifold layer on the stream's 512 x 512 pillar map (the paper's Tables IV/V):
   Cin in {16, 32, 64, 128} x Cout in {8, 16, 32, 64, 128}; SSCATeR's update for one step's changed
   sites against the full sparse layer (kernel map cached) and the dense layer (cuDNN).
@@ -292,6 +295,91 @@ def plot(traces: dict, rows: list, device: str, path: Path) -> None:
     print(f"plot: {path}")
 
 
+def _p95(xs: list) -> float:
+    return sorted(xs)[min(len(xs) - 1, int(round(0.95 * (len(xs) - 1))))]
+
+
+def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, scenario: str = "driving_city",
+                   warm: int = 12) -> dict:
+    """A trained PointPillars streamed (``SSCATeRPointPillars.from_detector``): each 10 ms step's boxes by
+    SSCATeR (stream push, the detector's pillar net on the changed pillars, the recycled backbone, the head at
+    the changed output sites, NMS) against the detector on the same window, stage by stage (pillarize + pillar
+    net + scatter, backbone, head + NMS) and as ``predict``; every ``every`` steps, with the boxes compared."""
+    from lidarops.data.synthetic import Simulator
+    from lidarops.models import load_model, weights
+    from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
+
+    path = weights.path() if checkpoint == "shipped" else Path(checkpoint)
+    det = load_model(path, map_location=device).eval()
+    model = SSCATeRPointPillars.from_detector(det, device=device)
+    sim = Simulator(scenario, seed=0)
+    ours, full, same, pfn, pfn_full = [], [], [], 0, 0
+    for k in range(warm + steps):
+        pts, t = sim.stream(k * 0.01, (k + 1) * 0.01)
+        _sync(device)
+        t0 = time.perf_counter()
+        model.step(torch.from_numpy(pts).to(device), torch.from_numpy(t).to(device), now=(k + 1) * 0.01)
+        boxes = model.detect()
+        _sync(device)
+        ms = 1e3 * (time.perf_counter() - t0)
+        if k < warm:  # the window fills: 10 steps
+            continue
+        st = model.stats
+        pfn, pfn_full = pfn + st.pfn_points, pfn_full + st.pfn_points_full
+        ours.append({"step": ms, "stream": st.ms_stream, "pfn": st.ms_pfn, "backbone": st.ms_backbone,
+                     "head_nms": ms - st.ms_stream - st.ms_pfn - st.ms_backbone, "refreshed": st.refreshed,
+                     "changed": st.pillars_changed, "active": st.pillars_active})
+        if (k - warm) % every:
+            continue
+        batch = {"points": F.pad(model.window_points(), (1, 0)), "batch_size": 1}
+        with torch.no_grad():
+            _sync(device)
+            t0 = time.perf_counter()
+            want = det.predict(batch)[0]
+            _sync(device)
+            t1 = time.perf_counter()
+            vox = det.voxelize(batch["points"], 1)
+            bev_in = det.map_to_bev(det.vfe(*vox), vox[2], 1)
+            _sync(device)
+            t2 = time.perf_counter()
+            bev = det.backbone_2d(bev_in)
+            _sync(device)
+            t3 = time.perf_counter()
+            det.postprocess(det.dense_head(bev))
+            _sync(device)
+            t4 = time.perf_counter()
+        full.append({"predict": 1e3 * (t1 - t0), "pillars_pfn": 1e3 * (t2 - t1), "backbone": 1e3 * (t3 - t2),
+                     "head_nms": 1e3 * (t4 - t3)})
+        same.append(boxes["labels"].tolist() == want["labels"].tolist()
+                    and bool(torch.allclose(boxes["scores"], want["scores"], rtol=1e-4, atol=1e-4)))
+    summary = {"scenario": scenario, "checkpoint": path.name, "steps": steps, "checked": len(full),
+               "same_boxes": sum(same), "pfn_saved": 1 - pfn / max(pfn_full, 1),
+               "refreshes": sum(r["refreshed"] for r in ours),
+               "pillars_changed_share": statistics.mean(r["changed"] / max(r["active"], 1) for r in ours)}
+    for name, xs in (("sscater_step", [r["step"] for r in ours]), ("sscater_backbone", [r["backbone"] for r in ours]),
+                     ("sscater_pfn", [r["pfn"] for r in ours]), ("sscater_head_nms", [r["head_nms"] for r in ours]),
+                     ("detector_predict", [r["predict"] for r in full]),
+                     ("detector_backbone", [r["backbone"] for r in full]),
+                     ("detector_pillars_pfn", [r["pillars_pfn"] for r in full]),
+                     ("detector_head_nms", [r["head_nms"] for r in full])):
+        summary[name] = {"mean_ms": statistics.mean(xs), "median_ms": statistics.median(xs), "p95_ms": _p95(xs)}
+    for what in ("mean_ms", "median_ms"):
+        summary[f"step_speedup_{what[:-3]}"] = summary["detector_predict"][what] / summary["sscater_step"][what]
+        summary[f"backbone_speedup_{what[:-3]}"] = summary["detector_backbone"][what] / summary["sscater_backbone"][what]
+    rows.append({"op": f"detector_stream/{scenario}/{path.stem}", **summary})
+    print_table(f"trained detector streamed: {path.name} on {scenario}, {steps} steps of 10 ms ({device}); "
+                f"{summary['refreshes']} refreshes, {100 * summary['pillars_changed_share']:.1f} % of pillars changed "
+                f"per step, PFN work saved {100 * summary['pfn_saved']:.1f} %, same boxes {sum(same)} of {len(full)}",
+                ["", "mean ms", "median ms", "p95 ms"],
+                [[name.replace("_", " "), fmt_ms(summary[name]["mean_ms"]), fmt_ms(summary[name]["median_ms"]),
+                  fmt_ms(summary[name]["p95_ms"])] for name in
+                 ("sscater_step", "detector_predict", "sscater_backbone", "detector_backbone", "sscater_pfn",
+                  "detector_pillars_pfn", "sscater_head_nms", "detector_head_nms")], right=(1, 2, 3))
+    print(f"speed-up by the mean step {summary['step_speedup_mean']:.2f}x (median {summary['step_speedup_median']:.2f}x); "
+          f"backbone {summary['backbone_speedup_mean']:.2f}x (median {summary['backbone_speedup_median']:.2f}x)")
+    return summary
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default=None)
@@ -303,6 +391,8 @@ def main(argv=None) -> int:
     ap.add_argument("--relu-zeros", type=float, default=0.5)
     ap.add_argument("--scenarios", default=",".join(_SCENARIOS))
     ap.add_argument("--plot", default=None, help="PNG of the per-step runtime trace (default docs/img/sscater_trace_<device>.png)")
+    ap.add_argument("--checkpoint", default="shipped",
+                    help="--only detector: the trained PointPillars streamed (a file; shipped: the default detector)")
     a = ap.parse_args(argv)
     import lidarops.extension as ext
     ext.load()
@@ -318,6 +408,9 @@ def main(argv=None) -> int:
         bench_stream(device, steps, every, a.relu_zeros, rows, traces, a.scenarios.split(","))
     if "layer" in only:
         bench_layers(device, a.quick, rows)
+    if "detector" in only:
+        bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
+                       a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows)
     if traces and not a.quick:
         from benchmarks.common import device_slug
         plot(traces, rows, str(device), Path(a.plot) if a.plot else

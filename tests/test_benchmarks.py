@@ -335,3 +335,17 @@ def test_sscater_sparsity_figures_by_hand():
     assert zero_delta == pytest.approx(3 / 6)   # at the two changed sites, 6 channels, 3 unchanged
     assert any_change == 1.0
     assert figures(prev, prev).tolist()[1:] == [0.0, 0.0, 0.0]
+
+
+def test_bm_sscater_detector_section_times_the_same_boxes():
+    from benchmarks import bm_sscater
+
+    rows = []
+    summary = bm_sscater.bench_detector(torch.device("cpu"), steps=6, every=3, checkpoint="shipped", rows=rows)
+    assert len(rows) == 1 and rows[0]["op"] == "detector_stream/driving_city/pointpillars_synth"
+    # the streamed boxes equal the detector's on every checked step, and the PFN ran on the changed pillars only
+    assert summary["checked"] == 2 and summary["same_boxes"] == 2
+    assert 0 < summary["pfn_saved"] < 1 and 0 < summary["pillars_changed_share"] < 1
+    for name in ("sscater_step", "detector_predict", "sscater_backbone", "detector_backbone"):
+        s = summary[name]
+        assert 0 < s["median_ms"] <= s["p95_ms"] and s["mean_ms"] > 0, name
