@@ -70,7 +70,7 @@ def load_model(path: "str | Path", config: Any = None, map_location: Any = "cpu"
             with ``config``, an OpenPCDet checkpoint.
         config: the model config for a file that records none (an OpenPCDet checkpoint); its ``MODEL.NAME``
             picks the class.
-        map_location: as ``torch.load``.
+        map_location: as ``torch.load``; a device (``"cuda"``, ``torch.device(...)``) also puts the model there.
         check_finite (bool): refuse weights holding NaN or infinite values (naming the tensors).
 
     Raises:

@@ -116,6 +116,8 @@ def model_from_checkpoint(cls: type, path: "str | Path", config: Any = None, map
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from None
     model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
+    if isinstance(map_location, (str, torch.device)):  # the model where its weights were read, buffers included
+        model.to(map_location)
     return model
 
 

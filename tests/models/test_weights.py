@@ -76,3 +76,15 @@ def test_shipped_casnets_load_and_sample():
     objects = torch.rand(2, 1024, 3, generator=g) - 0.5
     preds = cls.predict({"points": objects})
     assert len(preds) == 2 and all(0 <= p["label"] < len(cls.config.class_names) for p in preds)
+
+
+def test_load_model_puts_the_model_where_its_weights_are_read():
+    import torch
+
+    from lidarops.models import load_model
+
+    model = load_model(weights.path("pointpillars_synth"), map_location="cpu")
+    assert {t.device.type for t in [*model.parameters(), *model.buffers()]} == {"cpu"}
+    if torch.cuda.is_available():
+        model = load_model(weights.path("pointpillars_synth"), map_location="cuda")
+        assert {t.device.type for t in [*model.parameters(), *model.buffers()]} == {"cuda"}
