@@ -116,7 +116,14 @@ def model_from_checkpoint(cls: type, path: "str | Path", config: Any = None, map
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from None
     model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
-    if isinstance(map_location, (str, torch.device)):  # the model where its weights were read, buffers included
+    return placed(model, map_location)
+
+
+def placed(model, map_location: Any):
+    """``model`` moved to ``map_location`` when that names a device (a str or ``torch.device``): loading copies the
+    weights into the model's own tensors, so without this a model read with ``map_location="cuda"`` would stay
+    on the CPU, its buffers too."""
+    if isinstance(map_location, (str, torch.device)):
         model.to(map_location)
     return model
 

@@ -338,6 +338,7 @@ class CASNet(nn.Module):
         ``CASNetPointNet`` or ``CASNetPointPillars`` checkpoint use :func:`load_casnet`."""
         from lidarops.checkpoint import CheckpointError, model_state, read_checkpoint
         from lidarops.checkpoint import check_finite as refuse_non_finite
+        from lidarops.models.base import placed
 
         ckpt = read_checkpoint(path, map_location)
         name = ckpt.get("model_class")
@@ -360,7 +361,7 @@ class CASNet(nn.Module):
         except RuntimeError as e:
             raise CheckpointError(f"{path}: its weights do not fit its model_config: "
                                   f"{str(e).splitlines()[0]}") from None
-        return model
+        return placed(model, map_location)
 
     def save(self, path: "str | Path", **extra: Any) -> Path:
         """Writes ``{model_class: "CASNet", model_config, model_state, ...extra}`` (a lidarops checkpoint

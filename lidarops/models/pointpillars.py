@@ -31,7 +31,7 @@ from lidarops import checkpoint
 from lidarops._moved import moved_attributes
 from lidarops.checkpoint import CheckpointError, model_record, model_state, read_checkpoint
 from lidarops.config import ConfigError
-from lidarops.models.base import PredictMixin, as_model_config
+from lidarops.models.base import PredictMixin, as_model_config, placed
 from lidarops.models.anchor_head import AnchorHeadSingle
 from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.models.config import PointPillarsConfig
@@ -113,7 +113,7 @@ class PointPillars(PredictMixin, nn.Module):
             where = "the config given" if record.config is None or config is not record.config else "its model_config"
             raise ConfigError(f"{path}: {where}: {e}") from None
         model.load_weights(model_state(ckpt, str(path)), source=str(path), check_finite=check_finite)
-        return model
+        return placed(model, map_location)
 
     def load_weights(self, state_dict: Mapping[str, Tensor], source: str = "state dict",
                      check_finite: bool = True) -> None:
