@@ -417,8 +417,13 @@ def main(argv=None) -> int:
              Path(__file__).resolve().parents[1] / "docs" / "img" / f"sscater_trace_{device_slug(device)}.png")
     if a.json:
         meta = env_meta(device)
-        meta["traces"] = traces
-        print(f"results: {write_results('sscater', device, rows, meta, replace_by='op')}")
+        stream_rows = [r for r in rows if not r["op"].startswith("detector_stream/")]
+        if stream_rows:
+            meta["traces"] = traces
+            print(f"results: {write_results('sscater', device, stream_rows, meta, replace_by='op')}")
+        detector_rows = [r for r in rows if r["op"].startswith("detector_stream/")]
+        if detector_rows:  # a section of its own: the stream section's meta holds that run's traces
+            print(f"results: {write_results('sscater_detector', device, detector_rows, env_meta(device), replace_by='op')}")
     return 0
 
 
