@@ -179,3 +179,30 @@ def test_casnet_forward_samples_rows_of_the_input(device, data):
             slack = 1e-4 * (1 + pts[b, :n].abs().amax(0))
             assert bool(((out.sampled[b] >= lo - slack) & (out.sampled[b] <= hi + slack)).all()), \
                 f"{what}: cloud {b}: soft samples outside the cloud's box"
+
+
+_BAD_NUM_OUT = st.sampled_from([0, -1, 1.5, True, "2", 2.0])
+
+
+@fuzz
+@given(data=st.data())
+def test_anchored_pick_equals_forward_and_names_bad_arguments(device, data):
+    c = data.draw(clouds(batch=data.draw(st.integers(1, 3), "B"), min_n=1, max_n=20,
+                         regime=data.draw(st.sampled_from(["normal", "lattice"]), "regime")), "cloud")
+    assume(c.valid_lengths and (c.lengths is None or bool((c.lengths >= 1).all())))
+    pts = _with_intensity(c.points).to(device)
+    lengths = None if c.lengths is None else c.lengths.to(device)
+    net = _ANCHORED.to(device)
+    m = data.draw(st.integers(1, 24), "num_out")
+    dedup = data.draw(st.booleans(), "dedup")
+    what = f"CASNet(head='anchored').pick(num_out={m}, dedup={dedup}) on {tuple(pts.shape)}, lengths {c.rows()}"
+    got, err = outcome(net.pick, pts, lengths, m, dedup)
+    assert_no_error(err, what)
+    with torch.no_grad():
+        want = net(pts, lengths, mode="hard", dedup=dedup, num_out=m).indices
+    assert_same(got, want, what)
+    for b, n in enumerate(c.rows()):
+        assert bool(((got[b] >= 0) & (got[b] < n)).all()), f"{what}: cloud {b}: {got[b].tolist()} not in [0, {n})"
+    bad = data.draw(_BAD_NUM_OUT, "bad num_out")
+    _, err = outcome(net.pick, pts, lengths, bad, dedup)
+    assert_clear_error(err, ValueError, ["num_out"], f"pick: bad num_out {bad!r}")
