@@ -41,3 +41,27 @@ TINY = dict(
                               "anchor_bottom_heights": [-1.78], "align_center": True, "feature_map_stride": 2,
                               "matched_threshold": 0.6, "unmatched_threshold": 0.45}],
 )
+
+
+def greedy_reference(scores: torch.Tensor, mask=None) -> torch.Tensor:
+    """The sequential greedy of distinct picks: the finite (row, point) pairs by decreasing score (ties: lower
+    row, then lower point), skipping used rows and points; a row left over keeps its best point (the lowest
+    among ties). ``mask (B, N)`` leaves points out."""
+    B, m, N = scores.shape
+    out = torch.full((B, m), -1, dtype=torch.int64)
+    for b in range(B):
+        sb = scores[b].detach().tolist()
+        ok = [j for j in range(N) if mask is None or bool(mask[b, j])]
+        pairs = sorted(((sb[i][j], i, j) for i in range(m) for j in ok if sb[i][j] > float("-inf")),
+                       key=lambda t: -t[0])
+        rows, cols = set(), set()
+        for _, i, j in pairs:
+            if i not in rows and j not in cols:
+                out[b, i] = j
+                rows.add(i)
+                cols.add(j)
+        for i in range(m):
+            if out[b, i] < 0:
+                out[b, i] = max(ok, key=lambda j: (sb[i][j], -j))
+    return out
+

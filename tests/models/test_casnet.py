@@ -15,7 +15,7 @@ from lidarops.models.samplers import segment_shares, spatial_segments
 
 from helpers.compare import assert_close_report
 from helpers.devices import requires_cuda
-from helpers.models import randomize_bn
+from helpers.models import greedy_reference, randomize_bn
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tiny tensors: OpenMP wake-ups cost more than the work
@@ -253,25 +253,6 @@ def test_padded_cloud_equals_the_cloud_alone_in_training(device):
 
 # ---- duplicates and the greedy reassignment ----
 
-def _greedy_reference(scores: torch.Tensor, mask=None) -> torch.Tensor:
-    """The sequential greedy: (row, point) pairs by decreasing score, skipping used rows and points."""
-    B, m, N = scores.shape
-    out = torch.full((B, m), -1, dtype=torch.int64)
-    for b in range(B):
-        ok = [j for j in range(N) if mask is None or bool(mask[b, j])]
-        pairs = sorted(((float(scores[b, i, j].detach()), i, j) for i in range(m) for j in ok), key=lambda t: -t[0])
-        rows, cols = set(), set()
-        for _, i, j in pairs:
-            if i not in rows and j not in cols:
-                out[b, i] = j
-                rows.add(i)
-                cols.add(j)
-        for i in range(m):
-            if out[b, i] < 0:
-                out[b, i] = max(ok, key=lambda j: (float(scores[b, i, j].detach()), -j))
-    return out
-
-
 def test_count_duplicates():
     idx = torch.tensor([[0, 1, 2, 3], [5, 5, 5, 1], [2, -1, -1, 2]])
     assert count_duplicates(idx).tolist() == [0, 2, 1]
@@ -296,7 +277,7 @@ def test_greedy_distinct_rows_equals_the_sequential_greedy(seed, m, N, valid, sp
     mask = torch.ones(2, N, dtype=torch.bool)
     mask[1, valid:] = False
     got = greedy_distinct_rows(scores, mask)
-    assert torch.equal(got, _greedy_reference(scores, mask))
+    assert torch.equal(got, greedy_reference(scores, mask))
     assert got[0].unique().numel() == m
     assert got[1].unique().numel() == min(m, valid) and bool((got[1] < valid).all())
 
@@ -311,7 +292,7 @@ def test_dedup_in_the_model(device):
     assert torch.equal(dedup.sampled, rows_at(pts, dedup.indices))
     # the greedy assignment of the rows' log-probabilities (not "uncontested rows keep their pick": a row that
     # lost its first choice may outbid one for its second)
-    assert torch.equal(dedup.indices.cpu(), _greedy_reference(torch.log_softmax(plain.logits, -1).cpu()))
+    assert torch.equal(dedup.indices.cpu(), greedy_reference(torch.log_softmax(plain.logits, -1).cpu()))
     assert net.dedup is False and CASNet(4, dedup=True).dedup is True
 
 

@@ -17,7 +17,7 @@ from lidarops.models.samplers import segment_shares, spatial_segments
 
 from helpers.compare import assert_close_report
 from helpers.devices import requires_cuda
-from helpers.models import randomize_bn
+from helpers.models import greedy_reference, randomize_bn
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -143,22 +143,6 @@ def test_straight_through_gradient_reaches_the_head_and_the_output_is_a_subset()
     assert_close_report(g_hard, g_soft, 1e-10, 1e-10, "straight-through gradient")
 
 
-def _finite_greedy(scores: torch.Tensor) -> torch.Tensor:
-    """The sequential greedy over the finite pairs only; rows left over keep their argmax."""
-    B, m, N = scores.shape
-    out = scores.argmax(-1).clone()
-    for b in range(B):
-        pairs = sorted(((float(scores[b, i, j]), i, j) for i in range(m) for j in range(N)
-                        if math.isfinite(float(scores[b, i, j]))), key=lambda t: -t[0])
-        rows, cols = set(), set()
-        for _, i, j in pairs:
-            if i not in rows and j not in cols:
-                out[b, i] = j
-                rows.add(i)
-                cols.add(j)
-    return out
-
-
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("m", [15, 30])
 def test_distinct_picks_on_sparse_rows_equal_the_greedy(seed, m):
@@ -167,7 +151,7 @@ def test_distinct_picks_on_sparse_rows_equal_the_greedy(seed, m):
     out = net(pts, num_out=m)
     scores = torch.log_softmax(out.logits.detach(), -1)
     got = greedy_distinct_rows(scores)
-    expected = _finite_greedy(scores)
+    expected = greedy_reference(scores)
     assert torch.equal(got, expected)
     assert torch.equal(net(pts, num_out=m, dedup=True).indices, got)
     assert torch.equal(net.pick(pts, num_out=m, dedup=True), got)
@@ -181,7 +165,7 @@ def test_distinct_picks_serve_every_row_when_rows_see_few_points():
                             [-1.2, -inf, -inf, -2.2, -3.2, -inf],
                             [-1.1, -inf, -inf, -inf, -2.1, -3.1]]])
     got = greedy_distinct_rows(scores)
-    assert got.tolist() == [[0, 2, 3, 4]] and torch.equal(got, _finite_greedy(scores))
+    assert got.tolist() == [[0, 2, 3, 4]] and torch.equal(got, greedy_reference(scores))
 
 
 @pytest.mark.parametrize("regime", ["random", "duplicates"])
