@@ -5,10 +5,12 @@
     python benchmarks/profile/casnet_pick.py --device cpu --points 4000
 
 The stages are the pick's own calls, run one after the other with a synchronisation between them (so each
-stage's time includes its launches and host reads): input checks, the neighbour embedding, the offset attention,
-farthest point sampling of the anchors, the anchors' candidates (kNN), the head's logits on them, and the
-distinct picks (a ranking on the device, the greedy scan on the host). The sum is checked against the whole
-call timed alone. Medians of ``--runs`` after two warm-up calls.
+stage's time includes its launches and host reads): input checks, the points in the model's dtype, farthest
+point sampling of the anchors, the anchors' candidates (kNN), the neighbour embedding, the offset attention, the
+head's logits on the candidates, and the distinct picks (ranked and assigned on the device). On CUDA the pick
+itself runs the anchors and candidates on a second stream beside the embedding and the attention, so the whole
+call takes less than the sum: it is timed alone, also with that second stream off ("one stream"), and as users
+call it (``CASNetSampler(model, whole=True)``). Medians of ``--runs`` after two warm-up calls.
 """
 from __future__ import annotations
 
@@ -42,42 +44,52 @@ def _stages(model, points: torch.Tensor, m: int) -> dict:
         times[name] = now - t
         t = now
 
-    head = model.head
+    head, N = model.head, points.shape[1]
     with torch.no_grad():
         sync()
         t = time.perf_counter()
         lengths = model._check_input(points, None)
         lap("input checks")
-        xyz = points[..., :3].float()
+        xyz, mask = model._xyz(points, lengths, full=True)
+        lap("points in the model's dtype")
+        with validation(False):
+            anchors = fps(xyz, m, lengths)
+            lap("anchors: farthest point sampling")
+            d2, cand = knn(gather(xyz, anchors), xyz, head.candidates, None, lengths)
+            lap("candidates: kNN of the anchors")
         x = model.embedding(xyz, lengths)
-        lap("embedding (neighbours, MLP, max)")
+        lap("embedding")
         feats = []
         for layer in model.attention:
             x = layer(x)
             feats.append(x)
         h = torch.cat(feats + [xyz.transpose(1, 2)], dim=1)
         lap("offset attention")
-        with validation(False):
-            anchors = fps(xyz, m, lengths)
-        lap("anchors: farthest point sampling")
-        with validation(False):
-            _, cand = knn(gather(xyz, anchors), xyz, head.candidates, None, lengths)
-        lap("candidates: kNN of the anchors")
-        logits, cand = head.sparse(h, xyz, lengths, m)  # repeats fps and kNN: subtracted below
+        logits, cand = head.logits(head.project(h), (anchors, cand, d2))
         logits = logits / model.temperature
         best = logits.amax(dim=-1, keepdim=True)
-        plain = torch.where(logits == best, cand, points.shape[1]).amin(dim=-1)
-        lap("head: logits on the candidates (with its own fps and kNN)")
-        _greedy_candidates(torch.log_softmax(logits, dim=-1), cand, plain, points.shape[1])
-        lap("distinct picks (rank on device, greedy on host)")
-    times["head: logits on the candidates (with its own fps and kNN)"] -= (
-        times["anchors: farthest point sampling"] + times["candidates: kNN of the anchors"])
+        plain = torch.where(logits == best, cand, N).amin(dim=-1)
+        lap("head: logits on the candidates")
+        _greedy_candidates(torch.log_softmax(logits, dim=-1), cand, plain, N, padded=False)
+        lap("distinct picks (ranked and assigned on the device)")
     return times
+
+
+def _one_stream(call, *args, **kwargs):
+    """``call`` with CAS-Net's second CUDA stream off: every stage on the current stream, one after another."""
+    from lidarops.models import casnet
+
+    side = casnet._side_stream
+    casnet._side_stream = lambda device: None
+    try:
+        return call(*args, **kwargs)
+    finally:
+        casnet._side_stream = side
 
 
 def main(argv=None) -> int:
     from benchmarks.bm_casnet import FovClouds
-    from lidarops.models.casnet import load_casnet
+    from lidarops.models.casnet import CASNetSampler, load_casnet
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -89,8 +101,6 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     dev = torch.device(a.device)
     model = load_casnet(a.checkpoint, dev)
-    for layer in model.attention:  # the fused kernels, as bm_casnet's fastest rows
-        layer.chunk = "fused"
     cloud, info = FovClouds().cloud(a.points)
     points = cloud.to(dev).unsqueeze(0)
     m = a.points // a.ratio
@@ -101,24 +111,34 @@ def main(argv=None) -> int:
     for precision in precisions:
         ctx = (lambda: torch.autocast("cuda", dtype=torch.float16)) if precision != "float32" \
             else contextlib.nullcontext
-        runs, whole = [], []
+        sampler = CASNetSampler(model, whole=True)
+        calls = {"pick_ms": lambda: model.pick(points, num_out=m, dedup=True),
+                 "pick_one_stream_ms": lambda: _one_stream(model.pick, points, num_out=m, dedup=True),
+                 "sampler_ms": lambda: sampler(points, m)}
+        if dev.type != "cuda":
+            del calls["pick_one_stream_ms"]
+        runs, whole = [], {k: [] for k in calls}
         for i in range(a.runs + 2):
             with ctx():
                 runs.append(_stages(model, points, m))
-                sync()
-                t = time.perf_counter()
-                model.pick(points, num_out=m, dedup=True)
-                sync()
-                whole.append(time.perf_counter() - t)
-        runs, whole = runs[2:], whole[2:]
+                for k, call in calls.items():
+                    sync()
+                    t = time.perf_counter()
+                    call()
+                    sync()
+                    whole[k].append(time.perf_counter() - t)
+        runs = runs[2:]
         medians = {k: 1e3 * statistics.median(r[k] for r in runs) for k in runs[0]}
         report["precisions"][precision] = {"stages_ms": medians, "sum_ms": sum(medians.values()),
-                                           "pick_ms": 1e3 * statistics.median(whole)}
+                                           **{k: 1e3 * statistics.median(v[2:]) for k, v in whole.items()}}
         print(f"== {precision}: CASNet.pick, {a.points:,} points -> {m:,} ({report['device']})")
         for k, v in medians.items():
             print(f"  {k:<58} {v:7.2f} ms")
         print(f"  {'sum of the stages':<58} {sum(medians.values()):7.2f} ms")
-        print(f"  {'the whole pick, timed alone':<58} {1e3 * statistics.median(whole):7.2f} ms")
+        names = {"pick_ms": "the whole pick, timed alone", "pick_one_stream_ms": "the whole pick, one stream",
+                 "sampler_ms": "CASNetSampler(model, whole=True)(points, m)"}
+        for k in calls:
+            print(f"  {names[k]:<58} {report['precisions'][precision][k]:7.2f} ms")
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=1))
     return 0

@@ -7,23 +7,14 @@
 
 #include <torch/library.h>
 
+#include "lidarops/assign.h"
+
 namespace lidarops {
 namespace {
 
 at::Tensor greedy_assign_cpu(const at::Tensor& rows_in, const at::Tensor& cols_in, int64_t num_rows,
                              int64_t num_cols, int64_t limit) {
-  TORCH_CHECK_VALUE(rows_in.dim() == 1 && cols_in.dim() == 1 && rows_in.size(0) == cols_in.size(0),
-                    "greedy_assign: rows and cols must be 1-D of one length, got ", rows_in.sizes(), " and ",
-                    cols_in.sizes());
-  TORCH_CHECK_VALUE(rows_in.scalar_type() == at::kLong && cols_in.scalar_type() == at::kLong,
-                    "greedy_assign: rows and cols must be int64, got ", rows_in.scalar_type(), " and ",
-                    cols_in.scalar_type());
-  TORCH_CHECK_VALUE(rows_in.device().is_cpu() && cols_in.device().is_cpu(),
-                    "greedy_assign: rows and cols must be on the CPU, got ", rows_in.device(), " and ",
-                    cols_in.device());
-  TORCH_CHECK_VALUE(num_rows >= 0 && num_cols >= 0 && limit >= 0,
-                    "greedy_assign: num_rows, num_cols and limit must be >= 0, got ", num_rows, ", ", num_cols,
-                    ", ", limit);
+  check_greedy_assign_args(rows_in, cols_in, num_rows, num_cols, limit);
   auto rows = rows_in.contiguous();
   auto cols = cols_in.contiguous();
   const int64_t L = rows.size(0);

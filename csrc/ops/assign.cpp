@@ -1,13 +1,15 @@
-// Schema of the greedy assignment over a ranked list of pairs (CPU only: a sequential scan). Kernel:
-// csrc/cpu/assign_kernel.cpp; fake kernel: lidarops/ops/_registrations.py; caller: lidarops.ops.greedy_assign
-// (CAS-Net's distinct picks, lidarops/models/casnet.py).
+// Schema of the greedy assignment over a ranked list of pairs. Kernels: csrc/cpu/assign_kernel.cpp (a sequential
+// scan), csrc/cuda/assign_kernel.cu (the same answer in parallel rounds); fake kernel:
+// lidarops/ops/_registrations.py; caller: lidarops.ops.greedy_assign (CAS-Net's distinct picks,
+// lidarops/models/casnet.py).
 #include <torch/library.h>
 
 TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // rows (L,), cols (L,) int64: (row, col) pairs in the order they are offered (e.g. by decreasing score).
   // Each pair is taken unless its row already holds one or its col is already taken; the scan stops once
   // `limit` rows hold one. Returns (num_rows,) int64: each row's col, -1 where none.
-  // Direct calls: rows in [0, num_rows), cols in [0, num_cols), equal lengths, 1-D int64 on the CPU,
-  // num_rows, num_cols, limit >= 0 (ValueError).
+  // Direct calls: equal lengths, 1-D int64 on one device, num_rows, num_cols, limit >= 0 (ValueError); rows in
+  // [0, num_rows) and cols in [0, num_cols) (ValueError on the CPU; on CUDA, where checking needs a host read,
+  // pairs outside are skipped: lidarops.greedy_assign checks them).
   m.def("greedy_assign(Tensor rows, Tensor cols, int num_rows, int num_cols, int limit) -> Tensor");
 }

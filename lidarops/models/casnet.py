@@ -138,6 +138,15 @@ class FeatureEmbedding(nn.Module):
     def forward(self, xyz: Tensor, lengths: Tensor) -> Tensor:
         """Args: xyz (Tensor[B, N, 3]) in the parameters' dtype; lengths (Tensor[B] int64).
         Returns: Tensor[B, channels, N]."""
+        if self.neighbors == "knn" and self.k == 1:
+            # a point's nearest is itself or a point at its place: the edge is [p, 0] either way, no search needed
+            B, N, _ = xyz.shape
+            idx = torch.arange(N, device=xyz.device).view(1, N, 1).expand(B, N, 1)
+            valid = idx < lengths.view(B, 1, 1)
+            if self.training:  # BatchNorm statistics of the real points only
+                return self.embed(xyz, idx, valid)
+            h = self.mlp(torch.cat([xyz, torch.zeros_like(xyz)], -1).transpose(1, 2))  # (B, C, N)
+            return torch.where(valid.view(B, 1, N), h, torch.zeros((), dtype=h.dtype, device=h.device))
         idx = self.neighbour_indices(xyz.detach(), lengths)
         return self.embed(xyz, idx, idx >= 0)
 
@@ -156,7 +165,11 @@ class FeatureEmbedding(nn.Module):
             nb = gather(xyz, idx.clamp(min=-1, max=max(N - 1, -1)))  # (B, N, k, 3); padded slots read anything
         centre = xyz.unsqueeze(2).expand(B, N, k, 3)
         edges = torch.cat([centre, nb - centre], dim=-1)  # (B, N, k, 6)
-        h = self.mlp(edges[valid].t().unsqueeze(0)).squeeze(0).t()  # (V, C): real edges only
+        if not self.training:  # BatchNorm's running statistics: every edge apart, padding masked after the MLP
+            h = self.mlp(edges.reshape(B, N * k, 6).transpose(1, 2)).view(B, self.channels, N, k)
+            pooled = h.masked_fill(~valid.unsqueeze(1), -math.inf).amax(dim=3)  # (B, C, N)
+            return torch.where(valid.any(dim=2).unsqueeze(1), pooled, torch.zeros_like(pooled))
+        h = self.mlp(edges[valid].t().unsqueeze(0)).squeeze(0).t()  # (V, C): real edges only (BatchNorm statistics)
         full = h.new_full((B, N, k, self.channels), -math.inf)
         full = full.index_put((valid,), h)
         pooled = full.amax(dim=2)  # (B, N, C)
@@ -233,35 +246,55 @@ class AnchoredHead(nn.Module):
         # amax: a padded slot (-inf, clamped to point 0) never overrides a real candidate at point 0
         return dense.scatter_reduce(2, cand, logits, reduce="amax", include_self=True)
 
-    def sparse(self, x: Tensor, xyz: Tensor, lengths: Tensor, num_out: int,
-               mask: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
-        """:meth:`forward`'s logits on the candidates only: ``(logits (B, m, K), candidates (B, m, K) int64)``,
-        ``-inf`` logits at padding slots (whose candidate index is 0)."""
+    def search(self, xyz: Tensor, lengths: Tensor, num_out: int) -> tuple[Tensor, Tensor, Tensor]:
+        """The rows' anchors and candidates, from the points alone: ``(anchors (B, m), candidates (B, m, K)
+        int64, their squared distances to the anchor (B, m, K))``, candidates ``-1`` (distance ``inf``) at a
+        list's padding (a cloud of fewer than ``m`` points repeats its anchors cyclically)."""
+        with validation(False), torch.no_grad():
+            xyz = xyz.detach()
+            anchors = fps(xyz, num_out, lengths)  # (B, m), -1 past a cloud's size
+            pos = torch.arange(num_out, device=xyz.device).unsqueeze(0)
+            anchors = torch.where(anchors >= 0, anchors, anchors.gather(1, pos % lengths.clamp(min=1).unsqueeze(1)))
+            K = min(self.candidates, xyz.shape[1])
+            d2, cand = knn(gather(xyz, anchors), xyz, K, None, lengths)  # (B, m, K), -1 padding
+        return anchors, cand, d2
+
+    def project(self, x: Tensor, mask: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor]:
+        """The per-point terms of :meth:`logits`: ``(q, k, u)``, each ``(B, N, channels)`` (``u``: one channel)."""
         B, _, N = x.shape
-        if mask is None:
+        if mask is None or not self.training:  # eval: running statistics, padding rows never read below
             z = self.hidden(x)
         else:  # BatchNorm statistics of the valid points only
             h = self.hidden(x.transpose(1, 2)[mask].t().unsqueeze(0)).squeeze(0).t()
             z = h.new_zeros(B, N, h.shape[1]).index_put((mask,), h).transpose(1, 2)
-        with validation(False), torch.no_grad():
-            anchors = fps(xyz.detach(), num_out, lengths)  # (B, m), -1 past a cloud's size
-            pos = torch.arange(num_out, device=xyz.device).unsqueeze(0)
-            anchors = torch.where(anchors >= 0, anchors, anchors.gather(1, pos % lengths.clamp(min=1).unsqueeze(1)))
-            K = min(self.candidates, N)
-            anchor_xyz = gather(xyz.detach(), anchors)
-            _, cand = knn(anchor_xyz, xyz.detach(), K, None, lengths)  # (B, m, K), -1 padding
+        return self.query(z).transpose(1, 2), self.key(z).transpose(1, 2), self.score(z).transpose(1, 2)
+
+    def logits(self, terms: tuple[Tensor, Tensor, Tensor], found: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+        """The logits of :meth:`project`'s ``terms`` on :meth:`search`'s candidates: ``(logits (B, m, K),
+        candidates (B, m, K))``, ``-inf`` logits at padding slots (whose candidate index is 0). The distances are
+        the search's (no gradient reaches the points through them; the scale's parameter gets its own)."""
+        (q, k, u), (anchors, cand, d2) = terms, found
         valid = cand >= 0
         cand = cand.clamp(min=0)
-        with validation(False):
-            d2 = (gather(xyz, cand) - gather(xyz, anchors).unsqueeze(2)).square().sum(-1)  # (B, m, K)
-        scale = (d2.detach() * valid).sum(dim=(1, 2)) / valid.sum(dim=(1, 2)).clamp(min=1)
+        d2 = torch.where(valid, d2, 0.0)
+        B = cand.shape[0]
+        scale = d2.sum(dim=(1, 2)) / valid.sum(dim=(1, 2)).clamp(min=1)
         scale = scale.clamp(min=torch.finfo(d2.dtype).tiny).view(B, 1, 1) * self.log_scale.exp()
         with validation(False):
-            q = gather(self.query(z).transpose(1, 2), anchors)  # (B, m, qk)
-            k = gather(self.key(z).transpose(1, 2), cand)  # (B, m, K, qk)
-            u = gather(self.score(z).transpose(1, 2), cand).squeeze(-1)  # (B, m, K)
+            q = gather(q, anchors)  # (B, m, qk)
+            k = gather(k, cand)  # (B, m, K, qk)
+            u = gather(u, cand).squeeze(-1)  # (B, m, K)
         logits = -d2 / scale + (k * q.unsqueeze(2)).sum(-1) / math.sqrt(self.qk_channels) + u
         return logits.masked_fill(~valid, -math.inf), cand
+
+    def sparse(self, x: Tensor, xyz: Tensor, lengths: Tensor, num_out: int,
+               mask: Optional[Tensor] = None, found: Optional[tuple[Tensor, Tensor, Tensor]] = None
+               ) -> tuple[Tensor, Tensor]:
+        """:meth:`forward`'s logits on the candidates only: ``(logits (B, m, K), candidates (B, m, K) int64)``,
+        ``-inf`` logits at padding slots (whose candidate index is 0). ``found``: :meth:`search`'s answer for
+        these points and ``num_out``, if the caller already has it."""
+        terms = self.project(x, mask)
+        return self.logits(terms, self.search(xyz, lengths, num_out) if found is None else found)
 
 
 class CASNet(nn.Module):
@@ -281,7 +314,8 @@ class CASNet(nn.Module):
         dedup (bool): default for :meth:`forward`: reassign repeated picks (see the module docstring).
         head_activation (bool): a LeakyReLU between the head's two layers (not in the issue's recipe).
         chunk: each :class:`OffsetAttention`'s path: ``"auto"`` (plain for small inputs, blocks of query
-            rows that never hold N x N for large ones), ``None`` (plain), an int (rows per block) or ``"fused"``
+            rows that never hold N x N for large ones; on CUDA without a gradient, torch's fused kernels for
+            large ones), ``None`` (plain), an int (rows per block) or ``"fused"``
             (torch's fused attention kernels; the flash kernels under float16 autocast on CUDA).
         head (str): ``"matrix"`` (the paper's :class:`SamplingHead`, ``m`` fixed by its last layer) or
             ``"anchored"`` (ours, :class:`AnchoredHead`: rows anchored at farthest point samples; ``m``
@@ -410,8 +444,9 @@ class CASNet(nn.Module):
             raise ValueError(f"mode must be one of {list(_MODES)}, got {mode!r}")
         dedup = self.dedup if dedup is None else flag(dedup, "dedup")
         num_out = self._num_out(num_out)
+        full = lengths is None
         lengths = self._check_input(points, lengths)
-        h, xyz, mask = self._features(points, lengths)
+        h, xyz, mask = self._features(points, lengths, full)
         if self.head_kind == "matrix":
             logits = self.head(h, mask) / self.temperature
         else:
@@ -428,23 +463,30 @@ class CASNet(nn.Module):
                              "last layer (head='anchored' takes any num_out)")
         return check_positive_int(num_out, "num_out")
 
-    def _features(self, points: Tensor, lengths: Tensor) -> tuple[Tensor, Tensor, Optional[Tensor]]:
+    def _features(self, points: Tensor, lengths: Tensor, full: bool = False) -> tuple[Tensor, Tensor, Optional[Tensor]]:
         """``(concat(attention features, xyz) (B, C, N), xyz (B, N, 3) in the parameters' dtype, mask or None)``
-        of checked points."""
+        of checked points; ``full``: the caller knows every cloud fills ``N`` (no host read to find out)."""
+        xyz, mask = self._xyz(points, lengths, full)
+        return self._attend(xyz, lengths, mask), xyz, mask
+
+    def _xyz(self, points: Tensor, lengths: Tensor, full: bool = False) -> tuple[Tensor, Optional[Tensor]]:
         B, N, _ = points.shape
         mask = None
-        if bool((lengths < N).any()):
+        if not full and bool((lengths < N).any()):
             mask = torch.arange(N, device=points.device).unsqueeze(0) < lengths.unsqueeze(1)
         dtype = next(self.parameters()).dtype
         xyz = points[..., :3].to(dtype)
         if mask is not None:  # padding rows may hold anything: never let them reach a product
             xyz = xyz.masked_fill(~mask.unsqueeze(-1), 0)
+        return xyz, mask
+
+    def _attend(self, xyz: Tensor, lengths: Tensor, mask: Optional[Tensor]) -> Tensor:
         x = self.embedding(xyz, lengths)
         feats = []
         for layer in self.attention:
             x = layer(x) if mask is None else layer(x, mask=mask)
             feats.append(x)
-        return torch.cat(feats + [xyz.transpose(1, 2)], dim=1), xyz, mask
+        return torch.cat(feats + [xyz.transpose(1, 2)], dim=1)
 
     @torch.no_grad()
     def pick(self, points: Tensor, lengths: Optional[Tensor] = None, num_out: Optional[int] = None,
@@ -460,9 +502,23 @@ class CASNet(nn.Module):
         if self.head_kind == "matrix":
             return self.forward(points, lengths, mode="hard", dedup=dedup, num_out=num_out).indices
         num_out = self._num_out(num_out)
+        full = lengths is None
         lengths = self._check_input(points, lengths)
-        h, xyz, mask = self._features(points, lengths)
-        logits, cand = self.head.sparse(h, xyz, lengths, num_out, mask)
+        xyz, mask = self._xyz(points, lengths, full)
+        found, side = None, _side_stream(points.device)
+        if side is not None:  # the anchors and candidates need only the points: found beside the features
+            main = torch.cuda.current_stream(points.device)
+            side.wait_stream(main)
+            with torch.cuda.stream(side):
+                found = self.head.search(xyz, lengths, num_out)
+        terms = self.head.project(self._attend(xyz, lengths, mask), mask)
+        if side is not None:
+            main.wait_stream(side)
+            for t in found:  # made on the side stream, read on this one
+                t.record_stream(main)
+        else:
+            found = self.head.search(xyz, lengths, num_out)
+        logits, cand = self.head.logits(terms, found)
         logits = logits / self.temperature
         N = points.shape[1]
         # forward's argmax over N: the lowest point among a row's best candidates
@@ -471,7 +527,9 @@ class CASNet(nn.Module):
         if not dedup:
             return plain
         scores = torch.log_softmax(logits, dim=-1)
-        return _greedy_candidates(scores, cand, plain, N)
+        # no padding slot: every cloud fills N (no lengths given) and has the K candidates a row asks for
+        padded = not full or N < self.head.candidates
+        return _greedy_candidates(scores, cand, plain, N, padded)
 
     def _check_input(self, points, lengths) -> Tensor:
         check_tensor(points, "points")
@@ -490,8 +548,22 @@ class CASNet(nn.Module):
             ranged = [] if given is None or not lengths.numel() else \
                 [(lengths, 1, n, lambda: f"lengths must lie in [1, {n}] (a cloud needs a point to sample from), "
                                          f"got {lengths.tolist()}")]
-            check_values(coords=[(_valid_rows(points[..., :3], lengths), "points")], ranged=ranged)
+            xyz = points[..., :3] if given is None else _valid_rows(points[..., :3], lengths)
+            check_values(coords=[(xyz, "points")], ranged=ranged)
         return lengths
+
+
+_SIDE_STREAMS: dict = {}
+
+
+def _side_stream(device: torch.device) -> "Optional[torch.cuda.Stream]":
+    """A second CUDA stream of ``device`` (one per device, made once), None off CUDA."""
+    if device.type != "cuda":
+        return None
+    index = device.index if device.index is not None else torch.cuda.current_device()
+    if index not in _SIDE_STREAMS:
+        _SIDE_STREAMS[index] = torch.cuda.Stream(index)
+    return _SIDE_STREAMS[index]
 
 
 def _valid_rows(xyz: Tensor, lengths: Tensor) -> Tensor:
@@ -592,7 +664,9 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
             order = torch.sort(vals, descending=True, stable=True).indices  # ties: row-major (lower row first)
             offered = int(torch.isfinite(vals).sum())  # -inf pairs (padding) sort last and are never taken
             order = order[:offered]
-            assign = greedy_assign(order // k, points[b, :, :k].reshape(-1)[order], m, N, can_serve).cpu()
+            # on the host: dense lists of alike rows (an untrained or collapsed model) would take one round per
+            # row on the device
+            assign = greedy_assign((order // k).cpu(), points[b, :, :k].reshape(-1)[order].cpu(), m, N, can_serve)
             served = int((assign >= 0).sum())
             # rows whose lists end within k (sparse rows: the anchored head) have offered every pair they have
             exhausted = k == N or not bool(torch.isfinite(values[b, :, k]).any())
@@ -603,23 +677,36 @@ def greedy_distinct_rows(scores: Tensor, mask: Optional[Tensor] = None) -> Tenso
     return picks.to(scores.device)
 
 
-def _greedy_candidates(scores: Tensor, cand: Tensor, plain: Tensor, num_points: int) -> Tensor:
+def _greedy_candidates(scores: Tensor, cand: Tensor, plain: Tensor, num_points: int, padded: bool = True) -> Tensor:
     """:func:`greedy_distinct_rows` on sparse rows: ``scores (B, m, K)`` of the points ``cand (B, m, K)`` (``-inf``
     at padding). Pairs in the order the dense greedy takes them (decreasing score; ties: lower row, then lower
-    point); rows left without a free candidate keep ``plain``."""
+    point); rows left without a free candidate keep ``plain``. On the scores' device, without a host read: the
+    clouds are one list (rows and points offset per cloud), and the padding pairs, ranked last, offer each
+    cloud's one extra point (the first row to take it had no free candidate left, the later ones find it taken).
+    ``padded=False``: the caller knows there is no padding slot (fewer steps)."""
+    from lidarops import extension
+
     B, m, K = scores.shape
-    picks = plain.cpu().clone()
-    by_point = torch.sort(cand, dim=2, stable=True)
-    vals = scores.gather(2, by_point.indices)
-    by_value = torch.sort(vals, dim=2, descending=True, stable=True)  # ties: the lower point first
-    vals, points = by_value.values, by_point.values.gather(2, by_value.indices)
-    for b in range(B):
-        flat = vals[b].reshape(-1)
-        order = torch.sort(flat, descending=True, stable=True).indices  # ties: the lower row first
-        order = order[:int(torch.isfinite(flat).sum())]
-        assign = greedy_assign(order // K, points[b].reshape(-1)[order], m, num_points).cpu()
-        picks[b] = torch.where(assign >= 0, assign, picks[b])
-    return picks.to(scores.device)
+    if B * m * K == 0:
+        return plain
+    by_point = torch.sort(cand, dim=2, stable=True)  # within a row, ties of score: the lower point first
+    vals = scores.gather(2, by_point.indices).view(B, m * K)
+    order = torch.sort(vals, dim=1, descending=True, stable=True).indices  # ties: lower row, then lower point
+    cols = by_point.values.view(B, m * K).gather(1, order)
+    if padded:
+        cols = torch.where(torch.isfinite(vals.gather(1, order)), cols, num_points)
+    rows = order // K
+    if B > 1:
+        base = torch.arange(B, device=scores.device).unsqueeze(1)
+        rows, cols = rows + base * m, cols + base * (num_points + 1)
+    extension.load()
+    # the raw op: pairs in range by construction (the wrapper would check them with a host read)
+    assign = torch.ops.lidarops.greedy_assign(rows.view(-1), cols.view(-1), B * m, B * (num_points + 1), B * m)
+    assign = assign.view(B, m)
+    if B > 1:
+        assign = assign - base * (num_points + 1)
+    keep = (assign >= 0) & (assign < num_points) if padded or B > 1 else assign >= 0
+    return torch.where(keep, assign, plain)
 
 
 @torch.no_grad()
@@ -750,7 +837,8 @@ class CASNetSampler(Sampler):
                 continue
             want = min(m, n)
             if self.whole:
-                idx = self.model.pick(points[b:b + 1, :n], num_out=want, dedup=self.dedup)[0]
+                with validation(False):  # the points were checked above (the sampler's own checks)
+                    idx = self.model.pick(points[b:b + 1, :n], num_out=want, dedup=self.dedup)[0]
                 out[b, :want] = _fill_repeats(points[b, :n, :3], idx) if self.dedup else idx
                 continue
             ratio = self.ratio if self.ratio is not None else min(max(1, n // m), cap)

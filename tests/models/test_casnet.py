@@ -100,6 +100,26 @@ def test_fast_variant_embeds_each_point_alone():
     close(emb, alone, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("training", [False, True], ids=["eval", "train"])
+def test_fast_embedding_equals_the_searched_neighbourhoods(training):
+    """k = 1 nearest neighbour skips the search: the same embedding (and BatchNorm statistics) as the searched
+    neighbour, with duplicate points (whose nearest may be the twin) and a padded cloud."""
+    emb = FeatureEmbedding(k=1, neighbors="knn").double()
+    randomize_bn(emb, 3)
+    twin = FeatureEmbedding(k=1, neighbors="knn").double()
+    twin.load_state_dict(emb.state_dict())
+    emb.train(training), twin.train(training)
+    xyz = cloud(2, 30, channels=3)
+    xyz[:, 20:] = xyz[:, :10]
+    lengths = torch.tensor([30, 17])
+    idx = twin.neighbour_indices(xyz, lengths)
+    assert bool((idx[1, 17:] == -1).all()) and bool((idx[0, 20:, 0] != torch.arange(20, 30)).any()), \
+        "some duplicate's nearest should be its twin, or the test proves less"
+    close(emb(xyz, lengths), twin.embed(xyz, idx, idx >= 0), rtol=0, atol=0)
+    for a, b in zip(emb.state_dict().values(), twin.state_dict().values()):
+        close(a.double(), b.double(), rtol=1e-12, atol=1e-12)
+
+
 # ---- the straight-through gradient ----
 
 def _soft_backward_by_hand(logits, features, upstream):

@@ -4,6 +4,7 @@ sampling, any number of rows, padding, the straight-through gradient, distinct p
 and the whole-cloud sampler, the config keys."""
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -253,6 +254,35 @@ def test_cpu_cuda_parity():
     assert_close_report(gpu.logits.cpu()[finite], cpu.logits[finite], 1e-9, 1e-9, "anchored logits, CUDA")
     whole = CASNetSampler(net, whole=True)(pts.cuda(), 50, lengths.cuda())
     assert torch.equal(whole.cpu(), CASNetSampler(net.cpu(), whole=True)(pts, 50, lengths))
+
+
+@requires_cuda
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32-fused"])
+def test_cuda_pick_equals_cpu_pick(dtype):
+    """pick on CUDA (anchors and candidates on a second stream beside the features, distinct picks by the
+    device's greedy) gives the CPU's picks; float32 with the fused attention (log-sum-exps from the kernel)."""
+    chunk = "fused" if dtype == torch.float32 else "auto"
+    net = anchored(seed=9, chunk=chunk, candidates=8).to(dtype)
+    gpu = copy.deepcopy(net).cuda()
+    pts = cloud(2, 2500, seed=19).to(dtype)
+    lengths = torch.tensor([2500, 1700])
+
+    def agree(got, want, what):
+        if dtype == torch.float64:
+            assert torch.equal(got, want), what
+        else:  # float32 rounding may flip a near tie: nearly all picks agree
+            assert float((got == want).double().mean()) > 0.99, what
+
+    for dedup in (False, True):
+        for m in (300, 900):
+            want = net.pick(pts, lengths, num_out=m, dedup=dedup)
+            got = gpu.pick(pts.cuda(), lengths.cuda(), num_out=m, dedup=dedup).cpu()
+            agree(got, want, (dedup, m))
+            if dedup:
+                for b, n in enumerate(lengths.tolist()):
+                    assert got[b].unique().numel() == min(m, n)
+    # no lengths: the path without host reads for them
+    agree(gpu.pick(pts[:1].cuda(), num_out=500, dedup=True).cpu(), net.pick(pts[:1], num_out=500, dedup=True), "full")
 
 
 def test_whole_cloud_picks_stay_distinct_when_candidates_run_out():

@@ -366,6 +366,60 @@ def test_cuda_autocast_fused_is_close_to_float32():
     assert_close_report(got.float(), want, 5e-2, 5e-2, "autocast f16 fused")
 
 
+@requires_cuda
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 2e-5), (torch.float16, 2e-3)], ids=["f32", "f16"])
+@pytest.mark.parametrize("masked", [False, True], ids=["full", "masked"])
+@pytest.mark.parametrize("d", [8, 16])
+def test_cuda_row_logsumexp_from_the_fused_kernel_matches_the_blocks(dtype, tol, masked, d):
+    """Without a gradient the fused path takes the row log-sum-exps from torch's memory-efficient kernel: they
+    must be the natural-log sums over the real keys that the blocks compute (in float32 from the same inputs)."""
+    g = torch.Generator().manual_seed(41)
+    q = (torch.randn(2, d, 700, generator=g) * 2).to(device="cuda", dtype=dtype)
+    k = (torch.randn(2, d, 700, generator=g) * 2).to(device="cuda", dtype=dtype)
+    mask = random_mask(2, 700, seed=42, device="cuda") if masked else None
+    got = oa._row_logsumexp_fused(q, k, mask, dtype)
+    assert got is not None, "the memory-efficient kernel refused float inputs"
+    want = oa._RowLogSumExp.apply(q, k, mask, 64)
+    e = torch.einsum("bdi,bdj->bij", q.double(), k.double())  # float64 literal, as a third opinion
+    if mask is not None:
+        e = e.masked_fill(~mask[:, None, :], -math.inf)
+    lit = torch.logsumexp(e, dim=-1)
+    if mask is not None:
+        lit = lit.masked_fill(~mask, 0.0)
+    assert_close_report(want.double(), lit, 1e-5, 1e-5, "blocks vs float64")
+    assert_close_report(got.double(), lit, tol, tol, f"fused kernel's log-sum-exps ({dtype}) vs float64")
+
+
+@requires_cuda
+@pytest.mark.parametrize("masked", [False, True], ids=["full", "masked"])
+def test_cuda_fused_without_gradient_matches_plain(masked):
+    layer = make_layer(C=16, d=8, seed=43, dtype=torch.float32, device="cuda", training=False)
+    x = random_input(2, 16, 600, seed=44, dtype=torch.float32, device="cuda")
+    mask = random_mask(2, 600, seed=45, device="cuda") if masked else None
+    with torch.no_grad():
+        want = layer(x, mask, chunk=None)
+        got = layer(x, mask, chunk="fused")
+    assert_close_report(got, want, 1e-3, 1e-3, "fused, no gradient (kernel log-sum-exps), float32")
+
+
+@requires_cuda
+def test_cuda_auto_takes_the_fused_kernels_for_inference_only(monkeypatch):
+    calls = []
+    real = oa._attention_fused
+    monkeypatch.setattr(oa, "_attention_fused", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(oa, "AUTO_ENTRIES", 2**12)  # 2 x 600^2 entries: large
+    layer = make_layer(C=16, d=8, seed=46, dtype=torch.float32, device="cuda", training=False)
+    x = random_input(2, 16, 600, seed=47, dtype=torch.float32, device="cuda")
+    with torch.no_grad():
+        plain = layer(x, chunk=None)
+        got = layer(x, chunk="auto")
+    assert len(calls) == 1
+    assert_close_report(got, plain, 1e-3, 1e-3, "auto without a gradient on CUDA")
+    out = layer(x.requires_grad_(True), chunk="auto")  # a gradient: the blocks, exact backward
+    assert len(calls) == 1
+    assert_close_report(out.detach(), plain, 1e-4, 1e-4, "auto with a gradient")
+
+
 # ------------------------------------------------------------------------------------------ errors
 @pytest.mark.parametrize("call,name", [
     (lambda l, x: l(x[:, :5]), "x"),

@@ -1,5 +1,6 @@
-"""lidarops.greedy_assign (lidarops/ops/assign.py, csrc/cpu/assign_kernel.cpp): the C++ scan against a plain
-Python re-statement on random lists with repeats and ties, empty inputs, the limit, and clear errors."""
+"""lidarops.greedy_assign (lidarops/ops/assign.py, csrc/cpu/assign_kernel.cpp, csrc/cuda/assign_kernel.cu): the C++
+scan against a plain Python re-statement on random lists with repeats and ties, empty inputs, the limit, and clear
+errors; the CUDA rounds against the scan on random, CAS-Net-like and worst-case (alike rows) lists."""
 from __future__ import annotations
 
 import pytest
@@ -47,17 +48,19 @@ def test_by_hand_and_empty():
     assert greedy_assign(empty, empty, 0, 0).tolist() == []
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a GPU"))])
 @settings(max_examples=60, deadline=None)
 @given(data=st.data())
-def test_fuzz_against_the_reference(data):
+def test_fuzz_against_the_reference(device, data):
     num_rows = data.draw(st.integers(0, 12), "num_rows")
     num_cols = data.draw(st.integers(1, 12), "num_cols")
     L = data.draw(st.integers(0, 40), "L") if num_rows else 0
     rows = data.draw(st.lists(st.integers(0, max(num_rows - 1, 0)), min_size=L, max_size=L), "rows")
     cols = data.draw(st.lists(st.integers(0, num_cols - 1), min_size=L, max_size=L), "cols")
     limit = data.draw(st.integers(0, num_rows), "limit")
-    got = greedy_assign(torch.tensor(rows, dtype=torch.int64), torch.tensor(cols, dtype=torch.int64), num_rows,
-                        num_cols, limit)
+    got = greedy_assign(torch.tensor(rows, dtype=torch.int64, device=device),
+                        torch.tensor(cols, dtype=torch.int64, device=device), num_rows, num_cols, limit)
     assert got.tolist() == _reference(rows, cols, num_rows, limit)
 
 
@@ -92,9 +95,69 @@ def test_the_registered_op_checks_its_values():
     assert fake.shape == (3,) and fake.dtype == torch.int64  # the fake kernel: shapes for torch.compile
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+requires_gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+
+
+@requires_gpu
 def test_cuda_pairs_come_back_on_cuda():
     rows = torch.tensor([0, 1, 1, 2, 2, 0], device="cuda")
     cols = torch.tensor([4, 4, 2, 2, 3, 1], device="cuda")
     got = greedy_assign(rows, cols, 3, 5)
     assert got.device.type == "cuda" and got.tolist() == [4, 2, 3]
+    assert greedy_assign(rows, cols, 3, 5, limit=2).tolist() == [4, 2, -1]
+
+
+def _knn_like(num_rows, num_cols, k, seed):
+    """Pairs as CAS-Net's picks make them: each row's k candidates around its own col, ranked by a random score
+    over all pairs (the list's order); plus every row ranking the same cols alike (one take per round)."""
+    g = torch.Generator().manual_seed(seed)
+    centre = torch.randint(0, num_cols, (num_rows, 1), generator=g)
+    cand = (centre + torch.randint(-3 * k, 3 * k + 1, (num_rows, k), generator=g)).clamp(0, num_cols - 1)
+    order = torch.randperm(num_rows * k, generator=g)
+    return torch.arange(num_rows).repeat_interleave(k)[order], cand.reshape(-1)[order]
+
+
+@requires_gpu
+@pytest.mark.parametrize("case", ["random", "repeats", "knn", "alike", "big"])
+def test_cuda_rounds_equal_the_cpu_scan(case):
+    g = torch.Generator().manual_seed(7)
+    if case == "random":
+        num_rows, num_cols = 200, 1000
+        rows, cols = torch.randint(0, num_rows, (3000,), generator=g), torch.randint(0, num_cols, (3000,), generator=g)
+    elif case == "repeats":  # few cols, many rows: most rows go unserved
+        num_rows, num_cols = 300, 6
+        rows, cols = torch.randint(0, num_rows, (2000,), generator=g), torch.randint(0, num_cols, (2000,), generator=g)
+    elif case == "knn":
+        num_rows, num_cols = 2500, 20000
+        rows, cols = _knn_like(num_rows, num_cols, 16, seed=8)
+    elif case == "alike":  # every row ranks cols 0..39 alike: the longest chain, one take per round
+        num_rows, num_cols = 40, 60
+        rows = torch.arange(num_rows).repeat_interleave(num_cols)
+        cols = torch.arange(num_cols).repeat(num_rows)
+    else:  # more pairs than threads many times over, cols beyond a 32-bit block of them
+        num_rows, num_cols = 30000, 200000
+        rows, cols = _knn_like(num_rows, num_cols, 16, seed=9)
+    for limit in (num_rows, num_rows // 3, 1, 0):
+        want = greedy_assign(rows, cols, num_rows, num_cols, limit)
+        got = greedy_assign(rows.cuda(), cols.cuda(), num_rows, num_cols, limit)
+        assert got.device.type == "cuda" and torch.equal(got.cpu(), want), (case, limit)
+        if case == "alike":  # row r takes col r, and the limit keeps the first rows
+            assert want.tolist() == [r if r < limit else -1 for r in range(num_rows)]
+
+
+@requires_gpu
+def test_cuda_names_bad_pairs_and_skips_them_unchecked():
+    from lidarops.ops.validation import validation
+
+    rows = torch.tensor([0, 1, 5, 2, 2, 0], device="cuda")
+    cols = torch.tensor([4, 4, 2, 2, 3, 1], device="cuda")
+    with pytest.raises(ValueError, match=r"rows\[2\] = 5 is outside \[0, num_rows=3\)"):
+        greedy_assign(rows, cols, 3, 5)
+    with pytest.raises(ValueError, match=r"cols\[0\] = 4 is outside \[0, num_cols=4\)"):
+        greedy_assign(rows.clamp(max=2), cols, 3, 4)
+    with pytest.raises(ValueError, match="move them to one device"):
+        greedy_assign(rows, cols.cpu(), 3, 5)
+    with validation(False):  # the raw kernel skips the pair (row 5) instead of reading a flag back
+        got = greedy_assign(rows, cols, 3, 5)
+    keep = torch.tensor([True, True, False, True, True, True])
+    assert got.tolist() == _reference(rows.cpu()[keep].tolist(), cols.cpu()[keep].tolist(), 3, 3)
