@@ -250,14 +250,26 @@ class AnchoredHead(nn.Module):
         """The rows' anchors and candidates, from the points alone: ``(anchors (B, m), candidates (B, m, K)
         int64, their squared distances to the anchor (B, m, K))``, candidates ``-1`` (distance ``inf``) at a
         list's padding (a cloud of fewer than ``m`` points repeats its anchors cyclically)."""
+        anchors = self.anchors(xyz, lengths, num_out)
         with validation(False), torch.no_grad():
             xyz = xyz.detach()
-            anchors = fps(xyz, num_out, lengths)  # (B, m), -1 past a cloud's size
-            pos = torch.arange(num_out, device=xyz.device).unsqueeze(0)
-            anchors = torch.where(anchors >= 0, anchors, anchors.gather(1, pos % lengths.clamp(min=1).unsqueeze(1)))
-            K = min(self.candidates, xyz.shape[1])
-            d2, cand = knn(gather(xyz, anchors), xyz, K, None, lengths)  # (B, m, K), -1 padding
+            d2, cand = knn(gather(xyz, anchors), xyz, min(self.candidates, xyz.shape[1]), None, lengths)
         return anchors, cand, d2
+
+    def anchors(self, xyz: Tensor, lengths: Tensor, num_out: int) -> Tensor:
+        """The rows' anchors (B, m) int64: farthest point samples, repeated cyclically past a cloud's size."""
+        with validation(False), torch.no_grad():
+            anchors = fps(xyz.detach(), num_out, lengths)  # (B, m), -1 past a cloud's size
+            pos = torch.arange(num_out, device=xyz.device).unsqueeze(0)
+            return torch.where(anchors >= 0, anchors, anchors.gather(1, pos % lengths.clamp(min=1).unsqueeze(1)))
+
+    def neighbours(self, xyz: Tensor, lengths: Tensor) -> tuple[Tensor, Tensor]:
+        """Every point's candidates, as :meth:`search` would find them were it an anchor: ``(candidates
+        (B, N, K), squared distances (B, N, K))`` (the same kNN, queried at the same coordinates)."""
+        with validation(False), torch.no_grad():
+            xyz = xyz.detach()
+            d2, cand = knn(xyz, xyz, min(self.candidates, xyz.shape[1]), lengths, lengths)
+        return cand, d2
 
     def project(self, x: Tensor, mask: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor]:
         """The per-point terms of :meth:`logits`: ``(q, k, u)``, each ``(B, N, channels)`` (``u``: one channel)."""
@@ -505,18 +517,23 @@ class CASNet(nn.Module):
         full = lengths is None
         lengths = self._check_input(points, lengths)
         xyz, mask = self._xyz(points, lengths, full)
-        found, side = None, _side_stream(points.device)
-        if side is not None:  # the anchors and candidates need only the points: found beside the features
+        side = _side_stream(points.device)
+        if side is not None:
+            # farthest point sampling is sequential and holds a few SMs for most of the call: it runs on a second
+            # stream, while this one finds every point's candidates (any anchor's list is then its row) and
+            # computes the features
             main = torch.cuda.current_stream(points.device)
             side.wait_stream(main)
             with torch.cuda.stream(side):
-                found = self.head.search(xyz, lengths, num_out)
-        terms = self.head.project(self._attend(xyz, lengths, mask), mask)
-        if side is not None:
+                anchors = self.head.anchors(xyz, lengths, num_out)
+            near = self.head.neighbours(xyz, lengths)
+            terms = self.head.project(self._attend(xyz, lengths, mask), mask)
             main.wait_stream(side)
-            for t in found:  # made on the side stream, read on this one
-                t.record_stream(main)
+            anchors.record_stream(main)  # made on the side stream, read on this one
+            with validation(False):
+                found = (anchors, gather(near[0], anchors), gather(near[1], anchors))
         else:
+            terms = self.head.project(self._attend(xyz, lengths, mask), mask)
             found = self.head.search(xyz, lengths, num_out)
         logits, cand = self.head.logits(terms, found)
         logits = logits / self.temperature
@@ -861,25 +878,35 @@ class CASNetSampler(Sampler):
                 f"whole={self.whole})")
 
 
-def _fill_repeats(xyz: Tensor, idx: Tensor) -> Tensor:
+def _fill_repeats(xyz: Tensor, idx: Tensor, near: int = 32) -> Tensor:
     """``idx`` with each repeat (after its first occurrence) replaced by the unpicked point nearest to the
-    repeated one, in row order: distinct picks when ``len(idx) <= len(xyz)`` (rows whose candidates were all
-    taken by other rows; rare unless nearly every point is kept)."""
+    repeated one (float64 distances, ties to the lower index), in row order: distinct picks when
+    ``len(idx) <= len(xyz)`` (rows whose candidates were all taken by other rows; rare unless nearly every point
+    is kept). The ``near`` nearest points of every repeated pick are found at once on the device; the rows then
+    take them in order on the host (a whole scan only for a row that finds all of them taken)."""
     order = torch.sort(idx, stable=True)
     repeat = torch.zeros_like(idx, dtype=torch.bool)
     repeat[order.indices[1:]] = order.values[1:] == order.values[:-1]
-    rows = torch.nonzero(repeat).flatten().tolist()
-    if not rows:
+    rows = torch.nonzero(repeat).flatten()
+    if rows.numel() == 0:
         return idx
-    idx = idx.clone()
-    free = torch.ones(xyz.shape[0], dtype=torch.bool, device=xyz.device)
-    free[idx] = False
-    for r in rows:
-        d = (xyz.double() - xyz[idx[r]].double()).square().sum(-1).masked_fill(~free, math.inf)
-        j = int(torch.argmin(d))
-        idx[r] = j
+    n = xyz.shape[0]
+    pts = xyz.double()
+    with validation(False):
+        _, cand = knn(pts[idx[rows]].unsqueeze(0), pts.unsqueeze(0), min(near, n))  # (1, R, near), nearest first
+    free = torch.ones(n, dtype=torch.bool)
+    out = idx.cpu()
+    free[out] = False
+    for r, row in zip(rows.tolist(), cand[0].cpu()):
+        open_ = row[free[row]]
+        if open_.numel():
+            j = int(open_[0])
+        else:  # every one of its nearest is taken: the whole cloud
+            d = (pts - pts[int(out[r])]).square().sum(-1).cpu().masked_fill(~free, math.inf)
+            j = int(torch.argmin(d))
+        out[r] = j
         free[j] = False
-    return idx
+    return out.to(idx.device)
 
 
 def casnet_loss(out: CASNetOutput, points: Tensor, task_loss: Tensor, alpha: float = 1.0, beta: float = 1.0,
