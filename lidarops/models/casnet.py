@@ -878,35 +878,31 @@ class CASNetSampler(Sampler):
                 f"whole={self.whole})")
 
 
-def _fill_repeats(xyz: Tensor, idx: Tensor, near: int = 32) -> Tensor:
+def _fill_repeats(xyz: Tensor, idx: Tensor) -> Tensor:
     """``idx`` with each repeat (after its first occurrence) replaced by the unpicked point nearest to the
     repeated one (float64 distances, ties to the lower index), in row order: distinct picks when
-    ``len(idx) <= len(xyz)`` (rows whose candidates were all taken by other rows; rare unless nearly every point
-    is kept). The ``near`` nearest points of every repeated pick are found at once on the device; the rows then
-    take them in order on the host (a whole scan only for a row that finds all of them taken)."""
-    order = torch.sort(idx, stable=True)
-    repeat = torch.zeros_like(idx, dtype=torch.bool)
-    repeat[order.indices[1:]] = order.values[1:] == order.values[:-1]
-    rows = torch.nonzero(repeat).flatten()
-    if rows.numel() == 0:
+    ``len(idx) <= len(xyz)`` (rows whose candidates were all taken by other rows: a few in a cloud, many only
+    when nearly every point is kept). On the host: one read of the picks, and of the points only if some repeat."""
+    import numpy as np
+
+    picks = idx.cpu().numpy()
+    _, first = np.unique(picks, return_index=True)
+    if first.size == picks.size:
         return idx
-    n = xyz.shape[0]
-    pts = xyz.double()
-    with validation(False):
-        _, cand = knn(pts[idx[rows]].unsqueeze(0), pts.unsqueeze(0), min(near, n))  # (1, R, near), nearest first
-    free = torch.ones(n, dtype=torch.bool)
-    out = idx.cpu()
-    free[out] = False
-    for r, row in zip(rows.tolist(), cand[0].cpu()):
-        open_ = row[free[row]]
-        if open_.numel():
-            j = int(open_[0])
-        else:  # every one of its nearest is taken: the whole cloud
-            d = (pts - pts[int(out[r])]).square().sum(-1).cpu().masked_fill(~free, math.inf)
-            j = int(torch.argmin(d))
+    repeat = np.ones(picks.size, dtype=bool)
+    repeat[first] = False
+    x, y, z = xyz.detach().double().t().cpu().numpy()  # coordinate rows: contiguous, fast to subtract
+    taken = np.zeros(x.size, dtype=bool)
+    taken[picks] = True
+    out = picks.copy()
+    for r in np.flatnonzero(repeat):
+        i = out[r]
+        d = np.square(x - x[i]) + np.square(y - y[i]) + np.square(z - z[i])
+        d[taken] = np.inf
+        j = int(np.argmin(d))  # the first of equal minima: the lower index
         out[r] = j
-        free[j] = False
-    return out.to(idx.device)
+        taken[j] = True
+    return torch.from_numpy(out).to(idx.device)
 
 
 def casnet_loss(out: CASNetOutput, points: Tensor, task_loss: Tensor, alpha: float = 1.0, beta: float = 1.0,
