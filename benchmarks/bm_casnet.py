@@ -21,7 +21,8 @@ moves between them: an accumulated cloud) and cut the same way. Sampling ratio D
    ``CASNet.fast(num_out=1024)``, each also with ``chunk="fused"`` (the offset attention through torch's fused
    attention kernels; on CUDA also under float16 autocast, the flash kernels); for each also ``segment_and_sample(model, points, 8, dedup=False)``, the
    paper's raw picks (``segments x 1,024`` rows, repeats included: ``m`` is then that count). ``--checkpoint``
-   adds the same two rows for ``load_casnet(PATH, device)``. Columns: ``distinct`` = distinct points picked;
+   adds the same two rows for ``load_casnet(PATH, device)`` (a name of ``lidarops/weights`` too), and the
+   whole-cloud rows below when its head is anchored. Columns: ``distinct`` = distinct points picked;
    ``x FPS`` = median / FPSSampler's median.
 2. ``cuda_graph`` (CUDA only): the CAS-Net forward (hard mode, no dedup, no grad) on one fixed padded segment
    batch (the 20,000-point cloud's 3 segments, padded to 8,192 rows, with their lengths) eagerly, with the
@@ -348,7 +349,9 @@ def bench_sampling(run: Runner, points: torch.Tensor, sizes: Sizes, models: dict
 
             cases.append(Case(_row("sampling", "segment_and_sample, fp16 autocast", name, N=N, m=raw_m, variant=kind,
                                    dedup=False, ratio=RATIO, segments=segs), half))
-    for name, model in anchored_models(dev=points.device).items():  # ours: the whole cloud, m free per call
+    whole = {**anchored_models(dev=points.device),  # ours: the whole cloud, m free per call; and anchored checkpoints
+             **{n: mod for n, mod in models.items() if isinstance(mod, CASNet) and mod.head_kind == "anchored"}}
+    for name, model in whole.items():
         kind = name.split(" ")[0]
         for dedup in (True, False):
             sampler = CASNetSampler(model, dedup=dedup, whole=True)

@@ -104,7 +104,10 @@ def main(argv=None) -> int:
     cloud, info = FovClouds().cloud(a.points)
     points = cloud.to(dev).unsqueeze(0)
     m = a.points // a.ratio
-    report = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu", "points": a.points,
+    from benchmarks.common import _git_commit
+
+    report = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu", "commit": _git_commit(),
+              "points": a.points,
               "m": m, "checkpoint": a.checkpoint, "cloud": info, "torch": torch.__version__, "precisions": {}}
     sync = (lambda: torch.cuda.synchronize(dev)) if dev.type == "cuda" else (lambda: None)
     precisions = ["float32"] + (["float16 autocast"] if dev.type == "cuda" else [])
