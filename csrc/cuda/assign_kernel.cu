@@ -1,5 +1,5 @@
-// CUDA kernel of lidarops::greedy_assign (schema and contract: csrc/ops/assign.cpp): the same assignment as the
-// CPU's sequential scan, found in parallel rounds.
+// CUDA kernels of lidarops::greedy_assign and lidarops::fill_repeats (schemas and contracts: csrc/ops/assign.cpp).
+// greedy_assign: the same assignment as the CPU's sequential scan, found in parallel rounds.
 //
 // Why rounds give the scan's answer: call a pair live while its row holds nothing and its col is free. A live
 // pair that comes first among the live pairs of its row and among those of its col is taken by the scan too:
@@ -17,6 +17,8 @@
 // Pairs outside [0, num_rows) x [0, num_cols) are skipped: the CPU raises on them, here that needs a host
 // read, so the Python wrapper checks.
 #include <ATen/ATen.h>
+#include <ATen/Dispatch.h>
+#include <math_constants.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
@@ -32,6 +34,7 @@
 #include <torch/library.h>
 
 #include "lidarops/assign.h"
+#include "lidarops/common.h"
 
 namespace lidarops {
 namespace {
@@ -212,8 +215,99 @@ at::Tensor greedy_assign_cuda(const at::Tensor& rows_in, const at::Tensor& cols_
   return out;
 }
 
+// fill_repeats: one block, the CPU's order. The rows are scanned in blocks of kFillThreads; a block's repeats
+// (compacted in row order by a block scan) are served one after another, each by a block-wide argmin over the free
+// points, so a point a row takes is taken for every later row. A cloud has a few repeats (rows whose candidates
+// other rows took), so one block of a scan over the points each is enough; no host read.
+constexpr int kFillThreads = 1024;
+constexpr int kFree = std::numeric_limits<int>::max();
+
+// (d, j) lexicographic minimum: the nearer, ties to the lower index
+__device__ __forceinline__ void nearer(double& d, int& j, double od, int oj) {
+  if (od < d || (od == d && oj < j)) d = od, j = oj;
+}
+
+template <typename T>
+__global__ void __launch_bounds__(kFillThreads)
+    fill_repeats_kernel(const T* __restrict__ pts, int n, const int64_t* __restrict__ idx, int m, int* holder,
+                        int64_t* __restrict__ out) {
+  using Scan = cub::BlockScan<int, kFillThreads>;
+  __shared__ typename Scan::TempStorage scan;
+  __shared__ int rep[kFillThreads];
+  __shared__ double warp_d[kFillThreads / 32];
+  __shared__ int warp_j[kFillThreads / 32];
+  const int t = threadIdx.x, lane = t & 31, warp = t >> 5;
+  for (int j = t; j < n; j += kFillThreads) holder[j] = kFree;
+  __syncthreads();
+  for (int r = t; r < m; r += kFillThreads) {  // each point's first row
+    const int64_t i = idx[r];
+    out[r] = i;
+    if (i >= 0 && i < n) atomicMin(&holder[i], r);
+  }
+  __syncthreads();
+  for (int base = 0; base < m; base += kFillThreads) {
+    const int r = base + t;
+    int repeat = 0;
+    if (r < m) {
+      const int64_t i = idx[r];
+      repeat = i >= 0 && i < n && holder[i] != r;
+    }
+    int pos = 0, total = 0;
+    Scan(scan).ExclusiveSum(repeat, pos, total);
+    if (repeat) rep[pos] = r;
+    __syncthreads();
+    for (int k = 0; k < total; ++k) {
+      const int row = rep[k];
+      const int64_t i = idx[row];
+      const double x = pts[3 * i], y = pts[3 * i + 1], z = pts[3 * i + 2];
+      double d = CUDART_INF;
+      int j = kFree;
+      for (int c = t; c < n; c += kFillThreads) {  // c rises: a thread's ties keep the lower index
+        if (holder[c] != kFree) continue;
+        const double dc = sqdist3<double>(x, y, z, pts[3 * c], pts[3 * c + 1], pts[3 * c + 2]);
+        if (dc < d) d = dc, j = c;
+      }
+      for (int off = 16; off > 0; off >>= 1) nearer(d, j, __shfl_down_sync(0xffffffffu, d, off),
+                                                    __shfl_down_sync(0xffffffffu, j, off));
+      if (lane == 0) warp_d[warp] = d, warp_j[warp] = j;
+      __syncthreads();
+      if (warp == 0) {
+        d = warp_d[lane];
+        j = warp_j[lane];
+        for (int off = 16; off > 0; off >>= 1) nearer(d, j, __shfl_down_sync(0xffffffffu, d, off),
+                                                      __shfl_down_sync(0xffffffffu, j, off));
+        if (lane == 0 && j != kFree) {  // no free point (m > n): the repeat stays
+          out[row] = j;
+          holder[j] = row;
+        }
+      }
+      __syncthreads();  // the point taken is seen by the next row's scan
+    }
+  }
+}
+
+at::Tensor fill_repeats_cuda(const at::Tensor& points, const at::Tensor& idx_in) {
+  check_fill_repeats_args(points, idx_in);
+  c10::cuda::CUDAGuard guard(points.device());
+  auto idx = idx_in.contiguous();
+  const int64_t n = points.size(0), m = idx.size(0);
+  auto out = at::empty_like(idx);
+  if (m == 0) return out;
+  auto holder = at::empty({std::max<int64_t>(n, 1)}, idx.options().dtype(at::kInt));
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "fill_repeats_cuda", [&] {
+    fill_repeats_kernel<scalar_t><<<1, kFillThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+        points.data_ptr<scalar_t>(), static_cast<int>(n), idx.data_ptr<int64_t>(), static_cast<int>(m),
+        holder.data_ptr<int>(), out.data_ptr<int64_t>());
+  });
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return out;
+}
+
 }  // namespace
 
-TORCH_LIBRARY_IMPL(lidarops, CUDA, m) { m.impl("greedy_assign", &greedy_assign_cuda); }
+TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
+  m.impl("greedy_assign", &greedy_assign_cuda);
+  m.impl("fill_repeats", &fill_repeats_cuda);
+}
 
 }  // namespace lidarops

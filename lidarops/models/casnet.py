@@ -45,8 +45,10 @@ from typing import Any, Optional
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from lidarops._checks import flag, positive_int, real
+from lidarops.models import folded
 from lidarops.models.casnet_losses import chamfer_distance, selection_cosine_loss
 from lidarops.models.offset_attention import OffsetAttention
 from lidarops.models.samplers import Sampler, segment_shares, spatial_segments
@@ -149,6 +151,19 @@ class FeatureEmbedding(nn.Module):
             return torch.where(valid.view(B, 1, N), h, torch.zeros((), dtype=h.dtype, device=h.device))
         idx = self.neighbour_indices(xyz.detach(), lengths)
         return self.embed(xyz, idx, idx >= 0)
+
+    def rows(self, xyz: Tensor, lengths: Tensor) -> Tensor:
+        """:meth:`forward` in eval mode for clouds that fill ``N``, as rows ``(B, N, channels)``; the fast
+        variant's (``knn``, ``k = 1``: the edge ``[p, 0]``) as two folded layers."""
+        if self.training or self.neighbors != "knn" or self.k != 1:
+            return self(xyz, lengths).transpose(1, 2)
+        def build():
+            w1, b1 = folded.conv_bn(self.mlp[0], self.mlp[1])
+            return (w1[:, :3], b1, *folded.conv_bn(self.mlp[3], self.mlp[4]))  # p_j - p = 0: only p's 3 inputs
+
+        w1, b1, w2, b2 = folded.cached(self, "rows", folded.compute_dtype(xyz), build)
+        h = F.leaky_relu(F.linear(xyz, w1, b1), 0.2, inplace=True)
+        return F.leaky_relu(F.linear(h, w2, b2), 0.2, inplace=True)
 
     def embed(self, xyz: Tensor, idx: Tensor, valid: Tensor) -> Tensor:
         """The embedding of given neighbourhoods: ``max over valid j of MLP([p, p_j - p])``.
@@ -281,23 +296,41 @@ class AnchoredHead(nn.Module):
             z = h.new_zeros(B, N, h.shape[1]).index_put((mask,), h).transpose(1, 2)
         return self.query(z).transpose(1, 2), self.key(z).transpose(1, 2), self.score(z).transpose(1, 2)
 
-    def logits(self, terms: tuple[Tensor, Tensor, Tensor], found: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor, Tensor]:
-        """The logits of :meth:`project`'s ``terms`` on :meth:`search`'s candidates: ``(logits (B, m, K),
-        candidates (B, m, K))``, ``-inf`` logits at padding slots (whose candidate index is 0). The distances are
-        the search's (no gradient reaches the points through them; the scale's parameter gets its own)."""
-        (q, k, u), (anchors, cand, d2) = terms, found
-        valid = cand >= 0
-        cand = cand.clamp(min=0)
-        d2 = torch.where(valid, d2, 0.0)
-        B = cand.shape[0]
-        scale = d2.sum(dim=(1, 2)) / valid.sum(dim=(1, 2)).clamp(min=1)
+    def project_rows(self, feats: Tensor) -> Tensor:
+        """:meth:`project` in eval mode without padding, on rows: ``feats (B, N, in)`` -> the terms packed as
+        ``(B, N, 2 qk + 1)`` (``q``, ``k``, ``u``), BatchNorm folded into the hidden layer."""
+        wh, bh, wo, bo = folded.cached(self, "rows", folded.compute_dtype(feats), lambda: (
+            *folded.conv_bn(self.hidden[0], self.hidden[1]),
+            *(torch.cat(t) for t in zip(*(folded.conv_bn(c) for c in (self.query, self.key, self.score))))))
+        return F.linear(F.leaky_relu(F.linear(feats, wh, bh), 0.2, inplace=True), wo, bo)
+
+    def logits(self, terms: "tuple[Tensor, Tensor, Tensor] | Tensor", found: tuple[Tensor, Tensor, Tensor],
+               padded: bool = True) -> tuple[Tensor, Tensor]:
+        """The logits of :meth:`project`'s ``terms`` (or :meth:`project_rows`' packed ones) on :meth:`search`'s
+        candidates: ``(logits (B, m, K), candidates (B, m, K))``, ``-inf`` logits at padding slots (whose
+        candidate index is 0). The distances are the search's (no gradient reaches the points through them; the
+        scale's parameter gets its own). ``padded=False``: the caller knows no list has a padding slot."""
+        anchors, cand, d2 = found
+        qk, B = self.qk_channels, cand.shape[0]
+        if padded:
+            valid = cand >= 0
+            cand = cand.clamp(min=0)
+            d2 = torch.where(valid, d2, 0.0)
+            scale = d2.sum(dim=(1, 2)) / valid.sum(dim=(1, 2)).clamp(min=1)
+        else:
+            scale = d2.mean(dim=(1, 2))
         scale = scale.clamp(min=torch.finfo(d2.dtype).tiny).view(B, 1, 1) * self.log_scale.exp()
         with validation(False):
-            q = gather(q, anchors)  # (B, m, qk)
-            k = gather(k, cand)  # (B, m, K, qk)
-            u = gather(u, cand).squeeze(-1)  # (B, m, K)
-        logits = -d2 / scale + (k * q.unsqueeze(2)).sum(-1) / math.sqrt(self.qk_channels) + u
-        return logits.masked_fill(~valid, -math.inf), cand
+            if isinstance(terms, Tensor):  # packed rows: one gather per index set
+                q = gather(terms, anchors)[..., :qk]  # (B, m, qk)
+                k = gather(terms, cand)  # (B, m, K, 2 qk + 1)
+                k, u = k[..., qk:2 * qk], k[..., 2 * qk]
+            else:
+                q = gather(terms[0], anchors)  # (B, m, qk)
+                k = gather(terms[1], cand)  # (B, m, K, qk)
+                u = gather(terms[2], cand).squeeze(-1)  # (B, m, K)
+        logits = -d2 / scale + (k * q.unsqueeze(2)).sum(-1) / math.sqrt(qk) + u
+        return (logits.masked_fill(~valid, -math.inf) if padded else logits), cand
 
     def sparse(self, x: Tensor, xyz: Tensor, lengths: Tensor, num_out: int,
                mask: Optional[Tensor] = None, found: Optional[tuple[Tensor, Tensor, Tensor]] = None
@@ -500,6 +533,16 @@ class CASNet(nn.Module):
             feats.append(x)
         return torch.cat(feats + [xyz.transpose(1, 2)], dim=1)
 
+    def _attend_rows(self, xyz: Tensor, lengths: Tensor) -> Tensor:
+        """:meth:`_attend` in eval mode for clouds that fill ``N``, as rows ``(B, N, C)`` with BatchNorm folded
+        (fewer launches; the same values up to rounding)."""
+        x = self.embedding.rows(xyz, lengths)
+        feats = []
+        for layer in self.attention:
+            x = layer.rows(x)
+            feats.append(x)
+        return torch.cat(feats + [xyz.to(x.dtype)], dim=-1)
+
     @torch.no_grad()
     def pick(self, points: Tensor, lengths: Optional[Tensor] = None, num_out: Optional[int] = None,
              dedup: Optional[bool] = None) -> Tensor:
@@ -527,26 +570,31 @@ class CASNet(nn.Module):
             with torch.cuda.stream(side):
                 anchors = self.head.anchors(xyz, lengths, num_out)
             near = self.head.neighbours(xyz, lengths)
-            terms = self.head.project(self._attend(xyz, lengths, mask), mask)
+            terms = self._terms(xyz, lengths, mask)
             main.wait_stream(side)
             anchors.record_stream(main)  # made on the side stream, read on this one
             with validation(False):
                 found = (anchors, gather(near[0], anchors), gather(near[1], anchors))
         else:
-            terms = self.head.project(self._attend(xyz, lengths, mask), mask)
+            terms = self._terms(xyz, lengths, mask)
             found = self.head.search(xyz, lengths, num_out)
-        logits, cand = self.head.logits(terms, found)
-        logits = logits / self.temperature
         N = points.shape[1]
+        # no padding slot: every cloud fills N (no lengths given) and has the K candidates a row asks for
+        padded = not full or N < self.head.candidates
+        logits, cand = self.head.logits(terms, found, padded)
+        logits = logits / self.temperature
         # forward's argmax over N: the lowest point among a row's best candidates
         best = logits.amax(dim=-1, keepdim=True)
         plain = torch.where(logits == best, cand, N).amin(dim=-1)
         if not dedup:
             return plain
-        scores = torch.log_softmax(logits, dim=-1)
-        # no padding slot: every cloud fills N (no lengths given) and has the K candidates a row asks for
-        padded = not full or N < self.head.candidates
-        return _greedy_candidates(scores, cand, plain, N, padded)
+        return _greedy_candidates(torch.log_softmax(logits, dim=-1), cand, plain, N, padded)
+
+    def _terms(self, xyz: Tensor, lengths: Tensor, mask: Optional[Tensor]):
+        """The anchored head's per-point terms: packed rows in eval mode without padding, else :meth:`project`'s."""
+        if mask is None and not self.training:
+            return self.head.project_rows(self._attend_rows(xyz, lengths))
+        return self.head.project(self._attend(xyz, lengths, mask), mask)
 
     def _check_input(self, points, lengths) -> Tensor:
         check_tensor(points, "points")
@@ -879,30 +927,16 @@ class CASNetSampler(Sampler):
 
 
 def _fill_repeats(xyz: Tensor, idx: Tensor) -> Tensor:
-    """``idx`` with each repeat (after its first occurrence) replaced by the unpicked point nearest to the
-    repeated one (float64 distances, ties to the lower index), in row order: distinct picks when
-    ``len(idx) <= len(xyz)`` (rows whose candidates were all taken by other rows: a few in a cloud, many only
-    when nearly every point is kept). On the host: one read of the picks, and of the points only if some repeat."""
-    import numpy as np
+    """``idx (m,)`` of the points ``xyz (n, 3)`` with each repeat (a row holding a point an earlier row holds) given
+    instead the free point (held by no row) nearest to its pick, rows in order (float64 distances, ties to the lower
+    index): distinct picks when ``m <= n``. One op on ``idx``'s device (``lidarops::fill_repeats``), no host read."""
+    from lidarops import extension
 
-    picks = idx.cpu().numpy()
-    _, first = np.unique(picks, return_index=True)
-    if first.size == picks.size:
+    if idx.numel() == 0:
         return idx
-    repeat = np.ones(picks.size, dtype=bool)
-    repeat[first] = False
-    x, y, z = xyz.detach().double().t().cpu().numpy()  # coordinate rows: contiguous, fast to subtract
-    taken = np.zeros(x.size, dtype=bool)
-    taken[picks] = True
-    out = picks.copy()
-    for r in np.flatnonzero(repeat):
-        i = out[r]
-        d = np.square(x - x[i]) + np.square(y - y[i]) + np.square(z - z[i])
-        d[taken] = np.inf
-        j = int(np.argmin(d))  # the first of equal minima: the lower index
-        out[r] = j
-        taken[j] = True
-    return torch.from_numpy(out).to(idx.device)
+    extension.load()
+    xyz = xyz[:, :3].to(torch.float64 if xyz.dtype == torch.float64 else torch.float32).contiguous()
+    return torch.ops.lidarops.fill_repeats(xyz, idx)
 
 
 def casnet_loss(out: CASNetOutput, points: Tensor, task_loss: Tensor, alpha: float = 1.0, beta: float = 1.0,

@@ -70,6 +70,7 @@ from torch.autograd.function import once_differentiable
 from torch.nn import functional as F
 
 from lidarops._checks import positive_int
+from lidarops.models import folded
 from lidarops.ops.validation import check_tensor, describe
 
 __all__ = ["OffsetAttention", "column_normalized_attention", "AUTO_ENTRIES"]
@@ -297,19 +298,15 @@ class _RowLogSumExp(torch.autograd.Function):
 
 
 def _row_logsumexp_fused(q: Tensor, k: Tensor, mask: "Tensor | None", dt: torch.dtype) -> "Tensor | None":
-    """:class:`_RowLogSumExp`'s forward without a gradient, from the log-sum-exps that torch's memory-efficient
-    attention kernel returns beside its output (queries ``q_i``, keys ``k_j``, scale 1; padded keys get one more
-    coordinate of score ``-max/4``): no block of energies is written out. Float32 result, 0 at padded rows;
-    None where the kernel refuses the inputs (the caller then takes the blocks)."""
+    """:class:`_RowLogSumExp`'s forward without a gradient, from the log-sum-exps that torch's attention kernels
+    return beside their output (:func:`_kernel_logsumexp`; queries ``q_i``, keys ``k_j``, scale 1; padded keys get
+    one more coordinate of score ``-max/4``): no block of energies is written out. Float32 result, 0 at padded
+    rows; None where the kernels refuse the inputs (the caller then takes the blocks)."""
     B, d, N = q.shape
     if mask is None and k is q and d % 8 == 0:  # PCT's layer: one tensor for q and k, no padding to add
         qt = q.transpose(1, 2).unsqueeze(1).to(dt).contiguous()
-        try:
-            lse = torch.ops.aten._scaled_dot_product_efficient_attention(qt, qt, qt, None, True, 0.0, False,
-                                                                          scale=1.0)[1]
-        except (RuntimeError, NotImplementedError):
-            return None
-        return lse[:, 0, :N].float()
+        lse = _kernel_logsumexp(qt, qt, qt)
+        return None if lse is None else lse[:, :N].float()
     width = -(-(d + (mask is not None)) // 8) * 8
     queries = q.new_zeros(B, 1, N, width, dtype=dt)
     keys = q.new_zeros(B, 1, N, width, dtype=dt)
@@ -319,13 +316,31 @@ def _row_logsumexp_fused(q: Tensor, k: Tensor, mask: "Tensor | None", dt: torch.
         queries[:, 0, :, d] = 1.0
         keys[:, 0, :, :d] = keys[:, 0, :, :d].masked_fill(~mask[:, :, None], 0.0)
         keys[:, 0, :, d] = keys[:, 0, :, d].masked_fill(~mask, -torch.finfo(dt).max / 4)
+    lse = _kernel_logsumexp(queries, keys, q.new_zeros(B, 1, N, 8, dtype=dt))
+    if lse is None:
+        return None
+    lse = lse[:, :N].float()
+    return lse if mask is None else lse.masked_fill(~mask, 0.0)
+
+
+def _kernel_logsumexp(queries: Tensor, keys: Tensor, values: Tensor) -> "Tensor | None":
+    """The row log-sum-exps ``(B, >= N)`` of ``queries . keys`` (scale 1; ``(B, 1, N, d)`` each) that torch's
+    attention kernels return beside their output: cuDNN's in half precision (the faster), else the
+    memory-efficient kernel's; None where neither takes the inputs."""
+    B = queries.shape[0]
+    if queries.dtype in (torch.float16, torch.bfloat16):
+        try:
+            lse = torch.ops.aten._scaled_dot_product_cudnn_attention(queries, keys, values, None, True, 0.0, False,
+                                                                     False, scale=1.0)[1]
+            return lse.reshape(B, -1)
+        except (RuntimeError, NotImplementedError):
+            pass
     try:
-        lse = torch.ops.aten._scaled_dot_product_efficient_attention(
-            queries, keys, q.new_zeros(B, 1, N, 8, dtype=dt), None, True, 0.0, False, scale=1.0)[1]
+        lse = torch.ops.aten._scaled_dot_product_efficient_attention(queries, keys, values, None, True, 0.0, False,
+                                                                      scale=1.0)[1]
     except (RuntimeError, NotImplementedError):
         return None
-    lse = lse[:, 0, :N].float()
-    return lse if mask is None else lse.masked_fill(~mask, 0.0)
+    return lse[:, 0]
 
 
 def _attention_fused(q: Tensor, k: Tensor, v: Tensor, mask: "Tensor | None", rows: int) -> Tensor:
@@ -483,6 +498,21 @@ class OffsetAttention(nn.Module):
             return x.clone()
         delta = torch.zeros_like(yt).index_put((mask,), self.act(self.after_norm(real)))
         return x + delta.transpose(1, 2)
+
+    def rows(self, x: Tensor) -> Tensor:
+        """:meth:`forward` in eval mode without padding, on rows: ``x (B, N, C)`` -> ``(B, N, C)``, the
+        convolutions as ``F.linear`` with BatchNorm folded into ``trans_conv`` (:mod:`lidarops.models.folded`)."""
+        if self.training:
+            return self(x.transpose(1, 2)).transpose(1, 2)
+        shared = self.k_conv.weight is self.q_conv.weight
+        wq, wk, wv, bv, wt, bt = folded.cached(self, "rows", folded.compute_dtype(x), lambda: (
+            self.q_conv.weight[:, :, 0], self.k_conv.weight[:, :, 0], *folded.conv_bn(self.v_conv),
+            *folded.conv_bn(self.trans_conv, self.after_norm)))
+        q = F.linear(x, wq)  # (B, N, d)
+        k = q if shared else F.linear(x, wk)
+        x_r = column_normalized_attention(q.transpose(1, 2), k.transpose(1, 2), F.linear(x, wv, bv).transpose(1, 2),
+                                          None, self.chunk).transpose(1, 2)
+        return x + F.relu(F.linear(x - x_r, wt, bt), inplace=True)
 
 
 # ---------------------------------------------------------------------------------------------------------------

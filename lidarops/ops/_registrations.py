@@ -3,7 +3,7 @@
 Schemas: ``csrc/ops/neighbors.cpp`` (fps, knn, ball_query, gather, gather_backward), ``checks.cpp``
 (value_flags), ``voxelize.cpp`` (voxelize_assign, voxelize_scatter), ``boxes.cpp`` (box_overlap_bev,
 box_iou_bev, box_iou_3d, nms_bev, nms_bev_padded, nms_bev_checked, points_in_boxes), ``pillar_stream.cpp``
-(pillar_decorate, the one-shot pillarization's decoration), ``assign.cpp`` (greedy_assign). No op of this
+(pillar_decorate, the one-shot pillarization's decoration), ``assign.cpp`` (greedy_assign, fill_repeats). No op of this
 package has a C++ autograd kernel (``csrc/ops/autograd``): every formula is here, and every backward is
 made of registered ops (gather / gather_backward) or ATen ops, so it works on every device, under
 torch.compile, and twice (double backward).
@@ -36,6 +36,11 @@ def _dist_dtype(dtype: torch.dtype) -> torch.dtype:
 @torch.library.register_fake("lidarops::greedy_assign")
 def _greedy_assign_fake(rows, cols, num_rows, num_cols, limit):
     return rows.new_empty((num_rows,), dtype=torch.int64)
+
+
+@torch.library.register_fake("lidarops::fill_repeats")
+def _fill_repeats_fake(points, idx):
+    return torch.empty_like(idx)
 
 
 @torch.library.register_fake("lidarops::fps")

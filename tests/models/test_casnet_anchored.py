@@ -184,6 +184,35 @@ def test_pick_equals_the_forward_picks(regime):
     assert torch.equal(matrix.pick(pts), matrix(pts).indices)
 
 
+@pytest.mark.parametrize("fast", [False, True], ids=["ball", "fast"])
+def test_inference_rows_equal_the_modules(fast):
+    """pick's path for full clouds in eval mode (rows, BatchNorm folded, packed head terms) against the modules':
+    the embedding, the features, the head's terms, the logits and the picks."""
+    torch.manual_seed(3)
+    net = (CASNet.fast(8, head="anchored", candidates=5) if fast else
+           CASNet(8, k=4, radius=0.5, num_oa_layers=2, head="anchored", candidates=5))
+    randomize_bn(net, 3)
+    with torch.no_grad():
+        for layer in (net.head.key, net.head.score):
+            layer.weight.normal_(0, 0.5)
+            layer.bias.normal_(0, 0.5)
+    net = net.double().eval()
+    pts = cloud(2, 60, seed=21)
+    xyz, lengths = pts[..., :3], torch.tensor([60, 60])
+    assert_close_report(net.embedding.rows(xyz, lengths), net.embedding(xyz, lengths).transpose(1, 2), 1e-12, 1e-12,
+                        "embedding rows")
+    feats = net._attend_rows(xyz, lengths)
+    assert_close_report(feats, net._attend(xyz, lengths, None).transpose(1, 2), 1e-11, 1e-12, "features")
+    packed = net.head.project_rows(feats)
+    q, k, u = net.head.project(feats.transpose(1, 2))
+    assert_close_report(packed, torch.cat([q, k, u], -1), 1e-11, 1e-12, "packed terms")
+    found = net.head.search(xyz, lengths, 12)
+    want = net.head.logits((q, k, u), found)[0]
+    assert_close_report(net.head.logits(packed, found, padded=False)[0], want, 1e-11, 1e-12, "logits")
+    for dedup in (False, True):
+        assert torch.equal(net.pick(pts, num_out=12, dedup=dedup), net(pts, num_out=12, dedup=dedup).indices)
+
+
 def test_segments_keep_each_segments_first_anchors():
     torch.manual_seed(0)
     net = CASNet(16, k=4, radius=0.5, head="anchored").double().eval()
@@ -285,19 +314,45 @@ def test_cuda_pick_equals_cpu_pick(dtype):
     agree(gpu.pick(pts[:1].cuda(), num_out=500, dedup=True).cpu(), net.pick(pts[:1], num_out=500, dedup=True), "full")
 
 
-def test_whole_cloud_picks_stay_distinct_when_candidates_run_out():
+def fill_reference(xyz: torch.Tensor, idx: list) -> list:
+    """_fill_repeats restated in float64 one row at a time: each repeat (a point an earlier row holds), rows in
+    order, takes the free point nearest its pick (ties to the lower index); it stays when none is free."""
+    xyz = xyz.double()
+    taken, out, seen = set(idx), list(idx), set()
+    for r, i in enumerate(idx):
+        if i not in seen:
+            seen.add(i)
+            continue
+        d2 = ((xyz - xyz[i]) ** 2).sum(1).tolist()
+        free = [j for j in range(len(d2)) if j not in taken]
+        if free:
+            out[r] = min(free, key=lambda j: (d2[j], j))
+            taken.add(out[r])
+    return out
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=requires_cuda)])
+def test_whole_cloud_picks_stay_distinct_when_candidates_run_out(device):
     from lidarops.models.casnet import _fill_repeats
 
-    xyz = torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [10, 0, 0]])
-    # rows 2 and 3 repeat point 1: each gets the free point nearest to point 1 (2, then 3... 0 is nearer)
-    assert _fill_repeats(xyz, torch.tensor([1, 4, 1, 1])).tolist() == [1, 4, 0, 2]
-    net = anchored(seed=6, candidates=4)
-    pts = cloud(2, 30, seed=15)
-    raw = torch.randint(0, 30, (2, 30), generator=torch.Generator().manual_seed(0))  # picks with repeats
-    assert all(raw[b].unique().numel() < 30 for b in range(2))
-    for b in range(2):
-        filled = _fill_repeats(pts[b, :, :3], raw[b])
-        first = torch.tensor([int(raw[b, i]) not in raw[b, :i].tolist() for i in range(30)])
-        assert filled.unique().numel() == 30 and torch.equal(filled[first], raw[b][first])
+    xyz = torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [10, 0, 0]], device=device)
+    # rows 2 and 3 repeat point 1: the free points nearest to it are 0 and 2 (a tie: row 2 takes the lower)
+    assert _fill_repeats(xyz, torch.tensor([1, 4, 1, 1], device=device)).tolist() == [1, 4, 0, 2]
+    # rows 2 and 3 repeat point 3: its nearest free points are 2 then 1
+    assert _fill_repeats(xyz, torch.tensor([3, 4, 3, 3], device=device)).tolist() == [3, 4, 2, 1]
+    # more rows than points: the rows past the free points keep their repeat
+    assert _fill_repeats(xyz[:3], torch.tensor([1, 1, 1, 0], device=device)).tolist() == [1, 2, 1, 0]
+    g = torch.Generator().manual_seed(0)
+    for n, m in ((30, 30), (200, 60), (200, 199), (50, 40), (3000, 2500), (2100, 2100)):
+        pts = torch.randint(0, 6, (n, 3), generator=g).double() * 0.5  # lattice points: many equal distances
+        raw = torch.randint(0, n, (m,), generator=g)
+        for dtype in (torch.float64, torch.float32):
+            got = _fill_repeats(pts.to(device, dtype), raw.to(device))
+            assert got.tolist() == fill_reference(pts, raw.tolist()), (n, m, dtype)
+            assert got.unique().numel() == m
+    assert torch.equal(_fill_repeats(xyz, torch.tensor([0, 4, 2], device=device)), torch.tensor([0, 4, 2], device=device))
+    assert _fill_repeats(xyz, torch.zeros(0, dtype=torch.int64, device=device)).numel() == 0
+    net = anchored(seed=6, candidates=4, device=device)
+    pts = cloud(2, 30, seed=15, device=device)
     idx = CASNetSampler(net, whole=True)(pts, 30)
     assert all(idx[b].unique().numel() == 30 for b in range(2))

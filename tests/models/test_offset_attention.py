@@ -342,6 +342,25 @@ def test_device_matches_cpu(device, chunk):
         assert_close_report(a, b, 1e-8, 1e-10, f"{device} gradients")
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=requires_cuda)])
+@pytest.mark.parametrize("chunk", [None, 8, "fused"], ids=["plain", "chunk8", "fused"])
+def test_rows_equal_forward_in_eval_and_follow_weight_changes(device, chunk):
+    """The row layout with BatchNorm folded (CAS-Net's inference path) against the literal PCT reference; the
+    folded weights are rebuilt after an in-place change and a move."""
+    layer = make_layer(C=8, d=8, seed=41, training=False)
+    layer.chunk = chunk
+    x = random_input(2, 8, 40, seed=42)
+    got = layer.to(device).rows(x.transpose(1, 2).to(device)).transpose(1, 2).cpu()
+    assert_close_report(got, reference(layer.cpu(), x)[0], 1e-10, 1e-12, "rows vs PCT")
+    with torch.no_grad():
+        layer.after_norm.running_var.mul_(3.0)
+        layer.trans_conv.weight.add_(0.1)
+    got = layer.to(device).rows(x.transpose(1, 2).to(device)).transpose(1, 2).cpu()
+    assert_close_report(got, reference(layer.cpu(), x)[0], 1e-10, 1e-12, "rows after the weights changed")
+    layer.train()  # training: forward itself (BatchNorm's batch statistics)
+    assert_close_report(layer.rows(x.transpose(1, 2)).transpose(1, 2), layer(x), 1e-12, 1e-12, "rows in training")
+
+
 @requires_cuda
 def test_cuda_autocast_chunked_is_close_to_float32():
     layer = make_layer(C=16, d=4, seed=29, dtype=torch.float32, device="cuda")

@@ -161,3 +161,73 @@ def test_cuda_names_bad_pairs_and_skips_them_unchecked():
         got = greedy_assign(rows, cols, 3, 5)
     keep = torch.tensor([True, True, False, True, True, True])
     assert got.tolist() == _reference(rows.cpu()[keep].tolist(), cols.cpu()[keep].tolist(), 3, 3)
+
+
+# ------------------------------------------------------------------------------------ fill_repeats (CAS-Net's sampler)
+def _fill_reference(points, idx):
+    """Each repeat (a point an earlier row holds), rows in order, takes the free point nearest its pick (float64,
+    ties to the lower index); it stays when no point is free."""
+    taken, out, seen = set(idx), list(idx), set()
+    for r, i in enumerate(idx):
+        if i in seen:
+            d2 = [sum((a - b) ** 2 for a, b in zip(p, points[i])) for p in points]
+            free = [j for j in range(len(points)) if j not in taken]
+            if free:
+                out[r] = min(free, key=lambda j: (d2[j], j))
+                taken.add(out[r])
+        seen.add(i)
+    return out
+
+
+def _fill(points, idx):
+    from lidarops import extension
+
+    extension.load()
+    return torch.ops.lidarops.fill_repeats(points, idx)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=requires_gpu)])
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_fill_repeats_fuzz_against_the_reference(device, data):
+    n = data.draw(st.integers(1, 20), "n")
+    m = data.draw(st.integers(0, 25), "m")
+    coords = data.draw(st.lists(st.integers(-3, 3), min_size=3 * n, max_size=3 * n), "coords")  # ties everywhere
+    idx = data.draw(st.lists(st.integers(0, n - 1), min_size=m, max_size=m), "idx")
+    dtype = data.draw(st.sampled_from([torch.float32, torch.float64]), "dtype")
+    points = torch.tensor(coords, dtype=dtype).view(n, 3) * 0.25
+    got = _fill(points.to(device), torch.tensor(idx, dtype=torch.int64, device=device))
+    assert got.device.type == device
+    assert got.tolist() == _fill_reference(points.double().tolist(), idx)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda p, i: _fill(p[:, :2].contiguous(), i), r"points must be a contiguous \(n, 3\)"),
+    (lambda p, i: _fill(p.t().contiguous().t(), i), "contiguous"),
+    (lambda p, i: _fill(p.half(), i), "float32 or float64"),
+    (lambda p, i: _fill(p, i.int()), "idx must be 1-D int64"),
+    (lambda p, i: _fill(p, i.view(1, -1)), "idx must be 1-D int64"),
+    (lambda p, i: _fill(p, i + 2), r"idx\[2\] = 4 is outside \[0, n=4\)"),
+    (lambda p, i: _fill(p, -i), r"idx\[1\] = -1 is outside"),
+])
+def test_fill_repeats_bad_arguments_are_named(call, match):
+    points = torch.rand(4, 3)
+    idx = torch.tensor([0, 1, 2, 1])
+    with pytest.raises(ValueError, match=match):
+        call(points, idx)
+    fake = torch.ops.lidarops.fill_repeats(points.to("meta"), idx.to("meta"))
+    assert fake.shape == (4,) and fake.dtype == torch.int64
+
+
+@requires_gpu
+def test_cuda_fill_repeats_equals_the_cpu_on_large_clouds_and_leaves_bad_rows():
+    g = torch.Generator().manual_seed(3)
+    for n, m in ((20000, 2500), (5000, 5000), (3000, 40)):
+        points = torch.rand(n, 3, generator=g) * 50
+        idx = torch.randint(0, n, (m,), generator=g)
+        assert torch.equal(_fill(points.cuda(), idx.cuda()).cpu(), _fill(points, idx)), (n, m)
+    with pytest.raises(ValueError, match="points is on"):
+        _fill(points.cuda(), idx)
+    # on CUDA a row outside [0, n) is left as it is and holds nothing (the CPU raises: checking needs a host read)
+    got = _fill(torch.rand(4, 3).cuda(), torch.tensor([7, 1, 1, -2], device="cuda"))
+    assert got[[0, 1, 3]].tolist() == [7, 1, -2] and got[2].item() in (0, 2, 3)
