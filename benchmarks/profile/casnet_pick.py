@@ -7,7 +7,9 @@
 The stages are the pick's own calls, run one after the other with a synchronisation between them (so each
 stage's time includes its launches and host reads): input checks, the points in the model's dtype, farthest
 point sampling of the anchors, the anchors' candidates (kNN), the neighbour embedding, the offset attention, the
-head's logits on the candidates, and the distinct picks (ranked and assigned on the device). On CUDA the pick
+head's logits on the candidates, the distinct picks (ranked and assigned on the device) and the sampler's filling
+of the rows left without a free candidate. The embedding, attention and head run as the pick runs them at inference
+(rows, BatchNorm folded into the convolutions). On CUDA the pick
 itself runs the anchors and candidates on a second stream beside the embedding and the attention, so the whole
 call takes less than the sum: it is timed alone, also with that second stream off ("one stream"), and as users
 call it (``CASNetSampler(model, whole=True)``). Medians of ``--runs`` after two warm-up calls.
@@ -29,7 +31,7 @@ import torch  # noqa: E402
 
 def _stages(model, points: torch.Tensor, m: int) -> dict:
     """One pick, stage by stage: {stage: seconds}."""
-    from lidarops.models.casnet import _greedy_candidates
+    from lidarops.models.casnet import _fill_repeats, _greedy_candidates
     from lidarops.ops.neighbors import fps, gather, knn
     from lidarops.ops.validation import validation
 
@@ -57,21 +59,23 @@ def _stages(model, points: torch.Tensor, m: int) -> dict:
             lap("anchors: farthest point sampling")
             d2, cand = knn(gather(xyz, anchors), xyz, head.candidates, None, lengths)
             lap("candidates: kNN of the anchors")
-        x = model.embedding(xyz, lengths)
+        x = model.embedding.rows(xyz, lengths)  # the pick's inference path: rows, BatchNorm folded
         lap("embedding")
         feats = []
         for layer in model.attention:
-            x = layer(x)
+            x = layer.rows(x)
             feats.append(x)
-        h = torch.cat(feats + [xyz.transpose(1, 2)], dim=1)
+        h = torch.cat(feats + [xyz.to(x.dtype)], dim=-1)
         lap("offset attention")
-        logits, cand = head.logits(head.project(h), (anchors, cand, d2))
+        logits, cand = head.logits(head.project_rows(h), (anchors, cand, d2), padded=False)
         logits = logits / model.temperature
         best = logits.amax(dim=-1, keepdim=True)
         plain = torch.where(logits == best, cand, N).amin(dim=-1)
         lap("head: logits on the candidates")
-        _greedy_candidates(torch.log_softmax(logits, dim=-1), cand, plain, N, padded=False)
+        picks = _greedy_candidates(torch.log_softmax(logits, dim=-1), cand, plain, N, padded=False)
         lap("distinct picks (ranked and assigned on the device)")
+        _fill_repeats(points[0, :, :3], picks[0])
+        lap("the sampler's repeats filled (lidarops::fill_repeats)")
     return times
 
 
