@@ -591,8 +591,10 @@ class CASNet(nn.Module):
         return _greedy_candidates(torch.log_softmax(logits, dim=-1), cand, plain, N, padded)
 
     def _terms(self, xyz: Tensor, lengths: Tensor, mask: Optional[Tensor]):
-        """The anchored head's per-point terms: packed rows in eval mode without padding, else :meth:`project`'s."""
-        if mask is None and not self.training:
+        """The anchored head's per-point terms: on CUDA in eval mode without padding packed rows (fewer launches,
+        which bound the call there), else :meth:`project`'s (on the CPU its layout rounds alike points alike, so
+        exact ties stay ties as in :meth:`forward`)."""
+        if mask is None and not self.training and xyz.is_cuda:
             return self.head.project_rows(self._attend_rows(xyz, lengths))
         return self.head.project(self._attend(xyz, lengths, mask), mask)
 

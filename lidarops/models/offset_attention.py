@@ -508,10 +508,16 @@ class OffsetAttention(nn.Module):
         wq, wk, wv, bv, wt, bt = folded.cached(self, "rows", folded.compute_dtype(x), lambda: (
             self.q_conv.weight[:, :, 0], self.k_conv.weight[:, :, 0], *folded.conv_bn(self.v_conv),
             *folded.conv_bn(self.trans_conv, self.after_norm)))
-        q = F.linear(x, wq)  # (B, N, d)
-        k = q if shared else F.linear(x, wk)
-        x_r = column_normalized_attention(q.transpose(1, 2), k.transpose(1, 2), F.linear(x, wv, bv).transpose(1, 2),
-                                          None, self.chunk).transpose(1, 2)
+        q = F.linear(x, wq).transpose(1, 2)  # (B, d, N) views of rows: what the fused kernels take
+        k = q if shared else F.linear(x, wk).transpose(1, 2)
+        v = F.linear(x, wv, bv).transpose(1, 2)
+        B, _, N = q.shape
+        if not (self.chunk == "fused" or (self.chunk == "auto" and x.is_cuda and _rows_per_chunk("auto", B, N))):
+            # the plain and chunked paths get forward's layout: their matrix products then round alike for alike
+            # points (exact ties stay ties)
+            q, v = q.contiguous(), v.contiguous()
+            k = q if shared else k.contiguous()
+        x_r = column_normalized_attention(q, k, v, None, self.chunk).transpose(1, 2)
         return x + F.relu(F.linear(x - x_r, wt, bt), inplace=True)
 
 

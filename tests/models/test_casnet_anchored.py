@@ -184,10 +184,11 @@ def test_pick_equals_the_forward_picks(regime):
     assert torch.equal(matrix.pick(pts), matrix(pts).indices)
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=requires_cuda)])
 @pytest.mark.parametrize("fast", [False, True], ids=["ball", "fast"])
-def test_inference_rows_equal_the_modules(fast):
-    """pick's path for full clouds in eval mode (rows, BatchNorm folded, packed head terms) against the modules':
-    the embedding, the features, the head's terms, the logits and the picks."""
+def test_inference_rows_equal_the_modules(fast, device):
+    """pick's path on CUDA for full clouds in eval mode (rows, BatchNorm folded, packed head terms) against the
+    modules': the embedding, the features, the head's terms, the logits and the picks."""
     torch.manual_seed(3)
     net = (CASNet.fast(8, head="anchored", candidates=5) if fast else
            CASNet(8, k=4, radius=0.5, num_oa_layers=2, head="anchored", candidates=5))
@@ -196,9 +197,9 @@ def test_inference_rows_equal_the_modules(fast):
         for layer in (net.head.key, net.head.score):
             layer.weight.normal_(0, 0.5)
             layer.bias.normal_(0, 0.5)
-    net = net.double().eval()
-    pts = cloud(2, 60, seed=21)
-    xyz, lengths = pts[..., :3], torch.tensor([60, 60])
+    net = net.to(device, torch.float64).eval()
+    pts = cloud(2, 60, seed=21, device=device)
+    xyz, lengths = pts[..., :3], torch.tensor([60, 60], device=device)
     assert_close_report(net.embedding.rows(xyz, lengths), net.embedding(xyz, lengths).transpose(1, 2), 1e-12, 1e-12,
                         "embedding rows")
     feats = net._attend_rows(xyz, lengths)
