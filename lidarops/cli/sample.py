@@ -102,15 +102,18 @@ def _sampler(method: str, seed: int, checkpoint: "str | None", device):
     return CASNetSampler(model, whole=model.head_kind == "anchored")
 
 
-def _timed_sample(sampler, points, m: int, device) -> "tuple[object, float]":
-    """(the kept rows' indices, int64 numpy, ascending in selection order; milliseconds of the call)."""
+def _timed_sample(sampler, points, m: int, device, fp16: bool = False) -> "tuple[object, float]":
+    """(the kept rows' indices, int64 numpy, ascending in selection order; milliseconds of the call); ``fp16``:
+    under float16 autocast."""
+    import contextlib
+
     import torch
 
     x = torch.from_numpy(points).to(device).unsqueeze(0)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     t0 = time.perf_counter()
-    with torch.no_grad():
+    with torch.no_grad(), (torch.autocast("cuda", dtype=torch.float16) if fp16 else contextlib.nullcontext()):
         idx = sampler(x, m)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -179,6 +182,8 @@ def sample(args: argparse.Namespace) -> int:
     if split is not None and out.resolve() == split.resolve():
         raise ValueError(f"--out {out} is the input folder: its velodyne/ scans would be overwritten")
     device = resolve_device(args.device)
+    if args.fp16 and (args.method != "casnet" or device.type != "cuda"):
+        raise ValueError(f"--fp16 is for --method casnet on CUDA (got --method {args.method} on {device})")
     sampler = _sampler(args.method, args.seed, checkpoint, device)
     if not args.no_picture:
         from lidarops.data.viz import new_figure
@@ -191,7 +196,7 @@ def sample(args: argparse.Namespace) -> int:
             points = read_velodyne(scan)
         n = points.shape[0]
         m = sample_count(n, ratio)
-        idx, ms = _timed_sample(sampler, points, m, device) if m else ([], 0.0)
+        idx, ms = _timed_sample(sampler, points, m, device, args.fp16) if m else ([], 0.0)
         kept = points[idx]
         if split is None:
             target, picture = out / f"{scan.stem}_{tag}.bin", out / f"{scan.stem}_{tag}.png"
@@ -229,4 +234,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", default=None, metavar="N", help="a folder: the first N scans (default all)")
     p.add_argument("--device", default="auto", help="auto (default: cuda when available), cpu or cuda")
     p.add_argument("--no-picture", action="store_true", help="no before/after PNG")
+    p.add_argument("--fp16", action="store_true",
+                   help="--method casnet on CUDA: float16 autocast, about twice as fast (docs/casnet.md); a few "
+                        "near-tied picks may differ from float32's")
     p.set_defaults(func=guarded("sample", sample))

@@ -180,6 +180,8 @@ def test_errors_are_one_line_naming_the_argument(run_cli, scan, tmp_path):
     _error(run_cli, [scan, "--method", "fps", "--checkpoint", bad, *base], "--checkpoint")
     _error(run_cli, [scan, "--out", bad, "--device", "cpu"], "--out")
     _error(run_cli, [scan, "--device", "tpu", "--out", out], "--device")
+    _error(run_cli, [scan, "--method", "fps", "--fp16", *base], "--fp16")
+    _error(run_cli, [scan, "--method", "casnet", "--fp16", *base], "--fp16 is for --method casnet on CUDA")
     assert not out.exists()  # nothing written by a refused command
 
 
@@ -216,3 +218,14 @@ def test_casnet_checkpoint_errors(run_cli, scan, tmp_path):
 
 def test_out_cannot_be_the_input_folder(run_cli, folder):
     _error(run_cli, [folder, "--out", folder / "training", "--device", "cpu", "--no-picture"], "--out")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_casnet_fp16_on_cuda(run_cli, scan, tmp_path):
+    """The shipped CAS-Net under float16 autocast: a subset of the scan, distinct points, its count."""
+    out = tmp_path / "out"
+    code, stdout, err = run_cli(["sample", scan, "--method", "casnet", "--fp16", "--out", out, "--device", "cuda",
+                                 "--no-picture"])
+    assert code == 0, err
+    kept = read_velodyne(out / "000007_casnet_d8.bin")
+    assert kept.shape == (50, 4) and _rows(kept) <= _rows(read_velodyne(scan)) and len(_rows(kept)) == 50
