@@ -11,6 +11,7 @@ from torch.nn import functional as F
 from lidarops.models.pointpillars import PointPillars
 from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
+from helpers.devices import requires_cuda
 from helpers.models import TINY, randomize_bn
 
 #: a 32 x 32 grid of 0.5 m pillars (divisible by the backbone's strides 2, 2, 2), two classes
@@ -160,3 +161,44 @@ def test_shipped_detector_streamed_gives_its_own_boxes():
             assert torch.allclose(got["boxes"], want["boxes"], atol=1e-4), k
             found += len(want["labels"])
     assert found > 0 and not stream.stats.refreshed
+
+
+@pytest.mark.slow  # 1,000 steps of 10 ms on the GPU: about half a minute, most of it simulating the stream
+@requires_cuda
+def test_shipped_detector_streamed_on_cuda_for_1000_steps(monkeypatch):
+    """Issue 39's long identity: the shipped detector streamed on CUDA for 1,000 steps of driving_city (about 40
+    refreshes): every 10th step, the head outputs on the recycled map equal the detector's on the stream's points
+    to float32 rounding, and the boxes are the same. (cuDNN's TF32 off: the detector's own convolutions would
+    round their inputs to 10 bits.)"""
+    from lidarops.data.synthetic import Simulator
+    from lidarops.models import weights
+
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
+
+    detector = weights.load("pointpillars_synth").cuda()
+    stream = SSCATeRPointPillars.from_detector(detector, device="cuda")
+    sim = Simulator("driving_city", seed=5)
+    checked = found = recycled = 0
+    worst = 0.0
+    for k in range(1012):
+        pts, t = sim.stream(0.01 * k, 0.01 * (k + 1))
+        stream.step(torch.from_numpy(pts).cuda(), torch.from_numpy(t).cuda(), now=0.01 * (k + 1))
+        recycled += not stream.stats.refreshed
+        if k < 12 or k % 10:
+            continue
+        batch = {"points": F.pad(stream.window_points(), (1, 0)), "batch_size": 1}
+        with torch.no_grad():
+            raw = detector(batch)
+            got_raw = detector.dense_head(stream.delta.out)
+        for key in ("cls_preds", "box_preds", "dir_cls_preds"):
+            scale = raw[key].abs().max().item() or 1.0
+            worst = max(worst, (got_raw[key] - raw[key]).abs().max().item() / scale)
+        got, want = stream.detect(), detector.postprocess(raw)[0]
+        assert got["labels"].tolist() == want["labels"].tolist(), k
+        assert torch.allclose(got["scores"], want["scores"], atol=1e-4), k
+        checked, found = checked + 1, found + len(want["labels"])
+    print(f"worst relative error of the head outputs over {checked} checks: {worst:.2e}")
+    # float32 sums in another order, accumulated over up to 25 recycled steps between refreshes
+    assert worst <= 1e-4, worst
+    assert checked == 100 and found > 0 and recycled > 900, (checked, found, recycled)
