@@ -327,9 +327,11 @@ def register(subparsers) -> None:
                    help=f"first scenario's seed (default {HELD_OUT_SEED}: frames no shipped model was trained on)")
     s.add_argument("--sensor", choices=("hdl64", "pandar64", "avia"), default=None,
                    help="sensor preset (default: the scenario's)")
-    s.add_argument("--realism", default=None, choices=("kitti",),
+    s.add_argument("--realism", default=None, choices=("kitti", "kitti_dr"),
                    help="a real sensor's intensity response and real vehicles' surfaces (glass, dark paint) on the "
-                        "returns: kitti (calibrated against KITTI's HDL-64E scans); default: as ray-cast")
+                        "returns: kitti (calibrated against KITTI's HDL-64E scans), kitti_dr (the same with mixed "
+                        "pixels at depth edges and each scene's sensor height and intensity scale randomised); "
+                        "default: as ray-cast")
     s.add_argument("--object-counts", default=None,
                    help="'dense', 'empty' or JSON such as '{\"Car\": 35, \"Pedestrian\": [0, 5]}' (default: the "
                         "scenario's)")

@@ -18,7 +18,9 @@ A :class:`Realism` applies these effects to the caster's returns:
 * it reads dark paint, glass and tyres as zero intensity;
 * it scales intensity per surface kind and per beam, zeroes weak returns near the detection limit, and
   quantises;
-* it adds street furniture and roadside clutter to driving scenes (the scenario option ``street_clutter``).
+* it adds street furniture and roadside clutter to driving scenes (the scenario option ``street_clutter``);
+* optionally (the ``kitti_dr`` profile), it reports returns at depth edges between the two surfaces (mixed
+  pixels) and randomises each scene's sensor height and intensity scale.
 
 The simulator takes it as ``Simulator(..., realism="kitti")``. Its random numbers come from a stream of their
 own, so frames without it are exactly those of before.
@@ -62,6 +64,14 @@ class Realism:
         street_clutter (float): density of the clutter added to driving scenes: street furniture and shrubs in
             ``driving_city``, shrubs, saplings and posts on ``driving_highway``'s verges (the scenario option
             ``street_clutter``; 1 about one piece per 6 m of pavement; 0 none).
+        mixed_pixels (float): probability that a return at a depth edge is reported somewhere between the two
+            surfaces its beam straddles (a mixed pixel): the return's neighbour on the same beam, one firing before
+            or after, lies at least ``mixed_gap`` farther; the range moves a uniform fraction of the way to it.
+        mixed_gap (float): the depth step (m) that makes an edge.
+        mount_height_jitter (float): domain randomisation of the sensor's height above the ground, drawn once per
+            scene uniformly within this many metres of the scenario's (the driving scenarios' ``sensor_height``).
+        intensity_scale_jitter (float): domain randomisation of the intensity scale: one gain per scene, drawn
+            log-uniformly in ``[1 / (1 + j), 1 + j]``.
     """
 
     vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")
@@ -80,6 +90,10 @@ class Realism:
     weak_from: float = 0.75
     quantum: float = 0.01
     street_clutter: float = 1.0
+    mixed_pixels: float = 0.0
+    mixed_gap: float = 1.0
+    mount_height_jitter: float = 0.0
+    intensity_scale_jitter: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("greenhouse_from", "greenhouse_keep", "roof_keep", "greenhouse_zero", "dark_paint", "dark_zero",
@@ -88,6 +102,10 @@ class Realism:
         real(self.beam_gain_std, "beam_gain_std", 0, 1)
         real(self.quantum, "quantum", 0, 0.5)
         real(self.street_clutter, "street_clutter", 0, 10)
+        real(self.mixed_pixels, "mixed_pixels", 0, 1)
+        real(self.mixed_gap, "mixed_gap", 0.05, 100, unit=" m")
+        real(self.mount_height_jitter, "mount_height_jitter", 0, 0.5, unit=" m")
+        real(self.intensity_scale_jitter, "intensity_scale_jitter", 0, 1)
         if len(self.surface_gain) != 6:
             raise ValueError(f"surface_gain must hold one gain per surface kind (6), got {self.surface_gain!r}")
         for g in self.surface_gain:
@@ -113,10 +131,23 @@ class Realism:
         p_zero = np.where(glass, self.greenhouse_zero, p_zero)
         return keep, u_zero < p_zero
 
+    def scene_draws(self, rng: np.random.Generator) -> tuple[float, float]:
+        """A scene's domain randomisation: ``(mounting height offset in m, intensity gain)``."""
+        u = rng.uniform(-1.0, 1.0, size=2)
+        return float(self.mount_height_jitter * u[0]), float(np.exp(np.log1p(self.intensity_scale_jitter) * u[1]))
+
+    def mixed_ranges(self, rng: np.random.Generator, near: np.ndarray, far: np.ndarray) -> np.ndarray:
+        """For returns at ``near`` (m) whose beam neighbour lies at ``far`` (``-inf``: none): how far each moves
+        along its ray (0 where it is no mixed pixel)."""
+        u_mix, u_at = rng.random(near.size), rng.random(near.size)
+        edge = (far >= near + self.mixed_gap) & (u_mix < self.mixed_pixels)
+        return np.where(edge, u_at * (far - near), 0.0)
+
     def intensity(self, raw: np.ndarray, surface: np.ndarray, beam_gain: np.ndarray, weak: np.ndarray,
-                  zero: np.ndarray) -> np.ndarray:
-        """The reported intensity: ``raw`` scaled per surface and beam, 0 where ``weak`` or ``zero``, quantised."""
-        gain = np.asarray(self.surface_gain, np.float32)[surface] * beam_gain.astype(np.float32)
+                  zero: np.ndarray, scale: float = 1.0) -> np.ndarray:
+        """The reported intensity: ``raw`` scaled per surface and beam (and by the scene's ``scale``), 0 where
+        ``weak`` or ``zero``, quantised."""
+        gain = np.asarray(self.surface_gain, np.float32)[surface] * (beam_gain.astype(np.float32) * np.float32(scale))
         x = raw * gain
         # a soft knee above 0.6: bright markings amplified by the gains approach 1 instead of piling up on it
         out = np.where(x < 0.6, x, 0.6 + 0.4 * np.tanh((x - 0.6) / 0.4)).astype(np.float32)
@@ -126,8 +157,11 @@ class Realism:
         return out.astype(np.float32)
 
 
-#: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans).
-REALISM_PRESETS = {"kitti": Realism()}
+#: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans) and ``kitti_dr`` (the same with
+#: mixed pixels at depth edges and the domain randomisation of the sensor's height and the intensity scale, for
+#: what the real scans leave uncertain).
+REALISM_PRESETS = {"kitti": Realism(),
+                   "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

@@ -31,10 +31,12 @@ from lidarops.data.scene import (
     _uniform_material,
 )
 
-__all__ = ["SCENARIOS", "CLUTTERED_SCENARIOS", "MAX_OBJECTS", "build_scenario", "sample_object_counts"]
+__all__ = ["SCENARIOS", "CLUTTERED_SCENARIOS", "SENSOR_HEIGHT", "MAX_OBJECTS", "build_scenario", "sample_object_counts"]
 
 #: The scenarios that take the option ``street_clutter`` (roadside clutter a detector must learn to reject).
 CLUTTERED_SCENARIOS: tuple[str, ...] = ("driving_city", "driving_highway")
+#: the driving scenarios' default sensor height above the ground (m; their option ``sensor_height``)
+SENSOR_HEIGHT = 1.73
 
 
 # ---------------------------------------------------------------------------------------------
@@ -403,15 +405,20 @@ def _cluttered(tile_fn, clutter, ground: Ground, seed: int, density: float, tile
     return build
 
 
+def _sensor_height(value) -> float:
+    # the sensor's height above the ground under it (KITTI's HDL-64E: 1.73 m)
+    return real(value, "sensor_height", 0.5, 5.0, unit=" m")
+
+
 def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
-                  **unused) -> Scenario:
+                  sensor_height: float = SENSOR_HEIGHT, **unused) -> Scenario:
     _no_unused(unused, "driving_city")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
+    height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_city", "scene")
     ground = Ground.random(rng, material=_city_material)
     speed = float(rng.uniform(3.0, 12.0)) if ego_speed is None else _ego_speed(ego_speed)
     ego_y = -1.75
-    height = 1.73
     g0 = float(ground.height(np.array([0.0]), np.array([ego_y]))[0])
     ego = EgoMotion(np.array([0.0, ego_y, g0 + height]), np.array([speed, 0.0, speed * ground.slope[0]]))
     defaults = {"Car": (8, 30), "Pedestrian": (2, 15), "Cyclist": (0, 5), "Truck": (0, 2), "Bus": (0, 2),
@@ -520,16 +527,17 @@ def _highway_tile(ground: Ground, tile_length: float) -> Callable[[int, np.rando
 
 
 def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
-                     **unused) -> Scenario:
+                     sensor_height: float = SENSOR_HEIGHT, **unused) -> Scenario:
     _no_unused(unused, "driving_highway")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
+    height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_highway", "scene")
     ground = Ground.random(rng, max_slope=0.02, roughness=0.02, material=_highway_material)
     speeds = rng.uniform([24.0, 27.0, 30.0], [26.0, 30.0, 34.0])  # right, middle, left lane
     speed = float(speeds[1]) if ego_speed is None else _ego_speed(ego_speed)
     ego_y = -5.55
     g0 = float(ground.height(np.array([0.0]), np.array([ego_y]))[0])
-    ego = EgoMotion(np.array([0.0, ego_y, g0 + 1.73]), np.array([speed, 0.0, speed * ground.slope[0]]))
+    ego = EgoMotion(np.array([0.0, ego_y, g0 + height]), np.array([speed, 0.0, speed * ground.slope[0]]))
     defaults = {"Car": (10, 30), "Truck": (2, 8), "Bus": (0, 2), "Barrier": (0, 8), "TrafficCone": (0, 10)}
     counts = sample_object_counts(rng, defaults, object_counts)
     xr = (-80.0, 150.0)
@@ -708,7 +716,7 @@ def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> S
         name (str): one of :data:`SCENARIOS`.
         seed (int): random seed.
         object_counts: see :func:`sample_object_counts`.
-        **options: scenario options (``ego_speed`` for the driving scenarios).
+        **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``sensor_height``).
 
     Returns:
         Scenario.

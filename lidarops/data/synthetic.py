@@ -32,7 +32,7 @@ from lidarops.data._raycast import cast_rays
 from lidarops.data.frame import CLASSES, Frame
 from lidarops.data.geometry import count_points_in_boxes, pose_matrix, wrap_angle
 from lidarops.data.realism import Realism, make_realism
-from lidarops.data.scenarios import CLUTTERED_SCENARIOS, SCENARIOS, build_scenario
+from lidarops.data.scenarios import CLUTTERED_SCENARIOS, SCENARIOS, SENSOR_HEIGHT, build_scenario
 from lidarops.data.scene import SURFACE_KINDS, SURFACE_NONE, BoxSet, Scenario, _rng
 from lidarops.data.shapes import _trace
 from lidarops.data.sensors import LidarSensor, RisleyLidar, SpinningLidar, avia, hdl64, make_sensor, pandar64
@@ -121,7 +121,8 @@ class Simulator:
             noise), not on how spans are requested.
         cache_blocks (int): how many generated blocks to keep in memory.
         realism (str or Realism or None): a real sensor's intensity response and real vehicles' surfaces
-            applied to the returns (:mod:`lidarops.data.realism`; ``"kitti"``); ``None`` (default): as cast.
+            applied to the returns (:mod:`lidarops.data.realism`; ``"kitti"``, ``"kitti_dr"``); ``None`` (default):
+            as cast.
         **scenario_options: passed to the scenario builder (``ego_speed=...`` for driving scenes).
 
     Attributes:
@@ -140,8 +141,13 @@ class Simulator:
         self.seed = integer(seed, "seed", 0)
         cache_blocks = integer(cache_blocks, "cache_blocks", 0)
         self.realism = make_realism(realism)
+        self._intensity_scale = 1.0
         if self.realism is not None and scenario in CLUTTERED_SCENARIOS and "street_clutter" not in scenario_options:
             scenario_options = {**scenario_options, "street_clutter": self.realism.street_clutter}
+        if self.realism is not None:  # the scene's domain randomisation, from a stream of its own
+            lift, self._intensity_scale = self.realism.scene_draws(_rng(self.seed, scenario, "realism", "scene"))
+            if lift and scenario in CLUTTERED_SCENARIOS and "sensor_height" not in scenario_options:
+                scenario_options = {**scenario_options, "sensor_height": SENSOR_HEIGHT + lift}
         self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)
         self.sensor: LidarSensor = make_sensor(sensor if sensor is not None else self.scenario.default_sensor)
         if block_duration is None:  # batch sizes that run fastest: spinning 20 ms (72 deg of azimuth), Risley 50 ms
@@ -324,6 +330,10 @@ class Simulator:
         sel = np.flatnonzero(keep)
         idx = hit[sel]
         rng_k = rng_m[sel]
+        moved = None
+        if self.realism is not None and self.realism.mixed_pixels > 0:
+            moved = self._mixed_pixels(b, hits.distance, idx, n_per, max_range)
+            rng_k = rng_k + moved.astype(rng_k.dtype)
         intensity_noise = rng.standard_normal(idx.size, dtype=np.float32) * np.float32(sensor.intensity_noise_std)
         intensity = np.clip(
             refl[sel] * (0.3 + 0.7 * cos[sel])
@@ -332,7 +342,7 @@ class Simulator:
         if self.realism is not None:
             weak = distance[sel] > self.realism.weak_from * detect_range[sel]
             intensity = self.realism.intensity(intensity, hits.surface[idx], self._beam_gain[ring[idx % n_per]],
-                                               weak, zero[sel])
+                                               weak, zero[sel], self._intensity_scale)
         points = np.empty((idx.size, 4), dtype=np.float32)
         for c in range(3):  # per component: NumPy's loops over [n, 3] arrays are several times slower
             np.multiply(dirs_sensor[idx, c], rng_k, out=points[:, c], casting="same_kind")
@@ -343,11 +353,25 @@ class Simulator:
             "firing": firing[idx // n_per],
             "ring": ring[idx % n_per].astype(np.int16),
             "surface": hits.surface[idx],
-            "object": hits.object_index[idx],
+            # a mixed pixel lies between its object and what is behind: on neither
+            "object": hits.object_index[idx] if moved is None else
+            np.where(moved > 0, -1, hits.object_index[idx]).astype(hits.object_index.dtype),
             "object_rays": hits.object_rays,
             "object_visible": hits.object_visible,
             "rays": t.shape[0],
         }
+
+    def _mixed_pixels(self, b: int, distance: np.ndarray, idx: np.ndarray, n_per: int, max_range: float) -> np.ndarray:
+        """How far each return ``idx`` (rays of block ``b``, ``n_per`` to a firing) moves along its ray as a mixed
+        pixel: toward the farther of its beam's neighbours one firing before and after (in the block) when that
+        neighbour hit something at least ``mixed_gap`` behind it."""
+        far = np.full(idx.size, -np.inf)
+        for step in (-n_per, n_per):
+            nb = idx + step
+            d = distance[np.clip(nb, 0, distance.size - 1)]
+            far = np.maximum(far, np.where((nb >= 0) & (nb < distance.size) & (d <= max_range), d, -np.inf))
+        rng = _rng(self.seed, self.scenario.name, "realism", "mixed", self.sensor.name, b)
+        return self.realism.mixed_ranges(rng, distance[idx], far)
 
     def _object_frame(self, o: np.ndarray, rays: np.ndarray, origins: np.ndarray, dirs: np.ndarray, t: np.ndarray,
                       distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -104,7 +104,9 @@ def test_vehicle_returns_follow_their_probabilities():
 
 
 @pytest.mark.parametrize("field,value", [("greenhouse_keep", 1.5), ("dark_paint", -0.1), ("weak_from", float("nan")),
-                                         ("quantum", 0.9), ("beam_gain_std", 2.0)])
+                                         ("quantum", 0.9), ("beam_gain_std", 2.0), ("mixed_pixels", 1.1),
+                                         ("mixed_gap", 0.0), ("mount_height_jitter", 0.8),
+                                         ("intensity_scale_jitter", float("inf"))])
 def test_bad_parameters_are_named(field, value):
     with pytest.raises(ValueError, match=field):
         dataclasses.replace(Realism(), **{field: value})
@@ -125,6 +127,60 @@ def test_bad_profiles_are_refused():
     with pytest.raises(ValueError, match="realism"):
         Simulator("driving_city", seed=0, realism=3)
     assert make_realism(None) is None and make_realism("kitti") == Realism()
+
+
+def test_mixed_pixels_move_edge_returns_along_their_rays_toward_the_background():
+    """Every effect off but mixed pixels (all edges mixed): the same returns in the same order, except those whose
+    beam neighbour (one firing before or after) hit something at least ``mixed_gap`` farther. Those keep their ray,
+    move back by less than the depth step, and belong to no object."""
+    mixed = dataclasses.replace(NEUTRAL, mixed_pixels=1.0)
+    a = Simulator("driving_city", seed=SEED, realism=NEUTRAL, object_counts="dense").sweep(0)
+    b = Simulator("driving_city", seed=SEED, realism=mixed, object_counts="dense").sweep(0)
+    assert a.points.shape == b.points.shape
+    ra, rb = np.linalg.norm(a.points[:, :3], axis=1), np.linalg.norm(b.points[:, :3], axis=1)
+    moved = np.abs(rb - ra) > 1e-4
+    assert 0.005 < moved.mean() < 0.3, moved.mean()  # edges: some returns, not most
+    np.testing.assert_array_equal(a.points[~moved], b.points[~moved])
+    assert (rb[moved] > ra[moved]).all()  # toward what lies behind
+    cos = (a.points[moved, :3] * b.points[moved, :3]).sum(1) / (ra[moved] * rb[moved])
+    assert (cos > 1 - 1e-6).all()  # along the same ray
+    assert (b.instance[moved] == -1).all() and (a.instance[moved] >= 0).any()  # off the objects they left
+    assert (rb[moved] - ra[moved]).max() < 120.0
+
+
+def test_scene_randomisation_draws_a_sensor_height_and_an_intensity_scale_per_seed():
+    """kitti_dr: each scene's sensor height within 0.2 m of 1.73 (the ground under the sensor follows) and its
+    intensity gain within [1 / 1.3, 1.3] (the intensities follow); kitti draws neither."""
+    heights, gains = [], []
+    plain = dataclasses.replace(make_realism("kitti"), shaped_classes=(), street_clutter=0.0)
+    for seed in range(4):
+        sim = Simulator("driving_city", seed=seed, realism=dataclasses.replace(plain, mount_height_jitter=0.2,
+                                                                               intensity_scale_jitter=0.3))
+        ref = Simulator("driving_city", seed=seed, realism=plain)
+        ego = sim.scenario.ego.position0
+        height = float(ego[2] - sim.scenario.ground.height(np.array([ego[0]]), np.array([ego[1]]))[0])
+        f, g = sim.sweep(0), ref.sweep(0)
+        near = lambda fr: (np.hypot(fr.points[:, 0], fr.points[:, 1]) < 12) & (fr.instance < 0)  # noqa: E731
+        assert abs(float(np.median(f.points[near(f), 2])) + height) < 0.1, seed
+        mid = lambda fr: fr.points[(fr.points[:, 3] > 0.02) & (fr.points[:, 3] < 0.45), 3]  # noqa: E731
+        ratio = float(np.median(mid(f)) / np.median(mid(g)))
+        assert abs(ratio / sim._intensity_scale - 1) < 0.1, (seed, ratio, sim._intensity_scale)
+        heights.append(height)
+        gains.append(sim._intensity_scale)
+        ref_ego = ref.scenario.ego.position0
+        assert abs(ref_ego[2] - ref.scenario.ground.height(np.array([ref_ego[0]]), np.array([ref_ego[1]]))[0]
+                   - 1.73) < 1e-9 and ref._intensity_scale == 1.0
+    assert all(abs(h - 1.73) <= 0.2 for h in heights) and max(heights) - min(heights) > 0.05
+    assert all(1 / 1.3 <= k <= 1.3 for k in gains) and max(gains) - min(gains) > 0.02
+    assert make_realism("kitti_dr").mixed_pixels > 0 and Realism().mixed_pixels == 0
+    high = Simulator("driving_highway", seed=1, sensor_height=2.5).scenario
+    assert abs(high.ego.position0[2] - high.ground.height(high.ego.position0[:1], high.ego.position0[1:2])[0]
+               - 2.5) < 1e-9
+    for bad in (0.2, float("nan"), 6.0):
+        with pytest.raises(ValueError, match="sensor_height"):
+            Simulator("driving_city", seed=1, sensor_height=bad)
+    with pytest.raises(TypeError, match="sensor_height"):
+        Simulator("drone_bridge", seed=1, sensor_height=2.0)
 
 
 def test_street_clutter_adds_furniture_and_keeps_clear_of_labelled_boxes():
