@@ -50,7 +50,8 @@ class AnchorHeadSingle(nn.Module):
         flat, _ = flatten_anchors(anchors)
         self.register_buffer("anchors_flat", flat, persistent=False)
         self.target_assigner = AxisAlignedTargetAssigner(cfg.anchor_generator_config, cfg.class_names, self.box_coder,
-                                                         norm_by_num_examples=cfg.norm_by_num_examples)
+                                                         norm_by_num_examples=cfg.norm_by_num_examples,
+                                                         match_height=cfg.match_height)
         a = self.num_anchors_per_location
         self.conv_cls = nn.Conv2d(input_channels, a * self.num_class, kernel_size=1)
         self.conv_box = nn.Conv2d(input_channels, a * self.box_coder.code_size, kernel_size=1)

@@ -22,7 +22,9 @@ Deliberate differences from OpenPCDet (none changes a result on well-formed inpu
   is 0, wherever it stands (OpenPCDet trims trailing rows whose 7 box values sum to 0, and would
   match a class-0 row left before them to the last class name); class ids outside
   ``0..len(class_names)`` raise ``ValueError``. Labels are int64 (OpenPCDet: int32).
-  ``match_height=True`` (3D IoU) is not implemented, nor ``POS_FRACTION`` sampling.
+  ``match_height=True`` matches by rotated 3D IoU (:func:`lidarops.box_iou_3d`, OpenPCDet's
+  ``boxes_iou3d_gpu``), which anchors stacked in height (several ``anchor_bottom_heights``) need: in bird's-eye
+  view they are all alike. ``POS_FRACTION`` sampling is not implemented.
 - ``norm_by_num_examples`` divides the positives' weight by the number of anchors that are not
   ignored (label >= 0) of that class in that frame, as OpenPCDet does (not by the positives alone).
 """
@@ -34,7 +36,8 @@ from typing import Any, Mapping, Optional, Sequence
 import torch
 from torch import Tensor
 
-from lidarops.ops.validation import (check_positive_int, check_tensor, describe, run_value_checks,
+from lidarops.ops.boxes import box_iou_3d
+from lidarops.ops.validation import (check_positive_int, check_tensor, describe, run_value_checks, validation,
                                      value_checks_enabled)
 
 __all__ = ["limit_period", "ResidualCoder", "AnchorGenerator", "flatten_anchors", "boxes3d_nearest_bev_iou",
@@ -401,6 +404,13 @@ def _aligned_bev(boxes: Tensor) -> Tensor:
     return torch.cat([centre - dims / 2, centre + dims / 2], -1)
 
 
+def _iou_3d(anchors: Tensor, gt_boxes: Tensor) -> Tensor:
+    """Rotated 3D IoU of anchors (A, 7+) against each frame's boxes (B, M, 7+): (B, A, M)."""
+    with validation(False):  # the gts were checked; padding rows (zero boxes) give 0
+        a = anchors[:, :7].contiguous()
+        return torch.stack([box_iou_3d(a, g[:, :7].contiguous()) for g in gt_boxes])
+
+
 def _nearest_bev_iou(boxes_a: Tensor, boxes_b: Tensor) -> Tensor:
     a, b = _aligned_bev(boxes_a).unsqueeze(-2), _aligned_bev(boxes_b).unsqueeze(-3)
     w = (torch.minimum(a[..., 2], b[..., 2]) - torch.maximum(a[..., 0], b[..., 0])).clamp_min(0)
@@ -456,16 +466,12 @@ class AxisAlignedTargetAssigner:
         class_names (Sequence[str]): the dataset's classes: a gt of class id k (1-based) is matched to
             the anchors of the config whose ``class_name`` is ``class_names[k - 1]``, and labelled k.
         box_coder (ResidualCoder): encodes the regression targets.
-        match_height (bool): 3D IoU matching; not implemented (NotImplementedError).
+        match_height (bool): match by rotated 3D IoU (:func:`lidarops.box_iou_3d`) instead of nearest-BEV IoU.
         norm_by_num_examples (bool): normalise ``reg_weights`` as described above.
     """
 
     def __init__(self, anchor_generator_config: Sequence[Mapping], class_names: Sequence[str],
                  box_coder: ResidualCoder, match_height: bool = False, norm_by_num_examples: bool = False):
-        if match_height:
-            raise NotImplementedError("AxisAlignedTargetAssigner: match_height=True (matching by 3D IoU) is not "
-                                      "implemented; use match_height=False (nearest-BEV IoU, OpenPCDet's "
-                                      "PointPillars setting)")
         if isinstance(anchor_generator_config, Mapping) or not len(anchor_generator_config):
             raise ValueError("anchor_generator_config must be a non-empty list of per-class mappings")
         if isinstance(class_names, str) or not len(class_names):
@@ -474,7 +480,7 @@ class AxisAlignedTargetAssigner:
             raise ValueError(f"box_coder must be a box coder such as ResidualCoder, got {type(box_coder).__name__}")
         cfgs = list(anchor_generator_config)
         self.box_coder = box_coder
-        self.match_height = False
+        self.match_height = bool(match_height)
         self.norm_by_num_examples = bool(norm_by_num_examples)
         self.class_names = list(class_names)
         self.anchor_class_names = [_cfg(c, "class_name", i) for i, c in enumerate(cfgs)]
@@ -541,7 +547,8 @@ class AxisAlignedTargetAssigner:
         if A == 0 or M == 0:
             return labels, targets, weights
         # other classes' gts and padding get -1: below any IoU, so argmax picks this class's gts when any
-        iou = _nearest_bev_iou(anchors, gt_boxes).masked_fill(~valid[:, None, :], -1)  # (B, A, M)
+        iou = _iou_3d(anchors, gt_boxes) if self.match_height else _nearest_bev_iou(anchors, gt_boxes)
+        iou = iou.masked_fill(~valid[:, None, :], -1)  # (B, A, M)
         anchor_to_gt = iou.argmax(2)
         anchor_max = iou.gather(2, anchor_to_gt[..., None]).squeeze(2)
         gt_max = iou.amax(1)

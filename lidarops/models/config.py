@@ -82,6 +82,7 @@ _SPEC: dict[str, tuple] = {
     "dir_limit_offset": ("MODEL.DENSE_HEAD.DIR_LIMIT_OFFSET", "real", 0.0, 1.0),
     "num_dir_bins": ("MODEL.DENSE_HEAD.NUM_DIR_BINS", "int", 1, 360),
     "norm_by_num_examples": ("TARGET_ASSIGNER_CONFIG.NORM_BY_NUM_EXAMPLES", "bool", None, None),
+    "match_height": ("TARGET_ASSIGNER_CONFIG.MATCH_HEIGHT", "bool", None, None),
     "cls_weight": ("LOSS_CONFIG.LOSS_WEIGHTS.cls_weight", "real", 0.0, None),
     "loc_weight": ("LOSS_CONFIG.LOSS_WEIGHTS.loc_weight", "real", 0.0, None),
     "dir_weight": ("LOSS_CONFIG.LOSS_WEIGHTS.dir_weight", "real", 0.0, None),
@@ -198,6 +199,7 @@ class PointPillarsConfig:
     dir_limit_offset: float = 0.0
     num_dir_bins: int = 2
     norm_by_num_examples: bool = False
+    match_height: bool = False
     cls_weight: float = 1.0
     loc_weight: float = 2.0
     dir_weight: float = 0.2
@@ -303,7 +305,6 @@ class PointPillarsConfig:
         _expect(assigner.get("NAME", "AxisAlignedTargetAssigner"), ("AxisAlignedTargetAssigner",),
                 "TARGET_ASSIGNER_CONFIG.NAME")
         _expect(assigner.get("BOX_CODER", "ResidualCoder"), ("ResidualCoder",), "TARGET_ASSIGNER_CONFIG.BOX_CODER")
-        _expect(assigner.get("MATCH_HEIGHT", False), (False,), "TARGET_ASSIGNER_CONFIG.MATCH_HEIGHT")
         pos_fraction = assigner.get("POS_FRACTION", -1.0)
         _check_value(pos_fraction, "TARGET_ASSIGNER_CONFIG.POS_FRACTION", "real", None, None)
         if pos_fraction > 0:
@@ -358,6 +359,7 @@ class PointPillarsConfig:
             dir_limit_offset=head.get("DIR_LIMIT_OFFSET", 0.0),
             num_dir_bins=head.get("NUM_DIR_BINS", 2),
             norm_by_num_examples=assigner.get("NORM_BY_NUM_EXAMPLES", False),
+            match_height=assigner.get("MATCH_HEIGHT", False),
             cls_weight=weights.get("cls_weight", 1.0),
             loc_weight=weights.get("loc_weight", 2.0),
             dir_weight=weights.get("dir_weight", 0.2),

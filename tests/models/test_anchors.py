@@ -64,8 +64,25 @@ def ref_encode(g, a, sincos: bool = False) -> list[float]:
     return out + [gv - av for gv, av in zip(g[7:], a[7:])]
 
 
-def ref_assign(anchors_list, gt, class_names, cfgs, norm=False):
-    """Per-anchor loops: labels (B, A), targets (B, A, 7), weights (B, A) in the flattened order."""
+def ref_iou3d(a, b) -> float:
+    """Rotated 3D IoU restated with shapely's polygons (the oracle): bird's-eye intersection x z overlap / union."""
+    from shapely.geometry import Polygon
+
+    def bev(x):
+        c, s = math.cos(x[6]), math.sin(x[6])
+        return Polygon([(x[0] + c * u * x[3] / 2 - s * v * x[4] / 2, x[1] + s * u * x[3] / 2 + c * v * x[4] / 2)
+                        for u, v in ((1, 1), (-1, 1), (-1, -1), (1, -1))])
+
+    dz = min(a[2] + a[5] / 2, b[2] + b[5] / 2) - max(a[2] - a[5] / 2, b[2] - b[5] / 2)
+    inter = bev(a).intersection(bev(b)).area * max(dz, 0.0)
+    union = a[3] * a[4] * a[5] + b[3] * b[4] * b[5] - inter
+    return inter / union if union > 0 else 0.0
+
+
+def ref_assign(anchors_list, gt, class_names, cfgs, norm=False, iou=None):
+    """Per-anchor loops: labels (B, A), targets (B, A, 7), weights (B, A) in the flattened order; ``iou``: the
+    overlap (default nearest-BEV, ``ref_iou``)."""
+    iou = ref_iou if iou is None else iou
     nz, ny, nx = anchors_list[0].shape[:3]
     B = gt.shape[0]
     per_class = []  # per frame, per class: (labels, targets, weights) lists over the class's anchors
@@ -77,7 +94,7 @@ def ref_assign(anchors_list, gt, class_names, cfgs, norm=False):
             gts = [r for r in rows if class_names[int(r[-1]) - 1] == cfg["class_name"]]
             labels, targets, weights = [0] * len(anc), [[0.0] * 7 for _ in anc], [0.0] * len(anc)
             if gts:
-                ious = [[ref_iou(a, g) for g in gts] for a in anc]
+                ious = [[iou(a, g) for g in gts] for a in anc]
                 gt_max = [max(ious[i][j] for i in range(len(anc))) for j in range(len(gts))]
                 gt_max = [-1.0 if m == 0 else m for m in gt_max]
                 for i, a in enumerate(anc):
@@ -398,6 +415,51 @@ def test_assigner_matches_loop_reference(device):
     assert (kinds >= 5).all()  # the case exercises every kind of label
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a GPU"))])
+def test_assigner_match_height_matches_loop_reference(device):
+    """MATCH_HEIGHT: anchors stacked 1 m apart in height (an aerial detector's drones) matched by rotated 3D IoU
+    (shapely's polygons in the reference), beside rotated car anchors; the nearest-BEV assigner cannot tell the
+    layers apart, this one gives each layer its own label."""
+    pytest.importorskip("shapely")
+    cfgs = [dict(class_name="Drone", anchor_sizes=[[0.7, 0.7, 0.3]], anchor_rotations=[0],
+                 anchor_bottom_heights=[-1.0, 0.0, 1.0, 2.0], align_center=False, matched_threshold=0.5,
+                 unmatched_threshold=0.35),
+            dict(class_name="Car", anchor_sizes=[[4.0, 1.8, 1.5]], anchor_rotations=[0, PI / 2],
+                 anchor_bottom_heights=[-1.7, -1.2, -0.7, -0.2], align_center=False, matched_threshold=0.6,
+                 unmatched_threshold=0.45)]  # the classes share one grid: as many heights each
+    names = ["Drone", "Car"]
+    gen = AnchorGenerator([0, 0, -3, 6, 4, 4], cfgs)
+    anchors, _ = gen.generate_anchors([(8, 6), (8, 6)], dtype=torch.float64)
+    flat, _ = flatten_anchors(anchors)
+    g = torch.Generator().manual_seed(1)
+    B, M = 3, 5
+    gt = torch.zeros(B, M, 8, dtype=torch.float64)
+    for b in range(B):
+        for j in range([5, 3, 4][b]):
+            cls = 1 if j % 3 else 2
+            size = [[0.7, 0.7, 0.3], [4.0, 1.8, 1.5]][cls - 1]
+            k = int(torch.randint(0, flat.shape[0], (1,), generator=g))
+            centre = flat[k, :3] + torch.randn(3, generator=g, dtype=torch.float64) * torch.tensor([0.1, 0.1, 0.25])
+            dims = torch.tensor(size, dtype=torch.float64) * (0.8 + 0.4 * torch.rand(3, generator=g, dtype=torch.float64))
+            heading = float(torch.rand(1, generator=g, dtype=torch.float64)) * 2 * PI - PI
+            gt[b, j] = torch.tensor([*centre.tolist(), *dims.tolist(), heading, cls], dtype=torch.float64)
+    assigner = AxisAlignedTargetAssigner(cfgs, names, ResidualCoder(), match_height=True)
+    out = assigner.assign_targets([a.to(device) for a in anchors], gt.to(device))
+    ref_l, ref_t, ref_w = ref_assign(anchors, gt, names, cfgs, iou=ref_iou3d)
+    got_l = out["box_cls_labels"].cpu()
+    assert torch.equal(got_l, ref_l), f"labels differ at {(got_l != ref_l).nonzero()[:5]}"
+    assert (out["box_reg_targets"].cpu() - ref_t).abs().max() <= 1e-9
+    assert torch.equal(out["reg_weights"].cpu(), ref_w)
+    assert (ref_l == 1).sum() >= 5 and (ref_l == 2).sum() >= 3
+    # the drone layers at a location: 3D matching tells them apart, nearest-BEV matching cannot
+    drone = got_l.view(B, 4, 6, 8, 3)[..., 0]  # (B, layer, y, x): per location the drone anchor comes first
+    layered = (drone > 0).any(1) & ~(drone > 0).all(1)
+    bev = AxisAlignedTargetAssigner(cfgs, names, ResidualCoder()).assign_targets(anchors, gt)["box_cls_labels"]
+    bev_drone = bev.view(B, 4, 6, 8, 3)[..., 0]
+    assert layered.any() and ((bev_drone > 0).any(1) == (bev_drone > 0).all(1)).all()
+
+
 def test_assigner_kitti_anchors_consistent_with_flat_order():
     gen = AnchorGenerator(KITTI_RANGE, kitti_config())
     anchors, _ = gen.generate_anchors(gen.feature_map_sizes(KITTI_GRID))
@@ -498,5 +560,4 @@ def test_assigner_errors():
         assigner.assign_targets([anchors[0], anchors[1][:, :, :5]], gt)
     with pytest.raises(ValueError, match="one tensor per class"):
         assigner.assign_targets(anchors[:1], gt)
-    with pytest.raises(NotImplementedError, match="match_height"):
-        AxisAlignedTargetAssigner(cfgs, ["Car"], ResidualCoder(), match_height=True)
+

@@ -414,6 +414,14 @@ def test_unsupported_openpcdet_options(key, value, pattern):
 def test_config_round_trip_and_checks():
     cfg = PointPillarsConfig.from_openpcdet(load_config("configs/pointpillars/pointpillars_synth_all.yaml"))
     assert PointPillarsConfig.from_dict(cfg.to_dict()) == cfg
+    assert not cfg.match_height
+    yaml = load_config("configs/pointpillars/pointpillars_kitti.yaml")
+    yaml["MODEL"]["DENSE_HEAD"]["TARGET_ASSIGNER_CONFIG"]["MATCH_HEIGHT"] = True
+    height = PointPillarsConfig.from_openpcdet(yaml)
+    assert height.match_height and PointPillarsConfig.from_dict(height.to_dict()) == height
+    assert PointPillars(height).dense_head.target_assigner.match_height
+    with pytest.raises(ConfigError, match="MATCH_HEIGHT"):
+        PointPillarsConfig(match_height="yes")
     assert len(cfg.class_names) == 8
     with pytest.raises(ConfigError, match="whole number of VOXEL_SIZE cells"):
         PointPillarsConfig(voxel_size=[0.17, 0.16, 4.0])
