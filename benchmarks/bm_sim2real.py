@@ -25,8 +25,8 @@ and never committed. For each ``--checkpoint`` (default: the shipped ``pointpill
 And the statistics of the real frames beside ``--sim-frames`` simulated ``driving_city`` frames (held-out seed,
 the same camera view): intensity of all points and of points on cars, the share of car returns with intensity
 0, points per car against range, the share of a car's returns in the bottom, middle and top third of its
-height, and the cars' halo (cars within 30 m: points within 0.5 m outside the box, more than 0.3 m above its
-bottom, per point inside it). ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
+height, the cars' halo (cars within 30 m: points within 0.5 m outside the box, more than 0.3 m above its
+bottom, per point inside it), and the share of pedestrians with another within 1.5 m (groups). ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
 """
 from __future__ import annotations
 
@@ -201,11 +201,22 @@ def summarize(figs: list[dict]) -> dict:
     return row
 
 
+def grouped_pedestrians(boxes: np.ndarray, names: list[str], within: float = 1.5) -> tuple[int, int]:
+    """(pedestrians, those with another pedestrian within ``within`` m in bird's-eye view)."""
+    xy = np.array([b[:2] for b, n in zip(boxes, names) if n == "Pedestrian"]).reshape(-1, 2)
+    if len(xy) < 2:
+        return len(xy), 0
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return len(xy), int((d.min(1) < within).sum())
+
+
 def data_stats(frames) -> dict:
-    allint, cars = [], []
+    allint, cars, peds = [], [], np.zeros(2, np.int64)
     for _, points, boxes, names, *_ in frames:
         allint.append(points[:, 3])
         cars.append(object_stats(points, boxes, names))
+        peds += grouped_pedestrians(boxes, names)
     inten = np.concatenate(allint)
     car_int = np.concatenate([c["intensity"] for c in cars])
     bands = np.concatenate([c["bands"] for c in cars])
@@ -219,7 +230,9 @@ def data_stats(frames) -> dict:
                     "car_zero_intensity_share": round(float((car_int == 0).mean()), 3) if len(car_int) else None,
                     **{f"car_share_{b}": round(float(bands[:, k].mean()), 3) if len(bands) else None
                        for k, b in enumerate(BANDS)},
-                    "car_halo_share": round(halo / inside, 3) if inside else None}}
+                    "car_halo_share": round(halo / inside, 3) if inside else None,
+                    "pedestrians": int(peds[0]),
+                    "pedestrians_in_groups_share": round(float(peds[1] / peds[0]), 3) if peds[0] else None}}
 
 
 def _sim_name(profile: str | None) -> str:
@@ -304,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({"op": "sim2real", "case": "stats:simulated_driving_city" + (f":{profile}" if profile else ""),
                      "frames": args.sim_frames, "realism": profile, **sims[profile]["row"]})
     keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
-            "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share"]
+            "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share", "pedestrians_in_groups_share"]
     print_table("real against simulated", keys, [[r.get(k, "") for k in keys] for r in rows[-1 - len(sims):]],
                 right=range(1, len(keys)))
     if args.plot:

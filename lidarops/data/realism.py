@@ -20,7 +20,7 @@ A :class:`Realism` applies these effects to the caster's returns:
   quantises;
 * it adds street furniture and roadside clutter to driving scenes (the scenario option ``street_clutter``);
 * optionally (the ``kitti_dr`` profile), it reports returns at depth edges between the two surfaces (mixed
-  pixels) and randomises each scene's sensor height and intensity scale.
+  pixels), walks pedestrians in groups, and randomises each scene's sensor height and intensity scale.
 
 The simulator takes it as ``Simulator(..., realism="kitti")``. Its random numbers come from a stream of their
 own, so frames without it are exactly those of before.
@@ -72,6 +72,8 @@ class Realism:
             scene uniformly within this many metres of the scenario's (the driving scenarios' ``sensor_height``).
         intensity_scale_jitter (float): domain randomisation of the intensity scale: one gain per scene, drawn
             log-uniformly in ``[1 / (1 + j), 1 + j]``.
+        pedestrian_groups (float): probability that a pedestrian of ``driving_city`` walks or stands with one to
+            three others in single file close behind it (the scenario option ``pedestrian_groups``).
     """
 
     vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")
@@ -94,6 +96,7 @@ class Realism:
     mixed_gap: float = 1.0
     mount_height_jitter: float = 0.0
     intensity_scale_jitter: float = 0.0
+    pedestrian_groups: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("greenhouse_from", "greenhouse_keep", "roof_keep", "greenhouse_zero", "dark_paint", "dark_zero",
@@ -106,6 +109,7 @@ class Realism:
         real(self.mixed_gap, "mixed_gap", 0.05, 100, unit=" m")
         real(self.mount_height_jitter, "mount_height_jitter", 0, 0.5, unit=" m")
         real(self.intensity_scale_jitter, "intensity_scale_jitter", 0, 1)
+        real(self.pedestrian_groups, "pedestrian_groups", 0, 1)
         if len(self.surface_gain) != 6:
             raise ValueError(f"surface_gain must hold one gain per surface kind (6), got {self.surface_gain!r}")
         for g in self.surface_gain:
@@ -158,10 +162,11 @@ class Realism:
 
 
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans) and ``kitti_dr`` (the same with
-#: mixed pixels at depth edges and the domain randomisation of the sensor's height and the intensity scale, for
-#: what the real scans leave uncertain).
+#: mixed pixels at depth edges, pedestrians in groups as often as in the real scans, and the domain randomisation of
+#: the sensor's height and the intensity scale, for what the real scans leave uncertain).
 REALISM_PRESETS = {"kitti": Realism(),
-                   "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3)}
+                   "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
+                                       pedestrian_groups=0.3)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

@@ -185,8 +185,11 @@ _PLACEMENT_ORDER = ("Bus", "Truck", "Car", "Cyclist", "Pedestrian", "Barrier", "
 
 
 def _place_in_lanes(rng: np.random.Generator, ground: Ground, lanes: Sequence[Lane], counts: Mapping[str, int],
-                    placed: _Placed, reserved: Sequence[tuple[int, float, float]] = ()) -> dict[str, int]:
-    """Places ground objects into lanes without overlaps; returns how many of each class fit."""
+                    placed: _Placed, reserved: Sequence[tuple[int, float, float]] = (), groups: float = 0.0,
+                    group_rng: "np.random.Generator | None" = None) -> dict[str, int]:
+    """Places ground objects into lanes without overlaps; returns how many of each class fit. ``groups``: the
+    probability that a pedestrian walks (or stands) with one to three others close behind it in its lane, drawn
+    from ``group_rng`` (they count toward the pedestrians asked for)."""
     occupied: list[list[tuple[float, float]]] = [[] for _ in lanes]
     for lane_index, lo, hi in reserved:
         occupied[lane_index].append((lo, hi))
@@ -199,6 +202,8 @@ def _place_in_lanes(rng: np.random.Generator, ground: Ground, lanes: Sequence[La
             weights = np.array([lanes[i].x_range[1] - lanes[i].x_range[0] for i in allowed], dtype=np.float64)
             weights /= weights.sum()
             for _ in range(want):
+                if n_ok >= want:  # companions of a group filled the count
+                    break
                 for _attempt in range(60):
                     li = allowed[int(rng.choice(len(allowed), p=weights))]
                     lane = lanes[li]
@@ -216,8 +221,34 @@ def _place_in_lanes(rng: np.random.Generator, ground: Ground, lanes: Sequence[La
                     vz = ground.slope[0] * vx + ground.slope[1] * vy  # follow the mean slope
                     placed.add(name, (x, y, z), size, yaw, (vx, vy, vz), 0.0, rng)
                     n_ok += 1
+                    if groups and name == "Pedestrian" and group_rng.random() < groups:
+                        n_ok += _companions(group_rng, ground, lane, occupied[li], placed, x, size,
+                                            min(want - n_ok, int(group_rng.integers(1, 4))))
                     break
         done[name] = n_ok
+    return done
+
+
+def _companions(rng: np.random.Generator, ground: Ground, lane: Lane, occupied: list, placed: _Placed,
+                x: float, size: np.ndarray, n: int) -> int:
+    """Up to ``n`` pedestrians in single file behind one at ``x`` in ``lane`` (0.15-0.5 m apart, its speed and
+    heading), each where the lane is free; returns how many were placed."""
+    own = len(occupied) - 1  # the leader's slot: the group may stand inside its margin
+    back = -1.0 if np.cos(lane.heading) >= 0 else 1.0
+    done, prev_x, prev_len = 0, x, size[0]
+    for _ in range(n):
+        sz = _sample_size(rng, "Pedestrian")
+        cx = prev_x + back * (prev_len / 2 + rng.uniform(0.15, 0.5) + sz[0] / 2)
+        lo, hi = cx - sz[0] / 2, cx + sz[0] / 2
+        if any(lo < b and a < hi for k, (a, b) in enumerate(occupied) if k < own):
+            break
+        occupied.append((min(lo, prev_x), max(hi, prev_x)))
+        y = lane.y + rng.uniform(-lane.jitter, lane.jitter)
+        vx, vy = lane.speed * np.cos(lane.heading), lane.speed * np.sin(lane.heading)
+        z = float(ground.height(np.array([cx]), np.array([y]))[0]) + sz[2] / 2
+        placed.add("Pedestrian", (cx, y, z), sz, lane.heading + rng.normal(0, 0.05),
+                   (vx, vy, ground.slope[0] * vx + ground.slope[1] * vy), 0.0, rng)
+        done, prev_x, prev_len = done + 1, cx, sz[0]
     return done
 
 
@@ -411,9 +442,10 @@ def _sensor_height(value) -> float:
 
 
 def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
-                  sensor_height: float = SENSOR_HEIGHT, **unused) -> Scenario:
+                  sensor_height: float = SENSOR_HEIGHT, pedestrian_groups: float = 0.0, **unused) -> Scenario:
     _no_unused(unused, "driving_city")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
+    pedestrian_groups = real(pedestrian_groups, "pedestrian_groups", 0, 1)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_city", "scene")
     ground = Ground.random(rng, material=_city_material)
@@ -448,7 +480,8 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
         ]
     placed = _Placed()
     # the ego car occupies its lane around x = 0
-    done = _place_in_lanes(rng, ground, lanes, counts, placed, reserved=[(0, -3.5, 3.5)])
+    done = _place_in_lanes(rng, ground, lanes, counts, placed, reserved=[(0, -3.5, 3.5)], groups=pedestrian_groups,
+                           group_rng=_rng(seed, "driving_city", "groups") if pedestrian_groups else None)
     z0 = float(ground.z0)
     done["Drone"] = _place_drones(rng, counts["Drone"], ((-30.0, 70.0), (-9.0, 9.0), (z0 + 6.0, z0 + 15.0)), (1.0, 8.0),
                                   placed, avoid=[ego.position0])
@@ -716,7 +749,8 @@ def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> S
         name (str): one of :data:`SCENARIOS`.
         seed (int): random seed.
         object_counts: see :func:`sample_object_counts`.
-        **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``sensor_height``).
+        **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``sensor_height``;
+            ``driving_city``: ``pedestrian_groups``).
 
     Returns:
         Scenario.

@@ -183,6 +183,51 @@ def test_scene_randomisation_draws_a_sensor_height_and_an_intensity_scale_per_se
         Simulator("drone_bridge", seed=1, sensor_height=2.0)
 
 
+def _pedestrians_near(sim, within=1.5):
+    """(pedestrians ahead of the car, those with another within ``within`` m), from the scene's labels."""
+    objects, labels = sim.scenario.objects, sim.scenario.object_labels
+    xy = objects.center[labels == CLASSES.index("Pedestrian")][:, :2]
+    xy = xy[(xy[:, 0] > 0) & (xy[:, 0] < 70)]
+    if len(xy) < 2:
+        return len(xy), 0
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return len(xy), int((d.min(1) < within).sum())
+
+
+def test_pedestrian_groups_walk_in_single_file_without_overlaps():
+    """driving_city's pedestrian_groups (kitti_dr: 0.3): many more pedestrians have another within 1.5 m (the
+    real frames: 54 %), the scene's pedestrian count is kept, no two pedestrians overlap now or 3 s later, and
+    with groups off the scene is the one of before."""
+    counts = [0, 0, 0, 0]
+    for seed in range(12):
+        off = Simulator("driving_city", seed=seed)
+        on = Simulator("driving_city", seed=seed, pedestrian_groups=0.3)
+        n0, near0 = _pedestrians_near(off)
+        n1, near1 = _pedestrians_near(on)
+        counts = [counts[0] + n0, counts[1] + near0, counts[2] + n1, counts[3] + near1]
+        ped = CLASSES.index("Pedestrian")
+        assert (on.scenario.object_labels == ped).sum() == (off.scenario.object_labels == ped).sum()
+        ground = on.scenario.object_labels == ped  # the walkers' lanes hold pedestrians only
+        for t in (0.0, 3.0):
+            boxes = on.scenario.objects
+            centre = (boxes.center[:, :2] + boxes.velocity[:, :2] * t)[ground]
+            half, yaw = boxes.half[ground, :2], boxes.yaw[ground]
+            # axis-aligned bounds of each box (yaw within a few degrees of the lanes' headings): no two overlap
+            ext = np.abs(np.cos(yaw))[:, None] * half + np.abs(np.sin(yaw))[:, None] * half[:, ::-1]
+            lo, hi = centre - ext, centre + ext
+            overlap = (lo[:, None] < hi[None] - 1e-6).all(2) & (lo[None] < hi[:, None] - 1e-6).all(2)
+            np.fill_diagonal(overlap, False)
+            assert not overlap.any(), (seed, t, np.argwhere(overlap)[:3])
+    assert counts[1] / counts[0] < 0.15 and counts[3] / counts[2] > 0.4, counts
+    same = Simulator("driving_city", seed=3, pedestrian_groups=0.0).scenario.objects.center
+    np.testing.assert_array_equal(same, Simulator("driving_city", seed=3).scenario.objects.center)
+    with pytest.raises(ValueError, match="pedestrian_groups"):
+        Simulator("driving_city", seed=3, pedestrian_groups=1.5)
+    with pytest.raises(TypeError, match="pedestrian_groups"):
+        Simulator("driving_highway", seed=3, pedestrian_groups=0.3)
+
+
 def test_street_clutter_adds_furniture_and_keeps_clear_of_labelled_boxes():
     """City tiles with street clutter: more returns from structures and poles on the pavements, the same
     frame for the same seed, none of it inside labelled boxes (a few points where a parked bus overhangs the
