@@ -178,6 +178,10 @@ class Simulator:
             self._shape_names = shaped
             self._shape_u = _rng(self.seed, name, "realism", "shape").random((n_obj, 4))
             self._dark = _rng(self.seed, name, "realism", "paint").random(n_obj) < self.realism.dark_paint
+            # how far each side of a vehicle's label (length, width) sits inside its body
+            self._label_inset = (self.realism.label_tightness * self._vehicle[:, None]
+                                 * _rng(self.seed, name, "realism", "labels").random((n_obj, 2))
+                                 if self.realism.label_tightness else None)
 
     def __getstate__(self) -> dict:
         # the scene holds closures (tile and material functions): pickle the arguments, rebuild on load
@@ -517,6 +521,8 @@ class Simulator:
         pose = self.sensor_pose(t_ref)
         n_obj = len(self.scenario.objects)
         boxes_s = self.object_boxes_at(t_ref, frame="sensor") if n_obj else np.zeros((0, 7))
+        if self.realism is not None and self._label_inset is not None and n_obj:
+            boxes_s[:, 3:5] -= 2 * self._label_inset  # labels as tight as real annotators draw them
         keep = np.hypot(boxes_s[:, 0], boxes_s[:, 1]) <= self.scenario.label_range
         if isinstance(self.sensor, RisleyLidar) and n_obj:
             az = np.degrees(np.arctan2(boxes_s[:, 1], boxes_s[:, 0]))

@@ -106,7 +106,8 @@ def test_vehicle_returns_follow_their_probabilities():
 @pytest.mark.parametrize("field,value", [("greenhouse_keep", 1.5), ("dark_paint", -0.1), ("weak_from", float("nan")),
                                          ("quantum", 0.9), ("beam_gain_std", 2.0), ("mixed_pixels", 1.1),
                                          ("mixed_gap", 0.0), ("mount_height_jitter", 0.8),
-                                         ("intensity_scale_jitter", float("inf"))])
+                                         ("intensity_scale_jitter", float("inf")), ("label_tightness", 0.6),
+                                         ("pedestrian_groups", -0.1)])
 def test_bad_parameters_are_named(field, value):
     with pytest.raises(ValueError, match=field):
         dataclasses.replace(Realism(), **{field: value})
@@ -226,6 +227,24 @@ def test_pedestrian_groups_walk_in_single_file_without_overlaps():
         Simulator("driving_city", seed=3, pedestrian_groups=1.5)
     with pytest.raises(TypeError, match="pedestrian_groups"):
         Simulator("driving_highway", seed=3, pedestrian_groups=0.3)
+
+
+def test_label_tightness_draws_vehicle_labels_inside_their_bodies():
+    """label_tightness: the same returns; vehicles' labels shorter and narrower by up to twice the tightness (each
+    side), at the same centre, height and heading; other classes' labels unchanged."""
+    base = dataclasses.replace(make_realism("kitti"), street_clutter=0.0)
+    a = Simulator("driving_city", seed=SEED, realism=base, object_counts="dense").sweep(0)
+    b = Simulator("driving_city", seed=SEED, realism=dataclasses.replace(base, label_tightness=0.1),
+                  object_counts="dense").sweep(0)
+    np.testing.assert_array_equal(a.points, b.points)
+    vehicle = np.isin(a.labels, [CLASSES.index(c) for c in ("Car", "Truck", "Bus")])
+    assert vehicle.sum() >= 5 and (~vehicle).sum() >= 5
+    np.testing.assert_array_equal(a.boxes[~vehicle], b.boxes[~vehicle])
+    np.testing.assert_array_equal(a.boxes[:, [0, 1, 2, 5, 6]], b.boxes[:, [0, 1, 2, 5, 6]])
+    shrink = a.boxes[vehicle, 3:5] - b.boxes[vehicle, 3:5]
+    assert (shrink >= 0).all() and (shrink <= 0.2 + 1e-5).all() and shrink.std() > 0.02
+    assert (b.num_points_in_box[vehicle] <= a.num_points_in_box[vehicle]).all()
+    assert b.num_points_in_box[vehicle].sum() < a.num_points_in_box[vehicle].sum()
 
 
 def test_street_clutter_adds_furniture_and_keeps_clear_of_labelled_boxes():
