@@ -21,7 +21,7 @@ A :class:`Realism` applies these effects to the caster's returns:
 * it adds street furniture and roadside clutter to driving scenes (the scenario option ``street_clutter``);
 * optionally (the ``kitti_dr`` profile), it reports returns at depth edges between the two surfaces (mixed
   pixels), walks pedestrians in groups, draws vehicle labels tighter than their bodies, and randomises each
-  scene's sensor height and intensity scale.
+  scene's sensor height, beam count, dropout, range noise and intensity scale.
 
 The simulator takes it as ``Simulator(..., realism="kitti")``. Its random numbers come from a stream of their
 own, so frames without it are exactly those of before.
@@ -78,6 +78,13 @@ class Realism:
         label_tightness (float): a vehicle's label is tighter than its body, as KITTI's annotators draw it: each
             side of the label's length and of its width moves in by a uniform amount up to this (m), drawn once
             per vehicle (the returns stay where they are: some fall just outside the label).
+        beam_choices (tuple[int, ...]): domain randomisation of a spinning sensor's beams, a count drawn per scene
+            from these (each equally likely): the sensor's table halved (every other beam) while it holds more, or
+            with a beam added between each two while that stays within the count (64 -> 32, 64 -> 127 for 128).
+            Empty: the sensor as it is.
+        dropout_max (float): domain randomisation of the sensor's random dropout: per scene, uniform between the
+            sensor's own and this (0: the sensor's).
+        range_noise_max (float): the same for the range noise's standard deviation (m).
     """
 
     vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")
@@ -102,6 +109,9 @@ class Realism:
     intensity_scale_jitter: float = 0.0
     pedestrian_groups: float = 0.0
     label_tightness: float = 0.0
+    beam_choices: tuple[int, ...] = ()
+    dropout_max: float = 0.0
+    range_noise_max: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("greenhouse_from", "greenhouse_keep", "roof_keep", "greenhouse_zero", "dark_paint", "dark_zero",
@@ -116,6 +126,11 @@ class Realism:
         real(self.intensity_scale_jitter, "intensity_scale_jitter", 0, 1)
         real(self.pedestrian_groups, "pedestrian_groups", 0, 1)
         real(self.label_tightness, "label_tightness", 0, 0.5, unit=" m")
+        real(self.dropout_max, "dropout_max", 0, 0.9)
+        real(self.range_noise_max, "range_noise_max", 0, 1, unit=" m")
+        if not isinstance(self.beam_choices, tuple) or not all(
+                isinstance(b, int) and not isinstance(b, bool) and 1 <= b <= 1024 for b in self.beam_choices):
+            raise ValueError(f"beam_choices must be a tuple of beam counts in [1, 1024], got {self.beam_choices!r}")
         if len(self.surface_gain) != 6:
             raise ValueError(f"surface_gain must hold one gain per surface kind (6), got {self.surface_gain!r}")
         for g in self.surface_gain:
@@ -146,6 +161,32 @@ class Realism:
         u = rng.uniform(-1.0, 1.0, size=2)
         return float(self.mount_height_jitter * u[0]), float(np.exp(np.log1p(self.intensity_scale_jitter) * u[1]))
 
+    def scene_sensor(self, rng: np.random.Generator, sensor):
+        """A scene's sensor under the domain randomisation of its beams, dropout and range noise (a spinning
+        sensor; any other is returned as it is)."""
+        from lidarops.data.sensors import SpinningLidar
+
+        if not isinstance(sensor, SpinningLidar) or not (self.beam_choices or self.dropout_max or self.range_noise_max):
+            return sensor
+        u = rng.random(3)
+        changes = {}
+        if self.beam_choices:
+            table = np.asarray(sensor.elevations_deg, np.float64)
+            want = self.beam_choices[min(int(u[0] * len(self.beam_choices)), len(self.beam_choices) - 1)]
+            if want < len(table):  # every other beam, as many times as it takes
+                while len(table) > want and len(table) > 1:
+                    table = table[::2]
+            elif want > len(table):  # a beam between each two, while that stays within the count
+                while 1 < len(table) and 2 * len(table) - 1 <= want:
+                    table = np.insert(table, np.arange(1, len(table)), (table[:-1] + table[1:]) / 2)
+            changes["elevations_deg"] = tuple(float(e) for e in table)
+        if self.dropout_max > sensor.dropout:
+            changes["dropout"] = float(sensor.dropout + u[1] * (self.dropout_max - sensor.dropout))
+        if self.range_noise_max > sensor.range_noise_std:
+            changes["range_noise_std"] = float(sensor.range_noise_std
+                                               + u[2] * (self.range_noise_max - sensor.range_noise_std))
+        return sensor.replace(**changes) if changes else sensor
+
     def mixed_ranges(self, rng: np.random.Generator, near: np.ndarray, far: np.ndarray) -> np.ndarray:
         """For returns at ``near`` (m) whose beam neighbour lies at ``far`` (``-inf``: none): how far each moves
         along its ray (0 where it is no mixed pixel)."""
@@ -169,11 +210,12 @@ class Realism:
 
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans) and ``kitti_dr`` (the same with
 #: mixed pixels at depth edges, pedestrians in groups as often as in the real scans, vehicle labels as tight as
-#: KITTI's, and the domain randomisation of the sensor's height and the intensity scale, for what the real scans
-#: leave uncertain).
+#: KITTI's, and the domain randomisation of the sensor's height, beams, dropout, range noise and intensity scale,
+#: for what the real scans leave uncertain).
 REALISM_PRESETS = {"kitti": Realism(),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
-                                       pedestrian_groups=0.3, label_tightness=0.07)}
+                                       pedestrian_groups=0.3, label_tightness=0.07, beam_choices=(32, 64, 64, 128),
+                                       dropout_max=0.2, range_noise_max=0.05)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

@@ -152,6 +152,8 @@ class Simulator:
                 scenario_options = {**scenario_options, "pedestrian_groups": self.realism.pedestrian_groups}
         self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)
         self.sensor: LidarSensor = make_sensor(sensor if sensor is not None else self.scenario.default_sensor)
+        if self.realism is not None:  # the scene's sensor under the profile's domain randomisation
+            self.sensor = self.realism.scene_sensor(_rng(self.seed, scenario, "realism", "sensor"), self.sensor)
         if block_duration is None:  # batch sizes that run fastest: spinning 20 ms (72 deg of azimuth), Risley 50 ms
             block_duration = 0.05 if isinstance(self.sensor, RisleyLidar) else 0.02
         # a block is generated whole: more than a second of rays at once is a memory blow-up, not a setting

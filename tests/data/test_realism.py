@@ -107,7 +107,9 @@ def test_vehicle_returns_follow_their_probabilities():
                                          ("quantum", 0.9), ("beam_gain_std", 2.0), ("mixed_pixels", 1.1),
                                          ("mixed_gap", 0.0), ("mount_height_jitter", 0.8),
                                          ("intensity_scale_jitter", float("inf")), ("label_tightness", 0.6),
-                                         ("pedestrian_groups", -0.1)])
+                                         ("pedestrian_groups", -0.1), ("beam_choices", (64, 0)),
+                                         ("beam_choices", [64]), ("beam_choices", (True,)), ("dropout_max", 0.95),
+                                         ("range_noise_max", -1.0)])
 def test_bad_parameters_are_named(field, value):
     with pytest.raises(ValueError, match=field):
         dataclasses.replace(Realism(), **{field: value})
@@ -245,6 +247,34 @@ def test_label_tightness_draws_vehicle_labels_inside_their_bodies():
     assert (shrink >= 0).all() and (shrink <= 0.2 + 1e-5).all() and shrink.std() > 0.02
     assert (b.num_points_in_box[vehicle] <= a.num_points_in_box[vehicle]).all()
     assert b.num_points_in_box[vehicle].sum() < a.num_points_in_box[vehicle].sum()
+
+
+def test_scene_sensor_randomises_beams_dropout_and_range_noise():
+    """beam_choices, dropout_max, range_noise_max: per seed the HDL-64E halved (32 beams), as it is, or with a beam
+    between each two (127), its dropout and noise within [its own, the maximum]; the returns follow the beams;
+    kitti leaves the sensor as it is."""
+    from lidarops.data.sensors import hdl64
+
+    r = dataclasses.replace(NEUTRAL, beam_choices=(32, 64, 128), dropout_max=0.2, range_noise_max=0.06)
+    seen, points = {}, {}
+    for seed in range(12):
+        sim = Simulator("driving_city", seed=seed, realism=r)
+        s = sim.sensor
+        beams = len(s.elevations_deg)
+        seen[beams] = seen.get(beams, 0) + 1
+        assert beams in (32, 64, 127) and max(s.elevations_deg) == 2.0 and -24.9 <= min(s.elevations_deg) < -24.3
+        assert np.all(np.diff(s.elevations_deg) < 0)
+        assert 0.02 <= s.dropout <= 0.2 and 0.02 <= s.range_noise_std <= 0.06
+        if beams not in points and seed < 6:
+            f = sim.sweep(0)
+            points[beams] = f.points.shape[0] / (1 - s.dropout)
+            assert f.ring.max() == beams - 1
+    assert set(seen) == {32, 64, 127}
+    ratios = {b: points[b] / points[64] for b in points if 64 in points}
+    assert all(0.3 < ratios[b] / (b / 64) < 1.7 for b in ratios), ratios
+    assert Simulator("driving_city", seed=1, realism="kitti").sensor == hdl64()
+    kd = make_realism("kitti_dr")
+    assert kd.beam_choices and kd.dropout_max > 0 and kd.range_noise_max > 0
 
 
 def test_street_clutter_adds_furniture_and_keeps_clear_of_labelled_boxes():
