@@ -510,14 +510,7 @@ class OffsetAttention(nn.Module):
             *folded.conv_bn(self.trans_conv, self.after_norm)))
         q = F.linear(x, wq).transpose(1, 2)  # (B, d, N) views of rows: what the fused kernels take
         k = q if shared else F.linear(x, wk).transpose(1, 2)
-        v = F.linear(x, wv, bv).transpose(1, 2)
-        B, _, N = q.shape
-        if not (self.chunk == "fused" or (self.chunk == "auto" and x.is_cuda and _rows_per_chunk("auto", B, N))):
-            # the plain and chunked paths get forward's layout: their matrix products then round alike for alike
-            # points (exact ties stay ties)
-            q, v = q.contiguous(), v.contiguous()
-            k = q if shared else k.contiguous()
-        x_r = column_normalized_attention(q, k, v, None, self.chunk).transpose(1, 2)
+        x_r = column_normalized_attention(q, k, F.linear(x, wv, bv).transpose(1, 2), None, self.chunk).transpose(1, 2)
         return x + F.relu(F.linear(x - x_r, wt, bt), inplace=True)
 
 
