@@ -57,12 +57,17 @@ def _scenario_plan(args: argparse.Namespace) -> list[dict]:
         raise ValueError(f"--frames must be >= 0 per scenario and at least 1 in all, got {frames}")
     plan, first = [], 0
     for k, (name, n) in enumerate(zip(scenarios, frames)):
-        plan.append({"scenario": name, "frames": n, "seed": args.seed + _SCENARIO_SEED_STRIDE * k, "first_id": first})
+        labels = getattr(args, "labels", None) or ("all" if name in _WHOLE_VIEW_SCENARIOS else "camera")
+        plan.append({"scenario": name, "frames": n, "seed": args.seed + _SCENARIO_SEED_STRIDE * k, "first_id": first,
+                     "labels": labels})
         first += n
     return plan
 
 
 _SCENARIO_SEED_STRIDE = 1000
+#: Scenarios whose sensor sees far beyond a KITTI camera (the Avia's 70 x 77 degrees: drones above the
+#: image): their labels cover the whole view unless --labels camera.
+_WHOLE_VIEW_SCENARIOS = frozenset({"drone_bridge", "drone_lock"})
 _CHUNK_FRAMES = 10  # frames of one scene per task: consecutive sweeps reuse the worker's simulator
 _SOURCES: dict = {}  # the SyntheticFrames a process generated from last (worker or in-process)
 
@@ -81,7 +86,8 @@ def _synth_chunk(task: dict) -> tuple[list[str], int, str]:
     ids, n_boxes, sensor = [], 0, ""
     for i in range(task["start"], task["stop"]):
         frame = frames[i]
-        ids.append(write_kitti_frame(task["out"], frame, frame_id=task["first_id"] + i, split=task["split"]))
+        ids.append(write_kitti_frame(task["out"], frame, frame_id=task["first_id"] + i, split=task["split"],
+                                     camera_fov_only=task.get("labels", "camera") == "camera"))
         n_boxes += int((frame.num_points_in_box > 0).sum())
         sensor = frame.meta.get("sensor", "")
     return ids, n_boxes, sensor
@@ -169,6 +175,8 @@ def _command_line(args: argparse.Namespace) -> str:
         words += ["--object-counts", args.object_counts]
     if getattr(args, "realism", None):
         words += ["--realism", args.realism]
+    if getattr(args, "labels", None):
+        words += ["--labels", args.labels]
     if args.format == "kitti":
         words += ["--frames-per-scene", str(args.frames_per_scene), "--split", args.split,
                   "--val-fraction", repr(args.val_fraction), "--workers", str(args.workers)]
@@ -197,7 +205,7 @@ def _synth_kitti(args: argparse.Namespace, out: Path, counts) -> None:
         for lo in range(0, entry["frames"], k):  # a scene at a time, in chunks
             for start in range(lo, min(lo + k, entry["frames"]), _CHUNK_FRAMES):
                 tasks.append({"source": source, "out": str(out), "split": args.split, "first_id": entry["first_id"],
-                              "start": start, "stop": min(start + _CHUNK_FRAMES, lo + k, entry["frames"])})
+                              "labels": entry["labels"], "start": start, "stop": min(start + _CHUNK_FRAMES, lo + k, entry["frames"])})
     total = sum(entry["frames"] for entry in plan)
     bar = progress_bar(total, f"{'+'.join(args.scenario)} -> KITTI", not args.no_progress)
     try:
@@ -226,6 +234,8 @@ def synth(args: argparse.Namespace) -> int:
     if not 0.0 <= args.val_fraction <= 1.0:
         raise ValueError(f"--val-fraction must be in [0, 1], got {args.val_fraction}")
     counts = _object_counts(args.object_counts)
+    if getattr(args, "labels", None) and args.format != "kitti":
+        raise ValueError(f"--labels chooses KITTI label rows; --format {args.format} writes every object")
     if args.format == "kitti":
         _synth_kitti(args, out, counts)
         return 0
@@ -335,6 +345,10 @@ def register(subparsers) -> None:
     s.add_argument("--object-counts", default=None,
                    help="'dense', 'empty' or JSON such as '{\"Car\": 35, \"Pedestrian\": [0, 5]}' (default: the "
                         "scenario's)")
+    s.add_argument("--labels", choices=("camera", "all"), default=None,
+                   help="KITTI: which objects get label rows: camera (as KITTI: centres that project into the "
+                        "camera image) or all (the sensor's whole view); default all for the drone scenes (the "
+                        "Avia sees above the image), camera for the others")
     s.add_argument("--frames-per-scene", type=int, default=1,
                    help="KITTI: consecutive sweeps per simulated scene (default 1: independent frames); "
                         "scenes are never split between train and val")

@@ -36,13 +36,13 @@ class Trainable:
     Attributes:
         model: the class's name in :data:`lidarops.models.MODELS`; the class is built from the whole config.
         datasets: ``(data folder, class names, config, args) -> (training set, validation set, collate_fn)``.
-        evaluator: ``class names -> `` the evaluator :func:`lidarops.train.fit` runs on the validation set.
+        evaluator: ``(class names, config) -> `` the evaluator :func:`lidarops.train.fit` runs on the validation set.
         summary: ``(metrics, class names) -> `` the line printed after an evaluation, or ``""``.
     """
 
     model: str
     datasets: Callable[[Path, Sequence[str], Mapping, argparse.Namespace], tuple]
-    evaluator: Callable[[Sequence[str]], Any]
+    evaluator: Callable[[Sequence[str], Mapping], Any]
     summary: Callable[[Mapping[str, float], Sequence[str]], str]
     creates_data: Callable[[Mapping], bool] = lambda cfg: False  # the data folder is a cache the run fills
 
@@ -67,10 +67,15 @@ def _kitti_detection_datasets(root: Path, class_names: Sequence[str], cfg: Mappi
     return train_set, val_set, collate_batch
 
 
-def _kitti_evaluator(class_names: Sequence[str]):
+def _kitti_evaluator(class_names: Sequence[str], cfg: Mapping):
+    """KITTI's protocol on the camera's view; on the sensor's whole view (BEV and 3D, ground truths in the
+    range) for models that see every point (``FOV_POINTS_ONLY: False``, e.g. the Aerial-PointPillars)."""
     from lidarops.eval.kitti import KittiEvaluator
 
-    return KittiEvaluator(class_names)
+    data = cfg.get("DATA_CONFIG", {})
+    if data.get("FOV_POINTS_ONLY", True):
+        return KittiEvaluator(class_names)
+    return KittiEvaluator(class_names, camera=False, point_cloud_range=data.get("POINT_CLOUD_RANGE"))
 
 
 def _kitti_summary(metrics: Mapping[str, float], class_names: Sequence[str]) -> str:
@@ -95,7 +100,7 @@ def _object_datasets(root: Path, class_names: Sequence[str], cfg: Mapping, args:
     return without_single_object_batches(train_set, batch, int(os.environ.get("WORLD_SIZE", 1))), test_set, collate
 
 
-def _classification_evaluator(class_names: Sequence[str]):
+def _classification_evaluator(class_names: Sequence[str], cfg: Mapping):
     from lidarops.eval.classification import ClassificationEvaluator
 
     return ClassificationEvaluator(class_names)
@@ -107,7 +112,7 @@ def _classification_summary(metrics: Mapping[str, float], class_names: Sequence[
     return f"accuracy {metrics['accuracy']:.1f} %, mean class accuracy {metrics['mean_class_accuracy']:.1f} %"
 
 
-def _counting_evaluator(class_names: Sequence[str]):
+def _counting_evaluator(class_names: Sequence[str], cfg: Mapping):
     from lidarops.eval.counting import CountingEvaluator
 
     return CountingEvaluator(class_names)
@@ -200,7 +205,7 @@ def train(args: argparse.Namespace) -> int:
              "data_recipe": getattr(train_set, "recipe", None) or {"root": str(data_root)},
              "train_command": "lidarops " + shlex.join(sys.argv[1:])}
     result = fit(model, train_set, collate_fn, config, args.out, val_dataset=val_set if len(val_set or []) else None,
-                 evaluator=entry.evaluator(names), resume=args.resume, extra_checkpoint=extra)
+                 evaluator=entry.evaluator(names, cfg), resume=args.resume, extra_checkpoint=extra)
     line = entry.summary(result.metrics, names) if result.metrics else ""
     if line:
         print(line)

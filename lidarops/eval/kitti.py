@@ -38,8 +38,10 @@ from lidarops.data.formats.kitti import (
     KittiCalib,
     KittiLabels,
     boxes_to_kitti_labels,
+    camera_to_lidar_boxes,
     frame_to_kitti_labels,
     kitti_fov_mask,
+    lidar_to_camera_boxes,
     read_label,
 )
 from lidarops.conventions import KITTI_CLASSES
@@ -54,6 +56,7 @@ __all__ = [
     "read_annos",
     "frame_annos",
     "detection_annos",
+    "whole_view_annos",
     "count_difficulties",
     "get_thresholds",
     "KittiEvaluator",
@@ -179,12 +182,13 @@ def _numpy(value: Any) -> np.ndarray:
 
 def detection_annos(detection: Mapping[str, Any], calib: KittiCalib | None = None,
                     image_size: tuple[int, int] = KITTI_IMAGE_SIZE, class_names: Sequence[str] = KITTI_CLASSES,
-                    index: int = 0) -> dict[str, np.ndarray]:
+                    index: int = 0, camera_fov_only: bool = True) -> dict[str, np.ndarray]:
     """The annotation dict of one frame's LiDAR-frame detections.
 
     Detections whose centre does not project into the image are dropped (as OpenPCDet does before it
     writes KITTI results); the others get the 2D box of their corners projected with ``P2`` and clipped
-    to the image, ``alpha = rotation_y - arctan2(x, z)`` and their score.
+    to the image, ``alpha = rotation_y - arctan2(x, z)`` and their score. With ``camera_fov_only=False``
+    every detection is kept, as :func:`whole_view_annos` (no image box, no alpha).
 
     Args:
         detection (dict): ``boxes`` (K, 7) ``x, y, z, dx, dy, dz, heading`` (LiDAR frame, z = centre),
@@ -194,6 +198,7 @@ def detection_annos(detection: Mapping[str, Any], calib: KittiCalib | None = Non
         image_size (tuple[int, int]): image (width, height).
         class_names (sequence of str): names of ``labels`` (label k is ``class_names[k - 1]``).
         index (int): the frame's index (for error messages).
+        camera_fov_only (bool): keep only detections whose centre projects into the image.
 
     Raises:
         ValueError: a missing key, a wrong shape, a label out of range, non-finite values.
@@ -229,9 +234,44 @@ def detection_annos(detection: Mapping[str, Any], calib: KittiCalib | None = Non
     if (boxes[:, 3:6] < 0).any():
         raise ValueError(f"{where}['boxes']: sizes dx, dy, dz must be >= 0")
     calib = calib or KittiCalib.default()
+    if not camera_fov_only:
+        location, dimensions, rotation_y = lidar_to_camera_boxes(boxes, calib)
+        return {"name": names, "truncated": np.zeros(k), "occluded": np.zeros(k, np.int64),
+                "dimensions": dimensions[:, [2, 0, 1]], "location": location, "rotation_y": rotation_y,
+                "score": scores}
     keep = kitti_fov_mask(boxes[:, :3], calib, image_size) if k else np.zeros(0, bool)
     labels = boxes_to_kitti_labels(boxes[keep], names[keep], calib, image_size, score=scores[keep])
     return annos_from_labels(_as_written(labels))  # as the result file reads back: in memory == from files
+
+
+def whole_view_annos(anno: Mapping[str, Any], calib: KittiCalib | None = None,
+                     point_cloud_range: Sequence[float] | None = None) -> dict[str, np.ndarray]:
+    """Ground-truth annotations for a sensor whose view is not a camera's (a drone's Avia sees far above a
+    KITTI image): without ``bbox`` and ``alpha`` (so :func:`evaluate` skips the 2D and AOS metrics and no
+    object is too small), with ``truncated`` 0 (there is no image border), without ``DontCare`` rows (they
+    only mark image regions), and, given ``point_cloud_range``, without the objects whose LiDAR-frame centre
+    lies outside it (the model cannot see them). Occlusion still sets the difficulty.
+
+    Args:
+        anno (dict): one frame's annotations (module docstring; ``dimensions`` l, h, w).
+        calib (KittiCalib or None): calibration (camera frame -> LiDAR frame); default :meth:`KittiCalib.default`.
+        point_cloud_range (sequence of 6 float or None): ``x_min, y_min, z_min, x_max, y_max, z_max``.
+
+    Returns:
+        dict: the kept rows of every field but ``bbox`` and ``alpha``.
+    """
+    names = np.asarray(anno["name"]).astype(str).reshape(-1)
+    keep = np.char.lower(names) != "dontcare"
+    if point_cloud_range is not None and keep.any():
+        lo, hi = np.asarray(point_cloud_range[:3], np.float64), np.asarray(point_cloud_range[3:], np.float64)
+        dims = np.asarray(anno["dimensions"], np.float64).reshape(-1, 3)  # l, h, w
+        centre = camera_to_lidar_boxes(np.asarray(anno["location"], np.float64).reshape(-1, 3), dims[:, [1, 2, 0]],
+                                       np.asarray(anno["rotation_y"], np.float64).reshape(-1),
+                                       calib or KittiCalib.default())[:, :3]
+        keep &= ((centre >= lo) & (centre <= hi)).all(axis=1)
+    out = {key: np.asarray(value)[keep] for key, value in anno.items() if key not in ("bbox", "alpha")}
+    out["truncated"] = np.zeros(int(keep.sum()))
+    return out
 
 
 def _field(anno: Mapping, key: str, k: int, width: int, where: str) -> np.ndarray:
@@ -757,6 +797,12 @@ class KittiEvaluator:
             ``class_names[k - 1]``. All of them are evaluated.
         image_size (tuple[int, int]): image (width, height) of frames whose metadata gives none.
         metrics (sequence of str): as :func:`evaluate`.
+        camera (bool): score the camera's view, as KITTI (detections whose centre leaves the image dropped,
+            2D boxes, difficulties from their heights); ``False``: the sensor's whole view, as
+            :func:`whole_view_annos` (BEV and 3D metrics only), for models trained on every point
+            (``FOV_POINTS_ONLY: False``).
+        point_cloud_range (sequence of 6 float or None): with ``camera=False``, the model's range: ground
+            truths outside it are left out.
 
     Called as ``evaluator(predictions, metas) -> (results, text)``: ``predictions[i]`` a dict of ``boxes
     (K, 7)``, ``scores (K,)``, ``labels (K,)`` (1-based); ``metas[i]`` a dict with the frame's ``annos``
@@ -764,10 +810,19 @@ class KittiEvaluator:
     """
 
     def __init__(self, class_names: Sequence[str], image_size: tuple[int, int] = KITTI_IMAGE_SIZE,
-                 metrics: Sequence[str] = METRICS):
+                 metrics: Sequence[str] = METRICS, camera: bool = True,
+                 point_cloud_range: Sequence[float] | None = None):
         self.class_names = list(class_names)
         self.image_size = tuple(image_size)
         self.metrics = tuple(metrics)
+        self.camera = bool(camera)
+        if point_cloud_range is not None:
+            point_cloud_range = [float(v) for v in point_cloud_range]
+            if len(point_cloud_range) != 6 or not all(math.isfinite(v) for v in point_cloud_range) or \
+                    any(point_cloud_range[i] >= point_cloud_range[i + 3] for i in range(3)):
+                raise ValueError(f"point_cloud_range must be 6 finite values x_min, y_min, z_min, x_max, y_max, "
+                                 f"z_max with each min < max, got {point_cloud_range}")
+        self.point_cloud_range = point_cloud_range
 
     def __call__(self, predictions: Sequence[Mapping[str, Any]], metas: Sequence[Mapping[str, Any]]
                  ) -> tuple[dict[str, float], str]:
@@ -775,10 +830,11 @@ class KittiEvaluator:
             raise ValueError(f"{len(predictions)} predictions for {len(metas)} frames")
         gt_annos, dt_annos = [], []
         for i, (pred, meta) in enumerate(zip(predictions, metas)):
-            gt_annos.append(_item_annos(meta["annos"], i))
+            gt = _item_annos(meta["annos"], i)
+            gt_annos.append(gt if self.camera else whole_view_annos(gt, meta.get("calib"), self.point_cloud_range))
             labels = _numpy(pred["labels"]).astype(np.int64)
             dt_annos.append(detection_annos({"boxes": pred["boxes"], "scores": pred["scores"], "labels": labels},
                                             meta.get("calib"), tuple(meta.get("image_size") or self.image_size),
-                                            self.class_names, index=i))
+                                            self.class_names, index=i, camera_fov_only=self.camera))
         text, results = evaluate(gt_annos, dt_annos, self.class_names, metrics=self.metrics)
         return results, text
