@@ -33,7 +33,7 @@ class AnchorHeadSingle(nn.Module):
     Shape:
         ``forward(features (B, C, H, W))`` -> dict ``cls_preds (B, H, W, A*K)``, ``box_preds (B, H, W, A*7)``,
         ``dir_cls_preds (B, H, W, A*bins)`` (A anchors per location, K classes); flattened with
-        ``view(B, -1, K)`` their rows follow the anchors' (z, y, x, class, size, rotation) order.
+        ``view(B, -1, K)`` their rows follow the anchors' (y, x, class, z, size, rotation) order.
     """
 
     def __init__(self, cfg: PointPillarsConfig, input_channels: int):

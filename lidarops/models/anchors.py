@@ -366,19 +366,27 @@ def _check_anchor_grids(anchors_list: Sequence[Tensor], name: str) -> None:
                 raise ValueError(f"{name}[{i}] has {a.shape[-1]} columns but {name}[0] has {a0.shape[-1]}")
 
 
+def _heights_per_location(t: Tensor, z_dim: int) -> Tensor:
+    """(..., nz, ny, nx, k, ...) with nz at ``z_dim`` -> (..., ny, nx, nz * k, ...): a location's anchors of
+    every bottom height side by side, as the head's channels hold them."""
+    t = t.movedim(z_dim, z_dim + 2)  # (..., ny, nx, nz, k, ...)
+    return t.flatten(z_dim + 2, z_dim + 3)
+
+
 def _concat_per_location(parts: Sequence[Tensor], loc_dim: int) -> Tensor:
-    """Per-class tensors (..., nz, ny, nx, k_c, ...) joined along the per-location axis ``loc_dim``
-    (order per location: class, then the class's own order), then (nz, ny, nx, k) flattened."""
-    return torch.cat(list(parts), dim=loc_dim).flatten(loc_dim - 3, loc_dim)
+    """Per-class tensors (..., ny, nx, k_c, ...) joined along the per-location axis ``loc_dim``
+    (order per location: class, then the class's own order), then (ny, nx, k) flattened."""
+    return torch.cat(list(parts), dim=loc_dim).flatten(loc_dim - 2, loc_dim)
 
 
 def flatten_anchors(anchors_list: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
     """The classes' anchors in the order of the head's outputs.
 
-    The order is (z, y, x, class, size, rotation): OpenPCDet's ``torch.cat(anchors, dim=-3)``
-    flattened, which is the order of ``conv_cls``'s output after ``permute(0, 2, 3, 1).reshape(B, -1,
-    num_class)`` when there is one bottom height (OpenPCDet's configs all have one: with several, z
-    is outermost here but inside the per-location channels of the head).
+    The order is (y, x, class, z, size, rotation), the order of ``conv_cls``'s output after
+    ``permute(0, 2, 3, 1).reshape(B, -1, num_class)``: with one bottom height, OpenPCDet's
+    ``torch.cat(anchors, dim=-3)`` flattened. With several (the Aerial-PointPillars' stacked layers), a
+    location's heights are its channels too; OpenPCDet's own flattening puts z outermost there, which
+    pairs anchors with the wrong outputs.
 
     Args:
         anchors_list (Sequence[Tensor[nz, ny, nx, S_c, R_c, 7]]): per class, sharing (nz, ny, nx).
@@ -388,9 +396,9 @@ def flatten_anchors(anchors_list: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
         ``anchors_list`` (0-based), N = nz * ny * nx * sum_c(S_c * R_c).
     """
     _check_anchor_grids(anchors_list, "anchors_list")
-    flat = [a.reshape(*a.shape[:3], -1, a.shape[-1]) for a in anchors_list]
-    cls = [torch.full(f.shape[:4], c, dtype=torch.int64, device=f.device) for c, f in enumerate(flat)]
-    return _concat_per_location(flat, 3), _concat_per_location(cls, 3)
+    flat = [_heights_per_location(a.reshape(*a.shape[:3], -1, a.shape[-1]), 0) for a in anchors_list]
+    cls = [torch.full(f.shape[:3], c, dtype=torch.int64, device=f.device) for c, f in enumerate(flat)]
+    return _concat_per_location(flat, 2), _concat_per_location(cls, 2)
 
 
 # ---- nearest-BEV IoU ----
@@ -500,7 +508,7 @@ class AxisAlignedTargetAssigner:
                 with class id 0 are padding), same dtype and device as the anchors.
 
         Returns:
-            dict with, in the order of :func:`flatten_anchors` ((z, y, x, class, size, rotation), A
+            dict with, in the order of :func:`flatten_anchors` ((y, x, class, z, size, rotation), A
             anchors in all):
             ``box_cls_labels`` (int64 Tensor[B, A]: -1 ignored, 0 background, else the class id),
             ``box_reg_targets`` (Tensor[B, A, code_size]), ``reg_weights`` (Tensor[B, A]).
@@ -529,12 +537,12 @@ class AxisAlignedTargetAssigner:
             grid = anchors.shape[:3]
             lab, tgt, w = self._assign_class(anchors.reshape(-1, anchors.shape[-1]), gt_boxes, gt_cls,
                                              of_config[c][gt_cls], c)
-            labels.append(lab.view(B, *grid, -1))
-            targets.append(tgt.view(B, *grid, -1, tgt.shape[-1]))
-            weights.append(w.view(B, *grid, -1))
-        return {"box_cls_labels": _concat_per_location(labels, 4),
-                "box_reg_targets": _concat_per_location(targets, 4),
-                "reg_weights": _concat_per_location(weights, 4)}
+            labels.append(_heights_per_location(lab.view(B, *grid, -1), 1))
+            targets.append(_heights_per_location(tgt.view(B, *grid, -1, tgt.shape[-1]), 1))
+            weights.append(_heights_per_location(w.view(B, *grid, -1), 1))
+        return {"box_cls_labels": _concat_per_location(labels, 3),
+                "box_reg_targets": _concat_per_location(targets, 3),
+                "reg_weights": _concat_per_location(weights, 3)}
 
     def _assign_class(self, anchors: Tensor, gt_boxes: Tensor, gt_cls: Tensor, valid: Tensor,
                       c: int) -> tuple[Tensor, Tensor, Tensor]:

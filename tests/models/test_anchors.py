@@ -114,17 +114,19 @@ def ref_assign(anchors_list, gt, class_names, cfgs, norm=False, iou=None):
                 weights = [(1.0 / n_examples if norm else 1.0) if v > 0 else 0.0 for v in labels]
             frame.append((labels, targets, weights))
         per_class.append(frame)
-    # (z, y, x, class, per-class anchors per location)
+    # (y, x, class, z, per-class anchors per height): the head's channels at a location hold every height
     per_loc = [a.shape[3] * a.shape[4] for a in anchors_list]
     out_l, out_t, out_w = [], [], []
     for b in range(B):
         lab, tgt, wts = [], [], []
-        for loc in range(nz * ny * nx):
+        for loc in range(ny * nx):
             for c, k in enumerate(per_loc):
                 labels, targets, weights = per_class[b][c]
-                lab += labels[loc * k:(loc + 1) * k]
-                tgt += targets[loc * k:(loc + 1) * k]
-                wts += weights[loc * k:(loc + 1) * k]
+                for z in range(nz):
+                    at = (z * ny * nx + loc) * k  # the class's own anchors are (z, y, x, size, rotation)
+                    lab += labels[at:at + k]
+                    tgt += targets[at:at + k]
+                    wts += weights[at:at + k]
         out_l.append(lab), out_t.append(tgt), out_w.append(wts)
     return (torch.tensor(out_l, dtype=torch.int64), torch.tensor(out_t, dtype=torch.float64),
             torch.tensor(out_w, dtype=torch.float64))
@@ -453,11 +455,36 @@ def test_assigner_match_height_matches_loop_reference(device):
     assert torch.equal(out["reg_weights"].cpu(), ref_w)
     assert (ref_l == 1).sum() >= 5 and (ref_l == 2).sum() >= 3
     # the drone layers at a location: 3D matching tells them apart, nearest-BEV matching cannot
-    drone = got_l.view(B, 4, 6, 8, 3)[..., 0]  # (B, layer, y, x): per location the drone anchor comes first
-    layered = (drone > 0).any(1) & ~(drone > 0).all(1)
+    drone = got_l.view(B, 6, 8, 12)[..., :4]  # (B, y, x, layer): per location the 4 drone anchors come first
+    layered = (drone > 0).any(-1) & ~(drone > 0).all(-1)
     bev = AxisAlignedTargetAssigner(cfgs, names, ResidualCoder()).assign_targets(anchors, gt)["box_cls_labels"]
-    bev_drone = bev.view(B, 4, 6, 8, 3)[..., 0]
-    assert layered.any() and ((bev_drone > 0).any(1) == (bev_drone > 0).all(1)).all()
+    bev_drone = bev.view(B, 6, 8, 12)[..., :4]
+    assert layered.any() and ((bev_drone > 0).any(-1) == (bev_drone > 0).all(-1)).all()
+
+
+def test_stacked_anchors_follow_the_head_channels():
+    """Several bottom heights: a location's heights are its channels (conv_cls's output, permuted to (B, H, W, A)
+    and flattened), so the flat anchors and the assigner's labels must step through the heights fastest after the
+    class, and x, y outside. OpenPCDet's own flattening puts z outermost, which pairs an anchor with the output
+    of another location and height: a model trained that way learns nothing."""
+    cfgs = [dict(class_name="Drone", anchor_sizes=[[0.7, 0.7, 1.0]], anchor_rotations=[0, PI / 2],
+                 anchor_bottom_heights=[-1.0, 0.0, 1.0], align_center=False, matched_threshold=0.2,
+                 unmatched_threshold=0.1)]
+    gen = AnchorGenerator([0, 0, -3, 7, 5, 3], cfgs)
+    anchors, per_loc = gen.generate_anchors([(8, 6)])
+    assert per_loc == [6] and anchors[0].shape == (3, 6, 8, 1, 2, 7)
+    flat, _ = flatten_anchors(anchors)
+    head = flat.view(6, 8, 3, 2, 7)  # (y, x, channel = (z, rotation)) as the head's outputs read
+    for y, x, z, r in [(0, 0, 0, 0), (0, 0, 2, 1), (3, 5, 1, 0), (5, 7, 2, 1)]:
+        assert torch.equal(head[y, x, z, r], anchors[0][z, y, x, 0, r])
+    assert torch.equal(head[..., 2].unique(), torch.tensor([-0.5, 0.5, 1.5]))  # bottom + dz / 2
+    # a drone at one location and height: its positive anchors are at that location's channel of its layer
+    gt = torch.tensor([[[3.0, 2.0, 0.6, 0.7, 0.7, 0.3, 0.0, 1]]])
+    labels = AxisAlignedTargetAssigner(cfgs, ["Drone"], ResidualCoder(), match_height=True).assign_targets(
+        anchors, gt)["box_cls_labels"][0].view(6, 8, 3, 2)
+    pos = (labels > 0).nonzero().tolist()
+    assert pos and all(abs(head[y, x, z, r, 0] - 3.0) < 0.6 and abs(head[y, x, z, r, 1] - 2.0) < 0.6 and z == 1
+                       for y, x, z, r in pos)
 
 
 def test_assigner_kitti_anchors_consistent_with_flat_order():
