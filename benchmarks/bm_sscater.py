@@ -309,7 +309,8 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     from lidarops.models import load_model, weights
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
-    path = weights.path() if checkpoint == "shipped" else Path(checkpoint)
+    path = weights.path() if checkpoint == "shipped" else (
+        Path(checkpoint) if Path(checkpoint).exists() else weights.path(checkpoint))
     det = load_model(path, map_location=device).eval()
     model = SSCATeRPointPillars.from_detector(det, device=device)
     sim = Simulator(scenario, seed=0)
@@ -392,7 +393,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scenarios", default=",".join(_SCENARIOS))
     ap.add_argument("--plot", default=None, help="PNG of the per-step runtime trace (default docs/img/sscater_trace_<device>.png)")
     ap.add_argument("--checkpoint", default="shipped",
-                    help="--only detector: the trained PointPillars streamed (a file; shipped: the default detector)")
+                    help="--only detector: the trained PointPillars streamed (a file or a shipped name; shipped: the "
+                         "default detector)")
+    ap.add_argument("--detector-scenario", default=None,
+                    help="--only detector: the stream (default driving_city; drone_bridge for the Aerial-PointPillars)")
     a = ap.parse_args(argv)
     import lidarops.extension as ext
     ext.load()
@@ -410,7 +414,8 @@ def main(argv=None) -> int:
         bench_layers(device, a.quick, rows)
     if "detector" in only:
         bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
-                       a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows)
+                       a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
+                       a.detector_scenario or ("drone_bridge" if "aerial" in a.checkpoint else "driving_city"))
     if traces and not a.quick:
         from benchmarks.common import device_slug
         plot(traces, rows, str(device), Path(a.plot) if a.plot else

@@ -4,8 +4,9 @@ SSCATeR's recycling and a channel-sparse delta convolution could exploit.
     python benchmarks/sscater_sparsity.py --device cuda --steps 1000 --json
     python benchmarks/sscater_sparsity.py --device cpu --steps 50          # a short look on the CPU
 
-The stream: ``--steps`` slices of 10 ms of the simulated ``driving_city`` (seed 0), a 100 ms window, through
-``SSCATeRPointPillars.from_detector`` of the shipped PointPillars (``pointpillars_synth``, float32; the backbone is
+The stream: ``--steps`` slices of 10 ms of the simulated ``--scenario`` (seed 0), a 100 ms window, through
+``SSCATeRPointPillars.from_detector`` of a shipped PointPillars (``--checkpoint``: ``pointpillars_synth`` on
+``driving_city`` by default, ``aerial_pointpillars`` on ``drone_bridge``; float32; the backbone is
 recycled over every site, as the dense detector computes it). After each step, for the pillar net's map (the
 backbone's input) and for every convolution's output (after BatchNorm and ReLU), over every site of its map:
 
@@ -54,12 +55,13 @@ def figures(feats: torch.Tensor, prev: torch.Tensor) -> torch.Tensor:
                         (n_changed > 0).float()])
 
 
-def measure(device: torch.device, steps: int, scenario: str = "driving_city", seed: int = 0) -> tuple[list[dict], dict]:
+def measure(device: torch.device, steps: int, scenario: str = "driving_city", seed: int = 0,
+            checkpoint: str = "pointpillars_synth") -> tuple[list[dict], dict]:
     from lidarops.data.synthetic import Simulator
     from lidarops.models import weights
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
-    detector = weights.load("pointpillars_synth", map_location=device).float().to(device).eval()
+    detector = weights.load(checkpoint, map_location=device).float().to(device).eval()
     model = SSCATeRPointPillars.from_detector(detector, dtype=torch.float32, device=device)
     sim = Simulator(scenario, seed=seed)
     sums: dict[str, list[float]] = {}
@@ -89,10 +91,11 @@ def measure(device: torch.device, steps: int, scenario: str = "driving_city", se
             print(f"  step {k + 1} of {steps} ({time.perf_counter() - t0:.0f} s)", flush=True)
     rows = []
     for name, (zeros, ch, zd, n_any) in sums.items():
-        rows.append(dict(section=SECTION, op=f"{SECTION}/{scenario}/{name}", scenario=scenario, node=name,
+        rows.append(dict(section=SECTION, op=f"{SECTION}/{scenario}/{name}", scenario=scenario, checkpoint=checkpoint,
+                         node=name,
                          zeros=round(zeros / counted, 4), changed=round(ch / counted, 4),
                          zero_delta_channels=round(zd / n_any, 4) if n_any else None, steps=counted))
-    info = dict(scenario=scenario, seed=seed, steps=steps, steps_measured=counted, refresh_steps=refreshed,
+    info = dict(scenario=scenario, checkpoint=checkpoint, seed=seed, steps=steps, steps_measured=counted, refresh_steps=refreshed,
                 pillars_changed_share=round(sum(pillar_share) / max(1, len(pillar_share)), 4),
                 seconds=round(time.perf_counter() - t0, 1))
     return rows, info
@@ -102,6 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="auto", help="auto (default), cpu or cuda")
     ap.add_argument("--steps", type=int, default=1000, help="10 ms steps (default 1000)")
+    ap.add_argument("--checkpoint", default="pointpillars_synth",
+                    help="shipped detector streamed (default pointpillars_synth; aerial_pointpillars on the drone scenes)")
+    ap.add_argument("--scenario", default=None,
+                    help="the stream (default driving_city; drone_bridge for aerial_pointpillars)")
     ap.add_argument("--json", action="store_true", help="write benchmarks/results/<device>.json")
     a = ap.parse_args(argv)
     if a.steps < 12:
@@ -109,8 +116,9 @@ def main(argv: list[str] | None = None) -> int:
     dev = bench_device(a.device)
     if dev is None:
         return 2
-    rows, info = measure(dev, a.steps)
-    print_table(f"== the shipped PointPillars streaming {info['scenario']} ({device_name(dev)}), {info['steps_measured']} "
+    scenario = a.scenario or ("drone_bridge" if "aerial" in a.checkpoint else "driving_city")
+    rows, info = measure(dev, a.steps, scenario, checkpoint=a.checkpoint)
+    print_table(f"== {a.checkpoint} streaming {info['scenario']} ({device_name(dev)}), {info['steps_measured']} "
                 f"steps measured; pillars changed per step: {100 * info['pillars_changed_share']:.1f} % of the active",
                 ["node", "zeros", "changed sites", "zero delta channels at changed sites"],
                 [[r["node"], f"{100 * r['zeros']:.1f} %", f"{100 * r['changed']:.1f} %",
@@ -118,8 +126,9 @@ def main(argv: list[str] | None = None) -> int:
                 right=(1, 2, 3))
     if a.json:
         meta = env_meta(dev)
-        meta.update(benchmark=f"benchmarks/sscater_sparsity.py --device {dev.type} --steps {a.steps}", **info)
-        print("wrote", write_results(SECTION, dev, rows, meta, replace_by=None))
+        meta.update(benchmark=f"benchmarks/sscater_sparsity.py --device {dev.type} --steps {a.steps} "
+                              f"--checkpoint {a.checkpoint} --scenario {scenario}", **info)
+        print("wrote", write_results(SECTION, dev, rows, meta, replace_by="op"))
     return 0
 
 
