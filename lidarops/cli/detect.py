@@ -370,6 +370,13 @@ def _model_record(path: Path) -> dict:
     return {k: ckpt.get(k) for k in ("data_recipe", "evaluation")}
 
 
+def _sees_whole_view(record: dict) -> bool:
+    """Whether a model was trained on labels of its sensor's whole view (``data synth --labels all``: the
+    drone scenes), not a camera's: it is then run on every point and scored on the whole view."""
+    scenarios = (record.get("data_recipe") or {}).get("scenarios") or []
+    return bool(scenarios) and all(isinstance(s, dict) and s.get("labels") == "all" for s in scenarios)
+
+
 def detect(args: argparse.Namespace) -> int:
     """Runs a detector on frames; prints boxes, writes KITTI result files and BEV pictures, and scores
     them when the frames have labels."""
@@ -394,6 +401,7 @@ def detect(args: argparse.Namespace) -> int:
         sampler = _build_sampler(sampling, device)
     names = model.config.class_names
     pc_range = list(model.config.point_cloud_range)
+    whole = args.no_fov or _sees_whole_view(_model_record(ckpt))
     gt_annos, dt_annos, ids, shown = [], [], [], 0
     labelled = True
     model_seconds, sample_ms, per_frame = [], [], []
@@ -403,7 +411,7 @@ def detect(args: argparse.Namespace) -> int:
     bar = progress_bar(total or 0, "detect", enabled=not args.no_progress and (total is None or total > 3)
                        and sys.stderr.isatty(), leave=False)
     for frame_id, frame, calib, label in frames:
-        points = frame.points if args.no_fov else frame.points[kitti_fov_mask(frame.points, calib)]
+        points = frame.points if whole else frame.points[kitti_fov_mask(frame.points, calib)]
         points_in = len(points)
         if sampling is not None:
             m = sample_count(points_in, sampling.ratio)
@@ -421,22 +429,24 @@ def detect(args: argparse.Namespace) -> int:
         model_seconds.append(time.perf_counter() - t0)
         ids.append(frame_id)
         bar.update(1)
-        # KITTI results cover the camera's view: boxes whose centre projects into the image
-        keep = kitti_fov_mask(pred["boxes"][:, :3].astype(np.float64), calib) if len(pred["boxes"]) else \
-            np.zeros(0, bool)
-        pred = {k: v[keep] for k, v in pred.items()}
+        # KITTI results cover the camera's view: boxes whose centre projects into the image (all of them for a
+        # whole-view model)
+        if not whole and len(pred["boxes"]):
+            pred = {k: v[kitti_fov_mask(pred["boxes"][:, :3].astype(np.float64), calib)] for k, v in pred.items()}
         det_names = [names[int(k) - 1] for k in pred["labels"]]
         rows = boxes_to_kitti_labels(pred["boxes"], det_names, calib, score=pred["scores"])
         write_label(out / "data" / f"{frame_id}.txt", rows)
-        dt_annos.append(kitti_eval.annos_from_labels(rows))
+        dt_annos.append(kitti_eval.whole_view_annos(kitti_eval.annos_from_labels(rows)) if whole
+                        else kitti_eval.annos_from_labels(rows))
         gt = None
         if args.scenario:  # the labels write_kitti_frame would write for it
-            gt = kitti_eval.frame_annos(frame, calib)
+            gt = kitti_eval.frame_annos(frame, calib, camera_fov_only=not whole)
         elif label is not None:  # every object of the label file, DontCare and Vans included
             gt = kitti_eval.annos_from_labels(read_label(label))
         else:
             labelled = False
         if gt is not None:
+            gt = kitti_eval.whole_view_annos(gt, calib, pc_range) if whole else gt
             gt_annos.append(gt)
         # one count everywhere: objects of the model's classes, in a KITTI difficulty and in its range
         ours = np.isin(gt["name"], list(names)) if gt is not None else np.zeros(0, bool)
@@ -525,7 +535,10 @@ def register(subparsers) -> None:
                    help="keep detections scoring at least this (default: the model's SCORE_THRESH, 0.1 for the "
                         "shipped one)")
     d.add_argument("--device", default="auto", help="auto (default: cuda when available and built), cpu, cuda")
-    d.add_argument("--no-fov", action="store_true", help="keep points outside the camera's field of view")
+    d.add_argument("--no-fov", action="store_true",
+                   help="run on the sensor's whole view: every point, every detection, scored without the camera's "
+                        "image (BEV and 3D AP); the default for models trained on whole-view labels (the drone "
+                        "scenes' aerial_pointpillars)")
     d.add_argument("--png", type=int, default=1, help="frames to draw (default 1)")
     d.add_argument("--print-frames", type=int, default=3, help="frames whose boxes are printed (default 3)")
     d.add_argument("--print-boxes", type=int, default=10, help="boxes printed per frame (default 10)")

@@ -93,13 +93,15 @@ def _check_sides(gt: list, dt: list, labels_dir: Path, results_dir: Path, ids: S
 
 def counted(anno: dict, point_cloud_range: Sequence[float] | None = None) -> np.ndarray:
     """Which labelled objects of a frame a summary counts: those in one of KITTI's difficulties (a 2D box
-    >= 25 px high, truncation <= 0.5, occlusion <= 2: the objects AP is computed on) and, with
+    >= 25 px high, truncation <= 0.5, occlusion <= 2: the objects AP is computed on; without image boxes,
+    as :func:`lidarops.eval.kitti.whole_view_annos` leaves them, occlusion alone) and, with
     ``point_cloud_range``, whose centre lies inside the model's range in x and y (it cannot see others)."""
     n = len(anno["name"])
     if n == 0:
         return np.zeros(0, bool)
-    height = anno["bbox"][:, 3] - anno["bbox"][:, 1]
-    keep = (height >= 25) & (anno["truncated"] <= 0.5) & (anno["occluded"] <= 2)
+    keep = (anno["truncated"] <= 0.5) & (anno["occluded"] <= 2)
+    if "bbox" in anno:
+        keep &= anno["bbox"][:, 3] - anno["bbox"][:, 1] >= 25
     if point_cloud_range is not None:
         x, y = anno["location"][:, 2], -anno["location"][:, 0]  # camera frame -> x forward, y left
         x0, y0, _, x1, y1, _ = point_cloud_range

@@ -166,6 +166,39 @@ def test_synth_plan_and_one_frame_scenes(tmp_path):
     assert data_cli._val_scene_counts([2, 1], 0.34) == [1, 0] and data_cli._val_scene_counts([5, 5], 0.3) == [2, 1]
 
 
+def test_synth_labels_whole_view_for_drone_scenes(tmp_path, capsys):
+    """The drone scenes' Avia sees far above a KITTI camera's image: by default their label files hold every drone
+    (--labels all), the driving scenes' only the camera's view; --labels overrides either; the recipe says which."""
+    from lidarops.data.formats.kitti import KittiCalib, camera_to_lidar_boxes, kitti_fov_mask, read_label
+    from lidarops.data.synthetic import SyntheticFrames
+
+    common = ["data", "synth", "--scenario", "drone_bridge", "--frames", "6", "--seed", "11", "--no-progress"]
+    whole, camera = tmp_path / "whole", tmp_path / "camera"
+    assert main(common + ["--out", str(whole)]) == 0 and main(common + ["--out", str(camera), "--labels", "camera"]) == 0
+    frames = SyntheticFrames("drone_bridge", num_frames=6, seed=11)
+    calib = KittiCalib.default()
+    outside = 0
+    for i in range(6):
+        frame = frames[i]
+        labelled = frame.boxes[frame.num_points_in_box >= 1]
+        in_image = kitti_fov_mask(labelled[:, :3], calib)
+        outside += int((~in_image).sum())
+        for folder, want in ((whole, labelled), (camera, labelled[in_image])):
+            rows = read_label(folder / "training" / "label_2" / f"{i:06d}.txt")
+            got = camera_to_lidar_boxes(rows.location, rows.dimensions, rows.rotation_y, calib)
+            assert got.shape == want.shape and np.allclose(got[:, :6], want[:, :6], atol=1e-4), (folder.name, i)
+    assert outside >= 1  # drones above the image: the two folders differ
+    recipe = json.loads((whole / "recipe.json").read_text())
+    assert [s["labels"] for s in recipe["scenarios"]] == ["all"] and "--labels" not in recipe["command"]
+    recipe = json.loads((camera / "recipe.json").read_text())
+    assert [s["labels"] for s in recipe["scenarios"]] == ["camera"] and "--labels camera" in recipe["command"]
+    plan = data_cli._scenario_plan(argparse.Namespace(scenario=["driving_city", "drone_lock"], frames=[2], seed=0))
+    assert [p["labels"] for p in plan] == ["camera", "all"]
+    assert main(["data", "synth", "--out", str(tmp_path / "p"), "--format", "pandaset", "--scenario", "drone_lock",
+                 "--frames", "1", "--labels", "all", "--no-progress"]) == 2
+    assert "--labels" in capsys.readouterr().err
+
+
 def test_synth_errors(tmp_path, capsys):
     existing = tmp_path / "file.txt"
     existing.write_text("x")

@@ -119,6 +119,37 @@ def test_detect_on_a_scenario(tmp_path, run_cli):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
 
 
+@pytest.mark.slow  # the 504 x 504 Aerial-PointPillars on the CPU: a few seconds a frame
+def test_detect_runs_a_whole_view_model_on_its_whole_view(tmp_path, run_cli):
+    """aerial_pointpillars was trained on drone labels of the Avia's whole view (data synth --labels all): detect
+    gives it every point, keeps its boxes above the camera's image, and scores them without image boxes (BEV and
+    3D only), counting the drones above the image; a camera-view model on the same scene keeps the camera's view."""
+    from lidarops.cli.detect import _sees_whole_view
+    from lidarops.data.formats.kitti import KittiCalib, kitti_fov_mask
+    from lidarops.data.synthetic import SyntheticFrames
+    from lidarops.models import weights
+
+    assert _sees_whole_view({"data_recipe": weights.info("aerial_pointpillars")["data_recipe"]})
+    assert not _sees_whole_view({"data_recipe": weights.info("pointpillars_synth")["data_recipe"]})
+    assert not _sees_whole_view({})
+    seed, n = 5022, 2  # an unseen seed whose first frame has a drone above the image
+    frames = SyntheticFrames("drone_bridge", num_frames=n, seed=seed)
+    out = tmp_path / "det"
+    code, text, err = run_cli(["detect", "--scenario", "drone_bridge", "--frames", str(n), "--seed", str(seed),
+                               "--checkpoint", "aerial_pointpillars", "--device", "cpu", "--out", out, "--png", "0"])
+    assert code == 0, err
+    assert "  Drone " in text and "KITTI AP (R40, %)" in text
+    results = json.loads((out / "eval.json").read_text())
+    assert "Drone_3d_moderate_R40" in results and not any("bbox" in k or "aos" in k for k in results)
+    labelled = sum(int(c) for c in re.findall(r"(\d+) labelled in range", text))
+    in_image = 0
+    for i in range(n):
+        f = frames[i]
+        seen = f.boxes[(f.num_points_in_box > 0) & (f.boxes[:, 0] <= 80.64) & (np.abs(f.boxes[:, 1]) <= 40.32)]
+        in_image += int(kitti_fov_mask(seen[:, :3], KittiCalib.default()).sum())
+    assert labelled > in_image >= 1, (labelled, in_image)  # the drones above the image count
+
+
 def test_detect_png_draws_box_corners(tmp_path, monkeypatch):
     """The outlines drawn are lidarops.data.geometry.box_corners' bottom corners; the heading line ends at the
     middle of the front face."""

@@ -651,3 +651,62 @@ def test_bad_lidar_input():
         kitti.evaluate_lidar([frame], [{"boxes": frame.boxes, "scores": good["scores"]}])
     with pytest.raises(ValueError, match=r"detections\[0\]\['scores'\] must have"):
         kitti.evaluate_lidar([frame], [dict(good, scores=np.ones(frame.num_boxes + 1))])
+
+
+# ---------------------------------------------------------------------------------------------
+# the whole view: sensors that see beyond a camera's image (a drone's Avia)
+# ---------------------------------------------------------------------------------------------
+def _drone_frame(calib):
+    """LiDAR boxes of drones: one in the camera's image, one high above it (38 degrees up), one beyond x = 80 m,
+    and a DontCare row; annotations as the label file reads (visible: occlusion 0)."""
+    boxes = np.array([[20.0, 1.0, 0.0, 0.7, 0.7, 0.3, 0.2], [10.0, -2.0, 8.0 * 0.98, 0.7, 0.7, 0.3, -0.4],
+                      [90.0, 0.0, 1.0, 0.7, 0.7, 0.3, 0.0], [30.0, 5.0, 0.0, 2.0, 2.0, 2.0, 0.0]])
+    names = ["Drone", "Drone", "Drone", "DontCare"]
+    gt = kitti.annos_from_labels(boxes_to_kitti_labels(boxes, names, calib, visibility=np.ones(4)))
+    return boxes, gt
+
+
+def test_whole_view_annos_drop_the_image_and_what_lies_out_of_range():
+    calib = KittiCalib.default()
+    boxes, gt = _drone_frame(calib)
+    assert not kitti_fov_mask(boxes[1:2, :3], calib).any() and gt["truncated"][1] > 0.5  # the camera loses it
+    out = kitti.whole_view_annos(gt, calib, [0, -40, -8, 80, 40, 8])
+    assert "bbox" not in out and "alpha" not in out
+    assert out["name"].tolist() == ["Drone", "Drone"] and (out["truncated"] == 0).all()  # no DontCare, none at 90 m
+    assert np.allclose(camera_to_lidar_boxes(out["location"], out["dimensions"][:, [1, 2, 0]], out["rotation_y"],
+                                             calib), boxes[:2], atol=1e-5)
+    assert kitti.whole_view_annos(gt, calib)["name"].tolist() == ["Drone"] * 3  # no range: every object
+    dt = kitti.detection_annos({"boxes": boxes[:3], "scores": np.ones(3), "names": np.array(["Drone"] * 3)}, calib,
+                               camera_fov_only=False)
+    assert len(dt["name"]) == 3 and "bbox" not in dt and np.allclose(dt["location"], gt["location"][:3], atol=1e-5)
+
+
+def test_whole_view_evaluator_counts_objects_beyond_the_image():
+    """KittiEvaluator(camera=False) on 41 copies of the frame (R40 reaches 100 from 41 objects): the drone above
+    the image counts (found: 100; missed: recall 1/2), the one out of the range does not, and only the BEV and 3D
+    metrics are reported."""
+    calib = KittiCalib.default()
+    boxes, gt = _drone_frame(calib)
+    rng = [0, -40, -8, 80, 40, 8]
+    metas = [{"annos": gt, "calib": calib}] * 41
+
+    def preds(rows, scores):
+        return [{"boxes": torch.from_numpy(boxes[rows]), "scores": torch.tensor(scores) * (1 - i / 100),
+                 "labels": torch.ones(len(rows))} for i in range(41)]
+
+    whole = kitti.KittiEvaluator(["Drone"], camera=False, point_cloud_range=rng)
+    found, _ = whole(preds([0, 1], [0.9, 0.8]), metas)
+    assert found["Drone_3d_moderate_R40"] == found["Drone_bev_easy_R40"] == 100.0
+    assert not any(k.startswith(("Drone_bbox", "Drone_aos")) for k in found)
+    missed, _ = whole(preds([0], [0.9]), metas)  # recall 1/2 at precision 1: R40 positions 1..20 of 40
+    assert missed["Drone_3d_moderate_R40"] == pytest.approx(50.0)
+    spurious, _ = whole(preds([0, 1, 2], [0.9, 0.8, 0.95]), metas)  # a box on the drone at 90 m: a false positive
+    assert spurious["Drone_3d_moderate_R40"] < 100.0
+    unranged, _ = kitti.KittiEvaluator(["Drone"], camera=False)(preds([0, 1], [0.9, 0.8]), metas)
+    assert unranged["Drone_3d_moderate_R40"] < 70  # without a range the far drone is a miss: recall 2/3
+    # the camera's protocol: the drone above the image is neither detected nor labelled in a difficulty
+    camera, _ = kitti.KittiEvaluator(["Drone"])(preds([0, 1], [0.9, 0.8]), metas)
+    assert "Drone_bbox_moderate_R40" in camera
+    for bad in ([0, 0, 0, 1, 1], [0, -40, -8, 0, 40, 8], [0, -40, float("nan"), 80, 40, 8]):
+        with pytest.raises(ValueError, match="point_cloud_range"):
+            kitti.KittiEvaluator(["Drone"], camera=False, point_cloud_range=bad)

@@ -139,16 +139,20 @@ def test_cli_stream_with_a_checkpoint_prints_boxes_and_checks_them(tmp_path, cap
     assert main(["stream", "--checkpoint", str(tmp_path / "missing.pth"), "--device", "cpu"]) == 2
 
 
-@pytest.mark.slow  # the shipped detector on the CPU: about half a minute
-def test_shipped_detector_streamed_gives_its_own_boxes():
-    """The trained checkpoint (pointpillars_synth) on a short driving_city stream: at each checked step the same
-    labels as the detector on the stream's points, scores within float32 rounding, boxes found."""
+@pytest.mark.slow  # a shipped detector on the CPU: about half a minute
+@pytest.mark.parametrize("name, scenario", [("pointpillars_synth", "driving_city"),
+                                            ("aerial_pointpillars", "drone_bridge")])
+def test_shipped_detector_streamed_gives_its_own_boxes(name, scenario):
+    """The trained checkpoints on a short stream of their scenes (the KITTI-view detector on driving_city; the
+    Aerial-PointPillars, 504 x 504 pillars and anchors in 13 height layers, on the Avia's drone_bridge): at each
+    checked step the same labels as the detector on the stream's points, scores within float32 rounding, boxes
+    found."""
     from lidarops.data.synthetic import Simulator
     from lidarops.models import weights
 
-    detector = weights.load("pointpillars_synth")
+    detector = weights.load(name)
     stream = SSCATeRPointPillars.from_detector(detector)
-    sim = Simulator("driving_city", seed=3)
+    sim = Simulator(scenario, seed=3)
     found = 0
     for k in range(9):
         pts, t = sim.stream(0.01 * k, 0.01 * (k + 1))
