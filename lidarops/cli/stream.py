@@ -658,7 +658,19 @@ def _max3(a):
 
 # ---- argparse ----------------------------------------------------------------------------------------
 
-def run_detector(checkpoint: str, scenario: str = "driving_city", seconds: float = 0.3, slice_s: float = 0.01,
+def _trained_scenario(path: Path) -> str:
+    """The first simulated scenario of a checkpoint's data recipe that the stream can run, else driving_city."""
+    from lidarops.checkpoint import read_checkpoint
+
+    try:
+        scenarios = (read_checkpoint(path).get("data_recipe") or {}).get("scenarios") or []
+    except (OSError, ValueError):
+        scenarios = []
+    names = [s.get("scenario") for s in scenarios if isinstance(s, dict)]
+    return next((n for n in names if n in SCENARIO_SETUP), "driving_city")
+
+
+def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float = 0.3, slice_s: float = 0.01,
                  window: float = 0.1, device: Optional[str] = None, dtype: torch.dtype = torch.float32,
                  check_every: int = 5, refresh_every: Optional[int] = None, seed: int = 0,
                  json_path: Optional[str] = None, threads: Optional[int] = None, print_every: int = 1) -> int:
@@ -666,7 +678,8 @@ def run_detector(checkpoint: str, scenario: str = "driving_city", seconds: float
     :meth:`SSCATeRPointPillars.from_detector` of a trained PointPillars; each step's boxes printed, and every
     ``check_every`` steps compared with the detector's own eager call on the points the stream holds (the same
     labels, scores within 1e-5 / 1e-12 relative in float32 / float64). Returns 0 when every check held, 1 otherwise.
-    ``checkpoint``: a file, or the name of shipped weights ("shipped": the default detector)."""
+    ``checkpoint``: a file, or the name of shipped weights ("shipped": the default detector); ``scenario``: default
+    the first one the detector was trained on (its data recipe), else driving_city."""
     import json as json_module
 
     from torch.nn import functional as F
@@ -675,7 +688,7 @@ def run_detector(checkpoint: str, scenario: str = "driving_city", seconds: float
     from lidarops.models import load_model, weights
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
-    if scenario not in SCENARIO_SETUP:
+    if scenario is not None and scenario not in SCENARIO_SETUP:
         raise ValueError(f"scenario must be one of {sorted(SCENARIO_SETUP)}, got {scenario!r}")
     for name, v in (("seconds", seconds), ("slice", slice_s), ("window", window)):
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -688,6 +701,8 @@ def run_detector(checkpoint: str, scenario: str = "driving_city", seconds: float
     path = weights.path() if checkpoint == "shipped" else \
         (Path(checkpoint) if Path(checkpoint).is_file() or checkpoint not in weights.available() else weights.path(checkpoint))
     detector = load_model(path, map_location=dev).to(dtype).eval()
+    if scenario is None:
+        scenario = _trained_scenario(path)
     if type(detector).__name__ != "PointPillars":
         raise ValueError(f"--checkpoint {checkpoint} holds a {type(detector).__name__}; streaming detection needs a "
                          "PointPillars")
@@ -758,7 +773,7 @@ def _main(args: argparse.Namespace) -> int:
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     detecting = args.checkpoint is not None
     # the defaults of each mode: random weights on a drone scene; a detector on the scenes it was trained on
-    scenario = args.scenario or ("driving_city" if detecting else "drone_bridge")
+    scenario = args.scenario or (None if detecting else "drone_bridge")
     seconds = args.seconds if args.seconds is not None else (0.3 if detecting else 5.0)
     check_every = args.check_every if args.check_every is not None else (5 if detecting else 10)
     if detecting:
@@ -790,8 +805,10 @@ def register(subparsers) -> None:
                         "the shipped detector): its boxes at every step, checked against the detector run on the "
                         "same points; without it, the random-weights benchmark of the recycling backbone")
     p.add_argument("--scenario", choices=sorted(SCENARIO_SETUP), default=None,
-                   help="simulated scene (default drone_bridge; driving_city with --checkpoint); drone scenes use the "
-                        "512 x 512 drone grid, driving scenes the KITTI grid (x forward)")
+                   help="simulated scene (default drone_bridge; with --checkpoint, the first scene the detector was "
+                        "trained on: driving_city for the shipped one, drone_bridge for aerial_pointpillars); drone "
+                        "scenes use the 512 x 512 drone grid (a detector: its own grid), driving scenes the KITTI "
+                        "grid (x forward)")
     p.add_argument("--seconds", type=float, default=None, help="stream length in seconds (default 5; 0.3 with "
                                                                "--checkpoint)")
     p.add_argument("--slice", type=float, default=0.01, help="seconds per step (default 0.01)")

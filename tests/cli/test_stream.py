@@ -216,3 +216,21 @@ def test_stream_takeaway_words():
     assert "- identity FAILED" in failed and "3.0e-04" in failed and "compare --relu-zeros" not in failed
     unchecked = stream_cli._takeaway(_summary(10.0, float("nan"), checks=0), 1e-5, 0.5, cpu)
     assert "identity: not checked" in unchecked and "saving: not measured" in unchecked
+
+
+def test_stream_checkpoint_defaults_to_the_scene_it_was_trained_on(tmp_path):
+    """--checkpoint without --scenario streams the first scene of the detector's data recipe (the Aerial-PointPillars:
+    drone_bridge), driving_city for a checkpoint whose recipe names none the stream can run."""
+    from lidarops.checkpoint import read_checkpoint, save_checkpoint
+    from lidarops.cli.stream import _trained_scenario
+    from lidarops.models import weights
+
+    assert _trained_scenario(weights.path("aerial_pointpillars")) == "drone_bridge"
+    assert _trained_scenario(weights.path("pointpillars_synth")) == "driving_city"
+    record = read_checkpoint(weights.path("pointpillars_synth"))
+    for recipe in ({"scenarios": [{"scenario": "nope"}, {"scenario": "drone_lock"}]}, None, {"root": "/data/kitti"}):
+        save_checkpoint({**record, "data_recipe": recipe}, tmp_path / "c.pth")
+        assert _trained_scenario(tmp_path / "c.pth") == ("drone_lock" if recipe and "scenarios" in recipe
+                                                          else "driving_city")
+    (tmp_path / "bad.pth").write_bytes(b"not a checkpoint")
+    assert _trained_scenario(tmp_path / "bad.pth") == "driving_city"
