@@ -84,8 +84,9 @@ def boxes_convention(path: Path) -> None:
 
 
 
-def detector_training(path: Path) -> None:
-    """The shipped PointPillars' training: loss terms per step and moderate AP (R40) per evaluation."""
+def _training_figure(name: str):
+    """(figure, axes, evaluations) of a shipped detector's training: its loss panel drawn from
+    ``benchmarks/results/<name>_train_log.csv``, the evaluations of ``<name>_eval_progress.json``."""
     import csv
     import json
 
@@ -95,31 +96,61 @@ def detector_training(path: Path) -> None:
     import matplotlib.pyplot as plt
 
     results = ROOT / "benchmarks" / "results"
-    rows = list(csv.DictReader(open(results / "pointpillars_synth_train_log.csv")))
-    prog = json.load(open(results / "pointpillars_synth_eval_progress.json"))["evaluations"]
+    rows = list(csv.DictReader(open(results / f"{name}_train_log.csv")))
+    prog = json.load(open(results / f"{name}_eval_progress.json"))["evaluations"]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    _loss_panel(axes[0], rows)
+    return fig, axes, prog
+
+
+def _finish(fig, ax, xlabel: str, ylabel: str, title: str, path: Path) -> None:
+    """The AP panel's labels, then the figure written to ``path``."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
+def _loss_panel(ax, rows: list) -> None:
+    """A detector's loss terms per step (``log.csv`` rows of ``lidarops train``), log scale."""
     step = [int(r["step"]) for r in rows]
     for key, label in (("loss", "total"), ("loss_cls", "classification"), ("loss_box", "box"), ("loss_dir", "direction")):
-        axes[0].plot(step, [float(r[key]) for r in rows], label=label, lw=1)
-    axes[0].set_yscale("log")
-    axes[0].set_xlabel("optimisation step (2 GPUs x 8 frames)")
-    axes[0].set_ylabel("loss (per frame)")
-    axes[0].legend(fontsize=8)
-    axes[0].set_title("training loss")
+        ax.plot(step, [float(r[key]) for r in rows], label=label, lw=1)
+    ax.set_yscale("log")
+    ax.set_xlabel("optimisation step (2 GPUs x 8 frames)")
+    ax.set_ylabel("loss (per frame)")
+    ax.legend(fontsize=8)
+    ax.set_title("training loss")
+
+
+def detector_training(path: Path) -> None:
+    """The shipped PointPillars' training: loss terms per step and moderate AP (R40) per evaluation."""
+    fig, axes, prog = _training_figure("pointpillars_synth")
     epochs = [p["epoch"] for p in prog]
     for cls, color in (("Car", "tab:blue"), ("Pedestrian", "tab:red"), ("Cyclist", "tab:orange")):
         axes[1].plot(epochs, [p[f"{cls}_3d_moderate_R40"] for p in prog], marker="o", color=color, label=f"{cls} 3D")
         axes[1].plot(epochs, [p[f"{cls}_bev_moderate_R40"] for p in prog], ls="--", color=color, label=f"{cls} BEV")
     axes[1].axhline(75, color="gray", lw=0.8, ls=":")
     axes[1].text(epochs[0], 76, "target: Car 3D 75", fontsize=7, color="gray")
-    axes[1].set_xlabel("epoch (3,100 frames)")
-    axes[1].set_ylabel("moderate AP, R40 (%)")
-    axes[1].set_ylim(0, 100)
-    axes[1].legend(fontsize=7, loc="lower right")
-    axes[1].set_title("validation (500 held-out frames)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    print(f"wrote {path}")
+    _finish(fig, axes[1], "epoch (3,100 frames)", "moderate AP, R40 (%)", "validation (500 held-out frames)", path)
+
+
+def aerial_training(path: Path) -> None:
+    """The shipped Aerial-PointPillars' training: loss terms per step and moderate Drone AP (R40, whole view) per
+    evaluation, at the strict (0.5) and the loose (0.25) overlap."""
+    fig, axes, prog = _training_figure("aerial_pointpillars")
+    epochs = [p["epoch"] for p in prog]
+    for suffix, overlap, style in (("", "0.5", "-"), ("_loose", "0.25", ":")):
+        axes[1].plot(epochs, [p[f"Drone_bev_moderate_R40{suffix}"] for p in prog], ls=style, marker="o",
+                     color="tab:blue", label=f"BEV, IoU {overlap}")
+        axes[1].plot(epochs, [p[f"Drone_3d_moderate_R40{suffix}"] for p in prog], ls=style, marker="o",
+                     color="tab:red", label=f"3D, IoU {overlap}")
+    _finish(fig, axes[1], "epoch (4,000 frames)", "moderate Drone AP, R40 (%)",
+            "validation (500 held-out frames, whole view)", path)
 
 
 def shapes(path: Path) -> None:
@@ -164,6 +195,7 @@ def shapes(path: Path) -> None:
 def main() -> int:
     boxes_convention(ROOT / "docs" / "img" / "boxes_convention.png")
     detector_training(ROOT / "docs" / "img" / "detector_training.png")
+    aerial_training(ROOT / "docs" / "img" / "aerial_training.png")
     shapes(ROOT / "docs" / "img" / "shapes.png")
     return 0
 
