@@ -299,6 +299,41 @@ def _p95(xs: list) -> float:
     return sorted(xs)[min(len(xs) - 1, int(round(0.95 * (len(xs) - 1))))]
 
 
+def bench_channel_sparse(rows: list, quick: bool = False) -> None:
+    """The CPU's two scatter kernels on one delta layer (3x3, the detector's block widths, changed sites as on the
+    drone stream): each row's nonzero channels alone (``channel_sparse=0``) against one GEMM per tap over the
+    whole delta (``channel_sparse=2``), as the share of exactly-zero delta values grows. The op's default picks
+    the sparse kernel from the share where it starts to win."""
+    from lidarops import extension
+
+    extension.load()
+    scatter = torch.ops.lidarops.sscater_scatter_
+    g = torch.Generator().manual_seed(0)
+    table = []
+    shapes = [(252, 4000, 64, 1), (126, 3000, 128, 1), (63, 1500, 256, 1), (252, 4000, 64, 2)]
+    for H, n, C, stride in shapes[:2] if quick else shapes:
+        keys = torch.randperm(H * H, generator=g)[:n]
+        sites = torch.stack([keys // H, keys % H], 1).int()
+        weight = torch.randn(C, 3, 3, C, generator=g)
+        Ho = (H + 2 - 3) // stride + 1
+        for zeros in ((0.5, 0.9) if quick else (0.0, 0.5, 0.7, 0.8, 0.85, 0.9, 0.95)):
+            delta = torch.randn(n, C, generator=g)
+            delta[torch.rand(n, C, generator=g) < zeros] = 0.0
+            acc = torch.zeros(Ho, Ho, C)
+            ms = {}
+            for name, arg in (("sparse", 0.0), ("gemm", 2.0)):
+                ms[name] = time_call(lambda a=arg: scatter(acc, sites, delta, weight, stride, 1, False, None, None, a),
+                                     (), torch.device("cpu"), min_runs=5, budget_s=1.0).median
+            row = {"op": f"sscater_channel_sparse/{C}ch_s{stride}_z{zeros:g}", "channels": C, "stride": stride,
+                   "rows": n, "zero_share": zeros, "sparse_ms": ms["sparse"], "gemm_ms": ms["gemm"],
+                   "sparse_speedup": ms["gemm"] / ms["sparse"]}
+            rows.append(row)
+            table.append([f"{C} -> {C}, stride {stride}", f"{100 * zeros:.0f} %", fmt_ms(ms["sparse"]), fmt_ms(ms["gemm"]),
+                          fmt_ratio(row["sparse_speedup"])])
+    print_table("channel-sparse scatter against the per-tap GEMM (CPU, one 3x3 delta layer)",
+                ["layer", "zero deltas", "sparse ms", "GEMM ms", "sparse speed-up"], table, right=(1, 2, 3, 4))
+
+
 def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, scenario: str = "driving_city",
                    warm: int = 12) -> dict:
     """A trained PointPillars streamed (``SSCATeRPointPillars.from_detector``): each 10 ms step's boxes by
@@ -386,7 +421,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default=None)
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--only", default="stream,layer")
+    ap.add_argument("--only", default="stream,layer",
+                    help="comma-separated: stream, layer, detector, channel_sparse (CPU: the two scatter kernels)")
     ap.add_argument("--steps", type=int, default=None, help="10 ms steps per scenario (default 1000 on CUDA, 60 on CPU)")
     ap.add_argument("--every", type=int, default=None, help="time the full recomputation every N steps")
     ap.add_argument("--relu-zeros", type=float, default=0.5)
@@ -412,6 +448,8 @@ def main(argv=None) -> int:
         bench_stream(device, steps, every, a.relu_zeros, rows, traces, a.scenarios.split(","))
     if "layer" in only:
         bench_layers(device, a.quick, rows)
+    if "channel_sparse" in only and device.type == "cpu":
+        bench_channel_sparse(rows, a.quick)
     if "detector" in only:
         bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
                        a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
@@ -422,10 +460,13 @@ def main(argv=None) -> int:
              Path(__file__).resolve().parents[1] / "docs" / "img" / f"sscater_trace_{device_slug(device)}.png")
     if a.json:
         meta = env_meta(device)
-        stream_rows = [r for r in rows if not r["op"].startswith("detector_stream/")]
+        stream_rows = [r for r in rows if not r["op"].startswith(("detector_stream/", "sscater_channel_sparse/"))]
         if stream_rows:
             meta["traces"] = traces
             print(f"results: {write_results('sscater', device, stream_rows, meta, replace_by='op')}")
+        sparse_rows = [r for r in rows if r["op"].startswith("sscater_channel_sparse/")]
+        if sparse_rows:
+            print(f"results: {write_results('sscater_channel_sparse', device, sparse_rows, env_meta(device), replace_by='op')}")
         detector_rows = [r for r in rows if r["op"].startswith("detector_stream/")]
         if detector_rows:  # a section of its own: the stream section's meta holds that run's traces
             print(f"results: {write_results('sscater_detector', device, detector_rows, env_meta(device), replace_by='op')}")

@@ -240,7 +240,9 @@ __global__ void finalize_kernel(const T* __restrict__ acc, T* __restrict__ out, 
 
 at::Tensor scatter_cuda(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in,
                         const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed,
-                        const c10::optional<at::Tensor>& out_active, const c10::optional<at::Tensor>& count) {
+                        const c10::optional<at::Tensor>& out_active, const c10::optional<at::Tensor>& count,
+                        double channel_sparse) {
+  (void)channel_sparse;  // the tiled GEMM serves every delta on the GPU (csrc/ops/sscater.cpp)
   check_scatter_args(acc, sites_in, delta_in, weight_in, stride, padding);
   check_out_active(out_active, acc);
   check_count(count, acc);

@@ -22,10 +22,15 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // (n * kh * kw,) int64 linear keys oy * Wo + ox, entry i * K + ky * kw + kx, or -1 where the tap
   // falls outside the grid (or on an inactive site). A row with a negative coordinate is padding (no
   // site); with count (int64 (1,) on acc's device), only the first count[0] rows are read: the rest
-  // get -1 and cost nothing (a padded list whose length is known only on the device).
+  // get -1 and cost nothing (a padded list whose length is known only on the device). channel_sparse:
+  // on CPU, when at least this share of the delta's values is exactly 0, the channel-sparse kernel runs
+  // (each row's nonzero channels times the weight, straight into acc) instead of the per-tap GEMM; 0
+  // always, > 1 never; the two differ only in the order of the float sums. The default is where the
+  // sparse kernel starts to win on AVX-512 (it rereads the weights per row; the GEMM reuses them):
+  // docs/sscater.md. CUDA: the GEMM always.
   m.def(
       "sscater_scatter_(Tensor(a!) acc, Tensor sites, Tensor delta, Tensor weight, int stride, int padding,"
-      " bool transposed, Tensor? out_active=None, Tensor? count=None) -> Tensor");
+      " bool transposed, Tensor? out_active=None, Tensor? count=None, float channel_sparse=0.85) -> Tensor");
   // For each site (m, 2) int32 of the output grid: y = active ? relu(acc * scale + shift) : 0, written
   // into out (Ho, Wo, C), any strides. Returns (changed (m,) bool: y differs from out's previous
   // value in some channel, delta (m, C) = y - previous). Sites outside the grid: CPU ValueError, CUDA

@@ -9,7 +9,8 @@ import torch
 
 
 @torch.library.register_fake("lidarops::sscater_scatter_")
-def _scatter_fake(acc, sites, delta, weight, stride, padding, transposed, out_active=None, count=None):
+def _scatter_fake(acc, sites, delta, weight, stride, padding, transposed, out_active=None, count=None,
+                  channel_sparse=0.85):
     return sites.new_empty((sites.shape[0] * weight.shape[1] * weight.shape[2],), dtype=torch.int64)
 
 

@@ -77,7 +77,8 @@ def _check_channels(scale, shift, acc) -> None:
 # ---- wrappers -------------------------------------------------------------------------------------
 
 def scatter_(acc: Tensor, sites: Tensor, delta: Tensor, weight: Tensor, stride: int = 1, padding: int = 0,
-             transposed: bool = False, out_active: Optional[Tensor] = None, count: Optional[Tensor] = None) -> Tensor:
+             transposed: bool = False, out_active: Optional[Tensor] = None, count: Optional[Tensor] = None,
+             channel_sparse: float = 0.85) -> Tensor:
     """Add to ``acc`` the convolution of a zero image holding ``delta`` at ``sites``.
 
     Args:
@@ -87,6 +88,9 @@ def scatter_(acc: Tensor, sites: Tensor, delta: Tensor, weight: Tensor, stride: 
         weight (Tensor[Cout, kh, kw, Cin]): acc's dtype.
         out_active (Tensor[Ho, Wo] bool, optional): update only the active outputs.
         count (Tensor[1] int64, optional): use only the first count[0] rows of ``sites``.
+        channel_sparse (float): on the CPU, the share of exactly-zero delta values from which each row's
+            nonzero channels are multiplied alone instead of the whole delta in one GEMM per tap (0: always,
+            above 1: never); the results differ only in the order of the float sums. Ignored on CUDA.
 
     Returns:
         Tensor[n * kh * kw] int64: the output key ``oy * Wo + ox`` reached by row i through tap (ky, kx)
@@ -106,8 +110,10 @@ def scatter_(acc: Tensor, sites: Tensor, delta: Tensor, weight: Tensor, stride: 
     _check_count(count, "sites")
     named = [("acc", acc), ("sites", sites), ("delta", delta), ("weight", weight)]
     check_same_device(named + [(n, t) for n, t in (("out_active", out_active), ("count", count)) if t is not None])
+    if isinstance(channel_sparse, bool) or not isinstance(channel_sparse, (int, float)) or channel_sparse != channel_sparse:
+        raise ValueError(f"channel_sparse must be a number (a share of zero delta values), got {channel_sparse!r}")
     return torch.ops.lidarops.sscater_scatter_(acc, sites, delta, weight, stride, padding, bool(transposed),
-                                               out_active, count)
+                                               out_active, count, float(channel_sparse))
 
 
 def finalize_(acc: Tensor, out: Tensor, active: Tensor, sites: Tensor, scale: Tensor,

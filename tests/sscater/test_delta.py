@@ -55,6 +55,76 @@ def test_scatter_equals_dense_convolution_of_the_delta(device, kind, k, s, p, dt
         hit.flatten() > 0).flatten().tolist()
 
 
+@pytest.mark.parametrize("kind,k,s,p", [("conv", 3, 1, 1), ("conv", 3, 2, 1), ("transposed", 2, 2, 0)])
+@pytest.mark.parametrize("cin,cout", [(5, 7), (33, 40), (64, 130)])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_channel_sparse_scatter_equals_the_dense_convolution(kind, k, s, p, cin, cout, dtype):
+    """The CPU's channel-sparse kernel (channel_sparse=0: always; > 1: never, the per-tap GEMM) on deltas whose
+    channels are mostly exactly 0, with whole-zero rows, padding rows, inactive outputs and a count: both equal the
+    float64 dense convolution of the delta, the sparse one bit for bit whatever the thread count (its threads
+    split the output channels)."""
+    g = torch.Generator().manual_seed(cin * 100 + k * 10 + s)
+    H, W, n = 14, 12, 50
+    keys = torch.randperm(H * W, generator=g)[:n]
+    sites = torch.stack([keys // W, keys % W], 1).int()
+    sites[7] = -1  # a padding row
+    delta = torch.randn(n, cin, generator=g, dtype=torch.float64)
+    delta[torch.rand(n, cin, generator=g) < 0.65] = 0.0  # zero before and after ReLU
+    delta[3] = 0.0
+    weight = torch.randn(cout, k, k, cin, generator=g, dtype=torch.float64)
+    real = sites[:, 0] >= 0
+    counted = torch.arange(n) < 40  # count: the first 40 rows
+    use = real & counted
+    img = _dense_delta(H, W, sites[use], delta[use])
+    if kind == "conv":
+        ref = F.conv2d(img, weight.permute(0, 3, 1, 2), None, s, p)[0].permute(1, 2, 0)
+    else:
+        ref = F.conv_transpose2d(img, weight.permute(3, 0, 1, 2), None, s, p)[0].permute(1, 2, 0)
+    active = torch.rand(ref.shape[:2], generator=g) > 0.3
+    start = torch.randn(*ref.shape, generator=g, dtype=torch.float64)
+    want = torch.where(active[..., None], start + ref, start)  # inactive outputs are left as they were
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    results = {}
+    for mode, threads in (("sparse", 2), ("sparse", 1), ("gemm", 2)):
+        acc = start.to(dtype).clone()
+        saved = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            reached = _ops.sscater_scatter_(acc, sites, delta.to(dtype), weight.to(dtype), s, p, kind == "transposed",
+                                            active, torch.tensor([40]), 0.0 if mode == "sparse" else 2.0)
+        finally:
+            torch.set_num_threads(saved)
+        assert (acc.double() - want).abs().max() <= tol * want.abs().max(), (mode, threads)
+        results[mode, threads] = (acc, reached)
+    assert torch.equal(results["sparse", 1][0], results["sparse", 2][0])
+    assert torch.equal(results["sparse", 2][1], results["gemm", 2][1])  # the same reached sites
+
+
+def test_channel_sparse_scatter_is_chosen_by_the_share_of_zeros():
+    """The default (0.85): deltas with at least 85 % exact zeros take the channel-sparse kernel, denser ones the
+    GEMM. Told apart by the order of the float32 sums: the default call equals one of the forced calls bit for
+    bit, the two forced calls differ."""
+    g = torch.Generator().manual_seed(5)
+    H, W, n, cin, cout = 20, 20, 120, 64, 64
+    keys = torch.randperm(H * W, generator=g)[:n]
+    sites = torch.stack([keys // W, keys % W], 1).int()
+    weight = torch.randn(cout, 3, 3, cin, generator=g)
+    for zeros, chosen in ((0.95, 0.0), (0.6, 2.0)):
+        delta = torch.randn(n, cin, generator=g)
+        delta[torch.rand(n, cin, generator=g) < zeros] = 0.0
+        start = torch.randn(H, W, cout, generator=g)
+        out = {}
+        for name, arg in (("default", None), ("sparse", 0.0), ("gemm", 2.0)):
+            acc = start.clone()
+            extra = () if arg is None else (None, None, arg)
+            _ops.sscater_scatter_(acc, sites, delta, weight, 1, 1, False, *extra)
+            out[name] = acc
+        assert not torch.equal(out["sparse"], out["gemm"])
+        assert torch.equal(out["default"], out["sparse" if chosen == 0.0 else "gemm"]), zeros
+    with pytest.raises(ValueError, match="channel_sparse"):
+        _ops.sscater_scatter_(start.clone(), sites, delta, weight, 1, 1, False, None, None, float("nan"))
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("channels_first", [False, True])
 def test_finalize_applies_folded_bn_relu_on_active_sites(device, channels_first):

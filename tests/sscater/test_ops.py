@@ -34,11 +34,13 @@ def _valid(t):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("k,s,p,transposed", [(3, 1, 1, False), (3, 2, 1, False), (2, 2, 0, True), (3, 2, 1, True)])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_scatter_matches_reference(device, dtype, k, s, p, transposed, seed):
+@pytest.mark.parametrize("channel_sparse", [0.85, 0.0])  # the default; on the CPU, the channel-sparse kernel forced
+def test_scatter_matches_reference(device, dtype, k, s, p, transposed, seed, channel_sparse):
     g = torch.Generator().manual_seed(seed * 100 + k * 10 + s)
     H, W, cin, cout, n = 9, 8, 4, 5, 20
     sites = _sites(g, H, W, n, pad=3)
     delta = torch.randn(sites.shape[0], cin, generator=g, dtype=torch.float64)
+    delta[torch.rand(delta.shape, generator=g) < 0.5] = 0.0  # zero before and after ReLU
     weight = torch.randn(cout, k, k, cin, generator=g, dtype=torch.float64)
     Ho, Wo = (H * s, W * s) if transposed else ((H + 2 * p - k) // s + 1, (W + 2 * p - k) // s + 1)
     acc = torch.randn(Ho, Wo, cout, generator=g, dtype=torch.float64)
@@ -48,7 +50,7 @@ def test_scatter_matches_reference(device, dtype, k, s, p, transposed, seed):
     got = acc.to(device, dtype)
     reached = sops.scatter_(got, sites.to(device), delta.to(device, dtype), weight.to(device, dtype), s, p, transposed,
                             None if out_active is None else out_active.to(device),
-                            None if count is None else count.to(device))
+                            None if count is None else count.to(device), channel_sparse)
     _close(got, ref_acc, dtype, "acc")
     assert torch.equal(reached.cpu(), ref_reached)
 
@@ -183,6 +185,9 @@ def test_wrappers_name_the_bad_argument():
         sops.scatter_(acc, sites, torch.zeros(2, 2), w.double(), 1, 1)
     with pytest.raises(ValueError, match="stride must be an int >= 1"):
         sops.scatter_(acc, sites, torch.zeros(2, 2), w, 0, 1)
+    for bad in (float("nan"), "0.5", True, None):
+        with pytest.raises(ValueError, match="channel_sparse must be a number"):
+            sops.scatter_(acc, sites, torch.zeros(2, 2), w, 1, 1, channel_sparse=bad)
     with pytest.raises(ValueError, match="acc must be float32 or float64"):
         sops.finalize_(acc.half(), acc.half(), torch.ones(4, 4, dtype=torch.bool), sites, torch.ones(3), torch.zeros(3))
     with pytest.raises(ValueError, match="active must be"):
