@@ -5,6 +5,7 @@ Examples::
 
     lidarops eval --results det/data --labels data/synth/training/label_2 --split data/synth/ImageSets/val.txt
     lidarops eval --results det/data --labels kitti/training/label_2 --classes Car --json car_ap.json
+    lidarops eval --results aerial/data --labels drones/training/label_2 --classes Drone --whole-view
 
 Every frame listed (by ``--split``, else every result file) needs a result file; a frame without
 detections needs an empty one, as in KITTI's own evaluation.
@@ -55,6 +56,9 @@ def evaluate_results(args: argparse.Namespace) -> int:
     gt = kitti_eval.read_annos(labels_dir, ids)
     dt = kitti_eval.read_annos(results_dir, ids)
     _check_sides(gt, dt, labels_dir, results_dir, ids)
+    if args.whole_view:  # no image: BEV and 3D, every object (a drone's Avia sees far beyond a camera)
+        gt = [kitti_eval.whole_view_annos(a) for a in gt]
+        dt = [kitti_eval.whole_view_annos(a) for a in dt]
     text, results = kitti_eval.evaluate(gt, dt, args.classes)
     print(text)
     made = results_dir.parent / "detect.json"  # written by lidarops detect beside its data/ folder
@@ -185,4 +189,8 @@ def register(subparsers) -> None:
     e.add_argument("--split", default=None, help="file listing the frame ids (default: every result file)")
     e.add_argument("--classes", nargs="+", default=["Car", "Pedestrian", "Cyclist"])
     e.add_argument("--json", default=None, help="also write the results dict here")
+    e.add_argument("--whole-view", action="store_true",
+                   help="score the sensor's whole view, not a camera's: no image boxes (BEV and 3D only, no minimum "
+                        "height in pixels), truncation 0, no DontCare regions; for models that see beyond the camera "
+                        "(aerial_pointpillars)")
     e.set_defaults(func=guarded("eval", evaluate_results))

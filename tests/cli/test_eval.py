@@ -73,3 +73,33 @@ def test_match_summary_counts_found_objects():
     pc_range = [0, -39.68, -3, 69.12, 39.68, 1]
     assert "Car: 1 of 1 found" in match_summary(far, dt, ["Car"], point_cloud_range=pc_range)
     assert "Car: 1 of 2 found" in match_summary(far, dt, ["Car"])
+
+def test_eval_whole_view_scores_drones_beyond_the_camera(tmp_path, run_cli):
+    """--whole-view: drone labels of the Avia's whole view (data synth's default for drone scenes), scored without
+    image boxes. Results equal to the labels score 100 on BEV and 3D for every drone (the camera's protocol ignores
+    drones under 25 px, nearly all of them), and no bbox or AOS rows are printed."""
+    from lidarops.data.formats.kitti import read_label, write_label
+    from lidarops.eval import kitti
+
+    data = tmp_path / "drones"
+    code, _, err = run_cli(["data", "synth", "--scenario", "drone_bridge", "drone_lock", "--frames", "40",
+                            "--out", data, "--no-progress", "--seed", "9"])
+    assert code == 0, err
+    labels = data / "training" / "label_2"
+    ids = sorted(p.stem for p in labels.glob("*.txt"))
+    for i in ids:
+        rows = read_label(labels / f"{i}.txt")
+        rows.score = np.linspace(0.9, 0.5, len(rows)).astype(np.float32)
+        write_label(tmp_path / "res" / f"{i}.txt", rows)
+    gt = [kitti.whole_view_annos(a) for a in kitti.read_annos(labels, ids)]
+    assert sum(len(a["name"]) for a in gt) >= 41  # enough for R40 to reach 100
+    code, out, err = run_cli(["eval", "--results", tmp_path / "res", "--labels", labels, "--classes", "Drone",
+                              "--whole-view", "--json", tmp_path / "w.json"])
+    assert code == 0, err
+    got = json.loads((tmp_path / "w.json").read_text())
+    assert got["Drone_3d_moderate_R40"] == got["Drone_bev_hard_R40"] == 100.0
+    assert "bbox AP" not in out and not any(k.startswith("Drone_bbox") for k in got)
+    code, _, _ = run_cli(["eval", "--results", tmp_path / "res", "--labels", labels, "--classes", "Drone",
+                          "--json", tmp_path / "c.json"])
+    camera = json.loads((tmp_path / "c.json").read_text())
+    assert code == 0 and camera["Drone_3d_moderate_R40"] < 100.0  # the camera's view leaves most drones out

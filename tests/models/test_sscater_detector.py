@@ -169,20 +169,22 @@ def test_shipped_detector_streamed_gives_its_own_boxes(name, scenario):
 
 @pytest.mark.slow  # 1,000 steps of 10 ms on the GPU: about half a minute, most of it simulating the stream
 @requires_cuda
-def test_shipped_detector_streamed_on_cuda_for_1000_steps(monkeypatch):
-    """Issue 39's long identity: the shipped detector streamed on CUDA for 1,000 steps of driving_city (about 40
-    refreshes): every 10th step, the head outputs on the recycled map equal the detector's on the stream's points
-    to float32 rounding, and the boxes are the same. (cuDNN's TF32 off: the detector's own convolutions would
-    round their inputs to 10 bits.)"""
+@pytest.mark.parametrize("name, scenario", [("pointpillars_synth", "driving_city"),
+                                            ("aerial_pointpillars", "drone_bridge")])
+def test_shipped_detector_streamed_on_cuda_for_1000_steps(monkeypatch, name, scenario):
+    """Issue 39's long identity: a shipped detector streamed on CUDA for 1,000 steps of the scene it was trained on
+    (about 40 refreshes): every 10th step, the head outputs on the recycled map equal the detector's on the stream's
+    points to float32 rounding, and the boxes are the same. (cuDNN's TF32 off: the detector's own convolutions
+    would round their inputs to 10 bits.)"""
     from lidarops.data.synthetic import Simulator
     from lidarops.models import weights
 
     monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
     monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
 
-    detector = weights.load("pointpillars_synth").cuda()
+    detector = weights.load(name).cuda()
     stream = SSCATeRPointPillars.from_detector(detector, device="cuda")
-    sim = Simulator("driving_city", seed=5)
+    sim = Simulator(scenario, seed=5)
     checked = found = recycled = 0
     worst = 0.0
     for k in range(1012):
