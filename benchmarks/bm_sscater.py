@@ -328,8 +328,8 @@ def bench_channel_sparse(rows: list, quick: bool = False) -> None:
                    "rows": n, "zero_share": zeros, "sparse_ms": ms["sparse"], "gemm_ms": ms["gemm"],
                    "sparse_speedup": ms["gemm"] / ms["sparse"]}
             rows.append(row)
-            table.append([f"{C} -> {C}, stride {stride}", f"{100 * zeros:.0f} %", fmt_ms(ms["sparse"]), fmt_ms(ms["gemm"]),
-                          fmt_ratio(row["sparse_speedup"])])
+            table.append([f"{C} -> {C}, stride {stride}", f"{100 * zeros:.0f} %", fmt_ms(ms["sparse"]),
+                          fmt_ms(ms["gemm"]), fmt_ratio(row["sparse_speedup"])])
     print_table("channel-sparse scatter against the per-tap GEMM (CPU, one 3x3 delta layer)",
                 ["layer", "zero deltas", "sparse ms", "GEMM ms", "sparse speed-up"], table, right=(1, 2, 3, 4))
 
@@ -466,7 +466,8 @@ def main(argv=None) -> int:
             print(f"results: {write_results('sscater', device, stream_rows, meta, replace_by='op')}")
         sparse_rows = [r for r in rows if r["op"].startswith("sscater_channel_sparse/")]
         if sparse_rows:
-            print(f"results: {write_results('sscater_channel_sparse', device, sparse_rows, env_meta(device), replace_by='op')}")
+            path = write_results('sscater_channel_sparse', device, sparse_rows, env_meta(device), replace_by='op')
+            print(f"results: {path}")
         detector_rows = [r for r in rows if r["op"].startswith("detector_stream/")]
         if detector_rows:  # a section of its own: the stream section's meta holds that run's traces
             print(f"results: {write_results('sscater_detector', device, detector_rows, env_meta(device), replace_by='op')}")

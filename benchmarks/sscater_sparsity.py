@@ -95,7 +95,8 @@ def measure(device: torch.device, steps: int, scenario: str = "driving_city", se
                          node=name,
                          zeros=round(zeros / counted, 4), changed=round(ch / counted, 4),
                          zero_delta_channels=round(zd / n_any, 4) if n_any else None, steps=counted))
-    info = dict(scenario=scenario, checkpoint=checkpoint, seed=seed, steps=steps, steps_measured=counted, refresh_steps=refreshed,
+    info = dict(scenario=scenario, checkpoint=checkpoint, seed=seed, steps=steps, steps_measured=counted,
+                refresh_steps=refreshed,
                 pillars_changed_share=round(sum(pillar_share) / max(1, len(pillar_share)), 4),
                 seconds=round(time.perf_counter() - t0, 1))
     return rows, info
@@ -106,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="auto", help="auto (default), cpu or cuda")
     ap.add_argument("--steps", type=int, default=1000, help="10 ms steps (default 1000)")
     ap.add_argument("--checkpoint", default="pointpillars_synth",
-                    help="shipped detector streamed (default pointpillars_synth; aerial_pointpillars on the drone scenes)")
+                    help="shipped detector streamed (default pointpillars_synth; aerial_pointpillars on the drone "
+                         "scenes)")
     ap.add_argument("--scenario", default=None,
                     help="the stream (default driving_city; drone_bridge for aerial_pointpillars)")
     ap.add_argument("--json", action="store_true", help="write benchmarks/results/<device>.json")

@@ -205,7 +205,8 @@ def _synth_kitti(args: argparse.Namespace, out: Path, counts) -> None:
         for lo in range(0, entry["frames"], k):  # a scene at a time, in chunks
             for start in range(lo, min(lo + k, entry["frames"]), _CHUNK_FRAMES):
                 tasks.append({"source": source, "out": str(out), "split": args.split, "first_id": entry["first_id"],
-                              "labels": entry["labels"], "start": start, "stop": min(start + _CHUNK_FRAMES, lo + k, entry["frames"])})
+                              "labels": entry["labels"], "start": start,
+                              "stop": min(start + _CHUNK_FRAMES, lo + k, entry["frames"])})
     total = sum(entry["frames"] for entry in plan)
     bar = progress_bar(total, f"{'+'.join(args.scenario)} -> KITTI", not args.no_progress)
     try:

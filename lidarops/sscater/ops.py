@@ -110,7 +110,8 @@ def scatter_(acc: Tensor, sites: Tensor, delta: Tensor, weight: Tensor, stride: 
     _check_count(count, "sites")
     named = [("acc", acc), ("sites", sites), ("delta", delta), ("weight", weight)]
     check_same_device(named + [(n, t) for n, t in (("out_active", out_active), ("count", count)) if t is not None])
-    if isinstance(channel_sparse, bool) or not isinstance(channel_sparse, (int, float)) or channel_sparse != channel_sparse:
+    if isinstance(channel_sparse, bool) or not isinstance(channel_sparse, (int, float)) or \
+            channel_sparse != channel_sparse:
         raise ValueError(f"channel_sparse must be a number (a share of zero delta values), got {channel_sparse!r}")
     return torch.ops.lidarops.sscater_scatter_(acc, sites, delta, weight, stride, padding, bool(transposed),
                                                out_active, count, float(channel_sparse))

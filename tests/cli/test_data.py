@@ -174,7 +174,8 @@ def test_synth_labels_whole_view_for_drone_scenes(tmp_path, capsys):
 
     common = ["data", "synth", "--scenario", "drone_bridge", "--frames", "6", "--seed", "11", "--no-progress"]
     whole, camera = tmp_path / "whole", tmp_path / "camera"
-    assert main(common + ["--out", str(whole)]) == 0 and main(common + ["--out", str(camera), "--labels", "camera"]) == 0
+    assert main(common + ["--out", str(whole)]) == 0
+    assert main(common + ["--out", str(camera), "--labels", "camera"]) == 0
     frames = SyntheticFrames("drone_bridge", num_frames=6, seed=11)
     calib = KittiCalib.default()
     outside = 0
