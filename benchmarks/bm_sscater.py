@@ -416,6 +416,14 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     return summary
 
 
+def _first_scenario(checkpoint: str) -> str:
+    """The first scene a checkpoint was trained on (its data recipe), else driving_city."""
+    from lidarops.models import weights
+
+    return next(iter(weights.trained_scenarios(weights.path() if checkpoint == "shipped" else checkpoint)),
+                "driving_city")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default=None)
@@ -432,7 +440,7 @@ def main(argv=None) -> int:
                     help="--only detector: the trained PointPillars streamed (a file or a shipped name; shipped: the "
                          "default detector)")
     ap.add_argument("--detector-scenario", default=None,
-                    help="--only detector: the stream (default driving_city; drone_bridge for the Aerial-PointPillars)")
+                    help="--only detector: the stream (default: the first scene the checkpoint was trained on)")
     a = ap.parse_args(argv)
     import lidarops.extension as ext
     ext.load()
@@ -453,7 +461,7 @@ def main(argv=None) -> int:
     if "detector" in only:
         bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
                        a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
-                       a.detector_scenario or ("drone_bridge" if "aerial" in a.checkpoint else "driving_city"))
+                       a.detector_scenario or _first_scenario(a.checkpoint))
     if traces and not a.quick:
         from benchmarks.common import device_slug
         plot(traces, rows, str(device), Path(a.plot) if a.plot else

@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="shipped detector streamed (default pointpillars_synth; aerial_pointpillars on the drone "
                          "scenes)")
     ap.add_argument("--scenario", default=None,
-                    help="the stream (default driving_city; drone_bridge for aerial_pointpillars)")
+                    help="the stream (default: the first scene the checkpoint was trained on)")
     ap.add_argument("--json", action="store_true", help="write benchmarks/results/<device>.json")
     a = ap.parse_args(argv)
     if a.steps < 12:
@@ -118,7 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     dev = bench_device(a.device)
     if dev is None:
         return 2
-    scenario = a.scenario or ("drone_bridge" if "aerial" in a.checkpoint else "driving_city")
+    from lidarops.models.weights import trained_scenarios
+
+    scenario = a.scenario or next(iter(trained_scenarios(a.checkpoint)), "driving_city")
     rows, info = measure(dev, a.steps, scenario, checkpoint=a.checkpoint)
     print_table(f"== {a.checkpoint} streaming {info['scenario']} ({device_name(dev)}), {info['steps_measured']} "
                 f"steps measured; pillars changed per step: {100 * info['pillars_changed_share']:.1f} % of the active",

@@ -401,7 +401,8 @@ def detect(args: argparse.Namespace) -> int:
         sampler = _build_sampler(sampling, device)
     names = model.config.class_names
     pc_range = list(model.config.point_cloud_range)
-    whole = args.no_fov or _sees_whole_view(_model_record(ckpt))
+    record = _model_record(ckpt)  # read once: the file is the whole checkpoint
+    whole = args.no_fov or _sees_whole_view(record)
     gt_annos, dt_annos, ids, shown = [], [], [], 0
     labelled = True
     model_seconds, sample_ms, per_frame = [], [], []
@@ -490,7 +491,7 @@ def detect(args: argparse.Namespace) -> int:
               f"frame on {device}" + (f" (first frame {sample_ms[0]:.0f} ms)" if len(sample_ms) > 1 else "")
               + f"; {sum(f['points_in'] for f in per_frame) / shown:,.0f} -> "
                 f"{sum(f['points_kept'] for f in per_frame) / shown:,.0f} points per frame")
-    trained = _trained_ids(args, _model_record(ckpt).get("data_recipe"), ids)
+    trained = _trained_ids(args, record.get("data_recipe"), ids)
     if trained:
         print(f"lidarops detect: warning: {len(trained)} of the {shown} frame(s) are frames of the model's own "
               f"data recipe (it was trained or validated on them, e.g. {trained[0]}): scores on them measure "
@@ -504,7 +505,7 @@ def detect(args: argparse.Namespace) -> int:
         text, results = kitti_eval.evaluate(gt_annos, dt_annos, names)
         (out / "eval.txt").write_text(text + "\n")
         (out / "eval.json").write_text(json.dumps(results, indent=1))
-        recorded = ((_model_record(ckpt).get("evaluation") or {}).get("metrics")) or None
+        recorded = ((record.get("evaluation") or {}).get("metrics")) or None
         print(ap_headline(results, names, len(gt_annos), recorded, kitti_eval.count_difficulties(gt_annos, names)))
         print(f"  (KITTI's full table: {out / 'eval.txt'}; below 41 objects of a class R40 cannot reach 100)")
         print(match_summary(gt_annos, dt_annos, names, pc_range))

@@ -660,14 +660,9 @@ def _max3(a):
 
 def _trained_scenario(path: Path) -> str:
     """The first simulated scenario of a checkpoint's data recipe that the stream can run, else driving_city."""
-    from lidarops.checkpoint import read_checkpoint
+    from lidarops.models.weights import trained_scenarios
 
-    try:
-        scenarios = (read_checkpoint(path).get("data_recipe") or {}).get("scenarios") or []
-    except (OSError, ValueError):
-        scenarios = []
-    names = [s.get("scenario") for s in scenarios if isinstance(s, dict)]
-    return next((n for n in names if n in SCENARIO_SETUP), "driving_city")
+    return next((n for n in trained_scenarios(path) if n in SCENARIO_SETUP), "driving_city")
 
 
 def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float = 0.3, slice_s: float = 0.01,

@@ -23,7 +23,7 @@ from pathlib import Path
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 DEFAULT = "pointpillars_synth"
 
-__all__ = ["WEIGHTS_DIR", "DEFAULT", "available", "path", "info", "load", "export"]
+__all__ = ["WEIGHTS_DIR", "DEFAULT", "available", "path", "info", "trained_scenarios", "load", "export"]
 
 
 def available() -> list[str]:
@@ -78,6 +78,20 @@ def info(name: str = DEFAULT) -> dict:
 
     ckpt = read_checkpoint(path(name))
     return {k: v for k, v in ckpt.items() if k != "model_state"}
+
+
+def trained_scenarios(checkpoint: "str | Path") -> list[str]:
+    """The simulator scenarios a checkpoint's data recipe names, in order (a shipped name or a file); ``[]``
+    when it names none or cannot be read."""
+    from lidarops.checkpoint import read_checkpoint
+
+    file = Path(checkpoint)
+    try:
+        recipe = read_checkpoint(file if file.is_file() else path(str(checkpoint))).get("data_recipe") or {}
+    except (OSError, ValueError):
+        return []
+    scenarios = recipe.get("scenarios") if isinstance(recipe, dict) else None
+    return [s["scenario"] for s in scenarios or [] if isinstance(s, dict) and isinstance(s.get("scenario"), str)]
 
 
 def load(name: str = DEFAULT, map_location="cpu"):
