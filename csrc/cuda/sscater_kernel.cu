@@ -9,7 +9,8 @@
 // bit. The kernel loops over its tiles with a fixed grid and reads its row count from the device when
 // given one, so that a padded list whose length only the device knows costs no host synchronisation
 // and no work beyond its rows. A tile whose rows all miss (tap outside the grid, inactive output,
-// padding) is skipped.
+// padding) is skipped. A delta whose channels are mostly exactly zero takes the channel-sparse kernel
+// instead (sparse_rows_kernel), chosen on the device from the count of its zeros.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>
@@ -96,8 +97,18 @@ __device__ __forceinline__ void atomic_add4(double* acc, const double (&v)[4], b
   for (int j = 0; j < 4; ++j) atomicAdd(acc + j, v[j]);
 }
 
+// The channel-sparse kernel takes a delta of n rows when at least `share` of its n * Cin values are
+// exactly zero; every block of both kernels reads the same count and decides alike.
+__device__ __forceinline__ bool sparse_chosen(const unsigned long long* zeros, double share, int64_t n, int64_t Cin) {
+  return static_cast<double>(*zeros) >= share * static_cast<double>(n * Cin);
+}
+
 struct TapGemmArgs {
   int64_t rows, K, kw, Cin, C, chunk, chunks, col_tiles;
+  // the scatter's kernel choice, made on the device (no host synchronisation): with zeros, the GEMM
+  // stands aside when the channel-sparse kernel takes the delta (sparse_chosen)
+  const unsigned long long* zeros;
+  double sparse_share;
   int64_t ws0, ws1, ws2, ws3;  // weight (Cout, kh, kw, Cin) strides
   bool gather;
   // scatter
@@ -113,6 +124,7 @@ __global__ void __launch_bounds__(kGemmThreads) tap_gemm_kernel(T* __restrict__ 
                                                                 const int64_t* __restrict__ count, TapGemmArgs g) {
   __shared__ GemmTile<T> s;
   const int64_t n = count == nullptr ? g.rows : (*count < g.rows ? *count : g.rows);
+  if (g.zeros != nullptr && sparse_chosen(g.zeros, g.sparse_share, n, g.Cin)) return;
   const int64_t per_row_tile = g.col_tiles * g.K * g.chunks;
   const int64_t tiles = (n + kBM - 1) / kBM * per_row_tile;
   const int tid = threadIdx.x, ty = tid / 16, tx = tid % 16;
@@ -206,6 +218,87 @@ void launch_tap_gemm(T* acc, const T* src, const T* w, const int64_t* count, Tap
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
+// ---- the channel-sparse scatter ------------------------------------------------------------------
+//
+// A changed site's channel that was zero before and after ReLU has a zero delta and adds nothing. One
+// block per row: the row's nonzero channels are listed in shared memory (in channel order, by warp
+// ballots), then each thread sums delta[ci] * W[k, ci, c] over them for its (tap, output channel) and
+// adds the sum at the site the tap reaches. The weight is read (K, Cin, Cout), so a warp's reads of one
+// (tap, channel) row are contiguous; unlike the GEMM no weight is reused across rows, which is why it
+// pays only when most of the delta is zero (docs/sscater.md).
+
+template <typename T>
+__global__ void count_zeros_kernel(const T* __restrict__ delta, int64_t rows, const int64_t* __restrict__ count,
+                                   int64_t Cin, unsigned long long* __restrict__ zeros) {
+  const int64_t n = count == nullptr ? rows : (*count < rows ? *count : rows);
+  unsigned long long local = 0;
+  for (int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; t < n * Cin;
+       t += static_cast<int64_t>(gridDim.x) * blockDim.x)
+    local += delta[t] == T(0);
+  for (int o = 16; o > 0; o >>= 1) local += __shfl_down_sync(gpu::kFullMask, local, o);
+  if ((threadIdx.x & 31) == 0 && local) atomicAdd(zeros, local);
+}
+
+template <typename T>
+__global__ void __launch_bounds__(kThreads) sparse_rows_kernel(T* __restrict__ acc, const T* __restrict__ delta,
+                                                               const T* __restrict__ wt,
+                                                               const int64_t* __restrict__ target, int64_t rows,
+                                                               const int64_t* __restrict__ count, int64_t K,
+                                                               int64_t Cin, int64_t C,
+                                                               const unsigned long long* __restrict__ zeros,
+                                                               double share) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  T* val = reinterpret_cast<T*>(smem);                  // (Cin,) the row's nonzero values
+  int32_t* ch = reinterpret_cast<int32_t*>(val + Cin);  // (Cin,) and their channels
+  __shared__ int warp_nz[kThreads / 32];
+  const int64_t n = count == nullptr ? rows : (*count < rows ? *count : rows);
+  if (zeros != nullptr && !sparse_chosen(zeros, share, n, Cin)) return;  // the GEMM takes this delta
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
+  for (int64_t row = blockIdx.x; row < n; row += gridDim.x) {
+    bool reaches = false;
+    for (int64_t k = threadIdx.x; k < K; k += blockDim.x) reaches |= target[row * K + k] >= 0;
+    if (!__syncthreads_or(reaches)) continue;  // block-uniform: padding, or every tap misses
+    int nnz = 0;
+    for (int64_t base = 0; base < Cin; base += blockDim.x) {
+      const int64_t c = base + threadIdx.x;
+      const T v = c < Cin ? delta[row * Cin + c] : T(0);
+      const bool nz = v != T(0);
+      const unsigned ballot = __ballot_sync(gpu::kFullMask, nz);
+      if (lane == 0) warp_nz[warp] = __popc(ballot);
+      __syncthreads();
+      int before = 0, total = 0;
+      for (int w = 0; w < warps; ++w) {
+        before += w < warp ? warp_nz[w] : 0;
+        total += warp_nz[w];
+      }
+      if (nz) {
+        const int pos = nnz + before + __popc(ballot & ((1u << lane) - 1u));
+        val[pos] = v;
+        ch[pos] = static_cast<int32_t>(c);
+      }
+      nnz += total;
+      __syncthreads();  // warp_nz is rewritten by the next chunk; val / ch are read below
+    }
+    if (nnz > 0) {
+      for (int64_t e = threadIdx.x; e < K * C; e += blockDim.x) {
+        const int64_t k = e / C, c = e % C;
+        const int64_t o = target[row * K + k];
+        if (o < 0) continue;
+        const T* wk = wt + k * Cin * C + c;
+        T sum = T(0);
+        for (int j = 0; j < nnz; ++j) sum += val[j] * wk[static_cast<int64_t>(ch[j]) * C];
+        atomicAdd(acc + o * C + c, sum);
+      }
+    }
+    __syncthreads();  // val / ch are rewritten by the block's next row
+  }
+}
+
+// Shared memory of one block of the sparse kernel; a delta wider than the default 48 KiB allows stays
+// on the GEMM.
+inline int64_t sparse_rows_smem(int64_t Cin, int64_t elem) { return Cin * (elem + 4); }
+constexpr int64_t kSparseSmemMax = 48 * 1024;
+
 // The gather's destinations start from zero: one thread per (row, channel).
 template <typename T>
 __global__ void zero_sites_kernel(T* __restrict__ acc, const int32_t* __restrict__ sites, int64_t rows,
@@ -242,8 +335,9 @@ at::Tensor scatter_cuda(at::Tensor& acc, const at::Tensor& sites_in, const at::T
                         const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed,
                         const c10::optional<at::Tensor>& out_active, const c10::optional<at::Tensor>& count,
                         double channel_sparse) {
-  (void)channel_sparse;  // the tiled GEMM serves every delta on the GPU (csrc/ops/sscater.cpp)
   check_scatter_args(acc, sites_in, delta_in, weight_in, stride, padding);
+  TORCH_CHECK_VALUE(channel_sparse == channel_sparse, "channel_sparse must be a number (a share of zero delta "
+                    "values), got nan");
   check_out_active(out_active, acc);
   check_count(count, acc);
   const int64_t rows = sites_in.size(0);
@@ -261,13 +355,38 @@ at::Tensor scatter_cuda(at::Tensor& acc, const at::Tensor& sites_in, const at::T
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   if (acc.numel() == 0 || Cin == 0) return targets;
   auto delta = delta_in.contiguous();
-  TapGemmArgs g{};
-  g.rows = rows, g.K = K, g.kw = kw, g.Cin = Cin, g.C = C, g.gather = false;
-  g.ws0 = weight_in.stride(0), g.ws1 = weight_in.stride(1), g.ws2 = weight_in.stride(2), g.ws3 = weight_in.stride(3);
-  g.target = targets.data_ptr<int64_t>();
+  // Which kernel: <= 0 the channel-sparse one, > 1 the GEMM, in between both are launched and the
+  // share of zeros counted on the device picks the one that runs (no host synchronisation).
+  const int64_t smem = sparse_rows_smem(Cin, static_cast<int64_t>(acc.element_size()));
+  const bool sparse = channel_sparse <= 1.0 && smem <= kSparseSmemMax;
+  const bool gemm = !sparse || channel_sparse > 0.0;
+  at::Tensor zeros;
+  if (sparse && gemm) zeros = at::zeros({1}, sites_in.options().dtype(at::kLong));
+  auto* zp = zeros.defined() ? reinterpret_cast<unsigned long long*>(zeros.data_ptr<int64_t>()) : nullptr;
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_scatter_cuda", [&] {
-    launch_tap_gemm<scalar_t>(acc.data_ptr<scalar_t>(), delta.data_ptr<scalar_t>(), weight_in.data_ptr<scalar_t>(),
-                              cnt, g, acc, stream);
+    if (zp != nullptr) {
+      count_zeros_kernel<scalar_t><<<blocks_for(rows * Cin), kThreads, 0, stream>>>(delta.data_ptr<scalar_t>(), rows,
+                                                                                   cnt, Cin, zp);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    }
+    if (gemm) {
+      TapGemmArgs g{};
+      g.rows = rows, g.K = K, g.kw = kw, g.Cin = Cin, g.C = C, g.gather = false;
+      g.zeros = zp, g.sparse_share = channel_sparse;
+      g.ws0 = weight_in.stride(0), g.ws1 = weight_in.stride(1), g.ws2 = weight_in.stride(2);
+      g.ws3 = weight_in.stride(3);
+      g.target = targets.data_ptr<int64_t>();
+      launch_tap_gemm<scalar_t>(acc.data_ptr<scalar_t>(), delta.data_ptr<scalar_t>(), weight_in.data_ptr<scalar_t>(),
+                                cnt, g, acc, stream);
+    }
+    if (sparse) {
+      auto wt = weight_in.permute({1, 2, 3, 0}).reshape({K, Cin, C}).contiguous();  // (K, Cin, Cout)
+      const int64_t cap = 8 * static_cast<int64_t>(gpu::device_props(acc.get_device()).sms);
+      sparse_rows_kernel<scalar_t><<<static_cast<unsigned>(rows < cap ? rows : cap), kThreads, smem, stream>>>(
+          acc.data_ptr<scalar_t>(), delta.data_ptr<scalar_t>(), wt.data_ptr<scalar_t>(), targets.data_ptr<int64_t>(),
+          rows, cnt, K, Cin, C, zp, channel_sparse);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    }
   });
   return targets;
 }

@@ -23,11 +23,12 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // falls outside the grid (or on an inactive site). A row with a negative coordinate is padding (no
   // site); with count (int64 (1,) on acc's device), only the first count[0] rows are read: the rest
   // get -1 and cost nothing (a padded list whose length is known only on the device). channel_sparse:
-  // on CPU, when at least this share of the delta's values is exactly 0, the channel-sparse kernel runs
-  // (each row's nonzero channels times the weight, straight into acc) instead of the per-tap GEMM; 0
-  // always, > 1 never; the two differ only in the order of the float sums. The default is where the
-  // sparse kernel starts to win on AVX-512 (it rereads the weights per row; the GEMM reuses them):
-  // docs/sscater.md. CUDA: the GEMM always.
+  // when at least this share of the delta's values (of the rows read) is exactly 0, the channel-sparse
+  // kernel runs (each row's nonzero channels times the weight, straight into acc) instead of the per-tap
+  // GEMM; 0 always, > 1 never; the two differ only in the order of the float sums. CUDA counts the zeros
+  // on the device and launches both kernels, the one not chosen returning at once (no host sync). The
+  // default is where the sparse kernel starts to win on AVX-512 (it rereads the weights per row; the GEMM
+  // reuses them): docs/sscater.md.
   m.def(
       "sscater_scatter_(Tensor(a!) acc, Tensor sites, Tensor delta, Tensor weight, int stride, int padding,"
       " bool transposed, Tensor? out_active=None, Tensor? count=None, float channel_sparse=0.85) -> Tensor");

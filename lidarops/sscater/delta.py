@@ -44,7 +44,15 @@ from typing import Optional, Protocol, Sequence, runtime_checkable
 import torch
 from torch import Tensor
 
-__all__ = ["Change", "DeltaBackbone", "LayerStats", "DeltaLayer"]
+__all__ = ["CHANNEL_SPARSE", "DENSE_REFRESH", "Change", "DeltaBackbone", "LayerStats", "DeltaLayer"]
+
+# Share of zero delta values from which the channel-sparse scatter beats the per-tap GEMM, by device type
+# (measured by benchmarks/bm_sscater.py --only channel_sparse; docs/sscater.md). Above 1: never, as on the
+# H200, where the tiled GEMM wins below 95 % zeros and the choice made on the device costs launches.
+CHANNEL_SPARSE = {"cpu": 0.85, "cuda": 2.0}
+# Share of the grid's sites given to a refresh from which it runs dense convolutions instead of sparse ones, by
+# device type (above 1: never; on the CPU the sparse ops were as fast on the drone grid).
+DENSE_REFRESH = {"cpu": 2.0, "cuda": 0.5}
 
 
 @runtime_checkable
@@ -117,6 +125,8 @@ class _Layer:
         # (Cout, kh, kw, Cin) view of tap-major memory: the scatter op's GEMMs read it in place
         self.weight = w.permute(1, 2, 0, 3).contiguous().permute(2, 0, 1, 3)
         self.weight_flat = w.reshape(w.shape[0], -1).contiguous()  # (Cout, kh * kw * Cin) for the gather
+        # torch's layout for a dense refresh (conv2d: (Cout, Cin, kh, kw); conv_transpose2d: (Cin, Cout, kh, kw))
+        self.weight_dense = (w.permute(3, 0, 1, 2) if self.transposed else w.permute(0, 3, 1, 2)).contiguous()
         self.input: Optional[Tensor] = None  # the input node's features (H_in, W_in, Cin)
         self.kh, self.kw = w.shape[1], w.shape[2]
         scale, shift = spec.folded_norm()
@@ -156,15 +166,21 @@ class DeltaBackbone:
         state_check (bool): after every refresh and update, measure ``state_max`` (max |acc| over every
             accumulator; NaN or inf if one is not finite): one reduction over the accumulators, read
             with the step's figures. Default on; ``state_max`` is None when off.
+        channel_sparse (float, optional): the share of exactly-zero delta values from which a layer's
+            scatter multiplies each changed site's nonzero channels alone instead of running the per-tap GEMM
+            (``sscater_scatter_``'s argument; 0: always, above 1: never). Default: the device's measured
+            crossover (:data:`CHANNEL_SPARSE`). Read at each step (a CUDA graph keeps the value it was
+            captured with).
 
-    ``refresh(sites, features)`` sets the whole input (a full recomputation through the sparse ops);
+    ``refresh(sites, features)`` sets the whole input (a full recomputation, no recycling);
     ``update(change)`` applies one step's input change; both return the (1, C_out, H/2, W/2) map, which
     is the state itself: it is overwritten by the next call (clone it to keep it). Its memory format is
     ``torch.channels_last`` (call ``.contiguous()`` for channels-first memory).
     """
 
     def __init__(self, layers: "Sequence[DeltaLayer]", shape, dtype: torch.dtype = torch.float32, device=None,
-                 sync_free: Optional[bool] = None, cuda_graph: Optional[bool] = None, state_check: bool = True):
+                 sync_free: Optional[bool] = None, cuda_graph: Optional[bool] = None, state_check: bool = True,
+                 channel_sparse: Optional[float] = None):
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self._layer_source = self._as_layer_source(layers)
@@ -178,6 +194,12 @@ class DeltaBackbone:
             raise ValueError(f"cuda_graph needs a CUDA device and sync_free=True, got {self.device} and "
                              f"sync_free={self.sync_free}")
         self.state_check = bool(state_check)
+        if channel_sparse is None:
+            channel_sparse = CHANNEL_SPARSE.get(self.device.type, 0.85)
+        if isinstance(channel_sparse, bool) or not isinstance(channel_sparse, (int, float)) \
+                or channel_sparse != channel_sparse:
+            raise ValueError(f"channel_sparse must be a number (a share of zero delta values), got {channel_sparse!r}")
+        self.channel_sparse = float(channel_sparse)
         self.reload()
 
     # ---- construction ----------------------------------------------------------------------------
@@ -212,7 +234,7 @@ class DeltaBackbone:
         self._graphs: dict = {}  # CUDA graphs of the step, by input capacity
         self.layers: list[_Layer] = []
         block_shape, block_active, self.block_cover = {}, {}, {}
-        shape, prev = (H, W), None
+        shape = (H, W)
         ups = [s for s in specs if s.kind == "up"]
         for spec in specs:
             if spec.kind == "up":
@@ -275,9 +297,9 @@ class DeltaBackbone:
 
     def refresh(self, sites: Tensor, features: Tensor) -> Tensor:
         """Set the input to ``features (Tensor[P, Cin])`` at ``sites (Tensor[P, 2] int, (y, x))`` and
-        recompute every layer's state from it with the sparse convolution ops (no recycling)."""
-        from lidarops.sparse import SparseConvTensor
-        from lidarops.sparse import functional as Fs
+        recompute every layer's state from it (no recycling): with the sparse convolution ops, or with torch's
+        dense convolutions when the device's :data:`DENSE_REFRESH` share of the grid's sites is given (on CUDA
+        half; a dense stream, such as ``SSCATeRPointPillars.from_detector``'s, lists every site)."""
         sites, features = self._check_input(sites, features)
         H, W = self.shape
         self.in_feats.zero_()
@@ -285,6 +307,49 @@ class DeltaBackbone:
         keys = _keys(sites, W)
         self.in_feats.view(H * W, -1)[keys] = features
         self.in_active.view(-1)[keys] = True
+        if sites.shape[0] >= DENSE_REFRESH.get(self.device.type, 2.0) * H * W:
+            self._refresh_dense()
+        else:
+            self._refresh_sparse(sites, features)
+        for st, layer in zip(self.stats, self.layers + self.up_layers):
+            st.active = int(layer.active.sum())
+            st.changed = st.touched = st.active
+        if self.state_check:
+            self.state_max = float(self._state_max())
+        self.steps = 0
+        return self.out
+
+    def _refresh_dense(self) -> None:
+        """The refresh by torch's dense convolutions over every site (most sites hold a pillar): the active maps
+        from the input's by counting (strided layers) and spreading (transposed layers), each layer's acc the
+        dense convolution of its input, zero at inactive sites, and its features from it."""
+        F = torch.nn.functional
+        prev = self.in_active
+        for layer in self.layers:
+            if layer.kind == "down":
+                ones = torch.ones(1, 1, layer.kh, layer.kw, dtype=self.dtype, device=self.device)
+                cover = F.conv2d(prev.to(self.dtype)[None, None], ones, stride=layer.stride, padding=layer.padding)[0, 0]
+                self.block_cover[layer.block].copy_(cover.round().to(torch.int32))
+                layer.active.copy_(self.block_cover[layer.block] > 0)
+            self._set_dense(layer)
+            prev = layer.active
+        for layer in self.up_layers:
+            ones = torch.ones(1, 1, layer.kh, layer.kw, dtype=self.dtype, device=self.device)
+            src = self.layers[self.block_last[layer.block]].active
+            reached = F.conv_transpose2d(src.to(self.dtype)[None, None], ones, stride=layer.stride,
+                                         padding=layer.padding)[0, 0]
+            layer.active.copy_(reached > 0.5)
+            self._set_dense(layer)
+
+    def _set_dense(self, layer: _Layer) -> None:
+        mask = layer.active[..., None]
+        layer.acc.copy_(_dense_conv(layer) * mask)
+        layer.feats.copy_(torch.relu(layer.acc * layer.scale + layer.shift) * mask)
+
+    def _refresh_sparse(self, sites: Tensor, features: Tensor) -> None:
+        """The refresh by the sparse convolution ops on the active sites."""
+        from lidarops.sparse import SparseConvTensor
+        from lidarops.sparse import functional as Fs
         x_sites, x_feats = sites, features
         block_out = {}
         for i, layer in enumerate(self.layers):
@@ -318,13 +383,6 @@ class DeltaBackbone:
                 layer.acc.view(-1, layer.cout)[k] = y.features
                 layer.active.view(-1)[k] = True
             self._evaluate(layer, torch.nonzero(layer.active).int())
-        for st, layer in zip(self.stats, self.layers + self.up_layers):
-            st.active = int(layer.active.sum())
-            st.changed = st.touched = st.active
-        if self.state_check:
-            self.state_max = float(self._state_max())
-        self.steps = 0
-        return self.out
 
     def _evaluate(self, layer: _Layer, sites: Tensor) -> Tensor:
         """feats = relu(acc * scale + shift) on the active sites, zero elsewhere; returns the values."""
@@ -474,7 +532,8 @@ class DeltaBackbone:
                                                    layer.stride, layer.padding)
         # 2. acc += delta (*) W at the active sites the kernel reaches
         reached = ops.sscater_scatter_(layer.acc, change.sites, change.delta, layer.weight, layer.stride,
-                                       layer.padding, layer.transposed, layer.active, change.count)
+                                       layer.padding, layer.transposed, layer.active, change.count,
+                                       self.channel_sparse)
         # sites that just became active had no up-to-date acc: compute theirs in full from the input
         # (a transposed layer's child has one parent, whose delta is its whole value: no gather)
         if added.shape[0] and layer.kind != "up":
@@ -549,6 +608,21 @@ class DeltaBackbone:
         if profile and self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         return (time.perf_counter() - t0) * 1e3
+
+
+def _dense_conv(layer: _Layer) -> Tensor:
+    """The layer's convolution (no bias) of its whole input map, (Ho, Wo, Cout), by torch's dense convolution."""
+    F = torch.nn.functional
+    x = layer.input.permute(2, 0, 1).unsqueeze(0).contiguous()  # (1, Cin, H, W): cuDNN's fastest float32 layout
+    cudnn = torch.backends.cudnn
+    # float32 sums, as the recycled layers' (TF32 would round the inputs to 10 bits); the user's other flags kept
+    with cudnn.flags(enabled=cudnn.enabled, benchmark=cudnn.benchmark, deterministic=cudnn.deterministic,
+                     allow_tf32=False):
+        if layer.transposed:
+            y = F.conv_transpose2d(x, layer.weight_dense, None, layer.stride, layer.padding)
+        else:
+            y = F.conv2d(x, layer.weight_dense, None, layer.stride, layer.padding)
+    return y[0].permute(1, 2, 0)
 
 
 def _batch0(sites: Tensor) -> Tensor:

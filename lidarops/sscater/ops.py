@@ -88,9 +88,9 @@ def scatter_(acc: Tensor, sites: Tensor, delta: Tensor, weight: Tensor, stride: 
         weight (Tensor[Cout, kh, kw, Cin]): acc's dtype.
         out_active (Tensor[Ho, Wo] bool, optional): update only the active outputs.
         count (Tensor[1] int64, optional): use only the first count[0] rows of ``sites``.
-        channel_sparse (float): on the CPU, the share of exactly-zero delta values from which each row's
-            nonzero channels are multiplied alone instead of the whole delta in one GEMM per tap (0: always,
-            above 1: never); the results differ only in the order of the float sums. Ignored on CUDA.
+        channel_sparse (float): the share of exactly-zero delta values from which each row's nonzero channels
+            are multiplied alone instead of the whole delta in one GEMM per tap (0: always, above 1: never); the
+            results differ only in the order of the float sums. CUDA decides on the device (no host wait).
 
     Returns:
         Tensor[n * kh * kw] int64: the output key ``oy * Wo + ox`` reached by row i through tap (ky, kx)

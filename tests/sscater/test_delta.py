@@ -12,6 +12,7 @@ from helpers.devices import DEVICES
 from helpers.models import small_backbone
 from lidarops import extension
 from lidarops.sparse import SparseConvTensor
+from lidarops.sscater import delta as delta_module
 from lidarops.sscater.delta import DeltaBackbone
 
 extension.load()
@@ -55,14 +56,15 @@ def test_scatter_equals_dense_convolution_of_the_delta(device, kind, k, s, p, dt
         hit.flatten() > 0).flatten().tolist()
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("kind,k,s,p", [("conv", 3, 1, 1), ("conv", 3, 2, 1), ("transposed", 2, 2, 0)])
-@pytest.mark.parametrize("cin,cout", [(5, 7), (33, 40), (64, 130)])
+@pytest.mark.parametrize("cin,cout", [(5, 7), (33, 40), (64, 130), (300, 20)])  # 300: more channels than a block's threads
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_channel_sparse_scatter_equals_the_dense_convolution(kind, k, s, p, cin, cout, dtype):
-    """The CPU's channel-sparse kernel (channel_sparse=0: always; > 1: never, the per-tap GEMM) on deltas whose
-    channels are mostly exactly 0, with whole-zero rows, padding rows, inactive outputs and a count: both equal the
-    float64 dense convolution of the delta, the sparse one bit for bit whatever the thread count (its threads
-    split the output channels)."""
+def test_channel_sparse_scatter_equals_the_dense_convolution(device, kind, k, s, p, cin, cout, dtype):
+    """The channel-sparse kernel (channel_sparse=0: always; > 1: never, the per-tap GEMM; 0.5: chosen from the
+    zeros, on CUDA on the device) on deltas whose channels are mostly exactly 0, with whole-zero rows, padding
+    rows, inactive outputs and a count: each equals the float64 dense convolution of the delta. On the CPU the
+    sparse one gives the same bits whatever the thread count (its threads split the output channels)."""
     g = torch.Generator().manual_seed(cin * 100 + k * 10 + s)
     H, W, n = 14, 12, 50
     keys = torch.randperm(H * W, generator=g)[:n]
@@ -85,44 +87,54 @@ def test_channel_sparse_scatter_equals_the_dense_convolution(kind, k, s, p, cin,
     want = torch.where(active[..., None], start + ref, start)  # inactive outputs are left as they were
     tol = 1e-12 if dtype == torch.float64 else 2e-5
     results = {}
-    for mode, threads in (("sparse", 2), ("sparse", 1), ("gemm", 2)):
-        acc = start.to(dtype).clone()
+    runs = (("sparse", 2), ("sparse", 1), ("gemm", 2)) if device == "cpu" else (("sparse", 0), ("gemm", 0),
+                                                                                ("chosen", 0))
+    for mode, threads in runs:
+        acc = start.to(device=device, dtype=dtype, copy=True)
         saved = torch.get_num_threads()
-        torch.set_num_threads(threads)
+        torch.set_num_threads(threads or saved)
         try:
-            reached = _ops.sscater_scatter_(acc, sites, delta.to(dtype), weight.to(dtype), s, p, kind == "transposed",
-                                            active, torch.tensor([40]), 0.0 if mode == "sparse" else 2.0)
+            reached = _ops.sscater_scatter_(acc, sites.to(device), delta.to(device, dtype), weight.to(device, dtype), s,
+                                            p, kind == "transposed", active.to(device), torch.tensor([40], device=device),
+                                            {"sparse": 0.0, "gemm": 2.0, "chosen": 0.5}[mode])
         finally:
             torch.set_num_threads(saved)
-        assert (acc.double() - want).abs().max() <= tol * want.abs().max(), (mode, threads)
-        results[mode, threads] = (acc, reached)
-    assert torch.equal(results["sparse", 1][0], results["sparse", 2][0])
-    assert torch.equal(results["sparse", 2][1], results["gemm", 2][1])  # the same reached sites
+        assert (acc.cpu().double() - want).abs().max() <= tol * want.abs().max(), (mode, threads)
+        results[mode, threads] = (acc.cpu(), reached.cpu())
+    if device == "cpu":
+        assert torch.equal(results["sparse", 1][0], results["sparse", 2][0])
+    first = next(iter(results.values()))[1]
+    assert all(torch.equal(r[1], first) for r in results.values())  # the same reached sites
 
 
-def test_channel_sparse_scatter_is_chosen_by_the_share_of_zeros():
+@pytest.mark.parametrize("device", DEVICES)
+def test_channel_sparse_scatter_is_chosen_by_the_share_of_zeros(device):
     """The default (0.85): deltas with at least 85 % exact zeros take the channel-sparse kernel, denser ones the
-    GEMM. Told apart by the order of the float32 sums: the default call equals one of the forced calls bit for
-    bit, the two forced calls differ."""
+    GEMM (on CUDA the choice is made on the device). Told apart by an infinite weight on a channel whose delta is
+    zero at every row: the GEMM multiplies it (0 x inf = NaN in the sums), the sparse kernel skips it."""
     g = torch.Generator().manual_seed(5)
     H, W, n, cin, cout = 20, 20, 120, 64, 64
     keys = torch.randperm(H * W, generator=g)[:n]
-    sites = torch.stack([keys // W, keys % W], 1).int()
+    sites = torch.stack([keys // W, keys % W], 1).int().to(device)
     weight = torch.randn(cout, 3, 3, cin, generator=g)
-    for zeros, chosen in ((0.95, 0.0), (0.6, 2.0)):
+    weight[:, 1, 1, 9] = float("inf")
+    weight = weight.to(device)
+    for zeros, sparse in ((0.95, True), (0.6, False), (0.85, True), (0.8, False)):
         delta = torch.randn(n, cin, generator=g)
-        delta[torch.rand(n, cin, generator=g) < zeros] = 0.0
-        start = torch.randn(H, W, cout, generator=g)
-        out = {}
-        for name, arg in (("default", None), ("sparse", 0.0), ("gemm", 2.0)):
-            acc = start.clone()
+        flat = delta.view(-1)
+        flat[torch.randperm(n * cin, generator=g)[:round(zeros * n * cin)]] = 0.0  # exactly this share
+        delta[:, 9] = 0.0
+        delta[0, 8] = 1.0 if delta[0, 8] == 0 and zeros < 0.85 else delta[0, 8]  # keep the share below the default
+        share = float((delta == 0).double().mean())
+        assert (share >= 0.85) == sparse, share
+        delta = delta.to(device)
+        for arg, forced in ((None, sparse), (0.0, True), (2.0, False)):
+            acc = torch.zeros(H, W, cout, device=device)
             extra = () if arg is None else (None, None, arg)
             _ops.sscater_scatter_(acc, sites, delta, weight, 1, 1, False, *extra)
-            out[name] = acc
-        assert not torch.equal(out["sparse"], out["gemm"])
-        assert torch.equal(out["default"], out["sparse" if chosen == 0.0 else "gemm"]), zeros
+            assert bool(acc.isnan().any()) != forced, (zeros, arg)
     with pytest.raises(ValueError, match="channel_sparse"):
-        _ops.sscater_scatter_(start.clone(), sites, delta, weight, 1, 1, False, None, None, float("nan"))
+        _ops.sscater_scatter_(acc, sites, delta, weight, 1, 1, False, None, None, float("nan"))
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -434,22 +446,24 @@ def _full(bb, sites, feats, H, W, device):
 STEP_MODES = ["trimmed", "sync_free", "cuda_graph"]
 
 
-def _delta_backbone(bb, shape, dtype, device, mode):
+def _delta_backbone(bb, shape, dtype, device, mode, **kwargs):
     """trimmed: lists trimmed on the host each layer (the CPU default); sync_free: padded lists and
     row counts on the device; cuda_graph: the sync-free step captured in CUDA graphs (the CUDA default)."""
     if mode == "cuda_graph" and torch.device(device).type != "cuda":
         pytest.skip("CUDA graphs need a GPU")
-    return DeltaBackbone(bb, shape, dtype, device, sync_free=mode != "trimmed", cuda_graph=mode == "cuda_graph")
+    return DeltaBackbone(bb, shape, dtype, device, sync_free=mode != "trimmed", cuda_graph=mode == "cuda_graph",
+                         **kwargs)
 
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("negative_bias", [0.0, 0.8])
 @pytest.mark.parametrize("mode", STEP_MODES)
-def test_recycling_backbone_equals_full_recomputation_float64(device, negative_bias, mode):
+@pytest.mark.parametrize("channel_sparse", [None, 0.0])  # the device's default; every scatter channel-sparse
+def test_recycling_backbone_equals_full_recomputation_float64(device, negative_bias, mode, channel_sparse):
     H, W = 40, 48
     bb = small_backbone(seed=7, negative_bias=negative_bias).to(device)
     stream = PillarMapStream(H, W, 8, seed=11)
-    db = _delta_backbone(bb, (H, W), torch.float64, device, mode)
+    db = _delta_backbone(bb, (H, W), torch.float64, device, mode, channel_sparse=channel_sparse)
     sites, feats = stream.current()
     out = db.refresh(sites, feats)
     ref = _full(bb, sites, feats, H, W, device)
@@ -501,6 +515,34 @@ def test_recycling_backbone_float32_and_emptying_the_grid(device, mode):
     assert emptied and len(stream.state) > 100 and db.stats[0].active > 0  # refilled
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("mode", STEP_MODES)
+@pytest.mark.parametrize("negative_bias", [0.0, 0.8])
+def test_dense_refresh_equals_the_sparse_recomputation(device, mode, negative_bias, monkeypatch):
+    """A refresh given most of the grid's sites runs dense convolutions: its output equals the sparse backbone's,
+    and the recycled steps after it stay equal (its active maps, covers and accumulators are the sparse refresh's)."""
+    monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)  # the CPU's default: never
+    H, W = 24, 32
+    bb = small_backbone(seed=6, negative_bias=negative_bias).to(device)
+    stream = PillarMapStream(H, W, 8, seed=4, start=int(0.7 * H * W))
+    db = _delta_backbone(bb, (H, W), torch.float64, device, mode)
+    db._refresh_sparse = None  # not called: the refresh must take the dense path
+    sites, feats = stream.current()
+    out = db.refresh(sites, feats)
+    ref = _full(bb, sites, feats, H, W, device)
+    assert (out - ref).abs().max() <= 1e-12 * ref.abs().max()
+    sparse = _delta_backbone(bb, (H, W), torch.float64, device, mode)
+    sparse._refresh_sparse(*sparse._check_input(sites, feats))  # the same state by the sparse ops
+    for a, b in zip(db.layers + db.up_layers, sparse.layers + sparse.up_layers):
+        assert torch.equal(a.active, b.active), a.name
+        assert (a.acc - b.acc).abs().max() <= 1e-12 * max(b.acc.abs().max().item(), 1.0), a.name
+    assert all(torch.equal(db.block_cover[k], sparse.block_cover[k]) for k in db.block_cover)
+    for i in range(8):
+        out = db.update(*stream.step(30))
+        ref = _full(bb, *stream.current(), H, W, device)
+        assert (out - ref).abs().max() <= 1e-12 * ref.abs().max(), f"step {i}"
+
+
 def test_recycling_backbone_bad_input():
     bb = small_backbone()
     db = DeltaBackbone(bb, (16, 16), torch.float64)
@@ -516,3 +558,6 @@ def test_recycling_backbone_bad_input():
         DeltaBackbone(bb, (16, 16), torch.float16)
     with pytest.raises(ValueError, match="cuda_graph needs a CUDA device and sync_free=True"):
         DeltaBackbone(bb, (16, 16), torch.float64, "cpu", sync_free=True, cuda_graph=True)
+    for bad in ("0.5", float("nan"), True):
+        with pytest.raises(ValueError, match="channel_sparse must be a number"):
+            DeltaBackbone(bb, (16, 16), torch.float64, channel_sparse=bad)
