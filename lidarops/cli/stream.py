@@ -681,6 +681,7 @@ def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float
 
     from lidarops.data.synthetic import Simulator
     from lidarops.models import load_model, weights
+    from lidarops.models.cuda_graph import precision_mode
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
     if scenario is not None and scenario not in SCENARIO_SETUP:
@@ -732,7 +733,8 @@ def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float
             if check_every and (k + 1) % check_every == 0:
                 t1 = time.perf_counter()
                 window_pts = model.window_points().to(dtype)
-                with torch.no_grad():
+                # float32 without TF32, as the stream computes: TF32 rounds the convolutions' inputs to 10 bits
+                with torch.no_grad(), precision_mode("fp32" if dev.type == "cuda" else None):
                     want = detector.predict({"points": F.pad(window_pts, (1, 0)), "batch_size": 1})[0]
                 _sync(dev)
                 rec["ms_detector"] = (time.perf_counter() - t1) * 1e3
