@@ -36,6 +36,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -299,11 +300,12 @@ def _p95(xs: list) -> float:
     return sorted(xs)[min(len(xs) - 1, int(round(0.95 * (len(xs) - 1))))]
 
 
-def bench_channel_sparse(rows: list, quick: bool = False) -> None:
-    """The CPU's two scatter kernels on one delta layer (3x3, the detector's block widths, changed sites as on the
+def bench_channel_sparse(device, rows: list, quick: bool = False) -> None:
+    """The two scatter kernels on one delta layer (3x3, the detector's block widths, changed sites as on the
     drone stream): each row's nonzero channels alone (``channel_sparse=0``) against one GEMM per tap over the
     whole delta (``channel_sparse=2``), as the share of exactly-zero delta values grows. The op's default picks
-    the sparse kernel from the share where it starts to win."""
+    the sparse kernel from the share where it starts to win (on CUDA the choice is made on the device, so the
+    default's time, with its count of the zeros, is shown too)."""
     from lidarops import extension
 
     extension.load()
@@ -313,29 +315,36 @@ def bench_channel_sparse(rows: list, quick: bool = False) -> None:
     shapes = [(252, 4000, 64, 1), (126, 3000, 128, 1), (63, 1500, 256, 1), (252, 4000, 64, 2)]
     for H, n, C, stride in shapes[:2] if quick else shapes:
         keys = torch.randperm(H * H, generator=g)[:n]
-        sites = torch.stack([keys // H, keys % H], 1).int()
-        weight = torch.randn(C, 3, 3, C, generator=g)
+        sites = torch.stack([keys // H, keys % H], 1).int().to(device)
+        weight = torch.randn(C, 3, 3, C, generator=g).to(device)
         Ho = (H + 2 - 3) // stride + 1
         for zeros in ((0.5, 0.9) if quick else (0.0, 0.5, 0.7, 0.8, 0.85, 0.9, 0.95)):
             delta = torch.randn(n, C, generator=g)
             delta[torch.rand(n, C, generator=g) < zeros] = 0.0
-            acc = torch.zeros(Ho, Ho, C)
+            delta = delta.to(device)
+            acc = torch.zeros(Ho, Ho, C, device=device)
             ms = {}
-            for name, arg in (("sparse", 0.0), ("gemm", 2.0)):
+            for name, arg in (("sparse", 0.0), ("gemm", 2.0), ("default", 0.85)):
+                if name == "default" and device.type == "cpu":
+                    continue  # the CPU counts the zeros on the host: the default is one of the two
                 ms[name] = time_call(lambda a=arg: scatter(acc, sites, delta, weight, stride, 1, False, None, None, a),
-                                     (), torch.device("cpu"), min_runs=5, budget_s=1.0).median
+                                     (), device, min_runs=5 if device.type == "cpu" else 20,
+                                     budget_s=1.0 if device.type == "cpu" else 0.3).median
             row = {"op": f"sscater_channel_sparse/{C}ch_s{stride}_z{zeros:g}", "channels": C, "stride": stride,
                    "rows": n, "zero_share": zeros, "sparse_ms": ms["sparse"], "gemm_ms": ms["gemm"],
-                   "sparse_speedup": ms["gemm"] / ms["sparse"]}
+                   "default_ms": ms.get("default"), "sparse_speedup": ms["gemm"] / ms["sparse"]}
             rows.append(row)
             table.append([f"{C} -> {C}, stride {stride}", f"{100 * zeros:.0f} %", fmt_ms(ms["sparse"]),
-                          fmt_ms(ms["gemm"]), fmt_ratio(row["sparse_speedup"])])
-    print_table("channel-sparse scatter against the per-tap GEMM (CPU, one 3x3 delta layer)",
-                ["layer", "zero deltas", "sparse ms", "GEMM ms", "sparse speed-up"], table, right=(1, 2, 3, 4))
+                          fmt_ms(ms["gemm"]), fmt_ms(ms["default"]) if "default" in ms else "",
+                          fmt_ratio(row["sparse_speedup"])])
+    print_table(f"channel-sparse scatter against the per-tap GEMM ({device}, one 3x3 delta layer)",
+                ["layer", "zero deltas", "sparse ms", "GEMM ms", "default (0.85) ms", "sparse speed-up"], table,
+                right=(1, 2, 3, 4, 5))
 
 
 def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, scenario: str = "driving_city",
-                   warm: int = 12) -> dict:
+                   warm: int = 12, channel_sparse: Optional[float] = None,
+                   sparse_refresh: bool = False) -> dict:
     """A trained PointPillars streamed (``SSCATeRPointPillars.from_detector``): each 10 ms step's boxes by
     SSCATeR (stream push, the detector's pillar net on the changed pillars, the recycled backbone, the head at
     the changed output sites, NMS) against the detector on the same window, stage by stage (pillarize + pillar
@@ -348,6 +357,8 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
         Path(checkpoint) if Path(checkpoint).exists() else weights.path(checkpoint))
     det = load_model(path, map_location=device).eval()
     model = SSCATeRPointPillars.from_detector(det, device=device)
+    if channel_sparse is not None:  # before the first update: a CUDA graph keeps the value it was captured with
+        model.delta.channel_sparse = float(channel_sparse)
     sim = Simulator(scenario, seed=0)
     ours, full, same, pfn, pfn_full = [], [], [], 0, 0
     for k in range(warm + steps):
@@ -391,26 +402,36 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     summary = {"scenario": scenario, "checkpoint": path.name, "steps": steps, "checked": len(full),
                "same_boxes": sum(same), "pfn_saved": 1 - pfn / max(pfn_full, 1),
                "refreshes": sum(r["refreshed"] for r in ours),
-               "pillars_changed_share": statistics.mean(r["changed"] / max(r["active"], 1) for r in ours)}
+               "pillars_changed_share": statistics.mean(r["changed"] / max(r["active"], 1) for r in ours),
+               "channel_sparse": model.delta.channel_sparse, "sparse_refresh": sparse_refresh}
     for name, xs in (("sscater_step", [r["step"] for r in ours]), ("sscater_backbone", [r["backbone"] for r in ours]),
                      ("sscater_pfn", [r["pfn"] for r in ours]), ("sscater_head_nms", [r["head_nms"] for r in ours]),
                      ("detector_predict", [r["predict"] for r in full]),
                      ("detector_backbone", [r["backbone"] for r in full]),
                      ("detector_pillars_pfn", [r["pillars_pfn"] for r in full]),
                      ("detector_head_nms", [r["head_nms"] for r in full])):
-        summary[name] = {"mean_ms": statistics.mean(xs), "median_ms": statistics.median(xs), "p95_ms": _p95(xs)}
+        summary[name] = {"mean_ms": statistics.mean(xs), "median_ms": statistics.median(xs), "p95_ms": _p95(xs),
+                         "max_ms": max(xs)}
+    for name, refreshed in (("sscater_backbone_refresh", True), ("sscater_backbone_recycled", False)):
+        xs = [r["backbone"] for r in ours if r["refreshed"] == refreshed]
+        if xs:
+            summary[name] = {"mean_ms": statistics.mean(xs), "median_ms": statistics.median(xs), "p95_ms": _p95(xs),
+                             "max_ms": max(xs)}
     for what in ("mean_ms", "median_ms"):
         summary[f"step_speedup_{what[:-3]}"] = summary["detector_predict"][what] / summary["sscater_step"][what]
         summary[f"backbone_speedup_{what[:-3]}"] = summary["detector_backbone"][what] / summary["sscater_backbone"][what]
-    rows.append({"op": f"detector_stream/{scenario}/{path.stem}", **summary})
+    tag = "" if channel_sparse is None else f"/channel_sparse_{channel_sparse:g}"
+    tag += "/sparse_refresh" if sparse_refresh else ""
+    rows.append({"op": f"detector_stream/{scenario}/{path.stem}{tag}", **summary})
     print_table(f"trained detector streamed: {path.name} on {scenario}, {steps} steps of 10 ms ({device}); "
                 f"{summary['refreshes']} refreshes, {100 * summary['pillars_changed_share']:.1f} % of pillars changed "
                 f"per step, PFN work saved {100 * summary['pfn_saved']:.1f} %, same boxes {sum(same)} of {len(full)}",
-                ["", "mean ms", "median ms", "p95 ms"],
+                ["", "mean ms", "median ms", "p95 ms", "max ms"],
                 [[name.replace("_", " "), fmt_ms(summary[name]["mean_ms"]), fmt_ms(summary[name]["median_ms"]),
-                  fmt_ms(summary[name]["p95_ms"])] for name in
+                  fmt_ms(summary[name]["p95_ms"]), fmt_ms(summary[name]["max_ms"])] for name in
                  ("sscater_step", "detector_predict", "sscater_backbone", "detector_backbone", "sscater_pfn",
-                  "detector_pillars_pfn", "sscater_head_nms", "detector_head_nms")], right=(1, 2, 3))
+                  "detector_pillars_pfn", "sscater_head_nms", "detector_head_nms", "sscater_backbone_refresh",
+                  "sscater_backbone_recycled") if name in summary], right=(1, 2, 3, 4))
     print(f"speed-up by the mean step {summary['step_speedup_mean']:.2f}x (median {summary['step_speedup_median']:.2f}x); "
           f"backbone {summary['backbone_speedup_mean']:.2f}x (median {summary['backbone_speedup_median']:.2f}x)")
     return summary
@@ -430,7 +451,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--only", default="stream,layer",
-                    help="comma-separated: stream, layer, detector, channel_sparse (CPU: the two scatter kernels)")
+                    help="comma-separated: stream, layer, detector, channel_sparse (the two scatter kernels)")
     ap.add_argument("--steps", type=int, default=None, help="10 ms steps per scenario (default 1000 on CUDA, 60 on CPU)")
     ap.add_argument("--every", type=int, default=None, help="time the full recomputation every N steps")
     ap.add_argument("--relu-zeros", type=float, default=0.5)
@@ -441,6 +462,11 @@ def main(argv=None) -> int:
                          "default detector)")
     ap.add_argument("--detector-scenario", default=None,
                     help="--only detector: the stream (default: the first scene the checkpoint was trained on)")
+    ap.add_argument("--channel-sparse", type=float, default=None,
+                    help="--only detector: the streamed backbone's channel_sparse (default: the device's, "
+                         "lidarops.sscater.delta.CHANNEL_SPARSE)")
+    ap.add_argument("--sparse-refresh", action="store_true",
+                    help="--only detector: refresh with the sparse ops only (not lidarops.sscater.delta.DENSE_REFRESH)")
     a = ap.parse_args(argv)
     import lidarops.extension as ext
     ext.load()
@@ -456,12 +482,16 @@ def main(argv=None) -> int:
         bench_stream(device, steps, every, a.relu_zeros, rows, traces, a.scenarios.split(","))
     if "layer" in only:
         bench_layers(device, a.quick, rows)
-    if "channel_sparse" in only and device.type == "cpu":
-        bench_channel_sparse(rows, a.quick)
+    if "channel_sparse" in only:
+        bench_channel_sparse(device, rows, a.quick)
+    if a.sparse_refresh:
+        from lidarops.sscater import delta
+        delta.DENSE_REFRESH[device.type] = 2.0
     if "detector" in only:
         bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
                        a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
-                       a.detector_scenario or _first_scenario(a.checkpoint))
+                       a.detector_scenario or _first_scenario(a.checkpoint), channel_sparse=a.channel_sparse,
+                       sparse_refresh=a.sparse_refresh)
     if traces and not a.quick:
         from benchmarks.common import device_slug
         plot(traces, rows, str(device), Path(a.plot) if a.plot else
