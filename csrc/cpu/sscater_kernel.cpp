@@ -173,9 +173,40 @@ at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Te
       return targets;
     }
   }
+  // When most (row, tap) pairs reach a site (a submanifold or transposed layer where the change is dense):
+  // one GEMM of each chunk of rows by every tap's weights (K * Cout columns; a chunk's products stay in
+  // cache), then the scatter-add. It skips the per-tap gathers of the rows and runs one large GEMM; the
+  // products of the pairs that miss are wasted, so strided layers (each row reaches about a quarter of its
+  // taps) and sparse outputs keep the per-tap path below.
+  int64_t reaching = 0;
+  for (int64_t r = 0; r < n * K; ++r) reaching += target[r] >= 0;
+  const int64_t Cin = delta.size(1);
+  if (reaching * 4 >= n * K * 3) {
+    auto w_all = weight_in.permute({1, 2, 0, 3}).reshape({K * C, Cin});  // (K * Cout, Cin): a view for tap-major weights
+    const int64_t chunk = std::max<int64_t>(1, (int64_t(1) << 22) / std::max<int64_t>(K * C, 1));
+    for (int64_t r0 = 0; r0 < n; r0 += chunk) {
+      const int64_t r1 = std::min(n, r0 + chunk);
+      auto prod = at::mm(delta.narrow(0, r0, r1 - r0), w_all.t());  // (rows, K * Cout)
+      AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_scatter_rows_cpu", [&] {
+        scalar_t* a = acc.data_ptr<scalar_t>();
+        const scalar_t* p = prod.data_ptr<scalar_t>();
+        at::parallel_for(0, C, std::max<int64_t>(1, 16384 / ((r1 - r0) * K)), [&](int64_t c0, int64_t c1) {
+          for (int64_t i = r0; i < r1; ++i)
+            for (int64_t k = 0; k < K; ++k) {
+              const int64_t o = target[i * K + k];
+              if (o < 0) continue;
+              scalar_t* dst = a + o * C;
+              const scalar_t* src = p + ((i - r0) * K + k) * C;
+              for (int64_t c = c0; c < c1; ++c) dst[c] += src[c];
+            }
+        });
+      });
+    }
+    return targets;
+  }
   // Per tap: gather the rows that reach a site, one GEMM, scatter-add. Only the (changed input,
   // updated output) pairs cost a product, as in a gather-GEMM-scatter sparse convolution.
-  auto w_taps = weight_in.permute({1, 2, 0, 3}).reshape({K, C, weight_in.size(3)});  // (K, Cout, Cin)
+  auto w_taps = weight_in.permute({1, 2, 0, 3}).reshape({K, C, Cin});  // (K, Cout, Cin)
   std::vector<int64_t> rows;
   rows.reserve(n);
   for (int64_t k = 0; k < K; ++k) {
@@ -445,25 +476,31 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> finalize_compact_cpu(const at::Te
   auto [changed, delta] = finalize_cpu(acc, out, active, used, scale, shift);
   const int64_t C = acc.size(2), Wo = acc.size(1);
   auto sites_out = at::full({cand.size(0), 2}, -1, cand.options());
-  auto delta_out = at::zeros({cand.size(0), C}, acc.options());  // padding rows: zero
   auto counts = at::zeros({3}, count.options());
   const bool* ch = changed.data_ptr<bool>();
   const int32_t* sp = used.data_ptr<int32_t>();
   const int32_t* st = stamp.data_ptr<int32_t>();
   int32_t* so = sites_out.data_ptr<int32_t>();
-  int64_t n = 0, flagged = 0;
+  // the changed rows' places in the compacted list (in order), then their deltas copied in parallel
+  std::vector<int64_t> from;
+  from.reserve(m);
+  int64_t flagged = 0;
+  for (int64_t i = 0; i < m; ++i) {
+    flagged += ch[i] || st[sp[2 * i] * Wo + sp[2 * i + 1]] == status_value;
+    if (!ch[i]) continue;
+    so[2 * from.size()] = sp[2 * i];
+    so[2 * from.size() + 1] = sp[2 * i + 1];
+    from.push_back(i);
+  }
+  const int64_t n = static_cast<int64_t>(from.size());
+  auto delta_out = at::empty({cand.size(0), C}, acc.options());
+  delta_out.narrow(0, n, cand.size(0) - n).zero_();  // padding rows: zero
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_finalize_compact_cpu", [&] {
     const scalar_t* d = delta.data_ptr<scalar_t>();
     scalar_t* dout = delta_out.data_ptr<scalar_t>();
-    for (int64_t i = 0; i < m; ++i) {
-      const bool status = st[sp[2 * i] * Wo + sp[2 * i + 1]] == status_value;
-      flagged += ch[i] || status;
-      if (!ch[i]) continue;
-      so[2 * n] = sp[2 * i];
-      so[2 * n + 1] = sp[2 * i + 1];
-      std::copy(d + i * C, d + (i + 1) * C, dout + n * C);
-      ++n;
-    }
+    at::parallel_for(0, n, std::max<int64_t>(1, 4096 / std::max<int64_t>(C, 1)), [&](int64_t j0, int64_t j1) {
+      for (int64_t j = j0; j < j1; ++j) std::copy(d + from[j] * C, d + (from[j] + 1) * C, dout + j * C);
+    });
   });
   int64_t* cn = counts.data_ptr<int64_t>();
   cn[0] = n;

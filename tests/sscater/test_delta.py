@@ -108,6 +108,35 @@ def test_channel_sparse_scatter_equals_the_dense_convolution(device, kind, k, s,
 
 
 @pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("reach", ["every tap", "few taps"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_scatter_of_rows_that_reach_every_tap_or_few(device, reach, dtype):
+    """The CPU's GEMM paths: rows whose taps almost all reach an active site take one GEMM by every tap's weights
+    (in chunks of rows: 600 output channels x 9 taps make chunks of 776 rows, so two here), rows that reach few (most outputs inactive) one GEMM per
+    tap over the rows that reach it. Both equal the float64 dense convolution of the delta at the active outputs."""
+    g = torch.Generator().manual_seed(11)
+    H, W, cin, cout = 48, 40, 24, 600
+    inner = torch.stack(torch.meshgrid(torch.arange(1, H - 1), torch.arange(1, W - 1), indexing="ij"), -1).view(-1, 2)
+    sites = inner[torch.randperm(inner.shape[0], generator=g)[:1500]].int()  # interior: all 9 taps inside the grid
+    delta = torch.randn(sites.shape[0], cin, generator=g, dtype=torch.float64)
+    delta[torch.rand(delta.shape, generator=g) < 0.5] = 0.0
+    weight = torch.randn(cout, 3, 3, cin, generator=g, dtype=torch.float64)
+    active = torch.ones(H, W, dtype=torch.bool) if reach == "every tap" else torch.rand(H, W, generator=g) < 0.2
+    start = torch.randn(H, W, cout, generator=g, dtype=torch.float64)
+    ref = F.conv2d(_dense_delta(H, W, sites, delta), weight.permute(0, 3, 1, 2), None, 1, 1)[0].permute(1, 2, 0)
+    want = torch.where(active[..., None], start + ref, start)
+    acc = start.to(device=device, dtype=dtype, copy=True)
+    # tap-major memory, as DeltaBackbone holds the weight (the all-taps GEMM reads it without a copy)
+    w = weight.permute(1, 2, 0, 3).contiguous().permute(2, 0, 1, 3).to(device, dtype)
+    reached = _ops.sscater_scatter_(acc, sites.to(device), delta.to(device, dtype), w, 1, 1, False, active.to(device),
+                                    None, 2.0)
+    share = float((reached >= 0).double().mean())
+    assert share > 0.9 if reach == "every tap" else share < 0.3, share
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    assert (acc.cpu().double() - want).abs().max() <= tol * want.abs().max()
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_channel_sparse_scatter_is_chosen_by_the_share_of_zeros(device):
     """The default (0.85): deltas with at least 85 % exact zeros take the channel-sparse kernel, denser ones the
     GEMM (on CUDA the choice is made on the device). Told apart by an infinite weight on a channel whose delta is
