@@ -51,8 +51,8 @@ __all__ = ["CHANNEL_SPARSE", "DENSE_REFRESH", "Change", "DeltaBackbone", "LayerS
 # H200, where the tiled GEMM wins below 95 % zeros and the choice made on the device costs launches.
 CHANNEL_SPARSE = {"cpu": 0.85, "cuda": 2.0}
 # Share of the grid's sites given to a refresh from which it runs dense convolutions instead of sparse ones, by
-# device type (above 1: never; on the CPU the sparse ops were as fast on the drone grid).
-DENSE_REFRESH = {"cpu": 2.0, "cuda": 0.5}
+# device type (above 1: never).
+DENSE_REFRESH = {"cpu": 0.5, "cuda": 0.5}
 
 
 @runtime_checkable
@@ -125,8 +125,10 @@ class _Layer:
         # (Cout, kh, kw, Cin) view of tap-major memory: the scatter op's GEMMs read it in place
         self.weight = w.permute(1, 2, 0, 3).contiguous().permute(2, 0, 1, 3)
         self.weight_flat = w.reshape(w.shape[0], -1).contiguous()  # (Cout, kh * kw * Cin) for the gather
-        # torch's layout for a dense refresh (conv2d: (Cout, Cin, kh, kw); conv_transpose2d: (Cin, Cout, kh, kw))
-        self.weight_dense = (w.permute(3, 0, 1, 2) if self.transposed else w.permute(0, 3, 1, 2)).contiguous()
+        # torch's layout for a dense refresh (conv2d: (Cout, Cin, kh, kw); conv_transpose2d: (Cin, Cout, kh, kw)),
+        # in the memory format _dense_conv runs in on this device
+        self.weight_dense = (w.permute(3, 0, 1, 2) if self.transposed else w.permute(0, 3, 1, 2)).contiguous(
+            memory_format=_dense_format(torch.device(device)))
         self.input: Optional[Tensor] = None  # the input node's features (H_in, W_in, Cin)
         self.kh, self.kw = w.shape[1], w.shape[2]
         scale, shift = spec.folded_norm()
@@ -308,7 +310,7 @@ class DeltaBackbone:
         self.in_feats.view(H * W, -1)[keys] = features
         self.in_active.view(-1)[keys] = True
         if sites.shape[0] >= DENSE_REFRESH.get(self.device.type, 2.0) * H * W:
-            self._refresh_dense()
+            self._refresh_dense(full=sites.shape[0] == H * W)
         else:
             self._refresh_sparse(sites, features)
         for st, layer in zip(self.stats, self.layers + self.up_layers):
@@ -319,10 +321,11 @@ class DeltaBackbone:
         self.steps = 0
         return self.out
 
-    def _refresh_dense(self) -> None:
+    def _refresh_dense(self, full: bool) -> None:
         """The refresh by torch's dense convolutions over every site (most sites hold a pillar): the active maps
         from the input's by counting (strided layers) and spreading (transposed layers), each layer's acc the
-        dense convolution of its input, zero at inactive sites, and its features from it."""
+        dense convolution of its input, zero at inactive sites, and its features from it. ``full``: every input
+        site is active, and so is every site of every layer (no masks)."""
         F = torch.nn.functional
         prev = self.in_active
         for layer in self.layers:
@@ -331,7 +334,7 @@ class DeltaBackbone:
                 cover = F.conv2d(prev.to(self.dtype)[None, None], ones, stride=layer.stride, padding=layer.padding)[0, 0]
                 self.block_cover[layer.block].copy_(cover.round().to(torch.int32))
                 layer.active.copy_(self.block_cover[layer.block] > 0)
-            self._set_dense(layer)
+            self._set_dense(layer, full)
             prev = layer.active
         for layer in self.up_layers:
             ones = torch.ones(1, 1, layer.kh, layer.kw, dtype=self.dtype, device=self.device)
@@ -339,12 +342,18 @@ class DeltaBackbone:
             reached = F.conv_transpose2d(src.to(self.dtype)[None, None], ones, stride=layer.stride,
                                          padding=layer.padding)[0, 0]
             layer.active.copy_(reached > 0.5)
-            self._set_dense(layer)
+            self._set_dense(layer, full)
 
-    def _set_dense(self, layer: _Layer) -> None:
-        mask = layer.active[..., None]
-        layer.acc.copy_(_dense_conv(layer) * mask)
-        layer.feats.copy_(torch.relu(layer.acc * layer.scale + layer.shift) * mask)
+    def _set_dense(self, layer: _Layer, full: bool) -> None:
+        y = _dense_conv(layer)
+        if full:
+            layer.acc.copy_(y)
+        else:
+            torch.mul(y, layer.active[..., None], out=layer.acc)
+        torch.addcmul(layer.shift, layer.acc, layer.scale, out=layer.feats)  # feats may be a view of the output map
+        layer.feats.clamp_min_(0)
+        if not full:
+            layer.feats.mul_(layer.active[..., None])
 
     def _refresh_sparse(self, sites: Tensor, features: Tensor) -> None:
         """The refresh by the sparse convolution ops on the active sites."""
@@ -610,10 +619,17 @@ class DeltaBackbone:
         return (time.perf_counter() - t0) * 1e3
 
 
+def _dense_format(device: torch.device) -> torch.memory_format:
+    """The memory format of a dense refresh's convolutions: cuDNN's float32 kernels are fastest on NCHW, oneDNN
+    takes the maps' own channels-last memory without a transpose."""
+    return torch.contiguous_format if device.type == "cuda" else torch.channels_last
+
+
 def _dense_conv(layer: _Layer) -> Tensor:
     """The layer's convolution (no bias) of its whole input map, (Ho, Wo, Cout), by torch's dense convolution."""
     F = torch.nn.functional
-    x = layer.input.permute(2, 0, 1).unsqueeze(0).contiguous()  # (1, Cin, H, W): cuDNN's fastest float32 layout
+    # (1, Cin, H, W), a view of the channels-last map or a copy in the device's format
+    x = layer.input.permute(2, 0, 1).unsqueeze(0).contiguous(memory_format=_dense_format(layer.input.device))
     cudnn = torch.backends.cudnn
     # float32 sums, as the recycled layers' (TF32 would round the inputs to 10 bits); the user's other flags kept
     with cudnn.flags(enabled=cudnn.enabled, benchmark=cudnn.benchmark, deterministic=cudnn.deterministic,

@@ -547,13 +547,14 @@ def test_recycling_backbone_float32_and_emptying_the_grid(device, mode):
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("mode", STEP_MODES)
 @pytest.mark.parametrize("negative_bias", [0.0, 0.8])
-def test_dense_refresh_equals_the_sparse_recomputation(device, mode, negative_bias, monkeypatch):
+@pytest.mark.parametrize("given", [0.7, 1.0])  # 1.0: every site, so every layer's every site is active (no masks)
+def test_dense_refresh_equals_the_sparse_recomputation(device, mode, negative_bias, given, monkeypatch):
     """A refresh given most of the grid's sites runs dense convolutions: its output equals the sparse backbone's,
     and the recycled steps after it stay equal (its active maps, covers and accumulators are the sparse refresh's)."""
-    monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)  # the CPU's default: never
+    monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)  # whatever the default
     H, W = 24, 32
     bb = small_backbone(seed=6, negative_bias=negative_bias).to(device)
-    stream = PillarMapStream(H, W, 8, seed=4, start=int(0.7 * H * W))
+    stream = PillarMapStream(H, W, 8, seed=4, start=int(given * H * W))
     db = _delta_backbone(bb, (H, W), torch.float64, device, mode)
     db._refresh_sparse = None  # not called: the refresh must take the dense path
     sites, feats = stream.current()
