@@ -300,8 +300,8 @@ class DeltaBackbone:
     def refresh(self, sites: Tensor, features: Tensor) -> Tensor:
         """Set the input to ``features (Tensor[P, Cin])`` at ``sites (Tensor[P, 2] int, (y, x))`` and
         recompute every layer's state from it (no recycling): with the sparse convolution ops, or with torch's
-        dense convolutions when the device's :data:`DENSE_REFRESH` share of the grid's sites is given (on CUDA
-        half; a dense stream, such as ``SSCATeRPointPillars.from_detector``'s, lists every site)."""
+        dense convolutions when the device's :data:`DENSE_REFRESH` share of the grid's sites is given (half; a
+        dense stream, such as ``SSCATeRPointPillars.from_detector``'s, lists every site)."""
         sites, features = self._check_input(sites, features)
         H, W = self.shape
         self.in_feats.zero_()
