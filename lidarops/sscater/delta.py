@@ -276,6 +276,10 @@ class DeltaBackbone:
             self.up_layers.append(layer)
             c0 += cu
         self.stats: list[LayerStats] = [layer.stats for layer in self.layers + self.up_layers]
+        # every output site sees an input under the kernel (padding < kernel; a transposed layer's kernel at least
+        # its stride): a full input makes every site of every layer active
+        self._covering = all(lay.padding < min(lay.kh, lay.kw) for lay in self.layers) and all(
+            lay.padding == 0 and min(lay.kh, lay.kw) >= lay.stride for lay in self.up_layers)
         self.steps = 0
         every = self.layers + self.up_layers
         # every layer's accumulator in one buffer: the state check is one reduction over it
@@ -310,7 +314,7 @@ class DeltaBackbone:
         self.in_feats.view(H * W, -1)[keys] = features
         self.in_active.view(-1)[keys] = True
         if sites.shape[0] >= DENSE_REFRESH.get(self.device.type, 2.0) * H * W:
-            self._refresh_dense(full=sites.shape[0] == H * W)
+            self._refresh_dense(full=sites.shape[0] == H * W and self._covering)
         else:
             self._refresh_sparse(sites, features)
         for st, layer in zip(self.stats, self.layers + self.up_layers):
@@ -325,7 +329,8 @@ class DeltaBackbone:
         """The refresh by torch's dense convolutions over every site (most sites hold a pillar): the active maps
         from the input's by counting (strided layers) and spreading (transposed layers), each layer's acc the
         dense convolution of its input, zero at inactive sites, and its features from it. ``full``: every input
-        site is active, and so is every site of every layer (no masks)."""
+        site is active and every layer's kernels cover their outputs, so every site of every layer is active (no
+        masks)."""
         F = torch.nn.functional
         prev = self.in_active
         for layer in self.layers:
