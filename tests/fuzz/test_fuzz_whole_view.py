@@ -1,7 +1,9 @@
 """Fuzz properties of this change's entry points: the CPU's channel-sparse delta scatter
 (``sscater_scatter_(..., channel_sparse=)``) against its float64 reference on random layers, deltas with any share
 of exact zeros, padding rows, inactive outputs and counts, with bad ``channel_sparse`` values named; and the
-whole-view KITTI evaluation (``whole_view_annos``, ``KittiEvaluator(camera=False)``) on random drone boxes."""
+whole-view KITTI evaluation (``whole_view_annos``, ``KittiEvaluator(camera=False)``) on random drone boxes; and the
+recycling backbone's ``channel_sparse`` and dense refresh (``DeltaBackbone``) against the full recomputation on random
+pillar maps, with bad ``channel_sparse`` values named."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,6 +13,9 @@ from hypothesis import strategies as st
 
 from lidarops.data.formats.kitti import KittiCalib, boxes_to_kitti_labels, camera_to_lidar_boxes
 from lidarops.eval import kitti
+from helpers.models import small_backbone
+from lidarops.sparse import SparseConvTensor
+from lidarops.sscater import delta as delta_module
 from lidarops.sscater import ops as sops
 from .fuzzing import assert_clear_error, assert_close, assert_no_error, fuzz, outcome
 
@@ -102,3 +107,59 @@ def test_whole_view_evaluator_names_a_bad_range(bad):
         assert_no_error(err, f"point_cloud_range={bad}")
     else:
         assert_clear_error(err, ValueError, ["point_cloud_range"], f"point_cloud_range={bad}")
+
+
+@fuzz
+@given(data=st.data())
+def test_delta_backbone_channel_sparse_and_dense_refresh(data):
+    """Any ``channel_sparse`` (sparse always, never, or by the share of zeros) and a refresh given any share of the
+    grid (dense convolutions from half of it, or the sparse ops): the output equals the sparse backbone's full
+    recomputation after the refresh and after each of a few random steps; bad values are refused by name."""
+    g = torch.Generator().manual_seed(data.draw(st.integers(0, 2**31 - 1), "seed"))
+    H, W = 8 * data.draw(st.integers(1, 3), "H / 8"), 8 * data.draw(st.integers(1, 3), "W / 8")
+    bb = small_backbone(seed=data.draw(st.integers(0, 5), "weights"), negative_bias=data.draw(st.sampled_from([0.0, 0.8])))
+    choice = data.draw(st.sampled_from([None, 0.0, 0.5, 2.0, -1.0]), "channel_sparse")
+    dense = data.draw(st.sampled_from([0.5, 2.0]), "DENSE_REFRESH")
+    saved = delta_module.DENSE_REFRESH["cpu"]
+    delta_module.DENSE_REFRESH["cpu"] = dense
+    try:
+        db = delta_module.DeltaBackbone(bb, (H, W), torch.float64, "cpu", channel_sparse=choice)
+        state = {}
+        for k in torch.randperm(H * W, generator=g)[:int(data.draw(st.floats(0, 1), "share given") * H * W)].tolist():
+            state[k] = torch.rand(8, generator=g, dtype=torch.float64)
+
+        def current():
+            keys = torch.tensor(sorted(state), dtype=torch.long)
+            feats = torch.stack([state[k] for k in keys.tolist()]) if len(keys) else torch.zeros(0, 8, dtype=torch.float64)
+            return torch.stack([keys // W, keys % W], 1).int(), feats
+
+        def full():
+            sites, feats = current()
+            coords = torch.cat([torch.zeros(len(sites), 1, dtype=torch.int32), sites], 1)
+            with torch.no_grad():
+                return bb(SparseConvTensor(feats, coords, [H, W], 1), mode="sparse")
+
+        out = db.refresh(*current())
+        ref = full()
+        assert_close(out, ref, rtol=0, atol=1e-12 * max(float(ref.abs().max()), 1.0), what="after the refresh")
+        for step in range(data.draw(st.integers(1, 3), "steps")):
+            keys = torch.randperm(H * W, generator=g)[:data.draw(st.integers(0, H * W), f"changes {step}")].tolist()
+            removed = [k in state and bool(torch.rand(1, generator=g) < 0.3) for k in keys]
+            feats = []
+            for k, gone in zip(keys, removed):
+                if gone:
+                    del state[k]
+                    feats.append(torch.zeros(8, dtype=torch.float64))
+                else:
+                    state[k] = torch.rand(8, generator=g, dtype=torch.float64)
+                    feats.append(state[k])
+            sites = torch.tensor([[k // W, k % W] for k in keys], dtype=torch.int32).view(-1, 2)
+            out = db.update(sites, torch.stack(feats) if feats else torch.zeros(0, 8, dtype=torch.float64),
+                            torch.tensor(removed, dtype=torch.bool))
+            ref = full()
+            assert_close(out, ref, rtol=0, atol=1e-12 * max(float(ref.abs().max()), 1.0), what=f"step {step}")
+    finally:
+        delta_module.DENSE_REFRESH["cpu"] = saved
+    bad = data.draw(st.sampled_from([float("nan"), "0.5", True, [0.5]]), "bad channel_sparse")
+    _, err = outcome(delta_module.DeltaBackbone, bb, (H, W), torch.float64, "cpu", channel_sparse=bad)
+    assert_clear_error(err, ValueError, ["channel_sparse"], f"channel_sparse={bad!r}")
