@@ -335,10 +335,7 @@ class DeltaBackbone:
         prev = self.in_active
         for layer in self.layers:
             if layer.kind == "down":
-                ones = torch.ones(1, 1, layer.kh, layer.kw, dtype=self.dtype, device=self.device)
-                cover = F.conv2d(prev.to(self.dtype)[None, None], ones, stride=layer.stride, padding=layer.padding)[0, 0]
-                self.block_cover[layer.block].copy_(cover.round().to(torch.int32))
-                layer.active.copy_(self.block_cover[layer.block] > 0)
+                self._set_cover(layer, prev)
             self._set_dense(layer, full)
             prev = layer.active
         for layer in self.up_layers:
@@ -348,6 +345,15 @@ class DeltaBackbone:
                                          padding=layer.padding)[0, 0]
             layer.active.copy_(reached > 0.5)
             self._set_dense(layer, full)
+
+    def _set_cover(self, layer: _Layer, active_in: Tensor) -> None:
+        """A strided layer's cover (active inputs under each output's kernel) and active map, from its input's
+        active map (H_in, W_in) bool."""
+        ones = torch.ones(1, 1, layer.kh, layer.kw, dtype=self.dtype, device=self.device)
+        cover = torch.nn.functional.conv2d(active_in.to(self.dtype)[None, None], ones, stride=layer.stride,
+                                           padding=layer.padding)[0, 0]
+        self.block_cover[layer.block].copy_(cover.round().to(torch.int32))
+        layer.active.copy_(self.block_cover[layer.block] > 0)
 
     def _set_dense(self, layer: _Layer, full: bool) -> None:
         y = _dense_conv(layer)
@@ -373,12 +379,9 @@ class DeltaBackbone:
             layer.acc.zero_()
             layer.acc.view(-1, layer.cout)[_keys(y.indices[:, 1:], layer.out_shape[1])] = y.features
             if layer.kind == "down":
-                ones = torch.ones(1, 1, 3, 3, dtype=self.dtype, device=self.device)
-                act = torch.zeros(1, 1, *layer.in_shape, dtype=self.dtype, device=self.device)
-                act.view(-1)[_keys(x_sites, layer.in_shape[1])] = 1.0
-                cover = torch.nn.functional.conv2d(act, ones, stride=layer.stride, padding=1)[0, 0]
-                self.block_cover[layer.block].copy_(cover.round().to(torch.int32))
-                layer.active.copy_(self.block_cover[layer.block] > 0)
+                act = torch.zeros(*layer.in_shape, dtype=torch.bool, device=self.device)
+                act.view(-1)[_keys(x_sites, layer.in_shape[1])] = True
+                self._set_cover(layer, act)
             # the regular convolution also reaches a subm layer's inactive neighbours: zero them, as a
             # step keeps them (their acc is set in full when they become active); the state check
             # then sees only the maintained sums
