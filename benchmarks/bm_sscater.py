@@ -32,6 +32,7 @@ stream change nothing and cost little, so the median alone overstates the saving
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -344,7 +345,7 @@ def bench_channel_sparse(device, rows: list, quick: bool = False) -> None:
 
 def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, scenario: str = "driving_city",
                    warm: int = 12, channel_sparse: Optional[float] = None,
-                   sparse_refresh: bool = False) -> dict:
+                   sparse_refresh: bool = False, refresh_format: Optional[str] = None) -> dict:
     """A trained PointPillars streamed (``SSCATeRPointPillars.from_detector``): each 10 ms step's boxes by
     SSCATeR (stream push, the detector's pillar net on the changed pillars, the recycled backbone, the head at
     the changed output sites, NMS) against the detector on the same window, stage by stage (pillarize + pillar
@@ -403,7 +404,9 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
                "same_boxes": sum(same), "pfn_saved": 1 - pfn / max(pfn_full, 1),
                "refreshes": sum(r["refreshed"] for r in ours),
                "pillars_changed_share": statistics.mean(r["changed"] / max(r["active"], 1) for r in ours),
-               "channel_sparse": model.delta.channel_sparse, "sparse_refresh": sparse_refresh}
+               "channel_sparse": model.delta.channel_sparse, "sparse_refresh": sparse_refresh,
+               "refresh_format": refresh_format or "default",
+               "tiling": os.environ.get("LIDAROPS_SSCATER_TILING", "default")}
     for name, xs in (("sscater_step", [r["step"] for r in ours]), ("sscater_backbone", [r["backbone"] for r in ours]),
                      ("sscater_pfn", [r["pfn"] for r in ours]), ("sscater_head_nms", [r["head_nms"] for r in ours]),
                      ("detector_predict", [r["predict"] for r in full]),
@@ -422,6 +425,8 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
         summary[f"backbone_speedup_{what[:-3]}"] = summary["detector_backbone"][what] / summary["sscater_backbone"][what]
     tag = "" if channel_sparse is None else f"/channel_sparse_{channel_sparse:g}"
     tag += "/sparse_refresh" if sparse_refresh else ""
+    tag += f"/{refresh_format}" if refresh_format else ""
+    tag += f"/tiling_{os.environ['LIDAROPS_SSCATER_TILING']}" if os.environ.get("LIDAROPS_SSCATER_TILING") else ""
     rows.append({"op": f"detector_stream/{scenario}/{path.stem}{tag}", **summary})
     print_table(f"trained detector streamed: {path.name} on {scenario}, {steps} steps of 10 ms ({device}); "
                 f"{summary['refreshes']} refreshes, {100 * summary['pillars_changed_share']:.1f} % of pillars changed "
@@ -467,6 +472,9 @@ def main(argv=None) -> int:
                          "lidarops.sscater.delta.CHANNEL_SPARSE)")
     ap.add_argument("--sparse-refresh", action="store_true",
                     help="--only detector: refresh with the sparse ops only (not lidarops.sscater.delta.DENSE_REFRESH)")
+    ap.add_argument("--refresh-format", choices=("nchw", "channels_last"), default=None,
+                    help="--only detector: the dense refresh's memory format (default: the device's, "
+                         "lidarops.sscater.delta.DENSE_CHANNELS_LAST)")
     a = ap.parse_args(argv)
     import lidarops.extension as ext
     ext.load()
@@ -487,11 +495,14 @@ def main(argv=None) -> int:
     if a.sparse_refresh:
         from lidarops.sscater import delta
         delta.DENSE_REFRESH[device.type] = 2.0
+    if a.refresh_format:
+        from lidarops.sscater import delta
+        delta.DENSE_CHANNELS_LAST[device.type] = a.refresh_format == "channels_last"
     if "detector" in only:
         bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
                        a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
                        a.detector_scenario or _first_scenario(a.checkpoint), channel_sparse=a.channel_sparse,
-                       sparse_refresh=a.sparse_refresh)
+                       sparse_refresh=a.sparse_refresh, refresh_format=a.refresh_format)
     if traces and not a.quick:
         from benchmarks.common import device_slug
         plot(traces, rows, str(device), Path(a.plot) if a.plot else

@@ -53,6 +53,8 @@ CHANNEL_SPARSE = {"cpu": 0.85, "cuda": 2.0}
 # Share of the grid's sites given to a refresh from which it runs dense convolutions instead of sparse ones, by
 # device type (above 1: never).
 DENSE_REFRESH = {"cpu": 0.5, "cuda": 0.5}
+# The dense refresh's convolutions on the maps' own channels-last memory (True), or on NCHW copies, by device type.
+DENSE_CHANNELS_LAST = {"cpu": True, "cuda": False}
 
 
 @runtime_checkable
@@ -628,9 +630,9 @@ class DeltaBackbone:
 
 
 def _dense_format(device: torch.device) -> torch.memory_format:
-    """The memory format of a dense refresh's convolutions: cuDNN's float32 kernels are fastest on NCHW, oneDNN
-    takes the maps' own channels-last memory without a transpose."""
-    return torch.contiguous_format if device.type == "cuda" else torch.channels_last
+    """The memory format of a dense refresh's convolutions (:data:`DENSE_CHANNELS_LAST`): channels-last takes the
+    maps' own memory without a transpose."""
+    return torch.channels_last if DENSE_CHANNELS_LAST.get(device.type, False) else torch.contiguous_format
 
 
 def _dense_conv(layer: _Layer) -> Tensor:
