@@ -173,9 +173,13 @@ def test_shipped_detector_streamed_gives_its_own_boxes(name, scenario):
                                             ("aerial_pointpillars", "drone_bridge")])
 def test_shipped_detector_streamed_on_cuda_for_1000_steps(monkeypatch, name, scenario):
     """Issue 39's long identity: a shipped detector streamed on CUDA for 1,000 steps of the scene it was trained on
-    (about 40 refreshes): every 10th step, the head outputs on the recycled map equal the detector's on the stream's
-    points to float32 rounding, and the boxes are the same. (cuDNN's TF32 off: the detector's own convolutions
-    would round their inputs to 10 bits.)"""
+    (about 40 refreshes): every 10th step the boxes are the detector's on the stream's points, and the head outputs
+    on the recycled map are as close to the exact answer (the detector in float64 on the same pillars) as the
+    float32 detector's own are. (cuDNN's TF32 off: the detector's own convolutions would round their inputs to 10
+    bits.) A fixed tolerance against the float32 detector cannot be the test: on driving_city that detector is
+    itself 4e-5 of its largest output away from the exact answer on the H200 (3e-5 on a CPU)."""
+    import copy
+
     from lidarops.data.synthetic import Simulator
     from lidarops.models import weights
 
@@ -183,10 +187,11 @@ def test_shipped_detector_streamed_on_cuda_for_1000_steps(monkeypatch, name, sce
     monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
 
     detector = weights.load(name).cuda()
+    exact = copy.deepcopy(detector).double()
     stream = SSCATeRPointPillars.from_detector(detector, device="cuda")
     sim = Simulator(scenario, seed=5)
     checked = found = recycled = 0
-    worst = 0.0
+    worst = {"stream": 0.0, "detector": 0.0, "between": 0.0}
     for k in range(1012):
         pts, t = sim.stream(0.01 * k, 0.01 * (k + 1))
         stream.step(torch.from_numpy(pts).cuda(), torch.from_numpy(t).cuda(), now=0.01 * (k + 1))
@@ -197,14 +202,21 @@ def test_shipped_detector_streamed_on_cuda_for_1000_steps(monkeypatch, name, sce
         with torch.no_grad():
             raw = detector(batch)
             got_raw = detector.dense_head(stream.delta.out)
+            vox = detector.voxelize(batch["points"], 1)  # float64 points could fall into other cells
+            vox64 = [v.double() if v.is_floating_point() else v for v in vox]
+            ref = exact.dense_head(exact.backbone_2d(exact.map_to_bev(exact.vfe(*vox64), vox[2], 1)))
         for key in ("cls_preds", "box_preds", "dir_cls_preds"):
-            scale = raw[key].abs().max().item() or 1.0
-            worst = max(worst, (got_raw[key] - raw[key]).abs().max().item() / scale)
+            scale = ref[key].abs().max().item() or 1.0
+            for who, x, y in (("stream", got_raw[key], ref[key]), ("detector", raw[key], ref[key]),
+                              ("between", got_raw[key], raw[key])):
+                worst[who] = max(worst[who], (x.double() - y.double()).abs().max().item() / scale)
         got, want = stream.detect(), detector.postprocess(raw)[0]
         assert got["labels"].tolist() == want["labels"].tolist(), k
         assert torch.allclose(got["scores"], want["scores"], atol=1e-4), k
         checked, found = checked + 1, found + len(want["labels"])
-    print(f"worst relative error of the head outputs over {checked} checks: {worst:.2e}")
-    # float32 sums in another order, accumulated over up to 25 recycled steps between refreshes
-    assert worst <= 1e-4, worst
+    print(f"worst relative error of the head outputs over {checked} checks against float64: "
+          f"stream {worst['stream']:.2e}, detector {worst['detector']:.2e}; between them {worst['between']:.2e}")
+    # float32 sums in another order, over up to 25 recycled steps between refreshes: no further from the exact
+    # answer than twice the float32 detector's own error (a missed or doubled delta is off by far more)
+    assert worst["stream"] <= max(2 * worst["detector"], 1e-5), worst
     assert checked == 100 and found > 0 and recycled > 900, (checked, found, recycled)
