@@ -431,8 +431,12 @@ class PillarStream:
         key = torch.where(point_voxel >= 0, coords[pv, 1].to(torch.int64) * W + coords[pv, 2].to(torch.int64), -1)
         entering = torch.nonzero((key >= 0) & (t > cutoff)).view(-1)
         # points each queue keeps after this push's expiries
-        rel = torch.remainder(torch.arange(N, device=dev)[None, :] - self._head[:, None], N)
-        kept = ((rel < self._count[:, None]) & (self._pool_t > cutoff)).sum(1)
+        # slot j holds a point when it lies in the ring [head, head + count) mod N: compares of the broadcast
+        # (M, 1) and (1, N) int32 operands, no (M, N) int64 offsets
+        j = torch.arange(N, dtype=torch.int32, device=dev)[None, :]
+        head, end = self._head[:, None], (self._head + self._count)[:, None]
+        in_ring = ((j >= head) & (j < end)) | (j < end - N)
+        kept = (in_ring & (self._pool_t > cutoff)).sum(1)
         free = M - int((kept > 0).sum())
         # entering points in (pillar, t, arrival) order
         entering = entering[torch.sort(t[entering], stable=True).indices]
