@@ -130,9 +130,9 @@ struct TapGemmArgs {
 
 // MinBlocks: blocks each multiprocessor must hold (a register cap; 1: the compiler's choice)
 template <typename T, int MinBlocks>
-__global__ void __launch_bounds__(kGemmThreads, MinBlocks) tap_gemm_kernel(T* __restrict__ acc, const T* __restrict__ src,
-                                                                const T* __restrict__ w,
-                                                                const int64_t* __restrict__ count, TapGemmArgs g) {
+__global__ void __launch_bounds__(kGemmThreads, MinBlocks)
+    tap_gemm_kernel(T* __restrict__ acc, const T* __restrict__ src, const T* __restrict__ w,
+                    const int64_t* __restrict__ count, TapGemmArgs g) {
   __shared__ GemmTile<T> s;
   const int64_t n = count == nullptr ? g.rows : (*count < g.rows ? *count : g.rows);
   if (g.zeros != nullptr && sparse_chosen(g.zeros, g.sparse_share, n, g.Cin)) return;
@@ -263,12 +263,12 @@ unsigned gemm_blocks(int64_t tiles, const at::Tensor& on, bool wave) {
   const int64_t sms = gpu::device_props(on.get_device()).sms;
   int64_t cap = 8 * sms;
   if (wave) {  // as many blocks as the multiprocessors hold at once: each loops over its tiles
-    static int resident = 0;  // per kernel instantiation; the same on every device of one kind
-    if (resident == 0) {
+    // once per instantiation: another kind of device in the same process gets this grid (speed, not results)
+    static const int resident = [] {
       int n = 0;
       C10_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&n, tap_gemm_kernel<T, MinBlocks>, kGemmThreads, 0));
-      resident = std::max(n, 1);
-    }
+      return std::max(n, 1);
+    }();
     cap = resident * sms;
   }
   return static_cast<unsigned>(tiles < 1 ? 1 : (tiles < cap ? tiles : cap));
