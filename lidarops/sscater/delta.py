@@ -44,7 +44,9 @@ from typing import Optional, Protocol, Sequence, runtime_checkable
 import torch
 from torch import Tensor
 
-__all__ = ["CHANNEL_SPARSE", "DENSE_REFRESH", "Change", "DeltaBackbone", "LayerStats", "DeltaLayer"]
+__all__ = [
+    "CHANNEL_SPARSE", "DENSE_CHANNELS_LAST", "DENSE_REFRESH", "Change", "DeltaBackbone", "LayerStats", "DeltaLayer",
+]
 
 # Share of zero delta values from which the channel-sparse scatter beats the per-tap GEMM, by device type
 # (measured by benchmarks/bm_sscater.py --only channel_sparse; docs/sscater.md). Above 1: never, as on the
