@@ -437,7 +437,7 @@ class PillarStream:
         head, end = self._head[:, None], (self._head + self._count)[:, None]
         in_ring = ((j >= head) & (j < end)) | (j < end - N)
         kept = (in_ring & (self._pool_t > cutoff)).sum(1)
-        free = M - int((kept > 0).sum())
+        free = M - (kept > 0).sum()  # a tensor: no wait for the device
         # entering points in (pillar, t, arrival) order
         entering = entering[torch.sort(t[entering], stable=True).indices]
         entering = entering[torch.sort(key[entering], stable=True).indices]
