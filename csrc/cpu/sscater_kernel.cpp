@@ -11,6 +11,7 @@
 #include <ATen/ops/zeros.h>
 
 #include <algorithm>
+#include <functional>
 #include <type_traits>
 #include <vector>
 
@@ -135,6 +136,33 @@ void scatter_sparse(at::Tensor& acc, const at::Tensor& delta, const at::Tensor& 
   });
 }
 
+// The output site each (row, tap) pair of the first n rows reaches (tap_target; -1 also at an inactive output
+// when act is given), rows in parallel; returns how many pairs reach a site.
+int64_t fill_targets(int64_t* target, const int32_t* sp, int64_t n, int64_t kh, int64_t kw, int64_t stride,
+                     int64_t padding, int64_t Ho, int64_t Wo, bool transposed, const bool* act) {
+  const int64_t K = kh * kw;
+  return at::parallel_reduce(
+      0, n, 1024, int64_t(0),
+      [&](int64_t i0, int64_t i1, int64_t sum) {
+        for (int64_t i = i0; i < i1; ++i) {
+          const int64_t y = sp[2 * i], x = sp[2 * i + 1];
+          int64_t* row = target + i * K;
+          for (int64_t ky = 0; ky < kh; ++ky) {  // tap k = ky * kw + kx, as tap_target
+            const int64_t oy = y < 0 || x < 0 ? -1 : reach(y, ky, stride, padding, Ho, transposed);
+            for (int64_t kx = 0; kx < kw; ++kx) {
+              const int64_t ox = oy < 0 ? -1 : reach(x, kx, stride, padding, Wo, transposed);
+              int64_t o = ox < 0 ? -1 : oy * Wo + ox;
+              if (o >= 0 && act != nullptr && !act[o]) o = -1;
+              row[ky * kw + kx] = o;
+              sum += o >= 0;
+            }
+          }
+        }
+        return sum;
+      },
+      std::plus<int64_t>());
+}
+
 at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Tensor& delta_in,
                        const at::Tensor& weight_in, int64_t stride, int64_t padding, bool transposed,
                        const c10::optional<at::Tensor>& out_active, const c10::optional<at::Tensor>& count,
@@ -147,25 +175,28 @@ at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Te
   const int64_t n_rows = sites_in.size(0);
   const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
   const int64_t kh = weight_in.size(1), kw = weight_in.size(2), K = kh * kw;
-  auto targets = at::full({n_rows * K}, -1, sites_in.options().dtype(at::kLong));
   const int64_t n = count.has_value() ? std::clamp<int64_t>(count->item<int64_t>(), 0, n_rows) : n_rows;
+  auto targets = n < n_rows ? at::full({n_rows * K}, -1, sites_in.options().dtype(at::kLong))
+                            : at::empty({n_rows * K}, sites_in.options().dtype(at::kLong));
   if (n == 0) return targets;
   auto sites = sites_in.contiguous();
   const int32_t* sp = sites.data_ptr<int32_t>();
   int64_t* target = targets.data_ptr<int64_t>();
-  for (int64_t r = 0; r < n * K; ++r) target[r] = tap_target(sp, r / K, r % K, kw, stride, padding, Ho, Wo, transposed);
-  if (out_active.has_value()) {
-    const bool* act = out_active->data_ptr<bool>();
-    for (int64_t r = 0; r < n * K; ++r)
-      if (target[r] >= 0 && !act[target[r]]) target[r] = -1;
-  }
+  const int64_t reaching = fill_targets(target, sp, n, kh, kw, stride, padding, Ho, Wo, transposed,
+                                        out_active.has_value() ? out_active->data_ptr<bool>() : nullptr);
   if (acc.numel() == 0) return targets;
   auto delta = delta_in.contiguous();
   if (channel_sparse <= 1.0) {
     int64_t zeros = 0;
     AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_zeros_cpu", [&] {
       const scalar_t* d = delta.data_ptr<scalar_t>();
-      for (int64_t j = 0; j < n * delta.size(1); ++j) zeros += d[j] == scalar_t(0);
+      zeros = at::parallel_reduce(0, n * delta.size(1), int64_t(1) << 16, int64_t(0),
+                                  [d](int64_t j0, int64_t j1, int64_t sum) {
+                                    int64_t z = 0;  // a local count: the loop vectorises
+                                    for (int64_t j = j0; j < j1; ++j) z += d[j] == scalar_t(0);
+                                    return sum + z;
+                                  },
+                                  std::plus<int64_t>());
     });
     if (static_cast<double>(zeros) >= channel_sparse * static_cast<double>(n * delta.size(1))) {
       AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_scatter_sparse_cpu",
@@ -178,8 +209,6 @@ at::Tensor scatter_cpu(at::Tensor& acc, const at::Tensor& sites_in, const at::Te
   // cache), then the scatter-add. It skips the per-tap gathers of the rows and runs one large GEMM; the
   // products of the pairs that miss are wasted, so strided layers (each row reaches about a quarter of its
   // taps) and sparse outputs keep the per-tap path below.
-  int64_t reaching = 0;
-  for (int64_t r = 0; r < n * K; ++r) reaching += target[r] >= 0;
   const int64_t Cin = delta.size(1);
   if (reaching * 4 >= n * K * 3) {
     auto w_all = weight_in.permute({1, 2, 0, 3}).reshape({K * C, Cin});  // (K * Cout, Cin): a view for tap-major weights
