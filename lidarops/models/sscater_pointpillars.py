@@ -34,7 +34,12 @@ from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.ops.validation import check_tensor, describe
 from lidarops.sscater.delta import DeltaBackbone, LayerStats
 
-__all__ = ["SSCATeRPointPillars", "StepStats", "PillarFeatureNet", "DetectorPFN"]
+__all__ = ["HEAD_DENSE_SHARE", "SSCATeRPointPillars", "StepStats", "PillarFeatureNet", "DetectorPFN"]
+
+# Share of the head's output sites changed since the last detect() from which the head runs as one dense 1x1
+# convolution over the map instead of gathering the changed rows (measured on this machine's CPU: the drone
+# stream's 83 % changed takes 65 ms dense against 106 gathered, driving_city's 19 % 20 ms gathered against 34).
+HEAD_DENSE_SHARE = 0.5
 
 
 # SSCATeR's own pillar net, kept until SSCATeR runs the detector's PillarVFE: the stream gathers 9-feature
@@ -360,7 +365,8 @@ class SSCATeRPointPillars:
     def head_outputs(self) -> dict:
         """The detector's head (1x1 convolutions) on the recycled BEV map: ``cls_preds``, ``box_preds`` (and
         ``dir_cls_preds``) as ``dense_head`` gives them, recomputed only at the output sites that changed since
-        the last call (all of them after a refresh, and on CUDA, where the step's site lists stay on the device).
+        the last call (all of them after a refresh, on CUDA, where the step's site lists stay on the device, and
+        once :data:`HEAD_DENSE_SHARE` of the sites changed).
         The maps are kept: valid until the next call."""
         if self.detector is None:
             raise ValueError("detect() needs a model made by SSCATeRPointPillars.from_detector(detector)")
@@ -370,8 +376,14 @@ class SSCATeRPointPillars:
             if self._head is None or self._head_sites is None:
                 self._head = head(self.delta.out.to(dtype))
             elif self._head_sites:
-                W = self.delta.out.shape[3]
-                keys = torch.unique(torch.cat(self._head_sites).long() @ torch.tensor([W, 1], device=self.device))
+                H, W = self.delta.out.shape[2:]
+                changed = torch.zeros(H * W, dtype=torch.bool, device=self.device)  # each site once, no sort
+                changed[torch.cat(self._head_sites).long() @ torch.tensor([W, 1], device=self.device)] = True
+                keys = torch.nonzero(changed).view(-1)
+                if keys.numel() >= HEAD_DENSE_SHARE * H * W:  # one dense convolution beats gathering most rows
+                    self._head = head(self.delta.out.to(dtype))
+                    self._head_sites = []
+                    return self._head
                 ys, xs = keys // W, keys % W
                 # (n, C): the changed sites' features, rows of the channels-last map
                 feats = self.delta.out[0].permute(1, 2, 0)[ys, xs].to(dtype)

@@ -70,10 +70,15 @@ def test_streamed_boxes_equal_the_detector_on_the_window(device, dtype, tol):
     assert stream.stats.pillars_changed < stream.stats.pillars_active + stream.stats.points_out
 
 
+@pytest.mark.parametrize("dense_share", [2.0, 0.5, 0.0])  # never, the default, always the dense head
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_head_on_changed_sites_equals_the_head_on_the_whole_map(device, dtype, tol):
+def test_head_on_changed_sites_equals_the_head_on_the_whole_map(monkeypatch, device, dtype, tol, dense_share):
     """The head recomputed only where the recycled map changed since the last call (detect every step, or after
-    several steps, across refreshes) equals the head run on the whole map."""
+    several steps, across refreshes), or as one dense convolution once HEAD_DENSE_SHARE of the sites changed,
+    equals the head run on the whole map."""
+    from lidarops.models import sscater_pointpillars
+
+    monkeypatch.setattr(sscater_pointpillars, "HEAD_DENSE_SHARE", dense_share)
     detector = _detector(dtype, seed=2).to(device)
     stream = SSCATeRPointPillars.from_detector(detector, window=0.1, refresh_every=9, dtype=dtype)
     partial = 0
