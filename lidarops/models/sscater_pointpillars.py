@@ -37,8 +37,8 @@ from lidarops.sscater.delta import DeltaBackbone, LayerStats
 __all__ = ["HEAD_DENSE_SHARE", "SSCATeRPointPillars", "StepStats", "PillarFeatureNet", "DetectorPFN"]
 
 # Share of the head's output sites changed since the last detect() from which the head runs as one dense 1x1
-# convolution over the map instead of gathering the changed rows (measured on this machine's CPU: the drone
-# stream's 83 % changed takes 65 ms dense against 106 gathered, driving_city's 19 % 20 ms gathered against 34).
+# convolution over the map: gathering and scattering most of the map's rows costs more than the convolution
+# (measured in docs/sscater.md).
 HEAD_DENSE_SHARE = 0.5
 
 
