@@ -354,8 +354,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     from lidarops.models import load_model, weights
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
-    path = weights.path() if checkpoint == "shipped" else (
-        Path(checkpoint) if Path(checkpoint).exists() else weights.path(checkpoint))
+    path = _checkpoint_path(checkpoint)
     det = load_model(path, map_location=device).eval()
     model = SSCATeRPointPillars.from_detector(det, device=device)
     if channel_sparse is not None:  # before the first update: a CUDA graph keeps the value it was captured with
@@ -442,12 +441,20 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     return summary
 
 
+def _checkpoint_path(checkpoint: str) -> Path:
+    """A checkpoint file, or a shipped one by name ("shipped": the default detector)."""
+    from lidarops.models import weights
+
+    if checkpoint == "shipped":
+        return weights.path()
+    return Path(checkpoint) if Path(checkpoint).exists() else weights.path(checkpoint)
+
+
 def _first_scenario(checkpoint: str) -> str:
     """The first scene a checkpoint was trained on (its data recipe), else driving_city."""
     from lidarops.models import weights
 
-    return next(iter(weights.trained_scenarios(weights.path() if checkpoint == "shipped" else checkpoint)),
-                "driving_city")
+    return next(iter(weights.trained_scenarios(_checkpoint_path(checkpoint))), "driving_city")
 
 
 def main(argv=None) -> int:

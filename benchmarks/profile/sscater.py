@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 
-from benchmarks.bm_sscater import _model  # noqa: E402
+from benchmarks.bm_sscater import _checkpoint_path, _first_scenario, _model  # noqa: E402
 from lidarops.models.sscater_calibration import calibrate_on_window  # noqa: E402
 
 
@@ -27,7 +27,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--steps", type=int, default=20)
-    ap.add_argument("--scenario", default="drone_bridge")
+    ap.add_argument("--scenario", default=None,
+                    help="default: drone_bridge; with --checkpoint, the first scene it was trained on")
     ap.add_argument("--per-call", default="", help="comma-separated kernel name parts: print each launch's "
                     "device time in the first profiled step, in launch order")
     ap.add_argument("--checkpoint", default="", help="profile a trained detector's stream (with its boxes)")
@@ -36,6 +37,7 @@ def main() -> None:
     dev = torch.device(a.device)
     if a.checkpoint:
         return profile_detector(a, dev)
+    a.scenario = a.scenario or "drone_bridge"
     model, _ = _model(a.scenario, dev, 0.5)
     slices = list(Simulator(a.scenario, seed=0).slices(0.0, 0.01 * (40 + a.steps), 0.01))
     feed = [(torch.from_numpy(p).to(dev), torch.from_numpy(t).to(dev)) for p, t in slices]
@@ -51,11 +53,7 @@ def main() -> None:
         if dev.type == "cuda":
             torch.cuda.synchronize()
     ka = prof.key_averages()
-    dkey = "self_device_time_total" if dev.type == "cuda" else "self_cpu_time_total"
-    print(f"== top ops by {dkey} over {a.steps} steps (ms per step)")
-    for e in sorted(ka, key=lambda e: getattr(e, dkey, 0), reverse=True)[:25]:
-        print(f"{e.key[:60]:60s} calls/step {e.count / a.steps:8.1f}  dev {getattr(e, dkey, 0) / 1e3 / a.steps:8.3f}"
-              f"  cpu {e.self_cpu_time_total / 1e3 / a.steps:8.3f}")
+    _top(prof, a.steps, dev, 25)
     print("== top ops by self CPU time (ms per step)")
     for e in sorted(ka, key=lambda e: e.self_cpu_time_total, reverse=True)[:25]:
         print(f"{e.key[:60]:60s} calls/step {e.count / a.steps:8.1f}  cpu {e.self_cpu_time_total / 1e3 / a.steps:8.3f}")
@@ -95,13 +93,12 @@ def profile_detector(a, dev) -> None:
     """The trained detector's stream: stage times per step, then torch.profiler over recycled steps and over
     refresh steps apart."""
     from lidarops.data.synthetic import Simulator
-    from lidarops.models import load_model, weights
+    from lidarops.models import load_model
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
-    path = weights.path() if a.checkpoint == "shipped" else weights.path(a.checkpoint)
-    det = load_model(path, map_location=dev).eval()
+    det = load_model(_checkpoint_path(a.checkpoint), map_location=dev).eval()
     model = SSCATeRPointPillars.from_detector(det, device=dev)
-    scenario = a.scenario if a.scenario != "drone_bridge" or "aerial" in a.checkpoint else "driving_city"
+    scenario = a.scenario or _first_scenario(a.checkpoint)
     sim = Simulator(scenario, seed=0)
     feed = []
     for k in range(60 + 2 * a.steps):
@@ -135,25 +132,6 @@ def profile_detector(a, dev) -> None:
             torch.cuda.synchronize()
     print(f"== recycled steps with their boxes ({recycled})")
     _top(prof, recycled, dev)
-    model.delta.cuda_graph = False  # the same steps kernel by kernel in launch order (no graph)
-    with torch.profiler.profile(activities=acts) as prof:
-        p, t, now = feed[-1]
-        model.step(p, t, now=now + 0.01)
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
-    if dev.type == "cuda":
-        events = sorted((e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA),
-                        key=lambda e: e.time_range.start)
-        print(f"== one recycled step without its graph: {len(events)} kernels, "
-              f"{sum(e.time_range.elapsed_us() for e in events) / 1e3:.3f} ms of kernel time, span "
-              f"{(events[-1].time_range.end - events[0].time_range.start) / 1e3 if events else 0:.3f} ms")
-        by: dict = {}
-        for e in events:
-            n, us = by.get(e.name[:70], (0, 0.0))
-            by[e.name[:70]] = (n + 1, us + e.time_range.elapsed_us())
-        for name, (n, us) in sorted(by.items(), key=lambda kv: -kv[1][1])[:25]:
-            print(f"{name:70s} {n:5d} launches {us / 1e3:7.3f} ms")
-    model.delta.cuda_graph = dev.type == "cuda"
     with torch.profiler.profile(activities=acts) as prof:
         for p, t, now in feed[-3:]:
             model._since_refresh = None  # every step a refresh

@@ -17,6 +17,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
+from benchmarks.bm_sscater import _checkpoint_path, _first_scenario  # noqa: E402
+
 
 def main() -> None:
     ap = argparse.ArgumentParser()
@@ -28,15 +30,14 @@ def main() -> None:
     ap.add_argument("--refresh-every", type=int, default=25)
     a = ap.parse_args()
     from lidarops.data.synthetic import Simulator
-    from lidarops.models import load_model, weights
+    from lidarops.models import load_model
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
     torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
     dev = torch.device(a.device)
-    path = weights.path() if a.checkpoint == "shipped" else weights.path(a.checkpoint)
-    det = load_model(path, map_location=dev).eval()
+    det = load_model(_checkpoint_path(a.checkpoint), map_location=dev).eval()
     exact = copy.deepcopy(det).double()
-    scenario = a.scenario or ("drone_bridge" if "aerial" in a.checkpoint else "driving_city")
+    scenario = a.scenario or _first_scenario(a.checkpoint)
     stream = SSCATeRPointPillars.from_detector(det, device=dev, refresh_every=a.refresh_every)
     sim = Simulator(scenario, seed=5)
     worst = {"stream vs detector": 0.0, "stream vs exact": 0.0, "detector vs exact": 0.0}
