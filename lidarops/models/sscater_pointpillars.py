@@ -373,17 +373,16 @@ class SSCATeRPointPillars:
         head = self.detector.dense_head
         dtype = head.conv_cls.weight.dtype
         with torch.no_grad():
-            if self._head is None or self._head_sites is None:
-                self._head = head(self.delta.out.to(dtype))
-            elif self._head_sites:
+            dense = self._head is None or self._head_sites is None
+            if not dense and self._head_sites:
                 H, W = self.delta.out.shape[2:]
                 changed = torch.zeros(H * W, dtype=torch.bool, device=self.device)  # each site once, no sort
                 changed[torch.cat(self._head_sites).long() @ torch.tensor([W, 1], device=self.device)] = True
                 keys = torch.nonzero(changed).view(-1)
-                if keys.numel() >= HEAD_DENSE_SHARE * H * W:  # one dense convolution beats gathering most rows
-                    self._head = head(self.delta.out.to(dtype))
-                    self._head_sites = []
-                    return self._head
+                dense = keys.numel() >= HEAD_DENSE_SHARE * H * W  # one dense convolution beats gathering most rows
+            if dense:
+                self._head = head(self.delta.out.to(dtype))
+            elif self._head_sites:
                 ys, xs = keys // W, keys % W
                 # (n, C): the changed sites' features, rows of the channels-last map
                 feats = self.delta.out[0].permute(1, 2, 0)[ys, xs].to(dtype)
