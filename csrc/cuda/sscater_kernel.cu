@@ -67,8 +67,6 @@ __global__ void targets_kernel(const int32_t* __restrict__ sites, const bool* __
 // kGatherChunk: the gather's; a step adds only 45-250 sites per layer, so smaller chunks give more
 // tiles and shorter dependency chains.
 constexpr int kBM = 64, kBN = 64, kBK = 16, kChunk = 64, kGatherChunk = 16, kGemmThreads = 256;
-// 0: the scatter's chunk is kChunk; > 0: chosen per launch on the device (GemmTuning)
-constexpr int64_t kScatterMinTiles = 0;
 
 template <typename T>
 struct GemmTile {
@@ -112,9 +110,6 @@ __device__ __forceinline__ bool sparse_chosen(const unsigned long long* zeros, d
 
 struct TapGemmArgs {
   int64_t rows, K, kw, Cin, C, chunk, chunks, col_tiles;
-  // > 0: the chunk of input channels is chosen on the device from the row count, the largest (fewest partial
-  // sums, so fewest atomics) that still makes at least min_tiles tiles
-  int64_t min_tiles;
   // the scatter's kernel choice, made on the device (no host synchronisation): with zeros, the GEMM
   // stands aside when the channel-sparse kernel takes the delta (sparse_chosen)
   const unsigned long long* zeros;
@@ -136,22 +131,14 @@ __global__ void __launch_bounds__(kGemmThreads, MinBlocks)
   __shared__ GemmTile<T> s;
   const int64_t n = count == nullptr ? g.rows : (*count < g.rows ? *count : g.rows);
   if (g.zeros != nullptr && sparse_chosen(g.zeros, g.sparse_share, n, g.Cin)) return;
-  int64_t chunk_size = g.chunk, chunks = g.chunks;
-  if (g.min_tiles > 0) {  // every block reads the same n and picks alike
-    const int64_t base = (n + kBM - 1) / kBM * g.col_tiles * g.K, most = (g.Cin + kBK - 1) / kBK;
-    int64_t want = base > 0 ? (g.min_tiles + base - 1) / base : 1;
-    want = want < 1 ? 1 : (want > most ? most : want);
-    chunk_size = ((g.Cin + want - 1) / want + kBK - 1) / kBK * kBK;
-    chunks = (g.Cin + chunk_size - 1) / chunk_size;
-  }
-  const int64_t per_row_tile = g.col_tiles * g.K * chunks;
+  const int64_t per_row_tile = g.col_tiles * g.K * g.chunks;
   const int64_t tiles = (n + kBM - 1) / kBM * per_row_tile;
   const int tid = threadIdx.x, ty = tid / 16, tx = tid % 16;
   const int64_t sa = g.gather ? g.s2 : 1;  // A's stride along the input channels
   for (int64_t t = blockIdx.x; t < tiles; t += gridDim.x) {
     // tap and chunk fastest: neighbouring tiles share the rows' data in L2
-    const int64_t k = t % g.K, chunk = t / g.K % chunks, col0 = t / (g.K * chunks) % g.col_tiles * kBN;
-    const int64_t row0 = t / per_row_tile * kBM, ci0 = chunk * chunk_size;
+    const int64_t k = t % g.K, chunk = t / g.K % g.chunks, col0 = t / (g.K * g.chunks) % g.col_tiles * kBN;
+    const int64_t row0 = t / per_row_tile * kBM, ci0 = chunk * g.chunk;
     bool any = false;
     for (int i = tid; i < kBM; i += kGemmThreads) {
       const int64_t row = row0 + i;
@@ -176,7 +163,7 @@ __global__ void __launch_bounds__(kGemmThreads, MinBlocks)
       any = to >= 0;
     }
     if (!__syncthreads_or(any)) continue;  // block-uniform: no row of the tile adds anything
-    const int64_t P = g.Cin - ci0 < chunk_size ? g.Cin - ci0 : chunk_size;
+    const int64_t P = g.Cin - ci0 < g.chunk ? g.Cin - ci0 : g.chunk;
     const T* wk = w + (k / g.kw) * g.ws1 + (k % g.kw) * g.ws2 + ci0 * g.ws3;
     T r[4][4] = {};
     for (int p0 = 0; p0 < P; p0 += kBK) {
@@ -221,17 +208,16 @@ __global__ void __launch_bounds__(kGemmThreads, MinBlocks)
   }
 }
 
-// The GEMM's tuning: the scatter's chunk of input channels, fixed (chunk) or chosen on the device from the rows
-// (min_tiles > 0); the grid, 8 blocks per multiprocessor or one full wave of resident blocks (wave: no partial
-// last wave); and the blocks a multiprocessor must hold (min_blocks, a register cap for float). Defaults:
-// kGemmTuning. LIDAROPS_SSCATER_TILING="chunk:N,tiles:N,wave:0|1,min_blocks:N" overrides them, for
-// benchmarks/bm_sscater.py; read once.
+// The GEMM's tuning: the scatter's chunk of input channels; the grid, 8 blocks per multiprocessor or one full
+// wave of resident blocks (wave: no partial last wave); and the blocks a multiprocessor must hold (min_blocks,
+// a register cap for float). Defaults: kGemmTuning. LIDAROPS_SSCATER_TILING="chunk:N,wave:0|1,min_blocks:N"
+// overrides them, for benchmarks/bm_sscater.py; read once.
 struct GemmTuning {
-  int64_t chunk, min_tiles;
+  int64_t chunk;
   bool wave;
   int min_blocks;
 };
-constexpr GemmTuning kGemmTuning{kChunk, kScatterMinTiles, true, 4};
+constexpr GemmTuning kGemmTuning{kChunk, true, 4};
 
 inline GemmTuning gemm_tuning() {
   static const GemmTuning tuning = [] {
@@ -245,11 +231,10 @@ inline GemmTuning gemm_tuning() {
       const auto colon = item.find(':');
       const std::string key = item.substr(0, colon);
       const long long n = colon == std::string::npos ? -1 : std::atoll(item.c_str() + colon + 1);
-      TORCH_CHECK_VALUE(n >= 0 && (key == "chunk" || key == "tiles" || key == "wave" || key == "min_blocks"),
-                        "LIDAROPS_SSCATER_TILING must be key:N items (chunk, tiles, wave, min_blocks) separated by "
-                        "commas, got ", env);
-      if (key == "chunk") t.chunk = std::max<int64_t>(kBK, (n + kBK - 1) / kBK * kBK), t.min_tiles = 0;
-      if (key == "tiles") t.min_tiles = n;
+      TORCH_CHECK_VALUE(n >= 0 && (key == "chunk" || key == "wave" || key == "min_blocks"),
+                        "LIDAROPS_SSCATER_TILING must be key:N items (chunk, wave, min_blocks) separated by commas, "
+                        "got ", env);
+      if (key == "chunk") t.chunk = std::max<int64_t>(kBK, (n + kBK - 1) / kBK * kBK);
       if (key == "wave") t.wave = n != 0;
       if (key == "min_blocks") t.min_blocks = n >= 4 ? 4 : 1;
     }
@@ -288,10 +273,8 @@ void launch_tap_gemm(T* acc, const T* src, const T* w, const int64_t* count, Tap
   const GemmTuning tune = gemm_tuning();
   g.chunk = g.gather ? kGatherChunk : tune.chunk;
   g.chunks = (g.Cin + g.chunk - 1) / g.chunk;
-  g.min_tiles = g.gather ? 0 : tune.min_tiles;
   g.col_tiles = (g.C + kBN - 1) / kBN;
-  const int64_t most = g.min_tiles > 0 ? (g.Cin + kBK - 1) / kBK : g.chunks;
-  const int64_t tiles = (g.rows + kBM - 1) / kBM * g.col_tiles * g.K * most;  // an upper bound (count)
+  const int64_t tiles = (g.rows + kBM - 1) / kBM * g.col_tiles * g.K * g.chunks;  // an upper bound (count)
   if constexpr (std::is_same<T, float>::value) {
     if (tune.min_blocks >= 4) return launch_tap_gemm_as<T, 4>(acc, src, w, count, g, tiles, tune.wave, on, stream);
   }
