@@ -159,6 +159,48 @@ void plan_new_points(const VoxelGrid<float>& g, const float* p, const double* tp
   plan.seg_begin.push_back(n_in);
 }
 
+// Plan, drop mode: the overflow rule (lidarops/stream/pillar_stream.py) keeps the entering points that
+// fit. Points in the window stay; a pillar's entering points are admitted in (t, arrival) order (their
+// segment's order) while its queue has room; a pillar that keeps no point is new and needs a free slot:
+// the slots free after the expiry go to the new pillars in key order (the segments' order). The plan's
+// entering points become the admitted ones. State values are only bounds-guarded here: plan_capacity
+// checks them and a bad one makes the push change nothing.
+void plan_drops(const StreamState& s, PushPlan& plan, int64_t* st) {
+  const int32_t *ct = s.count, *cs = s.cell_slot;
+  int64_t fully_expired = 0;  // touched pillars that keep no point
+  for (const int32_t slot : plan.touched)
+    if (plan.pops[slot] >= ct[slot]) ++fully_expired;
+  int64_t free = s.num_free[0] + fully_expired;  // M minus the pillars that keep points
+  const int64_t S = static_cast<int64_t>(plan.seg_begin.size()) - 1, n = static_cast<int64_t>(plan.keys.size());
+  std::vector<char> admitted(n, 0);
+  std::vector<int64_t> by_cell, seg_begin;
+  by_cell.reserve(plan.by_cell.size());
+  for (int64_t seg = 0; seg < S; ++seg) {
+    const int64_t b = plan.seg_begin[seg], k = plan.seg_begin[seg + 1] - b;
+    const int32_t slot = cs[plan.keys[plan.by_cell[b]]];
+    const int64_t has = slot >= 0 && slot < s.M ? std::clamp<int64_t>(ct[slot] - plan.pops[slot], 0, s.N) : 0;
+    int64_t keep = std::min(k, s.N - has);
+    if (has == 0 && free == 0) {
+      keep = 0;
+      st[kPsDroppedPillars] += k;
+    } else {
+      free -= has == 0;
+      st[kPsDroppedPoints] += k - keep;
+    }
+    if (keep == 0) continue;
+    seg_begin.push_back(static_cast<int64_t>(by_cell.size()));
+    for (int64_t q = 0; q < keep; ++q) {
+      admitted[plan.by_cell[b + q]] = 1;
+      by_cell.push_back(plan.by_cell[b + q]);
+    }
+  }
+  seg_begin.push_back(static_cast<int64_t>(by_cell.size()));
+  plan.by_cell = std::move(by_cell);
+  plan.seg_begin = std::move(seg_begin);
+  plan.order.erase(std::remove_if(plan.order.begin(), plan.order.end(), [&](int64_t i) { return !admitted[i]; }),
+                   plan.order.end());
+}
+
 // Plan, capacity: the points each pillar holds after the push, the pillars that empty and the new ones,
 // the free stack's entries the new pillars will take; fills the stats and their overflow bits. Returns
 // whether the push must change nothing (overflow or a bad state value).
@@ -298,7 +340,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cpu(
     at::Tensor& pool_xyzi, at::Tensor& pool_t, at::Tensor& head, at::Tensor& count, at::Tensor& slot_cell,
     at::Tensor& cell_slot, at::Tensor& free_slots, at::Tensor& num_free, at::Tensor& log_cell, at::Tensor& log_t,
     const at::Tensor& points_in, const at::Tensor& t_in, const at::Tensor& runs_in, int64_t log_head, double cutoff,
-    at::ArrayRef<double> point_range, at::ArrayRef<double> pillar_size, at::IntArrayRef grid_hw) {
+    at::ArrayRef<double> point_range, at::ArrayRef<double> pillar_size, at::IntArrayRef grid_hw, bool drop) {
   const PillarStreamArgs a =
       check_pillar_stream_push_args(pool_xyzi, pool_t, head, count, slot_cell, cell_slot, free_slots, num_free,
                                     log_cell, log_t, points_in, t_in, runs_in, log_head, cutoff, point_range,
@@ -334,6 +376,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cpu(
   plan.gains.assign(s.M, 0);
   plan_expiry(s, runs.data_ptr<int64_t>(), R, cutoff, run_pops.data_ptr<int64_t>(), plan);
   plan_new_points(g, p, tp, n, cutoff, st, plan);
+  if (drop) plan_drops(s, plan, st);
   if (plan_capacity(s, plan, st)) {
     run_pops.zero_();
     return {change_map, stats, run_pops};

@@ -15,7 +15,10 @@
 //     3. two stable sorts (ATen): the entering points by t (the log run), then by pillar key (the
 //        queues): (key, t, arrival) order, each pillar a segment.
 //     4. per segment: its pillar's length after the push; per touched slot: does it become empty;
-//        the free-stack entries the new pillars will pop; one thread then decides the flags.
+//        the free-stack entries the new pillars will pop; one thread then decides the flags. In drop
+//        mode the segments are first cut to what fits (the overflow rule: new pillars ranked in key
+//        order by an inclusive sum, against the slots free after the expiry), and the log's positions
+//        of the admitted points are another inclusive sum.
 //   Every state value used as an index is checked where the plan reads it (as the CPU plan does): a
 //   bad value is skipped and sets a kPsBad* bit of stats[kPsOverflow], so the apply does nothing.
 //   apply (every kernel returns at once when the plan overflowed, so an overflowing push changes nothing):
@@ -201,11 +204,48 @@ __global__ void ps_expire_count_kernel(const int64_t* __restrict__ runs, const i
   }
 }
 
-// One thread per segment head of the (key, t, arrival)-sorted entering points.
-__global__ void ps_segments_kernel(const int64_t* __restrict__ skeys, int64_t n, int64_t M, int64_t N,
-                                   const int32_t* __restrict__ cell_slot, const int32_t* __restrict__ slot_cell,
-                                   const int32_t* __restrict__ head, const int32_t* __restrict__ count,
-                                   const int32_t* __restrict__ pops,
+// The points a pillar keeps after the expiry (0 for a pillar without a slot). State values are only
+// bounds-guarded: ps_segments_kernel and ps_touched_plan_kernel check them.
+__device__ __forceinline__ int64_t ps_kept(int32_t slot, int64_t M, int64_t N, const int32_t* count,
+                                          const int32_t* pops) {
+  if (slot < 0 || slot >= M) return 0;
+  const int64_t has = static_cast<int64_t>(count[slot]) - pops[slot];
+  return has < 0 ? 0 : (has > N ? N : has);
+}
+
+// Drop mode: the touched pillars that keep no point (for the slots free after the expiry).
+__global__ void ps_fully_expired_kernel(const int32_t* __restrict__ touched, int64_t M,
+                                        const int32_t* __restrict__ count, const int32_t* __restrict__ pops,
+                                        const int64_t* __restrict__ stats, int64_t* __restrict__ fully_expired) {
+  const int64_t T = stats[kPsTouchedSlots];
+  LIDAROPS_GRID_STRIDE(i, T < M ? T : M) {
+    const int32_t slot = touched[i];
+    if (pops[slot] >= count[slot]) atomicAdd(ull(fully_expired), 1ULL);
+  }
+}
+
+// Drop mode: 1 at the head of each segment whose pillar keeps no point (is new); their inclusive sum
+// over the key-sorted points ranks the new pillars in key order.
+__global__ void ps_new_flags_kernel(const int64_t* __restrict__ skeys, int64_t n, int64_t M, int64_t N,
+                                    const int32_t* __restrict__ cell_slot, const int32_t* __restrict__ count,
+                                    const int32_t* __restrict__ pops, int64_t* __restrict__ is_new) {
+  LIDAROPS_GRID_STRIDE(j, n) {
+    const int64_t key = skeys[j];
+    const bool head = key != kSortLast && (j == 0 || skeys[j - 1] != key);
+    is_new[j] = head && ps_kept(cell_slot[key], M, N, count, pops) == 0;
+  }
+}
+
+// One thread per segment head of the (key, t, arrival)-sorted entering points. In drop mode
+// (new_rank != nullptr) the segment keeps the points that fit (the overflow rule, as the CPU's
+// plan_drops): its first N - kept ones, none for a new pillar ranked beyond the free slots; the others
+// are marked in dropped (by point) and counted.
+__global__ void ps_segments_kernel(const int64_t* __restrict__ skeys, const int64_t* __restrict__ order_c, int64_t n,
+                                   int64_t M, int64_t N, const int32_t* __restrict__ cell_slot,
+                                   const int32_t* __restrict__ slot_cell, const int32_t* __restrict__ head,
+                                   const int32_t* __restrict__ count, const int32_t* __restrict__ pops,
+                                   const int64_t* __restrict__ new_rank, const int32_t* __restrict__ num_free,
+                                   const int64_t* __restrict__ fully_expired, bool* __restrict__ dropped,
                                    int32_t* __restrict__ gains, int64_t* __restrict__ seg_start,
                                    int64_t* __restrict__ seg_len, int64_t* __restrict__ stats) {
   LIDAROPS_GRID_STRIDE(j, n) {
@@ -213,24 +253,33 @@ __global__ void ps_segments_kernel(const int64_t* __restrict__ skeys, int64_t n,
     if (key == kSortLast || (j > 0 && skeys[j - 1] == key)) continue;
     int64_t k = 1;
     while (j + k < n && skeys[j + k] == key) ++k;
+    const int32_t slot = cell_slot[key];
+    if (slot != -1 && (slot < 0 || slot >= M || slot_cell[slot] != key)) {
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadCellSlot));
+      continue;
+    }
+    if (slot != -1 && !ps_queue_ok(head[slot], count[slot], N)) {
+      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadQueue));
+      continue;
+    }
+    const int64_t has = ps_kept(slot, M, N, count, pops);
+    if (new_rank != nullptr) {
+      const int64_t free = static_cast<int64_t>(num_free[0]) + fully_expired[0];
+      const bool no_slot = has == 0 && new_rank[j] > free;
+      const int64_t keep = no_slot ? 0 : (k < N - has ? k : N - has);
+      for (int64_t q = keep; q < k; ++q) dropped[order_c[j + q]] = true;
+      if (keep < k)
+        atomicAdd(ull(stats + (no_slot ? kPsDroppedPillars : kPsDroppedPoints)),
+                  static_cast<unsigned long long>(k - keep));
+      if (keep == 0) continue;
+      k = keep;
+    }
     const int64_t s = static_cast<int64_t>(atomicAdd(ull(stats + kPsSegments), 1ULL));
     seg_start[s] = j;
     seg_len[s] = k;
-    const int32_t slot = cell_slot[key];
-    int64_t after = k;
-    if (slot == -1) {
-      atomicAdd(ull(stats + kPsNewPillars), 1ULL);
-    } else if (slot < 0 || slot >= M || slot_cell[slot] != key) {
-      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadCellSlot));
-      continue;
-    } else if (!ps_queue_ok(head[slot], count[slot], N)) {
-      atomicOr(ull(stats + kPsOverflow), static_cast<unsigned long long>(kPsBadQueue));
-      continue;
-    } else {
-      gains[slot] = static_cast<int32_t>(k);
-      after += count[slot] - pops[slot];
-    }
-    atomicMax(reinterpret_cast<long long*>(stats + kPsMaxPointsNeeded), static_cast<long long>(after));
+    if (slot == -1) atomicAdd(ull(stats + kPsNewPillars), 1ULL);
+    else gains[slot] = static_cast<int32_t>(k);
+    atomicMax(reinterpret_cast<long long*>(stats + kPsMaxPointsNeeded), static_cast<long long>(has + k));
   }
 }
 
@@ -272,6 +321,7 @@ __global__ void ps_finalize_kernel(const int32_t* __restrict__ num_free, int64_t
                                    int64_t* __restrict__ stats) {
   const int64_t active_after = (M - num_free[0]) - stats[kPsEmptied] + stats[kPsNewPillars];
   stats[kPsPillarsNeeded] = active_after;
+  stats[kPsPointsIn] -= stats[kPsDroppedPoints] + stats[kPsDroppedPillars];
   stats[kPsOverflow] |= (stats[kPsMaxPointsNeeded] > N ? kPsOverflowPoints : 0) |
                         (active_after > M ? kPsOverflowPillars : 0);
 }
@@ -353,24 +403,38 @@ __global__ void ps_insert_kernel(const int64_t* __restrict__ skeys, const int64_
   }
 }
 
+// The entering points in t order; in drop mode (pos != nullptr) the admitted ones only, at their
+// inclusive-sum positions.
 __global__ void ps_log_kernel(const double* __restrict__ sorted_t, const int64_t* __restrict__ order_t,
-                              const int64_t* __restrict__ ckey, const double* __restrict__ t, int64_t n,
-                              int64_t log_head, int64_t L, int32_t* __restrict__ log_cell, double* __restrict__ log_t,
+                              const int64_t* __restrict__ ckey, const double* __restrict__ t,
+                              const int64_t* __restrict__ pos, int64_t n, int64_t log_head, int64_t L,
+                              int32_t* __restrict__ log_cell, double* __restrict__ log_t,
                               const int64_t* __restrict__ stats) {
   if (stats[kPsOverflow]) return;
   LIDAROPS_GRID_STRIDE(j, n) {
     if (isinf(sorted_t[j])) continue;  // the entering points come first in t order
-    const int64_t i = order_t[j], q = (log_head + j) % L;
+    int64_t at = j;
+    if (pos != nullptr) {
+      at = pos[j] - 1;
+      if (j > 0 ? pos[j - 1] > at : at < 0) continue;  // dropped
+    }
+    const int64_t i = order_t[j], q = (log_head + at) % L;
     log_cell[q] = static_cast<int32_t>(ckey[i]);
     log_t[q] = t[i];
   }
+}
+
+// Drop mode: 1 for each admitted point, in t order (for the log's positions).
+__global__ void ps_admitted_kernel(const double* __restrict__ sorted_t, const int64_t* __restrict__ order_t,
+                                   const bool* __restrict__ dropped, int64_t n, int64_t* __restrict__ admitted) {
+  LIDAROPS_GRID_STRIDE(j, n) admitted[j] = !isinf(sorted_t[j]) && !dropped[order_t[j]];
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
     at::Tensor& pool_xyzi, at::Tensor& pool_t, at::Tensor& head, at::Tensor& count, at::Tensor& slot_cell,
     at::Tensor& cell_slot, at::Tensor& free_slots, at::Tensor& num_free, at::Tensor& log_cell, at::Tensor& log_t,
     const at::Tensor& points_in, const at::Tensor& t_in, const at::Tensor& runs_in, int64_t log_head, double cutoff,
-    at::ArrayRef<double> point_range, at::ArrayRef<double> pillar_size, at::IntArrayRef grid_hw) {
+    at::ArrayRef<double> point_range, at::ArrayRef<double> pillar_size, at::IntArrayRef grid_hw, bool drop) {
   const PillarStreamArgs a =
       check_pillar_stream_push_args(pool_xyzi, pool_t, head, count, slot_cell, cell_slot, free_slots, num_free,
                                     log_cell, log_t, points_in, t_in, runs_in, log_head, cutoff, point_range,
@@ -395,6 +459,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
   // plan
   at::Tensor ckey = at::empty({n}, opts.dtype(at::kLong)), tkey = at::empty({n}, opts.dtype(at::kDouble));
   at::Tensor sorted_t, order_t, skeys, order_c;
+  at::Tensor fully_expired, dropped, rank, log_pos;  // drop mode
   auto seg_start = at::empty({n}, opts.dtype(at::kLong)), seg_len = at::empty({n}, opts.dtype(at::kLong));
   if (n > 0) {
     ps_keys_kernel<<<num_blocks(n), kThreads, 0, stream>>>(points.data_ptr<float>(), t.data_ptr<double>(), n, g,
@@ -414,12 +479,37 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
     at::Tensor perm;
     std::tie(skeys, perm) = at::sort(ckey.index_select(0, order_t), /*stable=*/true, 0, false);
     order_c = order_t.index_select(0, perm);
+    const int64_t* new_rank = nullptr;
+    if (drop) {
+      fully_expired = at::zeros({1}, opts.dtype(at::kLong));
+      dropped = at::zeros({n}, opts.dtype(at::kBool));
+      ps_fully_expired_kernel<<<num_blocks(M), kThreads, 0, stream>>>(
+          touched.data_ptr<int32_t>(), M, count.data_ptr<int32_t>(), pops.data_ptr<int32_t>(), st,
+          fully_expired.data_ptr<int64_t>());
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+      auto is_new = at::empty({n}, opts.dtype(at::kLong));
+      ps_new_flags_kernel<<<num_blocks(n), kThreads, 0, stream>>>(
+          skeys.data_ptr<int64_t>(), n, M, N, cell_slot.data_ptr<int32_t>(), count.data_ptr<int32_t>(),
+          pops.data_ptr<int32_t>(), is_new.data_ptr<int64_t>());
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+      rank = at::cumsum(is_new, 0);
+      new_rank = rank.data_ptr<int64_t>();
+    }
     ps_segments_kernel<<<num_blocks(n), kThreads, 0, stream>>>(
-        skeys.data_ptr<int64_t>(), n, M, N, cell_slot.data_ptr<int32_t>(), slot_cell.data_ptr<int32_t>(),
-        head.data_ptr<int32_t>(), count.data_ptr<int32_t>(), pops.data_ptr<int32_t>(), gains.data_ptr<int32_t>(),
-        seg_start.data_ptr<int64_t>(),
+        skeys.data_ptr<int64_t>(), order_c.data_ptr<int64_t>(), n, M, N, cell_slot.data_ptr<int32_t>(),
+        slot_cell.data_ptr<int32_t>(), head.data_ptr<int32_t>(), count.data_ptr<int32_t>(), pops.data_ptr<int32_t>(),
+        new_rank, num_free.data_ptr<int32_t>(), drop ? fully_expired.data_ptr<int64_t>() : nullptr,
+        drop ? dropped.data_ptr<bool>() : nullptr, gains.data_ptr<int32_t>(), seg_start.data_ptr<int64_t>(),
         seg_len.data_ptr<int64_t>(), st);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
+    if (drop) {
+      auto admitted = at::empty({n}, opts.dtype(at::kLong));
+      ps_admitted_kernel<<<num_blocks(n), kThreads, 0, stream>>>(
+          sorted_t.data_ptr<double>(), order_t.data_ptr<int64_t>(), dropped.data_ptr<bool>(), n,
+          admitted.data_ptr<int64_t>());
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+      log_pos = at::cumsum(admitted, 0);
+    }
   }
   ps_touched_plan_kernel<<<num_blocks(M), kThreads, 0, stream>>>(
       touched.data_ptr<int32_t>(), M, N, head.data_ptr<int32_t>(), count.data_ptr<int32_t>(),
@@ -446,8 +536,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
         cell_slot.data_ptr<int32_t>(), free_slots.data_ptr<int32_t>(), num_free.data_ptr<int32_t>(), cm, st);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
     ps_log_kernel<<<num_blocks(n), kThreads, 0, stream>>>(
-        sorted_t.data_ptr<double>(), order_t.data_ptr<int64_t>(), ckey.data_ptr<int64_t>(), t.data_ptr<double>(), n,
-        log_head, L, log_cell.data_ptr<int32_t>(), log_t.data_ptr<double>(), st);
+        sorted_t.data_ptr<double>(), order_t.data_ptr<int64_t>(), ckey.data_ptr<int64_t>(), t.data_ptr<double>(),
+        drop ? log_pos.data_ptr<int64_t>() : nullptr, n, log_head, L, log_cell.data_ptr<int32_t>(),
+        log_t.data_ptr<double>(), st);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
   return {change_map, stats, run_pops};

@@ -26,7 +26,10 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // keeping every queue sorted by t (ties in arrival order), and write them to the log as a new run
   // (sorted by t, ties in arrival order) at the absolute positions [log_head, log_head + points_in).
   // If the result would exceed a capacity (a queue longer than N, or more than M active pillars),
-  // nothing is changed and stats[kPsOverflow] says which (see PillarStreamStat). State values are
+  // nothing is changed and stats[kPsOverflow] says which (see PillarStreamStat); with drop = true the
+  // push instead admits what fits by the overflow rule (lidarops/stream/pillar_stream.py: points in the
+  // window stay, a pillar's entering points in (t, arrival) order while its queue has room, pillars that
+  // keep no point take the free slots in key order) and counts the others in kPsDropped*. State values are
   // checked where they are read; a broken invariant sets a kPsBad* bit of stats[kPsOverflow] and
   // nothing is changed either (csrc/include/lidarops/pillar_stream.h; docs/stream.md).
   // Returns change_map (H, W) bool (pillars that gained or lost a point), stats (kNumPillarStreamStats,)
@@ -35,6 +38,6 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       "pillar_stream_push(Tensor(a!) pool_xyzi, Tensor(b!) pool_t, Tensor(c!) head, Tensor(d!) count,"
       " Tensor(e!) slot_cell, Tensor(f!) cell_slot, Tensor(g!) free_slots, Tensor(h!) num_free,"
       " Tensor(i!) log_cell, Tensor(j!) log_t, Tensor points, Tensor t, Tensor runs, int log_head, float cutoff,"
-      " float[6] point_range, float[2] pillar_size, int[2] grid_hw) -> (Tensor change_map, Tensor stats,"
-      " Tensor run_pops)");
+      " float[6] point_range, float[2] pillar_size, int[2] grid_hw, bool drop=False) -> (Tensor change_map,"
+      " Tensor stats, Tensor run_pops)");
 }

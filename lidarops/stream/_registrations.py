@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-_NUM_STATS = 11  # kNumPillarStreamStats in csrc/include/lidarops/pillar_stream.h
+_NUM_STATS = 13  # kNumPillarStreamStats in csrc/include/lidarops/pillar_stream.h
 
 
 @torch.library.register_fake("lidarops::pillar_stream_gather")
@@ -23,7 +23,8 @@ def _pillar_stream_gather_fake(pool_xyzi, head, count, cell_slot, cells):
 
 @torch.library.register_fake("lidarops::pillar_stream_push")
 def _pillar_stream_push_fake(pool_xyzi, pool_t, head, count, slot_cell, cell_slot, free_slots, num_free, log_cell,
-                             log_t, points, t, runs, log_head, cutoff, point_range, pillar_size, grid_hw):
+                             log_t, points, t, runs, log_head, cutoff, point_range, pillar_size, grid_hw,
+                             drop=False):
     H, W = grid_hw
     return (points.new_empty((H, W), dtype=torch.bool), points.new_empty((_NUM_STATS,), dtype=torch.int64),
             points.new_empty((runs.shape[0],), dtype=torch.int64))

@@ -64,7 +64,7 @@ MIN_WINDOW = 1e-5
 
 # indices into the stats output of lidarops::pillar_stream_push (csrc/include/lidarops/pillar_stream.h)
 (_P_IN, _P_OUT, _P_OUTSIDE, _P_LATE, _P_OVERFLOW, _P_MAX_POINTS, _P_PILLARS, _P_NEW, _P_EMPTIED, _P_TOUCHED,
- _P_SEGMENTS, _NUM_STATS) = range(12)
+ _P_SEGMENTS, _P_DROPPED_POINTS, _P_DROPPED_PILLARS, _NUM_STATS) = range(14)
 # bits of stats[_P_OVERFLOW]: capacities (kPsOverflow*), and the state checks of the op (kPsBad*)
 _OVERFLOW_BITS = 1 | 2
 _BAD_RUNS, _BAD_LOG, _BAD_CELL_SLOT, _BAD_QUEUE, _BAD_NUM_FREE, _BAD_FREE_SLOTS = 4, 8, 16, 32, 64, 128
@@ -361,8 +361,8 @@ class PillarStream:
         runs = torch.tensor(list(self._runs), dtype=torch.int64).reshape(-1, 2)
         if dev.type == "cuda":  # pinned and asynchronous: a pageable copy would wait for the device
             runs = runs.pin_memory().to(dev, non_blocking=True)
+        # with overflow="drop" the op admits what fits by the rule above and counts the rest
         change_map, st, pops, n_changed = self._push_op(points, t, runs, cutoff)
-        n_dropped = drop_points = drop_pillars = 0
         if st[_P_OVERFLOW] & ~_OVERFLOW_BITS:
             raise RuntimeError(self._corruption_message(st[_P_OVERFLOW], st[_P_EMPTIED]))
         if st[_P_OVERFLOW] and self._overflow == "raise":
@@ -372,16 +372,11 @@ class PillarStream:
                 + " when creating the PillarStream, or create it with overflow='drop' (the points that do not "
                   "fit are dropped by a documented rule and counted). The push had no effect: the stream still "
                   "holds its previous window")
-        if st[_P_OVERFLOW]:
-            # nothing was changed: push again without the points that do not fit (moved outside the grid,
-            # like invalid points, and subtracted from the outside count below)
-            drop, drop_points, drop_pillars = self._overflow_drops(points, t, cutoff)
-            n_dropped = drop_points + drop_pillars
-            points = torch.where(drop[:, None], torch.full((), float("nan"), device=dev), points)
-            change_map, st, pops, n_changed = self._push_op(points, t, runs, cutoff)
-            if st[_P_OVERFLOW]:  # the rule admits only what fits: this is a bug, not an input
-                raise RuntimeError(f"PillarStream.push: the points kept by overflow='drop' still do not fit "
-                                   f"(flags {st[_P_OVERFLOW]}); please report this")
+        if st[_P_OVERFLOW]:  # the rule admits only what fits: this is a bug, not an input
+            raise RuntimeError(f"PillarStream.push: the points kept by overflow='drop' still do not fit "
+                               f"(flags {st[_P_OVERFLOW]}); please report this")
+        drop_points, drop_pillars = st[_P_DROPPED_POINTS], st[_P_DROPPED_PILLARS]
+        n_dropped = drop_points + drop_pillars
         # commit the host-side bookkeeping
         self._t = newest
         for run, k in zip(self._runs, pops):
@@ -392,7 +387,7 @@ class PillarStream:
             self._log_head += st[_P_IN]
         self._num_active = st[_P_PILLARS]
         self._num_points += st[_P_IN] - st[_P_OUT]
-        outside = st[_P_OUTSIDE] - n_invalid - n_dropped
+        outside = st[_P_OUTSIDE] - n_invalid
         c = self._counts
         self._counts = StreamCounts(c.points_pushed + n, c.points_in + st[_P_IN], c.points_out + st[_P_OUT],
                                     c.points_outside + outside, c.points_late + st[_P_LATE],
@@ -413,48 +408,10 @@ class PillarStream:
         change_map, stats, run_pops = torch.ops.lidarops.pillar_stream_push(
             self._pool_xyzi, self._pool_t, self._head, self._count, self._slot_cell, self._cell_slot,
             self._free_slots, self._num_free, self._log_cell, self._log_t, points.contiguous(), t.contiguous(),
-            runs, self._log_head, cutoff, list(g.point_cloud_range), list(g.pillar_size), list(g.shape))
+            runs, self._log_head, cutoff, list(g.point_cloud_range), list(g.pillar_size), list(g.shape),
+            self._overflow == "drop")
         vals = torch.cat([stats, run_pops, change_map.sum().view(1)]).tolist()
         return change_map, vals[:_NUM_STATS], vals[_NUM_STATS:-1], vals[-1]
-
-    def _overflow_drops(self, points: Tensor, t: Tensor, cutoff: float) -> tuple[Tensor, int, int]:
-        """The overflow rule (module docstring), from the state before the push: bool (n,) True for
-        the entering points that do not fit, and how many were dropped because their queue was full
-        and because no slot was left for their new pillar. Vectorised torch on the stream's device;
-        runs only for a push that overflowed (it reads the whole pool once)."""
-        dev, g, M, N = self._device, self._grid, self._M, self._N
-        n, W = points.shape[0], g.shape[1]
-        # the pillar of each point, by the very cell rule of the push (voxelize_assign, one cell in z)
-        coords, _, point_voxel, _, _ = torch.ops.lidarops.voxelize_assign(
-            points.contiguous(), list(g.voxel_size), list(g.point_cloud_range), g.grid_size, 1, max(1, n), 0)
-        pv = point_voxel.clamp(min=0)
-        key = torch.where(point_voxel >= 0, coords[pv, 1].to(torch.int64) * W + coords[pv, 2].to(torch.int64), -1)
-        entering = torch.nonzero((key >= 0) & (t > cutoff)).view(-1)
-        # points each queue keeps after this push's expiries
-        # slot j holds a point when it lies in the ring [head, head + count) mod N: compares of the broadcast
-        # (M, 1) and (1, N) int32 operands, no (M, N) int64 offsets
-        j = torch.arange(N, dtype=torch.int32, device=dev)[None, :]
-        head, end = self._head[:, None], (self._head + self._count)[:, None]
-        in_ring = ((j >= head) & (j < end)) | (j < end - N)
-        kept = (in_ring & (self._pool_t > cutoff)).sum(1)
-        free = M - (kept > 0).sum()  # a tensor: no wait for the device
-        # entering points in (pillar, t, arrival) order
-        entering = entering[torch.sort(t[entering], stable=True).indices]
-        entering = entering[torch.sort(key[entering], stable=True).indices]
-        k = key[entering]
-        uk, per_pillar = torch.unique_consecutive(k, return_counts=True)
-        slot = self._cell_slot[uk].to(torch.int64)
-        has = torch.where(slot >= 0, kept[slot.clamp(min=0)], 0)  # points the pillar keeps
-        first = torch.cumsum(per_pillar, 0) - per_pillar
-        rank = torch.arange(k.shape[0], device=dev) - torch.repeat_interleave(first, per_pillar)
-        room = rank < torch.repeat_interleave(N - has, per_pillar)
-        new = has == 0  # (uk is sorted by key: new pillars are admitted in key order)
-        admitted = ~new | (torch.cumsum(new.to(torch.int64), 0) <= free)
-        admitted = torch.repeat_interleave(admitted, per_pillar)
-        drop = torch.zeros(n, dtype=torch.bool, device=dev)
-        drop[entering] = ~(room & admitted)
-        drop_pillars, drop_points = torch.stack([(~admitted).sum(), (admitted & ~room).sum()]).tolist()
-        return drop, drop_points, drop_pillars
 
     def _corruption_message(self, flags: int, emptied: int) -> str:
         """Why pillar_stream_push refused the state (its kPsBad* flags), with the first bad value found

@@ -148,7 +148,7 @@ def _child(device: str) -> None:
         except RuntimeError as e:
             return {"outcome": "runtime_error", "message": str(e)}
 
-    def push_args(st):
+    def push_args(st, drop=False):
         g = grid
         runs = torch.tensor(list(st._runs), dtype=torch.int64).reshape(-1, 2)
         a = {"points": pts([(0.5, 0.5), (0.6, 0.6), (2.5, 2.5), (3.5, 3.5)]),
@@ -158,9 +158,12 @@ def _child(device: str) -> None:
         def op(s, a):
             return torch.ops.lidarops.pillar_stream_push(
                 *(s[k] for k in STATE), a["points"], a["t"], a["runs"], a["log_head"], a["cutoff"],
-                list(g.point_cloud_range), list(g.pillar_size), a["grid_hw"])
+                list(g.point_cloud_range), list(g.pillar_size), a["grid_hw"], drop)
         a["op"] = op
         return a
+
+    def push_drop_args(st):  # the overflow rule's plan reads the same state values
+        return push_args(st, drop=True)
 
     def gather_args(st):
         def op(s, a):
@@ -172,7 +175,8 @@ def _child(device: str) -> None:
         p, t = pts([(0.5, 0.5), (2.5, 2.5)]).to(dev), torch.full((2,), 0.05, dtype=torch.float64, device=dev)
         return {"push": lambda: st.push(p, t)}
 
-    for table, call in ((PUSH_CASES, push_args), (GATHER_CASES, gather_args), (WRAPPER_CASES, wrapper_args)):
+    for table, call in ((PUSH_CASES, push_args), (PUSH_CASES, push_drop_args), (GATHER_CASES, gather_args),
+                        (WRAPPER_CASES, wrapper_args)):
         for case, (code, _) in table.items():
             print(json.dumps({"case": f"{call.__name__}:{case}", **run(case, code, call)}), flush=True)
     print(json.dumps({"case": "done"}), flush=True)
@@ -212,11 +216,11 @@ def _check(device: str, name: str, expected) -> None:
 
 
 def _params(table: dict, prefix: str):
-    return [pytest.param(f"{prefix}:{name}", exp, id=name) for name, (_, exp) in table.items()]
+    return [pytest.param(f"{prefix}:{name}", exp, id=f"{prefix}:{name}") for name, (_, exp) in table.items()]
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("name, expected", _params(PUSH_CASES, "push_args"))
+@pytest.mark.parametrize("name, expected", _params(PUSH_CASES, "push_args") + _params(PUSH_CASES, "push_drop_args"))
 def test_push_with_corrupt_state(device, name, expected):
     _check(device, name, expected)
 

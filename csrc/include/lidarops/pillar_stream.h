@@ -33,6 +33,8 @@ enum PillarStreamStat : int64_t {
   kPsEmptied,           // pillars that lose all their points (and gain none)
   kPsTouchedSlots,      // scratch: active pillars that lose points
   kPsSegments,          // scratch: pillars that gain points
+  kPsDroppedPoints,     // drop mode: entering points of admitted pillars beyond their queue's room
+  kPsDroppedPillars,    // drop mode: entering points of new pillars that found no free slot
   kNumPillarStreamStats
 };
 enum : int64_t { kPsOverflowPoints = 1, kPsOverflowPillars = 2 };
