@@ -31,15 +31,22 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from lidarops.models.bev_backbone import BaseBEVBackbone
-from lidarops.ops.validation import check_tensor, describe
+from lidarops.ops.boxes import _box_out_of_range
+from lidarops.ops.validation import check_tensor, describe, validation, value_checks_enabled
 from lidarops.sscater.delta import DeltaBackbone, LayerStats
 
-__all__ = ["HEAD_DENSE_SHARE", "SSCATeRPointPillars", "StepStats", "PillarFeatureNet", "DetectorPFN"]
+__all__ = ["DETECT_CUDA_GRAPH", "HEAD_DENSE_SHARE", "SSCATeRPointPillars", "StepStats", "PillarFeatureNet",
+           "DetectorPFN"]
 
 # Share of the head's output sites changed since the last detect() from which the head runs as one dense 1x1
 # convolution over the map: gathering and scattering most of the map's rows costs more than the convolution
 # (measured in docs/sscater.md).
 HEAD_DENSE_SHARE = 0.5
+
+# detect() on CUDA replays the head, its decode and the post-processing as one CUDA graph (the head is dense
+# there: the step's site lists stay on the device). Eager, they launch about a hundred kernels and read sizes back
+# to the host twice; the graph's only read is the number of boxes.
+DETECT_CUDA_GRAPH = True
 
 
 # SSCATeR's own pillar net, kept until SSCATeR runs the detector's PillarVFE: the stream gathers 9-feature
@@ -138,7 +145,8 @@ class StepStats:
         pfn_points, pfn_points_full (int): points run through the PFN, and what a full recomputation
             would run (the PFN's work is proportional to its points).
         ms_stream, ms_pfn, ms_backbone (float): wall time of each stage (a guard refresh counts in
-            ``ms_backbone``).
+            ``ms_backbone``; so does a recycled step's pillar net where it runs inside the backbone's CUDA
+            graph).
         layers (list[LayerStats]): per-layer active / changed / touched sites and times.
         points_invalid (int): points of the slice dropped by the stream's input policy (intensity or t
             NaN, infinite or out of bounds); cumulative counts in ``model.stream.counts``.
@@ -244,6 +252,8 @@ class SSCATeRPointPillars:
         self.detector = None  # the PointPillars whose head and post-processing turn the map into boxes
         self._head: Optional[dict] = None  # the head's output maps on the recycled map (detect)
         self._head_sites: Optional[list] = None  # output sites changed since the last detect; None: all
+        self._detect_graph: Optional[tuple] = None  # (precision flags, graph, head maps, padded boxes) on CUDA
+        self._pfn_points = torch.zeros((), dtype=torch.int64, device=self.device)  # written by _changed_features
         self._all_sites: Optional[Tensor] = None  # (H * W, 2) every site, for the dense mode's refresh
         self.stats = StepStats()
         self._since_refresh: Optional[int] = None
@@ -262,10 +272,19 @@ class SSCATeRPointPillars:
         self._state_peak = self._state_prev = 0.0
         self.stats = StepStats()
         self._head = self._head_sites = None
+        self._detect_graph = None  # a reload may give the output map new memory
 
     def _pfn(self, pillars) -> Tensor:
         with torch.no_grad():
             return self.pfn(pillars).to(self.dtype)
+
+    def _changed_features(self, sites: Tensor) -> Tensor:
+        """The pillar net's features of the changed pillars at ``sites`` (int32 (n, 2); rows (-1, -1) are a CUDA
+        graph's padding, which the stream's gather gives no points), for :meth:`DeltaBackbone.update` to run inside
+        its graph; their points are counted in ``_pfn_points``."""
+        pillars = self.stream.pillars(F.pad(sites, (1, 0)), check=False)
+        self._pfn_points.copy_(pillars.num_points.sum())
+        return self._pfn(pillars)
 
     def _mark(self):
         """A point in time: a CUDA event on CUDA (read after the step's final synchronisation, so the
@@ -304,13 +323,21 @@ class SSCATeRPointPillars:
                 # the PFN on every changed pillar, the emptied ones included (zero points: their rows
                 # are ignored by the update, or zero in the dense mode), so that nothing waits for the
                 # device to pick them out
-                changed = self.stream.pillars(upd.changed, check=False)
-                feats = self._pfn(changed)
-                pfn_points, pfn_points_full = changed.num_points.sum(), self.stream.num_points
-                m2 = self._mark()
                 # dense: an emptied pillar stays a site, its input back to zero
                 removed = torch.zeros_like(upd.removed) if self.dense else upd.removed
-                out = self.delta.update(changed.coords[:, 1:], feats, removed, profile=self.profile, check=False)
+                pfn_points_full = self.stream.num_points
+                if self.delta.cuda_graph and not self.profile:
+                    # the pillar net runs inside the backbone's CUDA graph: its time counts in ms_backbone
+                    m2 = self._mark()
+                    out = self.delta.update(upd.changed[:, 1:], self._changed_features, removed, check=False)
+                    pfn_points = self._pfn_points
+                else:
+                    changed = self.stream.pillars(upd.changed, check=False)
+                    feats = self._pfn(changed)
+                    pfn_points = changed.num_points.sum()
+                    m2 = self._mark()
+                    out = self.delta.update(changed.coords[:, 1:], feats, removed, profile=self.profile,
+                                            check=False)
                 self._since_refresh += 1
             st.guard = self._check_state(refresh)
             if st.guard and refresh:  # nothing to recycle from: the input or the weights are not finite
@@ -399,9 +426,59 @@ class SSCATeRPointPillars:
         (:meth:`head_outputs`: at the sites that changed), its decode and post-processing (:meth:`from_detector`
         models only). One dict of ``boxes (K, 7)``, ``scores (K,)``, ``labels (K,)`` (1-based into the
         detector's ``class_names``), as ``detector.predict`` gives."""
+        from lidarops.models.pointpillars import PointPillars
+        if (DETECT_CUDA_GRAPH and self.device.type == "cuda" and self.delta.sync_free and self.detector is not None
+                and type(self.detector).postprocess is PointPillars.postprocess):
+            return self._detect_replay()
         raw = self.head_outputs()
         with torch.no_grad():
             return self.detector.postprocess(raw)[0]
+
+    def _detect_replay(self) -> dict:
+        """:meth:`detect` as one CUDA graph (:data:`DETECT_CUDA_GRAPH`): the dense head on the output map, the
+        decode and :func:`~lidarops.models.postprocess.postprocess_padded` (the boxes ``postprocess`` keeps, in
+        its order). Captured on first use, and again when TF32 or autocast change (the graph keeps the kernels
+        chosen under them)."""
+        flags = (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32,
+                 torch.is_autocast_enabled("cuda"))
+        if self._detect_graph is None or self._detect_graph[0] != flags:
+            self._detect_graph = (flags, *self._capture_detect())
+        _, graph, raw, out = self._detect_graph
+        graph.replay()
+        self._head, self._head_sites = raw, []
+        n, bad = out["read"].tolist()  # the one host read
+        if bad and value_checks_enabled():  # the eager post-processing names the bad box
+            with torch.no_grad():
+                return self.detector.postprocess(raw)[0]
+        # copies: the graph's outputs are overwritten by the next replay
+        return {k: out[k][0, :n].clone() for k in ("boxes", "scores", "labels")}
+
+    def _capture_detect(self) -> tuple:
+        from lidarops.models.postprocess import postprocess_padded
+        head, cfg = self.detector.dense_head, self.detector.config
+        dtype = head.conv_cls.weight.dtype
+
+        def body():
+            raw = head(self.delta.out.to(dtype))
+            cls_logits, boxes = head.decode(raw)
+            out = postprocess_padded(cls_logits, boxes, cfg)
+            # the eager post-processing's value checks, on the boxes it would check (some class's score at least
+            # the threshold), as a flag read with the count: the padded NMS inside a graph cannot read back
+            above = (torch.sigmoid(cls_logits[0]) >= cfg.score_thresh).any(-1)
+            bad = ((~torch.isfinite(boxes[0])).any(1) | _box_out_of_range(boxes[0])) & above
+            out["read"] = torch.stack([out["count"][0], bad.any().to(out["count"].dtype)])
+            return raw, out
+
+        side, current = torch.cuda.Stream(self.device), torch.cuda.current_stream(self.device)
+        side.wait_stream(current)
+        with torch.no_grad(), validation(False):
+            with torch.cuda.stream(side):
+                body()  # warm-up outside the graph: cuDNN's choice of algorithms, the allocator's blocks
+            current.wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                raw, out = body()
+        return graph, raw, out
 
     def window_points(self) -> Tensor:
         """The points the stream holds (x, y, z, intensity), pillar by pillar in key order, each pillar's in time

@@ -424,7 +424,10 @@ class DeltaBackbone:
         Args:
             sites (Tensor[n, 2] int): (y, x) of the pillars that changed (gained or lost points), each
                 at most once.
-            features (Tensor[n, Cin]): their new features (ignored where ``removed``).
+            features (Tensor[n, Cin] or callable): their new features (ignored where ``removed``); or, with
+                ``check=False``, a function of the sites giving them (``features(sites) -> Tensor[n, Cin]``),
+                which a CUDA graph step records inside its graph (it then gets the sites padded with
+                ``(-1, -1)`` rows, whose features are ignored; it must not synchronise with the host).
             removed (Tensor[n] bool): pillars that became empty (inactive).
             profile (bool): time each layer (synchronises CUDA after each layer; no CUDA graph).
             check (bool): validate and convert the input (which reads the sites on the host). ``False``
@@ -432,6 +435,10 @@ class DeltaBackbone:
                 the state's dtype, everything on its device, e.g. from a :class:`~lidarops.stream.PillarStream`):
                 the step then makes no host synchronisation before its figures are read.
         """
+        if callable(features) and check:
+            raise ValueError("features can be a function of the sites only with check=False")
+        if callable(features) and not (self.cuda_graph and not profile):
+            features = features(sites)
         if check:
             sites, features = self._check_input(sites, features, finite=True)
             if removed.shape != (sites.shape[0],) or removed.dtype != torch.bool:
@@ -498,38 +505,44 @@ class DeltaBackbone:
                               for layer in self.layers + self.up_layers])
         return active, torch.stack(counts)
 
-    def _replay(self, sites: Tensor, features: Tensor, removed: Tensor) -> tuple[Tensor, Tensor]:
+    def _replay(self, sites: Tensor, features, removed: Tensor) -> tuple[Tensor, Tensor]:
         """The step as a CUDA graph: the input is padded to a power-of-two capacity (one graph per
-        capacity, captured on first use from a step that changes nothing)."""
+        capacity and features function, captured on first use from a step that changes nothing)."""
         n = sites.shape[0]
         cap = max(256, 1 << max(n - 1, 0).bit_length())
-        g = self._graphs.get(cap)
+        fn = features if callable(features) else None
+        g = self._graphs.get((cap, fn))
         if g is None:
-            g = self._capture(cap)
+            g = self._capture(cap, fn)
         s_sites, s_feats, s_removed, graph, outputs = g
         s_sites[n:].fill_(-1)
         s_sites[:n].copy_(sites)
-        s_feats[:n].copy_(features)
+        if fn is None:
+            s_feats[:n].copy_(features)
         s_removed[n:].fill_(False)
         s_removed[:n].copy_(removed)
         graph.replay()
         return outputs
 
-    def _capture(self, cap: int):
+    def _capture(self, cap: int, fn=None):
         s_sites = torch.full((cap, 2), -1, dtype=torch.int32, device=self.device)
-        s_feats = torch.zeros(cap, self.in_channels, dtype=self.dtype, device=self.device)
+        s_feats = None if fn else torch.zeros(cap, self.in_channels, dtype=self.dtype, device=self.device)
         s_removed = torch.zeros(cap, dtype=torch.bool, device=self.device)
+
+        def body():
+            return self._step(s_sites, fn(s_sites) if fn else s_feats, s_removed)
+
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side):  # warm-up on all-padding input: changes no state
-            self._step(s_sites, s_feats, s_removed)
+            body()
         torch.cuda.current_stream(self.device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
         pool = next(iter(self._graphs.values()))[3].pool() if self._graphs else None
         with torch.cuda.graph(graph, pool=pool):
-            outputs = self._step(s_sites, s_feats, s_removed)
-        self._graphs[cap] = (s_sites, s_feats, s_removed, graph, outputs)
-        return self._graphs[cap]
+            outputs = body()
+        self._graphs[(cap, fn)] = (s_sites, s_feats, s_removed, graph, outputs)
+        return self._graphs[(cap, fn)]
 
     def _layer_step(self, layer: _Layer, change: Change) -> tuple[Change, Tensor]:
         """One layer of a step; returns the change it passes on and its counts (3,) int64 on the

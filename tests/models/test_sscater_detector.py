@@ -70,6 +70,45 @@ def test_streamed_boxes_equal_the_detector_on_the_window(device, dtype, tol):
     assert stream.stats.pillars_changed < stream.stats.pillars_active + stream.stats.points_out
 
 
+@requires_cuda
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_detect_as_a_cuda_graph_equals_the_eager_head_and_postprocess(monkeypatch, dtype):
+    """detect() on CUDA replays the head, decode and padded post-processing as one graph (DETECT_CUDA_GRAPH): the
+    same boxes as the eager head and postprocess on the same map, at every step; the boxes it returned are the
+    caller's (the next replay does not overwrite them); a change of TF32 captures the graph again."""
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
+    detector = _detector(dtype, seed=4).cuda()
+    stream = SSCATeRPointPillars.from_detector(detector, window=0.1, refresh_every=6, dtype=dtype)
+    kept, boxes_seen = [], 0
+    for k, (pts, t) in enumerate(_slices(24, seed=5)):
+        stream.step(pts.cuda(), t.cuda())
+        got = stream.detect()
+        assert stream._detect_graph is not None
+        with torch.no_grad():
+            want = detector.postprocess(detector.dense_head(stream.delta.out.to(dtype)))[0]
+        assert got["labels"].tolist() == want["labels"].tolist(), k
+        tol = 1e-12 if dtype == torch.float64 else 1e-5  # cuDNN may pick another algorithm inside the graph
+        assert torch.allclose(got["scores"], want["scores"], rtol=0, atol=tol), k
+        assert torch.allclose(got["boxes"], want["boxes"], rtol=0, atol=tol * 100), k
+        kept.append((got, {key: v.clone() for key, v in got.items()}))
+        boxes_seen += len(want["labels"])
+    for got, copy in kept:
+        assert all(torch.equal(got[key], copy[key]) for key in copy)
+    assert boxes_seen > 0
+    graph = stream._detect_graph[1]
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
+    stream.detect()
+    assert stream._detect_graph[1] is not graph
+    # boxes out of the supported range (sizes exp(40) times the anchor's): the eager post-processing's error
+    with torch.no_grad():
+        detector.dense_head.conv_box.bias[3:6] += 40.0  # in place: the graph reads the parameter's memory
+    with pytest.raises(ValueError, match="boxes must hold centres within"):
+        detector.postprocess(detector.dense_head(stream.delta.out.to(dtype)))
+    with pytest.raises(ValueError, match="boxes must hold centres within"):
+        stream.detect()
+
+
 @pytest.mark.parametrize("dense_share", [2.0, 0.5, 0.0])  # never, the default, always the dense head
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
 def test_head_on_changed_sites_equals_the_head_on_the_whole_map(monkeypatch, device, dtype, tol, dense_share):
