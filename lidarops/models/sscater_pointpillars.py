@@ -31,7 +31,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from lidarops.models.bev_backbone import BaseBEVBackbone
-from lidarops.ops.boxes import _box_out_of_range
+from lidarops.ops.boxes import unsupported_boxes
 from lidarops.ops.validation import check_tensor, describe, validation, value_checks_enabled
 from lidarops.sscater.delta import DeltaBackbone, LayerStats
 
@@ -465,7 +465,7 @@ class SSCATeRPointPillars:
             # the eager post-processing's value checks, on the boxes it would check (some class's score at least
             # the threshold), as a flag read with the count: the padded NMS inside a graph cannot read back
             above = (torch.sigmoid(cls_logits[0]) >= cfg.score_thresh).any(-1)
-            bad = ((~torch.isfinite(boxes[0])).any(1) | _box_out_of_range(boxes[0])) & above
+            bad = unsupported_boxes(boxes[0]) & above
             out["read"] = torch.stack([out["count"][0], bad.any().to(out["count"].dtype)])
             return raw, out
 

@@ -25,7 +25,8 @@ from lidarops.ops.validation import (DeferredChecks, check_output_size, check_te
 
 extension.load()
 
-__all__ = ["box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "batched_nms_bev", "points_in_boxes"]
+__all__ = ["box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "batched_nms_bev", "points_in_boxes",
+           "unsupported_boxes"]
 
 
 def _check_boxes(boxes, name: str) -> None:
@@ -51,6 +52,22 @@ def _box_out_of_range(boxes: Tensor) -> Tensor:
     size = boxes[:, 3:6]
     return ((boxes[:, :3].abs() > MAX_ABS_BOX_CENTRE).any(1) | (boxes[:, 6].abs() > MAX_ABS_HEADING)
             | ((size != 0) & ((size < MIN_BOX_SIZE) | (size > MAX_BOX_SIZE))).any(1))
+
+
+def unsupported_boxes(boxes: Tensor) -> Tensor:
+    """Which boxes the box ops refuse (with their value checks on): a NaN or infinite value, or a value outside
+    the supported range (a centre beyond :data:`MAX_ABS_BOX_CENTRE`, a size neither 0 nor in [:data:`MIN_BOX_SIZE`,
+    :data:`MAX_BOX_SIZE`], a heading beyond :data:`MAX_ABS_HEADING`). On the boxes' device, with no host read, so
+    it can run inside a CUDA graph where the ops' own checks cannot.
+
+    Args:
+        boxes (Tensor[N, 7]): ``(x, y, z, dx, dy, dz, heading)``, floating point.
+
+    Returns:
+        Tensor[N] bool.
+    """
+    _check_boxes(boxes, "boxes")
+    return ~torch.isfinite(boxes).all(1) | _box_out_of_range(boxes)
 
 
 def _value_out_of_range(v: float, column: int) -> bool:

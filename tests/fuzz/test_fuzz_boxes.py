@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from hypothesis import assume, given
 from hypothesis import strategies as st
@@ -108,6 +109,30 @@ def test_nms(device, data, grouped):
         assume(bool(((iou - thr).abs() > _tolerance(b) + 1e-6).all()))
     expected = _nms_bev_reference(b.boxes, scores, thr, idxs, pre, post)
     assert_same(res, expected, what)
+
+
+@fuzz
+@given(data=st.data())
+def test_unsupported_boxes_flags_what_the_ops_refuse(device, data):
+    """unsupported_boxes(b) flags a row exactly when the box ops refuse the set for it: each row on its own is
+    accepted or refused by nms_bev as its flag says (non-finite, negative or out-of-range values)."""
+    from lidarops.ops.boxes import unsupported_boxes
+    b = data.draw(box_sets(), "boxes")
+    flags = unsupported_boxes(b.boxes.to(device)).cpu()
+    assert flags.shape == (b.boxes.shape[0],) and flags.dtype == torch.bool
+    assert bool(flags.any()) == bool(_bad_names(("boxes", b))), f"{b.regime}: {b.boxes} -> {flags}"
+    for i in range(b.boxes.shape[0]):
+        row = b.boxes[i:i + 1].to(device)
+        _, err = outcome(lidarops.nms_bev, row, torch.ones(1, device=device), 0.5)
+        assert (err is not None) == bool(flags[i]), f"row {i} {b.boxes[i].tolist()}: flag {bool(flags[i])}, {err!r}"
+
+
+def test_unsupported_boxes_bad_input():
+    from lidarops.ops.boxes import unsupported_boxes
+    for bad, match in ((torch.zeros(3, 6), r"\(N, 7\) boxes"), (torch.zeros(3, 7, dtype=torch.int64), "floating"),
+                       ([[0.0] * 7], "torch.Tensor")):
+        with pytest.raises(ValueError, match=match):
+            unsupported_boxes(bad)
 
 
 @fuzz
