@@ -26,7 +26,9 @@ And the statistics of the real frames beside ``--sim-frames`` simulated ``drivin
 the same camera view): intensity of all points and of points on cars, the share of car returns with intensity
 0, points per car against range, the share of a car's returns in the bottom, middle and top third of its
 height, the cars' halo (cars within 30 m: points within 0.5 m outside the box, more than 0.3 m above its
-bottom, per point inside it), and the share of pedestrians with another within 1.5 m (groups). ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
+bottom, per point inside it), the share of pedestrians with another within 1.5 m (groups), and the share of the
+returns at 15-60 m in the 64 densest 0.05-degree bins of apparent elevation (``beam_line_share``: 1 when every beam
+starts at the sensor's origin). ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
 """
 from __future__ import annotations
 
@@ -46,6 +48,7 @@ CLASSES = ("Car", "Pedestrian", "Cyclist")
 THRESHOLDS_3D = {"Car": (0.5, 0.7), "Pedestrian": (0.25, 0.5), "Cyclist": (0.25, 0.5)}
 FP_SCORES = (0.3, 0.5)
 BANDS = ("bottom", "middle", "top")
+LINES_RANGE, LINES_BINS = (15.0, 60.0), np.arange(-25.0, 3.0, 0.05)  # beam_line_share: the returns and the bins
 HALO_RANGE, HALO_MARGIN = 30.0, 0.5  # the cars whose halo is counted (m), and its width around the box (m)
 
 
@@ -211,18 +214,41 @@ def grouped_pedestrians(boxes: np.ndarray, names: list[str], within: float = 1.5
     return len(xy), int((d.min(1) < within).sum())
 
 
+def elevations(points: np.ndarray, lo: float = LINES_RANGE[0], hi: float = LINES_RANGE[1]) -> np.ndarray:
+    """Apparent elevation (degrees, seen from the sensor's origin) of the returns between ``lo`` and ``hi`` m."""
+    xyz = points[:, :3].astype(np.float64)
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    m = (r > lo) & (r < hi)
+    return np.degrees(np.arctan2(xyz[m, 2], r[m]))
+
+
+def beam_line_share(points: np.ndarray) -> float | None:
+    """Share of a frame's returns at 15-60 m in the 64 densest 0.05-degree bins of apparent elevation: about 1 when
+    every beam starts at the sensor's origin (each beam's returns lie on one cone), lower when the lasers sit apart
+    from it (a beam's apparent elevation then changes with range)."""
+    el = elevations(points)
+    if el.size == 0:
+        return None
+    h, _ = np.histogram(el, bins=LINES_BINS)
+    return float(np.sort(h)[::-1][:64].sum() / max(h.sum(), 1))
+
+
 def data_stats(frames) -> dict:
-    allint, cars, peds = [], [], np.zeros(2, np.int64)
+    allint, cars, peds, lines, elev = [], [], np.zeros(2, np.int64), [], []
     for _, points, boxes, names, *_ in frames:
         allint.append(points[:, 3])
         cars.append(object_stats(points, boxes, names))
         peds += grouped_pedestrians(boxes, names)
+        share = beam_line_share(points)
+        if share is not None:
+            lines.append(share)
+        elev.append(elevations(points))
     inten = np.concatenate(allint)
     car_int = np.concatenate([c["intensity"] for c in cars])
     bands = np.concatenate([c["bands"] for c in cars])
     inside, halo = (sum(c["halo"][k] for c in cars) for k in (0, 1))
     return {"intensity": inten, "car_intensity": car_int, "range": sum((c["range"] for c in cars), []),
-            "points": sum((c["points"] for c in cars), []), "bands": bands,
+            "points": sum((c["points"] for c in cars), []), "bands": bands, "elevation": np.concatenate(elev),
             "row": {"points": int(len(inten)), "median_intensity": round(float(np.median(inten)), 3),
                     "zero_intensity_share": round(float((inten == 0).mean()), 3),
                     "car_points": int(len(car_int)),
@@ -232,7 +258,8 @@ def data_stats(frames) -> dict:
                        for k, b in enumerate(BANDS)},
                     "car_halo_share": round(halo / inside, 3) if inside else None,
                     "pedestrians": int(peds[0]),
-                    "pedestrians_in_groups_share": round(float(peds[1] / peds[0]), 3) if peds[0] else None}}
+                    "pedestrians_in_groups_share": round(float(peds[1] / peds[0]), 3) if peds[0] else None,
+                    "beam_line_share": round(float(np.median(lines)), 3) if lines else None}}
 
 
 def _sim_name(profile: str | None) -> str:
@@ -245,7 +272,7 @@ def plot(real: dict, sims: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(2, 2, figsize=(10, 7.5))
+    fig, ax = plt.subplots(2, 3, figsize=(15, 7.5))
     bins = np.linspace(0, 1, 41)
     for a, key, title in ((ax[0, 0], "intensity", "intensity, all points the camera sees"),
                           (ax[0, 1], "car_intensity", "intensity of the returns on cars")):
@@ -268,6 +295,13 @@ def plot(real: dict, sims: dict, path: Path) -> None:
     ax[1, 1].set_xticks(x + 0.4 - w / 2, BANDS)
     ax[1, 1].set(title="share of a car's returns by height third", ylabel="share")
     ax[1, 1].legend(fontsize=8)
+    for d, name in series:
+        ax[0, 2].hist(d["elevation"], bins=LINES_BINS[LINES_BINS >= -9.0], density=True, histtype="step", lw=1,
+                      label=f"{name} (64 densest bins: {100 * d['row']['beam_line_share']:.0f} %)")
+    ax[0, 2].set(title="elevation of the returns at 15-60 m", xlabel="degrees, seen from the origin (0.05 deg bins)",
+                 ylabel="density")
+    ax[0, 2].legend(fontsize=7, loc="upper left")
+    ax[1, 2].axis("off")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
@@ -317,7 +351,8 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({"op": "sim2real", "case": "stats:simulated_driving_city" + (f":{profile}" if profile else ""),
                      "frames": args.sim_frames, "realism": profile, **sims[profile]["row"]})
     keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
-            "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share", "pedestrians_in_groups_share"]
+            "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share", "pedestrians_in_groups_share",
+            "beam_line_share"]
     print_table("real against simulated", keys, [[r.get(k, "") for k in keys] for r in rows[-1 - len(sims):]],
                 right=range(1, len(keys)))
     if args.plot:

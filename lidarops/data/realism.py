@@ -85,6 +85,8 @@ class Realism:
         dropout_max (float): domain randomisation of the sensor's random dropout: per scene, uniform between the
             sensor's own and this (0: the sensor's).
         range_noise_max (float): the same for the range noise's standard deviation (m).
+        laser_offsets (bool): an HDL-64E's beams start at its lasers' heights above its origin
+            (:func:`lidarops.data.sensors.hdl64_beam_offsets`), as on the real sensor; other sensors as they are.
     """
 
     vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")
@@ -112,6 +114,7 @@ class Realism:
     beam_choices: tuple[int, ...] = ()
     dropout_max: float = 0.0
     range_noise_max: float = 0.0
+    laser_offsets: bool = False
 
     def __post_init__(self) -> None:
         for name in ("greenhouse_from", "greenhouse_keep", "roof_keep", "greenhouse_zero", "dark_paint", "dark_zero",
@@ -128,6 +131,8 @@ class Realism:
         real(self.label_tightness, "label_tightness", 0, 0.5, unit=" m")
         real(self.dropout_max, "dropout_max", 0, 0.9)
         real(self.range_noise_max, "range_noise_max", 0, 1, unit=" m")
+        if self.laser_offsets not in (True, False):
+            raise ValueError(f"laser_offsets must be True or False, got {self.laser_offsets!r}")
         if not isinstance(self.beam_choices, tuple) or not all(
                 isinstance(b, int) and not isinstance(b, bool) and 1 <= b <= 1024 for b in self.beam_choices):
             raise ValueError(f"beam_choices must be a tuple of beam counts in [1, 1024], got {self.beam_choices!r}")
@@ -162,24 +167,33 @@ class Realism:
         return float(self.mount_height_jitter * u[0]), float(np.exp(np.log1p(self.intensity_scale_jitter) * u[1]))
 
     def scene_sensor(self, rng: np.random.Generator, sensor):
-        """A scene's sensor under the domain randomisation of its beams, dropout and range noise (a spinning
-        sensor; any other is returned as it is)."""
-        from lidarops.data.sensors import SpinningLidar
+        """A scene's sensor under the domain randomisation of its beams, dropout and range noise, and with its lasers'
+        offsets (a spinning sensor; any other is returned as it is)."""
+        from lidarops.data.sensors import SpinningLidar, hdl64_beam_offsets
 
-        if not isinstance(sensor, SpinningLidar) or not (self.beam_choices or self.dropout_max or self.range_noise_max):
+        offsets = self.laser_offsets and isinstance(sensor, SpinningLidar) and sensor.name == "hdl64" \
+            and not sensor.beam_offsets_z
+        if not isinstance(sensor, SpinningLidar) or not (self.beam_choices or self.dropout_max or self.range_noise_max
+                                                         or offsets):
             return sensor
         u = rng.random(3)
         changes = {}
-        if self.beam_choices:
-            table = np.asarray(sensor.elevations_deg, np.float64)
+        table = np.asarray(sensor.elevations_deg, np.float64)
+        heights = np.asarray(hdl64_beam_offsets(table) if offsets else sensor.beam_offsets_z, np.float64)
+        if self.beam_choices:  # the lasers' heights follow their beams
             want = self.beam_choices[min(int(u[0] * len(self.beam_choices)), len(self.beam_choices) - 1)]
             if want < len(table):  # every other beam, as many times as it takes
                 while len(table) > want and len(table) > 1:
-                    table = table[::2]
+                    table, heights = table[::2], heights[::2]
             elif want > len(table):  # a beam between each two, while that stays within the count
                 while 1 < len(table) and 2 * len(table) - 1 <= want:
-                    table = np.insert(table, np.arange(1, len(table)), (table[:-1] + table[1:]) / 2)
+                    between = np.arange(1, len(table))
+                    if heights.size:
+                        heights = np.insert(heights, between, (heights[:-1] + heights[1:]) / 2)
+                    table = np.insert(table, between, (table[:-1] + table[1:]) / 2)
             changes["elevations_deg"] = tuple(float(e) for e in table)
+        if heights.size:
+            changes["beam_offsets_z"] = tuple(float(h) for h in heights)
         if self.dropout_max > sensor.dropout:
             changes["dropout"] = float(sensor.dropout + u[1] * (self.dropout_max - sensor.dropout))
         if self.range_noise_max > sensor.range_noise_std:
@@ -210,12 +224,12 @@ class Realism:
 
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans) and ``kitti_dr`` (the same with
 #: mixed pixels at depth edges, pedestrians in groups as often as in the real scans, vehicle labels as tight as
-#: KITTI's, and the domain randomisation of the sensor's height, beams, dropout, range noise and intensity scale,
-#: for what the real scans leave uncertain).
+#: KITTI's, the lasers' heights above the sensor's origin, and the domain randomisation of the sensor's height,
+#: beams, dropout, range noise and intensity scale, for what the real scans leave uncertain).
 REALISM_PRESETS = {"kitti": Realism(),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
                                        pedestrian_groups=0.3, label_tightness=0.07, beam_choices=(32, 64, 64, 128),
-                                       dropout_max=0.2, range_noise_max=0.05)}
+                                       dropout_max=0.2, range_noise_max=0.05, laser_offsets=True)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

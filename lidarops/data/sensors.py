@@ -31,6 +31,7 @@ __all__ = [
     "SpinningLidar",
     "RisleyLidar",
     "hdl64",
+    "hdl64_beam_offsets",
     "pandar64",
     "avia",
     "SENSOR_PRESETS",
@@ -121,6 +122,15 @@ class LidarSensor:
         """
         raise NotImplementedError
 
+    def beam_origins(self) -> np.ndarray:
+        """Where each of the ``rays_per_firing`` rays of a firing starts, in the sensor frame (m): the sensor's
+        origin unless its lasers sit apart from it (a spinning sensor's ``beam_offsets_z``).
+
+        Returns:
+            ndarray float64[R, 3].
+        """
+        return np.zeros((self.rays_per_firing, 3))
+
     def in_field_of_view(self, dirs: np.ndarray) -> np.ndarray:
         """Whether sensor-frame directions lie in the field of view (with a small tolerance).
 
@@ -145,11 +155,16 @@ class SpinningLidar(LidarSensor):
         elevations_deg (tuple[float, ...]): beam elevation angles, degrees (beam ``i`` = ring ``i``).
         columns_per_rev (int): firings (columns) per revolution.
         rotation_hz (float): revolutions per second (= frames per second).
+        beam_offsets_z (tuple[float, ...]): each beam's origin above the sensor's origin (m): a real HDL-64E's
+            lasers sit 0.1-0.2 m above the point its coordinates are measured from, so a beam's returns are
+            not on one cone through the origin (:func:`hdl64_beam_offsets`). Empty: every beam starts at the
+            origin.
     """
 
     elevations_deg: tuple[float, ...] = field(default_factory=tuple)
     columns_per_rev: int = 2083
     rotation_hz: float = 10.0
+    beam_offsets_z: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if isinstance(self.elevations_deg, (str, bytes)) or not hasattr(self.elevations_deg, "__len__") \
@@ -157,6 +172,12 @@ class SpinningLidar(LidarSensor):
             raise ValueError(f"elevations_deg must be a non-empty sequence of angles in degrees, got {self.elevations_deg!r}")
         for i, e in enumerate(self.elevations_deg):
             real(e, f"elevations_deg[{i}]", -90, 90, unit=" degrees")
+        if isinstance(self.beam_offsets_z, (str, bytes)) or not hasattr(self.beam_offsets_z, "__len__") \
+                or len(self.beam_offsets_z) not in (0, len(self.elevations_deg)):
+            raise ValueError(f"beam_offsets_z must be empty or hold one offset per beam ({len(self.elevations_deg)}), "
+                             f"got {self.beam_offsets_z!r}")
+        for i, h in enumerate(self.beam_offsets_z):
+            real(h, f"beam_offsets_z[{i}]", -1, 1, unit=" m")
         integer(self.columns_per_rev, "columns_per_rev", 1, 10**6)
         real(self.rotation_hz, "rotation_hz", 0, 1000, lo_open=True, unit=" Hz")
         object.__setattr__(self, "frame_period", 1.0 / self.rotation_hz)
@@ -176,6 +197,12 @@ class SpinningLidar(LidarSensor):
     @property
     def firings_per_frame(self) -> int:
         return int(self.columns_per_rev)
+
+    def beam_origins(self) -> np.ndarray:
+        origins = np.zeros((self.rays_per_firing, 3))
+        if self.beam_offsets_z:
+            origins[:, 2] = self.beam_offsets_z
+        return origins
 
     def azimuth(self, firing_index: np.ndarray) -> np.ndarray:
         """Azimuth (rad, ``atan2(y, x)`` in the sensor frame) of firings: +pi at the start of a sweep,
@@ -324,12 +351,41 @@ def _pandar64_elevations() -> tuple[float, ...]:
     return tuple(float(x) for x in top + dense + low)
 
 
-def hdl64(**overrides) -> SpinningLidar:
+def hdl64_beam_offsets(elevations_deg, lower_from: int | None = None) -> tuple[float, ...]:
+    """The HDL-64E's laser heights above its measuring origin (m), one per beam of ``elevations_deg``.
+
+    The sensor's two blocks of 32 lasers sit at different heights, and within a block a laser's height grows
+    with its elevation. A published HDL-64E S2 calibration (ros-drivers/velodyne,
+    ``velodyne_pointcloud/params/64e_s2.1-sztaki.yaml``, ``vert_offset_correction``) puts the upper block's
+    lasers at 0.196-0.213 m and the lower block's at 0.105-0.124 m, each block on a line in the elevation to
+    within a millimetre. This fits those lines: 0.2066 + 0.00126 e (upper) and 0.1350 + 0.00119 e (lower), e the
+    elevation in degrees.
+
+    Args:
+        elevations_deg (sequence of float): the beams' elevations, upper block first.
+        lower_from (int, optional): the first beam of the lower block (default: half the beams).
+    """
+    if isinstance(elevations_deg, (str, bytes)) or not hasattr(elevations_deg, "__len__") or not len(elevations_deg):
+        raise ValueError(f"elevations_deg must be a non-empty sequence of angles in degrees, got {elevations_deg!r}")
+    for i, v in enumerate(elevations_deg):
+        real(v, f"elevations_deg[{i}]", -90, 90, unit=" degrees")
+    e = np.asarray(elevations_deg, dtype=np.float64)
+    first = len(e) // 2 if lower_from is None else integer(lower_from, "lower_from", 0, len(e))
+    lower = np.arange(len(e)) >= first
+    return tuple(float(h) for h in np.where(lower, 0.1350 + 0.00119 * e, 0.2066 + 0.00126 * e))
+
+
+def hdl64(laser_offsets: bool = False, **overrides) -> SpinningLidar:
     """Velodyne HDL-64E as in KITTI: 64 beams from +2 to -24.9 deg, 10 Hz, 2083 columns per turn
-    (about 133k rays, about 120k returns per sweep), 120 m range, 2 cm noise."""
+    (about 133k rays, about 120k returns per sweep), 120 m range, 2 cm noise. ``laser_offsets``: each beam
+    starts at its laser's height above the origin (:func:`hdl64_beam_offsets`), as on the real sensor."""
+    if laser_offsets not in (True, False):
+        raise ValueError(f"laser_offsets must be True or False, got {laser_offsets!r}")
     params = dict(name="hdl64", elevations_deg=_hdl64_elevations(), columns_per_rev=2083, rotation_hz=10.0,
                   max_range=120.0, min_range=0.9, range_noise_std=0.02, dropout=0.02)
     params.update(overrides)
+    if laser_offsets and "beam_offsets_z" not in overrides:
+        params["beam_offsets_z"] = hdl64_beam_offsets(params["elevations_deg"])
     return SpinningLidar(**params)
 
 

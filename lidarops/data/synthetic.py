@@ -304,6 +304,18 @@ class Simulator:
             dirs_sensor = dirs_sensor.reshape(-1, 3)
             dirs_world = dirs_sensor @ rot[0].T
         origins = np.repeat(pos, n_per, axis=0)
+        samples = pos
+        beam_origins = sensor.beam_origins()
+        offset = beam_origins.any()
+        if offset:  # lasers apart from the sensor's origin: each ray starts at its beam's, turned with the sensor
+            if rot.shape[0] > 1 and (scenario.ego.has_jitter or scenario.ego.yaw_rate != 0.0):
+                turned = _rotate_per_firing(rot, np.broadcast_to(beam_origins, (rot.shape[0],) + beam_origins.shape))
+            else:
+                turned = np.broadcast_to(beam_origins @ rot[0].T, (pos.shape[0],) + beam_origins.shape)
+            origins = origins + turned.reshape(-1, 3)
+            # the origins' spread for the caster's bounds: the beams' extremes bound the rest (offsets along z)
+            lo, hi = np.argmin(beam_origins[:, 2]), np.argmax(beam_origins[:, 2])
+            samples = np.concatenate([pos + turned[:, lo], pos + turned[:, hi]])
         t = np.repeat(t_firing, n_per)
 
         max_range = sensor.max_range
@@ -317,7 +329,7 @@ class Simulator:
             boxes = static.boxes
         rng = _rng(self.seed, scenario.name, "block", sensor.name, b)
         hits = cast_rays(origins, dirs_world, t, scenario.ground, boxes, static.cylinders, static.ellipsoids,
-                         max_range, rng, len(scenario.objects), origin_samples=pos)
+                         max_range, rng, len(scenario.objects), origin_samples=samples)
         if self.realism is not None and self._shape_names:
             self._shape_objects(b, hits, origins, dirs_world, t, boxes, static, max_range)
 
@@ -354,6 +366,8 @@ class Simulator:
         points = np.empty((idx.size, 4), dtype=np.float32)
         for c in range(3):  # per component: NumPy's loops over [n, 3] arrays are several times slower
             np.multiply(dirs_sensor[idx, c], rng_k, out=points[:, c], casting="same_kind")
+            if offset and beam_origins[:, c].any():  # a return lies on its beam, which starts at the beam's origin
+                points[:, c] += beam_origins[ring[idx % n_per], c].astype(np.float32)
         points[:, 3] = intensity
         return {
             "points": points,

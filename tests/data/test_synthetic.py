@@ -109,6 +109,69 @@ def test_ground_hits_satisfy_height_function(city):
     assert err.max() < 2e-3, err.max()
 
 
+def test_laser_offsets_start_each_beam_at_its_laser(city):
+    """hdl64(laser_offsets=True): beam i's rays start hdl64_beam_offsets()[i] above the sensor's origin. Its
+    returns lie on the beam's cone from there (not from the origin), still on the surfaces they hit, and a ground
+    return of a beam aimed down lands (h_i / tan(-elevation_i)) farther than the same ray cast from the origin."""
+    from lidarops.data.sensors import hdl64_beam_offsets
+    plain_sim, plain = city
+    sensor = hdl64(laser_offsets=True, **NOISE_FREE)
+    h = np.asarray(hdl64_beam_offsets(sensor.elevations_deg))
+    assert np.array_equal(sensor.beam_origins()[:, 2], h) and (h > 0.1).all() and (h < 0.22).all()
+    sim = Simulator("driving_city", seed=11, sensor=sensor, ego_speed=10.0)
+    f = sim.sweep(0)
+    xyz = f.points[:, :3].astype(np.float64)
+    el = np.radians(np.asarray(sensor.elevations_deg))[f.ring]
+    from_laser = np.arctan2(xyz[:, 2] - h[f.ring], np.hypot(xyz[:, 0], xyz[:, 1]))
+    from_origin = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
+    assert np.abs(from_laser - el).max() < 1e-5  # float32 points
+    assert np.median(np.abs(from_origin - el)) > 1e-3  # 0.1-0.2 m over tens of metres
+    g = f.surface == SURFACE_GROUND
+    w = world_points(sim, f)[g]
+    assert np.abs(w[:, 2] - sim.scenario.ground.height(w[:, 0], w[:, 1])).max() < 2e-3
+    # the same rays (firing time, beam) on the ground in both sweeps
+    key = lambda fr: np.round(fr.t * 1e7).astype(np.int64) * 100 + fr.ring  # noqa: E731
+    pg = plain.surface == SURFACE_GROUND
+    _, ia, ib = np.intersect1d(key(f)[g], key(plain)[pg], return_indices=True)
+    assert ia.size > 5000
+    d_off = np.hypot(*xyz[g][ia, :2].T)
+    d_plain = np.hypot(*plain.points[pg][ib, :2].astype(np.float64).T)
+    beam = f.ring[g][ia]
+    expected = h[beam] / np.tan(-np.radians(np.asarray(sensor.elevations_deg))[beam])
+    near = d_plain < 25  # a road that slopes changes the distance a little more far out
+    assert np.median(np.abs(d_off - d_plain - expected)[near]) < 0.02 * np.median(expected[near]) + 0.005
+
+
+def test_laser_offsets_follow_the_beams_under_domain_randomisation():
+    """A profile's laser_offsets give the HDL-64E's beams their heights, and halving or filling in the beam table
+    carries each laser's height along; other sensors are left as they are."""
+    from lidarops.data.realism import Realism
+    from lidarops.data.sensors import hdl64_beam_offsets
+    full = hdl64()
+    h = np.asarray(hdl64_beam_offsets(full.elevations_deg))
+    for beams, expect in ((32, h[::2]), (64, h), (128, np.insert(h, np.arange(1, 64), (h[:-1] + h[1:]) / 2))):
+        s = Realism(laser_offsets=True, beam_choices=(beams,)).scene_sensor(np.random.default_rng(0), full)
+        assert len(s.beam_offsets_z) == len(s.elevations_deg) == expect.size
+        assert np.allclose(s.beam_offsets_z, expect, rtol=0, atol=1e-12)
+    assert Realism(laser_offsets=True).scene_sensor(np.random.default_rng(0), pandar64()).beam_offsets_z == ()
+    assert Realism().scene_sensor(np.random.default_rng(0), full) is full
+
+
+@pytest.mark.parametrize("bad, match", [((0.1,) * 3, "one offset per beam"), ((0.1,) * 63 + (2.0,), r"beam_offsets_z\[63\]"),
+                                        ((0.1,) * 63 + (float("nan"),), r"beam_offsets_z\[63\]"), ("0.1", "must be empty")])
+def test_beam_offsets_bad_values(bad, match):
+    with pytest.raises(ValueError, match=match):
+        hdl64(beam_offsets_z=bad)
+
+
+def test_hdl64_laser_offsets_flag_and_realism_flag_are_bools():
+    from lidarops.data.realism import Realism
+    with pytest.raises(ValueError, match="laser_offsets must be True or False"):
+        hdl64(laser_offsets="yes")
+    with pytest.raises(ValueError, match="laser_offsets must be True or False"):
+        Realism(laser_offsets=1.5)
+
+
 def test_object_hits_lie_on_their_box_faces(city, bridge):
     for sim, f in (city, bridge):
         hit = np.flatnonzero(f.surface == SURFACE_OBJECT)

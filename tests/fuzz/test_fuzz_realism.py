@@ -135,3 +135,38 @@ def test_bad_shape_inputs_are_named(name, bad):
     assert_clear_error(err, ValueError, [expect], f"shape_distance({name!r}, {bad})")
     _, err = outcome(trace, name, p, np.full((3, 3), 3 ** -0.5), half, u)
     assert_clear_error(err, ValueError, ["entry" if expect == "p" else expect], f"trace({name!r}, {bad})")
+
+
+# ---- the lasers' heights of a spinning sensor (lidarops.data.sensors) ----
+@fuzz
+@given(elevations=st.lists(st.floats(-90, 90), min_size=1, max_size=80), split=st.none() | st.integers(-2, 90),
+       shift=st.floats(-2, 2))
+def test_laser_heights_make_sensors_or_name_the_bad_value(elevations, split, shift):
+    """hdl64_beam_offsets gives one height per beam of any table (within 0.02 and 0.33 m for elevations within
+    90 degrees) or names lower_from; a spinning sensor takes heights within 1 m of the origin, one per beam, and
+    names the first that is not."""
+    from lidarops.data.sensors import SpinningLidar, hdl64_beam_offsets
+    out, err = outcome(hdl64_beam_offsets, elevations, split)
+    if split is not None and not 0 <= split <= len(elevations):
+        return assert_clear_error(err, ValueError, ["lower_from"], f"hdl64_beam_offsets(lower_from={split})")
+    assert_no_error(err, "hdl64_beam_offsets")
+    assert len(out) == len(elevations) and all(0.02 < h < 0.33 for h in out)
+    heights = tuple(h + shift for h in out)
+    sensor, err = outcome(SpinningLidar, elevations_deg=tuple(elevations), beam_offsets_z=heights, columns_per_rev=8)
+    bad = [i for i, h in enumerate(heights) if not -1 <= h <= 1]
+    if bad:
+        return assert_clear_error(err, ValueError, [f"beam_offsets_z[{bad[0]}]"], "SpinningLidar(beam_offsets_z=...)")
+    assert_no_error(err, "SpinningLidar(beam_offsets_z=...)")
+    origins = sensor.beam_origins()
+    assert origins.shape == (len(elevations), 3) and np.array_equal(origins[:, 2], heights)
+    assert not origins[:, :2].any()
+
+
+@fuzz
+@given(bad=st.sampled_from([float("nan"), float("inf"), 91.0, "x", None]), at=st.integers(0, 3))
+def test_laser_heights_refuse_bad_elevations(bad, at):
+    from lidarops.data.sensors import hdl64_beam_offsets
+    table = [2.0, -1.0, -9.0, -20.0]
+    table[at] = bad
+    _, err = outcome(hdl64_beam_offsets, table)
+    assert_clear_error(err, ValueError, [f"elevations_deg[{at}]"], f"hdl64_beam_offsets({table})")
