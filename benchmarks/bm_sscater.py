@@ -373,7 +373,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
             continue
         st = model.stats
         pfn, pfn_full = pfn + st.pfn_points, pfn_full + st.pfn_points_full
-        ours.append({"step": ms, "stream": st.ms_stream, "pfn": st.ms_pfn, "backbone": st.ms_backbone,
+        ours.append({"k": k - warm, "step": ms, "stream": st.ms_stream, "pfn": st.ms_pfn, "backbone": st.ms_backbone,
                      "head_nms": ms - st.ms_stream - st.ms_pfn - st.ms_backbone, "refreshed": st.refreshed,
                      "changed": st.pillars_changed, "active": st.pillars_active})
         if (k - warm) % every:
@@ -419,6 +419,10 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
         if xs:
             summary[name] = {"mean_ms": statistics.mean(xs), "median_ms": statistics.median(xs), "p95_ms": _p95(xs),
                              "max_ms": max(xs)}
+    # what the slowest steps spent their time on (a refresh, the first replay of a new graph capacity...)
+    summary["slowest_steps"] = [{key: (round(v, 3) if isinstance(v, float) else v) for key, v in r.items()
+                                 if key in ("k", "step", "stream", "pfn", "backbone", "head_nms", "refreshed",
+                                            "changed")} for r in sorted(ours, key=lambda r: -r["step"])[:5]]
     for what in ("mean_ms", "median_ms"):
         summary[f"step_speedup_{what[:-3]}"] = summary["detector_predict"][what] / summary["sscater_step"][what]
         summary[f"backbone_speedup_{what[:-3]}"] = summary["detector_backbone"][what] / summary["sscater_backbone"][what]
@@ -438,6 +442,10 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
                   "sscater_backbone_recycled") if name in summary], right=(1, 2, 3, 4))
     print(f"speed-up by the mean step {summary['step_speedup_mean']:.2f}x (median {summary['step_speedup_median']:.2f}x); "
           f"backbone {summary['backbone_speedup_mean']:.2f}x (median {summary['backbone_speedup_median']:.2f}x)")
+    print("slowest steps: " + "; ".join(
+        f"#{r['k']} {r['step']:.2f} ms (stream {r['stream']:.2f}, pillar net {r['pfn']:.2f}, backbone "
+        f"{r['backbone']:.2f}, head and NMS {r['head_nms']:.2f}{', refresh' if r['refreshed'] else ''})"
+        for r in summary["slowest_steps"]))
     return summary
 
 
