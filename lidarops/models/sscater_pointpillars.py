@@ -368,8 +368,8 @@ class SSCATeRPointPillars:
 
     def _refresh(self, pillars, feats: Tensor) -> Tensor:
         """Every layer recomputed from the window's pillars; in the dense mode from every site of the grid."""
-        if not self.dense:
-            return self.delta.refresh(pillars.coords[:, 1:], feats)
+        if not self.dense:  # the stream's active pillars: inside the grid, each once, int32
+            return self.delta.refresh(pillars.coords[:, 1:], feats, check=False)
         H, W = self.grid.shape
         if self._all_sites is None:
             yy, xx = torch.meshgrid(torch.arange(H, device=self.device), torch.arange(W, device=self.device),
@@ -378,7 +378,7 @@ class SSCATeRPointPillars:
         full = feats.new_zeros(H * W, feats.shape[1])
         keys = pillars.coords[:, 1].long() * W + pillars.coords[:, 2].long()
         full[keys] = feats
-        return self.delta.refresh(self._all_sites, full)
+        return self.delta.refresh(self._all_sites, full, check=False)  # every site once, int32, by construction
 
     def _note_head_sites(self, refreshed: bool) -> None:
         """After a step: the output sites it changed, for the head (a refresh, or a step whose site lists are

@@ -305,12 +305,15 @@ class DeltaBackbone:
 
     # ---- full recomputation ----------------------------------------------------------------------
 
-    def refresh(self, sites: Tensor, features: Tensor) -> Tensor:
+    def refresh(self, sites: Tensor, features: Tensor, check: bool = True) -> Tensor:
         """Set the input to ``features (Tensor[P, Cin])`` at ``sites (Tensor[P, 2] int, (y, x))`` and
         recompute every layer's state from it (no recycling): with the sparse convolution ops, or with torch's
         dense convolutions when the device's :data:`DENSE_REFRESH` share of the grid's sites is given (half; a
-        dense stream, such as ``SSCATeRPointPillars.from_detector``'s, lists every site)."""
-        sites, features = self._check_input(sites, features)
+        dense stream, such as ``SSCATeRPointPillars.from_detector``'s, lists every site). ``check=False`` is for
+        input that is already right (int32 sites inside the grid, each once, features in the state's dtype on its
+        device): no wait for the device to check it."""
+        if check:
+            sites, features = self._check_input(sites, features)
         H, W = self.shape
         self.in_feats.zero_()
         self.in_active.zero_()
@@ -321,11 +324,16 @@ class DeltaBackbone:
             self._refresh_dense(full=sites.shape[0] == H * W and self._covering)
         else:
             self._refresh_sparse(sites, features)
-        for st, layer in zip(self.stats, self.layers + self.up_layers):
-            st.active = int(layer.active.sum())
-            st.changed = st.touched = st.active
+        # the figures in one read: a wait for the device per layer would stall the launch queue on CUDA
+        every = self.layers + self.up_layers
+        figures = [layer.active.sum().to(torch.float64) for layer in every]  # exact: counts far below 2^53
         if self.state_check:
-            self.state_max = float(self._state_max())
+            figures.append(self._state_max().to(torch.float64))
+        values = torch.stack(figures).tolist()
+        for st, a in zip(self.stats, values):
+            st.active = st.changed = st.touched = int(a)
+        if self.state_check:
+            self.state_max = values[-1]
         self.steps = 0
         return self.out
 

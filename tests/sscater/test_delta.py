@@ -607,6 +607,26 @@ def test_features_given_as_a_function_of_the_sites(device, mode):
         computed.update(s.to(device), features, r.to(device))
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("given", [0.3, 1.0])  # the sparse and the dense refresh
+def test_refresh_without_the_input_check_and_its_figures(device, given, monkeypatch):
+    """refresh(..., check=False) on input that is already right gives what the checked call gives, and the
+    figures read in one go (active sites per layer, state_max) are the layers' own."""
+    monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)
+    H, W = 24, 32
+    bb = small_backbone(seed=8).to(device)
+    stream = PillarMapStream(H, W, 8, seed=2, start=int(given * H * W))
+    sites, feats = stream.current()
+    a, b = (DeltaBackbone(bb, (H, W), torch.float64, device) for _ in range(2))
+    want = a.refresh(sites, feats).clone()
+    got = b.refresh(sites.to(device), feats.to(device), check=False)
+    assert (got - want).abs().max() <= 1e-12 * want.abs().max()  # CUDA's sums may add in another order
+    for st, layer in zip(b.stats, b.layers + b.up_layers):
+        assert st.active == st.changed == st.touched == int(layer.active.sum()), st.name
+    assert b.state_max == max(float(layer.acc.abs().max()) for layer in b.layers + b.up_layers)
+    assert abs(b.state_max - a.state_max) <= 1e-12 * a.state_max
+
+
 def test_recycling_backbone_bad_input():
     bb = small_backbone()
     db = DeltaBackbone(bb, (16, 16), torch.float64)
