@@ -26,9 +26,10 @@ And the statistics of the real frames beside ``--sim-frames`` simulated ``drivin
 the same camera view): intensity of all points and of points on cars, the share of car returns with intensity
 0, points per car against range, the share of a car's returns in the bottom, middle and top third of its
 height, the cars' halo (cars within 30 m: points within 0.5 m outside the box, more than 0.3 m above its
-bottom, per point inside it), the share of pedestrians with another within 1.5 m (groups), and the share of the
+bottom, per point inside it), the share of pedestrians with another within 1.5 m (groups), the share of the
 returns at 15-60 m in the 64 densest 0.05-degree bins of apparent elevation (``beam_line_share``: 1 when every beam
-starts at the sensor's origin). ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
+starts at the sensor's origin), and the share of a pedestrian's points (10 or more) below half its height.
+``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
 """
 from __future__ import annotations
 
@@ -214,6 +215,24 @@ def grouped_pedestrians(boxes: np.ndarray, names: list[str], within: float = 1.5
     return len(xy), int((d.min(1) < within).sum())
 
 
+def pedestrian_lower_half(points: np.ndarray, boxes: np.ndarray, names: list[str], least: int = 10) -> list[float]:
+    """Per pedestrian with at least ``least`` points in its box: the share of them below half its height (legs,
+    a coat's hem: about half in real scans)."""
+    from lidarops import points_in_boxes
+
+    peds = [i for i, n in enumerate(names) if n == "Pedestrian"]
+    if not peds or not len(points):
+        return []
+    idx = points_in_boxes(torch.as_tensor(points[:, :3], dtype=torch.float64),
+                          torch.as_tensor(boxes[peds], dtype=torch.float64)).numpy()
+    out = []
+    for k, i in enumerate(peds):
+        z = points[idx == k, 2]
+        if len(z) >= least:
+            out.append(float(((z - (boxes[i, 2] - boxes[i, 5] / 2)) < boxes[i, 5] / 2).mean()))
+    return out
+
+
 def elevations(points: np.ndarray, lo: float = LINES_RANGE[0], hi: float = LINES_RANGE[1]) -> np.ndarray:
     """Apparent elevation (degrees, seen from the sensor's origin) of the returns between ``lo`` and ``hi`` m."""
     xyz = points[:, :3].astype(np.float64)
@@ -234,11 +253,12 @@ def beam_line_share(points: np.ndarray) -> float | None:
 
 
 def data_stats(frames) -> dict:
-    allint, cars, peds, lines, elev = [], [], np.zeros(2, np.int64), [], []
+    allint, cars, peds, lines, elev, legs = [], [], np.zeros(2, np.int64), [], [], []
     for _, points, boxes, names, *_ in frames:
         allint.append(points[:, 3])
         cars.append(object_stats(points, boxes, names))
         peds += grouped_pedestrians(boxes, names)
+        legs += pedestrian_lower_half(points, np.asarray(boxes, np.float64), names)
         share = beam_line_share(points)
         if share is not None:
             lines.append(share)
@@ -259,7 +279,8 @@ def data_stats(frames) -> dict:
                     "car_halo_share": round(halo / inside, 3) if inside else None,
                     "pedestrians": int(peds[0]),
                     "pedestrians_in_groups_share": round(float(peds[1] / peds[0]), 3) if peds[0] else None,
-                    "beam_line_share": round(float(np.median(lines)), 3) if lines else None}}
+                    "beam_line_share": round(float(np.median(lines)), 3) if lines else None,
+                    "pedestrian_lower_half_share": round(float(np.mean(legs)), 3) if legs else None}}
 
 
 def _sim_name(profile: str | None) -> str:
@@ -352,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
                      "frames": args.sim_frames, "realism": profile, **sims[profile]["row"]})
     keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
             "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share", "pedestrians_in_groups_share",
-            "beam_line_share"]
+            "beam_line_share", "pedestrian_lower_half_share"]
     print_table("real against simulated", keys, [[r.get(k, "") for k in keys] for r in rows[-1 - len(sims):]],
                 right=range(1, len(keys)))
     if args.plot:

@@ -7,7 +7,7 @@ trained on boxes expects points on every face of the box and misplaces the boxes
 
 Each shape here is a signed distance function in its box's frame (x forward along the heading, y left,
 z up, the origin at the box's centre; metres), scaled to the box's size and varied per object by four
-uniform numbers ``u`` (a car's beltline and cabin, a pedestrian's stride, a cyclist's pedals). The shape
+uniform numbers ``u`` (a car's beltline and cabin, a pedestrian's stride, legs, coat and shoulders, a cyclist's pedals). The shape
 always lies inside its box, so the label stays the tight box around it. :func:`trace` follows rays that
 enter a box onto the shape (sphere tracing); the simulator sends the rays that miss it on into the scene
 (``Simulator(..., realism=...)``, :mod:`lidarops.data.realism`).
@@ -134,11 +134,15 @@ def _pedestrian(p, h, u):
     z0, H = -hz, 2 * hz
     zero = np.zeros_like(hx)
     stride = np.minimum(hx - 0.07, 0.32) * np.sin(2 * np.pi * u[:, 0])  # the walking phase
-    sw = np.minimum(0.1 * H, hy - 0.1)  # half the shoulders' width
+    # u[:, 1]: legs up to twice as thick (trousers, boots); u[:, 2]: a coat's hem up to 0.18 H below the hip;
+    # u[:, 3]: shoulders up to a quarter narrower, the arms at the body's sides (all 0: the plain shape)
+    sw = np.minimum(0.1 * H, hy - 0.1) * (1 - 0.25 * u[:, 3])  # half the shoulders' width
     hip_z, foot_z = z0 + 0.52 * H, z0 + 0.06
-    legs = np.minimum.reduce([_capsule(p, _vec(zero, s * 0.09, hip_z), _vec(s * stride, s * 0.1, foot_z), 0.035 * H)
+    leg_r, hem = 0.035 * H * (1 + u[:, 1]), 0.18 * H * u[:, 2]
+    legs = np.minimum.reduce([_capsule(p, _vec(zero, s * 0.09, hip_z), _vec(s * stride, s * 0.1, foot_z), leg_r)
                               for s in (-1, 1)])
-    torso = _round_box(p, _vec(zero, zero, z0 + 0.70 * H), _vec(0.065 * H, sw, 0.16 * H), 0.045 * H)
+    torso = _round_box(p, _vec(zero, zero, z0 + 0.70 * H - hem / 2), _vec(0.065 * H, sw, 0.16 * H + hem / 2),
+                       0.045 * H)
     head = _sphere(p, _vec(0.02 + zero, zero, z0 + 0.935 * H), 0.065 * H)
     arms = np.minimum.reduce([_capsule(p, _vec(zero, s * (sw + 0.02), z0 + 0.80 * H),
                                        _vec(-0.6 * s * stride, s * (sw + 0.04), z0 + 0.47 * H), 0.028 * H)

@@ -179,6 +179,8 @@ class Simulator:
                                        for k in labels], np.int64).reshape(-1)
             self._shape_names = shaped
             self._shape_u = _rng(self.seed, name, "realism", "shape").random((n_obj, 4))
+            # a pedestrian's legs, coat and shoulders (its shape's u[:, 1:]) vary by the profile's pedestrian_build
+            self._shape_u[labels == CLASSES.index("Pedestrian"), 1:] *= self.realism.pedestrian_build
             self._dark = _rng(self.seed, name, "realism", "paint").random(n_obj) < self.realism.dark_paint
             # how far each side of a vehicle's label (length, width) sits inside its body
             self._label_inset = (self.realism.label_tightness * self._vehicle[:, None]

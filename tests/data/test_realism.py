@@ -46,15 +46,39 @@ def test_without_realism_the_frames_are_those_of_before(sweeps):
     np.testing.assert_array_equal(cast.instance, neutral.instance)
 
 
-def test_same_seed_same_frame_and_independent_of_request_order():
-    a = Simulator("driving_city", seed=SEED, realism="kitti")
-    b = Simulator("driving_city", seed=SEED, realism="kitti")
+@pytest.mark.parametrize("profile", ["kitti", "kitti_dr"])  # kitti_dr: laser heights, pedestrians' builds...
+def test_same_seed_same_frame_and_independent_of_request_order(profile):
+    a = Simulator("driving_city", seed=SEED, realism=profile)
+    b = Simulator("driving_city", seed=SEED, realism=profile)
     f1 = b.sweep(1)  # b generates frame 1 first
     f0 = b.sweep(0)
     np.testing.assert_array_equal(a.sweep(0).points, f0.points)
     np.testing.assert_array_equal(a.sweep(1).points, f1.points)
-    other = Simulator("driving_city", seed=SEED + 1, realism="kitti").sweep(0)
+    other = Simulator("driving_city", seed=SEED + 1, realism=profile).sweep(0)
     assert other.points.shape != f0.points.shape or not np.array_equal(other.points, f0.points)
+
+
+def test_pedestrian_build_varies_legs_coats_and_shoulders_only_where_asked():
+    """kitti: every pedestrian has the plain shape (its shape numbers u[:, 1:] are 0); kitti_dr
+    (pedestrian_build 1): they vary per pedestrian over [0, 1), and more of a pedestrian's returns fall below its
+    hips, as in real scans (real KITTI: half of a pedestrian's points)."""
+    kw = dict(seed=4, object_counts={"Pedestrian": 14, "Car": 8})
+    plain, built = Simulator("driving_city", realism="kitti", **kw), Simulator("driving_city", realism="kitti_dr", **kw)
+    ped = plain.scenario.object_labels == CLASSES.index("Pedestrian")
+    assert ped.sum() >= 10 and not plain._shape_u[ped, 1:].any() and plain._shape_u[~ped, 1:].any()
+    assert (built._shape_u[ped, 1:].std(0) > 0.15).all()
+
+    def lower_half(sim):
+        f = sim.sweep(0)
+        shares = []
+        for j in np.flatnonzero(f.labels == CLASSES.index("Pedestrian")):
+            z = f.points[f.instance == j, 2]
+            if len(z) >= 10:
+                b = f.boxes[j]
+                shares.append(((z - (b[2] - b[5] / 2)) / b[5] < 0.5).mean())
+        return np.mean(shares), len(shares)
+    (p, n_p), (b, n_b) = lower_half(plain), lower_half(built)
+    assert n_p >= 5 and n_b >= 5 and b > p + 0.03, (p, b)
 
 
 def test_vehicles_lose_their_greenhouse_and_read_zero_as_real_cars_do(sweeps):
@@ -109,7 +133,8 @@ def test_vehicle_returns_follow_their_probabilities():
                                          ("intensity_scale_jitter", float("inf")), ("label_tightness", 0.6),
                                          ("pedestrian_groups", -0.1), ("beam_choices", (64, 0)),
                                          ("beam_choices", [64]), ("beam_choices", (True,)), ("dropout_max", 0.95),
-                                         ("range_noise_max", -1.0)])
+                                         ("range_noise_max", -1.0), ("pedestrian_build", 1.5),
+                                         ("pedestrian_build", float("nan")), ("laser_offsets", "yes")])
 def test_bad_parameters_are_named(field, value):
     with pytest.raises(ValueError, match=field):
         dataclasses.replace(Realism(), **{field: value})

@@ -107,6 +107,28 @@ def test_hand_computed_hits():
 _STEP_TOL = 1e-3  # hits are bisected to 0.1 mm
 
 
+def test_pedestrian_builds_by_hand():
+    """u[:, 1] = 1 doubles a pedestrian's legs (radius 0.07 H); u[:, 2] = 1 hangs a coat's hem 0.18 H below the
+    torso's bottom (0.54 H), where a level ray between the legs now meets the coat's front (0.065 H from the axis);
+    u[:, 3] = 1 brings the shoulders a quarter in."""
+    level, ped, H = np.array([[-1.0, 0.0, 0.0]]), np.array([[0.4, 0.3, 0.875]]), 1.75
+    knee = -0.875 + 0.3
+    y_leg = 0.09 + 0.01 * (0.52 * H - 0.3) / (0.52 * H - 0.06)
+    t, hit, _ = trace("Pedestrian", np.array([[0.4, y_leg, knee]]), level, ped, np.array([[0.0, 1.0, 0.0, 0.0]]))
+    assert hit[0] and abs(t[0] - (0.4 - 0.07 * H)) < _STEP_TOL
+    thigh = -0.875 + 0.45 * H  # below the plain torso (0.54 H), above the coat's hem (0.36 H)
+    t, hit, _ = trace("Pedestrian", np.array([[0.4, 0.0, thigh]]), level, ped, np.zeros((1, 4)))
+    assert not hit[0]
+    t, hit, _ = trace("Pedestrian", np.array([[0.4, 0.0, thigh]]), level, ped, np.array([[0.0, 0.0, 1.0, 0.0]]))
+    assert hit[0] and abs(t[0] - (0.4 - 0.065 * H)) < _STEP_TOL
+    # from the side at chest height: the shoulders' half width 0.1 H (0.175 m), or a quarter less
+    chest, side = -0.875 + 0.72 * H, np.array([[0.0, -1.0, 0.0]])
+    for u3, half_width in ((0.0, 0.1 * H), (1.0, 0.075 * H)):
+        t, hit, _ = trace("Pedestrian", np.array([[0.0, 0.3, chest]]), side, ped, np.array([[0.0, 0.0, 0.0, u3]]))
+        assert hit[0] and 0.3 - t[0] < half_width + 0.05 * H, (u3, 0.3 - t[0])  # the arm lies just outside
+        assert 0.3 - t[0] > half_width - _STEP_TOL, (u3, 0.3 - t[0])
+
+
 def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="name"):
         shape_distance("Boat", np.zeros((1, 3)), np.ones((1, 3)), np.zeros((1, 4)))

@@ -52,7 +52,7 @@ def test_any_profile_gives_intensities_on_its_grid(profile, n, seed):
 
 
 @fuzz
-@given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter")),
+@given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "pedestrian_build")),
        value=st.sampled_from([-0.5, 1.5, 2.0, float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     _, err = outcome(dataclasses.replace, Realism(), **{name: value})
