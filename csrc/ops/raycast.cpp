@@ -1,6 +1,6 @@
-// Schema of the ray caster of the synthetic LiDAR simulator (lidarops/data/_raycast.py, cast_rays). Kernel:
-// csrc/cpu/raycast_kernel.cpp (CPU only: the simulator is a CPU data generator); fake kernel:
-// lidarops/_meta_registrations.py.
+// Schemas of the ray caster of the synthetic LiDAR simulator (lidarops/data/_raycast.py, cast_rays) and of its
+// shape tracer (lidarops/data/shapes.py, trace). Kernels: csrc/cpu/raycast_kernel.cpp, csrc/cpu/shapes_kernel.cpp
+// (CPU only: the simulator is a CPU data generator); fake kernels: lidarops/data/_registrations.py.
 #include <torch/library.h>
 
 TORCH_LIBRARY_FRAGMENT(lidarops, m) {
@@ -22,4 +22,9 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       "Tensor cyl_kind, Tensor ell_center, Tensor ell_radii, Tensor ell_mean_free_path, Tensor ell_reflectivity, "
       "float max_distance, int foliage_key, int num_objects, int ground_iterations, float ground_tolerance) "
       "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
+  // Rays that entered a labelled object's box followed onto its shape (lidarops/data/shapes.py: kind 0 Car,
+  // 1 Truck, 2 Bus, 3 Pedestrian, 4 Cyclist; kernel csrc/cpu/shapes_kernel.cpp): entry points, unit directions,
+  // half sizes (N, 3) and the per-object numbers u (N, 4), float64 in the box's frame. Returns t (f64[N]: the
+  // distance from the entry to the shape where hit), hit (bool[N]) and cos (f64[N], |cos| of the incidence).
+  m.def("trace_shapes(int kind, Tensor entry, Tensor d, Tensor half, Tensor u) -> (Tensor, Tensor, Tensor)");
 }

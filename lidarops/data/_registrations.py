@@ -1,5 +1,5 @@
-"""Fake (meta) kernel of the ray caster ``lidarops::raycast_scene`` (schema in csrc/ops/raycast.cpp;
-called by :mod:`lidarops.data._raycast`). It is not differentiable: no autograd formula, Python or C++
+"""Fake (meta) kernels of the ray caster ``lidarops::raycast_scene`` and the shape tracer ``lidarops::trace_shapes``
+(schemas in csrc/ops/raycast.cpp; called by :mod:`lidarops.data._raycast` and :mod:`lidarops.data.shapes`). It is not differentiable: no autograd formula, Python or C++
 (``csrc/ops/autograd``). Imported by :func:`lidarops.extension.load`, never by ``import lidarops.data``
 (which stays free of torch).
 """
@@ -18,3 +18,9 @@ def _raycast_scene_fake(origins, dirs, times, origin_samples, ground_plane, wave
     return (origins.new_empty((n,)), origins.new_empty((n,), dtype=torch.uint8),
             origins.new_empty((n,), dtype=torch.int32), origins.new_empty((n,)), origins.new_empty((n,)),
             origins.new_empty((num_objects,), dtype=torch.int64), origins.new_empty((num_objects,), dtype=torch.int64))
+
+
+@torch.library.register_fake("lidarops::trace_shapes")
+def _trace_shapes_fake(kind, entry, d, half, u):
+    n = entry.shape[0]
+    return entry.new_empty((n,)), entry.new_empty((n,), dtype=torch.bool), entry.new_empty((n,))
