@@ -89,6 +89,8 @@ class Realism:
             legs are up to 1 + this times as thick, its coat's hem reaches up to 0.18 x this of its height below
             the hip, and its shoulders are up to a quarter x this narrower (uniform, per pedestrian; 0: every
             pedestrian bare-legged, without a coat, its arms held out from the body).
+        hair_dropout (float): probability that a return from the top of a pedestrian's head (above 0.87 of its
+            height) is lost: hair, often dark, returns less than skin and clothes (0: none lost).
         laser_offsets (bool): an HDL-64E's beams start at its lasers' heights above its origin
             (:func:`lidarops.data.sensors.hdl64_beam_offsets`), as on the real sensor; other sensors as they are.
     """
@@ -119,6 +121,7 @@ class Realism:
     dropout_max: float = 0.0
     range_noise_max: float = 0.0
     pedestrian_build: float = 0.0
+    hair_dropout: float = 0.0
     laser_offsets: bool = False
 
     def __post_init__(self) -> None:
@@ -137,6 +140,7 @@ class Realism:
         real(self.dropout_max, "dropout_max", 0, 0.9)
         real(self.range_noise_max, "range_noise_max", 0, 1, unit=" m")
         real(self.pedestrian_build, "pedestrian_build", 0, 1)
+        real(self.hair_dropout, "hair_dropout", 0, 1)
         if self.laser_offsets not in (True, False):
             raise ValueError(f"laser_offsets must be True or False, got {self.laser_offsets!r}")
         if not isinstance(self.beam_choices, tuple) or not all(
@@ -230,14 +234,14 @@ class Realism:
 
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans) and ``kitti_dr`` (the same with
 #: mixed pixels at depth edges, pedestrians in groups as often as in the real scans, vehicle labels as tight as
-#: KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds, and the domain
+#: KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds and hair, and the domain
 #: randomisation of the sensor's height, beams, dropout, range noise and intensity scale, for what the real scans
 #: leave uncertain).
 REALISM_PRESETS = {"kitti": Realism(),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
                                        pedestrian_groups=0.3, label_tightness=0.07, beam_choices=(32, 64, 64, 128),
                                        dropout_max=0.2, range_noise_max=0.05, laser_offsets=True,
-                                       pedestrian_build=1.0)}
+                                       pedestrian_build=1.0, hair_dropout=0.4)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

@@ -434,6 +434,11 @@ class Simulator:
                 step, on, cos = _trace(name, local[g], ldir[g], objects.half[o[g]], self._shape_u[o[g]])
                 hits.distance[todo[g[on]]] += step[on]
                 hits.cos_incidence[todo[g[on]]] = cos[on]
+                if name == "Pedestrian" and self.realism.hair_dropout > 0:  # the head's top: hair, often dark
+                    half_z = objects.half[o[g[on]], 2]
+                    z = local[g[on], 2] + ldir[g[on], 2] * step[on]
+                    hair = todo[g[on]][(z + half_z) > 0.87 * 2 * half_z]
+                    hits.extra_dropout[hair] = np.maximum(hits.extra_dropout[hair], self.realism.hair_dropout)
                 miss[g[~on]] = True
             gone = todo[miss]
             if not gone.size:

@@ -81,6 +81,20 @@ def test_pedestrian_build_varies_legs_coats_and_shoulders_only_where_asked():
     assert n_p >= 5 and n_b >= 5 and b > p + 0.03, (p, b)
 
 
+@pytest.mark.parametrize("hair", [0.0, 1.0])
+def test_hair_dropout_loses_the_returns_from_the_top_of_a_pedestrians_head(hair):
+    """hair_dropout 1: no pedestrian return above 0.88 of its height (the shape's head reaches the box's top);
+    0: some. Heights are measured from the box's bottom (a walker moves, but not up or down)."""
+    sim = Simulator("driving_city", seed=4, object_counts={"Pedestrian": 14, "Car": 4}, ego_speed=0.0,
+                    realism=dataclasses.replace(make_realism("kitti"), hair_dropout=hair, pedestrian_groups=0.0))
+    f = sim.sweep(0)
+    top = 0
+    for j in np.flatnonzero(f.labels == CLASSES.index("Pedestrian")):
+        z, b = f.points[f.instance == j, 2], f.boxes[j]
+        top += int(((z - (b[2] - b[5] / 2)) / b[5] > 0.88).sum())
+    assert (top == 0) if hair == 1.0 else (top > 5), top
+
+
 def test_vehicles_lose_their_greenhouse_and_read_zero_as_real_cars_do(sweeps):
     h_cast, i_cast = _vehicle_stats(sweeps["cast"])
     h_real, i_real = _vehicle_stats(sweeps["kitti"])
@@ -134,7 +148,8 @@ def test_vehicle_returns_follow_their_probabilities():
                                          ("pedestrian_groups", -0.1), ("beam_choices", (64, 0)),
                                          ("beam_choices", [64]), ("beam_choices", (True,)), ("dropout_max", 0.95),
                                          ("range_noise_max", -1.0), ("pedestrian_build", 1.5),
-                                         ("pedestrian_build", float("nan")), ("laser_offsets", "yes")])
+                                         ("pedestrian_build", float("nan")), ("laser_offsets", "yes"),
+                                         ("hair_dropout", 1.2)])
 def test_bad_parameters_are_named(field, value):
     with pytest.raises(ValueError, match=field):
         dataclasses.replace(Realism(), **{field: value})
