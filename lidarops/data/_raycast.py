@@ -473,23 +473,23 @@ def _intersect_ellipsoids(o, d, ell: EllipsoidSet, prim, ray, key: int):
 
 
 _NATIVE_ENV = "LIDAROPS_DATA_NATIVE"
-_native: dict = {}  # "op": the native op or None once looked up, "why": why it is unavailable
+_native: dict = {}  # op name -> the compiled op or None once looked up; "why:" + name: why it is unavailable
 
 
-def _native_op():
-    """``torch.ops.lidarops.raycast_scene`` when torch and the compiled extension load, else None (looked up
-    once: the first call imports torch and lidarops._C)."""
-    if "op" not in _native:
+def _native_op(name: str = "raycast_scene"):
+    """``torch.ops.lidarops.<name>`` (the simulator's compiled ops: ``raycast_scene``, ``trace_shapes``) when torch
+    and the compiled extension load, else None (looked up once: the first call imports torch and lidarops._C)."""
+    if name not in _native:
         try:
             import torch
 
             from lidarops.extension import load
 
             load()
-            _native["op"] = torch.ops.lidarops.raycast_scene
+            _native[name] = getattr(torch.ops.lidarops, name)
         except Exception as e:  # no torch, extension not built or built before the op existed
-            _native["op"], _native["why"] = None, f"{type(e).__name__}: {e}"
-    return _native["op"]
+            _native[name], _native["why:" + name] = None, f"{type(e).__name__}: {e}"
+    return _native[name]
 
 
 def raycast_backend(backend: str | None = None) -> str:
@@ -519,8 +519,8 @@ def raycast_backend(backend: str | None = None) -> str:
     if backend != "native":
         raise ValueError(f"backend must be 'native', 'numpy' or None, got {backend!r}")
     if _native_op() is None:
-        raise RuntimeError(f"the native ray caster is unavailable ({_native.get('why')}); build the extension "
-                           "(make build) or use backend='numpy' / LIDAROPS_DATA_NATIVE=0")
+        raise RuntimeError(f"the native ray caster is unavailable ({_native.get('why:raycast_scene')}); build the "
+                           "extension (make build) or use backend='numpy' / LIDAROPS_DATA_NATIVE=0")
     return "native"
 
 

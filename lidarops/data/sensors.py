@@ -147,6 +147,14 @@ class LidarSensor:
         return dataclasses.replace(self, **changes)
 
 
+def _check_elevations(elevations_deg) -> None:
+    """A non-empty sequence of beam elevations, each a number of degrees in [-90, 90]."""
+    if isinstance(elevations_deg, (str, bytes)) or not hasattr(elevations_deg, "__len__") or not len(elevations_deg):
+        raise ValueError(f"elevations_deg must be a non-empty sequence of angles in degrees, got {elevations_deg!r}")
+    for i, e in enumerate(elevations_deg):
+        real(e, f"elevations_deg[{i}]", -90, 90, unit=" degrees")
+
+
 @dataclass(frozen=True)
 class SpinningLidar(LidarSensor):
     """Multi-beam rotating LiDAR.
@@ -167,11 +175,7 @@ class SpinningLidar(LidarSensor):
     beam_offsets_z: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
-        if isinstance(self.elevations_deg, (str, bytes)) or not hasattr(self.elevations_deg, "__len__") \
-                or not len(self.elevations_deg):
-            raise ValueError(f"elevations_deg must be a non-empty sequence of angles in degrees, got {self.elevations_deg!r}")
-        for i, e in enumerate(self.elevations_deg):
-            real(e, f"elevations_deg[{i}]", -90, 90, unit=" degrees")
+        _check_elevations(self.elevations_deg)
         if isinstance(self.beam_offsets_z, (str, bytes)) or not hasattr(self.beam_offsets_z, "__len__") \
                 or len(self.beam_offsets_z) not in (0, len(self.elevations_deg)):
             raise ValueError(f"beam_offsets_z must be empty or hold one offset per beam ({len(self.elevations_deg)}), "
@@ -365,10 +369,7 @@ def hdl64_beam_offsets(elevations_deg, lower_from: int | None = None) -> tuple[f
         elevations_deg (sequence of float): the beams' elevations, upper block first.
         lower_from (int, optional): the first beam of the lower block (default: half the beams).
     """
-    if isinstance(elevations_deg, (str, bytes)) or not hasattr(elevations_deg, "__len__") or not len(elevations_deg):
-        raise ValueError(f"elevations_deg must be a non-empty sequence of angles in degrees, got {elevations_deg!r}")
-    for i, v in enumerate(elevations_deg):
-        real(v, f"elevations_deg[{i}]", -90, 90, unit=" degrees")
+    _check_elevations(elevations_deg)
     e = np.asarray(elevations_deg, dtype=np.float64)
     first = len(e) // 2 if lower_from is None else integer(lower_from, "lower_from", 0, len(e))
     lower = np.arange(len(e)) >= first

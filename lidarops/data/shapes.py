@@ -245,24 +245,14 @@ def trace(name: str, entry: np.ndarray, d: np.ndarray, half: np.ndarray, u: np.n
 
 # the shape kinds of torch.ops.lidarops.trace_shapes (csrc/cpu/shapes_kernel.cpp)
 _NATIVE_KIND = {"Car": 0, "Truck": 1, "Bus": 2, "Pedestrian": 3, "Cyclist": 4}
-_native: dict = {}  # "op": the native tracer or None once looked up, "why": why it is unavailable
 
 
 def _native_op():
     """``torch.ops.lidarops.trace_shapes`` when the ray caster's backend is native (the compiled extension loads,
     ``LIDAROPS_DATA_NATIVE`` does not force NumPy) and the extension holds the op, else None."""
-    from lidarops.data._raycast import raycast_backend
+    from lidarops.data import _raycast
 
-    if raycast_backend() != "native":
-        return None
-    if "op" not in _native:
-        try:
-            import torch
-
-            _native["op"] = torch.ops.lidarops.trace_shapes
-        except Exception as e:  # an extension built before the op existed
-            _native["op"], _native["why"] = None, f"{type(e).__name__}: {e}"
-    return _native["op"]
+    return _raycast._native_op("trace_shapes") if _raycast.raycast_backend() == "native" else None
 
 
 def _trace(name, entry, d, half, u):

@@ -299,7 +299,8 @@ class Simulator:
         dirs_sensor, ring = sensor.directions(firing)  # [K, R, 3]
         rot, pos = scenario.ego.pose(t_firing)
         n_per = dirs_sensor.shape[1]
-        if scenario.ego.has_jitter or scenario.ego.yaw_rate != 0.0:
+        turning = scenario.ego.has_jitter or scenario.ego.yaw_rate != 0.0  # an attitude per firing
+        if turning:
             dirs_world = _rotate_per_firing(rot, dirs_sensor).reshape(-1, 3)
             dirs_sensor = dirs_sensor.reshape(-1, 3)
         else:  # constant attitude: one matrix product
@@ -310,7 +311,7 @@ class Simulator:
         beam_origins = sensor.beam_origins()
         offset = beam_origins.any()
         if offset:  # lasers apart from the sensor's origin: each ray starts at its beam's, turned with the sensor
-            if rot.shape[0] > 1 and (scenario.ego.has_jitter or scenario.ego.yaw_rate != 0.0):
+            if turning:
                 turned = _rotate_per_firing(rot, np.broadcast_to(beam_origins, (rot.shape[0],) + beam_origins.shape))
             else:
                 turned = np.broadcast_to(beam_origins @ rot[0].T, (pos.shape[0],) + beam_origins.shape)

@@ -98,6 +98,18 @@ def test_transfer_augmentations_keep_rows_and_ranges(n, seed, p, scale, jitter, 
     assert ((out[:, 3] >= 0) & (out[:, 3] <= 1)).all()
 
 
+def _face_rays(rng, n: int, scale: float, spread: float):
+    """Boxes of random half sizes (times ``scale``), rays entering them from a random point of a random face, aimed
+    at the centre give or take ``spread``, and the per-object numbers u: (entry, d, half, u)."""
+    half = rng.uniform(0.05, 1.0, (n, 3)) * scale + 0.01
+    face = rng.integers(0, 3, n)
+    entry = rng.uniform(-1, 1, (n, 3)) * half
+    entry[np.arange(n), face] = np.where(rng.random(n) < 0.5, -1, 1) * half[np.arange(n), face]
+    d = -entry / np.maximum(np.linalg.norm(entry, axis=1, keepdims=True), 1e-12) + rng.normal(0, spread, (n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return entry, d, half, rng.random((n, 4))
+
+
 @fuzz
 @given(name=st.sampled_from(sorted(SHAPES)), n=st.integers(0, 60), seed=st.integers(0, 2**16),
        scale=st.floats(0.05, 8.0))
@@ -105,13 +117,7 @@ def test_any_box_and_rays_give_hits_on_the_shape_inside_the_box(name, n, seed, s
     """Boxes of any size (including ones far from the class's own), rays from anywhere on their faces: a hit
     lies in the box and on the shape, before the ray leaves the box; cos in [0, 1]."""
     rng = np.random.default_rng(seed)
-    half = rng.uniform(0.05, 1.0, (n, 3)) * scale + 0.01
-    face = rng.integers(0, 3, n)
-    entry = rng.uniform(-1, 1, (n, 3)) * half
-    entry[np.arange(n), face] = np.where(rng.random(n) < 0.5, -1, 1) * half[np.arange(n), face]
-    d = -entry / np.linalg.norm(entry, axis=1, keepdims=True) + rng.normal(0, 0.3, (n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    u = rng.random((n, 4))
+    entry, d, half, u = _face_rays(rng, n, scale, 0.3)
     out, err = outcome(trace, name, entry, d, half, u)
     assert_no_error(err, f"trace({name!r}, {n} rays)")
     t, hit, cos = out
@@ -134,13 +140,7 @@ def test_compiled_tracer_equals_the_numpy_one(name, n, seed, scale, spread):
         return
     import torch
     rng = np.random.default_rng(seed)
-    half = rng.uniform(0.05, 1.0, (n, 3)) * scale + 0.01
-    face = rng.integers(0, 3, n)
-    entry = rng.uniform(-1, 1, (n, 3)) * half
-    entry[np.arange(n), face] = np.where(rng.random(n) < 0.5, -1, 1) * half[np.arange(n), face]
-    d = -entry / np.maximum(np.linalg.norm(entry, axis=1, keepdims=True), 1e-12) + rng.normal(0, spread + 1e-3, (n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    u = rng.random((n, 4))
+    entry, d, half, u = _face_rays(rng, n, scale, spread + 1e-3)
     t, hit, cos = _trace_numpy(name, entry, d, half, u)
     from lidarops.data.shapes import _NATIVE_KIND
     nt, nhit, ncos = (a.numpy() for a in _native_op()(_NATIVE_KIND[name],
