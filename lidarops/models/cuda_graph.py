@@ -26,20 +26,21 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
-from collections.abc import Sequence
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
 
 import lidarops
 from lidarops.models.counternet import CounterNet
-from lidarops.models.pointpillars import PointPillars, _check_batch
+from lidarops.models.pointpillars import PointPillars, _check_batch, eager_predict
 from lidarops.models.postprocess import postprocess_padded
 from lidarops.ops.pillars import MAX_ABS_INTENSITY
 from lidarops.ops.validation import check_tensor, describe, value_checks_enabled
 
-__all__ = ["GraphedCounterNet", "GraphedPointPillars", "PRECISIONS", "inference_copy", "padded_counting",
-           "padded_inference"]
+__all__ = ["GraphedCounterNet", "GraphedPointPillars", "PRECISIONS", "graphed_predict", "inference_copy",
+           "padded_counting", "padded_inference"]
 
 PRECISIONS = ("fp32", "tf32", "fp16")
 
@@ -65,6 +66,18 @@ def precision_mode(precision: str | None, device_type: str = "cuda", autocast: b
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
 
 
+@contextlib.contextmanager
+def uncached_autocast(device_type: str = "cuda"):
+    """The autocast in force (if any) with its cache of cast weights off, for a CUDA graph's warm-up and capture: a
+    cast cached by the warm-up would be read by the graph as it is, and freed when the outermost autocast ends
+    (torch's rule for graphs under autocast)."""
+    if not torch.is_autocast_enabled(device_type):
+        yield
+        return
+    with torch.autocast(device_type, dtype=torch.get_autocast_dtype(device_type), cache_enabled=False):
+        yield
+
+
 def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | None = None) -> dict[str, Tensor]:
     """:meth:`PointPillars.predict` on a batch of frames padded to one size, with outputs of sizes fixed by
     the shapes and nothing read back to the host: the body :class:`GraphedPointPillars` records, usable
@@ -84,7 +97,9 @@ def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | Non
 
     Returns:
         dict of :func:`postprocess_padded`'s ``boxes (B, K, 7)``, ``scores``, ``labels``, ``count (B,)``;
-        ``bad (B,)`` bool: frames whose features fail the eager call's value check; ``pillars`` (0-d int64):
+        ``bad (B,)`` bool: frames whose features fail the eager call's value check; ``bad_boxes (B,)`` bool:
+        frames with a box the eager post-processing's NMS would refuse (:func:`lidarops.ops.boxes.unsupported_boxes`
+        among the anchors at or above the score threshold); ``pillars`` (0-d int64):
         the rows the batch needs; ``overflow`` (0-d bool): more than ``max_pillars``.
     """
     if not isinstance(model, PointPillars) or model.config.backbone_mode != "dense":
@@ -102,6 +117,7 @@ def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | Non
             x = model.dense_head.decode(x)
         with stage("postprocess"):
             out = postprocess_padded(*x, cfg)
+            out["bad_boxes"] = _bad_boxes(*x, cfg)
     out["bad"] = _bad_features(points, c)
     out["pillars"] = needed
     out["overflow"] = needed > rows
@@ -145,6 +161,16 @@ def _padded_bev(model, cfg, points: Tensor, rows: int) -> tuple[Tensor, Tensor]:
             x = model.map_to_bev(x, coords, points.shape[0])
         with stage("backbone"):
             return model.backbone_2d(x), needed
+
+
+def _bad_boxes(cls_logits: Tensor, boxes: Tensor, cfg) -> Tensor:
+    """``(B,)`` bool: frames where the eager post-processing would refuse a box: the NMS checks the boxes of the
+    anchors with some class at or above the score threshold, which a graph cannot read back."""
+    from lidarops.ops.boxes import unsupported_boxes
+
+    B, A, _ = boxes.shape
+    above = (torch.sigmoid(cls_logits) >= cfg.score_thresh).any(-1)
+    return (unsupported_boxes(boxes.reshape(B * A, 7)).view(B, A) & above).any(1)
 
 
 def _bad_features(points: Tensor, c: int) -> Tensor:
@@ -306,7 +332,7 @@ class _GraphedFrames:
         half_model = self.dtype == torch.float16
 
         def run():
-            with torch.no_grad(), precision_mode(precision, autocast=not half_model):
+            with torch.no_grad(), precision_mode(precision, autocast=not half_model), uncached_autocast():
                 return body(graphed, self._points)
 
         with torch.cuda.device(self.device):
@@ -352,8 +378,8 @@ class _GraphedFrames:
         return self._out
 
     def _eager(self, frames: Sequence[Tensor]) -> list[dict]:
-        """The model's own ``predict``, frame by frame, in the graph's precision."""
-        with precision_mode(self.precision, autocast=self.dtype != torch.float16):
+        """The model's own eager ``predict``, frame by frame, in the graph's precision."""
+        with precision_mode(self.precision, autocast=self.dtype != torch.float16), eager_predict():
             return [self.model.predict({"points": torch.nn.functional.pad(f[:, :self._features], (1, 0)),
                                         "batch_size": 1})[0] for f in frames]
 
@@ -427,9 +453,10 @@ class GraphedPointPillars(_GraphedFrames):
 
         def body(model, points):
             out = padded_inference(model, points, max_pillars)
-            # the one host read: each frame's number of boxes and value check, the batch's pillars
-            out["read"] = torch.stack([out["count"], out["bad"].to(torch.int64),
-                                       out["overflow"].to(torch.int64).expand(batch_size),
+            # the one host read: each frame's number of boxes and value check, whether the replay must be redone
+            # eagerly (pillar rows too few, or a box the eager NMS refuses: its error names the box), the pillars
+            redo = out["overflow"].expand(batch_size) | out["bad_boxes"]
+            out["read"] = torch.stack([out["count"], out["bad"].to(torch.int64), redo.to(torch.int64),
                                        out["pillars"].expand(batch_size)], 1)
             return out
 
@@ -442,8 +469,8 @@ class GraphedPointPillars(_GraphedFrames):
         """Runs the graph on up to ``batch_size`` frames (each ``Tensor[P, C]`` as for a call) and returns its
         padded outputs on the device without reading anything back: ``boxes (B, K, 7)``, ``scores``,
         ``labels``, ``count (B,)``, ``bad (B,)``, ``pillars`` and ``overflow`` (0-d: the pillar rows the frames
-        needed, more than ``max_pillars``: the detections are then incomplete) and ``read (B, 4)`` (count, bad,
-        overflow, pillars), row b for frame b (rows past the frames given: empty frames). They are overwritten by
+        needed, more than ``max_pillars``: the detections are then incomplete), ``bad_boxes (B,)`` and ``read (B, 4)``
+        (count, bad, redo: overflow or bad boxes, pillars), row b for frame b (rows past the frames given: empty frames). They are overwritten by
         the next replay: gather or copy them first (work queued on the current stream before the next replay is)."""
         return self._replay(frames)
 
@@ -620,3 +647,114 @@ class GraphedCounterNet(_GraphedFrames):
     def _frame_results(self, out: dict[str, Tensor], reads: list) -> list[dict[str, Tensor]]:
         return [{"counts": out["counts"][b].clone(), "centres": out["centres"][b, :k].clone(),
                  "features": out["features"][b].clone()} for b, (k, *_) in enumerate(reads)]
+
+
+# PointPillars.predict's graphs (graphed_predict): frames padded to a power of two of points from MIN_CAPACITY, so that
+# a stream of scans of similar sizes shares one graph; frames above MAX_CAPACITY run eagerly. KEEP_GRAPHS per model,
+# the least recently used dropped first (each holds its own activations); after MAX_RECORDINGS (calls cycling
+# through more sizes than are kept) new sizes run eagerly rather than record a graph per call.
+MIN_CAPACITY = 1 << 14
+MAX_CAPACITY = 1 << 21
+KEEP_GRAPHS = 3
+MAX_RECORDINGS = 12
+
+
+class _PredictGraphs:
+    """A model's predict graphs, keyed by what they were recorded under. Not copied or pickled with the model: a
+    graph records its model's tensors."""
+
+    def __init__(self):
+        self.places: list = []  # (module's _parameters or _buffers, name) of every tensor the graphs read
+        self.children: tuple = ()
+        self.tensors: tuple = ()
+        self.seen: set = set()
+        self.graphs: OrderedDict = OrderedDict()
+        self.recorded = 0
+
+    def current(self, model: nn.Module) -> tuple:
+        """The model's tensors as the graphs would read them: data pointers, in the order of :attr:`places`
+        (listed again when a top-level module was replaced)."""
+        children = tuple(model._modules.values())
+        if children != self.children or not self.places:
+            self.children = children
+            self.places = [(d, name) for m in model.modules() for d in (m._parameters, m._buffers)
+                           for name, t in d.items() if t is not None]
+        return tuple(d[name].data_ptr() if d.get(name) is not None else 0 for d, name in self.places)
+
+    def __deepcopy__(self, memo):
+        return _PredictGraphs()
+
+    def __reduce__(self):
+        return _PredictGraphs, ()
+
+
+def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
+    """:meth:`PointPillars.predict` on CUDA as a replayed :class:`GraphedPointPillars` (the eval-mode model, dense
+    backbone), or None where the eager call must run: the first call with frames of a size (a graph is recorded
+    from the second), anything the eager call would refuse (it raises its own error), frames over
+    :data:`MAX_CAPACITY` points, a CUDA graph being captured, lidarops without CUDA kernels.
+
+    The graph is recorded under torch's TF32 and autocast settings of the call and again when they change, or
+    when the model's tensors are replaced (``.to()``, ``.half()``); in-place updates of the weights
+    (``load_state_dict``, an optimizer's step) are seen by the replays."""
+    from lidarops import extension
+
+    points, cfg = batch["points"], model.config
+    c = cfg.num_point_features
+    B = batch.get("batch_size")
+    if (torch.cuda.is_current_stream_capturing() or not extension.cuda_available() or points.dim() != 2
+            or points.shape[1] < 1 + c or not points.is_floating_point() or isinstance(B, bool)
+            or not isinstance(B, int) or not 1 <= B <= max(points.shape[0], 1)):
+        return None
+    param = next(model.parameters())
+    if points.device != param.device:
+        return None
+    frame = points[:, 0]
+    if B == 1:
+        frames, biggest = [points[:, 1:1 + c]], points.shape[0]
+        bad_index = (frame != 0).any() if value_checks_enabled() and points.shape[0] else None
+    else:
+        # the frames' sizes and the frame-index check in one read; the eager call names what is wrong
+        bad = ~((frame >= 0) & (frame < B) & (frame == frame.round()))
+        counts = torch.bincount(frame.long().clamp(0, B - 1), minlength=B)
+        *sizes, flagged = torch.cat([counts, bad.any().long()[None]]).tolist()
+        if flagged or min(sizes) == 0:
+            return None
+        order = torch.argsort(frame, stable=True)
+        frames, biggest, bad_index = list(torch.split(points[order, 1:1 + c], sizes)), max(sizes), None
+    capacity = max(MIN_CAPACITY, 1 << max(biggest - 1, 0).bit_length())
+    if capacity > MAX_CAPACITY:
+        return None
+    cache = model.__dict__.get("_predict_graphs")
+    if cache is None:
+        cache = model._predict_graphs = _PredictGraphs()
+    tensors = cache.current(model)
+    if cache.tensors != tensors:  # new tensors: every graph recorded the old ones
+        cache.graphs.clear()
+        cache.seen.clear()
+        cache.tensors = tensors
+    key = (capacity, B, param.dtype, torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32,
+           torch.is_autocast_enabled("cuda"), torch.get_autocast_dtype("cuda"))
+    graphed = cache.graphs.get(key)
+    if graphed is None:
+        if key not in cache.seen or cache.recorded >= MAX_RECORDINGS:
+            cache.seen.add(key)  # a single call (a CLI run on one scan) is not worth a graph's recording
+            return None
+        while len(cache.graphs) >= KEEP_GRAPHS:
+            cache.graphs.popitem(last=False)
+        was_training = model.training  # replays run in eval mode whatever the mode; recording sets it
+        try:
+            with torch.inference_mode(False):  # buffers the replays of calls outside inference mode may write too
+                graphed = GraphedPointPillars(model, capacity=capacity, precision=None, batch_size=B)
+        finally:
+            model.train(was_training)
+        cache.graphs[key] = graphed
+        cache.recorded += 1
+    cache.graphs.move_to_end(key)
+    try:
+        out = graphed(frames)
+    except ValueError:  # a bad value: the eager call names it by the batch's own rows
+        return None
+    if bad_index is not None and bool(bad_index):  # read after the replay's own: the device is done by then
+        return None
+    return out

@@ -18,8 +18,9 @@ checkpoint (``checkpoint["model_state"]``) loads with ``strict=True`` and gives 
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
-
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -42,7 +43,24 @@ from lidarops.ops.pillars import MAX_ABS_INTENSITY
 from lidarops.ops.validation import (check_positive_int, check_tensor, describe, run_value_checks,
                                       value_checks_enabled)
 
-__all__ = ["PointPillars", "CheckpointMismatchError", "voxelize_frames"]
+__all__ = ["PointPillars", "CheckpointMismatchError", "PREDICT_CUDA_GRAPH", "eager_predict", "voxelize_frames"]
+
+# predict() on CUDA (dense backbone) replays the whole inference as one CUDA graph from the second call with frames
+# of a size (lidarops.models.cuda_graph.graphed_predict): eager, it launches a few hundred kernels and reads sizes
+# back to the host several times, and at PointPillars' size the GPU waits on the host. The same detections.
+PREDICT_CUDA_GRAPH = True
+_EAGER_PREDICT = contextvars.ContextVar("lidarops_eager_predict", default=False)
+
+
+@contextlib.contextmanager
+def eager_predict():
+    """``PointPillars.predict`` runs eagerly inside this context (no CUDA graph), whatever
+    :data:`PREDICT_CUDA_GRAPH` says."""
+    token = _EAGER_PREDICT.set(True)
+    try:
+        yield
+    finally:
+        _EAGER_PREDICT.reset(token)
 
 # lidarops 0.1's lidarops.models.pointpillars held the backbone and SSCATeR's pillar net: those names moved
 __getattr__ = moved_attributes(__name__, {
@@ -166,6 +184,16 @@ class PointPillars(PredictMixin, nn.Module):
     def postprocess(self, raw: Mapping[str, Tensor], batch: Mapping[str, Any] | None = None) -> list[dict]:
         """Per-frame detections (see :func:`postprocess`) from the raw outputs of ``forward`` in eval mode."""
         return postprocess(*self.dense_head.decode(raw), self.config)
+
+    def _predict_replayed(self, batch: Mapping[str, Any]) -> list[dict] | None:
+        # cheap tests first: the graph module is imported only for a CUDA batch
+        points = batch.get("points") if isinstance(batch, Mapping) else None
+        if not (PREDICT_CUDA_GRAPH and isinstance(points, Tensor) and points.is_cuda
+                and self.config.backbone_mode == "dense" and not _EAGER_PREDICT.get()):
+            return None
+        from lidarops.models.cuda_graph import graphed_predict
+
+        return graphed_predict(self, batch)
 
 
 

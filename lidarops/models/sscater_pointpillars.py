@@ -471,7 +471,9 @@ class SSCATeRPointPillars:
 
         side, current = torch.cuda.Stream(self.device), torch.cuda.current_stream(self.device)
         side.wait_stream(current)
-        with torch.no_grad(), validation(False):
+        from lidarops.models.cuda_graph import uncached_autocast
+
+        with torch.no_grad(), validation(False), uncached_autocast():
             with torch.cuda.stream(side):
                 body()  # warm-up outside the graph: cuDNN's choice of algorithms, the allocator's blocks
             current.wait_stream(side)

@@ -244,6 +244,60 @@ def test_batch_dicts_give_one_result_per_frame_or_name_the_key(tiny_model, data)
         assert torch.isfinite(o["boxes"]).all() if "boxes" in o else bool((o["counts"] >= 0).all())
 
 
+@pytest.fixture(scope="module")
+def cuda_pointpillars():
+    import lidarops
+
+    if not (torch.cuda.is_available() and lidarops.extension.cuda_available()):
+        pytest.skip("needs a GPU and lidarops built with CUDA kernels")
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3}).cuda().eval()
+    with torch.no_grad():  # scores around 0.5, so that boxes pass the threshold
+        model.dense_head.conv_cls.bias.zero_()
+    return model
+
+
+@fuzz
+@given(data=st.data())
+def test_cuda_predict_replayed_is_the_eager_call(cuda_pointpillars, data):
+    """predict on CUDA batches (ragged frames, bad frame indices, fractional ones, other dtypes, bad intensities),
+    called until it replays a graph: the eager call's detections, or its error word for word."""
+    from lidarops.models import cuda_graph
+    from lidarops.models.pointpillars import eager_predict
+
+    model = cuda_pointpillars
+    n = data.draw(st.integers(0, 300), "points")
+    batch_size = data.draw(st.integers(1, 3), "batch_size")
+    g = torch.Generator().manual_seed(data.draw(st.integers(0, 100), "seed"))
+    xyz = torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0.0, -4.0, -3.0, 0.0])
+    frame = torch.randint(0, batch_size, (n, 1), generator=g).float()
+    points = torch.cat([frame, xyz], 1)
+    if n and data.draw(st.booleans(), "a bad value"):
+        row, col = data.draw(st.integers(0, n - 1), "row"), data.draw(st.sampled_from([0, 4]), "column")
+        points[row, col] = data.draw(st.sampled_from([float("nan"), float("inf"), 1e9, 0.5, -1.0, 7.0]), "value")
+    points = data.draw(st.sampled_from([points, points.double(), points.half()]), "dtype").cuda()
+    batch = {"points": points, "batch_size": batch_size}
+    with eager_predict():
+        want, want_err = outcome(model.predict, batch)
+    keep, recorded = cuda_graph.KEEP_GRAPHS, cuda_graph.MAX_RECORDINGS
+    cuda_graph.KEEP_GRAPHS, cuda_graph.MAX_RECORDINGS = 8, 10**6  # every size keeps its graph here
+    try:
+        for _ in range(2):
+            got, err = outcome(model.predict, batch)
+    finally:
+        cuda_graph.KEEP_GRAPHS, cuda_graph.MAX_RECORDINGS = keep, recorded
+    if want_err is not None:
+        assert err is not None and type(err) is type(want_err) and str(err) == str(want_err), \
+            f"eager: {want_err!r}; replayed: {err!r}"
+        return
+    assert err is None, f"the eager call accepted the batch, the replay refused it: {err!r}"
+    assert len(got) == len(want)
+    for d, w in zip(got, want):
+        assert d["labels"].tolist() == w["labels"].tolist()
+        assert torch.allclose(d["scores"].double(), w["scores"].double(), atol=1e-5)
+        assert torch.allclose(d["boxes"].double(), w["boxes"].double(), atol=1e-4)
+
+
 @fuzz
 @given(data=st.data())
 def test_padded_inference_gives_each_frame_or_names_the_argument(data):

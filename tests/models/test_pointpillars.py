@@ -611,8 +611,11 @@ def test_padded_network_captures_in_a_cuda_graph():
 
 
 def _same_as_predict(model, frame, det, what: str) -> int:
-    """Asserts ``det`` holds the detections of ``model.predict`` on ``frame`` alone; returns how many."""
-    want = model.predict({"points": F.pad(frame, (1, 0)), "batch_size": 1})[0]
+    """Asserts ``det`` holds the detections of the eager ``model.predict`` on ``frame`` alone; returns how many."""
+    from lidarops.models.pointpillars import eager_predict
+
+    with eager_predict():
+        want = model.predict({"points": F.pad(frame, (1, 0)), "batch_size": 1})[0]
     assert det["labels"].tolist() == want["labels"].tolist(), what
     assert torch.allclose(det["scores"], want["scores"], atol=1e-5), what
     assert torch.allclose(det["boxes"], want["boxes"], atol=1e-4), what
@@ -646,6 +649,127 @@ def test_graphed_pointpillars_equals_predict():
         graphed(bad)
     with pytest.raises(ValueError, match="backbone_mode='dense'"):
         GraphedPointPillars(PointPillars({**TINY, "backbone_mode": "sparse"}).cuda())
+
+
+def _same_detections(got: list[dict], want: list[dict], what: str) -> int:
+    assert len(got) == len(want), what
+    for b, (d, w) in enumerate(zip(got, want)):
+        assert d["labels"].tolist() == w["labels"].tolist(), f"{what}, frame {b}"
+        assert torch.allclose(d["scores"], w["scores"], atol=1e-5), f"{what}, frame {b}"
+        assert torch.allclose(d["boxes"], w["boxes"], atol=1e-4), f"{what}, frame {b}"
+    return sum(len(w["labels"]) for w in want)
+
+
+@pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
+                    reason="needs a GPU and lidarops built with CUDA kernels")
+def test_predict_replays_a_cuda_graph_from_the_second_call():
+    """predict on CUDA: the first call of a size runs eagerly, the next ones replay a recorded graph, with the eager
+    call's detections (one frame and three), results that outlive the next call, weights updated in place seen, the
+    train/eval mode kept, a new graph for other TF32 settings and inside inference mode, and the eager call's
+    errors for a bad intensity, a bad frame index and boxes the NMS refuses."""
+    from lidarops.models.pointpillars import eager_predict
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1}).cuda()
+    with torch.no_grad():
+        model.dense_head.conv_cls.bias.zero_()
+    g = torch.Generator().manual_seed(7)
+    frames = [(torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0])
+               + torch.tensor([0, -4.0, -3, 0])).cuda() for n in (400, 1000, 37, 999)]
+    one = lambda f: {"points": F.pad(f, (1, 0)), "batch_size": 1}  # noqa: E731
+    three = {"points": torch.cat([F.pad(f, (1, 0), value=float(b)) for b, f in enumerate(frames[:3])]),
+             "batch_size": 3}
+
+    def eager(batch):
+        with eager_predict():
+            return model.predict(batch)
+
+    graphs = lambda: model.__dict__["_predict_graphs"].graphs  # noqa: E731
+    model.train()
+    first = model.predict(one(frames[0]))
+    assert model.training and not graphs(), "the first call of a size runs eagerly"
+    kept = _same_detections(first, eager(one(frames[0])), "first call")
+    second = model.predict(one(frames[1]))
+    assert model.training and len(graphs()) == 1, "the second call records a graph"
+    kept += _same_detections(second, eager(one(frames[1])), "second call")
+    for i, f in enumerate(frames):
+        kept += _same_detections(model.predict(one(f)), eager(one(f)), f"replay {i}")
+    _same_detections(second, eager(one(frames[1])), "a result after later replays")
+    assert kept > 0, "the case must keep boxes"
+    model.predict(three)
+    _same_detections(model.predict(three), eager(three), "three frames")
+    assert len(graphs()) == 2
+    with torch.no_grad():  # in place: the replays read the new weights
+        model.dense_head.conv_cls.bias.add_(0.4)
+        model.dense_head.conv_box.weight.mul_(1.1)
+    _same_detections(model.predict(one(frames[1])), eager(one(frames[1])), "weights updated in place")
+    old = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = not old
+    try:
+        for _ in range(2):
+            got = model.predict(one(frames[1]))
+        assert len(graphs()) == 3, "other TF32 settings: another graph"
+    # (KEEP_GRAPHS is 3: the graphs below replace the least recently used)
+        assert torch.allclose(got[0]["scores"], eager(one(frames[1]))[0]["scores"], atol=1e-2)
+    finally:
+        torch.backends.cudnn.allow_tf32 = old
+    # under a user's autocast, the warm-up's cast weights must not enter the graph: the cache that holds them is
+    # freed when the autocast ends, and the replays after it would read whatever took their memory
+    for _ in range(3):
+        with torch.autocast("cuda", dtype=torch.float16):
+            got = model.predict(one(frames[0]))
+        junk = [torch.full((1 << 20,), float("nan"), device="cuda") for _ in range(8)]  # noqa: F841
+    with torch.autocast("cuda", dtype=torch.float16):
+        _same_detections(got, eager(one(frames[0])), "autocast")
+    two = {"points": torch.cat([F.pad(f, (1, 0), value=float(b)) for b, f in enumerate(frames[2:])]), "batch_size": 2}
+    with torch.inference_mode():  # recorded there, replayed after it too
+        for _ in range(2):
+            got = model.predict(two)
+    _same_detections(got, eager(two), "inference mode")
+    _same_detections(model.predict(two), eager(two), "after inference mode")
+    # the eager call's errors, through the graph
+    for what, edit, match in (("intensity", lambda p: p[5, 4].fill_(float("nan")), "intensity"),
+                              ("frame index", lambda p: p[5, 0].fill_(2.0), "frame index")):
+        batch = one(frames[1])
+        edit(batch["points"])
+        with pytest.raises(ValueError, match=match) as from_eager:
+            eager(batch)
+        with pytest.raises(ValueError, match=match) as from_graph:
+            model.predict(batch)
+        assert str(from_graph.value) == str(from_eager.value), what
+    with torch.no_grad():  # sizes of exp(60): boxes the NMS refuses
+        model.dense_head.conv_box.bias[3:6].fill_(60.0)
+    with pytest.raises(ValueError) as from_eager:
+        eager(one(frames[1]))
+    with pytest.raises(ValueError) as from_graph:
+        model.predict(one(frames[1]))
+    assert str(from_graph.value) == str(from_eager.value)
+    with lidarops.validation(False):  # no checks: the eager call's result, whatever it is
+        _same_detections(model.predict(one(frames[2])), eager(one(frames[2])), "value checks off")
+
+
+def test_predict_graphs_are_not_copied_with_the_model(tmp_path):
+    """A model's predict graphs record its own tensors: a copy or a pickled model starts without them; on the
+    CPU predict records none."""
+    import copy
+
+    from lidarops.models.cuda_graph import _PredictGraphs
+
+    model = PointPillars(TINY).eval()
+    model._predict_graphs = _PredictGraphs()
+    model._predict_graphs.graphs["key"] = "a graph"
+    model._predict_graphs.recorded = 5
+    for other in (copy.deepcopy(model), torch.load(_saved(model, tmp_path), weights_only=False)):
+        assert not other._predict_graphs.graphs and other._predict_graphs.recorded == 0
+    fresh = PointPillars(TINY).eval()
+    fresh.predict({"points": F.pad(torch.rand(50, 4) * 4, (1, 0)), "batch_size": 1})
+    assert "_predict_graphs" not in fresh.__dict__
+
+
+def _saved(model, tmp_path):
+    path = tmp_path / "model.pt"
+    torch.save(model, path)
+    return path
 
 
 @pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
