@@ -2,14 +2,20 @@
 
     python benchmarks/bm_detector.py --device cuda --json      # GPU: dense/sparse x fp32/TF32/fp16, eager and graph
     python benchmarks/bm_detector.py --device cpu               # CPU latency (fp32)
+    python benchmarks/bm_detector.py --frame 000134.bin --calib 000134.txt   # a real KITTI scan, camera view
+    python benchmarks/bm_detector.py --vs-openpcdet .peers/openpcdet-src     # OpenPCDet's PointPillar, same run
 
 The frame: a simulated ``driving_city`` sweep cropped to KITTI's camera field of view and PointPillars'
 range (about 20k points). Stages: voxelize -> PFN -> scatter -> backbone -> head -> decode -> NMS, with
 the shipped weights when present (``lidarops/weights``), else seeded random weights with BatchNorm
 statistics from a few frames (the time does not depend on the values, except NMS on the number of boxes).
 
-* **eager**: ``model.predict(batch)`` as a user writes it (validation, voxelization with its host read,
-  every launch, post-processing with its host reads), median over many calls, CUDA events.
+* **eager**: ``model.predict(batch)`` as a user writes it, median over many calls, CUDA events. On CUDA with
+  the dense backbone that call replays a CUDA graph of the whole inference from its second call on
+  (``lidarops.models.pointpillars.PREDICT_CUDA_GRAPH``); **eager, no graph** is the same call inside
+  ``eager_predict()``: validation, voxelization with its host read, every launch, post-processing with its host
+  reads.
+* **batched predict**: ``model.predict`` on a batch of 16 distinct frames (frames per second).
 * **graph** (dense backbone, CUDA): :class:`lidarops.models.GraphedPointPillars` as a user calls it:
   the frame copied into the graph's input, one replay of padded voxelization, network, decode, score
   threshold and NMS (``postprocess_padded``), the number of boxes read back and the detections sliced.
@@ -21,9 +27,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
 import torch
+from torch.nn import functional as F
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -38,13 +46,17 @@ from lidarops.models.cuda_graph import GraphedPointPillars, precision_mode  # no
 PRECISIONS = ("fp32", "tf32", "fp16")
 
 
-def kitti_like_frame(seed: int = 0) -> torch.Tensor:
-    """A driving_city sweep in KITTI's camera field of view and the PointPillars range: (N, 4)."""
-    from lidarops.data.formats.kitti import KittiCalib, kitti_fov_mask
+def kitti_like_frame(seed: int = 0, path: str | None = None, calib: str | None = None) -> torch.Tensor:
+    """A driving_city sweep (or the KITTI velodyne scan ``path``, with its ``calib`` file) in KITTI's camera field
+    of view and the PointPillars range: (N, 4)."""
+    from lidarops.data.formats.kitti import KittiCalib, kitti_fov_mask, read_calib
     from lidarops.data.synthetic import Simulator
 
-    pts = Simulator("driving_city", seed=seed).sweep(0).points
-    keep = kitti_fov_mask(pts, KittiCalib.default())
+    if path is None:
+        pts = Simulator("driving_city", seed=seed).sweep(0).points
+    else:
+        pts = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    keep = kitti_fov_mask(pts, read_calib(calib) if calib else KittiCalib.default())
     keep &= (pts[:, 0] >= 0) & (pts[:, 0] < 69.12) & (np.abs(pts[:, 1]) < 39.68) & (pts[:, 2] >= -3) & (pts[:, 2] < 1)
     return torch.from_numpy(pts[keep])
 
@@ -104,9 +116,13 @@ def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30
     return {n: float(np.median(v[3:])) for n, v in acc.items()}
 
 
-def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS) -> list[dict]:
+def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS, frame: torch.Tensor | None = None,
+        frame_name: str = "driving_city seed 0", batched: int = 16) -> list[dict]:
+    from lidarops.models.pointpillars import eager_predict
+
     rows = []
-    frame = kitti_like_frame().to(device)
+    frame = (kitti_like_frame() if frame is None else frame).to(device)
+    many = [kitti_like_frame(seed).to(device) for seed in range(batched)] if device == "cuda" else []
     # channels_last was slower than the default layout on the H200 (docs/notes/boxes-and-detector.md)
     variants = [(mode, precision, "contiguous") for mode in modes
                 for precision in (precisions if device == "cuda" else ("fp32",))]
@@ -123,26 +139,43 @@ def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS) -> list[d
             with precision_mode(precision, device, autocast=not half):
                 return model.predict(b)
 
-        t = time_call(eager, (batch,), torch.device(device), budget_s=2.0, rotate=False)
-        kept = len(eager(batch)[0]["scores"])
-        row = {"op": "pointpillars", "backbone": mode, "precision": precision, "impl": "eager",
-               "memory_format": fmt,
-               "points": int(frame.shape[0]), "boxes": kept, **t.as_dict()}
-        if device == "cuda":
-            row["stages_ms"] = stage_times(model, batch, precision, autocast=not half)
-        rows.append(row)
+        def no_graph(b):
+            with eager_predict():
+                return eager(b)
+
+        calls = [("eager", eager)] + ([("eager, no graph", no_graph)] if device == "cuda" and mode == "dense" else [])
+        for impl, fn in calls:
+            t = time_call(fn, (batch,), torch.device(device), budget_s=2.0, rotate=False)
+            kept = len(fn(batch)[0]["scores"])
+            row = {"op": "pointpillars", "backbone": mode, "precision": precision, "impl": impl,
+                   "memory_format": fmt, "frame": frame_name, "points": int(frame.shape[0]), "boxes": kept,
+                   **t.as_dict()}
+            if device == "cuda" and impl == "eager, no graph" or (device == "cuda" and mode == "sparse"):
+                row["stages_ms"] = stage_times(model, batch, precision, autocast=not half)
+            rows.append(row)
+        if many and mode == "dense":
+            big = {"points": torch.cat([F.pad(f, (1, 0), value=float(b)) for b, f in enumerate(many)]),
+                   "batch_size": len(many)}
+            t = time_call(eager, (big,), torch.device(device), budget_s=2.0, rotate=False)
+            rows.append({"op": "pointpillars", "backbone": mode, "precision": precision,
+                         "impl": f"batched predict ({len(many)} frames)", "memory_format": fmt,
+                         "frame": f"driving_city seeds 0-{len(many) - 1}", "points": int(sum(len(f) for f in many)),
+                         "boxes": sum(len(d["scores"]) for d in eager(big)),
+                         "frames_per_s": round(len(many) * 1000.0 / t.median, 1), **t.as_dict()})
         if device == "cuda" and mode == "dense":
             # capacity = the frame's points (the padded tensors as small as they can be), and a capacity
             # a user would set for any KITTI scan (the pillar rows then reach the config's max_voxels_test)
-            for capacity in (int(frame.shape[0]), 150_000):
+            for capacity, optimize in ((int(frame.shape[0]), False), (150_000, False), (int(frame.shape[0]), True)):
                 impl = "graph" if capacity == frame.shape[0] else f"graph, capacity {capacity // 1000}k"
+                impl += ", optimize (BatchNorm folded, channels-last)" if optimize else ""
                 try:
-                    graphed = GraphedPointPillars(model, capacity=capacity, precision=precision)
+                    graphed = GraphedPointPillars(model, capacity=capacity, precision=precision, optimize=optimize)
                     t = time_call(graphed, (frame,), torch.device(device), budget_s=2.0, rotate=False)
                     got = graphed(frame)
                     same = torch.equal(got["labels"], eager(batch)[0]["labels"])
                     rows.append({"op": "pointpillars", "backbone": mode, "precision": precision, "impl": impl,
-                                 "memory_format": fmt, "points": int(frame.shape[0]), "capacity": capacity,
+                                 "memory_format": fmt, "frame": frame_name, "points": int(frame.shape[0]),
+                                 "capacity": capacity,
                                  "boxes": len(got["scores"]), "same_labels_as_eager": same, **t.as_dict()})
                 except Exception as e:  # noqa: BLE001  (reported, not blanked)
                     rows.append({"op": "pointpillars", "backbone": mode, "precision": precision, "impl": impl,
@@ -157,11 +190,28 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--json", action="store_true", help="merge results into benchmarks/results/<device>.json")
+    ap.add_argument("--frame", default=None, help="a KITTI velodyne .bin scan instead of the simulated frame")
+    ap.add_argument("--calib", default=None, help="its KITTI calib .txt (default: KITTI's usual one)")
+    ap.add_argument("--modes", default="dense,sparse")
+    ap.add_argument("--precisions", default=",".join(PRECISIONS))
+    ap.add_argument("--vs-openpcdet", default=None, metavar="SRC",
+                    help="also time OpenPCDet's PointPillar (an OpenPCDet tree with its ops built) on the same frame "
+                         "and weights (benchmarks/openpcdet_peer.py)")
     args = ap.parse_args(argv)
     if args.device == "cuda" and not (torch.cuda.is_available() and extension.cuda_available()):
         print("no CUDA device or lidarops without CUDA kernels")
         return 1
-    rows = run(args.device)
+    frame = kitti_like_frame(path=args.frame, calib=args.calib) if args.frame else None
+    name = os.path.basename(args.frame) if args.frame else "driving_city seed 0"
+    rows = run(args.device, tuple(args.modes.split(",")), tuple(args.precisions.split(",")), frame, name)
+    if args.vs_openpcdet:
+        from benchmarks.openpcdet_peer import openpcdet_rows
+        from lidarops.models import weights
+
+        for tf32 in (True, False):
+            for r in openpcdet_rows(Path(args.vs_openpcdet), kitti_like_frame() if frame is None else frame,
+                                    Path(weights.path("pointpillars_synth")), tf32=tf32):
+                rows.append({"frame": name, **r})
     table = []
     for r in rows:
         stages = r.get("stages_ms")
@@ -169,7 +219,9 @@ def main(argv=None) -> int:
         if stages:
             total = sum(stages.values())
             share = "  ".join(f"{k} {100 * v / total:.0f}%" for k, v in stages.items())
-        table.append([r["backbone"], r["precision"], r.get("memory_format", ""), r["impl"], fmt_ms(r.get("median_ms")), r.get("boxes", ""),
+        table.append([r.get("backbone", ""), r.get("precision", ""), r.get("memory_format", ""),
+                      r.get("impl", "") + (f" {r['stage']}" if r.get("stage") else ""),
+                      fmt_ms(r.get("median_ms")), r.get("boxes", ""),
                       share if r["status"] == "ok" else r["status"]])
     print_table(f"PointPillars end to end on {env_meta(args.device).get('device', args.device)}",
                 ["backbone", "precision", "layout", "call", "median ms", "boxes", "GPU time by stage / status"],
