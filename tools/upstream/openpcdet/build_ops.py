@@ -1,11 +1,12 @@
 """Build OpenPCDet's compiled ops in place, only the ones asked for (its setup.py builds all of them).
 
-    python tools/upstream/openpcdet/build_ops.py .peers/OpenPCDet [OP ...]     (default: all of them)
+    python tools/upstream/openpcdet/build_ops.py .peers/OpenPCDet [OP ...] [--missing]    (default: all of them)
 
 Compiles each op's sources (the lists of OpenPCDet's setup.py) with ``torch.utils.cpp_extension.load``
 (ninja; ``TORCH_CUDA_ARCH_LIST`` picks the GPU) and puts the library where OpenPCDet imports it
 (``pcdet/ops/<op>/<name>.so``). Writes ``pcdet/version.py`` as its setup.py does (the commit from git, or
-from a ``COMMIT`` file beside ``pcdet/`` in a copy made with ``git archive``). Needs CUDA.
+from a ``COMMIT`` file beside ``pcdet/`` in a copy made with ``git archive``). ``--missing``: only the ops whose
+library is not there yet (``peer_setup.sh`` runs it so, to skip what an earlier call built). Needs CUDA.
 """
 from __future__ import annotations
 
@@ -51,6 +52,8 @@ def build(src: Path, name: str) -> str:
 
 
 def main(argv: list[str]) -> int:
+    missing = "--missing" in argv
+    argv = [a for a in argv if a != "--missing"]
     if not argv:
         print(__doc__)
         return 2
@@ -59,18 +62,23 @@ def main(argv: list[str]) -> int:
     unknown = [n for n in names if n not in OPS]
     if unknown:
         raise SystemExit(f"unknown ops {unknown}; known: {list(OPS)}")
+    if missing:
+        names = [n for n in names if not (src / OPS[n][0] / f"{OPS[n][1]}.so").is_file()]
 
-    commit = subprocess.run(["git", "-C", str(src), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    short = commit.stdout.strip() if commit.returncode == 0 else ""
-    if not short and (src / "COMMIT").is_file():  # a copy without .git (git archive) records its commit here
+    short = ""
+    if (src / "COMMIT").is_file():  # a copy without .git (git archive) records its commit here
         short = (src / "COMMIT").read_text().strip()[:7]
+    elif (src / ".git").exists():  # not git's answer inside another checkout (.peers/ in lidarops')
+        commit = subprocess.run(["git", "-C", str(src), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+        short = commit.stdout.strip() if commit.returncode == 0 else ""
     version = "0.6.0+" + (short or "0000000")
     (src / "pcdet/version.py").write_text(f'__version__ = "{version}"\n')
     t0 = time.time()
-    with ProcessPoolExecutor(len(names)) as pool:  # each op compiles with its own ninja, side by side
-        for line in pool.map(build, [src] * len(names), names):
-            print(line)
-    print(f"{len(names)} ops in {time.time() - t0:.0f} s")
+    if names:
+        with ProcessPoolExecutor(len(names)) as pool:  # each op compiles with its own ninja, side by side
+            for line in pool.map(build, [src] * len(names), names):
+                print(line)
+    print(f"{len(names)} ops built in {time.time() - t0:.0f} s" if names else "every op built already")
     print(f"OpenPCDet {version} at {src}")
     return 0
 

@@ -23,15 +23,9 @@ stamp "lidarops built"
 if [ -n "${SAVE_SO:-}" ]; then  # bring the CUDA build back for later sessions (one file <= 16 MiB)
   tar cJf "$OUT/devbuild.tar.xz" lidarops/_C*.so lidarops/_build_info.json && ls -la "$OUT/devbuild.tar.xz"
 fi
-mkdir -p /tmp/site && tar xJf .peers/spconv_site.tar.xz -C /tmp/site
-python3 -m pip install -q --no-index --no-deps --target /tmp/site .peers/wheels/*.whl
-python3 -m pip install -q --no-index --no-deps --no-build-isolation --target /tmp/site .peers/wheels/SharedArray-*.tar.gz
-export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
-python3 -c "import spconv.pytorch, easydict, SharedArray, av2, kornia, torchvision; print('OpenPCDet needs: ok')"
-if [ -z "${NO_OPS_BUILD:-}" ]; then
-  python3 $HERE/build_ops.py "$SRC" || exit 1
-  stamp "OpenPCDet ops built"
-fi
+peers=$(bash $HERE/peer_setup.sh) || exit 1  # its Python needs into /tmp/site, its ops built (unless NO_OPS_BUILD)
+eval "$peers"
+stamp "OpenPCDet ready${NO_OPS_BUILD:+ (its ops not built)}"
 
 if [ "$what" = checks ] || [ "$what" = all ]; then
   python3 -X faulthandler $HERE/ops_parity.py "$SRC" --out "$OUT/ops_parity.json"

@@ -19,6 +19,9 @@ mode) prepares each frame; both models then get the same points. Compared per fr
 and order), the PFN output, the head outputs (class logits, box residuals, direction logits) and the
 final boxes (count, order, labels, values). Writes a JSON report (``--out``) and prints a summary; exit
 status 1 when the final boxes differ.
+
+Its helpers (:func:`import_openpcdet`, :func:`read_config`, :func:`scan_dataset`, :func:`load_strict`) build
+OpenPCDet's side for other scripts too: ``benchmarks/openpcdet_peer.py`` times what they build.
 """
 from __future__ import annotations
 
@@ -59,13 +62,15 @@ def parse() -> argparse.Namespace:
 
 
 def import_openpcdet(src: Path, faces: bool):
+    """OpenPCDet's modules from the checkout ``src``: ``pcdet``, its ``cfg`` and ``cfg_from_yaml_file``,
+    ``DatasetTemplate``, ``build_network`` and ``iou3d_nms_utils``. ``faces``: lidarops.compat.pcdet serves
+    its compiled ops (installed before ``pcdet`` is imported)."""
+    if str(src) not in sys.path:
+        sys.path.insert(0, str(src))
     if faces:
         import lidarops.compat.pcdet as pcdet_faces
 
-        sys.path.insert(0, str(src))
         pcdet_faces.install()
-    else:
-        sys.path.insert(0, str(src))
     import pcdet
     from pcdet.config import cfg, cfg_from_yaml_file
     from pcdet.datasets import DatasetTemplate
@@ -73,6 +78,51 @@ def import_openpcdet(src: Path, faces: bool):
     from pcdet.ops.iou3d_nms import iou3d_nms_utils
 
     return pcdet, cfg, cfg_from_yaml_file, DatasetTemplate, build_network, iou3d_nms_utils
+
+
+def read_config(src: Path, cfg, cfg_from_yaml_file, cfg_path: Path | None = None,
+                score_thresh: float | None = None) -> Path:
+    """Reads ``cfg_path`` (default: OpenPCDet's own ``tools/cfgs/kitti_models/pointpillar.yaml``) into OpenPCDet's
+    global ``cfg``, optionally with another ``SCORE_THRESH``; returns the resolved path."""
+    cfg_path = (cfg_path or src / "tools/cfgs/kitti_models/pointpillar.yaml").resolve()
+    cwd = os.getcwd()
+    os.chdir(src / "tools")  # its configs name their base configs relative to tools/
+    try:
+        cfg_from_yaml_file(str(cfg_path), cfg)
+    finally:
+        os.chdir(cwd)
+    if score_thresh is not None:
+        cfg.MODEL.POST_PROCESSING.SCORE_THRESH = score_thresh
+    return cfg_path
+
+
+def scan_dataset(DatasetTemplate, cfg, scans: list, root_path: Path | None = None, logger=None):
+    """OpenPCDet's test-mode dataset over ``scans`` (the shape of its ``tools/demo.py`` dataset): item ``i`` is
+    scan ``i`` (a KITTI ``.bin`` path, or an (N, 4) float32 array) through its ``prepare_data``: the point
+    feature encoder, the range mask and spconv's voxel generator."""
+
+    class Scans(DatasetTemplate):
+        def __init__(self):
+            super().__init__(dataset_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES, training=False,
+                             root_path=root_path, logger=logger)
+
+        def __len__(self):
+            return len(scans)
+
+        def __getitem__(self, i):
+            scan = scans[i]
+            points = scan if isinstance(scan, np.ndarray) else np.fromfile(scan, dtype=np.float32).reshape(-1, 4)
+            return self.prepare_data(data_dict={"points": points, "frame_id": i})
+
+    return Scans()
+
+
+def load_strict(model: torch.nn.Module, ckpt_path: Path) -> dict:
+    """Loads a checkpoint's ``model_state`` (lidarops' or OpenPCDet's) into OpenPCDet's model with
+    ``strict=True``: every tensor, or an error naming the keys. Returns the state."""
+    state = torch.load(ckpt_path, map_location="cpu", weights_only=False)["model_state"]
+    model.load_state_dict(state, strict=True)
+    return state
 
 
 def scan_files(frames: Path, limit: int) -> list[Path]:
@@ -131,7 +181,7 @@ def compare_boxes(ours: dict, theirs: dict, tol: float) -> dict:
 
 def main() -> int:
     args = parse()
-    for name in ("checkpoint", "pcdet_checkpoint", "cfg", "out", "dump"):  # before the chdir below
+    for name in ("checkpoint", "pcdet_checkpoint", "cfg", "out", "dump"):
         if getattr(args, name) is not None:
             setattr(args, name, getattr(args, name).resolve())
     src = args.openpcdet.resolve()
@@ -139,28 +189,11 @@ def main() -> int:
         torch.backends.cudnn.allow_tf32 = False
         torch.backends.cuda.matmul.allow_tf32 = False
     pcdet, cfg, cfg_from_yaml_file, DatasetTemplate, build_network, iou3d_nms_utils = import_openpcdet(src, args.faces)
-    cfg_path = (args.cfg or src / "tools/cfgs/kitti_models/pointpillar.yaml").resolve()
     frames = scan_files(args.frames.resolve(), args.max_frames)
-    os.chdir(src / "tools")  # OpenPCDet's configs name their base configs relative to tools/
-    cfg_from_yaml_file(str(cfg_path), cfg)
-    if args.score_thresh is not None:
-        cfg.MODEL.POST_PROCESSING.SCORE_THRESH = args.score_thresh
+    cfg_path = read_config(src, cfg, cfg_from_yaml_file, args.cfg, args.score_thresh)
     logger = logging.getLogger("side_by_side")
     logging.basicConfig(level=logging.WARNING)
-
-    class Scans(DatasetTemplate):  # the shape of OpenPCDet's tools/demo.py dataset: scans, test mode
-        def __init__(self):
-            super().__init__(dataset_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES, training=False,
-                             root_path=frames[0].parent, logger=logger)
-
-        def __len__(self):
-            return len(frames)
-
-        def __getitem__(self, i):
-            points = np.fromfile(frames[i], dtype=np.float32).reshape(-1, 4)
-            return self.prepare_data(data_dict={"points": points, "frame_id": i})
-
-    dataset = Scans()
+    dataset = scan_dataset(DatasetTemplate, cfg, frames, frames[0].parent, logger)
     model = build_network(model_cfg=cfg.MODEL, num_class=len(cfg.CLASS_NAMES), dataset=dataset)
 
     from lidarops.models import PointPillars
@@ -173,8 +206,7 @@ def main() -> int:
 
         ckpt_path = (args.checkpoint or weights.path()).resolve()
         ours = PointPillars.from_checkpoint(ckpt_path)
-    state = torch.load(ckpt_path, map_location="cpu", weights_only=False)["model_state"]
-    model.load_state_dict(state, strict=True)  # every tensor, or an error naming the keys
+    state = load_strict(model, ckpt_path)
     n_params = sum(p.numel() for p in model.parameters())
     if args.score_thresh is not None:
         ours.config.score_thresh = args.score_thresh
