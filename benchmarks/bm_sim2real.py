@@ -335,7 +335,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="KITTI folder of real frames (ImageSets/val.txt, training/velodyne, calib, label_2)")
     p.add_argument("--checkpoint", nargs="+", default=["pointpillars_synth", "pointpillars_synth_real"],
                    help="detectors: files or shipped names")
-    p.add_argument("--sim-frames", type=int, default=40)
+    p.add_argument("--sim-frames", type=int, default=40, help="simulated frames per profile (0: the real-scan "
+                                                                   "figures alone)")
     p.add_argument("--realism", nargs="*", default=[None], help="the simulator's realism profiles to compare "
                                                                    "(none: as cast; kitti; kitti_dr)")
     p.add_argument("--plot", type=Path, default=None)
@@ -367,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     rstats = data_stats(real)
     rows.append({"op": "sim2real", "case": "stats:real_kitti", "frames": len(real), **rstats["row"]})
     sims = {}
-    for profile in [None if r in (None, "none") else r for r in args.realism]:
+    for profile in [None if r in (None, "none") else r for r in args.realism] if args.sim_frames > 0 else []:
         sims[profile] = data_stats(sim_frames(args.sim_frames, profile))
         rows.append({"op": "sim2real", "case": "stats:simulated_driving_city" + (f":{profile}" if profile else ""),
                      "frames": args.sim_frames, "realism": profile, **sims[profile]["row"]})
