@@ -322,7 +322,8 @@ class _GraphedFrames:
         self.model, self.capacity, self.precision, self.batch_size = model.eval(), capacity, precision, batch_size
         self.max_pillars, self.optimize = max_pillars, optimize
         self.device, self.dtype = param.device, param.dtype
-        graphed = inference_copy(model) if optimize else model
+        # kept: the graph reads the copy's weights at every replay
+        self._graphed_model = graphed = inference_copy(model) if optimize else model
         self._features = c = floor.num_point_features
         # rows past the frame: outside the point range, so voxelization leaves them out
         self._pad = torch.zeros(c, device=self.device, dtype=self.dtype)

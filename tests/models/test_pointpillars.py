@@ -774,6 +774,34 @@ def _saved(model, tmp_path):
 
 @pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
                     reason="needs a GPU and lidarops built with CUDA kernels")
+def test_optimized_graph_keeps_the_copy_it_recorded():
+    """optimize=True records a BatchNorm-folded copy of the model: its weights must live as long as the graph, or
+    later replays read memory that other tensors took."""
+    import gc
+
+    from lidarops.models.cuda_graph import GraphedPointPillars
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1}).cuda().eval()
+    with torch.no_grad():
+        model.dense_head.conv_cls.bias.zero_()
+    g = torch.Generator().manual_seed(7)
+    frame = (torch.rand(600, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0])).cuda()
+    graphed = GraphedPointPillars(model, capacity=1000, optimize=True)
+    gc.collect()
+    junk = [torch.full((1 << 16,), float("nan"), device="cuda") for _ in range(64)]  # noqa: F841
+    det = graphed(frame)
+    from lidarops.models.pointpillars import eager_predict
+
+    with eager_predict():
+        want = model.predict({"points": F.pad(frame, (1, 0)), "batch_size": 1})[0]
+    assert len(want["labels"]) > 0, "the case must keep boxes"
+    assert det["labels"].tolist() == want["labels"].tolist()
+    assert torch.allclose(det["scores"], want["scores"], atol=1e-3)
+
+
+@pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
+                    reason="needs a GPU and lidarops built with CUDA kernels")
 def test_graph_records_while_another_thread_pins_memory():
     """The index build records its graph while its DataLoader's pin-memory thread pins batches: a capture
     in torch's default (global) mode is invalidated by that thread's CUDA calls; the graph must still be
