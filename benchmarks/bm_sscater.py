@@ -349,9 +349,11 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     """A trained PointPillars streamed (``SSCATeRPointPillars.from_detector``): each 10 ms step's boxes by
     SSCATeR (stream push, the detector's pillar net on the changed pillars, the recycled backbone, the head at
     the changed output sites, NMS) against the detector on the same window, stage by stage (pillarize + pillar
-    net + scatter, backbone, head + NMS) and as ``predict``; every ``every`` steps, with the boxes compared."""
+    net + scatter, backbone, head + NMS) and as ``predict`` (on CUDA replayed as one CUDA graph, and eager inside
+    ``eager_predict()``); every ``every`` steps, with the boxes compared."""
     from lidarops.data.synthetic import Simulator
     from lidarops.models import load_model, weights
+    from lidarops.models.pointpillars import eager_predict
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
     path = _checkpoint_path(checkpoint)
@@ -382,9 +384,14 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
         with torch.no_grad():
             _sync(device)
             t0 = time.perf_counter()
-            want = det.predict(batch)[0]
+            want = det.predict(batch)[0]  # on CUDA from the second check a replayed CUDA graph, as users get it
+            _sync(device)
+            t_predict = 1e3 * (time.perf_counter() - t0)
+            with eager_predict():
+                det.predict(batch)
             _sync(device)
             t1 = time.perf_counter()
+            t_eager = 1e3 * (t1 - t0) - t_predict
             vox = det.voxelize(batch["points"], 1)
             bev_in = det.map_to_bev(det.vfe(*vox), vox[2], 1)
             _sync(device)
@@ -395,7 +402,8 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
             det.postprocess(det.dense_head(bev))
             _sync(device)
             t4 = time.perf_counter()
-        full.append({"predict": 1e3 * (t1 - t0), "pillars_pfn": 1e3 * (t2 - t1), "backbone": 1e3 * (t3 - t2),
+        full.append({"predict": t_predict, "predict_eager": t_eager,
+                     "pillars_pfn": 1e3 * (t2 - t1), "backbone": 1e3 * (t3 - t2),
                      "head_nms": 1e3 * (t4 - t3)})
         same.append(boxes["labels"].tolist() == want["labels"].tolist()
                     and bool(torch.allclose(boxes["scores"], want["scores"], rtol=1e-4, atol=1e-4)))
@@ -409,6 +417,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     for name, xs in (("sscater_step", [r["step"] for r in ours]), ("sscater_backbone", [r["backbone"] for r in ours]),
                      ("sscater_pfn", [r["pfn"] for r in ours]), ("sscater_head_nms", [r["head_nms"] for r in ours]),
                      ("detector_predict", [r["predict"] for r in full]),
+                     ("detector_predict_eager", [r["predict_eager"] for r in full]),
                      ("detector_backbone", [r["backbone"] for r in full]),
                      ("detector_pillars_pfn", [r["pillars_pfn"] for r in full]),
                      ("detector_head_nms", [r["head_nms"] for r in full])):
@@ -425,6 +434,8 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
                                             "changed")} for r in sorted(ours, key=lambda r: -r["step"])[:5]]
     for what in ("mean_ms", "median_ms"):
         summary[f"step_speedup_{what[:-3]}"] = summary["detector_predict"][what] / summary["sscater_step"][what]
+        summary[f"step_speedup_eager_{what[:-3]}"] = \
+            summary["detector_predict_eager"][what] / summary["sscater_step"][what]
         summary[f"backbone_speedup_{what[:-3]}"] = summary["detector_backbone"][what] / summary["sscater_backbone"][what]
     tag = "" if channel_sparse is None else f"/channel_sparse_{channel_sparse:g}"
     tag += "/sparse_refresh" if sparse_refresh else ""
@@ -437,7 +448,8 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
                 ["", "mean ms", "median ms", "p95 ms", "max ms"],
                 [[name.replace("_", " "), fmt_ms(summary[name]["mean_ms"]), fmt_ms(summary[name]["median_ms"]),
                   fmt_ms(summary[name]["p95_ms"]), fmt_ms(summary[name]["max_ms"])] for name in
-                 ("sscater_step", "detector_predict", "sscater_backbone", "detector_backbone", "sscater_pfn",
+                 ("sscater_step", "detector_predict", "detector_predict_eager", "sscater_backbone", "detector_backbone",
+                  "sscater_pfn",
                   "detector_pillars_pfn", "sscater_head_nms", "detector_head_nms", "sscater_backbone_refresh",
                   "sscater_backbone_recycled") if name in summary], right=(1, 2, 3, 4))
     print(f"speed-up by the mean step {summary['step_speedup_mean']:.2f}x (median {summary['step_speedup_median']:.2f}x); "
