@@ -28,7 +28,9 @@ the same camera view): intensity of all points and of points on cars, the share 
 height, the cars' halo (cars within 30 m: points within 0.5 m outside the box, more than 0.3 m above its
 bottom, per point inside it), the share of pedestrians with another within 1.5 m (groups), the share of the
 returns at 15-60 m in the 64 densest 0.05-degree bins of apparent elevation (``beam_line_share``: 1 when every beam
-starts at the sensor's origin), and the share of a pedestrian's points (10 or more) below half its height.
+starts at the sensor's origin), the share of a pedestrian's points (10 or more) below half its height, and the far
+clutter: clusters of 3-30 non-ground returns at 40-75 m outside every labelled box, per frame, with their median
+height and footprint and the share on the road (|y| < 10.5 m), where far false positives stand.
 ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
 """
 from __future__ import annotations
@@ -51,6 +53,7 @@ FP_SCORES = (0.3, 0.5)
 BANDS = ("bottom", "middle", "top")
 LINES_RANGE, LINES_BINS = (15.0, 60.0), np.arange(-25.0, 3.0, 0.05)  # beam_line_share: the returns and the bins
 HALO_RANGE, HALO_MARGIN = 30.0, 0.5  # the cars whose halo is counted (m), and its width around the box (m)
+FAR_RANGE, FAR_POINTS = (40.0, 75.0), (3, 30)  # far_clusters: the range band (m) and the clusters' sizes counted
 
 
 def greedy_match(iou: np.ndarray, scores: np.ndarray, thresh: float) -> np.ndarray:
@@ -252,9 +255,51 @@ def beam_line_share(points: np.ndarray) -> float | None:
     return float(np.sort(h)[::-1][:64].sum() / max(h.sum(), 1))
 
 
+def far_clusters(points: np.ndarray, boxes: np.ndarray, lo: float = FAR_RANGE[0], hi: float = FAR_RANGE[1],
+                 cell: float = 4.0, above: float = 0.25, link: float = 0.6) -> np.ndarray:
+    """The clusters of non-ground returns at ``lo``-``hi`` m outside every labelled box (grown by 0.3 m a side):
+    returns more than ``above`` over their ``cell``-metre cell's ground (its 5th percentile of z), linked within
+    ``link`` m. Rows of (points, height, footprint (the larger extent in x or y), |y| of the centre)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from lidarops import points_in_boxes
+
+    xyz = np.asarray(points[:, :3], np.float64)
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    p = xyz[(r > lo - 2 * cell) & (r < hi + 2 * cell)]
+    if not len(p):
+        return np.zeros((0, 4))
+    key = np.floor(p[:, :2] / cell).astype(np.int64)
+    _, cell_of = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_inverse=True)
+    ground = np.array([np.percentile(p[cell_of == c, 2], 5) for c in range(cell_of.max() + 1)])
+    rp = np.hypot(p[:, 0], p[:, 1])
+    q = p[(rp >= lo) & (rp < hi) & (p[:, 2] > ground[cell_of] + above)]
+    if len(boxes) and len(q):
+        b = torch.as_tensor(np.asarray(boxes, np.float64)[:, :7].copy())
+        b[:, 3:6] += 0.6
+        q = q[points_in_boxes(torch.as_tensor(q), b).numpy() < 0]
+    if len(q) < 2:
+        return np.zeros((0, 4))
+    pairs = cKDTree(q).query_pairs(link, output_type="ndarray")
+    n, label = connected_components(coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(q),) * 2),
+                                    directed=False)
+    out = []
+    for c in range(n):
+        s_ = q[label == c]
+        out.append((len(s_), np.ptp(s_[:, 2]), np.ptp(s_[:, :2], axis=0).max(), abs(s_[:, 1].mean())))
+    return np.asarray(out, np.float64)
+
+
 def data_stats(frames) -> dict:
     allint, cars, peds, lines, elev, legs = [], [], np.zeros(2, np.int64), [], [], []
+    far, far_counts = [], []
     for _, points, boxes, names, *_ in frames:
+        clusters = far_clusters(points, boxes)
+        small = clusters[(clusters[:, 0] >= FAR_POINTS[0]) & (clusters[:, 0] <= FAR_POINTS[1])]
+        far.append(small)
+        far_counts.append(len(small))
         allint.append(points[:, 3])
         cars.append(object_stats(points, boxes, names))
         peds += grouped_pedestrians(boxes, names)
@@ -264,6 +309,7 @@ def data_stats(frames) -> dict:
             lines.append(share)
         elev.append(elevations(points))
     inten = np.concatenate(allint)
+    far = np.concatenate(far) if far else np.zeros((0, 4))
     car_int = np.concatenate([c["intensity"] for c in cars])
     bands = np.concatenate([c["bands"] for c in cars])
     inside, halo = (sum(c["halo"][k] for c in cars) for k in (0, 1))
@@ -280,7 +326,11 @@ def data_stats(frames) -> dict:
                     "pedestrians": int(peds[0]),
                     "pedestrians_in_groups_share": round(float(peds[1] / peds[0]), 3) if peds[0] else None,
                     "beam_line_share": round(float(np.median(lines)), 3) if lines else None,
-                    "pedestrian_lower_half_share": round(float(np.mean(legs)), 3) if legs else None}}
+                    "pedestrian_lower_half_share": round(float(np.mean(legs)), 3) if legs else None,
+                    "far_clusters_per_frame": round(float(np.mean(far_counts)), 1) if far_counts else None,
+                    "far_cluster_height": round(float(np.median(far[:, 1])), 2) if len(far) else None,
+                    "far_cluster_footprint": round(float(np.median(far[:, 2])), 2) if len(far) else None,
+                    "far_cluster_share_on_road": round(float((far[:, 3] < 10.5).mean()), 2) if len(far) else None}}
 
 
 def _sim_name(profile: str | None) -> str:
@@ -374,7 +424,8 @@ def main(argv: list[str] | None = None) -> int:
                      "frames": args.sim_frames, "realism": profile, **sims[profile]["row"]})
     keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
             "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share", "pedestrians_in_groups_share",
-            "beam_line_share", "pedestrian_lower_half_share"]
+            "beam_line_share", "pedestrian_lower_half_share", "far_clusters_per_frame", "far_cluster_height",
+            "far_cluster_footprint", "far_cluster_share_on_road"]
     print_table("real against simulated", keys, [[r.get(k, "") for k in keys] for r in rows[-1 - len(sims):]],
                 right=range(1, len(keys)))
     if args.plot:

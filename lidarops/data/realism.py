@@ -65,6 +65,9 @@ class Realism:
         street_clutter (float): density of the clutter added to driving scenes: street furniture and shrubs in
             ``driving_city``, shrubs, saplings and posts on ``driving_highway``'s verges (the scenario option
             ``street_clutter``; 1 about one piece per 6 m of pavement; 0 none).
+        low_clutter (float): density of the low clutter added to driving scenes: planters, low walls, low bushes,
+            stones and verge berms, 0.2-1 m tall, beside the road (the scenario option ``low_clutter``; 1 about one
+            piece per 10 m of each roadside zone; 0 none).
         mixed_pixels (float): probability that a return at a depth edge is reported somewhere between the two
             surfaces its beam straddles (a mixed pixel): the return's neighbour on the same beam, one firing before
             or after, lies at least ``mixed_gap`` farther; the range moves a uniform fraction of the way to it.
@@ -111,6 +114,7 @@ class Realism:
     weak_from: float = 0.75
     quantum: float = 0.01
     street_clutter: float = 1.0
+    low_clutter: float = 0.0
     mixed_pixels: float = 0.0
     mixed_gap: float = 1.0
     mount_height_jitter: float = 0.0
@@ -131,6 +135,7 @@ class Realism:
         real(self.beam_gain_std, "beam_gain_std", 0, 1)
         real(self.quantum, "quantum", 0, 0.5)
         real(self.street_clutter, "street_clutter", 0, 10)
+        real(self.low_clutter, "low_clutter", 0, 10)
         real(self.mixed_pixels, "mixed_pixels", 0, 1)
         real(self.mixed_gap, "mixed_gap", 0.05, 100, unit=" m")
         real(self.mount_height_jitter, "mount_height_jitter", 0, 0.5, unit=" m")
@@ -234,14 +239,15 @@ class Realism:
 
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans) and ``kitti_dr`` (the same with
 #: mixed pixels at depth edges, pedestrians in groups as often as in the real scans, vehicle labels as tight as
-#: KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds and hair, and the domain
+#: KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds and hair, low clutter
+#: beside the road, and the domain
 #: randomisation of the sensor's height, beams, dropout, range noise and intensity scale, for what the real scans
 #: leave uncertain).
 REALISM_PRESETS = {"kitti": Realism(),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
                                        pedestrian_groups=0.3, label_tightness=0.07, beam_choices=(32, 64, 64, 128),
                                        dropout_max=0.2, range_noise_max=0.05, laser_offsets=True,
-                                       pedestrian_build=1.0, hair_dropout=0.4)}
+                                       pedestrian_build=1.0, hair_dropout=0.4, low_clutter=2.0)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

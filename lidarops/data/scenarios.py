@@ -33,7 +33,8 @@ from lidarops.data.scene import (
 
 __all__ = ["SCENARIOS", "CLUTTERED_SCENARIOS", "SENSOR_HEIGHT", "MAX_OBJECTS", "build_scenario", "sample_object_counts"]
 
-#: The scenarios that take the option ``street_clutter`` (roadside clutter a detector must learn to reject).
+#: The scenarios that take the options ``street_clutter`` and ``low_clutter`` (roadside clutter a detector must learn
+#: to reject).
 CLUTTERED_SCENARIOS: tuple[str, ...] = ("driving_city", "driving_highway")
 #: the driving scenarios' default sensor height above the ground (m; their option ``sensor_height``)
 SENSOR_HEIGHT = 1.73
@@ -424,6 +425,48 @@ def _roadside_clutter(ground: Ground, seed: int, density: float, k: int, x0: flo
     return b.build()
 
 
+def _low_clutter(scenario: str):
+    """A driving tile's low clutter (the scenario option ``low_clutter``): planters, low walls, low bushes, stones and
+    (on the highway) grassy berms, 0.2-1 m tall and up to a few metres wide, where the real scans' far returns off
+    the road stand (at 40-75 m most real non-ground clusters are that low and wide; the street clutter's are posts).
+    Clear of every labelled lane, as the street clutter; a random stream of its own."""
+    # zones (y from, y to) clear of the lanes: the city's kerb strip and the walkway's outer edge before the facades,
+    # the highway's verges
+    zones = {"driving_city": ((-15.8, -14.6), (-11.2, -10.8), (10.8, 11.2), (14.6, 15.8)),
+             "driving_highway": ((-17.0, -13.5), (14.3, 15.7), (16.4, 19.5))}[scenario]
+
+    def build(ground: Ground, seed: int, density: float, k: int, x0: float, x1: float) -> StaticPrimitives:
+        rng = _rng(seed, scenario, "low_clutter", k)
+        b = _StaticBuilder(ground)
+        for y_lo, y_hi in zones:
+            width = y_hi - y_lo
+            for x in np.sort(rng.uniform(x0, x1, rng.poisson(density * (x1 - x0) / 10.0 * min(width, 2.0)))):
+                y = rng.uniform(y_lo, y_hi)
+                room = max(min(y - y_lo, y_hi - y), 0.05)  # to the zone's edges: nothing reaches a lane
+                kind = rng.random()
+                g = float(ground.height(np.array([x]), np.array([y]))[0])
+                if kind < 0.3:  # a low bush: a few dense, weakly returning blobs near the ground
+                    _shrub(b, rng, ground, x, y, rng.uniform(0.25, 0.6), room)
+                elif kind < 0.5:  # a stone or a heap: one solid blob, half sunk
+                    r = rng.uniform(0.2, 0.6)
+                    b.ellipsoid(x, y, g, r * rng.uniform(1.0, 2.0), min(r, room), r, refl=rng.uniform(0.2, 0.5),
+                                mean_free_path=0.02)
+                elif kind < 0.75 or scenario != "driving_city":
+                    if scenario == "driving_city":  # a planter: a low box across a metre or two
+                        b.box_on_ground(x, y, rng.uniform(0.6, 2.0), min(rng.uniform(0.4, 1.0), 2 * room),
+                                        rng.uniform(0.3, 0.8), heading=rng.uniform(-0.1, 0.1),
+                                        refl=rng.uniform(0.15, 0.45), bury=0.1)
+                    else:  # a grassy berm along the verge: long, low, rough
+                        b.ellipsoid(x, y, g, rng.uniform(2.0, 6.0), min(rng.uniform(0.5, 1.5), room),
+                                    rng.uniform(0.3, 0.7), refl=rng.uniform(0.3, 0.5), mean_free_path=0.1)
+                else:  # a low wall or a fence segment along the walkway
+                    b.box_on_ground(x, y, rng.uniform(1.5, 6.0), min(0.25, 2 * room), rng.uniform(0.4, 1.0),
+                                    refl=rng.uniform(0.2, 0.5), bury=0.1)
+        return b.build()
+
+    return build
+
+
 def _cluttered(tile_fn, clutter, ground: Ground, seed: int, density: float, tile_length: float):
     """``tile_fn`` with each tile's ``clutter`` added (``density`` 0: the tiles as they are)."""
     if density <= 0:
@@ -442,9 +485,11 @@ def _sensor_height(value) -> float:
 
 
 def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
-                  sensor_height: float = SENSOR_HEIGHT, pedestrian_groups: float = 0.0, **unused) -> Scenario:
+                  sensor_height: float = SENSOR_HEIGHT, pedestrian_groups: float = 0.0, low_clutter: float = 0.0,
+                  **unused) -> Scenario:
     _no_unused(unused, "driving_city")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
+    low_clutter = real(low_clutter, "low_clutter", 0, 10)
     pedestrian_groups = real(pedestrian_groups, "pedestrian_groups", 0, 1)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_city", "scene")
@@ -488,7 +533,8 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
     objects, labels = placed.build()
     tile_length = 40.0
     return Scenario("driving_city", seed, "hdl64", ground, ego, objects, labels, 80.0, tile_length,
-                    _cluttered(_city_tile(ground, tile_length), _street_clutter, ground, seed, street_clutter,
+                    _cluttered(_cluttered(_city_tile(ground, tile_length), _street_clutter, ground, seed, street_clutter,
+                                          tile_length), _low_clutter("driving_city"), ground, seed, low_clutter,
                                tile_length), done)
 
 
@@ -560,9 +606,10 @@ def _highway_tile(ground: Ground, tile_length: float) -> Callable[[int, np.rando
 
 
 def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
-                     sensor_height: float = SENSOR_HEIGHT, **unused) -> Scenario:
+                     sensor_height: float = SENSOR_HEIGHT, low_clutter: float = 0.0, **unused) -> Scenario:
     _no_unused(unused, "driving_highway")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
+    low_clutter = real(low_clutter, "low_clutter", 0, 10)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_highway", "scene")
     ground = Ground.random(rng, max_slope=0.02, roughness=0.02, material=_highway_material)
@@ -592,8 +639,9 @@ def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = No
     objects, labels = placed.build()
     tile_length = 50.0
     return Scenario("driving_highway", seed, "hdl64", ground, ego, objects, labels, 100.0, tile_length,
-                    _cluttered(_highway_tile(ground, tile_length), _roadside_clutter, ground, seed, street_clutter,
-                               tile_length), done)
+                    _cluttered(_cluttered(_highway_tile(ground, tile_length), _roadside_clutter, ground, seed,
+                                          street_clutter, tile_length), _low_clutter("driving_highway"), ground, seed,
+                               low_clutter, tile_length), done)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -749,7 +797,8 @@ def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> S
         name (str): one of :data:`SCENARIOS`.
         seed (int): random seed.
         object_counts: see :func:`sample_object_counts`.
-        **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``sensor_height``;
+        **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``low_clutter``,
+            ``sensor_height``;
             ``driving_city``: ``pedestrian_groups``).
 
     Returns:

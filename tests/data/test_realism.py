@@ -350,6 +350,43 @@ def test_street_clutter_adds_furniture_and_keeps_clear_of_labelled_boxes():
         Simulator("drone_bridge", seed=SEED, street_clutter=1.0)
 
 
+@pytest.mark.parametrize("scenario", ["driving_city", "driving_highway"])
+def test_low_clutter_adds_low_wide_objects_clear_of_labelled_boxes(scenario):
+    """The low clutter (planters, low walls, bushes, stones, berms): more non-ground returns below 1.2 m above the
+    ground beside the road, the same frame for the same seed, none inside labelled boxes, the scene as it was at
+    density 0, on in kitti_dr only, and a bad density named."""
+    import torch
+
+    from lidarops import points_in_boxes
+
+    plain = Simulator(scenario, seed=SEED, street_clutter=1.0).sweep(0)
+    np.testing.assert_array_equal(Simulator(scenario, seed=SEED, street_clutter=1.0, low_clutter=0.0).sweep(0).points,
+                                  plain.points)
+    low = Simulator(scenario, seed=SEED, street_clutter=1.0, low_clutter=3.0).sweep(0)
+    np.testing.assert_array_equal(Simulator(scenario, seed=SEED, street_clutter=1.0, low_clutter=3.0).sweep(0).points,
+                                  low.points)
+    ground_z = float(Simulator(scenario, seed=SEED).scenario.ground.z0)
+
+    def low_beside_the_road(f):
+        y, z = np.abs(f.points[:, 1]), f.points[:, 2]
+        return int(((y > 10.7) & (y < 20.0) & (z < ground_z + 1.2) & (f.surface != SURFACE_GROUND)).sum())
+
+    assert low_beside_the_road(low) > low_beside_the_road(plain) + 100, (low_beside_the_road(low),
+                                                                        low_beside_the_road(plain))
+    idx = points_in_boxes(torch.as_tensor(low.points[:, :3], dtype=torch.float64),
+                          torch.as_tensor(low.boxes, dtype=torch.float64)).numpy()
+    foreign = (idx >= 0) & (low.instance != idx) & (low.surface != SURFACE_GROUND)
+    plain_idx = points_in_boxes(torch.as_tensor(plain.points[:, :3], dtype=torch.float64),
+                                torch.as_tensor(plain.boxes, dtype=torch.float64)).numpy()
+    plain_foreign = (plain_idx >= 0) & (plain.instance != plain_idx) & (plain.surface != SURFACE_GROUND)
+    assert foreign.sum() <= plain_foreign.sum(), "the low clutter stands in no labelled box"
+    assert make_realism("kitti").low_clutter == 0 and make_realism("kitti_dr").low_clutter > 0
+    with pytest.raises(ValueError, match="low_clutter"):
+        Simulator(scenario, seed=SEED, low_clutter=11.0)
+    with pytest.raises(TypeError, match="low_clutter"):
+        Simulator("drone_bridge", seed=SEED, low_clutter=1.0)
+
+
 def test_highway_verges_get_shrubs_and_posts_clear_of_the_lanes():
     """The highway's clutter (beyond the barrier lane and the rails): more vegetation and pole returns,
     none inside labelled boxes, the scene as it was at density 0, and on with the realism profile."""

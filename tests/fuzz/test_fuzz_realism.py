@@ -51,11 +51,12 @@ def test_any_profile_gives_intensities_on_its_grid(profile, n, seed):
     assert keep[height < profile.greenhouse_from].all()
 
 
-UPPER = {"quantum": 0.5, "street_clutter": 10.0}  # the others' ranges end at 1
+UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0}  # the others' ranges end at 1
 
 
 @fuzz
-@given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "pedestrian_build", "hair_dropout")),
+@given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "pedestrian_build",
+                                    "hair_dropout")),
        value=st.sampled_from([-0.5, "above", "far above", float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     if isinstance(value, str):  # just above the parameter's range, or twice its end
