@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
+import numbers
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 
@@ -470,9 +471,10 @@ class GraphedPointPillars(_GraphedFrames):
         """Runs the graph on up to ``batch_size`` frames (each ``Tensor[P, C]`` as for a call) and returns its
         padded outputs on the device without reading anything back: ``boxes (B, K, 7)``, ``scores``,
         ``labels``, ``count (B,)``, ``bad (B,)``, ``pillars`` and ``overflow`` (0-d: the pillar rows the frames
-        needed, more than ``max_pillars``: the detections are then incomplete), ``bad_boxes (B,)`` and ``read (B, 4)``
-        (count, bad, redo: overflow or bad boxes, pillars), row b for frame b (rows past the frames given: empty frames). They are overwritten by
-        the next replay: gather or copy them first (work queued on the current stream before the next replay is)."""
+        needed, more than ``max_pillars``: the detections are then incomplete), ``bad_boxes (B,)`` and
+        ``read (B, 4)`` (count, bad, redo: overflow or bad boxes, pillars), row b for frame b (rows past the frames
+        given: empty frames). They are overwritten by the next replay: gather or copy them first (work queued on the
+        current stream before the next replay is)."""
         return self._replay(frames)
 
     def _frame_results(self, out: dict[str, Tensor], reads: list) -> list[dict[str, Tensor]]:
@@ -705,8 +707,9 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     B = batch.get("batch_size")
     if (torch.cuda.is_current_stream_capturing() or not extension.cuda_available() or points.dim() != 2
             or points.shape[1] < 1 + c or not points.is_floating_point() or isinstance(B, bool)
-            or not isinstance(B, int) or not 1 <= B <= max(points.shape[0], 1)):
+            or not isinstance(B, numbers.Integral) or not 1 <= B <= max(points.shape[0], 1)):
         return None
+    B = int(B)
     param = next(model.parameters())
     if points.device != param.device:
         return None

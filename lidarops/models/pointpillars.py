@@ -196,9 +196,6 @@ class PointPillars(PredictMixin, nn.Module):
         return graphed_predict(self, batch)
 
 
-
-
-
 def voxelize_frames(points: Tensor, batch_size: int, cfg: PointPillarsConfig,
                     training: bool) -> tuple[Tensor, Tensor, Tensor]:
     """The pillars of every frame of an OpenPCDet batch (``points (P, 1 + C)``, frame index first), with the
