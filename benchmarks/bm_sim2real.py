@@ -272,8 +272,9 @@ def far_clusters(points: np.ndarray, boxes: np.ndarray, lo: float = FAR_RANGE[0]
     if not len(p):
         return np.zeros((0, 4))
     key = np.floor(p[:, :2] / cell).astype(np.int64)
-    _, cell_of = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_inverse=True)
-    ground = np.array([np.percentile(p[cell_of == c, 2], 5) for c in range(cell_of.max() + 1)])
+    _, cell_of, per_cell = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_inverse=True, return_counts=True)
+    by_cell = np.split(p[np.argsort(cell_of, kind="stable"), 2], np.cumsum(per_cell)[:-1])
+    ground = np.array([np.percentile(z, 5) for z in by_cell])
     rp = np.hypot(p[:, 0], p[:, 1])
     q = p[(rp >= lo) & (rp < hi) & (p[:, 2] > ground[cell_of] + above)]
     if len(boxes) and len(q):

@@ -39,7 +39,6 @@ import json
 import logging
 import os
 import statistics
-import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +51,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from benchmarks.common import Timing, env_meta, fmt_ms, print_table, time_cpu, time_cuda  # noqa: E402
+from tools.upstream.openpcdet.build_ops import commit_of  # noqa: E402
 from tools.upstream.openpcdet.side_by_side import (  # noqa: E402
     import_openpcdet, load_strict, read_config, scan_dataset)
 
@@ -80,12 +80,7 @@ class OpenPCDetPeer:
 def peer_version(src: Path) -> tuple[str, str | None]:
     """(OpenPCDet's commit, spconv's version): the commit from ``src/COMMIT`` (a ``git archive`` copy), else
     from ``src``'s own git; "unknown" when neither says."""
-    commit = "unknown"
-    if (src / "COMMIT").is_file():
-        commit = (src / "COMMIT").read_text().strip()
-    elif (src / ".git").exists():  # not git's answer for a tree inside another checkout (.peers/ in lidarops')
-        out = subprocess.run(["git", "-C", str(src), "rev-parse", "HEAD"], capture_output=True, text=True)
-        commit = out.stdout.strip() if out.returncode == 0 else commit
+    commit = commit_of(src) or "unknown"
     try:
         import spconv
 

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor, nn
 
 import lidarops
+from lidarops._cuda_graphs import uncached_autocast
 from lidarops.models.counternet import CounterNet
 from lidarops.models.pointpillars import PointPillars, _check_batch, eager_predict
 from lidarops.models.postprocess import postprocess_padded
@@ -65,18 +66,6 @@ def precision_mode(precision: str | None, device_type: str = "cuda", autocast: b
             yield
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
-
-
-@contextlib.contextmanager
-def uncached_autocast(device_type: str = "cuda"):
-    """The autocast in force (if any) with its cache of cast weights off, for a CUDA graph's warm-up and capture: a
-    cast cached by the warm-up would be read by the graph as it is, and freed when the outermost autocast ends
-    (torch's rule for graphs under autocast)."""
-    if not torch.is_autocast_enabled(device_type):
-        yield
-        return
-    with torch.autocast(device_type, dtype=torch.get_autocast_dtype(device_type), cache_enabled=False):
-        yield
 
 
 def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | None = None) -> dict[str, Tensor]:

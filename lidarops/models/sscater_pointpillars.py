@@ -30,6 +30,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from lidarops._cuda_graphs import uncached_autocast
 from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.ops.boxes import unsupported_boxes
 from lidarops.ops.validation import check_tensor, describe, validation, value_checks_enabled
@@ -471,8 +472,6 @@ class SSCATeRPointPillars:
 
         side, current = torch.cuda.Stream(self.device), torch.cuda.current_stream(self.device)
         side.wait_stream(current)
-        from lidarops.models.cuda_graph import uncached_autocast
-
         with torch.no_grad(), validation(False), uncached_autocast():
             with torch.cuda.stream(side):
                 body()  # warm-up outside the graph: cuDNN's choice of algorithms, the allocator's blocks

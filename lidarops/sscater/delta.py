@@ -44,6 +44,8 @@ from typing import Optional, Protocol, Sequence, runtime_checkable
 import torch
 from torch import Tensor
 
+from lidarops._cuda_graphs import uncached_autocast
+
 __all__ = [
     "CHANNEL_SPARSE", "DENSE_CHANNELS_LAST", "DENSE_REFRESH", "Change", "DeltaBackbone", "LayerStats", "DeltaLayer",
 ]
@@ -542,13 +544,14 @@ class DeltaBackbone:
 
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.cuda.stream(side):  # warm-up on all-padding input: changes no state
-            body()
-        torch.cuda.current_stream(self.device).wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        pool = next(iter(self._graphs.values()))[3].pool() if self._graphs else None
-        with torch.cuda.graph(graph, pool=pool):
-            outputs = body()
+        with uncached_autocast():  # the pillar net of fn may run under a caller's autocast
+            with torch.cuda.stream(side):  # warm-up on all-padding input: changes no state
+                body()
+            torch.cuda.current_stream(self.device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            pool = next(iter(self._graphs.values()))[3].pool() if self._graphs else None
+            with torch.cuda.graph(graph, pool=pool):
+                outputs = body()
         self._graphs[(cap, fn)] = (s_sites, s_feats, s_removed, graph, outputs)
         return self._graphs[(cap, fn)]
 

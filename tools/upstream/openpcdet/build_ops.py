@@ -51,6 +51,17 @@ def build(src: Path, name: str) -> str:
     return f"built {folder}/{ext}.so in {time.time() - t0:.0f} s"
 
 
+def commit_of(src: Path) -> str:
+    """OpenPCDet's commit: from ``src/COMMIT`` (a ``git archive`` copy records it there), else from ``src``'s own git;
+    "" when neither says."""
+    if (src / "COMMIT").is_file():
+        return (src / "COMMIT").read_text().strip()
+    if (src / ".git").exists():  # not git's answer for a tree inside another checkout (.peers/ in lidarops')
+        out = subprocess.run(["git", "-C", str(src), "rev-parse", "HEAD"], capture_output=True, text=True)
+        return out.stdout.strip() if out.returncode == 0 else ""
+    return ""
+
+
 def main(argv: list[str]) -> int:
     missing = "--missing" in argv
     argv = [a for a in argv if a != "--missing"]
@@ -65,13 +76,7 @@ def main(argv: list[str]) -> int:
     if missing:
         names = [n for n in names if not (src / OPS[n][0] / f"{OPS[n][1]}.so").is_file()]
 
-    short = ""
-    if (src / "COMMIT").is_file():  # a copy without .git (git archive) records its commit here
-        short = (src / "COMMIT").read_text().strip()[:7]
-    elif (src / ".git").exists():  # not git's answer inside another checkout (.peers/ in lidarops')
-        commit = subprocess.run(["git", "-C", str(src), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-        short = commit.stdout.strip() if commit.returncode == 0 else ""
-    version = "0.6.0+" + (short or "0000000")
+    version = "0.6.0+" + (commit_of(src) or "0000000")[:7]
     (src / "pcdet/version.py").write_text(f'__version__ = "{version}"\n')
     t0 = time.time()
     if names:

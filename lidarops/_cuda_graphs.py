@@ -1,0 +1,21 @@
+"""What every CUDA graph lidarops records shares (the predict and index graphs, SSCATeR's backbone and detect
+graphs): the rule for autocast during the warm-up and the capture."""
+from __future__ import annotations
+
+import contextlib
+
+import torch
+
+__all__ = ["uncached_autocast"]
+
+
+@contextlib.contextmanager
+def uncached_autocast(device_type: str = "cuda"):
+    """The autocast in force (if any) with its cache of cast weights off, for a CUDA graph's warm-up and capture: a
+    cast cached by the warm-up would be read by the graph as it is, and freed when the outermost autocast ends
+    (torch's rule for graphs under autocast)."""
+    if not torch.is_autocast_enabled(device_type):
+        yield
+        return
+    with torch.autocast(device_type, dtype=torch.get_autocast_dtype(device_type), cache_enabled=False):
+        yield
