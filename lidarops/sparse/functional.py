@@ -474,6 +474,21 @@ def _affine_torch(out: Tensor, scale: Optional[Tensor], shift: Optional[Tensor],
     return torch.relu(out) if relu else out
 
 
+def _autocast(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor]) -> tuple:
+    """Inside ``torch.autocast`` for the features' device, features, weight and bias in the autocast dtype,
+    as ``F.conv2d`` is cast (float64 and non-floating tensors are left alone, so their errors stay)."""
+    dev = x.features.device.type
+    if dev not in ("cuda", "cpu") or not torch.is_autocast_enabled(dev):
+        return x, weight, bias
+    dt = torch.get_autocast_dtype(dev)
+
+    def cast(t):
+        return t.to(dt) if t is not None and t.is_floating_point() and t.dtype not in (dt, torch.float64) else t
+
+    f = x.features
+    return (x if cast(f) is f else x.replace_feature(cast(f))), cast(weight), cast(bias)
+
+
 def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kind: str = "conv", stride=1,
          padding=0, dilation=1, output_padding=0, indice_key: Optional[str] = None,
          out_spatial_shape: Optional[Sequence[int]] = None, method: str = "auto", *,
@@ -499,6 +514,9 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
             (``torch.ops.lidarops.sparse_conv_affine``): no separate BatchNorm and ReLU kernels.
         algo (str): the CUDA kernel choice, one of :data:`CONV_ALGOS` (default ``"auto"``).
 
+    Under ``torch.autocast`` (CUDA or CPU), features, weight and bias run in the autocast dtype, as
+    ``F.conv2d`` does; the epilogue's ``scale`` and ``shift`` stay float32.
+
     Returns:
         SparseConvTensor with features (N_out, Cout): same sites as x for ``"subm"``, the registered
         convolution's input sites for ``"inverse"``, else the reached output sites in linear order.
@@ -520,6 +538,7 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
     if weight.dim() != D + 2 or weight.shape[-1] != cin:
         raise ValueError(f"weight must be (Cout, *kernel ({D} dims), Cin = {cin}) for this {D}D input, "
                          f"got {describe(weight)}")
+    x, weight, bias = _autocast(x, weight, bias)
     if weight.dtype != x.features.dtype or weight.device != x.features.device:
         raise ValueError(f"weight ({weight.dtype}, {weight.device}) must match the features "
                          f"({x.features.dtype}, {x.features.device})")

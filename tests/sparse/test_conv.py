@@ -231,6 +231,34 @@ def test_low_precision_matches_float64_reference(device, dtype, kind):
     assert_same_sites_and_features(y.indices, y.features, ref_i, ref_f, y.spatial_shape, TOL[dtype], f"{kind} {dtype}")
 
 
+@pytest.mark.parametrize("amp", [torch.float16, torch.bfloat16], ids=["f16", "bf16"])
+@pytest.mark.parametrize("features_dtype", [torch.float32, torch.bfloat16, torch.float64], ids=["f32", "bf16", "f64"])
+def test_autocast_runs_in_the_autocast_dtype(device, amp, features_dtype):
+    """Under torch.autocast a layer runs in the autocast dtype, as F.conv2d does: float32 weights with
+    features of either precision, the same numbers as casting both by hand, gradients back to the
+    float32 weight; float64 stays float64 (and its mismatch with float32 weights stays an error)."""
+    if device == "cpu" and amp == torch.float16 and features_dtype != torch.float64:
+        pytest.skip("CPU autocast to float16 is slow and adds nothing to the bfloat16 case")
+    x = random_tensor(2, SHAPES[2], 40, 8, seed=11, dtype=features_dtype, device=device)
+    w = (random_weight(12, (3, 3), 8, seed=12, dtype=torch.float32, device=device) / 8).requires_grad_()
+    b = torch.randn(12, device=device)
+    with torch.autocast(device, dtype=amp):
+        if features_dtype == torch.float64:
+            with pytest.raises(ValueError, match="must match the features"):
+                Fs.conv(x, w, b, "subm")
+            y64 = Fs.conv(x, w.detach().double(), b.double(), "subm")
+            assert y64.features.dtype == torch.float64
+            return
+        y = Fs.conv(x, w, b, "conv", stride=2, padding=1)
+    assert y.features.dtype == amp
+    xa = x.replace_feature(x.features.to(amp))
+    want = Fs.conv(xa, w.detach().to(amp), b.to(amp), "conv", stride=2, padding=1)
+    assert torch.equal(y.indices, want.indices)
+    assert torch.equal(y.features, want.features)
+    y.features.float().sum().backward()
+    assert w.grad is not None and w.grad.dtype == torch.float32 and w.grad.abs().sum() > 0
+
+
 def test_noncontiguous_features_and_weight(device):
     x = random_tensor(2, SHAPES[2], 30, 6, seed=9, device=device)
     wide = torch.randn(x.features.shape[0], 12, dtype=torch.float64, device=device)
