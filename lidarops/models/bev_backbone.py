@@ -214,7 +214,9 @@ def _norm_relu(x, layer: BackboneLayer):
     """BatchNorm2d's parameters applied to the (N, C) features of the active sites, then ReLU."""
     n = layer.norm
     f = x.features
-    if f.shape[0] or not n.training:
-        f = F.batch_norm(f, n.running_mean, n.running_var, n.weight, n.bias,
-                         n.training and f.shape[0] > 1, n.momentum, n.eps)
+    if n.training and f.shape[0] <= 1:  # no batch statistics from 0 or 1 site: the running ones, if any
+        if f.shape[0]:
+            f = F.batch_norm(f, n.running_mean, n.running_var, n.weight, n.bias, False, 0.0, n.eps)
+    else:  # the module itself: its momentum rule (None: a cumulative average), counter and SyncBatchNorm
+        f = n(f[:, :, None, None]).flatten(1)
     return x.replace_feature(torch.relu(f))

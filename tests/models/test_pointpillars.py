@@ -492,6 +492,27 @@ def test_sparse_backbone_mode_runs():
     assert all(a[k].shape == b[k].shape for k in a)
 
 
+def test_sparse_mode_trains_under_autocast():
+    """The trainer's --amp: the sparse backbone under bfloat16 autocast gives the float32 loss to bfloat16's
+    precision and gradients for every backbone weight (its convolutions once refused float32 weights with
+    bfloat16 features)."""
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "backbone_mode": "sparse"}).train()
+    g = torch.Generator().manual_seed(3)
+    clouds = [torch.rand(300, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0])
+              for _ in range(2)]
+    batch = _batch(clouds, [[[3.0, 0.0, -1.0, 2.0, 1.0, 1.5, 0.3, 1.0]], []])
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    ref = model(batch)["loss"].item()
+    model.load_state_dict(state)  # BatchNorm's running statistics moved: start again from the same state
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss = model(batch)["loss"]
+    assert abs(loss.item() - ref) <= 0.03 * abs(ref), (loss.item(), ref)
+    loss.backward()
+    for name, p in model.backbone_2d.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0, name
+
+
 def _synthetic_frames(n: int):
     from lidarops.data.synthetic import SyntheticFrames
 
@@ -506,9 +527,11 @@ def _synthetic_frames(n: int):
 
 
 @pytest.mark.slow
-def test_overfit_a_few_frames():
-    """A narrow PointPillars on 2 simulated frames: the loss falls and the cars come back (BEV IoU > 0.5)."""
-    cfg = dict(TINY, point_cloud_range=[0.0, -20.48, -3.0, 40.96, 20.48, 1.0], voxel_size=[0.32, 0.32, 4.0],
+@pytest.mark.parametrize("mode", ["dense", "sparse"])
+def test_overfit_a_few_frames(mode):
+    """A narrow PointPillars on 2 simulated frames: the loss falls and the cars come back (BEV IoU > 0.5),
+    with either backbone (the sparse one trained as such)."""
+    cfg = dict(TINY, backbone_mode=mode, point_cloud_range=[0.0, -20.48, -3.0, 40.96, 20.48, 1.0], voxel_size=[0.32, 0.32, 4.0],
                vfe_num_filters=[32], num_filters=[32, 32, 64], num_upsample_filters=[32, 32, 32],
                anchor_generator_config=[{**TINY["anchor_generator_config"][0], "anchor_sizes": [[3.9, 1.6, 1.56]],
                                          "align_center": False}])
