@@ -4,12 +4,15 @@
 #   bash tools/train_pointpillars_synth.sh OUT_DIR            # environment: GPUS (1), EPOCHS, BATCH, WORKERS, DATA
 #   REALISM=kitti bash tools/train_pointpillars_synth.sh OUT  # the real-scan model: data with --realism kitti,
 #                                                             # configs/pointpillars/pointpillars_synth_real.yaml
+#   SPARSE=1 bash tools/train_pointpillars_synth.sh OUT       # Sparse-PointPillars on the same data and recipe:
+#                                                             # configs/pointpillars/pointpillars_synth_sparse.yaml
 # Runs on the GPU machine; writes OUT_DIR/run (checkpoints, log.csv, evaluations) and
 # OUT_DIR/pointpillars_synth.pth (float16 weights with their config, recipe, command and evaluation).
 set -euo pipefail
 OUT=${1:-runs/pointpillars_synth}
 GPUS=${GPUS:-1}; EPOCHS=${EPOCHS:-20}; BATCH=${BATCH:-8}; DATA=${DATA:-/tmp/synth${REALISM:+_$REALISM}}
-NAME=pointpillars_synth${REALISM:+_real}
+NAME=pointpillars_synth${REALISM:+_real}${SPARSE:+_sparse}
+[ -n "${REALISM:-}" ] && [ -n "${SPARSE:-}" ] && { echo "REALISM and SPARSE: no config trains both" >&2; exit 2; }
 WORKERS=${WORKERS:-$(( $(nproc) / GPUS - 2 ))}
 s=$(date +%s)
 # 3,600 frames: driving_city 2,400 and driving_highway 1,200, each its own scene; 500 held out for val
