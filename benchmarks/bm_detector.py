@@ -61,7 +61,16 @@ def kitti_like_frame(seed: int = 0, path: str | None = None, calib: str | None =
     return torch.from_numpy(pts[keep])
 
 
-def load_model(device: str, mode: str) -> PointPillars:
+def load_model(device: str, mode: str, checkpoint: str | None = None) -> PointPillars:
+    """The shipped model run with ``mode``'s backbone, or the model in ``checkpoint`` (a PointPillars
+    trained with that backbone, e.g. ``pointpillars_synth_sparse.yaml``'s)."""
+    if checkpoint is not None:
+        from lidarops.models import load_model as load
+
+        model = load(checkpoint, map_location=device)
+        if not isinstance(model, PointPillars) or model.config.backbone_mode != mode:
+            raise ValueError(f"{checkpoint}: not a PointPillars with the {mode} backbone")
+        return model.to(device).eval()
     try:
         from lidarops.models import weights
 
@@ -117,7 +126,8 @@ def stage_times(model: PointPillars, batch: dict, precision: str, runs: int = 30
 
 
 def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS, frame: torch.Tensor | None = None,
-        frame_name: str = "driving_city seed 0", batched: int = 16) -> list[dict]:
+        frame_name: str = "driving_city seed 0", batched: int = 16,
+        sparse_checkpoint: str | None = None) -> list[dict]:
     from lidarops.models.pointpillars import eager_predict
 
     rows = []
@@ -127,7 +137,10 @@ def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS, frame: to
     variants = [(mode, precision, "contiguous") for mode in modes
                 for precision in (precisions if device == "cuda" else ("fp32",))]
     for mode, precision, fmt in variants:
-        model = load_model(device, mode)
+        checkpoint = sparse_checkpoint if mode == "sparse" else None
+        model = load_model(device, mode, checkpoint)
+        trained = "pointpillars_synth" + (f" ({mode}-trained: {os.path.basename(checkpoint)})" if checkpoint else
+                                          "" if mode == "dense" else " (dense-trained weights)")
         half = mode == "sparse" and precision == "fp16"
         if half:
             model = model.half()
@@ -149,7 +162,7 @@ def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS, frame: to
             kept = len(fn(batch)[0]["scores"])
             row = {"op": "pointpillars", "backbone": mode, "precision": precision, "impl": impl,
                    "memory_format": fmt, "frame": frame_name, "points": int(frame.shape[0]), "boxes": kept,
-                   **t.as_dict()}
+                   "weights": trained, **t.as_dict()}
             if device == "cuda" and impl == "eager, no graph" or (device == "cuda" and mode == "sparse"):
                 row["stages_ms"] = stage_times(model, batch, precision, autocast=not half)
             rows.append(row)
@@ -194,6 +207,9 @@ def main(argv=None) -> int:
     ap.add_argument("--calib", default=None, help="its KITTI calib .txt (default: KITTI's usual one)")
     ap.add_argument("--modes", default="dense,sparse")
     ap.add_argument("--precisions", default=",".join(PRECISIONS))
+    ap.add_argument("--sparse-checkpoint", default=None, metavar="FILE",
+                    help="the sparse rows' model: a PointPillars trained with the sparse backbone (default: the "
+                         "shipped dense-trained weights run sparse, a different detector)")
     ap.add_argument("--vs-openpcdet", default=None, metavar="SRC",
                     help="also time OpenPCDet's PointPillar (an OpenPCDet tree with its ops built) on the same frame "
                          "and weights (benchmarks/openpcdet_peer.py)")
@@ -203,7 +219,8 @@ def main(argv=None) -> int:
         return 1
     frame = kitti_like_frame(path=args.frame, calib=args.calib) if args.frame else None
     name = os.path.basename(args.frame) if args.frame else "driving_city seed 0"
-    rows = run(args.device, tuple(args.modes.split(",")), tuple(args.precisions.split(",")), frame, name)
+    rows = run(args.device, tuple(args.modes.split(",")), tuple(args.precisions.split(",")), frame, name,
+               sparse_checkpoint=args.sparse_checkpoint)
     if args.vs_openpcdet:
         from benchmarks.openpcdet_peer import openpcdet_rows
         from lidarops.models import weights

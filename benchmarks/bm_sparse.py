@@ -3,7 +3,8 @@
     python benchmarks/bm_sparse.py                      # CUDA when available, and CPU
     python benchmarks/bm_sparse.py --device cuda --json # write benchmarks/results/<device>.json
     python benchmarks/bm_sparse.py --quick              # smoke test (small sizes, < 1 min on 2 CPU cores)
-    python benchmarks/bm_sparse.py --only layer,map     # sections: layer, map, pillars, voxel
+    python benchmarks/bm_sparse.py --only layer,map     # sections: layer, map, eager, pillars, voxel
+    python benchmarks/bm_sparse.py --device cuda --vs-spconv   # spconv required: its columns in the same run
 
 Sections (times are medians in ms; the JSON has IQRs and run counts):
 
@@ -17,6 +18,8 @@ Sections (times are medians in ms; the JSON has IQRs and run counts):
   against spconv's layer module called the same way. A peer that fails has "error: ..." in its cell
   and row.
 * ``map``: kernel-map construction alone (output sites + map, with validation), per grid and kind.
+* ``eager``: what users see, each call from a new ``SparseConvTensor`` (kernel maps built in the call): a
+  SubM 3x3 64 -> 64 layer module, and the 16-layer down path of Sparse-PointPillars, against spconv.
 * ``pillars``: PointPillars' backbone made sparse (strided sparse conv at the start of each block,
   then 3/5/5 submanifold convs, channels 64/128/256, transposed upsampling x1/x2/x4 to 128 channels,
   dense concatenation), eval mode, on the KITTI grid: full forward (kernel maps built) and forward
@@ -439,6 +442,57 @@ def _graphed(net, cached, feats):
     return _try(lambda f: (static.copy_(f), graph.replay()), (feats,), feats.device)
 
 
+def down_path(net):
+    """The down path of a ``sparse_pointpillars`` net: its three blocks (a strided convolution and 3 / 5 / 5
+    submanifold ones each, 16 layers with BatchNorm and ReLU), without the upsampling branches."""
+    def run(x):
+        for block in net.blocks:
+            x = block(x)
+        return x
+    return run
+
+
+def bench_eager(device, modes, quick, rows_out):
+    """What users see: every call starts from a new ``SparseConvTensor`` (no ``indice_dict``), so each
+    call builds its kernel maps, as the first forward of every frame does. One SubM 3x3 64 -> 64 layer
+    module, and the 16-layer down path of the Sparse-PointPillars backbone, lidarops against spconv."""
+    sp = _spconv() if torch.device(device).type == "cuda" else None
+    grids = {"drone": GRIDS["drone"]} if quick else GRIDS
+    table = []
+    first = len(rows_out)
+    for gname, (shape, n) in grids.items():
+        idx = bev_sites(shape, n).to(device)
+        for mode in modes:
+            with precision(mode) as dtype, torch.no_grad():
+                feats = torch.randn(idx.shape[0], 64, device=device, dtype=dtype)
+                cells = {}
+                for impl, ns in (("lidarops", lspconv), ("spconv", sp)):
+                    if ns is None:
+                        cells[impl] = (None, None)
+                        continue
+                    try:
+                        layer = ns.SubMConv2d(64, 64, 3, padding=1, bias=False, indice_key="k")
+                        layer = layer.to(device=device, dtype=dtype).eval()
+                        down = down_path(sparse_pointpillars(ns).to(device=device, dtype=dtype).eval())
+                        t_layer = _try(lambda f: layer(ns.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
+                        t_down = _try(lambda f: down(ns.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
+                    except Exception as e:  # noqa: BLE001  (reported in the row)
+                        t_layer = t_down = _error(e)
+                    cells[impl] = (t_layer, t_down)
+                (l_ours, d_ours), (l_sp, d_sp) = cells["lidarops"], cells["spconv"]
+                table.append([gname, idx.shape[0], mode, _cell(l_ours), _cell(l_sp), _ratio(l_sp, l_ours),
+                              _cell(d_ours), _cell(d_sp), _ratio(d_sp, d_ours)])
+                rows_out.append({"section": "eager", "op": f"eager/{gname}/{mode}", "grid": gname,
+                                 "sites": int(idx.shape[0]), "precision": mode, "channels": 64,
+                                 "subm_with_map": {"lidarops": _row(l_ours), "spconv": _row(l_sp)},
+                                 "down_path_16_layers": {"lidarops": _row(d_ours), "spconv": _row(d_sp)}})
+    print_table(f"eager calls, kernel maps built in the call ({device}): SubM 3x3 64 -> 64 module; the 16-layer down "
+                "path of Sparse-PointPillars (C 64/128/256, BatchNorm, ReLU)",
+                ["grid", "sites", "prec", "SubM", "spconv", "spconv/ours", "down path", "spconv", "spconv/ours"],
+                table, right=(1, 3, 4, 5, 6, 7, 8))
+    _report_errors(rows_out[first:])
+
+
 def bench_voxels(device, modes, quick, rows_out):
     sp = _spconv() if torch.device(device).type == "cuda" else None
     shape = (41, 400, 352) if quick else (41, 1600, 1408)
@@ -470,11 +524,16 @@ def bench_voxels(device, modes, quick, rows_out):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", choices=["cpu", "cuda", "all"], default="all")
-    ap.add_argument("--only", default="layer,map,pillars,voxel")
+    ap.add_argument("--only", default="layer,map,eager,pillars,voxel")
     ap.add_argument("--precisions", default="fp32,tf32,fp16")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--vs-spconv", action="store_true",
+                    help="spconv must be importable (its columns are otherwise left empty); its version goes into "
+                         "the results' meta")
     args = ap.parse_args(argv)
+    if args.vs_spconv and _spconv() is None:
+        ap.error("--vs-spconv: spconv.pytorch does not import (spconv 2.x wheels: ../shared/tools/spconv-bundle.sh)")
     devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
     devices = [d for d in devices if d == "cpu" or torch.cuda.is_available()]
     only = set(args.only.split(","))
@@ -485,12 +544,18 @@ def main(argv=None):
             bench_layers(device, modes, args.quick, rows)
         if "map" in only:
             bench_maps(device, args.quick, rows)
+        if "eager" in only:
+            bench_eager(device, modes, args.quick, rows)
         if "pillars" in only:
             bench_pillars(device, modes, args.quick, rows)
         if "voxel" in only:
             bench_voxels(device, modes, args.quick, rows)
         if args.json:
-            path = write_results("sparse", device, rows, env_meta(device))
+            meta = env_meta(device)
+            if device == "cuda" and _spconv() is not None:
+                import spconv
+                meta["peers"] = {"spconv": getattr(spconv, "__version__", "unknown")}
+            path = write_results("sparse", device, rows, meta)
             print(f"wrote {path}")
 
 
