@@ -322,10 +322,13 @@ class DeltaBackbone:
         keys = _keys(sites, W)
         self.in_feats.view(H * W, -1)[keys] = features
         self.in_active.view(-1)[keys] = True
-        if sites.shape[0] >= DENSE_REFRESH.get(self.device.type, 2.0) * H * W:
-            self._refresh_dense(full=sites.shape[0] == H * W and self._covering)
-        else:
-            self._refresh_sparse(sites, features)
+        # the state's dtype decides, not a caller's autocast: the steps' own ops do not autocast, and a refresh
+        # in another precision would leave accumulators that the recycled updates no longer match
+        with torch.autocast(self.device.type, enabled=False):
+            if sites.shape[0] >= DENSE_REFRESH.get(self.device.type, 2.0) * H * W:
+                self._refresh_dense(full=sites.shape[0] == H * W and self._covering)
+            else:
+                self._refresh_sparse(sites, features)
         # the figures in one read: a wait for the device per layer would stall the launch queue on CUDA
         every = self.layers + self.up_layers
         figures = [layer.active.sum().to(torch.float64) for layer in every]  # exact: counts far below 2^53

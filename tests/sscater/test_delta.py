@@ -627,6 +627,30 @@ def test_refresh_without_the_input_check_and_its_figures(device, given, monkeypa
     assert abs(b.state_max - a.state_max) <= 1e-12 * a.state_max
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("given", [0.3, 1.0])  # the sparse and the dense refresh
+def test_refresh_under_a_callers_autocast_keeps_the_state_dtype(device, given, monkeypatch):
+    """A refresh inside the caller's torch.autocast computes in the state's dtype (float32 here), as the steps
+    do: the same outputs and accumulators as outside it, and the recycled steps after it still match."""
+    monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)
+    H, W = 24, 32
+    bb = small_backbone(seed=5).to(device)
+    stream = PillarMapStream(H, W, 8, seed=3, start=int(given * H * W))
+    sites, feats = stream.current()
+    a, b = (DeltaBackbone(bb, (H, W), torch.float32, device) for _ in range(2))
+    want = a.refresh(sites, feats.float()).clone()
+    with torch.autocast(torch.device(device).type, dtype=torch.bfloat16):
+        got = b.refresh(sites, feats.float())
+    assert got.dtype == torch.float32
+    assert (got - want).abs().max() <= 1e-6 * want.abs().max()  # CUDA's sums may add in another order
+    for la, lb in zip(a.layers + a.up_layers, b.layers + b.up_layers):
+        assert (la.acc - lb.acc).abs().max() <= 1e-6 * max(la.acc.abs().max().item(), 1.0), la.name
+    s, f, r = stream.step(20)
+    want = a.update(s, f.float(), r)
+    got = b.update(s, f.float(), r)
+    assert (got - want).abs().max() <= 1e-6 * want.abs().max()
+
+
 def test_recycling_backbone_bad_input():
     bb = small_backbone()
     db = DeltaBackbone(bb, (16, 16), torch.float64)
