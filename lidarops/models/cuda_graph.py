@@ -649,6 +649,10 @@ MIN_CAPACITY = 1 << 14
 MAX_CAPACITY = 1 << 21
 KEEP_GRAPHS = 3
 MAX_RECORDINGS = 12
+# Under a CUDA autocast to float16 / bfloat16 the caller has asked for reduced precision: predict then records an
+# inference_copy (BatchNorm folded, channels-last; cuDNN's half-precision kernels run without layout transposes),
+# recorded again when a weight changes in place. Its detections agree with the eager call's to that precision.
+OPTIMIZE_UNDER_AUTOCAST = True
 
 
 class _PredictGraphs:
@@ -661,6 +665,7 @@ class _PredictGraphs:
         self.tensors: tuple = ()
         self.seen: set = set()
         self.graphs: OrderedDict = OrderedDict()
+        self.copied: dict = {}  # key -> the tensors' versions an optimized graph's copy was made at
         self.recorded = 0
 
     def current(self, model: nn.Module) -> tuple:
@@ -672,6 +677,14 @@ class _PredictGraphs:
             self.places = [(d, name) for m in model.modules() for d in (m._parameters, m._buffers)
                            for name, t in d.items() if t is not None]
         return tuple(d[name].data_ptr() if d.get(name) is not None else 0 for d, name in self.places)
+
+    def versions(self) -> tuple | None:
+        """The in-place version counters of the tensors of :attr:`places` (an optimized graph reads a copy, so a
+        change must be seen here); None when one is an inference tensor, which keeps no counter."""
+        try:
+            return tuple(d[name]._version if d.get(name) is not None else -1 for d, name in self.places)
+        except RuntimeError:
+            return None
 
     def __deepcopy__(self, memo):
         return _PredictGraphs()
@@ -688,7 +701,9 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
 
     The graph is recorded under torch's TF32 and autocast settings of the call and again when they change, or
     when the model's tensors are replaced (``.to()``, ``.half()``); in-place updates of the weights
-    (``load_state_dict``, an optimizer's step) are seen by the replays."""
+    (``load_state_dict``, an optimizer's step) are seen by the replays. Under a CUDA autocast to float16 or
+    bfloat16 the graph records an :func:`inference_copy` (:data:`OPTIMIZE_UNDER_AUTOCAST`), recorded again after
+    an in-place update (the tensors' version counters)."""
     from lidarops import extension
 
     points, cfg = batch["points"], model.config
@@ -724,24 +739,33 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     tensors = cache.current(model)
     if cache.tensors != tensors:  # new tensors: every graph recorded the old ones
         cache.graphs.clear()
+        cache.copied.clear()
         cache.seen.clear()
         cache.tensors = tensors
+    autocast = torch.is_autocast_enabled("cuda")
+    versions = cache.versions() if (OPTIMIZE_UNDER_AUTOCAST and autocast and torch.get_autocast_dtype("cuda")
+                                    in (torch.float16, torch.bfloat16)) else None
+    optimize = versions is not None
     key = (capacity, B, param.dtype, torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32,
-           torch.is_autocast_enabled("cuda"), torch.get_autocast_dtype("cuda"))
+           autocast, torch.get_autocast_dtype("cuda"), optimize)
     graphed = cache.graphs.get(key)
+    if graphed is not None and optimize and cache.copied.get(key) != versions:
+        del cache.graphs[key]  # its copy holds the weights from before an in-place update: record it again
+        graphed = None
     if graphed is None:
         if key not in cache.seen or cache.recorded >= MAX_RECORDINGS:
             cache.seen.add(key)  # a single call (a CLI run on one scan) is not worth a graph's recording
             return None
         while len(cache.graphs) >= KEEP_GRAPHS:
-            cache.graphs.popitem(last=False)
+            cache.copied.pop(cache.graphs.popitem(last=False)[0], None)
         was_training = model.training  # replays run in eval mode whatever the mode; recording sets it
         try:
             with torch.inference_mode(False):  # buffers the replays of calls outside inference mode may write too
-                graphed = GraphedPointPillars(model, capacity=capacity, precision=None, batch_size=B)
+                graphed = GraphedPointPillars(model, capacity=capacity, precision=None, batch_size=B, optimize=optimize)
         finally:
             model.train(was_training)
         cache.graphs[key] = graphed
+        cache.copied[key] = versions
         cache.recorded += 1
     cache.graphs.move_to_end(key)
     try:

@@ -688,8 +688,10 @@ def _same_detections(got: list[dict], want: list[dict], what: str) -> int:
 def test_predict_replays_a_cuda_graph_from_the_second_call():
     """predict on CUDA: the first call of a size runs eagerly, the next ones replay a recorded graph, with the eager
     call's detections (one frame and three), results that outlive the next call, weights updated in place seen, the
-    train/eval mode kept, a new graph for other TF32 settings and inside inference mode, and the eager call's
-    errors for a bad intensity, a bad frame index and boxes the NMS refuses."""
+    train/eval mode kept, a new graph for other TF32 settings and inside inference mode, under autocast a graph of
+    the optimized copy (made again after an in-place update), and the eager call's errors for a bad intensity, a
+    bad frame index and boxes the NMS refuses."""
+    from lidarops.models.cuda_graph import inference_copy
     from lidarops.models.pointpillars import eager_predict
 
     torch.manual_seed(0)
@@ -706,6 +708,10 @@ def test_predict_replays_a_cuda_graph_from_the_second_call():
     def eager(batch):
         with eager_predict():
             return model.predict(batch)
+
+    def eager_copy(batch):  # what predict's graph records under autocast, run eagerly
+        with eager_predict():
+            return inference_copy(model).predict(batch)
 
     graphs = lambda: model.__dict__["_predict_graphs"].graphs  # noqa: E731
     model.train()
@@ -737,13 +743,23 @@ def test_predict_replays_a_cuda_graph_from_the_second_call():
     finally:
         torch.backends.cudnn.allow_tf32 = old
     # under a user's autocast, the warm-up's cast weights must not enter the graph: the cache that holds them is
-    # freed when the autocast ends, and the replays after it would read whatever took their memory
+    # freed when the autocast ends, and the replays after it would read whatever took their memory. The graph
+    # records an optimized copy (BatchNorm folded): the eager call's detections to half precision
     for _ in range(3):
         with torch.autocast("cuda", dtype=torch.float16):
             got = model.predict(one(frames[0]))
         junk = [torch.full((1 << 20,), float("nan"), device="cuda") for _ in range(8)]  # noqa: F841
+    # (rounding apart, the copy's function is the model's: the copy run eagerly gives the graph's detections)
+    assert next(reversed(graphs().values())).optimize, "autocast: the optimized copy"
     with torch.autocast("cuda", dtype=torch.float16):
-        _same_detections(got, eager(one(frames[0])), "autocast")
+        kept = _same_detections(got, eager_copy(one(frames[0])), "autocast")
+    recorded = model.__dict__["_predict_graphs"].recorded
+    with torch.no_grad():  # in place: the copy is made again
+        model.dense_head.conv_cls.bias.add_(0.2)
+    with torch.autocast("cuda", dtype=torch.float16):
+        kept += _same_detections(model.predict(one(frames[0])), eager_copy(one(frames[0])),
+                                 "autocast, weights updated in place")
+    assert model.__dict__["_predict_graphs"].recorded == recorded + 1 and kept > 0
     two = {"points": torch.cat([F.pad(f, (1, 0), value=float(b)) for b, f in enumerate(frames[2:])]), "batch_size": 2}
     with torch.inference_mode():  # recorded there, replayed after it too
         for _ in range(2):
@@ -787,6 +803,29 @@ def test_predict_graphs_are_not_copied_with_the_model(tmp_path):
     fresh = PointPillars(TINY).eval()
     fresh.predict({"points": F.pad(torch.rand(50, 4) * 4, (1, 0)), "batch_size": 1})
     assert "_predict_graphs" not in fresh.__dict__
+
+
+def test_predict_graph_versions_see_in_place_updates():
+    """The tensors' version counters that tell an optimized predict graph its copy is stale: they move with an
+    in-place update of any parameter or buffer, and are None for a model of inference tensors (no counters)."""
+    from lidarops.models.cuda_graph import _PredictGraphs
+
+    model = PointPillars(TINY).eval()
+    cache = _PredictGraphs()
+    ptrs = cache.current(model)
+    before = cache.versions()
+    assert before is not None and len(before) == len(ptrs) == len(list(model.parameters())) + len(list(model.buffers()))
+    with torch.no_grad():
+        model.backbone_2d.blocks[0][2].running_mean.add_(1.0)
+    after = cache.versions()
+    assert sum(a != b for a, b in zip(before, after)) == 1
+    model.load_state_dict(model.state_dict())  # copy_ into every tensor of the state_dict
+    assert sum(a != b for a, b in zip(after, cache.versions())) == len(model.state_dict())
+    with torch.inference_mode():
+        frozen = PointPillars(TINY).eval()
+    cache = _PredictGraphs()
+    cache.current(frozen)
+    assert cache.versions() is None
 
 
 def _saved(model, tmp_path):
