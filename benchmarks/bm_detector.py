@@ -15,6 +15,9 @@ statistics from a few frames (the time does not depend on the values, except NMS
   (``lidarops.models.pointpillars.PREDICT_CUDA_GRAPH``); **eager, no graph** is the same call inside
   ``eager_predict()``: validation, voxelization with its host read, every launch, post-processing with its host
   reads.
+* **graph of the model itself** (fp16): ``predict`` under fp16 autocast replays a graph of an optimized copy
+  (BatchNorm folded, channels-last: ``lidarops.models.cuda_graph.OPTIMIZE_UNDER_AUTOCAST``); this row turns
+  that off, replaying a graph of the model's own modules.
 * **batched predict**: ``model.predict`` on a batch of 16 distinct frames (frames per second).
 * **graph** (dense backbone, CUDA): :class:`lidarops.models.GraphedPointPillars` as a user calls it:
   the frame copied into the graph's input, one replay of padded voxelization, network, decode, score
@@ -156,7 +159,18 @@ def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS, frame: to
             with eager_predict():
                 return eager(b)
 
+        def exact_graph(b):  # fp16: predict's graph of the model itself instead of its optimized copy
+            from lidarops.models import cuda_graph
+
+            old, cuda_graph.OPTIMIZE_UNDER_AUTOCAST = cuda_graph.OPTIMIZE_UNDER_AUTOCAST, False
+            try:
+                return eager(b)
+            finally:
+                cuda_graph.OPTIMIZE_UNDER_AUTOCAST = old
+
         calls = [("eager", eager)] + ([("eager, no graph", no_graph)] if device == "cuda" and mode == "dense" else [])
+        if device == "cuda" and mode == "dense" and precision == "fp16":
+            calls.append(("eager, graph of the model itself (not optimized)", exact_graph))
         for impl, fn in calls:
             t = time_call(fn, (batch,), torch.device(device), budget_s=2.0, rotate=False)
             kept = len(fn(batch)[0]["scores"])
