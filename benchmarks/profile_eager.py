@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -37,7 +36,7 @@ import torch
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from benchmarks.common import env_meta, fmt_ms, print_table  # noqa: E402
+from benchmarks.common import env_meta, fmt_ms, print_table, time_cpu  # noqa: E402
 
 # CUDA runtime / driver calls that wait for the GPU, or copy to the host (and so wait)
 SYNC_CALLS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cuStreamSynchronize",
@@ -51,17 +50,9 @@ def _sync() -> None:
         torch.cuda.synchronize()
 
 
-def _wall_ms(fn, runs: int = 50, warmup: int = 5) -> float:
-    for _ in range(warmup):
-        fn()
-    _sync()
-    times = []
-    for _ in range(runs):
-        t = time.perf_counter()
-        fn()
-        _sync()
-        times.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(times)
+def _wall_ms(fn, runs: int = 50) -> float:
+    """Median wall time of ``fn()`` with the GPU drained after it (a cold call first, untimed)."""
+    return time_cpu(lambda: (fn(), _sync()), (), min_runs=runs, max_runs=runs, budget_s=float("inf")).median
 
 
 def _device_time(e) -> float:

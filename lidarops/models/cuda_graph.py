@@ -665,7 +665,6 @@ class _PredictGraphs:
         self.tensors: tuple = ()
         self.seen: set = set()
         self.graphs: OrderedDict = OrderedDict()
-        self.copied: dict = {}  # key -> the tensors' versions an optimized graph's copy was made at
         self.recorded = 0
 
     def current(self, model: nn.Module) -> tuple:
@@ -739,7 +738,6 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     tensors = cache.current(model)
     if cache.tensors != tensors:  # new tensors: every graph recorded the old ones
         cache.graphs.clear()
-        cache.copied.clear()
         cache.seen.clear()
         cache.tensors = tensors
     autocast = torch.is_autocast_enabled("cuda")
@@ -749,7 +747,7 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     key = (capacity, B, param.dtype, torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32,
            autocast, torch.get_autocast_dtype("cuda"), optimize)
     graphed = cache.graphs.get(key)
-    if graphed is not None and optimize and cache.copied.get(key) != versions:
+    if graphed is not None and optimize and graphed._copied_at != versions:
         del cache.graphs[key]  # its copy holds the weights from before an in-place update: record it again
         graphed = None
     if graphed is None:
@@ -757,15 +755,15 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
             cache.seen.add(key)  # a single call (a CLI run on one scan) is not worth a graph's recording
             return None
         while len(cache.graphs) >= KEEP_GRAPHS:
-            cache.copied.pop(cache.graphs.popitem(last=False)[0], None)
+            cache.graphs.popitem(last=False)
         was_training = model.training  # replays run in eval mode whatever the mode; recording sets it
         try:
             with torch.inference_mode(False):  # buffers the replays of calls outside inference mode may write too
                 graphed = GraphedPointPillars(model, capacity=capacity, precision=None, batch_size=B, optimize=optimize)
         finally:
             model.train(was_training)
+        graphed._copied_at = versions  # the tensors' versions its copy was made at (None: no copy)
         cache.graphs[key] = graphed
-        cache.copied[key] = versions
         cache.recorded += 1
     cache.graphs.move_to_end(key)
     try:

@@ -607,17 +607,23 @@ def test_features_given_as_a_function_of_the_sites(device, mode):
         computed.update(s.to(device), features, r.to(device))
 
 
+def _two_backbones(device, given, monkeypatch, backbone_seed, stream_seed, dtype):
+    """A 24 x 32 stream holding ``given`` of the grid's sites and two recycling backbones of one network, with
+    the dense refresh taken from half the grid on (``given`` 0.3: the sparse refresh, 1.0: the dense one)."""
+    monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)
+    H, W = 24, 32
+    bb = small_backbone(seed=backbone_seed).to(device)
+    stream = PillarMapStream(H, W, 8, seed=stream_seed, start=int(given * H * W))
+    return stream, *(DeltaBackbone(bb, (H, W), dtype, device) for _ in range(2))
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("given", [0.3, 1.0])  # the sparse and the dense refresh
 def test_refresh_without_the_input_check_and_its_figures(device, given, monkeypatch):
     """refresh(..., check=False) on input that is already right gives what the checked call gives, and the
     figures read in one go (active sites per layer, state_max) are the layers' own."""
-    monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)
-    H, W = 24, 32
-    bb = small_backbone(seed=8).to(device)
-    stream = PillarMapStream(H, W, 8, seed=2, start=int(given * H * W))
+    stream, a, b = _two_backbones(device, given, monkeypatch, 8, 2, torch.float64)
     sites, feats = stream.current()
-    a, b = (DeltaBackbone(bb, (H, W), torch.float64, device) for _ in range(2))
     want = a.refresh(sites, feats).clone()
     got = b.refresh(sites.to(device), feats.to(device), check=False)
     assert (got - want).abs().max() <= 1e-12 * want.abs().max()  # CUDA's sums may add in another order
@@ -632,12 +638,8 @@ def test_refresh_without_the_input_check_and_its_figures(device, given, monkeypa
 def test_refresh_under_a_callers_autocast_keeps_the_state_dtype(device, given, monkeypatch):
     """A refresh inside the caller's torch.autocast computes in the state's dtype (float32 here), as the steps
     do: the same outputs and accumulators as outside it, and the recycled steps after it still match."""
-    monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)
-    H, W = 24, 32
-    bb = small_backbone(seed=5).to(device)
-    stream = PillarMapStream(H, W, 8, seed=3, start=int(given * H * W))
+    stream, a, b = _two_backbones(device, given, monkeypatch, 5, 3, torch.float32)
     sites, feats = stream.current()
-    a, b = (DeltaBackbone(bb, (H, W), torch.float32, device) for _ in range(2))
     want = a.refresh(sites, feats.float()).clone()
     with torch.autocast(torch.device(device).type, dtype=torch.bfloat16):
         got = b.refresh(sites, feats.float())
