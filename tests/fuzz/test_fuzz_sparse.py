@@ -8,7 +8,7 @@ raise a ValueError naming the indices; otherwise the result must be the referenc
 from __future__ import annotations
 
 import torch
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from lidarops.sparse import SparseConvTensor
@@ -88,6 +88,38 @@ def test_conv(device, data):
     assert_no_error(err, what)
     ref_i, ref_f = Fs._conv_reference(_tensor(s, "cpu"), w, bias, kind, **args)
     _compare(res, ref_i, ref_f, what)
+
+
+@fuzz
+@given(data=st.data())
+def test_conv_under_autocast(device, data):
+    """Inside torch.autocast (bfloat16): float32 or bfloat16 features with float32 weights run in bfloat16 and give
+    the convolution of the inputs cast by hand; float64 features are left alone, so float32 weights with them stay
+    a clear error naming the weight."""
+    s = data.draw(sparse_sites(), "sites")
+    assume(s.in_range() and s.unique())
+    D = len(s.spatial_shape)
+    kind = data.draw(st.sampled_from(["subm", "conv", "transposed"]), "kind")
+    g = _geometry(data, D, kind)
+    cin, cout = s.features.shape[1], data.draw(st.integers(1, 3), "Cout")
+    w = torch.linspace(-1, 1, cout * cin * _prod(g["kernel"])).reshape(cout, *g["kernel"], cin).to(device)
+    bias = torch.linspace(-1, 1, cout, device=device) if data.draw(st.booleans(), "bias") else None
+    feats = data.draw(st.sampled_from([torch.float32, torch.bfloat16, torch.float64]), "features dtype")
+    x = SparseConvTensor(s.features.to(device, feats), s.indices.to(device), s.spatial_shape, s.batch_size)
+    args = dict(stride=g.get("stride", 1), padding=g.get("padding", 0), dilation=g["dilation"])
+    what = f"conv({kind}, {g}) of {feats} features under bfloat16 autocast"
+    with torch.autocast(torch.device(device).type, dtype=torch.bfloat16):
+        res, err = outcome(Fs.conv, x, w, bias, kind, **args)
+    if err is not None and ("leaves no output site" in str(err) or "empty output grid" in str(err)):
+        return assert_clear_error(err, ValueError, ["kernel", "convolution"], what)
+    if feats == torch.float64:
+        return assert_clear_error(err, ValueError, ["weight"], what)
+    assert_no_error(err, what)
+    assert res.features.dtype == torch.bfloat16, what
+    want = Fs.conv(x.replace_feature(x.features.bfloat16()), w.bfloat16(), None if bias is None else bias.bfloat16(),
+                   kind, **args)
+    assert_same(res.indices, want.indices, what + " sites")
+    assert_same(res.features, want.features, what + " features")
 
 
 @fuzz
