@@ -18,8 +18,9 @@ Sections (times are medians in ms; the JSON has IQRs and run counts):
   against spconv's layer module called the same way. A peer that fails has "error: ..." in its cell
   and row.
 * ``map``: kernel-map construction alone (output sites + map, with validation), per grid and kind.
-* ``eager``: what users see, each call from a new ``SparseConvTensor`` (kernel maps built in the call): a
-  SubM 3x3 64 -> 64 layer module, and the 16-layer down path of Sparse-PointPillars, against spconv.
+* ``eager``: what users see, each call from a new ``SparseConvTensor`` on a new copy of the indices (a new
+  frame: kernel maps built and its sites checked in the call): a SubM 3x3 64 -> 64 layer module, and the
+  16-layer down path of Sparse-PointPillars, against spconv; lidarops also under ``validation(False)``.
 * ``pillars``: PointPillars' backbone made sparse (strided sparse conv at the start of each block,
   then 3/5/5 submanifold convs, channels 64/128/256, transposed upsampling x1/x2/x4 to 128 channels,
   dense concatenation), eval mode, on the KITTI grid: full forward (kernel maps built) and forward
@@ -453,9 +454,12 @@ def down_path(net):
 
 
 def bench_eager(device, modes, quick, rows_out):
-    """What users see: every call starts from a new ``SparseConvTensor`` (no ``indice_dict``), so each
-    call builds its kernel maps, as the first forward of every frame does. One SubM 3x3 64 -> 64 layer
-    module, and the 16-layer down path of the Sparse-PointPillars backbone, lidarops against spconv."""
+    """What users see: every call starts from a new ``SparseConvTensor`` on a new copy of the indices (no
+    ``indice_dict``, sites never seen: a new frame), so each call builds and checks its kernel maps. One SubM
+    3x3 64 -> 64 layer module, and the 16-layer down path of the Sparse-PointPillars backbone, lidarops
+    (its default, which checks a new frame's sites once: one host synchronisation, and under
+    ``lidarops.validation(False)``) against spconv (which checks nothing). The copy is in every column."""
+    from lidarops.ops.validation import validation
     sp = _spconv() if torch.device(device).type == "cuda" else None
     grids = {"drone": GRIDS["drone"]} if quick else GRIDS
     table = []
@@ -466,7 +470,8 @@ def bench_eager(device, modes, quick, rows_out):
             with precision(mode) as dtype, torch.no_grad():
                 feats = torch.randn(idx.shape[0], 64, device=device, dtype=dtype)
                 cells = {}
-                for impl, ns in (("lidarops", lspconv), ("spconv", sp)):
+                for impl, ns, checks in (("lidarops", lspconv, True), ("lidarops_unchecked", lspconv, False),
+                                         ("spconv", sp, True)):
                     if ns is None:
                         cells[impl] = (None, None)
                         continue
@@ -474,22 +479,31 @@ def bench_eager(device, modes, quick, rows_out):
                         layer = ns.SubMConv2d(64, 64, 3, padding=1, bias=False, indice_key="k")
                         layer = layer.to(device=device, dtype=dtype).eval()
                         down = down_path(sparse_pointpillars(ns).to(device=device, dtype=dtype).eval())
-                        t_layer = _try(lambda f: layer(ns.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
-                        t_down = _try(lambda f: down(ns.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
+                        with validation(checks):
+                            t_layer = _try(lambda f: layer(ns.SparseConvTensor(f, idx.clone(), list(shape), 1)),
+                                           (feats,), device)
+                            t_down = _try(lambda f: down(ns.SparseConvTensor(f, idx.clone(), list(shape), 1)),
+                                          (feats,), device)
                     except Exception as e:  # noqa: BLE001  (reported in the row)
                         t_layer = t_down = _error(e)
                     cells[impl] = (t_layer, t_down)
-                (l_ours, d_ours), (l_sp, d_sp) = cells["lidarops"], cells["spconv"]
-                table.append([gname, idx.shape[0], mode, _cell(l_ours), _cell(l_sp), _ratio(l_sp, l_ours),
-                              _cell(d_ours), _cell(d_sp), _ratio(d_sp, d_ours)])
+                (l_ours, d_ours), (l_off, d_off), (l_sp, d_sp) = (cells["lidarops"], cells["lidarops_unchecked"],
+                                                                  cells["spconv"])
+                table.append([gname, idx.shape[0], mode, _cell(l_ours), _cell(l_off), _cell(l_sp),
+                              _ratio(l_sp, l_ours), _cell(d_ours), _cell(d_off), _cell(d_sp), _ratio(d_sp, d_ours)])
                 rows_out.append({"section": "eager", "op": f"eager/{gname}/{mode}", "grid": gname,
                                  "sites": int(idx.shape[0]), "precision": mode, "channels": 64,
-                                 "subm_with_map": {"lidarops": _row(l_ours), "spconv": _row(l_sp)},
-                                 "down_path_16_layers": {"lidarops": _row(d_ours), "spconv": _row(d_sp)}})
-    print_table(f"eager calls, kernel maps built in the call ({device}): SubM 3x3 64 -> 64 module; the 16-layer down "
-                "path of Sparse-PointPillars (C 64/128/256, BatchNorm, ReLU)",
-                ["grid", "sites", "prec", "SubM", "spconv", "spconv/ours", "down path", "spconv", "spconv/ours"],
-                table, right=(1, 3, 4, 5, 6, 7, 8))
+                                 "indices": "a new copy per call",
+                                 "subm_with_map": {"lidarops": _row(l_ours), "lidarops_validation_off": _row(l_off),
+                                                   "spconv": _row(l_sp)},
+                                 "down_path_16_layers": {"lidarops": _row(d_ours),
+                                                         "lidarops_validation_off": _row(d_off),
+                                                         "spconv": _row(d_sp)}})
+    print_table(f"eager calls, each on a new copy of the indices, kernel maps built in the call ({device}): SubM 3x3 "
+                "64 -> 64 module; the 16-layer down path of Sparse-PointPillars (C 64/128/256, BatchNorm, ReLU); "
+                "'checks off': lidarops under lidarops.validation(False)",
+                ["grid", "sites", "prec", "SubM", "checks off", "spconv", "spconv/ours", "down path", "checks off",
+                 "spconv", "spconv/ours"], table, right=(1, 3, 4, 5, 6, 7, 8, 9, 10))
     _report_errors(rows_out[first:])
 
 

@@ -151,7 +151,7 @@ class KeySet {
 at::Tensor sparse_conv_out_indices_cpu(const at::Tensor& indices_in, int64_t batch_size, at::IntArrayRef spatial_shape,
                                        at::IntArrayRef out_spatial_shape, at::IntArrayRef kernel_size,
                                        at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
-                                       bool transposed, int64_t method) {
+                                       bool transposed, int64_t method, bool validate) {
   TORCH_CHECK_VALUE(!out_spatial_shape.empty(), "out_spatial_shape must be given");
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, out_spatial_shape, kernel_size, stride, padding,
                                        dilation, transposed);
@@ -160,8 +160,9 @@ at::Tensor sparse_conv_out_indices_cpu(const at::Tensor& indices_in, int64_t bat
   auto idx = indices_in.contiguous();
   const int nd = g.ndim;
   const int64_t n = idx.size(0), K = g.kvol;
-  raise_if_out_of_range(idx, "indices", g.batch, g.in_shape, nd);
+  if (validate) raise_if_out_of_range(idx, "indices", g.batch, g.in_shape, nd);
   const int32_t* ip = idx.data_ptr<int32_t>();
+  // without validation, rows outside the batch or grid are skipped (as on CUDA)
   const std::vector<int64_t> offs = offset_table(g);
   const int64_t cells = grid_cells(g.batch, g.out_shape, nd);
 
@@ -173,6 +174,7 @@ at::Tensor sparse_conv_out_indices_cpu(const at::Tensor& indices_in, int64_t bat
       int64_t p[kMaxDim], q[kMaxDim];
       for (int64_t i = s; i < e; ++i) {
         const int32_t* r = ip + i * (nd + 1);
+        if (!validate && !row_in_range(r, g)) continue;
         for (int d = 0; d < nd; ++d) p[d] = r[d + 1];
         for (int64_t k = 0; k < K; ++k)
           if (output_of_input(g, p, offs.data() + k * nd, q))
@@ -186,6 +188,7 @@ at::Tensor sparse_conv_out_indices_cpu(const at::Tensor& indices_in, int64_t bat
     int64_t p[kMaxDim], q[kMaxDim];
     for (int64_t i = 0; i < n; ++i) {
       const int32_t* r = ip + i * (nd + 1);
+      if (!validate && !row_in_range(r, g)) continue;
       for (int d = 0; d < nd; ++d) p[d] = r[d + 1];
       for (int64_t k = 0; k < K; ++k)
         if (output_of_input(g, p, offs.data() + k * nd, q)) set.insert(site_key(r[0], q, g.out_shape, nd));
@@ -223,7 +226,13 @@ at::Tensor sparse_kernel_map_cpu(const at::Tensor& indices_in, const at::Tensor&
   const int nd = g.ndim;
   const int64_t m = oidx.size(0), K = g.kvol;
   auto nbr = at::empty({m, K}, idx.options());
-  if (m == 0) return nbr;
+  if (m == 0) {  // nothing to pair, but the sites are still checked (a strided layer may reach no output)
+    if (validate && idx.size(0) > 0) {
+      raise_if_out_of_range(idx, "indices", g.batch, g.in_shape, nd);
+      raise_if_duplicates(idx, "indices", g.batch, g.in_shape, nd);
+    }
+    return nbr;
+  }
   if (idx.size(0) == 0) return nbr.fill_(-1);
   const HostTable table = build_table(idx, g, method, validate, "indices");
   const TableView tv = table.view();

@@ -29,6 +29,8 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
+#include <cub/device/device_radix_sort.cuh>
+
 #include <cstdint>
 #include <tuple>
 
@@ -56,9 +58,38 @@ int wgmma_columns(int64_t cout, bool tf32, const DeviceProps& p, ConvAlgo algo) 
 #endif
 }
 
-__global__ void row_mask_kernel(const int32_t* __restrict__ nbr, int64_t m, int64_t K, int64_t* __restrict__ masks) {
+// Each row's offset mask (sparse.h, row_mask) as a radix key, and its row number as the value.
+template <typename Key>
+__global__ void row_mask_kernel(const int32_t* __restrict__ nbr, int64_t m, int64_t K, Key* __restrict__ masks,
+                                int32_t* __restrict__ rows) {
   const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
-  if (t < m) masks[t] = row_mask(nbr + t * K, K);
+  if (t >= m) return;
+  masks[t] = static_cast<Key>(row_mask(nbr + t * K, K));
+  rows[t] = static_cast<int32_t>(t);
+}
+
+// A stable radix sort of the rows by their masks, over the mask's bits only (a 3 x 3 map: 9 bits, two
+// passes, where a sort of 64-bit keys takes eight): the order torch's stable sort of the masks gives.
+template <typename Key>
+at::Tensor order_by_masks(const at::Tensor& nbr, int64_t m, int64_t K, cudaStream_t stream) {
+  const int bits = static_cast<int>(K < 63 ? K : 63);
+  const auto key_dtype = sizeof(Key) == 4 ? at::kInt : at::kLong;
+  auto keys = at::empty({2, m}, nbr.options().dtype(key_dtype));
+  auto rows = at::empty({m}, nbr.options());
+  Key* k_in = reinterpret_cast<Key*>(keys.data_ptr());
+  int32_t* r_in = rows.data_ptr<int32_t>();
+  row_mask_kernel<Key><<<static_cast<unsigned>(ceil_div(m, 256)), 256, 0, stream>>>(nbr.data_ptr<int32_t>(), m, K,
+                                                                                    k_in, r_in);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  if (bits == 0) return rows;
+  auto order = at::empty({m}, nbr.options());
+  size_t temp_bytes = 0;
+  C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, k_in, k_in + m, r_in,
+                                                 order.data_ptr<int32_t>(), static_cast<int>(m), 0, bits, stream));
+  auto temp = at::empty({static_cast<int64_t>(temp_bytes)}, nbr.options().dtype(at::kByte));
+  C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(temp.data_ptr(), temp_bytes, k_in, k_in + m, r_in,
+                                                 order.data_ptr<int32_t>(), static_cast<int>(m), 0, bits, stream));
+  return order;
 }
 
 at::Tensor sparse_kernel_map_order_cuda(const at::Tensor& nbr_in) {
@@ -67,13 +98,10 @@ at::Tensor sparse_kernel_map_order_cuda(const at::Tensor& nbr_in) {
   const c10::cuda::OptionalCUDAGuard guard(nbr_in.device());
   auto nbr = nbr_in.contiguous();
   const int64_t m = nbr.size(0), K = nbr.size(1);
-  auto masks = at::empty({m}, nbr.options().dtype(at::kLong));
-  if (m > 0) {
-    row_mask_kernel<<<static_cast<unsigned>(ceil_div(m, 256)), 256, 0, c10::cuda::getCurrentCUDAStream()>>>(
-        nbr.data_ptr<int32_t>(), m, K, masks.data_ptr<int64_t>());
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
-  }
-  return std::get<1>(masks.sort(/*stable=*/true, /*dim=*/0, /*descending=*/false)).to(at::kInt);
+  TORCH_CHECK_VALUE(m < INT32_MAX, "kernel_map has ", m, " rows; at most 2^31 - 2 are supported");
+  if (m == 0) return at::empty({0}, nbr.options());
+  cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
+  return K <= 32 ? order_by_masks<uint32_t>(nbr, m, K, stream) : order_by_masks<uint64_t>(nbr, m, K, stream);
 }
 
 // Output rows with no input: every one is epi(0) (at::empty otherwise, so each kernel writes every row).

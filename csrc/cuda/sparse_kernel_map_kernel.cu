@@ -7,7 +7,8 @@
 //     thread per (output row, kernel offset) looks its input up.
 // Validation (coordinates outside the grid, duplicates) is flagged on the device and costs one host
 // sync per map; when a flag is set, the message is produced by the CPU checks on a host copy, so it
-// names the same rows as on CPU.
+// names the same rows as on CPU. Without validation (the sparse layers skip it for sites they checked
+// or produced) no flag is kept and bad rows are skipped.
 #include <ATen/ATen.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
@@ -37,12 +38,20 @@ __device__ __forceinline__ int64_t row_key(const int32_t* r, const int64_t* shap
   return site_key(r[0], c, shape, ndim);
 }
 
-// flags[0]: smallest row outside the grid (INT64_MAX if none); flags[1]: 1 if a duplicate was seen.
+// flags[0]: smallest row outside the grid (all bits set if none); flags[1]: cleared if a duplicate was seen.
 __global__ void check_range_kernel(const int32_t* __restrict__ idx, int64_t n, ConvGeometry g,
                                    unsigned long long* flags) {
   const int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
   if (i >= n) return;
   if (!row_in_range(idx + i * (g.ndim + 1), g)) atomicMin(flags, static_cast<unsigned long long>(i));
+}
+
+// flags (may be null: no validation): [0] the smallest bad row, [1] cleared when a duplicate is seen
+__device__ __forceinline__ void flag_row(unsigned long long* flags, int64_t i) {
+  if (flags != nullptr) atomicMin(flags, static_cast<unsigned long long>(i));
+}
+__device__ __forceinline__ void flag_duplicate(unsigned long long* flags) {
+  if (flags != nullptr) atomicExch(flags + 1, 0ULL);
 }
 
 __global__ void insert_dense_kernel(const int32_t* __restrict__ idx, int64_t n, ConvGeometry g, int32_t* grid,
@@ -51,12 +60,12 @@ __global__ void insert_dense_kernel(const int32_t* __restrict__ idx, int64_t n, 
   if (i >= n) return;
   const int32_t* r = idx + i * (g.ndim + 1);
   if (!row_in_range(r, g)) {
-    atomicMin(flags, static_cast<unsigned long long>(i));
+    flag_row(flags, i);
     return;
   }
   const int64_t key = row_key(r, g.in_shape, g.ndim);
   const int32_t prev = atomicCAS(grid + key, -1, static_cast<int32_t>(i));
-  if (prev != -1) atomicExch(flags + 1, 1ULL);
+  if (prev != -1) flag_duplicate(flags);
 }
 
 __device__ __forceinline__ bool hash_insert(unsigned long long* keys, int32_t* vals, uint64_t mask, int64_t key,
@@ -80,11 +89,11 @@ __global__ void insert_hash_kernel(const int32_t* __restrict__ idx, int64_t n, C
   if (i >= n) return;
   const int32_t* r = idx + i * (g.ndim + 1);
   if (!row_in_range(r, g)) {
-    atomicMin(flags, static_cast<unsigned long long>(i));
+    flag_row(flags, i);
     return;
   }
   if (!hash_insert(keys, vals, mask, row_key(r, g.in_shape, g.ndim), static_cast<int32_t>(i)))
-    atomicExch(flags + 1, 1ULL);
+    flag_duplicate(flags);
 }
 
 // One thread per (input row, kernel offset): mark (dense byte grid) or insert (hash set) the output site.
@@ -95,6 +104,7 @@ __global__ void mark_outputs_kernel(const int32_t* __restrict__ idx, int64_t n, 
   if (t >= n * g.kvol) return;
   const int64_t i = t / g.kvol, k = t % g.kvol;
   const int32_t* r = idx + i * (g.ndim + 1);
+  if (!row_in_range(r, g)) return;  // reached only without validation: such rows are skipped
   int64_t p[kMaxDim], q[kMaxDim], off[kMaxDim];
   for (int d = 0; d < g.ndim; ++d) p[d] = r[d + 1];
   kernel_offsets(g, k, off);
@@ -143,7 +153,7 @@ __global__ void transpose_kernel(const int32_t* __restrict__ nbr, int64_t m, int
 void raise_flags(const at::Tensor& flags, const at::Tensor& idx, const ConvGeometry& g, bool check_dups) {
   const auto host = flags.cpu();
   const auto* f = reinterpret_cast<const unsigned long long*>(host.data_ptr<int64_t>());
-  const bool bad_range = f[0] != ~0ULL, dup = check_dups && f[1] != 0;
+  const bool bad_range = f[0] != ~0ULL, dup = check_dups && f[1] != ~0ULL;
   if (!bad_range && !dup) return;
   const auto cpu = idx.cpu();
   raise_if_out_of_range(cpu, "indices", g.batch, g.in_shape, g.ndim);
@@ -151,11 +161,8 @@ void raise_flags(const at::Tensor& flags, const at::Tensor& idx, const ConvGeome
   TORCH_CHECK_VALUE(false, "indices hold duplicate coordinates; a sparse tensor needs unique coordinates");
 }
 
-at::Tensor new_flags(const at::Tensor& like) {
-  auto flags = at::zeros({2}, like.options().dtype(at::kLong));
-  flags.select(0, 0).fill_(-1);  // all bits set: "no bad row" for atomicMin on unsigned
-  return flags;
-}
+// Both flags start with all bits set: "no bad row" for atomicMin on unsigned, "no duplicate" (one fill).
+at::Tensor new_flags(const at::Tensor& like) { return at::full({2}, -1, like.options().dtype(at::kLong)); }
 
 unsigned long long* flag_ptr(at::Tensor& flags) {
   return reinterpret_cast<unsigned long long*>(flags.data_ptr<int64_t>());
@@ -181,13 +188,14 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
   const int64_t n = idx.size(0);
   TORCH_CHECK_VALUE(n < INT32_MAX, "indices has ", n, " rows; at most 2^31 - 2 are supported");
   auto stream = c10::cuda::getCurrentCUDAStream();
-  auto flags = new_flags(idx);
+  at::Tensor flags = validate ? new_flags(idx) : at::Tensor();
+  unsigned long long* fp = validate ? flag_ptr(flags) : nullptr;
   DeviceTable t;
   const int64_t cells = grid_cells(g.batch, g.in_shape, g.ndim);
   if (use_dense_table(cells, n, method)) {
     t.dense = at::full({cells}, -1, idx.options().dtype(at::kInt));
     insert_dense_kernel<<<blocks_for(n), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
-                                                                t.dense.data_ptr<int32_t>(), flag_ptr(flags));
+                                                                t.dense.data_ptr<int32_t>(), fp);
   } else {
     const int64_t cap = hash_capacity(n);
     t.mask = cap - 1;
@@ -195,7 +203,7 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
     t.vals = at::full({cap}, -1, idx.options().dtype(at::kInt));
     insert_hash_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
         idx.data_ptr<int32_t>(), n, g, reinterpret_cast<unsigned long long*>(t.keys.data_ptr<int64_t>()),
-        t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), flag_ptr(flags));
+        t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), fp);
   }
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   if (validate) raise_flags(flags, idx, g, /*check_dups=*/true);
@@ -205,7 +213,7 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
 at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t batch_size, at::IntArrayRef spatial_shape,
                                         at::IntArrayRef out_spatial_shape, at::IntArrayRef kernel_size,
                                         at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
-                                        bool transposed, int64_t method) {
+                                        bool transposed, int64_t method, bool validate) {
   TORCH_CHECK_VALUE(!out_spatial_shape.empty(), "out_spatial_shape must be given");
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, out_spatial_shape, kernel_size, stride, padding,
                                        dilation, transposed);
@@ -216,7 +224,7 @@ at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t ba
   const int64_t n = idx.size(0), K = g.kvol;
   if (n == 0) return at::empty({0, g.ndim + 1}, idx.options());
   auto stream = c10::cuda::getCurrentCUDAStream();
-  {  // out-of-range input rows would index outside the grids below: check first (one sync)
+  if (validate) {  // out-of-range input rows: the CPU's error (one sync); without validation they are skipped
     auto flags = new_flags(idx);
     check_range_kernel<<<blocks_for(n), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g, flag_ptr(flags));
     C10_CUDA_KERNEL_LAUNCH_CHECK();
@@ -265,7 +273,10 @@ at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor
   auto oidx = out_indices_in.contiguous();
   const int64_t m = oidx.size(0), K = g.kvol;
   auto nbr = at::empty({m, K}, idx.options());
-  if (m == 0) return nbr;
+  if (m == 0) {  // nothing to pair, but the sites are still checked (a strided layer may reach no output)
+    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true);
+    return nbr;
+  }
   if (idx.size(0) == 0) return nbr.fill_(-1);
   const DeviceTable table = build_table_cuda(idx, g, method, validate);
   auto stream = c10::cuda::getCurrentCUDAStream();

@@ -13,11 +13,12 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // Output sites of a regular (transposed=False) or transposed convolution: every site of the output
   // grid that some input site feeds through some kernel offset. indices (N, 1 + D) int32 ->
   // (M, 1 + D) int32, sorted by linear key (batch, then row-major coordinates). Data-dependent M.
-  // method: 0 auto, 1 dense grid, 2 hash table. Rows outside the batch / grid: ValueError (both devices).
+  // method: 0 auto, 1 dense grid, 2 hash table. validate: rows outside the batch / grid raise ValueError
+  // (both devices; one host sync on CUDA); without it they are skipped. Sites need not be unique here.
   m.def(
       "sparse_conv_out_indices(Tensor indices, int batch_size, int[] spatial_shape, int[] out_spatial_shape,"
-      " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False, int method=0)"
-      " -> Tensor");
+      " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False, int method=0,"
+      " bool validate=True) -> Tensor");
   // Kernel map: (N_out, K) int32, entry [o, k] = input row feeding out_indices[o] through offset k, or -1.
   // validate: raise ValueError for input coordinates outside the grid or duplicated (costs one host
   // sync on CUDA); without it such rows are ignored (never read out of bounds; of duplicates the first

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from lidarops import extension
 from lidarops.ops.validation import check_tensor, describe, run_value_checks, value_checks_enabled
-from lidarops.sparse.tensor import KernelMap, SparseConvTensor, check_sites
+from lidarops.sparse.tensor import KernelMap, SparseConvTensor, check_sites, mark_sites_checked, sites_checked
 
 extension.load()
 from lidarops.sparse import _registrations  # noqa: E402,F401  (fake kernels and autograd)
@@ -121,7 +121,7 @@ def _check_indices(indices, name: str, ndim: Optional[int] = None) -> None:
 
 def conv_out_indices(indices: Tensor, batch_size: int, spatial_shape: Sequence[int], out_spatial_shape: Sequence[int],
                      kernel_size, stride=1, padding=0, dilation=1, transposed: bool = False,
-                     method: str = "auto") -> Tensor:
+                     method: str = "auto", validate: bool = True) -> Tensor:
     """Output sites of a regular or transposed sparse convolution.
 
     Args:
@@ -131,6 +131,8 @@ def conv_out_indices(indices: Tensor, batch_size: int, spatial_shape: Sequence[i
         kernel_size, stride, padding, dilation: ints or D-sequences.
         transposed (bool): transposed convolution (input p reaches q = p * stride - padding + t * dilation).
         method (str): ``"auto"``, ``"dense"`` (index grid) or ``"hash"``; same result.
+        validate (bool): raise ValueError for input rows outside the batch or grid (one host sync on CUDA);
+            when False such rows are skipped.
 
     Returns:
         Tensor[M, 1 + D] int32: every output site reached by some input site, sorted by linear index
@@ -143,7 +145,7 @@ def conv_out_indices(indices: Tensor, batch_size: int, spatial_shape: Sequence[i
     return torch.ops.lidarops.sparse_conv_out_indices(
         indices, int(batch_size), list(shape), list(out_shape), list(_ntuple(kernel_size, D, "kernel_size", 1)),
         list(_ntuple(stride, D, "stride", 1)), list(_ntuple(padding, D, "padding", 0)),
-        list(_ntuple(dilation, D, "dilation", 1)), bool(transposed), _method(method))
+        list(_ntuple(dilation, D, "dilation", 1)), bool(transposed), _method(method), bool(validate))
 
 
 def kernel_map(indices: Tensor, out_indices: Tensor, batch_size: int, spatial_shape: Sequence[int], kernel_size,
@@ -195,6 +197,10 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
             formula differs from PyTorch's when dilation > 1).
         method (str): coordinate table, ``"auto"``, ``"dense"`` or ``"hash"``.
 
+    The input sites are checked (inside the grid, each once: ValueError; one host synchronisation on CUDA)
+    unless they are known valid: checked before at their current version, or made by a layer (the output
+    sites of a map built here are). Under ``lidarops.validation(False)`` bad rows are skipped instead.
+
     Returns:
         KernelMap.
     """
@@ -207,6 +213,9 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     shape = tuple(x.spatial_shape)
     m = _method(method)
     ops = torch.ops.lidarops
+    # The map's construction checks the input sites (one host sync on CUDA) unless they are known valid:
+    # checked before, or made by a layer. Under lidarops.validation(False), bad rows are skipped instead.
+    validate = value_checks_enabled() and not sites_checked(x.indices, x.batch_size, shape)
     if kind == "subm":
         s, p = (1,) * D, tuple(d[i] * (k[i] // 2) for i in range(D))
         out_shape, out_indices, transposed = shape, x.indices, False
@@ -219,12 +228,17 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
             out_shape = conv_transpose_output_shape(shape, k, s, p, d, output_padding)
         else:
             out_shape = conv_output_shape(shape, k, s, p, d)
+        # bad input rows are skipped here and reported by the map's validation below (one sync, not two)
         out_indices = ops.sparse_conv_out_indices(x.indices, x.batch_size, list(shape), list(out_shape), list(k),
-                                                  list(s), list(p), list(d), transposed, m)
+                                                  list(s), list(p), list(d), transposed, m, False)
     else:
         raise ValueError(f"kind must be 'subm', 'conv', 'pool' or 'transposed', got {kind!r}")
     neighbors = ops.sparse_kernel_map(x.indices, out_indices, x.batch_size, list(shape), list(k), list(s), list(p),
-                                      list(d), transposed, True, m)
+                                      list(d), transposed, validate, m)
+    if validate:
+        mark_sites_checked(x.indices, x.batch_size, shape)
+    if out_indices is not x.indices:  # made here: inside the output grid, each site once
+        mark_sites_checked(out_indices, x.batch_size, out_shape)
     km = KernelMap(kind=kind, indices=x.indices, out_indices=out_indices, spatial_shape=shape,
                    out_spatial_shape=tuple(out_shape), kernel_size=k, stride=s, padding=p, dilation=d,
                    neighbors=neighbors)
@@ -523,9 +537,9 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
 
     Raises:
         ValueError: naming the argument: bad shapes, dtypes or devices; sites outside the grid or
-            duplicated (checked when a kernel map is built, or once per indices tensor for a 1 x 1
-            ``"subm"`` convolution, which builds no map); a reused ``indice_key`` whose map was built on
-            other sites.
+            duplicated (checked once per indices tensor, when a kernel map is first built on it or, for a
+            1 x 1 ``"subm"`` convolution, which builds no map, before the product; sites made by a layer
+            are not checked again); a reused ``indice_key`` whose map was built on other sites.
     """
     if not isinstance(x, SparseConvTensor):
         raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")

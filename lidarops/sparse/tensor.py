@@ -152,17 +152,39 @@ def _range_check(indices: Tensor, batch_size: int, spatial_shape: list, duplicat
     run_value_checks(checks)
 
 
+def _sites_key(indices: Tensor, batch_size: int, spatial_shape) -> Optional[tuple]:
+    """What a check of ``indices`` on a grid is remembered by: its version counter and the grid. None for an
+    inference tensor (no version counter: never remembered) and while compiling (nothing is remembered)."""
+    if indices.is_inference() or torch.compiler.is_compiling():
+        return None
+    return (indices._version, batch_size, tuple(spatial_shape), "sites")
+
+
+def sites_checked(indices: Tensor, batch_size: int, spatial_shape) -> bool:
+    """Whether ``indices`` are known to lie in the grid with each site once, at their current version:
+    checked before (:func:`check_sites`, a kernel map's validation) or made by a layer (a convolution's
+    output sites, ``from_dense``)."""
+    key = _sites_key(indices, batch_size, spatial_shape)
+    return key is not None and getattr(indices, "_lidarops_checked", None) == key
+
+
+def mark_sites_checked(indices: Tensor, batch_size: int, spatial_shape) -> None:
+    """Remember that ``indices`` hold valid, unique sites of the grid (until changed in place)."""
+    key = _sites_key(indices, batch_size, spatial_shape)
+    if key is not None:
+        indices._lidarops_checked = key
+
+
 def check_sites(x: "SparseConvTensor") -> None:
     """The sites of ``x`` lie in its grid and each appears once: checked once per indices tensor and shape
     (a layer with a cached map returns the same indices tensor every call: no host synchronisation after the
-    first); an in-place change re-checks. Inference tensors keep no version counter: checked every time.
-    Edits through ``.data`` bypass the version counter (as they do autograd's checks): make a new tensor."""
-    key = None if x.indices.is_inference() else (x.indices._version, x.batch_size, tuple(x.spatial_shape), "sites")
-    if value_checks_enabled() and x.indices.numel() and (
-            key is None or getattr(x.indices, "_lidarops_checked", None) != key):
+    first; sites a layer made, or a kernel map already checked, are not checked again); an in-place change
+    re-checks. Inference tensors keep no version counter: checked every time. Edits through ``.data`` bypass
+    the version counter (as they do autograd's checks): make a new tensor."""
+    if (value_checks_enabled() and x.indices.numel()
+            and not sites_checked(x.indices, x.batch_size, x.spatial_shape)):
         _range_check(x.indices, x.batch_size, x.spatial_shape, duplicates=True)
-        if key is not None:
-            x.indices._lidarops_checked = key
+        mark_sites_checked(x.indices, x.batch_size, x.spatial_shape)
 
 
 def _as_int32(indices: Tensor, batch_size: int, spatial_shape: list) -> Tensor:
@@ -181,7 +203,8 @@ class SparseConvTensor:
         features (Tensor[N, C]): one feature row per active site.
         indices (Tensor[N, 1 + D] int32): ``(batch, c_0, ..., c_{D-1})`` of each row, coordinates in
             the order of ``spatial_shape`` (``(z, y, x)`` for voxels, ``(y, x)`` for pillars). Sites must
-            be unique and inside the grid; the kernel-map construction checks both. Other integer
+            be unique and inside the grid; the first kernel map built on them checks both (once per
+            indices tensor and version: one host synchronisation on CUDA). Other integer
             dtypes (int64 coordinates) are checked against ``batch_size`` and ``spatial_shape`` first
             (one value check, skipped under ``lidarops.validation(False)``) and then converted to
             int32, so that no out-of-range value wraps around (``.int()`` would wrap silently).
@@ -357,4 +380,6 @@ class SparseConvTensor:
         active = (x != 0).any(-1)
         idx = torch.nonzero(active)
         features = x[tuple(idx.unbind(1))]
-        return cls(features, idx.to(torch.int32), list(x.shape[1:-1]), x.shape[0])
+        out = cls(features, idx.to(torch.int32), list(x.shape[1:-1]), x.shape[0])
+        mark_sites_checked(out.indices, out.batch_size, out.spatial_shape)  # nonzero's sites: in the grid, once each
+        return out

@@ -105,21 +105,25 @@ def test_kernel_map_transpose_and_subset(device, D):
     assert torch.equal(sub.cpu(), nbr[rows])
 
 
-def test_kernel_map_order_groups_rows_by_offset_mask(device):
-    x = random_tensor(2, SHAPES[2], 40, 3, seed=8, device=device)
-    km = Fs.build_kernel_map(x, "subm", 3)
+# K = 9 and 27 sort 32-bit keys on CUDA, K = 49 64-bit ones (the sort covers the mask's K bits only)
+@pytest.mark.parametrize("shape,k", [(SHAPES[2], 3), ((5, 6, 7), 3), ((12, 11), 7)], ids=["2d-k3", "3d-k3", "2d-k7"])
+def test_kernel_map_order_groups_rows_by_offset_mask(device, shape, k):
+    x = random_tensor(2, shape, 40, 3, seed=8, device=device)
+    km = Fs.build_kernel_map(x, "subm", k)
+    K = km.kernel_volume
     order = ops.sparse_kernel_map_order(km.neighbors).cpu().long()
     nbr = km.neighbors.cpu()
     assert torch.equal(torch.sort(order).values, torch.arange(nbr.shape[0]))
-    masks = ((nbr >= 0).long() << torch.arange(9)).sum(1)
+    masks = ((nbr >= 0).long() << torch.arange(K)).sum(1)
     m = masks[order]
     assert bool((m[1:] >= m[:-1]).all())  # ascending masks
     same = m[1:] == m[:-1]
     assert bool((order[1:][same] > order[:-1][same]).all())  # stable
+    assert len(set(masks.tolist())) > 3  # rows with different masks: the test sorts something
     # the order changes nothing but the speed
-    w = random_weight(4, (3, 3), 3, device=device)
-    a = ops.sparse_conv(x.features, w.reshape(4, 9, 3), km.neighbors)
-    b = ops.sparse_conv(x.features, w.reshape(4, 9, 3), km.neighbors, ops.sparse_kernel_map_order(km.neighbors))
+    w = random_weight(4, (k,) * x.ndim, 3, device=device)
+    a = ops.sparse_conv(x.features, w.reshape(4, K, 3), km.neighbors)
+    b = ops.sparse_conv(x.features, w.reshape(4, K, 3), km.neighbors, ops.sparse_kernel_map_order(km.neighbors))
     torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
 
 

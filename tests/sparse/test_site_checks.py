@@ -1,0 +1,88 @@
+"""A kernel map checks a frame's sites once: sites a layer made, or sites already checked at their current
+version, are not checked again (the check is a host synchronisation on CUDA), and an in-place change brings
+the check back. Under ``lidarops.validation(False)`` bad rows are skipped, never read out of bounds."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from lidarops.ops.validation import validation
+from lidarops.sparse import SparseConvTensor
+from lidarops.sparse import functional as Fs
+from lidarops.sparse.tensor import sites_checked
+from helpers.sparse import assert_same_sites_and_features, random_tensor, random_weight
+
+SHAPE = (9, 11)
+ops = torch.ops.lidarops
+
+
+def test_a_layers_output_sites_are_known_valid_and_its_input_sites_once_checked(device):
+    x = random_tensor(2, SHAPE, 25, 3, seed=1, device=device)
+    assert not sites_checked(x.indices, x.batch_size, x.spatial_shape)
+    y = Fs.conv(x, random_weight(4, (3, 3), 3, device=device), kind="conv", stride=2, padding=1)
+    assert sites_checked(x.indices, x.batch_size, x.spatial_shape)  # checked by the map's construction
+    assert sites_checked(y.indices, y.batch_size, y.spatial_shape)  # made by the layer
+    assert not sites_checked(y.indices, y.batch_size, [s + 1 for s in y.spatial_shape])  # another grid: not known
+    w2 = random_weight(5, (3, 3), 4, seed=1, device=device)
+    z = Fs.conv(y, w2, kind="subm")  # on sites it does not check again: still the dense reference's answer
+    ref_i, ref_f = Fs._conv_reference(y, w2, None, "subm")
+    assert_same_sites_and_features(z.indices, z.features, ref_i, ref_f, z.spatial_shape, 1e-10, "subm on made sites")
+
+
+@pytest.mark.parametrize("kind", ["subm", "conv"])
+def test_an_in_place_change_of_checked_sites_is_checked_again(device, kind):
+    x = random_tensor(1, SHAPE, 20, 3, seed=2, device=device)
+    w = random_weight(4, (3, 3), 3, device=device)
+    Fs.conv(x, w, kind=kind, stride=2, padding=1)  # checks x's sites
+    x.indices[3, 1] = SHAPE[0] + 4  # outside the grid, after the check
+    with pytest.raises(ValueError, match=r"indices lie outside|outside"):
+        Fs.conv(SparseConvTensor(x.features, x.indices, list(SHAPE), 1), w, kind=kind, stride=2, padding=1)
+
+
+def test_made_sites_changed_in_place_are_checked(device):
+    x = random_tensor(1, SHAPE, 20, 3, seed=3, device=device)
+    y = Fs.conv(x, random_weight(4, (3, 3), 3, device=device), kind="conv", stride=2, padding=1)
+    y.indices[0] = y.indices[1]  # a duplicate site in the layer's own output
+    with pytest.raises(ValueError, match="duplicate|more than once"):
+        Fs.conv(y, random_weight(4, (3, 3), 4, device=device), kind="subm")
+
+
+def test_a_duplicate_site_in_a_new_frame_is_caught_by_a_strided_layer(device):
+    x = random_tensor(1, SHAPE, 20, 3, seed=4, device=device)
+    idx = x.indices.clone()
+    idx[5] = idx[2]
+    with pytest.raises(ValueError, match="duplicate|more than once"):
+        Fs.conv(SparseConvTensor(x.features, idx, list(SHAPE), 1), random_weight(4, (3, 3), 3, device=device),
+                kind="conv", stride=2, padding=1)
+
+
+@pytest.mark.parametrize("kind", ["conv", "transposed", "subm"])
+def test_validation_off_skips_rows_outside_the_grid(device, kind):
+    x = random_tensor(1, SHAPE, 20, 3, seed=5, device=device)
+    w = random_weight(4, (3, 3), 3, device=device)
+    kw = {} if kind == "subm" else {"stride": 2, "padding": 1}
+    good = Fs.conv(x, w, kind=kind, **kw)
+    bad_rows = torch.tensor([[0, SHAPE[0] + 3, 1], [1, 2, 2], [0, -1, 4]], dtype=torch.int32, device=device)
+    idx = torch.cat([x.indices, bad_rows])
+    feats = torch.cat([x.features, torch.randn(3, 3, dtype=x.features.dtype, device=device)])
+    bad = SparseConvTensor(feats, idx, list(SHAPE), 1)
+    with pytest.raises(ValueError, match="outside"):
+        Fs.conv(bad, w, kind=kind, **kw)
+    with validation(False):
+        y = Fs.conv(bad, w, kind=kind, **kw)
+    if kind == "subm":  # the output keeps the input's rows; the bad rows read no neighbour and none reads them
+        torch.testing.assert_close(y.features[:-3], good.features, rtol=0, atol=1e-12)
+    else:
+        assert torch.equal(y.indices.cpu(), good.indices.cpu())
+        torch.testing.assert_close(y.features, good.features, rtol=0, atol=1e-12)
+
+
+def test_out_indices_op_without_validation_skips_bad_rows(device):
+    x = random_tensor(2, SHAPE, 20, 3, seed=6, device=device)
+    args = (2, list(SHAPE), [5, 6], [3, 3], [2, 2], [1, 1], [1, 1], False, 0)
+    good = ops.sparse_conv_out_indices(x.indices, *args)
+    bad = torch.cat([x.indices, torch.tensor([[2, 0, 0], [0, 0, SHAPE[1]], [-1, 3, 3]], dtype=torch.int32,
+                                             device=device)])
+    with pytest.raises(ValueError, match="outside"):
+        ops.sparse_conv_out_indices(bad, *args)
+    assert torch.equal(ops.sparse_conv_out_indices(bad, *args, False).cpu(), good.cpu())
