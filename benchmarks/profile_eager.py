@@ -18,7 +18,7 @@ For each call a user writes (below), two measurements:
 
 Calls: ``PointPillars.predict`` eagerly (``eager_predict()``, TF32 and fp16 autocast) and replayed (its CUDA
 graph), on a real-scan-sized frame; one SubM 3x3 64 -> 64 layer module of ``lidarops.compat.spconv`` on a new
-``SparseConvTensor`` (its map built in the call) and on one whose ``indice_dict`` holds the map; the 16-layer
+``SparseConvTensor`` on a new copy of the indices (a new frame: its map built and its sites checked in the call) and on one whose ``indice_dict`` holds the map; the 16-layer
 down path of Sparse-PointPillars (maps built); the whole Sparse-PointPillars backbone of the shipped detector
 (``BaseBEVBackbone(mode="sparse")``, maps built). With spconv importable, its SubM layer and down path too.
 """
@@ -152,9 +152,9 @@ def sparse_calls(dtype=torch.float16):
             first = layer(ns.SparseConvTensor(feats, idx, list(shape), 1))
         cached = ns.SparseConvTensor(feats, idx, list(shape), 1, indice_dict=first.indice_dict)
 
-        def fresh(layer=layer, ns=ns):
+        def fresh(layer=layer, ns=ns):  # a new frame: a new copy of the indices, its sites never seen
             with torch.no_grad():
-                return layer(ns.SparseConvTensor(feats, idx, list(shape), 1))
+                return layer(ns.SparseConvTensor(feats, idx.clone(), list(shape), 1))
 
         def reuse(layer=layer, cached=cached):
             with torch.no_grad():
@@ -162,7 +162,7 @@ def sparse_calls(dtype=torch.float16):
 
         def path(down=down, ns=ns):
             with torch.no_grad():
-                return down(ns.SparseConvTensor(feats, idx, list(shape), 1))
+                return down(ns.SparseConvTensor(feats, idx.clone(), list(shape), 1))
 
         out += [(f"{name}: SubM 3x3 64->64, map built", fresh), (f"{name}: SubM 3x3 64->64, map reused", reuse),
                 (f"{name}: down path, 16 layers, maps built", path)]
@@ -170,7 +170,7 @@ def sparse_calls(dtype=torch.float16):
 
     def backbone():
         with torch.no_grad():
-            return bb(SparseConvTensor(feats, idx, list(shape), 1))
+            return bb(SparseConvTensor(feats, idx.clone(), list(shape), 1))
 
     out.append(("lidarops: Sparse-PointPillars backbone (down + up), maps built", backbone))
     return out, int(idx.shape[0])

@@ -70,10 +70,14 @@ class AnchorHeadSingle(nn.Module):
                "box_preds": self.conv_box(features).permute(0, 2, 3, 1).contiguous()}
         if self.conv_dir_cls is not None:
             out["dir_cls_preds"] = self.conv_dir_cls(features).permute(0, 2, 3, 1).contiguous()
+        return self._check_grid(out)
+
+    def _check_grid(self, out: dict[str, Tensor]) -> dict[str, Tensor]:
+        """``out``, if its (B, H, W, ...) maps hold one set of anchors per site of the config's grid."""
         expected = self.anchors_flat.shape[0]
         got = out["cls_preds"].shape[1] * out["cls_preds"].shape[2] * self.num_anchors_per_location
         if got != expected:
-            raise ValueError(f"the feature map {tuple(features.shape[2:])} does not match the anchors "
+            raise ValueError(f"the feature map {tuple(out['cls_preds'].shape[1:3])} does not match the anchors "
                              f"({expected} for the config's grid); check POINT_CLOUD_RANGE / VOXEL_SIZE")
         return out
 

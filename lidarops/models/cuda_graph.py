@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 import lidarops
 from lidarops._cuda_graphs import uncached_autocast
+from lidarops.models.anchor_head import AnchorHeadSingle
 from lidarops.models.counternet import CounterNet
 from lidarops.models.pointpillars import PointPillars, _check_batch, eager_predict
 from lidarops.models.postprocess import postprocess_padded
@@ -219,7 +220,8 @@ def inference_copy(model: nn.Module) -> nn.Module:
     ``BatchNorm2d`` in an ``nn.Sequential`` folded into one convolution with a bias (``torch.nn.utils.fusion``),
     and 4-D weights channels-last, so that cuDNN runs the BEV network without layout transposes or separate
     BatchNorm passes; in a CounterNet the count head's first convolution also reads the backbone's upsampled maps
-    one by one instead of their concatenation. The same function up to rounding; the model itself is not
+    one by one instead of their concatenation, and in a PointPillars the anchor head's three 1 x 1 convolutions
+    run as one, reading the maps the same way. The same function up to rounding; the model itself is not
     changed."""
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
@@ -239,6 +241,12 @@ def inference_copy(model: nn.Module) -> nn.Module:
         sizes = [d[0].out_channels for d in copy_.backbone_2d.deblocks]
         copy_.backbone_2d = _PartsBackbone(copy_.backbone_2d)
         copy_.count_head.shared_conv[0] = _PartsConv2d(copy_.count_head.shared_conv[0], sizes)
+    if isinstance(copy_, PointPillars) and copy_.config.backbone_mode == "dense" \
+            and type(copy_.dense_head) is AnchorHeadSingle:
+        # the anchor head's three 1 x 1 convolutions as one, reading the upsampled maps one by one
+        sizes = [d[0].out_channels for d in copy_.backbone_2d.deblocks]
+        copy_.backbone_2d = _PartsBackbone(copy_.backbone_2d)
+        _MergedAnchorHead.convert(copy_.dense_head, sizes)
     return copy_.to(memory_format=torch.channels_last)
 
 
@@ -285,6 +293,28 @@ class _PartsConv2d(nn.Module):
         for conv, part in zip(self.parts[1:], x[1:]):
             out = out + conv(part)
         return out if self.whole.bias is None else out + self.whole.bias.view(1, -1, 1, 1).to(out.dtype)
+
+
+class _MergedAnchorHead(AnchorHeadSingle):
+    """An ``AnchorHeadSingle`` whose class, box and direction convolutions (1 x 1, on the same map) run as one
+    convolution with their output channels stacked, reading :class:`_Parts` (its weights are copies: the
+    three convolutions stay, unused, for code that reads them)."""
+
+    @classmethod
+    def convert(cls, head: AnchorHeadSingle, sizes: Sequence[int]) -> None:
+        convs = [head.conv_cls, head.conv_box] + ([head.conv_dir_cls] if head.conv_dir_cls is not None else [])
+        merged = nn.Conv2d(convs[0].in_channels, sum(c.out_channels for c in convs), 1).to(convs[0].weight)
+        with torch.no_grad():
+            merged.weight.copy_(torch.cat([c.weight for c in convs]))
+            merged.bias.copy_(torch.cat([c.bias for c in convs]))
+        head.__class__ = cls
+        head.merged = _PartsConv2d(merged, sizes)
+        head.merged_splits = [c.out_channels for c in convs]
+
+    def forward(self, features) -> dict[str, Tensor]:
+        out = self.merged(features).permute(0, 2, 3, 1)  # channels-last memory: a view, no copy
+        names = ("cls_preds", "box_preds", "dir_cls_preds")
+        return self._check_grid({n: t.contiguous() for n, t in zip(names, out.split(self.merged_splits, dim=-1))})
 
 
 class _GraphedFrames:

@@ -683,6 +683,43 @@ def _same_detections(got: list[dict], want: list[dict], what: str) -> int:
     return sum(len(w["labels"]) for w in want)
 
 
+def test_inference_copy_merges_the_anchor_heads_convolutions():
+    """The optimized copy of a PointPillars folds BatchNorm, runs the head's class, box and direction
+    convolutions as one reading the upsampled maps one by one: its raw outputs equal the model's (float64 to
+    1e-10), the model keeps its modules and weights, and the copy's detections are the model's."""
+    from lidarops.models.cuda_graph import inference_copy
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.2}).double().eval()
+    with torch.no_grad():  # BatchNorm statistics and head biases away from their initial values
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+        for conv in (model.dense_head.conv_cls, model.dense_head.conv_box, model.dense_head.conv_dir_cls):
+            conv.bias.uniform_(-1.0, 1.0)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    fast = inference_copy(model)
+    assert all(torch.equal(v, before[k]) for k, v in model.state_dict().items())
+    assert type(model.dense_head).__name__ == "AnchorHeadSingle"
+    assert fast.dense_head.merged.whole.out_channels == sum(
+        c.out_channels for c in (model.dense_head.conv_cls, model.dense_head.conv_box, model.dense_head.conv_dir_cls))
+    g = torch.Generator().manual_seed(3)
+    points = torch.rand(800, 4, generator=g, dtype=torch.float64) * torch.tensor([8.0, 8.0, 4.0, 1.0],
+                                                                                  dtype=torch.float64)
+    points += torch.tensor([0, -4.0, -3, 0], dtype=torch.float64)
+    batch = {"points": F.pad(points, (1, 0)), "batch_size": 1}
+    with torch.no_grad():
+        raw = model.network(*model.voxelize(batch["points"], 1), 1)
+        raw_fast = fast.network(*fast.voxelize(batch["points"], 1), 1)
+        assert raw.keys() == raw_fast.keys() == {"cls_preds", "box_preds", "dir_cls_preds"}
+        for k in raw:
+            assert raw[k].shape == raw_fast[k].shape and raw_fast[k].is_contiguous()
+            torch.testing.assert_close(raw_fast[k], raw[k], rtol=0, atol=1e-10)
+        kept = _same_detections(fast.predict(batch), model.predict(batch), "the optimized copy")
+    assert kept > 0, "the case must keep boxes"
+
+
 @pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
                     reason="needs a GPU and lidarops built with CUDA kernels")
 def test_predict_replays_a_cuda_graph_from_the_second_call():
