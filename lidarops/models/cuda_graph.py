@@ -37,6 +37,7 @@ import lidarops
 from lidarops._cuda_graphs import uncached_autocast
 from lidarops.models.anchor_head import AnchorHeadSingle
 from lidarops.models.counternet import CounterNet
+from lidarops.models.map_to_bev import PointPillarScatter
 from lidarops.models.pointpillars import PointPillars, _check_batch, eager_predict
 from lidarops.models.postprocess import postprocess_padded
 from lidarops.ops.pillars import MAX_ABS_INTENSITY
@@ -221,8 +222,8 @@ def inference_copy(model: nn.Module) -> nn.Module:
     and 4-D weights channels-last, so that cuDNN runs the BEV network without layout transposes or separate
     BatchNorm passes; in a CounterNet the count head's first convolution also reads the backbone's upsampled maps
     one by one instead of their concatenation, and in a PointPillars the anchor head's three 1 x 1 convolutions
-    run as one, reading the maps the same way. The same function up to rounding; the model itself is not
-    changed."""
+    run as one, reading the maps the same way; the pillar scatter hands over its map channels-last, without a
+    transposing copy. The same function up to rounding; the model itself is not changed."""
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
     if not isinstance(model, nn.Module):
@@ -241,6 +242,8 @@ def inference_copy(model: nn.Module) -> nn.Module:
         sizes = [d[0].out_channels for d in copy_.backbone_2d.deblocks]
         copy_.backbone_2d = _PartsBackbone(copy_.backbone_2d)
         copy_.count_head.shared_conv[0] = _PartsConv2d(copy_.count_head.shared_conv[0], sizes)
+    for scatter in [m for m in copy_.modules() if isinstance(m, PointPillarScatter)]:
+        scatter.channels_last = True  # the pseudo-image as the scattered rows lie: no transposing copy
     if isinstance(copy_, PointPillars) and copy_.config.backbone_mode == "dense" \
             and type(copy_.dense_head) is AnchorHeadSingle:
         # the anchor head's three 1 x 1 convolutions as one, reading the upsampled maps one by one

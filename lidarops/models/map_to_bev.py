@@ -20,6 +20,10 @@ class PointPillarScatter(nn.Module):
     reading anything back to the host, so the scatter can run inside a CUDA graph.
     """
 
+    #: Return the map in channels-last memory (a view of the scattered rows, no transposing copy), for
+    #: networks whose convolutions run channels-last (``lidarops.models.cuda_graph.inference_copy`` sets it).
+    channels_last = False
+
     def __init__(self, num_bev_features: int, grid_size):
         super().__init__()
         self.num_bev_features = int(num_bev_features)
@@ -33,7 +37,8 @@ class PointPillarScatter(nn.Module):
         flat = torch.where((c >= 0).all(1), flat, torch.full_like(flat, cells))
         canvas = features.new_zeros(cells + 1, self.num_bev_features)
         canvas.index_copy_(0, flat, features)
-        return canvas[:cells].view(batch_size, self.ny, self.nx, -1).permute(0, 3, 1, 2).contiguous()
+        bev = canvas[:cells].view(batch_size, self.ny, self.nx, -1).permute(0, 3, 1, 2)
+        return bev if self.channels_last else bev.contiguous()
 
 
 def scatter_to_bev(pillar_features: Tensor, coords: Tensor, shape: Sequence[int], batch_size: int = 1) -> Tensor:

@@ -701,7 +701,8 @@ def test_inference_copy_merges_the_anchor_heads_convolutions():
     before = {k: v.clone() for k, v in model.state_dict().items()}
     fast = inference_copy(model)
     assert all(torch.equal(v, before[k]) for k, v in model.state_dict().items())
-    assert type(model.dense_head).__name__ == "AnchorHeadSingle"
+    assert type(model.dense_head).__name__ == "AnchorHeadSingle" and not model.map_to_bev.channels_last
+    assert fast.map_to_bev.channels_last
     assert fast.dense_head.merged.whole.out_channels == sum(
         c.out_channels for c in (model.dense_head.conv_cls, model.dense_head.conv_box, model.dense_head.conv_dir_cls))
     g = torch.Generator().manual_seed(3)
