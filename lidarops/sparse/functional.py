@@ -51,6 +51,8 @@ _KINDS = ("subm", "conv", "transposed", "inverse")
 
 
 def _ntuple(v, ndim: int, name: str, minimum: int) -> tuple:
+    if type(v) is tuple and len(v) == ndim and all(type(e) is int and e >= minimum for e in v):
+        return v  # what the layers pass on every call: already checked
     if isinstance(v, bool):
         raise ValueError(f"{name} must be an int or a sequence of {ndim} ints, got {v!r}")
     if isinstance(v, int):
