@@ -426,14 +426,15 @@ def _compare_sites(indices: Tensor, own: Tensor, side: str, indice_key) -> None:
                          "from a fresh indice_dict (a new SparseConvTensor without indice_dict)")
 
 
-def cached_by_version(owner, attr: str, tensors: Sequence[Optional[Tensor]], compute, extra: tuple = ()):
+def cached_by_version(owner, attr: str, tensors: Sequence[Optional[Tensor]], compute, extra=()):
     """``compute()``, kept in ``owner.__dict__[attr]`` until one of ``tensors`` is replaced or changed in
     place (the key holds each one's data pointer, version counter and device, plus ``extra``).
     Inference tensors keep no version counter: then nothing is cached."""
     try:
-        key = tuple(None if t is None else (t.data_ptr(), t._version, t.device) for t in tensors) + tuple(extra)
+        key = [None if t is None else (t.data_ptr(), t._version, t.device) for t in tensors]
     except RuntimeError:
         return compute()
+    key.append(extra)
     cached = owner.__dict__.get(attr)
     if cached is not None and cached[0] == key:
         return cached[1]
@@ -447,11 +448,14 @@ def fusable_norm(x: SparseConvTensor, norm: torch.nn.Module, *params: Optional[T
     ``norm`` is a BatchNorm in eval mode with running statistics, no gradient is needed (``x`` and the
     layers' ``params``), the features are not float64 (which keeps BatchNorm's own float64
     arithmetic), and the code is not being compiled."""
-    if (not isinstance(norm, torch.nn.modules.batchnorm._BatchNorm) or norm.training or norm.running_mean is None
-            or norm.running_var is None or x.features.dtype == torch.float64 or _compiling()):
+    if not isinstance(norm, torch.nn.modules.batchnorm._BatchNorm) or norm.training:
+        return False
+    buffers = norm._buffers  # not through nn.Module.__getattr__: host time per layer
+    if (buffers.get("running_mean") is None or buffers.get("running_var") is None
+            or x.features.dtype == torch.float64 or _compiling()):
         return False
     return not (torch.is_grad_enabled() and (x.features.requires_grad or any(
-        p is not None and p.requires_grad for p in params + (norm.weight, norm.bias))))
+        p is not None and p.requires_grad for p in params + tuple(norm._parameters.values()))))
 
 
 def norm_affine(norm: torch.nn.Module, bias: Optional[Tensor] = None) -> tuple:
@@ -463,6 +467,7 @@ def norm_affine(norm: torch.nn.Module, bias: Optional[Tensor] = None) -> tuple:
     """
     if not isinstance(norm, torch.nn.modules.batchnorm._BatchNorm) or norm.training or norm.running_mean is None:
         raise ValueError(f"norm_affine takes a BatchNorm in eval mode with running statistics, got {norm!r}")
+    params, buffers = norm._parameters, norm._buffers  # not through nn.Module.__getattr__: host time per layer
 
     def compute():
         with torch.no_grad():
@@ -477,8 +482,8 @@ def norm_affine(norm: torch.nn.Module, bias: Optional[Tensor] = None) -> tuple:
             return scale.contiguous(), shift.contiguous()
 
     return cached_by_version(norm, "_lidarops_affine",
-                             (norm.weight, norm.bias, norm.running_mean, norm.running_var, bias), compute,
-                             (norm.eps,))
+                             (params.get("weight"), params.get("bias"), buffers["running_mean"],
+                              buffers["running_var"], bias), compute, norm.eps)
 
 
 def _affine_torch(out: Tensor, scale: Optional[Tensor], shift: Optional[Tensor], relu: bool) -> Tensor:

@@ -182,6 +182,14 @@ def test_sparse_sequential_fuses_eval_batchnorm_relu(device, dtype):
     ref2 = net(x)
     torch.testing.assert_close(again.features, ref2.features.detach(), rtol=tol, atol=tol)
     assert not torch.allclose(again.features, got.features)
+    # so do a replaced BatchNorm parameter and a changed eps
+    net[1].weight = nn.Parameter(net[1].weight.detach() * -2)
+    net[4].eps = 0.5
+    with torch.no_grad():
+        third = net(x)
+    ref3 = net(x)
+    torch.testing.assert_close(third.features, ref3.features.detach(), rtol=tol, atol=tol)
+    assert not torch.allclose(third.features, again.features)
 
 
 def test_sparse_sequential_keeps_hooks_training_mode_and_float64(device):
