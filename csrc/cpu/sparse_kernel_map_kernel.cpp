@@ -227,10 +227,7 @@ at::Tensor sparse_kernel_map_cpu(const at::Tensor& indices_in, const at::Tensor&
   const int64_t m = oidx.size(0), K = g.kvol;
   auto nbr = at::empty({m, K}, idx.options());
   if (m == 0) {  // nothing to pair, but the sites are still checked (a strided layer may reach no output)
-    if (validate && idx.size(0) > 0) {
-      raise_if_out_of_range(idx, "indices", g.batch, g.in_shape, nd);
-      raise_if_duplicates(idx, "indices", g.batch, g.in_shape, nd);
-    }
+    if (validate && idx.size(0) > 0) build_table(idx, g, method, true, "indices");
     return nbr;
   }
   if (idx.size(0) == 0) return nbr.fill_(-1);

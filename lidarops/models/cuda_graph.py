@@ -236,21 +236,24 @@ def inference_copy(model: nn.Module) -> nn.Module:
                     and bn.track_running_stats:
                 seq[i] = fuse_conv_bn_eval(conv, bn, transpose=isinstance(conv, nn.ConvTranspose2d))
                 seq[i + 1] = nn.Identity()
+    # the head reads the three upsampled maps one by one instead of their 384-channel concatenation, which
+    # would be written and read once more: CounterNet's count head, PointPillars' anchor head (its three 1 x 1
+    # convolutions as one)
     if isinstance(copy_, CounterNet) and copy_.config.floor_config().backbone_mode == "dense":
-        # the count head's first convolution reads the three upsampled maps one by one instead of their
-        # 384-channel concatenation, which would be written and read once more
-        sizes = [d[0].out_channels for d in copy_.backbone_2d.deblocks]
-        copy_.backbone_2d = _PartsBackbone(copy_.backbone_2d)
-        copy_.count_head.shared_conv[0] = _PartsConv2d(copy_.count_head.shared_conv[0], sizes)
-    for scatter in [m for m in copy_.modules() if isinstance(m, PointPillarScatter)]:
-        scatter.channels_last = True  # the pseudo-image as the scattered rows lie: no transposing copy
+        copy_.count_head.shared_conv[0] = _PartsConv2d(copy_.count_head.shared_conv[0], _by_parts(copy_))
     if isinstance(copy_, PointPillars) and copy_.config.backbone_mode == "dense" \
             and type(copy_.dense_head) is AnchorHeadSingle:
-        # the anchor head's three 1 x 1 convolutions as one, reading the upsampled maps one by one
-        sizes = [d[0].out_channels for d in copy_.backbone_2d.deblocks]
-        copy_.backbone_2d = _PartsBackbone(copy_.backbone_2d)
-        _MergedAnchorHead.convert(copy_.dense_head, sizes)
+        _MergedAnchorHead.convert(copy_.dense_head, _by_parts(copy_))
+    for scatter in [m for m in copy_.modules() if isinstance(m, PointPillarScatter)]:
+        scatter.channels_last = True  # the pseudo-image as the scattered rows lie: no transposing copy
     return copy_.to(memory_format=torch.channels_last)
+
+
+def _by_parts(model: nn.Module) -> list[int]:
+    """Make ``model.backbone_2d`` return its upsampled maps as :class:`_Parts`; their channel counts."""
+    sizes = [d[0].out_channels for d in model.backbone_2d.deblocks]
+    model.backbone_2d = _PartsBackbone(model.backbone_2d)
+    return sizes
 
 
 class _Parts(list):
