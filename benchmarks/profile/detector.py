@@ -3,10 +3,14 @@
 stage in a ``record_function`` range, kernel time summed per stage; then the top kernels, and the
 graph's replay time for comparison.
 
-    python benchmarks/profile/detector.py [--precision fp16] [--runs 20] [--batch 16] [--whole-scan]
+    python benchmarks/profile/detector.py [--precision fp16] [--runs 20] [--batch 16] [--whole-scan] [--optimize]
+        [--cudnn-benchmark]
 
 ``--batch B`` profiles B frames per call (the batched graph the index build replays); ``--whole-scan`` takes
-the whole simulated sweep (what ``bm_index_build`` writes to disk) instead of the camera's view.
+the whole simulated sweep (what ``bm_index_build`` writes to disk) instead of the camera's view. ``--optimize``
+profiles the :func:`~lidarops.models.cuda_graph.inference_copy` that ``GraphedPointPillars(optimize=True)`` and
+``predict`` under fp16 autocast replay; ``--cudnn-benchmark`` lets cuDNN time its algorithms for each shape
+(``torch.backends.cudnn.benchmark``) instead of choosing them by its heuristics.
 """
 from __future__ import annotations
 
@@ -20,7 +24,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path.insert(0, ROOT)
 
 from benchmarks.bm_detector import kitti_like_frame, load_model  # noqa: E402
-from lidarops.models.cuda_graph import GraphedPointPillars, padded_inference, precision_mode  # noqa: E402
+from lidarops.models.cuda_graph import (GraphedPointPillars, inference_copy, padded_inference,  # noqa: E402
+                                        precision_mode)
 
 STAGES = ("voxelize", "pfn", "scatter", "backbone", "head", "decode", "postprocess")
 
@@ -39,7 +44,10 @@ def main(argv=None) -> int:
     ap.add_argument("--whole-scan", action="store_true", help="the whole sweep, not the camera's view")
     ap.add_argument("--all-rows", action="store_true", help="pillar rows for every frame's capacity, not a quarter "
                                                             "more than the frames need (the index build's sizing)")
+    ap.add_argument("--optimize", action="store_true", help="the inference copy (BatchNorm folded, channels-last)")
+    ap.add_argument("--cudnn-benchmark", action="store_true", help="cuDNN times its algorithms per shape")
     args = ap.parse_args(argv)
+    torch.backends.cudnn.benchmark = args.cudnn_benchmark
     if args.whole_scan:
         from lidarops.data.synthetic import Simulator
 
@@ -48,15 +56,16 @@ def main(argv=None) -> int:
         frame = kitti_like_frame().cuda()
     frames = frame[None].repeat(args.batch, 1, 1)
     model = load_model("cuda", "dense")
-    needed = int(body(model, frames, args.precision)["pillars"])
+    body_model = inference_copy(model) if args.optimize else model
+    needed = int(body(body_model, frames, args.precision)["pillars"])
     rows = None if args.all_rows else -(-(needed + needed // 4 + 1) // 8192) * 8192
     for _ in range(5):
-        body(model, frames, args.precision, rows)
+        body(body_model, frames, args.precision, rows)
     torch.cuda.synchronize()
     acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
     with torch.profiler.profile(activities=acts) as prof:
         for _ in range(args.runs):
-            body(model, frames, args.precision, rows)
+            body(body_model, frames, args.precision, rows)
         torch.cuda.synchronize()
     per_stage = {s: 0.0 for s in STAGES}
     for e in prof.events():
@@ -64,13 +73,22 @@ def main(argv=None) -> int:
             per_stage[e.name] += e.device_time_total / args.runs / 1e3
     total = sum(per_stage.values())
     print(f"{args.batch} frame(s) of {frame.shape[0]} points ({needed} pillars, {rows or 'all'} rows), "
-          f"{args.precision}: GPU kernel time per call by stage (ms)")
+          f"{args.precision}{', optimized copy' if args.optimize else ''}"
+          f"{', cudnn.benchmark' if args.cudnn_benchmark else ''}: GPU kernel time per call by stage (ms)")
     for s, t in per_stage.items():
         print(f"  {s:12s} {t:7.3f}  {100 * t / total:4.0f}%")
     print(f"  {'total':12s} {total:7.3f}")
-    print(prof.key_averages().table(sort_by="device_time_total", row_limit=25))
+    kernels: dict[str, list] = {}
+    for e in prof.events():
+        if str(getattr(e, "device_type", "")).endswith("CUDA"):
+            k = kernels.setdefault(e.name, [0.0, 0])
+            k[0] += e.time_range.elapsed_us() / args.runs
+            k[1] += 1 / args.runs
+    print("kernels by GPU time per call (us, launches per call):")
+    for name, (us, n) in sorted(kernels.items(), key=lambda kv: -kv[1][0])[:30]:
+        print(f"  {us:8.1f} x{n:4.0f}  {name[:110]}")
     graphed = GraphedPointPillars(model, capacity=int(frame.shape[0]), precision=args.precision, batch_size=args.batch,
-                                  max_pillars=rows)
+                                  max_pillars=rows, optimize=args.optimize)
     for _ in range(5):
         graphed([frame] * args.batch)
     times = []

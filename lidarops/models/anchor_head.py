@@ -23,7 +23,27 @@ from lidarops.models.anchors import (
 from lidarops.models.config import PointPillarsConfig
 from lidarops.models.losses import add_sin_difference, sigmoid_focal_loss, smooth_l1
 
-__all__ = ["AnchorHeadSingle"]
+__all__ = ["AnchorHeadSingle", "safe_regression"]
+
+
+def safe_regression(anchors: Tensor) -> float:
+    """The largest ``|box regression|`` (every column of the head's ``box_preds``) for which each anchor's decoded
+    box is one the box ops accept (:func:`lidarops.ops.boxes.unsupported_boxes`: centre, size and heading in range),
+    with a factor 2 to spare and at most 10; 0 where no such bound holds (anchors of size 0, non-finite). A CUDA
+    graph's post-processing checks the raw regressions against it instead of decoding every anchor."""
+    from lidarops.ops.boxes import MAX_ABS_BOX_CENTRE, MAX_BOX_SIZE, MIN_BOX_SIZE
+
+    a = anchors.detach().double().cpu()
+    if a.dim() != 2 or a.shape[0] == 0 or a.shape[1] < 7 or not bool(torch.isfinite(a).all()):
+        return 0.0
+    sizes = a[:, 3:6]
+    if float(sizes.min()) <= 0:
+        return 0.0
+    # x, y move by t * diagonal, z by t * dz, sizes scale by exp(t); headings stay near the anchors' (finite)
+    reach = max(float(torch.sqrt(a[:, 3] ** 2 + a[:, 4] ** 2).max()), float(sizes[:, 2].max()))
+    t = min(10.0, math.log(MAX_BOX_SIZE / (2 * float(sizes.max()))), math.log(float(sizes.min()) / (2 * MIN_BOX_SIZE)),
+            (MAX_ABS_BOX_CENTRE / 2 - float(a[:, :3].abs().max())) / reach)
+    return float(math.floor(t)) if t >= 1 else 0.0
 
 
 class AnchorHeadSingle(nn.Module):
@@ -49,6 +69,7 @@ class AnchorHeadSingle(nn.Module):
         self._num_anchor_sets = len(anchors)
         flat, _ = flatten_anchors(anchors)
         self.register_buffer("anchors_flat", flat, persistent=False)
+        self.safe_regression = safe_regression(flat)
         self.target_assigner = AxisAlignedTargetAssigner(cfg.anchor_generator_config, cfg.class_names, self.box_coder,
                                                          norm_by_num_examples=cfg.norm_by_num_examples,
                                                          match_height=cfg.match_height)
@@ -117,17 +138,22 @@ class AnchorHeadSingle(nn.Module):
         out["num_positives"] = positives.sum().to(normalizer.dtype) / B
         return out
 
-    def decode(self, preds: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
+    def decode(self, preds: Mapping[str, Tensor], anchors: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Scores (logits, (B, A, K)) and boxes (B, A, 7) of every anchor (OpenPCDet's
-        ``generate_predicted_boxes``)."""
+        ``generate_predicted_boxes``); with ``anchors (B, A', 7)``, of those anchors only, ``preds`` then holding
+        their rows (``(B, A', K)``, ``(B, A', code_size)``, ``(B, A', bins)``)."""
         cfg = self.cfg
         B = preds["cls_preds"].shape[0]
         cls = preds["cls_preds"].view(B, -1, self.num_class).float()
         boxes = self.box_coder.decode(preds["box_preds"].view(B, -1, self.box_coder.code_size).float(),
-                                      self.anchors_flat[None].float())  # float32 also in a .half() model
+                                      (self.anchors_flat[None] if anchors is None else anchors).float())
+        # (float32 also in a .half() model)
         if self.conv_dir_cls is not None:
             dir_labels = preds["dir_cls_preds"].view(B, -1, cfg.num_dir_bins).argmax(dim=-1)
             heading = decode_direction(boxes[..., 6], dir_labels, cfg.dir_offset, cfg.dir_limit_offset,
                                        cfg.num_dir_bins)
-            boxes = torch.cat([boxes[..., :6], heading[..., None], boxes[..., 7:]], dim=-1)
+            if boxes.requires_grad and torch.is_grad_enabled():
+                boxes = torch.cat([boxes[..., :6], heading[..., None], boxes[..., 7:]], dim=-1)
+            else:  # the decoder's own new tensor: the heading column written in place, not a copy of all seven
+                boxes[..., 6] = heading
         return cls, boxes

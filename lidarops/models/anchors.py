@@ -181,6 +181,25 @@ class ResidualCoder:
         dxa, dya, dza = anchors[..., 3], anchors[..., 4], anchors[..., 5]
         xt, yt, zt, dxt, dyt, dzt = deltas[..., :6].unbind(-1)
         diagonal = torch.sqrt(dxa ** 2 + dya ** 2)
+        shape = torch.broadcast_shapes(deltas.shape[:-1], anchors.shape[:-1])
+        if not (torch.is_grad_enabled() and (deltas.requires_grad or anchors.requires_grad)):
+            # each column's last operation writes its column of the result: no (N, 7) stacking pass, whose
+            # interleaved writes cost more than the arithmetic (out= has no gradient: autograd takes the stack)
+            out = deltas.new_empty(*shape, self.box_size, dtype=torch.promote_types(deltas.dtype, anchors.dtype))
+            torch.add(xt * diagonal, xa, out=out[..., 0])
+            torch.add(yt * diagonal, ya, out=out[..., 1])
+            torch.add(zt * dza, za, out=out[..., 2])
+            torch.mul(torch.exp(dxt), dxa, out=out[..., 3])
+            torch.mul(torch.exp(dyt), dya, out=out[..., 4])
+            torch.mul(torch.exp(dzt), dza, out=out[..., 5])
+            if self.encode_angle_by_sincos:
+                # into a temporary: a CPU atan2 into strided memory rounds differently from the vectorised one
+                out[..., 6] = torch.atan2(deltas[..., 7] + torch.sin(ra), deltas[..., 6] + torch.cos(ra))
+            else:
+                torch.add(deltas[..., 6], ra, out=out[..., 6])
+            if self.box_size > 7:
+                torch.add(deltas[..., self.code_size - (self.box_size - 7):], anchors[..., 7:], out=out[..., 7:])
+            return out
         if self.encode_angle_by_sincos:
             rg = torch.atan2(deltas[..., 7] + torch.sin(ra), deltas[..., 6] + torch.cos(ra))
         else:

@@ -106,10 +106,10 @@ def padded_inference(model: PointPillars, points: Tensor, max_pillars: int | Non
         with stage("head"):
             x = model.dense_head(x)
         with stage("decode"):
-            x = model.dense_head.decode(x)
+            x, bad_boxes = _decode_candidates(model.dense_head, x, cfg)
         with stage("postprocess"):
             out = postprocess_padded(*x, cfg)
-            out["bad_boxes"] = _bad_boxes(*x, cfg)
+            out["bad_boxes"] = _bad_boxes(*x, cfg) if bad_boxes is None else bad_boxes
     out["bad"] = _bad_features(points, c)
     out["pillars"] = needed
     out["overflow"] = needed > rows
@@ -153,6 +153,38 @@ def _padded_bev(model, cfg, points: Tensor, rows: int) -> tuple[Tensor, Tensor]:
             x = model.map_to_bev(x, coords, points.shape[0])
         with stage("backbone"):
             return model.backbone_2d(x), needed
+
+
+def _decode_candidates(head, raw: Mapping[str, Tensor], cfg) -> tuple[tuple[Tensor, Tensor], Tensor | None]:
+    """The decoded anchors :func:`postprocess_padded` needs, and the frames whose boxes the eager NMS may refuse
+    (None: :func:`_bad_boxes` of every decoded anchor decides).
+
+    With one NMS over all classes (PointPillars' setting) only the ``nms_pre_maxsize`` best anchors above the score
+    threshold can take part: they are chosen first (a stable sort of each frame's best-class scores, the anchors
+    below the threshold or NaN last) and only they are decoded, in the order the NMS visits them, so the NMS keeps
+    the same boxes. The eager NMS also checks the boxes of every anchor above the threshold: a frame is flagged
+    where one of those anchors' raw regressions exceeds :attr:`AnchorHeadSingle.safe_regression`, within which
+    every decoded box is accepted (the eager call then decides)."""
+    pre = cfg.nms_pre_maxsize
+    bound = getattr(head, "safe_regression", 0.0)
+    if cfg.multi_classes_nms or pre < 0 or bound <= 0 or head.box_coder.box_size != 7 or head.conv_dir_cls is None:
+        return head.decode(raw), None
+    B = raw["cls_preds"].shape[0]
+    cls = raw["cls_preds"].view(B, -1, head.num_class).float()
+    A = cls.shape[1]
+    scores = torch.sigmoid(cls).max(dim=-1).values  # postprocess's scores
+    above = scores >= cfg.score_thresh
+    order = torch.sort(torch.where(above, scores, -math.inf), dim=1, descending=True, stable=True).indices
+    cand = order[:, :min(A, pre)]
+
+    def rows(t: Tensor) -> Tensor:
+        t = t.reshape(B, A, -1)
+        return torch.gather(t, 1, cand[..., None].expand(-1, -1, t.shape[-1]))
+
+    box = raw["box_preds"].reshape(B, A, -1)
+    bad = ((~(box.abs() <= bound)).any(-1) & above).any(1)
+    picked = {"cls_preds": rows(cls), "box_preds": rows(box), "dir_cls_preds": rows(raw["dir_cls_preds"])}
+    return head.decode(picked, head.anchors_flat[cand]), bad
 
 
 def _bad_boxes(cls_logits: Tensor, boxes: Tensor, cfg) -> Tensor:
@@ -223,7 +255,10 @@ def inference_copy(model: nn.Module) -> nn.Module:
     BatchNorm passes; in a CounterNet the count head's first convolution also reads the backbone's upsampled maps
     one by one instead of their concatenation, and in a PointPillars the anchor head's three 1 x 1 convolutions
     run as one, reading the maps the same way; the pillar scatter hands over its map channels-last, without a
-    transposing copy. The same function up to rounding; the model itself is not changed."""
+    transposing copy. A ``ZeroPad2d`` before an unpadded convolution becomes the convolution's padding (no padded
+    copy of the map), a 1 x 1 ``ConvTranspose2d`` of stride 1 a ``Conv2d``, and each ``Conv2d`` followed by a
+    ``ReLU`` one :class:`_ConvReLU` (on CUDA in half precision, one cuDNN call that adds the bias and applies the
+    ReLU as it writes the output). The same function up to rounding; the model itself is not changed."""
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
     if not isinstance(model, nn.Module):
@@ -236,6 +271,10 @@ def inference_copy(model: nn.Module) -> nn.Module:
                     and bn.track_running_stats:
                 seq[i] = fuse_conv_bn_eval(conv, bn, transpose=isinstance(conv, nn.ConvTranspose2d))
                 seq[i + 1] = nn.Identity()
+        _fold_pads(seq)
+        for i, m in enumerate(seq):
+            if _pointwise_transpose(m):
+                seq[i] = _as_conv(m)
     # the head reads the three upsampled maps one by one instead of their 384-channel concatenation, which
     # would be written and read once more: CounterNet's count head, PointPillars' anchor head (its three 1 x 1
     # convolutions as one)
@@ -246,7 +285,82 @@ def inference_copy(model: nn.Module) -> nn.Module:
         _MergedAnchorHead.convert(copy_.dense_head, _by_parts(copy_))
     for scatter in [m for m in copy_.modules() if isinstance(m, PointPillarScatter)]:
         scatter.channels_last = True  # the pseudo-image as the scattered rows lie: no transposing copy
+    for seq in [m for m in copy_.modules() if isinstance(m, nn.Sequential)]:
+        _fuse_relus(seq)
     return copy_.to(memory_format=torch.channels_last)
+
+
+def _fold_pads(seq: nn.Sequential) -> None:
+    """``ZeroPad2d(p)`` then an unpadded ``Conv2d`` as the ``Conv2d`` padded by ``p`` (the same zeros)."""
+    for i in range(len(seq) - 1):
+        pad, conv = seq[i], seq[i + 1]
+        if type(pad) is nn.ZeroPad2d and type(conv) is nn.Conv2d and conv.padding == (0, 0) \
+                and conv.padding_mode == "zeros" and len(set(pad.padding)) == 1:
+            conv.padding = (pad.padding[0],) * 2
+            seq[i] = nn.Identity()
+
+
+def _pointwise_transpose(m: nn.Module) -> bool:
+    return (type(m) is nn.ConvTranspose2d and m.kernel_size == (1, 1) and m.stride == (1, 1) and m.padding == (0, 0)
+            and m.output_padding == (0, 0) and m.dilation == (1, 1) and m.groups == 1)
+
+
+def _as_conv(m: nn.ConvTranspose2d) -> nn.Conv2d:
+    """A 1 x 1 transposed convolution of stride 1 as the ``Conv2d`` it equals (its weight's two first axes swapped)."""
+    conv = nn.Conv2d(m.in_channels, m.out_channels, 1, bias=m.bias is not None).to(m.weight)
+    with torch.no_grad():
+        conv.weight.copy_(m.weight.transpose(0, 1))
+        if m.bias is not None:
+            conv.bias.copy_(m.bias)
+    return conv
+
+
+def _fuse_relus(seq: nn.Sequential) -> None:
+    """Each ``Conv2d`` followed (past any ``Identity``) by a ``ReLU`` as one :class:`_ConvReLU`."""
+    mods = list(seq)
+    for i, m in enumerate(mods):
+        if type(m) is not nn.Conv2d:
+            continue
+        j = i + 1
+        while j < len(mods) and type(mods[j]) is nn.Identity:
+            j += 1
+        if j < len(mods) and type(mods[j]) is nn.ReLU:
+            seq[i], seq[j] = _ConvReLU(m), nn.Identity()
+
+
+class _ConvReLU(nn.Module):
+    """``relu(conv(x))``. On CUDA in float16 or bfloat16 (the input's dtype, or autocast's, which it casts to as
+    autocast would) one cuDNN call adds the bias and applies the ReLU in the convolution's epilogue, so the map is
+    not read and written twice more; elsewhere, and where autograd must see the result, the two modules' calls."""
+
+    def __init__(self, conv: nn.Conv2d):
+        super().__init__()
+        self.conv = conv
+        self.in_channels, self.out_channels = conv.in_channels, conv.out_channels
+
+    def forward(self, x: Tensor) -> Tensor:
+        conv = self.conv
+        w = conv.weight
+        autocast = x.is_cuda and torch.is_autocast_enabled("cuda")
+        dt = torch.get_autocast_dtype("cuda") if autocast else x.dtype
+        if (x.is_cuda and dt in (torch.float16, torch.bfloat16) and (autocast or w.dtype == dt)
+                and torch.backends.cudnn.enabled and conv.padding_mode == "zeros" and not isinstance(conv.padding, str)
+                and not (torch.is_grad_enabled() and (x.requires_grad or w.requires_grad))):
+            b = conv.bias if conv.bias is not None else w.new_zeros(conv.out_channels)
+            return torch.cudnn_convolution_relu(x.to(dt), w.to(dt), b.to(dt), conv.stride, conv.padding,
+                                                conv.dilation, conv.groups)
+        return torch.relu(conv(x))
+
+
+def _cast_convolutions(copy_: nn.Module, dtype: torch.dtype | None) -> None:
+    """The convolutions of a private :func:`inference_copy` recorded under an autocast to ``dtype`` (float16 or
+    bfloat16) take their weights in that dtype once, rather than autocast casting each one at every replay: the
+    same values reach the same kernels."""
+    if dtype not in (torch.float16, torch.bfloat16):
+        return
+    for m in copy_.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            m.to(dtype)
 
 
 def _by_parts(model: nn.Module) -> list[int]:
@@ -295,6 +409,18 @@ class _PartsConv2d(nn.Module):
     def forward(self, x):
         if not isinstance(x, _Parts):
             return self.whole(x)
+        whole = self.whole
+        if whole.kernel_size == (1, 1) and whole.stride == (1, 1) and whole.padding == (0, 0) and whole.groups == 1 \
+                and all(p.dim() == 4 and p.is_contiguous(memory_format=torch.channels_last) for p in x):
+            # channels-last maps are (cells, channels) matrices: one GEMM per part, each adding the last's result
+            # in its epilogue (no separate sums or bias pass)
+            N, _, H, W = x[0].shape
+            rows = [p.permute(0, 2, 3, 1).reshape(-1, p.shape[1]) for p in x]
+            ws = [conv.weight.reshape(conv.out_channels, -1).t() for conv in self.parts]
+            out = rows[0] @ ws[0] if whole.bias is None else torch.addmm(whole.bias, rows[0], ws[0])
+            for r, w in zip(rows[1:], ws[1:]):
+                out = torch.addmm(out, r, w)
+            return out.view(N, H, W, -1).permute(0, 3, 1, 2)
         out = self.parts[0](x[0])
         for conv, part in zip(self.parts[1:], x[1:]):
             out = out + conv(part)
@@ -350,6 +476,10 @@ class _GraphedFrames:
         self.device, self.dtype = param.device, param.dtype
         # kept: the graph reads the copy's weights at every replay
         self._graphed_model = graphed = inference_copy(model) if optimize else model
+        if optimize and self.dtype == torch.float32:
+            _cast_convolutions(graphed, torch.float16 if precision == "fp16" else
+                               torch.get_autocast_dtype("cuda") if precision is None and torch.is_autocast_enabled("cuda")
+                               else None)
         self._features = c = floor.num_point_features
         # rows past the frame: outside the point range, so voxelization leaves them out
         self._pad = torch.zeros(c, device=self.device, dtype=self.dtype)

@@ -177,6 +177,28 @@ def test_coder_round_trip(device, dtype, tol, sincos, extra):
     assert (deltas.double().cpu() - ref).abs().max() <= tol
 
 
+@pytest.mark.parametrize("sincos", [False, True], ids=["angle", "sincos"])
+@pytest.mark.parametrize("extra", [0, 2])
+def test_coder_decode_without_autograd_is_the_autograd_paths_result(device, sincos, extra):
+    """decode writes its columns in place unless autograd needs the result: both paths give the same bits, with
+    anchors broadcast over a batch, anchors without their extras, one box, and the gradient reaches the deltas."""
+    coder = ResidualCoder(7 + extra, encode_angle_by_sincos=sincos)
+    boxes = random_boxes(120, extra, 4, torch.float32).to(device)
+    anchors = random_boxes(120, extra, 5, torch.float32).to(device)
+    deltas = coder.encode(boxes, anchors)
+    deltas = torch.stack([deltas, deltas.flip(0) * 0.5])  # (2, 120, code): the anchors broadcast
+    for d, a in ((deltas, anchors), (deltas.double(), anchors.double()), (deltas, anchors[:, :7]),
+                 (deltas[0, 3], anchors[3])):
+        with torch.no_grad():
+            fast = coder.decode(d, a)
+        slow = coder.decode(d.clone().requires_grad_(), a)
+        assert slow.requires_grad and fast.dtype == slow.dtype == d.dtype
+        assert fast.shape == slow.shape and torch.equal(fast, slow.detach())
+    d = deltas.clone().requires_grad_()
+    coder.decode(d, anchors)[..., 3].sum().backward()
+    assert d.grad is not None and bool((d.grad[..., 3] != 0).all())
+
+
 def test_coder_encode_by_hand():
     g = torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.5, 0.5, -1.0]], dtype=torch.float64)
     a = torch.tensor([[0.0, 0.0, 1.0, 2.0, 2.0, 3.0, 0.2, 0.1, 0.2]], dtype=torch.float64)

@@ -705,6 +705,13 @@ def test_inference_copy_merges_the_anchor_heads_convolutions():
     assert fast.map_to_bev.channels_last
     assert fast.dense_head.merged.whole.out_channels == sum(
         c.out_channels for c in (model.dense_head.conv_cls, model.dense_head.conv_box, model.dense_head.conv_dir_cls))
+    # no padded copies, no 1 x 1 transposed convolution, every convolution's ReLU taken into it
+    kinds = [type(m).__name__ for m in fast.backbone_2d.modules()]
+    assert "ZeroPad2d" not in kinds and "ReLU" in kinds and kinds.count("_ConvReLU") == sum(
+        isinstance(m, torch.nn.Conv2d) or (isinstance(m, torch.nn.ConvTranspose2d) and m.kernel_size == (1, 1))
+        for m in model.backbone_2d.modules())
+    assert all(d[0].kernel_size != (1, 1) for d in fast.backbone_2d.inner.deblocks
+               if isinstance(d[0], torch.nn.ConvTranspose2d))
     g = torch.Generator().manual_seed(3)
     points = torch.rand(800, 4, generator=g, dtype=torch.float64) * torch.tensor([8.0, 8.0, 4.0, 1.0],
                                                                                   dtype=torch.float64)
@@ -719,6 +726,49 @@ def test_inference_copy_merges_the_anchor_heads_convolutions():
             torch.testing.assert_close(raw_fast[k], raw[k], rtol=0, atol=1e-10)
         kept = _same_detections(fast.predict(batch), model.predict(batch), "the optimized copy")
     assert kept > 0, "the case must keep boxes"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_inference_copys_conv_relu_is_one_cudnn_call_in_half_precision(dtype, monkeypatch):
+    """The optimized copy's convolution + ReLU on CUDA: one cuDNN call in float16 / bfloat16 (under autocast or on
+    half weights), equal to the float64 convolution then ReLU to the precision's rounding; the two modules' calls
+    in float32 and where autograd needs the result (its gradient is the reference's)."""
+    import copy
+
+    from lidarops.models.cuda_graph import _ConvReLU
+
+    calls = []
+    fused_op = torch.cudnn_convolution_relu
+    monkeypatch.setattr(torch, "cudnn_convolution_relu", lambda *a: calls.append(1) or fused_op(*a))
+    torch.manual_seed(0)
+    tol = {torch.float16: 2e-3, torch.bfloat16: 1.6e-2}[dtype]
+    for k, stride, pad, bias in ((3, 1, 1, True), (3, 2, 1, True), (1, 1, 0, False), (3, 1, 0, True)):
+        conv = torch.nn.Conv2d(32, 48, k, stride=stride, padding=pad, bias=bias).cuda()
+        x = torch.randn(2, 32, 21, 18, device="cuda").contiguous(memory_format=torch.channels_last)
+        want = torch.relu(F.conv2d(x.double(), conv.weight.double(), None if conv.bias is None else conv.bias.double(),
+                                   stride, pad))
+        scale = float(want.abs().max())
+        fused = _ConvReLU(conv)
+        with torch.no_grad(), torch.autocast("cuda", dtype):
+            got = fused(x)
+        assert len(calls) == 1 and got.dtype == dtype and got.shape == want.shape
+        assert float((got.double() - want).abs().max()) <= tol * scale
+        with torch.no_grad():
+            got = _ConvReLU(copy.deepcopy(conv).to(dtype))(x.to(dtype))
+        assert len(calls) == 2 and got.dtype == dtype
+        assert float((got.double() - want).abs().max()) <= tol * scale
+        with torch.no_grad():
+            got = fused(x)  # float32: conv then relu (TF32 as torch's settings say)
+        assert len(calls) == 2 and got.dtype == torch.float32
+        xg = x.clone().requires_grad_()
+        with torch.autocast("cuda", dtype):
+            fused(xg).float().sum().backward()  # autograd needs the result: the two calls
+        xr = x.clone().requires_grad_()
+        with torch.autocast("cuda", dtype):
+            torch.relu(conv(xr)).float().sum().backward()
+        assert len(calls) == 2 and torch.equal(xg.grad, xr.grad)
+        calls.clear()
 
 
 @pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
@@ -898,6 +948,21 @@ def test_optimized_graph_keeps_the_copy_it_recorded():
     assert len(want["labels"]) > 0, "the case must keep boxes"
     assert det["labels"].tolist() == want["labels"].tolist()
     assert torch.allclose(det["scores"], want["scores"], atol=1e-3)
+    # recorded under fp16: the copy's convolutions hold float16 weights (cast once, not at each replay), the pillar
+    # net keeps float32, and the detections are those of the copy run eagerly under the same autocast
+    from lidarops.models.cuda_graph import inference_copy, precision_mode
+
+    half = GraphedPointPillars(model, capacity=1000, optimize=True, precision="fp16")
+    convs = [m for m in half._graphed_model.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
+    assert convs and all(c.weight.dtype == torch.float16 for c in convs)
+    assert half._graphed_model.vfe.pfn_layers[0].linear.weight.dtype == torch.float32
+    assert all(p.dtype == torch.float32 for p in model.parameters()), "the model itself is left alone"
+    det = half(frame)
+    with eager_predict(), precision_mode("fp16"):
+        want = inference_copy(model).predict({"points": F.pad(frame, (1, 0)), "batch_size": 1})[0]
+    assert det["labels"].tolist() == want["labels"].tolist()
+    assert torch.allclose(det["scores"], want["scores"], atol=1e-3)
+    assert torch.allclose(det["boxes"], want["boxes"], atol=2e-2)
 
 
 @pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
@@ -988,6 +1053,52 @@ def test_padded_inference_equals_per_frame_predict(multi):
     for key in ("count", "labels", "scores", "boxes"):
         assert torch.allclose(tight[key].double(), out[key].double(), atol=1e-5), key
     assert not bool(tight["overflow"]) and bool(short["overflow"]) and int(short["pillars"]) == needed
+
+
+@pytest.mark.parametrize("ties", [False, True])
+@pytest.mark.parametrize("pre", [4096, 25])
+def test_padded_inference_decodes_only_the_nms_candidates(pre, ties, monkeypatch):
+    """padded_inference decodes only the anchors its NMS can visit: bit for bit the detections of decoding every
+    anchor, with more anchors above the threshold than nms_pre_maxsize and with every score tied; the frames it
+    flags for the eager call (a raw box regression beyond the head's safe bound above the threshold) include every
+    frame the full check flags, and no frame of a model whose regressions are in range."""
+    from lidarops.models.cuda_graph import padded_inference
+
+    torch.manual_seed(2)
+    model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1, "nms_pre_maxsize": pre}).eval()
+    head = model.dense_head
+    with torch.no_grad():  # scores around 0.5, so that many anchors pass 0.3
+        head.conv_cls.bias.zero_()
+        if ties:
+            head.conv_cls.weight.zero_()
+    assert 1 <= head.safe_regression <= 10
+    g = torch.Generator().manual_seed(5)
+    frames = [torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0])
+              for n in (300, 60, 0)]
+    n = max(len(f) for f in frames)
+    buffer = torch.stack([torch.cat([f, torch.tensor([1000.0, 0, 0, 0]).expand(n - len(f), 4)]) for f in frames])
+
+    def both():
+        with torch.no_grad():
+            fast = padded_inference(model, buffer)
+            with monkeypatch.context() as m:
+                m.setattr(head, "safe_regression", 0.0)  # no bound: every anchor decoded and checked
+                full = padded_inference(model, buffer)
+        return fast, full
+
+    fast, full = both()
+    for key in ("count", "labels", "scores", "boxes"):
+        assert torch.equal(fast[key], full[key]), key
+    assert int(fast["count"].sum()) > 0 and not fast["bad_boxes"].any() and not full["bad_boxes"].any()
+    with torch.no_grad():
+        above = (torch.sigmoid(model.network(*model.voxelize(F.pad(frames[0], (1, 0)), 1), 1)["cls_preds"]) >= 0.3)
+    assert pre > 30 or int(above.sum()) > pre, "more candidates above the threshold than the NMS takes"
+    for shift, flagged in ((60.0, True), (10.5, True)):  # sizes overflow / in range but beyond the safe bound
+        with torch.no_grad():
+            head.conv_box.bias[3::head.box_coder.code_size] = shift
+        fast, full = both()
+        assert fast["bad_boxes"].tolist() == [True] * 3  # every frame has anchors above 0.3 (the empty one: 0.5)
+        assert full["bad_boxes"].tolist() == [shift > 20] * 3
 
 
 @pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),

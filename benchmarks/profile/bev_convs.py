@@ -1,0 +1,181 @@
+"""What the dense BEV network of the shipped PointPillars costs on the GPU, and what bounds it: the backbone and
+the anchor head of :func:`~lidarops.models.cuda_graph.inference_copy` replayed as a CUDA graph, in variants, and
+each of its kernels with the multiply-adds it does and the rate it reaches.
+
+    python benchmarks/profile/bev_convs.py [--batches 1,16] [--runs 50]
+
+Variants (all float16, channels-last, BatchNorm folded):
+
+* ``copy, autocast``: the inference copy under float16 autocast (what ``predict`` and
+  ``GraphedPointPillars(optimize=True)`` replay): float32 weights cast in the graph;
+* ``copy, half``: the same copy with float16 weights (no casts);
+* ``+ pads folded``: each block's ``ZeroPad2d(1)`` taken into its strided convolution's padding (no padded copy);
+* ``+ conv-ReLU``: each convolution and its ReLU as one cuDNN call (``torch.cudnn_convolution_relu``).
+
+Each with cuDNN's heuristics and with ``torch.backends.cudnn.benchmark`` (cuDNN times its algorithms per shape).
+The input is a pseudo-image of the KITTI grid (64 x 496 x 432) with 8 % of its cells filled.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import sys
+
+import torch
+from torch import nn
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
+
+from benchmarks.bm_detector import load_model  # noqa: E402
+from benchmarks.profile.conv_algos import graph_ms  # noqa: E402
+from lidarops.models.cuda_graph import inference_copy  # noqa: E402
+
+
+class ConvReLU(nn.Module):
+    """A convolution with a bias followed by ReLU, as one cuDNN call."""
+
+    def __init__(self, conv: nn.Conv2d):
+        super().__init__()
+        self.weight = conv.weight
+        self.bias = conv.bias if conv.bias is not None else nn.Parameter(conv.weight.new_zeros(conv.out_channels))
+        self.stride, self.padding, self.dilation, self.groups = conv.stride, conv.padding, conv.dilation, conv.groups
+
+    def forward(self, x):
+        return torch.cudnn_convolution_relu(x, self.weight, self.bias, self.stride, self.padding, self.dilation,
+                                            self.groups)
+
+
+def fold_pads(net: nn.Module) -> nn.Module:
+    """``ZeroPad2d(p)`` then a ``Conv2d(padding=0)`` as one ``Conv2d(padding=p)``."""
+    for seq in [m for m in net.modules() if isinstance(m, nn.Sequential)]:
+        for i in range(len(seq) - 1):
+            pad, conv = seq[i], seq[i + 1]
+            if isinstance(pad, nn.ZeroPad2d) and isinstance(conv, nn.Conv2d) and conv.padding == (0, 0) \
+                    and len(set(pad.padding)) == 1:
+                conv.padding = (pad.padding[0],) * 2
+                seq[i] = nn.Identity()
+    return net
+
+
+def fuse_relu(net: nn.Module) -> nn.Module:
+    """``Conv2d`` (then any ``Identity``) then ``ReLU`` as one :class:`ConvReLU`."""
+    for seq in [m for m in net.modules() if isinstance(m, nn.Sequential)]:
+        mods = list(seq)
+        for i, m in enumerate(mods):
+            if type(m) is nn.Conv2d:
+                j = i + 1
+                while j < len(mods) and isinstance(mods[j], nn.Identity):
+                    j += 1
+                if j < len(mods) and isinstance(mods[j], nn.ReLU):
+                    seq[i] = ConvReLU(m)
+                    seq[j] = nn.Identity()
+    return net
+
+
+def pseudo_image(B: int, fill: float = 0.08) -> torch.Tensor:
+    g = torch.Generator(device="cuda").manual_seed(0)
+    x = torch.rand(B, 64, 496, 432, device="cuda", generator=g)
+    keep = torch.rand(B, 1, 496, 432, device="cuda", generator=g) < fill
+    return (x * keep).half().contiguous(memory_format=torch.channels_last)
+
+
+def conv_macs(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> float:
+    if isinstance(m, nn.ConvTranspose2d):  # each input cell times the whole kernel
+        return x.numel() / x.shape[1] * m.in_channels * m.out_channels * m.kernel_size[0] * m.kernel_size[1]
+    w = m.weight
+    return y.numel() / y.shape[1] * w.shape[0] * w.shape[1] * w.shape[2] * w.shape[3]
+
+
+def kernel_table(net, x, autocast: bool) -> None:
+    """Each convolution's kernels in execution order: GPU time, multiply-adds, rate."""
+    convs = [(n, m) for n, m in net.named_modules() if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d, ConvReLU))]
+    macs = {}
+
+    def hook(m, inp, out):
+        macs[m] = conv_macs(m, inp[0], out)
+
+    hooks = [m.register_forward_hook(hook) for _, m in convs]
+    run = lambda: net(x)  # noqa: E731
+    with torch.no_grad(), torch.autocast("cuda", torch.float16, enabled=autocast):
+        run()
+        torch.cuda.synchronize()
+        acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+        with torch.profiler.profile(activities=acts) as prof:
+            for _ in range(10):
+                run()
+            torch.cuda.synchronize()
+    for h in hooks:
+        h.remove()
+    kernels: dict[str, list] = {}
+    for e in prof.events():
+        if str(getattr(e, "device_type", "")).endswith("CUDA"):
+            k = kernels.setdefault(e.name, [0.0, 0])
+            k[0] += e.time_range.elapsed_us() / 10
+            k[1] += 1 / 10
+    total = sum(v[0] for v in kernels.values())
+    all_macs = sum(macs.values())
+    print(f"  GPU kernel time {total:.1f} us per call; {all_macs / 1e9:.2f} G multiply-adds in the convolutions "
+          f"({2 * all_macs / total / 1e6:.0f} TFLOP/s over the whole call)")
+    for name, (us, n) in sorted(kernels.items(), key=lambda kv: -kv[1][0])[:25]:
+        print(f"  {us:8.1f} us x{n:3.0f}  {name[:120]}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batches", default="1,16")
+    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--no-kernels", action="store_true", help="skip the per-kernel tables")
+    args = ap.parse_args(argv)
+    if not torch.cuda.is_available():
+        print("bev_convs.py profiles CUDA graphs; no CUDA device here")
+        return 1
+    model = load_model("cuda", "dense")
+    base = inference_copy(model)
+    net_of = lambda m: nn.Sequential(m.backbone_2d, m.dense_head)  # noqa: E731
+    half = copy.deepcopy(base).half()
+    folded = fold_pads(copy.deepcopy(half))
+    fused = fuse_relu(copy.deepcopy(folded))
+    variants = [("copy, autocast", net_of(base), True), ("copy, half", net_of(half), False),
+                ("+ pads folded", net_of(folded), False), ("+ conv-ReLU", net_of(fused), False)]
+    with torch.no_grad():
+        for B in [int(b) for b in args.batches.split(",")]:
+            x = pseudo_image(B)
+            for bench in (False, True):
+                torch.backends.cudnn.benchmark = bench
+                for name, net, autocast in variants:
+                    def fn(x, net=net, autocast=autocast):
+                        with torch.autocast("cuda", torch.float16, enabled=autocast):
+                            return net(x)
+                    try:
+                        ms = graph_ms(lambda: fn(x), reps=1, replays=args.runs)
+                        print(f"batch {B:2d}  cudnn.benchmark={bench!s:5}  {name:16s} {ms:7.3f} ms per call, "
+                              f"{ms / B:6.3f} ms per frame", flush=True)
+                    except Exception as e:  # a variant cuDNN refuses: say so, go on
+                        print(f"batch {B:2d}  cudnn.benchmark={bench!s:5}  {name:16s} failed: "
+                              f"{type(e).__name__}: {str(e)[:200]}", flush=True)
+            # the variants agree (float16 rounding)
+            with torch.autocast("cuda", torch.float16):
+                want = net_of(base)(x)
+            for name, net, autocast in variants[1:]:
+                try:
+                    got = net(x)
+                    err = max(float((got[k].float() - want[k].float()).abs().max()) for k in want)
+                    print(f"batch {B:2d}  {name:16s} max |diff| against the autocast copy: {err:.3g}")
+                except Exception as e:
+                    print(f"batch {B:2d}  {name:16s} failed: {type(e).__name__}")
+            if not args.no_kernels:
+                for bench in (False, True):
+                    torch.backends.cudnn.benchmark = bench
+                    for name, net, autocast in (variants[0], variants[2], variants[3]):
+                        print(f"\nbatch {B}, cudnn.benchmark={bench}, {name}: kernels")
+                        try:
+                            kernel_table(net, x, autocast)
+                        except Exception as e:
+                            print(f"  failed: {type(e).__name__}: {str(e)[:200]}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
