@@ -21,7 +21,8 @@ statistics from a few frames (the time does not depend on the values, except NMS
 * **batched predict**: ``model.predict`` on a batch of 16 distinct frames (frames per second).
 * **graph** (dense backbone, CUDA): :class:`lidarops.models.GraphedPointPillars` as a user calls it:
   the frame copied into the graph's input, one replay of padded voxelization, network, decode, score
-  threshold and NMS (``postprocess_padded``), the number of boxes read back and the detections sliced.
+  threshold and NMS (``postprocess_padded``), the number of boxes read back and the detections sliced; with its
+  default pillar rows (one per point of capacity) and, optimized, with ``max_pillars`` as ``predict`` sizes it.
   The sparse backbone builds its kernel maps with host reads, so it has no graph row.
 * **stages**: CUDA events between the stages of one eager call (their GPU time, not counting host gaps).
 """
@@ -192,11 +193,22 @@ def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS, frame: to
         if device == "cuda" and mode == "dense":
             # capacity = the frame's points (the padded tensors as small as they can be), and a capacity
             # a user would set for any KITTI scan (the pillar rows then reach the config's max_voxels_test)
-            for capacity, optimize in ((int(frame.shape[0]), False), (150_000, False), (int(frame.shape[0]), True)):
+            # and the optimized graph with the pillar rows predict would give it (its frame's pillars, a quarter
+            # to spare, a power of two) instead of one per point
+            from lidarops.models.cuda_graph import _predict_rows
+            from lidarops.models.pointpillars import voxelize_frames
+
+            n = int(frame.shape[0])
+            with torch.no_grad():
+                sized = _predict_rows(int(voxelize_frames(batch["points"], 1, model.config, False)[0].shape[0]), n)
+            for capacity, optimize, pillars in ((n, False, None), (150_000, False, None), (n, True, None),
+                                                (n, True, sized)):
                 impl = "graph" if capacity == frame.shape[0] else f"graph, capacity {capacity // 1000}k"
                 impl += ", optimize (BatchNorm folded, channels-last)" if optimize else ""
+                impl += f", max_pillars {pillars}" if pillars else ""
                 try:
-                    graphed = GraphedPointPillars(model, capacity=capacity, precision=precision, optimize=optimize)
+                    graphed = GraphedPointPillars(model, capacity=capacity, precision=precision, optimize=optimize,
+                                                  max_pillars=pillars)
                     t = time_call(graphed, (frame,), torch.device(device), budget_s=2.0, rotate=False)
                     got = graphed(frame)
                     same = torch.equal(got["labels"], eager(batch)[0]["labels"])

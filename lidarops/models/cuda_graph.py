@@ -556,6 +556,7 @@ class _GraphedFrames:
         frames = [points] if one else points
         out = self._replay(frames)
         reads = out["read"][:len(frames)].tolist()  # the one host read: (rows, bad, redo, pillars) per frame
+        self.last_reads = reads
         if any(r[2] for r in reads):  # rows too few (or a merge unsettled): the eager call, in the graph's precision
             results = self._eager(frames)
         else:
@@ -815,6 +816,12 @@ MIN_CAPACITY = 1 << 14
 MAX_CAPACITY = 1 << 21
 KEEP_GRAPHS = 3
 MAX_RECORDINGS = 12
+# Pillar rows of a predict graph: a power of two at least ROWS_HEADROOM times the most pillars its frames have needed
+# (counted before the recording, then read back with each replay's results), and at least MIN_ROWS. A replay whose
+# frames need more is redone eagerly and the next call records the graph again with more rows: the pillar net and
+# the scatter then work on the pillars there are rather than on every frame's capacity.
+ROWS_HEADROOM = 1.25
+MIN_ROWS = 1 << 10
 # Under a CUDA autocast to float16 / bfloat16 the caller has asked for reduced precision: predict then records an
 # inference_copy (BatchNorm folded, channels-last; cuDNN's half-precision kernels run without layout transposes),
 # recorded again when a weight changes in place. Its detections agree with the eager call's to that precision.
@@ -832,6 +839,7 @@ class _PredictGraphs:
         self.seen: set = set()
         self.graphs: OrderedDict = OrderedDict()
         self.recorded = 0
+        self.pillars: dict = {}  # graph key -> the most pillar rows its frames have needed
 
     def current(self, model: nn.Module) -> tuple:
         """The model's tensors as the graphs would read them: data pointers, in the order of :attr:`places`
@@ -858,6 +866,11 @@ class _PredictGraphs:
         return _PredictGraphs, ()
 
 
+def _predict_rows(needed: int, full: int) -> int:
+    """Pillar rows for a predict graph whose frames have needed ``needed`` (:data:`ROWS_HEADROOM`)."""
+    return min(full, max(MIN_ROWS, 1 << math.ceil(math.log2(ROWS_HEADROOM * needed + 1))))
+
+
 def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     """:meth:`PointPillars.predict` on CUDA as a replayed :class:`GraphedPointPillars` (the eval-mode model, dense
     backbone), or None where the eager call must run: the first call with frames of a size (a graph is recorded
@@ -868,7 +881,8 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     when the model's tensors are replaced (``.to()``, ``.half()``); in-place updates of the weights
     (``load_state_dict``, an optimizer's step) are seen by the replays. Under a CUDA autocast to float16 or
     bfloat16 the graph records an :func:`inference_copy` (:data:`OPTIMIZE_UNDER_AUTOCAST`), recorded again after
-    an in-place update (the tensors' version counters)."""
+    an in-place update (the tensors' version counters). Its pillar rows are sized from the pillars its frames need
+    (:data:`ROWS_HEADROOM`), recorded again with more when a batch needs more (that batch is redone eagerly)."""
     from lidarops import extension
 
     points, cfg = batch["points"], model.config
@@ -912,20 +926,33 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     optimize = versions is not None
     key = (capacity, B, param.dtype, torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32,
            autocast, torch.get_autocast_dtype("cuda"), optimize)
+    full = B * min(cfg.max_voxels_test, capacity)  # rows that always hold the frames' pillars
     graphed = cache.graphs.get(key)
     if graphed is not None and optimize and graphed._copied_at != versions:
         del cache.graphs[key]  # its copy holds the weights from before an in-place update: record it again
+        graphed = None
+    if graphed is not None and graphed.max_pillars < _predict_rows(cache.pillars.get(key, 0), full):
+        del cache.graphs[key]  # its frames have needed more pillar rows than it has: record it again with more
         graphed = None
     if graphed is None:
         if key not in cache.seen or cache.recorded >= MAX_RECORDINGS:
             cache.seen.add(key)  # a single call (a CLI run on one scan) is not worth a graph's recording
             return None
+        if key not in cache.pillars:
+            from lidarops.models.pointpillars import voxelize_frames
+
+            try:  # the pillars these frames need (a recording costs far more than this eager count)
+                with torch.no_grad():
+                    cache.pillars[key] = int(voxelize_frames(points, B, cfg, training=False)[0].shape[0])
+            except ValueError:  # a bad value: the eager call names it
+                return None
         while len(cache.graphs) >= KEEP_GRAPHS:
             cache.graphs.popitem(last=False)
         was_training = model.training  # replays run in eval mode whatever the mode; recording sets it
         try:
             with torch.inference_mode(False):  # buffers the replays of calls outside inference mode may write too
-                graphed = GraphedPointPillars(model, capacity=capacity, precision=None, batch_size=B, optimize=optimize)
+                graphed = GraphedPointPillars(model, capacity=capacity, precision=None, batch_size=B, optimize=optimize,
+                                              max_pillars=_predict_rows(cache.pillars[key], full))
         finally:
             model.train(was_training)
         graphed._copied_at = versions  # the tensors' versions its copy was made at (None: no copy)
@@ -936,6 +963,8 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
         out = graphed(frames)
     except ValueError:  # a bad value: the eager call names it by the batch's own rows
         return None
+    # the rows these frames needed (a replay short of rows was redone eagerly; the next call records more)
+    cache.pillars[key] = max(cache.pillars.get(key, 0), int(graphed.last_reads[0][3]))
     if bad_index is not None and bool(bad_index):  # read after the replay's own: the device is done by then
         return None
     return out

@@ -967,6 +967,45 @@ def test_optimized_graph_keeps_the_copy_it_recorded():
 
 @pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
                     reason="needs a GPU and lidarops built with CUDA kernels")
+def test_predict_graph_sizes_its_pillar_rows_from_the_frames(monkeypatch):
+    """predict's graph takes the pillar rows its frames need (a power of two with a quarter to spare), not every
+    frame's capacity; a frame needing more still gets predict's own detections (redone eagerly), and the next call
+    records the graph again with more rows."""
+    from lidarops.models import cuda_graph
+    from lidarops.models.pointpillars import eager_predict
+
+    monkeypatch.setattr(cuda_graph, "MIN_ROWS", 4)
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3, "nms_thresh": 0.1}).cuda().eval()
+    with torch.no_grad():
+        model.dense_head.conv_cls.bias.zero_()
+    g = torch.Generator().manual_seed(7)
+    corner = (torch.rand(50, 4, generator=g) * torch.tensor([1.9, 1.9, 4.0, 1.0])
+              + torch.tensor([0, -4.0, -3, 0])).cuda()  # the 4 pillars of a 2 m x 2 m corner
+    spread = (torch.rand(900, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0])
+              + torch.tensor([0, -4.0, -3, 0])).cuda()  # all 64 pillars of the grid
+    one = lambda f: {"points": F.pad(f, (1, 0)), "batch_size": 1}  # noqa: E731
+    graphs = lambda: list(model.__dict__["_predict_graphs"].graphs.values())  # noqa: E731
+
+    def eager(f):
+        with eager_predict():
+            return model.predict(one(f))
+
+    model.predict(one(corner))
+    kept = _same_detections(model.predict(one(corner)), eager(corner), "recorded")
+    (first,) = graphs()
+    assert first.max_pillars == 8  # 1.25 x 4 + 1 -> 8
+    kept += _same_detections(model.predict(one(spread)), eager(spread), "a frame needing more rows")
+    assert graphs() == [first], "the replay short of rows was redone eagerly"
+    kept += _same_detections(model.predict(one(spread)), eager(spread), "recorded again")
+    (second,) = graphs()
+    assert second is not first and second.max_pillars == 128  # 1.25 x 64 + 1 -> 128
+    kept += _same_detections(model.predict(one(corner)), eager(corner), "a smaller frame in the larger graph")
+    assert graphs() == [second] and kept > 0
+
+
+@pytest.mark.skipif(not (torch.cuda.is_available() and lidarops.extension.cuda_available()),
+                    reason="needs a GPU and lidarops built with CUDA kernels")
 def test_graph_records_while_another_thread_pins_memory():
     """The index build records its graph while its DataLoader's pin-memory thread pins batches: a capture
     in torch's default (global) mode is invalidated by that thread's CUDA calls; the graph must still be
