@@ -18,7 +18,11 @@ and never committed. For each ``--checkpoint`` (default: the shipped ``pointpill
   >= the class's first threshold (Car 0.5, Pedestrian and Cyclist 0.25), counted where it is another class or
   none (``Pedestrian_taken_for_Cyclist``...);
 * **false positives per frame** above scores 0.3 and 0.5: detections whose bird's-eye IoU with every labelled
-  box (any type: Van, Truck, Misc too; DontCare has no box) is below 0.1;
+  box (any type: Van, Truck, Misc too; DontCare has no box) is below 0.1; and of those, the ones outside the
+  frame's DontCare regions, as KITTI's evaluation counts them (a detection whose projected 2D box lies more than
+  half inside a DontCare box is ignored; ``..._outside_dontcare``). ``--fp-list`` prints each false positive above
+  0.5: its range, class, score, bottom, size, the returns in its footprint and their height span, its DontCare
+  overlap;
 * **errors of the found boxes** (bird's-eye IoU >= 0.5): centre height, bottom, top, length, width, height,
   detection minus label, in metres.
 
@@ -71,11 +75,14 @@ def greedy_match(iou: np.ndarray, scores: np.ndarray, thresh: float) -> np.ndarr
 
 
 def frame_figures(gt_boxes: np.ndarray, gt_names: list[str], det_boxes: np.ndarray, det_scores: np.ndarray,
-                  det_names: list[str], difficulty: np.ndarray | None = None) -> dict:
+                  det_names: list[str], difficulty: np.ndarray | None = None,
+                  det_dontcare: np.ndarray | None = None) -> dict:
     """One frame's counts: ``found[(class, kind, thresh)]``, ``labelled[class]``, ``fp[score]`` and the
     errors of the boxes found at bird's-eye IoU 0.5, ``errors[class]`` (rows of centre-z, bottom, top, dx, dy,
     dz differences). With the labels' KITTI ``difficulty``, also the easy and moderate ones (0 or 1) found at
-    the class's first 3D threshold, ``found_em[class]`` of ``labelled_em[class]``."""
+    the class's first 3D threshold, ``found_em[class]`` of ``labelled_em[class]``. With each detection's
+    largest DontCare overlap (:func:`dontcare_overlap`), also ``fp_outside_dontcare[score]``: the false
+    positives KITTI's evaluation counts (overlap at most 0.5)."""
     from lidarops import box_iou_3d, box_iou_bev
 
     t = lambda a: torch.as_tensor(np.asarray(a, np.float64).reshape(-1, 7))  # noqa: E731
@@ -107,6 +114,10 @@ def frame_figures(gt_boxes: np.ndarray, gt_names: list[str], det_boxes: np.ndarr
     alone = any_bev.max(axis=1) < 0.1 if any_bev.shape[1] else np.ones(len(det_boxes), bool)
     for s in FP_SCORES:
         out["fp"][s] = int((alone & (det_scores >= s)).sum())
+    if det_dontcare is not None:
+        out["fp_outside_dontcare"] = {s: int((alone & (det_scores >= s) & (det_dontcare <= 0.5)).sum())
+                                      for s in FP_SCORES}
+    out["alone"] = alone
     # what each labelled Car / Pedestrian / Cyclist is taken for: the class of the highest-scoring detection of
     # any class over it at bird's-eye IoU >= the class's first threshold ("none" when there is none)
     out["taken_for"] = {}
@@ -150,8 +161,9 @@ def object_stats(points: np.ndarray, boxes: np.ndarray, names: list[str]) -> dic
 
 
 def real_frames(root: Path):
-    """(frame id, points, boxes, KITTI type names, KITTI difficulty) of each real frame."""
-    from lidarops.data.formats.kitti import KittiDataset, kitti_difficulty
+    """(frame id, points, boxes, KITTI type names, KITTI difficulty, calibration, DontCare 2D boxes (D, 4)) of
+    each real frame."""
+    from lidarops.data.formats.kitti import KittiDataset, kitti_difficulty, read_label
 
     ds = KittiDataset(root, image_set="val", unknown="keep", fov="camera")
     for i in range(len(ds)):
@@ -159,7 +171,42 @@ def real_frames(root: Path):
         labels = f.meta.get("kitti")
         names = list(labels.names) if labels is not None else []  # KITTI's types: Van, Truck, Misc too
         difficulty = kitti_difficulty(labels) if labels is not None else np.zeros(0, np.int64)
-        yield f.meta["frame_id"], f.points, f.boxes, names, difficulty
+        path = ds.split_dir / "label_2" / f"{f.meta['frame_id']}.txt"
+        every = read_label(path) if path.is_file() else None  # the dataset leaves the DontCare rows out
+        dontcare = np.zeros((0, 4)) if every is None else \
+            np.asarray(every.bbox, np.float64).reshape(-1, 4)[np.asarray(every.names) == "DontCare"]
+        yield f.meta["frame_id"], f.points, f.boxes, names, difficulty, f.meta.get("calib"), dontcare
+
+
+def dontcare_overlap(det_boxes: np.ndarray, calib, dontcare: np.ndarray) -> np.ndarray:
+    """Each detection's largest overlap with the DontCare regions, KITTI's measure: the intersection of its 2D box
+    (its corners projected with ``P2``, clipped to the image) with a DontCare box, over its own 2D box's area."""
+    from lidarops.data.formats.kitti import KITTI_IMAGE_SIZE, KittiCalib, _image_boxes
+    from lidarops.eval.kitti import _image_iou
+
+    k = len(det_boxes)
+    if k == 0 or len(dontcare) == 0:
+        return np.zeros(k)
+    bbox, _ = _image_boxes(np.asarray(det_boxes, np.float64).reshape(-1, 7), calib or KittiCalib.default(),
+                           KITTI_IMAGE_SIZE)
+    d, c = np.repeat(np.arange(k), len(dontcare)), np.tile(np.arange(len(dontcare)), k)
+    return _image_iou(bbox.astype(np.float64)[d], dontcare[c], False).reshape(k, len(dontcare)).max(1)
+
+
+def fp_rows(fid: str, points: np.ndarray, det_boxes: np.ndarray, det_scores: np.ndarray, det_names: list[str],
+            alone: np.ndarray, overlap: np.ndarray, least: float = 0.5) -> list[dict]:
+    """The false positives scoring at least ``least``: where they stand and what is under them (the returns within
+    the box's footprint, ignoring its heading and height, and their height span)."""
+    rows = []
+    for k in np.flatnonzero(alone & (det_scores >= least)):
+        b = det_boxes[k]
+        under = points[np.abs(points[:, :2] - b[:2]).max(1) <= max(b[3], b[4]) / 2, 2]
+        rows.append({"frame": fid, "class": det_names[k], "score": round(float(det_scores[k]), 2),
+                     "range_m": round(float(np.hypot(b[0], b[1])), 1), "bottom_m": round(float(b[2] - b[5] / 2), 2),
+                     "size_m": " x ".join(f"{v:.2f}" for v in b[3:6]), "returns": int(under.size),
+                     "height_span_m": round(float(np.ptp(under)), 2) if under.size else 0.0,
+                     "dontcare": round(float(overlap[k]), 2)})
+    return rows
 
 
 def sim_frames(n: int, realism: str | None = None):
@@ -205,6 +252,9 @@ def summarize(figs: list[dict]) -> dict:
                 row[f"{cls}_err_{name}_m"] = round(float(errs[:, j].mean()), 3)
     for s in FP_SCORES:
         row[f"fp_per_frame_above_{s}"] = round(sum(f["fp"][s] for f in figs) / max(len(figs), 1), 2)
+        if figs and "fp_outside_dontcare" in figs[0]:
+            row[f"fp_per_frame_above_{s}_outside_dontcare"] = round(
+                sum(f["fp_outside_dontcare"][s] for f in figs) / len(figs), 2)
     return row
 
 
@@ -392,6 +442,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                    "(none: as cast; kitti; kitti_dr)")
     p.add_argument("--plot", type=Path, default=None)
     p.add_argument("--json", action="store_true")
+    p.add_argument("--fp-list", action="store_true", help="print each false positive above 0.5 on the real frames")
     args = p.parse_args(argv)
     if not (args.real / "ImageSets" / "val.txt").is_file():
         p.error(f"--real {args.real}: no ImageSets/val.txt; bring the real frames with "
@@ -403,10 +454,12 @@ def main(argv: list[str] | None = None) -> int:
     for ck in args.checkpoint:
         path = weights.path(ck) if ck in weights.available() else ck
         model = load_model(path).eval()
-        figs, top = [], 0.0
-        for fid, points, boxes, names, difficulty in real:
+        figs, top, fps = [], 0.0, []
+        for fid, points, boxes, names, difficulty, calib, dontcare in real:
             db, ds, dn = detections(model, points)
-            figs.append(frame_figures(boxes.astype(np.float64), names, db, ds, dn, difficulty))
+            overlap = dontcare_overlap(db, calib, dontcare)
+            figs.append(frame_figures(boxes.astype(np.float64), names, db, ds, dn, difficulty, overlap))
+            fps += fp_rows(fid, points, db, ds, dn, figs[-1]["alone"], overlap)
             top = max([top, *ds.tolist()])
         row = {"op": "sim2real", "case": f"real_kitti:{Path(str(ck)).name}", "checkpoint": str(ck), **summarize(figs),
                "max_score": round(top, 3)}
@@ -415,7 +468,13 @@ def main(argv: list[str] | None = None) -> int:
                                     f"{THRESHOLDS_3D[c][0]} (easy and moderate: "
                                     f"{row[f'{c}_found_3d{THRESHOLDS_3D[c][0]}_easy_moderate']}/"
                                     f"{row[f'{c}_labelled_easy_moderate']})" for c in CLASSES)
-              + f"; false positives per frame above 0.5: {row['fp_per_frame_above_0.5']}", flush=True)
+              + f"; false positives per frame above 0.5: {row['fp_per_frame_above_0.5']} "
+              f"({row['fp_per_frame_above_0.5_outside_dontcare']} outside DontCare regions)", flush=True)
+        if args.fp_list and fps:
+            keys = list(fps[0])
+            print_table(f"{Path(str(ck)).name}: false positives above 0.5, nearest first", keys,
+                        [[r[k] for k in keys] for r in sorted(fps, key=lambda r: r["range_m"])],
+                        right=range(2, len(keys)))
     rstats = data_stats(real)
     rows.append({"op": "sim2real", "case": "stats:real_kitti", "frames": len(real), **rstats["row"]})
     sims = {}

@@ -284,6 +284,36 @@ def test_bm_scaling_allreduce_probe_under_torchrun(tmp_path, capsys):
     assert rows[0]["parameters"] > 4_000_000 and rows[0]["allreduce_ms"] > 0
 
 
+def test_bm_sim2real_counts_false_positives_in_dontcare_regions_as_kitti_does():
+    """KITTI's evaluation ignores a detection whose 2D box lies more than half inside a DontCare box: a box over a
+    detection's whole projection overlaps it 1, one over its left part in proportion, one elsewhere 0; frame_figures
+    leaves the ignored ones out of its second count only; fp_rows lists the false positives above 0.5 with what is
+    under them."""
+    import numpy as np
+
+    from benchmarks.bm_sim2real import dontcare_overlap, fp_rows, frame_figures
+    from lidarops.data.formats.kitti import KITTI_IMAGE_SIZE, KittiCalib, _image_boxes
+
+    calib = KittiCalib.default()
+    det = np.array([[15.0, 0.0, -0.8, 4.0, 1.7, 1.5, 0.0], [30.0, 8.0, -0.8, 0.8, 0.6, 1.7, 0.0]])
+    (u0, v0, u1, v1), other = _image_boxes(det, calib, KITTI_IMAGE_SIZE)[0].astype(np.float64)
+    assert u1 - u0 > 10 and v1 - v0 > 10 and other[2] < u0 - 5  # the second box: left of the first
+    for dc, want in (([[u0 - 5, v0 - 5, u1 + 5, v1 + 5]], 1.0), ([[u0 - 5, v0 - 5, (u0 + u1) / 2, v1 + 5]], 0.5),
+                     ([[0, 0, 5, 5]], 0.0)):
+        got = dontcare_overlap(det, calib, np.array(dc, np.float64))
+        assert abs(got[0] - want) < 1e-4 and got[1] == 0, (got, want)
+    assert dontcare_overlap(det, calib, np.zeros((0, 4))).tolist() == [0.0, 0.0]
+    gt = np.array([[5.0, 3.0, -0.9, 0.8, 0.6, 1.7, 0.0]])
+    out = frame_figures(gt, ["Pedestrian"], det, np.array([0.6, 0.4]), ["Car", "Pedestrian"],
+                        det_dontcare=np.array([0.9, 0.2]))
+    assert out["fp"] == {0.3: 2, 0.5: 1} and out["fp_outside_dontcare"] == {0.3: 1, 0.5: 0}
+    points = np.array([[15.0, 0.2, -1.5, 0.1], [15.5, -0.5, 0.0, 0.2], [17.5, 0.0, 0.0, 0.3], [30.0, 8.0, 0.0, 0.4]])
+    (row,) = fp_rows("000001", points, det, np.array([0.6, 0.4]), ["Car", "Pedestrian"], out["alone"],
+                     np.array([0.9, 0.2]))
+    assert (row["frame"], row["class"], row["range_m"], row["returns"], row["dontcare"]) == ("000001", "Car", 15.0, 2, 0.9)
+    assert row["height_span_m"] == 1.5 and row["bottom_m"] == -1.55
+
+
 def test_bm_sim2real_frame_figures_on_a_hand_made_frame():
     """A car detected 0.4 m too low (3D IoU 1.1 / 1.9 = 0.58: found at 0.5, not at 0.7; found in bird's-eye
     view), a second detection of it (one-to-one: not found twice, not a false positive), a detection on a

@@ -167,7 +167,7 @@ def _decode_candidates(head, raw: Mapping[str, Tensor], cfg) -> tuple[tuple[Tens
     every decoded box is accepted (the eager call then decides)."""
     pre = cfg.nms_pre_maxsize
     bound = getattr(head, "safe_regression", 0.0)
-    if cfg.multi_classes_nms or pre < 0 or bound <= 0 or head.box_coder.box_size != 7 or head.conv_dir_cls is None:
+    if cfg.multi_classes_nms or pre < 1 or bound <= 0 or head.box_coder.box_size != 7 or head.conv_dir_cls is None:
         return head.decode(raw), None
     B = raw["cls_preds"].shape[0]
     cls = raw["cls_preds"].view(B, -1, head.num_class).float()
@@ -590,9 +590,10 @@ class GraphedPointPillars(_GraphedFrames):
             the pillar net's work smaller; a replay whose frames need more is redone eagerly by a call (and
             reported by :meth:`replay`'s ``overflow``).
         optimize (bool): record a private :func:`inference_copy` of the model (BatchNorm folded into the
-            convolutions, channels-last): faster, especially in fp16; the outputs round differently from the
-            eager call's (float32 or float16 rounding), and later in-place updates of the model's weights are not
-            seen. Default False.
+            convolutions, channels-last, each convolution and its ReLU one cuDNN call in half precision; under fp16
+            its convolutions' weights are cast once): faster, especially in fp16; the outputs round differently
+            from the eager call's (float32 or float16 rounding), and later in-place updates of the model's weights
+            are not seen. Default False.
 
     Calling it with ``points (Tensor[P, C])`` (``C >= config.num_point_features``: x, y, z, intensity;
     more columns are ignored; ``P <= capacity``; the model's device) returns one dict of ``boxes (K, 7)``,
@@ -943,8 +944,8 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
 
             try:  # the pillars these frames need (a recording costs far more than this eager count)
                 with torch.no_grad():
-                    cache.pillars[key] = int(voxelize_frames(points, B, cfg, training=False)[0].shape[0])
-            except ValueError:  # a bad value: the eager call names it
+                    cache.pillars[key] = int(voxelize_frames(points.to(param.dtype), B, cfg, False)[0].shape[0])
+            except (ValueError, RuntimeError):  # a bad value: the eager call names it
                 return None
         while len(cache.graphs) >= KEEP_GRAPHS:
             cache.graphs.popitem(last=False)
