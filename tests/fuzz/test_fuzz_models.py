@@ -13,6 +13,8 @@
   the batch, missing frames, huge batch sizes, wrong dtypes and shapes, empty): ``predict`` refuses with a
   ``ValueError`` naming ``batch_size`` or ``points``, or returns one result per frame with finite boxes,
   before allocating anything the size of the batch size.
+- **the graphs' decoding**: ``safe_regression`` on drawn anchors vouches only for boxes the box ops accept, and the
+  head's decoding of drawn rows of the anchors is those rows of decoding them all, bit for bit.
 """
 from __future__ import annotations
 
@@ -427,3 +429,64 @@ def test_damaged_selection_files_are_refused_by_name(selection_file, data):
         assert err is None and type(model).__name__ == "SelectedCounter", err
         return
     assert_clear_error(err, (ValueError, FileNotFoundError), [str(path), path.name], f"load_model({kind})")
+
+
+@fuzz
+@given(data=st.data())
+def test_safe_regression_vouches_for_every_box_within_it(data):
+    """:func:`lidarops.models.anchor_head.safe_regression` on drawn anchors (sizes from 0.1 mm to 50 km, centres up
+    to 600 km away): an integer in [0, 10]; every box decoded from regressions within it (the corners of the cube
+    and drawn points inside; headings through the direction bins) is one the box ops accept; a size of 0 or below,
+    a NaN or an infinity gives 0."""
+    import itertools
+
+    from lidarops.models.anchor_head import safe_regression
+    from lidarops.models.anchors import ResidualCoder, decode_direction
+    from lidarops.ops.boxes import unsupported_boxes
+
+    n = data.draw(st.integers(1, 5), label="anchors")
+    size = st.floats(1e-4, 5e4)
+    anchors = torch.tensor([[data.draw(st.floats(-6e5, 6e5), label="x"), data.draw(st.floats(-100, 100), label="y"),
+                             data.draw(st.floats(-5, 5), label="z"), data.draw(size, label="dx"),
+                             data.draw(size, label="dy"), data.draw(size, label="dz"),
+                             data.draw(st.floats(-math.pi, math.pi), label="heading")] for _ in range(n)])
+    bound = safe_regression(anchors)
+    assert 0 <= bound <= 10 and bound == int(bound)
+    if bound:
+        corners = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=7)))
+        g = torch.Generator().manual_seed(data.draw(st.integers(0, 99), label="seed"))
+        deltas = torch.cat([corners, torch.rand(64, 7, generator=g) * 2 - 1]) * bound
+        boxes = ResidualCoder(7).decode(deltas[:, None, :].expand(-1, n, -1), anchors[None])
+        for label in (0, 1):
+            boxes[..., 6] = decode_direction(boxes[..., 6], torch.full(boxes.shape[:2], label))
+            assert not unsupported_boxes(boxes.reshape(-1, 7)).any(), f"bound {bound} for {anchors.tolist()}"
+    bad = anchors.clone()
+    bad[data.draw(st.integers(0, n - 1), label="row"), data.draw(st.integers(3, 5), label="column")] = \
+        data.draw(st.sampled_from([0.0, -1.0, math.nan, math.inf]), label="bad size")
+    assert safe_regression(bad) == 0
+
+
+@fuzz
+@given(data=st.data())
+def test_head_decode_of_some_anchors_is_those_rows_of_the_whole(data):
+    """``AnchorHeadSingle.decode(preds, anchors)`` on drawn rows of the anchors (repeated, any order) and drawn raw
+    outputs (large, tiny, negative): bit for bit the rows of decoding every anchor (NaN where it gives NaN)."""
+    model = _tiny_pointpillars()
+    head = model.dense_head
+    A, C, code = head.anchors_flat.shape[0], head.num_class, head.box_coder.code_size
+    B = data.draw(st.integers(1, 2), label="frames")
+    scale = data.draw(st.sampled_from([1e-3, 1.0, 30.0, 100.0]), label="scale")
+    g = torch.Generator().manual_seed(data.draw(st.integers(0, 99), label="seed"))
+    preds = {"cls_preds": torch.randn(B, A * C, generator=g) * scale,
+             "box_preds": torch.randn(B, A * code, generator=g) * scale,
+             "dir_cls_preds": torch.randn(B, A * 2, generator=g)}
+    idx = torch.tensor(data.draw(st.lists(st.lists(st.integers(0, A - 1), min_size=3, max_size=3), min_size=B,
+                                          max_size=B), label="rows"))
+    with torch.no_grad():
+        cls, boxes = head.decode(preds)
+        rows = lambda t, w: torch.gather(t.view(B, A, w), 1, idx[..., None].expand(-1, -1, w))  # noqa: E731
+        picked = {"cls_preds": rows(preds["cls_preds"], C), "box_preds": rows(preds["box_preds"], code),
+                  "dir_cls_preds": rows(preds["dir_cls_preds"], 2)}
+        cls_c, boxes_c = head.decode(picked, head.anchors_flat[idx])
+    torch.testing.assert_close(cls_c, rows(cls, C), rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(boxes_c, rows(boxes, 7), rtol=0, atol=0, equal_nan=True)
