@@ -4,13 +4,13 @@ each of its kernels with the multiply-adds it does and the rate it reaches.
 
     python benchmarks/profile/bev_convs.py [--batches 1,16] [--runs 50]
 
-Variants (all float16, channels-last, BatchNorm folded):
+Variants (all under float16 autocast, channels-last, BatchNorm folded):
 
-* ``copy, autocast``: the inference copy under float16 autocast (what ``predict`` and
-  ``GraphedPointPillars(optimize=True)`` replay): float32 weights cast in the graph;
-* ``copy, half``: the same copy with float16 weights (no casts);
-* ``+ pads folded``: each block's ``ZeroPad2d(1)`` taken into its strided convolution's padding (no padded copy);
-* ``+ conv-ReLU``: each convolution and its ReLU as one cuDNN call (``torch.cudnn_convolution_relu``).
+* ``unfused``: the copy with each convolution and its ReLU as two modules (cuDNN's convolution, PyTorch's bias
+  addition, the ReLU);
+* ``copy``: the inference copy as it is, with float32 weights that autocast casts at each call;
+* ``copy, weights cast once``: its convolutions' weights in float16, as the graphs recorded under fp16 hold them
+  (what ``predict`` and ``GraphedPointPillars(optimize=True, precision="fp16")`` replay).
 
 Each with cuDNN's heuristics and with ``torch.backends.cudnn.benchmark`` (cuDNN times its algorithms per shape).
 The input is a pseudo-image of the KITTI grid (64 x 496 x 432) with 8 % of its cells filled.
@@ -30,47 +30,16 @@ sys.path.insert(0, ROOT)
 
 from benchmarks.bm_detector import load_model  # noqa: E402
 from benchmarks.profile.conv_algos import graph_ms  # noqa: E402
-from lidarops.models.cuda_graph import inference_copy  # noqa: E402
+from lidarops.models.cuda_graph import _cast_convolutions, _ConvReLU, inference_copy  # noqa: E402
 
 
-class ConvReLU(nn.Module):
-    """A convolution with a bias followed by ReLU, as one cuDNN call."""
-
-    def __init__(self, conv: nn.Conv2d):
-        super().__init__()
-        self.weight = conv.weight
-        self.bias = conv.bias if conv.bias is not None else nn.Parameter(conv.weight.new_zeros(conv.out_channels))
-        self.stride, self.padding, self.dilation, self.groups = conv.stride, conv.padding, conv.dilation, conv.groups
-
-    def forward(self, x):
-        return torch.cudnn_convolution_relu(x, self.weight, self.bias, self.stride, self.padding, self.dilation,
-                                            self.groups)
-
-
-def fold_pads(net: nn.Module) -> nn.Module:
-    """``ZeroPad2d(p)`` then a ``Conv2d(padding=0)`` as one ``Conv2d(padding=p)``."""
+def unfused(net: nn.Module) -> nn.Module:
+    """The copy with each fused convolution + ReLU back as the two modules (three passes over the map: the
+    convolution, PyTorch's bias addition, the ReLU)."""
     for seq in [m for m in net.modules() if isinstance(m, nn.Sequential)]:
-        for i in range(len(seq) - 1):
-            pad, conv = seq[i], seq[i + 1]
-            if isinstance(pad, nn.ZeroPad2d) and isinstance(conv, nn.Conv2d) and conv.padding == (0, 0) \
-                    and len(set(pad.padding)) == 1:
-                conv.padding = (pad.padding[0],) * 2
-                seq[i] = nn.Identity()
-    return net
-
-
-def fuse_relu(net: nn.Module) -> nn.Module:
-    """``Conv2d`` (then any ``Identity``) then ``ReLU`` as one :class:`ConvReLU`."""
-    for seq in [m for m in net.modules() if isinstance(m, nn.Sequential)]:
-        mods = list(seq)
-        for i, m in enumerate(mods):
-            if type(m) is nn.Conv2d:
-                j = i + 1
-                while j < len(mods) and isinstance(mods[j], nn.Identity):
-                    j += 1
-                if j < len(mods) and isinstance(mods[j], nn.ReLU):
-                    seq[i] = ConvReLU(m)
-                    seq[j] = nn.Identity()
+        for i, m in enumerate(seq):
+            if isinstance(m, _ConvReLU):
+                seq[i] = nn.Sequential(m.conv, nn.ReLU())
     return net
 
 
@@ -88,9 +57,9 @@ def conv_macs(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> float:
     return y.numel() / y.shape[1] * w.shape[0] * w.shape[1] * w.shape[2] * w.shape[3]
 
 
-def kernel_table(net, x, autocast: bool) -> None:
+def kernel_table(net, x) -> None:
     """Each convolution's kernels in execution order: GPU time, multiply-adds, rate."""
-    convs = [(n, m) for n, m in net.named_modules() if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d, ConvReLU))]
+    convs = [(n, m) for n, m in net.named_modules() if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d))]
     macs = {}
 
     def hook(m, inp, out):
@@ -98,7 +67,7 @@ def kernel_table(net, x, autocast: bool) -> None:
 
     hooks = [m.register_forward_hook(hook) for _, m in convs]
     run = lambda: net(x)  # noqa: E731
-    with torch.no_grad(), torch.autocast("cuda", torch.float16, enabled=autocast):
+    with torch.no_grad(), torch.autocast("cuda", torch.float16):
         run()
         torch.cuda.synchronize()
         acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
@@ -134,46 +103,38 @@ def main(argv=None) -> int:
     model = load_model("cuda", "dense")
     base = inference_copy(model)
     net_of = lambda m: nn.Sequential(m.backbone_2d, m.dense_head)  # noqa: E731
-    half = copy.deepcopy(base).half()
-    folded = fold_pads(copy.deepcopy(half))
-    fused = fuse_relu(copy.deepcopy(folded))
-    variants = [("copy, autocast", net_of(base), True), ("copy, half", net_of(half), False),
-                ("+ pads folded", net_of(folded), False), ("+ conv-ReLU", net_of(fused), False)]
+    cast = copy.deepcopy(base)
+    _cast_convolutions(cast, torch.float16)
+    variants = [("unfused", net_of(unfused(copy.deepcopy(base)))), ("copy", net_of(base)),
+                ("copy, weights cast once", net_of(cast))]
     with torch.no_grad():
         for B in [int(b) for b in args.batches.split(",")]:
             x = pseudo_image(B)
             for bench in (False, True):
                 torch.backends.cudnn.benchmark = bench
-                for name, net, autocast in variants:
-                    def fn(x, net=net, autocast=autocast):
-                        with torch.autocast("cuda", torch.float16, enabled=autocast):
+                for name, net in variants:
+                    def fn(x, net=net):
+                        with torch.autocast("cuda", torch.float16):
                             return net(x)
                     try:
                         ms = graph_ms(lambda: fn(x), reps=1, replays=args.runs)
-                        print(f"batch {B:2d}  cudnn.benchmark={bench!s:5}  {name:16s} {ms:7.3f} ms per call, "
+                        print(f"batch {B:2d}  cudnn.benchmark={bench!s:5}  {name:24s} {ms:7.3f} ms per call, "
                               f"{ms / B:6.3f} ms per frame", flush=True)
                     except Exception as e:  # a variant cuDNN refuses: say so, go on
-                        print(f"batch {B:2d}  cudnn.benchmark={bench!s:5}  {name:16s} failed: "
+                        print(f"batch {B:2d}  cudnn.benchmark={bench!s:5}  {name:24s} failed: "
                               f"{type(e).__name__}: {str(e)[:200]}", flush=True)
             # the variants agree (float16 rounding)
             with torch.autocast("cuda", torch.float16):
-                want = net_of(base)(x)
-            for name, net, autocast in variants[1:]:
-                try:
+                want = variants[0][1](x)
+                for name, net in variants[1:]:
                     got = net(x)
                     err = max(float((got[k].float() - want[k].float()).abs().max()) for k in want)
-                    print(f"batch {B:2d}  {name:16s} max |diff| against the autocast copy: {err:.3g}")
-                except Exception as e:
-                    print(f"batch {B:2d}  {name:16s} failed: {type(e).__name__}")
+                    print(f"batch {B:2d}  {name:24s} max |diff| against the unfused copy: {err:.3g}")
             if not args.no_kernels:
-                for bench in (False, True):
-                    torch.backends.cudnn.benchmark = bench
-                    for name, net, autocast in (variants[0], variants[2], variants[3]):
-                        print(f"\nbatch {B}, cudnn.benchmark={bench}, {name}: kernels")
-                        try:
-                            kernel_table(net, x, autocast)
-                        except Exception as e:
-                            print(f"  failed: {type(e).__name__}: {str(e)[:200]}")
+                torch.backends.cudnn.benchmark = False
+                for name, net in variants:
+                    print(f"\nbatch {B}, {name}: kernels")
+                    kernel_table(net, x)
     return 0
 
 
