@@ -746,8 +746,9 @@ def test_inference_copys_conv_relu_is_one_cudnn_call_in_half_precision(dtype, mo
     for k, stride, pad, bias in ((3, 1, 1, True), (3, 2, 1, True), (1, 1, 0, False), (3, 1, 0, True)):
         conv = torch.nn.Conv2d(32, 48, k, stride=stride, padding=pad, bias=bias).cuda()
         x = torch.randn(2, 32, 21, 18, device="cuda").contiguous(memory_format=torch.channels_last)
-        want = torch.relu(F.conv2d(x.double(), conv.weight.double(), None if conv.bias is None else conv.bias.double(),
-                                   stride, pad))
+        with torch.no_grad():
+            want = torch.relu(F.conv2d(x.double(), conv.weight.double(),
+                                       None if conv.bias is None else conv.bias.double(), stride, pad))
         scale = float(want.abs().max())
         fused = _ConvReLU(conv)
         with torch.no_grad(), torch.autocast("cuda", dtype):
