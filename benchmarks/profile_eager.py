@@ -62,6 +62,18 @@ def _device_time(e) -> float:
     return 0.0
 
 
+def kernel_totals(events, calls: int) -> list[tuple[str, float, float]]:
+    """The GPU activities of a profile (kernels, copies, memsets) by name: ``(name, us per call, launches per
+    call)``, the longest first."""
+    acc: dict[str, list] = {}
+    for e in events:
+        if str(getattr(e, "device_type", "")).endswith("CUDA"):
+            a = acc.setdefault(e.name, [0.0, 0])
+            a[0] += e.time_range.elapsed_us()
+            a[1] += 1
+    return sorted(((n, us / calls, k / calls) for n, (us, k) in acc.items()), key=lambda t: -t[1])
+
+
 def profile_call(fn, calls: int = 20, top: int = 8) -> dict:
     """One call's profile, per call (module docstring): microseconds and counts."""
     from torch.profiler import ProfilerActivity, profile
@@ -77,12 +89,11 @@ def profile_call(fn, calls: int = 20, top: int = 8) -> dict:
         _sync()
         profiled_us = (time.perf_counter() - t) * 1e6 / calls
     gpu_us, host_op_us, launches, syncs, d2h = 0.0, 0.0, 0, 0, 0
-    kernels, host_ops = [], []
+    host_ops = []
     for e in prof.events():
         dev = str(getattr(e, "device_type", "")).endswith("CUDA")
         if dev:
             gpu_us += e.time_range.elapsed_us()
-            kernels.append(e)
             if "DtoH" in e.name or "Device -> Pageable" in e.name or "Device -> Pinned" in e.name:
                 d2h += 1
             continue
@@ -94,20 +105,14 @@ def profile_call(fn, calls: int = 20, top: int = 8) -> dict:
         if str(getattr(e, "device_type", "")).endswith("CPU"):
             host_op_us += e.self_cpu_time_total
             host_ops.append((e.key, e.self_cpu_time_total / calls, e.count / calls))
-    by_kernel: dict[str, list] = {}
-    for e in kernels:
-        acc = by_kernel.setdefault(e.name, [0.0, 0])
-        acc[0] += e.time_range.elapsed_us()
-        acc[1] += 1
-    top_kernels = sorted(by_kernel.items(), key=lambda kv: -kv[1][0])[:top]
+    top_kernels = kernel_totals(prof.events(), calls)[:top]
     host_ops.sort(key=lambda t: -t[1])
     # the profiler slows the host's side: host shares are of the profiled call, not of the wall time
     return {"gpu_busy_us": gpu_us / calls, "host_in_ops_us": host_op_us / calls,
             "host_in_ops_share": min(host_op_us / calls / profiled_us, 1.0), "profiled_call_us": profiled_us,
             "launches": launches / calls,
             "syncs": syncs / calls, "d2h_copies": d2h / calls,
-            "top_kernels": [{"name": n[:90], "us": round(v[0] / calls, 2), "per_call": v[1] / calls}
-                            for n, v in top_kernels],
+            "top_kernels": [{"name": n[:90], "us": round(us, 2), "per_call": k} for n, us, k in top_kernels],
             "top_host_ops": [{"name": n[:90], "self_us": round(us, 2), "per_call": round(c, 2)}
                              for n, us, c in host_ops[:top]]}
 

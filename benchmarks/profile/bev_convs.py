@@ -30,6 +30,7 @@ sys.path.insert(0, ROOT)
 
 from benchmarks.bm_detector import load_model  # noqa: E402
 from benchmarks.profile.conv_algos import graph_ms  # noqa: E402
+from benchmarks.profile_eager import kernel_totals  # noqa: E402
 from lidarops.models.cuda_graph import _cast_convolutions, _ConvReLU, inference_copy  # noqa: E402
 
 
@@ -77,17 +78,12 @@ def kernel_table(net, x) -> None:
             torch.cuda.synchronize()
     for h in hooks:
         h.remove()
-    kernels: dict[str, list] = {}
-    for e in prof.events():
-        if str(getattr(e, "device_type", "")).endswith("CUDA"):
-            k = kernels.setdefault(e.name, [0.0, 0])
-            k[0] += e.time_range.elapsed_us() / 10
-            k[1] += 1 / 10
-    total = sum(v[0] for v in kernels.values())
+    kernels = kernel_totals(prof.events(), 10)
+    total = sum(us for _, us, _ in kernels)
     all_macs = sum(macs.values())
     print(f"  GPU kernel time {total:.1f} us per call; {all_macs / 1e9:.2f} G multiply-adds in the convolutions "
           f"({2 * all_macs / total / 1e6:.0f} TFLOP/s over the whole call)")
-    for name, (us, n) in sorted(kernels.items(), key=lambda kv: -kv[1][0])[:25]:
+    for name, us, n in kernels[:25]:
         print(f"  {us:8.1f} us x{n:3.0f}  {name[:120]}")
 
 

@@ -24,6 +24,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path.insert(0, ROOT)
 
 from benchmarks.bm_detector import kitti_like_frame, load_model  # noqa: E402
+from benchmarks.profile_eager import kernel_totals  # noqa: E402
 from lidarops.models.cuda_graph import (GraphedPointPillars, inference_copy, padded_inference,  # noqa: E402
                                         precision_mode)
 
@@ -78,14 +79,8 @@ def main(argv=None) -> int:
     for s, t in per_stage.items():
         print(f"  {s:12s} {t:7.3f}  {100 * t / total:4.0f}%")
     print(f"  {'total':12s} {total:7.3f}")
-    kernels: dict[str, list] = {}
-    for e in prof.events():
-        if str(getattr(e, "device_type", "")).endswith("CUDA"):
-            k = kernels.setdefault(e.name, [0.0, 0])
-            k[0] += e.time_range.elapsed_us() / args.runs
-            k[1] += 1 / args.runs
     print("kernels by GPU time per call (us, launches per call):")
-    for name, (us, n) in sorted(kernels.items(), key=lambda kv: -kv[1][0])[:30]:
+    for name, us, n in kernel_totals(prof.events(), args.runs)[:30]:
         print(f"  {us:8.1f} x{n:4.0f}  {name[:110]}")
     graphed = GraphedPointPillars(model, capacity=int(frame.shape[0]), precision=args.precision, batch_size=args.batch,
                                   max_pillars=rows, optimize=args.optimize)

@@ -337,14 +337,15 @@ class _ConvReLU(nn.Module):
         super().__init__()
         self.conv = conv
         self.in_channels, self.out_channels = conv.in_channels, conv.out_channels
+        self.fusable = conv.padding_mode == "zeros" and not isinstance(conv.padding, str)  # what cuDNN's call takes
 
     def forward(self, x: Tensor) -> Tensor:
         conv = self.conv
         w = conv.weight
         autocast = x.is_cuda and torch.is_autocast_enabled("cuda")
         dt = torch.get_autocast_dtype("cuda") if autocast else x.dtype
-        if (x.is_cuda and dt in (torch.float16, torch.bfloat16) and (autocast or w.dtype == dt)
-                and torch.backends.cudnn.enabled and conv.padding_mode == "zeros" and not isinstance(conv.padding, str)
+        if (self.fusable and x.is_cuda and dt in (torch.float16, torch.bfloat16) and (autocast or w.dtype == dt)
+                and torch.backends.cudnn.enabled
                 and not (torch.is_grad_enabled() and (x.requires_grad or w.requires_grad))):
             b = conv.bias if conv.bias is not None else w.new_zeros(conv.out_channels)
             return torch.cudnn_convolution_relu(x.to(dt), w.to(dt), b.to(dt), conv.stride, conv.padding,
@@ -405,13 +406,14 @@ class _PartsConv2d(nn.Module):
             part.weight = nn.Parameter(conv.weight.detach()[:, start:start + c].clone())
             self.parts.append(part)
             start += c
+        self.pointwise = (conv.kernel_size == (1, 1) and conv.stride == (1, 1) and conv.padding == (0, 0)
+                          and conv.groups == 1)
 
     def forward(self, x):
         if not isinstance(x, _Parts):
             return self.whole(x)
         whole = self.whole
-        if whole.kernel_size == (1, 1) and whole.stride == (1, 1) and whole.padding == (0, 0) and whole.groups == 1 \
-                and all(p.dim() == 4 and p.is_contiguous(memory_format=torch.channels_last) for p in x):
+        if self.pointwise and all(p.dim() == 4 and p.is_contiguous(memory_format=torch.channels_last) for p in x):
             # channels-last maps are (cells, channels) matrices: one GEMM per part, each adding the last's result
             # in its epilogue (no separate sums or bias pass)
             N, _, H, W = x[0].shape
@@ -476,10 +478,11 @@ class _GraphedFrames:
         self.device, self.dtype = param.device, param.dtype
         # kept: the graph reads the copy's weights at every replay
         self._graphed_model = graphed = inference_copy(model) if optimize else model
-        if optimize and self.dtype == torch.float32:
-            _cast_convolutions(graphed, torch.float16 if precision == "fp16" else
-                               torch.get_autocast_dtype("cuda") if precision is None and torch.is_autocast_enabled("cuda")
-                               else None)
+        if optimize and self.dtype == torch.float32:  # the autocast the graph is recorded under, if any
+            if precision == "fp16":
+                _cast_convolutions(graphed, torch.float16)
+            elif precision is None and torch.is_autocast_enabled("cuda"):
+                _cast_convolutions(graphed, torch.get_autocast_dtype("cuda"))
         self._features = c = floor.num_point_features
         # rows past the frame: outside the point range, so voxelization leaves them out
         self._pad = torch.zeros(c, device=self.device, dtype=self.dtype)

@@ -215,9 +215,7 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     shape = tuple(x.spatial_shape)
     m = _method(method)
     ops = torch.ops.lidarops
-    # The map's construction checks the input sites (one host sync on CUDA) unless they are known valid:
-    # checked before, or made by a layer. Under lidarops.validation(False), bad rows are skipped instead.
-    validate = value_checks_enabled() and not sites_checked(x.indices, x.batch_size, shape)
+    validate = value_checks_enabled() and not sites_checked(x.indices, x.batch_size, shape)  # (the docstring's rule)
     if kind == "subm":
         s, p = (1,) * D, tuple(d[i] * (k[i] // 2) for i in range(D))
         out_shape, out_indices, transposed = shape, x.indices, False
