@@ -221,9 +221,8 @@ def _batch_pillars(points: Tensor, cfg, rows: int) -> tuple[Tensor, Tensor, Tens
     z = xyz[:, 2]
     # (Python scalars: a CUDA graph capture refuses a copy from the host; float32 tensors keep float32 math)
     inside = (z >= pr[2]) & (z < pr[5]) & (torch.floor((z - pr[2]) / vs[2]) == 0)
-    frame = torch.arange(B, device=points.device).repeat_interleave(N)
-    slab = (frame.to(torch.float64) + 0.5) * vs[2] + pr[2]
-    xyz = torch.cat([xyz[:, :2], torch.where(inside, slab, math.nan).to(torch.float32)[:, None]], 1)
+    slab = ((torch.arange(B, dtype=torch.float64, device=points.device) + 0.5) * vs[2] + pr[2]).float()
+    xyz = torch.cat([xyz[:, :2], torch.where(inside.view(B, N), slab[:, None], math.nan).view(B * N, 1)], 1)
     # every pillar of every frame gets a row here (16 bytes a row): none is dropped before the per-frame cap
     coords, nums, point_voxel, point_slot = voxel_assignment(
         xyz, vs, pr[:5] + [pr[2] + B * vs[2]], cfg.max_points_per_voxel, B * min(N, nx * ny) if N else 1)
@@ -519,13 +518,14 @@ class _GraphedFrames:
             raise ValueError(f"{name} has {points.shape[0]} rows, more than capacity={self.capacity}: build a "
                              f"{type(self).__name__} with a larger capacity")
 
-    def _replay(self, frames: Sequence[Tensor]) -> dict[str, Tensor]:
+    def _replay(self, frames: Sequence[Tensor], name: str | None = None) -> dict[str, Tensor]:
+        """``name``: what a one-frame call's errors call its frame (default ``frames[i]``)."""
         if not isinstance(frames, (list, tuple)) or not 1 <= len(frames) <= self.batch_size:
             raise ValueError(f"frames must be a list of 1 to batch_size={self.batch_size} point tensors, "
                              f"got {type(frames).__name__}" + (f" of {len(frames)}" if isinstance(frames, (list, tuple))
                                                                else ""))
         for i, f in enumerate(frames):
-            self._check(f, f"frames[{i}]")
+            self._check(f, name or f"frames[{i}]")
         c = self._features
         for b in range(self.batch_size):
             p = frames[b].shape[0] if b < len(frames) else 0
@@ -554,10 +554,8 @@ class _GraphedFrames:
 
     def __call__(self, points: Tensor | Sequence[Tensor]) -> dict[str, Tensor] | list[dict[str, Tensor]]:
         one = isinstance(points, Tensor)
-        if one:
-            self._check(points, "points")
         frames = [points] if one else points
-        out = self._replay(frames)
+        out = self._replay(frames, "points" if one else None)
         reads = out["read"][:len(frames)].tolist()  # the one host read: (rows, bad, redo, pillars) per frame
         self.last_reads = reads
         if any(r[2] for r in reads):  # rows too few (or a merge unsettled): the eager call, in the graph's precision

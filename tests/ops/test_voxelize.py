@@ -102,6 +102,24 @@ def test_large_grid_uses_hash_table(device):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("side", [46_340, 46_341])
+def test_grids_at_the_32_bit_key_boundary(device, side):
+    # side^2 cells: 2^31 - 87,847 (CUDA sorts 31-bit keys) and 2^31 + 4,634 (64-bit keys); points in the far
+    # corner, where the keys' top bits differ, and outside the grid (the key one past the cells)
+    g = torch.Generator().manual_seed(side)
+    far = side - 50 + 60 * torch.rand(3000, 2, generator=g, dtype=torch.float64)  # some beyond the grid
+    near = 50 * torch.rand(500, 2, generator=g, dtype=torch.float64)
+    xy = torch.cat([far, near]).floor() + 0.5
+    xy = torch.cat([xy, xy[::7]])  # duplicates: several points per cell
+    pts = torch.cat([xy, torch.rand(xy.shape[0], 2, generator=g, dtype=torch.float64)], 1).to(device)
+    vs, pr = (1.0, 1.0, 1.0), (0.0, 0.0, 0.0, float(side), float(side), 1.0)
+    assert math.prod(voxel_grid_shape(vs, pr)) == side * side
+    ref = _voxelize_reference(pts, vs, pr, 3, 1500)
+    _check(lidarops.voxelize(pts, vs, pr, 3, 1500, overflow="drop"), ref, pts, f"side {side}")
+    assert ref["num_dropped_max_voxels"] > 0 and ref["num_in_range"] < pts.shape[0]
+
+
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_precision_computed_in_float32(device, dtype):
     pts = _random_cloud(2000, 4, dtype, device)
