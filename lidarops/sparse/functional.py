@@ -242,7 +242,6 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     km = KernelMap(kind=kind, indices=x.indices, out_indices=out_indices, spatial_shape=shape,
                    out_spatial_shape=tuple(out_shape), kernel_size=k, stride=s, padding=p, dilation=d,
                    neighbors=neighbors)
-    km.order  # noqa: B018  (on CUDA: part of the construction, so that layers using the map do not pay it)
     return km
 
 
@@ -586,8 +585,10 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
                                 out_spatial_shape, method)
     grad = torch.is_grad_enabled() and (x.features.requires_grad or w.requires_grad
                                         or (bias is not None and bias.requires_grad))
-    if grad or _compiling() or (epilogue and x.features.dtype == torch.float64):  # float64: the float32
-        out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order, algo)  # epilogue would round
+    compiling = _compiling()
+    order = km.order if compiling else km.layer_order()
+    if grad or compiling or (epilogue and x.features.dtype == torch.float64):  # float64: the float32
+        out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, order, algo)  # epilogue would round
         if bias is not None:
             out = out + bias
         if epilogue:
@@ -598,10 +599,10 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
                 if bias is not None:  # (conv + bias) * scale + shift
                     b = bias.float() if scale is None else bias.float() * scale
                     shift = b if shift is None else shift + b
-                out = torch.ops.lidarops.sparse_conv_affine(x.features, w, km.neighbors, km.order, scale, shift,
+                out = torch.ops.lidarops.sparse_conv_affine(x.features, w, km.neighbors, order, scale, shift,
                                                             bool(relu), algo)
             else:
-                out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, km.order, algo)
+                out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, order, algo)
                 if bias is not None:
                     out = out + bias
     return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)

@@ -45,6 +45,7 @@ class KernelMap:
     _neighbors_t: Optional[Tensor] = field(default=None, repr=False)
     _inverse: Optional["KernelMap"] = field(default=None, repr=False)
     _order: Optional[Tensor] = field(default=None, repr=False)
+    _layers: int = field(default=0, repr=False)  # layers that ran on this map (layer_order)
 
     @property
     def kernel_volume(self) -> int:
@@ -66,6 +67,17 @@ class KernelMap:
             return None
         if self._order is None:
             self._order = torch.ops.lidarops.sparse_kernel_map_order(self.neighbors)
+        return self._order
+
+    def layer_order(self) -> Optional[Tensor]:
+        """The :attr:`order` a layer runs on this map with. The first layer runs without it (unless it was made
+        already): sorting the rows costs about five launches, more host time than it saves one layer. From the
+        second layer on (a map shared through ``indice_key``, or cached and reused) the order is made once and
+        used; never while a CUDA graph is being captured, where it would be made inside the graph."""
+        self._layers += 1
+        if self._order is None and self._layers > 1 and self.neighbors.device.type == "cuda" \
+                and not torch.cuda.is_current_stream_capturing():
+            return self.order
         return self._order
 
     def inverse(self) -> "KernelMap":

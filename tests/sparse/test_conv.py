@@ -16,7 +16,7 @@ import torch
 from lidarops.sparse import SparseConvTensor
 from lidarops.sparse import functional as Fs
 from lidarops.sparse import nn as spnn
-from helpers.devices import CUDA_OK
+from helpers.devices import CUDA_OK, requires_cuda
 from helpers.sparse import (TOL, assert_same_sites_and_features, linear_order, random_sites, random_tensor,
                             random_weight)
 
@@ -125,6 +125,48 @@ def test_kernel_map_order_groups_rows_by_offset_mask(device, shape, k):
     a = ops.sparse_conv(x.features, w.reshape(4, K, 3), km.neighbors)
     b = ops.sparse_conv(x.features, w.reshape(4, K, 3), km.neighbors, ops.sparse_kernel_map_order(km.neighbors))
     torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+def test_layer_order_from_the_second_layer_on(device):
+    # a map's first layer runs without the row order (on CUDA it would cost more launches than it saves);
+    # a second layer on the same map makes it once and uses it; the layers' results are those with the order
+    x = random_tensor(2, SHAPES[2], 60, 8, seed=21, dtype=torch.float32, device=device)
+    a = spnn.SubMConv2d(8, 8, 3, bias=False, indice_key="s").to(device)
+    b = spnn.SubMConv2d(8, 8, 3, bias=False, indice_key="s").to(device)
+    with torch.no_grad():
+        y1 = a(x)
+        km = y1.indice_dict["s"]
+        assert km._order is None  # not made for the first layer (CPU: never)
+        y2 = b(y1)
+        assert (km._order is not None) == (device == "cuda")
+        if device == "cuda":
+            assert torch.equal(km._order, ops.sparse_kernel_map_order(km.neighbors))
+        w_a, w_b = a.weight.reshape(8, 9, 8), b.weight.reshape(8, 9, 8)
+        ref1 = ops.sparse_conv(x.features, w_a, km.neighbors, km.order)
+        ref2 = ops.sparse_conv(ref1, w_b, km.neighbors, km.order)
+    torch.testing.assert_close(y1.features, ref1, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(y2.features, ref2, rtol=1e-5, atol=1e-5)
+
+
+@requires_cuda
+def test_layer_order_not_made_while_capturing():
+    # the order made inside a capture would be an output of the graph, unwritten until a replay
+    x = random_tensor(1, SHAPES[2], 60, 8, seed=22, dtype=torch.float32, device="cuda")
+    conv = spnn.SubMConv2d(8, 8, 3, bias=False, indice_key="s").cuda()
+    with torch.no_grad():
+        y = conv(x)  # the map, built eagerly; its first layer
+        km = y.indice_dict["s"]
+        graph = torch.cuda.CUDAGraph()
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side), torch.cuda.graph(graph):
+            z = conv(y)
+        torch.cuda.current_stream().wait_stream(side)
+        assert km._order is None
+        graph.replay()
+        torch.cuda.synchronize()
+        ref = ops.sparse_conv(y.features, conv.weight.reshape(8, 9, 8), km.neighbors)
+    torch.testing.assert_close(z.features, ref, rtol=1e-5, atol=1e-5)
 
 
 # ================================================================================================

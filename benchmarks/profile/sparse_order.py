@@ -1,0 +1,71 @@
+"""Whether a kernel map's row order (``KernelMap.order``: the rows sorted by their offset masks, about five
+launches when a map is built) pays for itself. Eager calls, each on a new copy of the indices (maps built in
+the call): the SubM 3x3 64 -> 64 module and the 16-layer down path, with the order made at construction
+("always"), never ("never"), and made when a map is used a second time ("reused"); and the kernels alone: the
+whole Sparse-PointPillars backbone with its maps cached, replayed as a CUDA graph, with and without the order.
+
+    python benchmarks/profile/sparse_order.py
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+import torch
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
+
+from benchmarks.bm_sparse import (GRIDS, _graphed, bev_sites, down_path, pillars_input, precision,  # noqa: E402
+                                  sparse_pointpillars)
+from benchmarks.common import time_call  # noqa: E402
+from lidarops.compat import spconv as lspconv  # noqa: E402
+from lidarops.sparse import tensor as sparse_tensor  # noqa: E402
+
+PLAIN = sparse_tensor.KernelMap.order
+
+
+def _reused(self):
+    uses = self.__dict__.get("_uses", 0) + 1
+    self.__dict__["_uses"] = uses
+    return PLAIN.fget(self) if uses > 2 else self._order  # the first use is build_kernel_map's own
+
+
+POLICIES = {"always": PLAIN, "never": property(lambda self: None), "reused": property(_reused)}
+
+
+def main() -> int:
+    print("eager calls on a new copy of the indices, ms (medians): SubM + map | down path, per order policy")
+    print(f"{'grid':6s} {'prec':5s} " + " ".join(f"{'SubM ' + p:>13s}" for p in POLICIES) + " "
+          + " ".join(f"{'down ' + p:>13s}" for p in POLICIES))
+    for gname, (shape, n) in GRIDS.items():
+        idx = bev_sites(shape, n).cuda()
+        for mode in ("tf32", "fp16"):
+            with precision(mode) as dtype, torch.no_grad():
+                feats = torch.randn(idx.shape[0], 64, device="cuda", dtype=dtype)
+                layer = lspconv.SubMConv2d(64, 64, 3, padding=1, bias=False, indice_key="k").cuda().to(dtype).eval()
+                down = down_path(sparse_pointpillars(lspconv).cuda().to(dtype).eval())
+                cells = []
+                for fn in (layer, down):
+                    for prop in POLICIES.values():
+                        sparse_tensor.KernelMap.order = prop
+                        cells.append(time_call(lambda f: fn(lspconv.SparseConvTensor(f, idx.clone(), list(shape), 1)),
+                                               (feats,), "cuda").median)
+                sparse_tensor.KernelMap.order = PLAIN
+                print(f"{gname:6s} {mode:5s} " + " ".join(f"{c:13.3f}" for c in cells))
+    print("the whole Sparse-PointPillars backbone (KITTI grid, 15k pillars), maps cached, CUDA graph, ms: "
+          "order / no order")
+    for mode in ("tf32", "fp16"):
+        with precision(mode) as dtype, torch.no_grad():
+            cells = []
+            for prop in (PLAIN, POLICIES["never"]):
+                sparse_tensor.KernelMap.order = prop
+                net, x, cached = pillars_input("cuda", dtype)
+                cells.append(_graphed(net, cached, x.features).median)
+            sparse_tensor.KernelMap.order = PLAIN
+            print(f"  {mode:5s} " + " ".join(f"{c:8.3f}" for c in cells))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
