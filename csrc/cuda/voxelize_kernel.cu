@@ -3,7 +3,8 @@
 // voxelize_assign are padded to max_voxels; the wrapper reads the voxel count once, afterwards).
 //
 // voxelize_assign:
-//   1. keys: the voxel key of every point; points outside the grid get INT64_MAX so they sort last.
+//   1. keys: the voxel key of every point; points outside the grid get the largest key (INT64_MAX, or with
+//      32-bit keys the number of cells) so they sort last.
 //   2. a stable sort of the keys: each voxel becomes a segment of its points in input order,
 //      so a point's slot is its position minus the segment start, and the segment head is the
 //      voxel's first point. Where the grid's cells and the points fit 32 bits (every LiDAR grid), cub's
