@@ -1,7 +1,8 @@
 """Whether a kernel map's row order (``KernelMap.order``: the rows sorted by their offset masks, about five
 launches when a map is built) pays for itself. Eager calls, each on a new copy of the indices (maps built in
-the call): the SubM 3x3 64 -> 64 module and the 16-layer down path, with the order made at construction
-("always"), never ("never"), and made when a map is used a second time ("reused"); and the kernels alone: the
+the call): the SubM 3x3 64 -> 64 module and the 16-layer down path, each layer run with the order ("always", as
+when a map made it at construction), without it ("never"), and with the library's rule (``KernelMap.layer_order``:
+from a map's second layer on, "reused"); and the kernels alone: the
 whole Sparse-PointPillars backbone with its maps cached, replayed as a CUDA graph, with and without the order.
 
     python benchmarks/profile/sparse_order.py
@@ -22,16 +23,10 @@ from benchmarks.common import time_call  # noqa: E402
 from lidarops.compat import spconv as lspconv  # noqa: E402
 from lidarops.sparse import tensor as sparse_tensor  # noqa: E402
 
-PLAIN = sparse_tensor.KernelMap.order
-
-
-def _reused(self):
-    uses = self.__dict__.get("_uses", 0) + 1
-    self.__dict__["_uses"] = uses
-    return PLAIN.fget(self) if uses > 2 else self._order  # the first use is build_kernel_map's own
-
-
-POLICIES = {"always": PLAIN, "never": property(lambda self: None), "reused": property(_reused)}
+LIBRARY = sparse_tensor.KernelMap.layer_order
+# what a layer runs with: the order made for every layer (as when maps made it at construction), never, or the
+# library's own rule (from a map's second layer on)
+POLICIES = {"always": lambda self: self.order, "never": lambda self: self._order, "reused": LIBRARY}
 
 
 def main() -> int:
@@ -47,22 +42,22 @@ def main() -> int:
                 down = down_path(sparse_pointpillars(lspconv).cuda().to(dtype).eval())
                 cells = []
                 for fn in (layer, down):
-                    for prop in POLICIES.values():
-                        sparse_tensor.KernelMap.order = prop
+                    for policy in POLICIES.values():
+                        sparse_tensor.KernelMap.layer_order = policy
                         cells.append(time_call(lambda f: fn(lspconv.SparseConvTensor(f, idx.clone(), list(shape), 1)),
                                                (feats,), "cuda").median)
-                sparse_tensor.KernelMap.order = PLAIN
+                sparse_tensor.KernelMap.layer_order = LIBRARY
                 print(f"{gname:6s} {mode:5s} " + " ".join(f"{c:13.3f}" for c in cells))
     print("the whole Sparse-PointPillars backbone (KITTI grid, 15k pillars), maps cached, CUDA graph, ms: "
           "order / no order")
     for mode in ("tf32", "fp16"):
         with precision(mode) as dtype, torch.no_grad():
             cells = []
-            for prop in (PLAIN, POLICIES["never"]):
-                sparse_tensor.KernelMap.order = prop
+            for policy in (POLICIES["always"], POLICIES["never"]):
+                sparse_tensor.KernelMap.layer_order = policy
                 net, x, cached = pillars_input("cuda", dtype)
                 cells.append(_graphed(net, cached, x.features).median)
-            sparse_tensor.KernelMap.order = PLAIN
+            sparse_tensor.KernelMap.layer_order = LIBRARY
             print(f"  {mode:5s} " + " ".join(f"{c:8.3f}" for c in cells))
     return 0
 
