@@ -6,8 +6,9 @@
 //     open-addressing hash table (atomicCAS on 64-bit keys, linear probing, capacity >= 2N); one
 //     thread per (output row, kernel offset) looks its input up.
 // Validation (coordinates outside the grid, duplicates) is flagged on the device and costs one host
-// sync per map; when a flag is set, the message is produced by the CPU checks on a host copy, so it
-// names the same rows as on CPU. Without validation (the sparse layers skip it for sites they checked
+// sync per map (sparse_kernel_map_flagged hands the flags back instead, for the caller to read after it
+// has queued more work); when a flag is set, the message is produced by the CPU checks on a host copy, so
+// it names the same rows as on CPU. Without validation (the sparse layers skip it for sites they checked
 // or produced) no flag is kept and bad rows are skipped.
 #include <ATen/ATen.h>
 #include <c10/cuda/CUDAException.h>
@@ -164,7 +165,7 @@ void raise_flags(const at::Tensor& flags, const at::Tensor& idx, const ConvGeome
 // Both flags start with all bits set: "no bad row" for atomicMin on unsigned, "no duplicate" (one fill).
 at::Tensor new_flags(const at::Tensor& like) { return at::full({2}, -1, like.options().dtype(at::kLong)); }
 
-unsigned long long* flag_ptr(at::Tensor& flags) {
+unsigned long long* flag_ptr(const at::Tensor& flags) {
   return reinterpret_cast<unsigned long long*>(flags.data_ptr<int64_t>());
 }
 
@@ -184,29 +185,40 @@ struct DeviceTable {
   }
 };
 
-DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64_t method, bool validate) {
+// validate: the rows outside the grid and the duplicates are flagged in two int64 slots kept at the end of the
+// table's own fill (no launch of their own), which the table's -1 fill already sets to "none"; flags_out
+// null: raised here (one host sync), else handed to the caller, who reads them when it chooses.
+DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64_t method, bool validate,
+                             at::Tensor* flags_out = nullptr) {
   const int64_t n = idx.size(0);
   TORCH_CHECK_VALUE(n < INT32_MAX, "indices has ", n, " rows; at most 2^31 - 2 are supported");
   auto stream = c10::cuda::getCurrentCUDAStream();
-  at::Tensor flags = validate ? new_flags(idx) : at::Tensor();
-  unsigned long long* fp = validate ? flag_ptr(flags) : nullptr;
+  at::Tensor flags;
   DeviceTable t;
   const int64_t cells = grid_cells(g.batch, g.in_shape, g.ndim);
   if (use_dense_table(cells, n, method)) {
-    t.dense = at::full({cells}, -1, idx.options().dtype(at::kInt));
+    const int64_t at_flags = cells + (cells & 1);  // 8-byte aligned: two int64 slots over four int32 ones
+    t.dense = at::full({validate ? at_flags + 4 : cells}, -1, idx.options().dtype(at::kInt));
+    if (validate) flags = t.dense.narrow(0, at_flags, 4).view(at::kLong);
     insert_dense_kernel<<<blocks_for(n), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
-                                                                t.dense.data_ptr<int32_t>(), fp);
+                                                                t.dense.data_ptr<int32_t>(),
+                                                                validate ? flag_ptr(flags) : nullptr);
   } else {
     const int64_t cap = hash_capacity(n);
     t.mask = cap - 1;
-    t.keys = at::full({cap}, kEmptyKey, idx.options().dtype(at::kLong));
+    t.keys = at::full({validate ? cap + 2 : cap}, kEmptyKey, idx.options().dtype(at::kLong));
+    static_assert(kEmptyKey == -1, "the flags' \"none\" is the empty key's fill");
+    if (validate) flags = t.keys.narrow(0, cap, 2);
     t.vals = at::full({cap}, -1, idx.options().dtype(at::kInt));
     insert_hash_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
         idx.data_ptr<int32_t>(), n, g, reinterpret_cast<unsigned long long*>(t.keys.data_ptr<int64_t>()),
-        t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), fp);
+        t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), validate ? flag_ptr(flags) : nullptr);
   }
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  if (validate) raise_flags(flags, idx, g, /*check_dups=*/true);
+  if (validate) {
+    if (flags_out != nullptr) *flags_out = flags;
+    else raise_flags(flags, idx, g, /*check_dups=*/true);
+  }
   return t;
 }
 
@@ -258,10 +270,11 @@ at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t ba
   return out;
 }
 
-at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_indices_in, int64_t batch_size,
-                                  at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
-                                  at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
-                                  int64_t method) {
+// flags_out null: validate as the op says (raise here); else validated, with the flags handed back.
+at::Tensor kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_indices_in, int64_t batch_size,
+                           at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
+                           at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
+                           int64_t method, at::Tensor* flags_out) {
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, {}, kernel_size, stride, padding, dilation, transposed);
   check_indices(indices_in, "indices", g.ndim);
   check_indices(out_indices_in, "out_indices", g.ndim);
@@ -273,17 +286,35 @@ at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor
   auto oidx = out_indices_in.contiguous();
   const int64_t m = oidx.size(0), K = g.kvol;
   auto nbr = at::empty({m, K}, idx.options());
-  if (m == 0) {  // nothing to pair, but the sites are still checked (a strided layer may reach no output)
-    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true);
-    return nbr;
+  if (m == 0 || idx.size(0) == 0) {  // nothing to pair, but the sites are still checked (a strided layer may
+    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true, flags_out);  // reach no output)
+    return m == 0 ? nbr : nbr.fill_(-1);
   }
-  if (idx.size(0) == 0) return nbr.fill_(-1);
-  const DeviceTable table = build_table_cuda(idx, g, method, validate);
+  const DeviceTable table = build_table_cuda(idx, g, method, validate, flags_out);
   auto stream = c10::cuda::getCurrentCUDAStream();
   lookup_kernel<<<blocks_for(m * K), kThreads, 0, stream>>>(oidx.data_ptr<int32_t>(), m, g, table.view(),
                                                             nbr.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return nbr;
+}
+
+at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices, const at::Tensor& out_indices, int64_t batch_size,
+                                  at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
+                                  at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
+                                  int64_t method) {
+  return kernel_map_cuda(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding, dilation,
+                         transposed, validate, method, nullptr);
+}
+
+std::tuple<at::Tensor, at::Tensor> sparse_kernel_map_flagged_cuda(
+    const at::Tensor& indices, const at::Tensor& out_indices, int64_t batch_size, at::IntArrayRef spatial_shape,
+    at::IntArrayRef kernel_size, at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
+    bool transposed, int64_t method) {
+  at::Tensor flags;
+  at::Tensor nbr = kernel_map_cuda(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding,
+                                   dilation, transposed, /*validate=*/true, method, &flags);
+  if (!flags.defined()) flags = at::full({2}, -1, indices.options().dtype(at::kLong));  // no rows: none bad
+  return {nbr, flags};
 }
 
 at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_in) {
@@ -307,6 +338,7 @@ at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_
 TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("sparse_conv_out_indices", &sparse_conv_out_indices_cuda);
   m.impl("sparse_kernel_map", &sparse_kernel_map_cuda);
+  m.impl("sparse_kernel_map_flagged", &sparse_kernel_map_flagged_cuda);
   m.impl("sparse_kernel_map_transpose", &sparse_kernel_map_transpose_cuda);
 }
 

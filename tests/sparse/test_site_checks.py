@@ -10,7 +10,7 @@ from lidarops.ops.validation import validation
 from lidarops.sparse import SparseConvTensor
 from lidarops.sparse import functional as Fs
 from lidarops.sparse.tensor import sites_checked
-from helpers.sparse import assert_same_sites_and_features, random_tensor, random_weight
+from helpers.sparse import assert_same_sites_and_features, linear_order, random_tensor, random_weight
 
 SHAPE = (9, 11)
 ops = torch.ops.lidarops
@@ -86,3 +86,30 @@ def test_out_indices_op_without_validation_skips_bad_rows(device):
     with pytest.raises(ValueError, match="outside"):
         ops.sparse_conv_out_indices(bad, *args)
     assert torch.equal(ops.sparse_conv_out_indices(bad, *args, False).cpu(), good.cpu())
+
+
+@pytest.mark.parametrize("kind", ["subm", "conv"])
+def test_a_failed_check_registers_no_map_and_marks_nothing(device, kind):
+    """On CUDA a new frame's check is read after the layer's convolution is queued: when it fails, the layer
+    still raises the named error before returning, and neither the sites nor the input's indice_dict keep
+    anything from the failed call (the same bad tensor raises again); a good frame is marked checked."""
+    x = random_tensor(1, SHAPE, 20, 3, seed=7, device=device)
+    w = random_weight(4, (3, 3), 3, device=device)
+    kw = {"indice_key": "k"} if kind == "subm" else {"stride": 2, "padding": 1, "indice_key": "k"}
+    idx = x.indices.clone()
+    idx[6] = idx[4]  # a duplicate
+    bad = SparseConvTensor(x.features, idx, list(SHAPE), 1)
+    for _ in range(2):
+        with pytest.raises(ValueError, match=r"rows 4 and 6 both hold"):
+            Fs.conv(bad, w, kind=kind, **kw)
+        assert not sites_checked(bad.indices, 1, SHAPE) and "k" not in bad.indice_dict
+    idx[6, 1] = SHAPE[0]  # outside instead
+    bad = SparseConvTensor(x.features, idx, list(SHAPE), 1)
+    with pytest.raises(ValueError, match=r"indices row 6 .* lies outside"):
+        Fs.conv(bad, w, kind=kind, **kw)
+    y = Fs.conv(x, w, kind=kind, **kw)
+    assert sites_checked(x.indices, 1, SHAPE) and "k" in y.indice_dict and "k" not in x.indice_dict
+    ref_i, ref_f = Fs._conv_reference(x, w, None, kind, **{k: v for k, v in kw.items() if k != "indice_key"})
+    order = linear_order(ref_i, SHAPE if kind == "subm" else y.spatial_shape)
+    assert_same_sites_and_features(y.indices, y.features, ref_i[order.to(ref_i.device)],
+                                   ref_f[order.to(ref_f.device)], y.spatial_shape, 1e-10, f"{kind} after")
