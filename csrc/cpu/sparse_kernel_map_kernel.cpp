@@ -317,20 +317,9 @@ void raise_if_duplicates(const at::Tensor& indices_cpu, const char* name, int64_
   (void)build_table(indices_cpu.contiguous(), g, /*method=*/0, /*validate=*/true, name);
 }
 
-// On the CPU the check is made at once (it raises here); the flags say "none".
-std::tuple<at::Tensor, at::Tensor> sparse_kernel_map_flagged_cpu(
-    const at::Tensor& indices, const at::Tensor& out_indices, int64_t batch_size, at::IntArrayRef spatial_shape,
-    at::IntArrayRef kernel_size, at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
-    bool transposed, int64_t method) {
-  at::Tensor nbr = sparse_kernel_map_cpu(indices, out_indices, batch_size, spatial_shape, kernel_size, stride,
-                                         padding, dilation, transposed, /*validate=*/true, method);
-  return {nbr, at::full({2}, -1, indices.options().dtype(at::kLong))};
-}
-
 TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
   m.impl("sparse_conv_out_indices", &sparse_conv_out_indices_cpu);
   m.impl("sparse_kernel_map", &sparse_kernel_map_cpu);
-  m.impl("sparse_kernel_map_flagged", &sparse_kernel_map_flagged_cpu);
   m.impl("sparse_kernel_map_transpose", &sparse_kernel_map_transpose_cpu);
 }
 

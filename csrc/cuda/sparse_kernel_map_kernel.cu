@@ -6,9 +6,8 @@
 //     open-addressing hash table (atomicCAS on 64-bit keys, linear probing, capacity >= 2N); one
 //     thread per (output row, kernel offset) looks its input up.
 // Validation (coordinates outside the grid, duplicates) is flagged on the device and costs one host
-// sync per map (sparse_kernel_map_flagged hands the flags back instead, for the caller to read after it
-// has queued more work); when a flag is set, the message is produced by the CPU checks on a host copy, so
-// it names the same rows as on CPU. Without validation (the sparse layers skip it for sites they checked
+// sync per map; when a flag is set, the message is produced by the CPU checks on a host copy, so it
+// names the same rows as on CPU. Without validation (the sparse layers skip it for sites they checked
 // or produced) no flag is kept and bad rows are skipped.
 #include <ATen/ATen.h>
 #include <c10/cuda/CUDAException.h>
@@ -186,10 +185,9 @@ struct DeviceTable {
 };
 
 // validate: the rows outside the grid and the duplicates are flagged in two int64 slots kept at the end of the
-// table's own fill (no launch of their own), which the table's -1 fill already sets to "none"; flags_out
-// null: raised here (one host sync), else handed to the caller, who reads them when it chooses.
-DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64_t method, bool validate,
-                             at::Tensor* flags_out = nullptr) {
+// table's own fill (no launch of their own), which the table's -1 fill already sets to "none"; then raised
+// here (one host sync).
+DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64_t method, bool validate) {
   const int64_t n = idx.size(0);
   TORCH_CHECK_VALUE(n < INT32_MAX, "indices has ", n, " rows; at most 2^31 - 2 are supported");
   auto stream = c10::cuda::getCurrentCUDAStream();
@@ -215,10 +213,7 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
         t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), validate ? flag_ptr(flags) : nullptr);
   }
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  if (validate) {
-    if (flags_out != nullptr) *flags_out = flags;
-    else raise_flags(flags, idx, g, /*check_dups=*/true);
-  }
+  if (validate) raise_flags(flags, idx, g, /*check_dups=*/true);
   return t;
 }
 
@@ -270,11 +265,10 @@ at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t ba
   return out;
 }
 
-// flags_out null: validate as the op says (raise here); else validated, with the flags handed back.
-at::Tensor kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_indices_in, int64_t batch_size,
-                           at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
-                           at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
-                           int64_t method, at::Tensor* flags_out) {
+at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_indices_in, int64_t batch_size,
+                                  at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
+                                  at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
+                                  int64_t method) {
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, {}, kernel_size, stride, padding, dilation, transposed);
   check_indices(indices_in, "indices", g.ndim);
   check_indices(out_indices_in, "out_indices", g.ndim);
@@ -286,35 +280,17 @@ at::Tensor kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_i
   auto oidx = out_indices_in.contiguous();
   const int64_t m = oidx.size(0), K = g.kvol;
   auto nbr = at::empty({m, K}, idx.options());
-  if (m == 0 || idx.size(0) == 0) {  // nothing to pair, but the sites are still checked (a strided layer may
-    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true, flags_out);  // reach no output)
-    return m == 0 ? nbr : nbr.fill_(-1);
+  if (m == 0) {  // nothing to pair, but the sites are still checked (a strided layer may reach no output)
+    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true);
+    return nbr;
   }
-  const DeviceTable table = build_table_cuda(idx, g, method, validate, flags_out);
+  if (idx.size(0) == 0) return nbr.fill_(-1);
+  const DeviceTable table = build_table_cuda(idx, g, method, validate);
   auto stream = c10::cuda::getCurrentCUDAStream();
   lookup_kernel<<<blocks_for(m * K), kThreads, 0, stream>>>(oidx.data_ptr<int32_t>(), m, g, table.view(),
                                                             nbr.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return nbr;
-}
-
-at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices, const at::Tensor& out_indices, int64_t batch_size,
-                                  at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
-                                  at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
-                                  int64_t method) {
-  return kernel_map_cuda(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding, dilation,
-                         transposed, validate, method, nullptr);
-}
-
-std::tuple<at::Tensor, at::Tensor> sparse_kernel_map_flagged_cuda(
-    const at::Tensor& indices, const at::Tensor& out_indices, int64_t batch_size, at::IntArrayRef spatial_shape,
-    at::IntArrayRef kernel_size, at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
-    bool transposed, int64_t method) {
-  at::Tensor flags;
-  at::Tensor nbr = kernel_map_cuda(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding,
-                                   dilation, transposed, /*validate=*/true, method, &flags);
-  if (!flags.defined()) flags = at::full({2}, -1, indices.options().dtype(at::kLong));  // no rows: none bad
-  return {nbr, flags};
 }
 
 at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_in) {
@@ -338,7 +314,6 @@ at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_
 TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("sparse_conv_out_indices", &sparse_conv_out_indices_cuda);
   m.impl("sparse_kernel_map", &sparse_kernel_map_cuda);
-  m.impl("sparse_kernel_map_flagged", &sparse_kernel_map_flagged_cuda);
   m.impl("sparse_kernel_map_transpose", &sparse_kernel_map_transpose_cuda);
 }
 

@@ -27,15 +27,6 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       "sparse_kernel_map(Tensor indices, Tensor out_indices, int batch_size, int[] spatial_shape,"
       " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False,"
       " bool validate=True, int method=0) -> Tensor");
-  // The same map with the input sites' check left to the caller: (kernel_map, flags), flags (2,) int64 on
-  // the map's device, [0] the smallest input row outside the grid and [1] 0 if some site is given twice,
-  // each -1 for none. The map skips such rows (as validate=False). CUDA queues no host sync: the caller
-  // reads the flags once it has queued its convolution (lidarops.sparse.functional does, and raises the
-  // CPU's ValueError). CPU: checked at once (ValueError), flags all -1.
-  m.def(
-      "sparse_kernel_map_flagged(Tensor indices, Tensor out_indices, int batch_size, int[] spatial_shape,"
-      " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False,"
-      " int method=0) -> (Tensor, Tensor)");
   // Transposed kernel map: (n_in, K) int32 with [i, k] = o wherever kernel_map[o, k] = i, else -1
   // (unique: for a fixed offset the pairing is one-to-one; a caller's map that repeats an input in one
   // column gets one of the writers). Entries outside [-1, n_in): CPU ValueError, CUDA skipped.

@@ -33,13 +33,6 @@ def _kernel_map_fake(indices, out_indices, batch_size, spatial_shape, kernel_siz
     return out_indices.new_empty((out_indices.shape[0], kvol), dtype=torch.int32)
 
 
-@torch.library.register_fake("lidarops::sparse_kernel_map_flagged")
-def _kernel_map_flagged_fake(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding,
-                             dilation, transposed=False, method=0):
-    return (_kernel_map_fake(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding, dilation),
-            indices.new_empty((2,), dtype=torch.int64))
-
-
 @torch.library.register_fake("lidarops::sparse_kernel_map_transpose")
 def _kernel_map_transpose_fake(kernel_map, n_in):
     return kernel_map.new_empty((n_in, kernel_map.shape[1]))

@@ -206,38 +206,6 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     Returns:
         KernelMap.
     """
-    return _build_kernel_map(x, kind, kernel_size, stride, padding, dilation, output_padding, out_spatial_shape,
-                             method, defer=False)[0]
-
-
-class _PendingSitesCheck:
-    """The check of a new frame's sites, read after the layer's convolution is queued: the flags' copy to
-    pinned host memory and an event follow the map's kernels, so the host waits for the map alone, while
-    the GPU already has the convolution (which reads no bad row: the map skips them). ``finish`` raises
-    the CPU's message for a bad row before the layer returns, else remembers the sites as checked."""
-
-    __slots__ = ("host", "event", "indices", "batch_size", "shape")
-
-    def __init__(self, flags: Tensor, x: SparseConvTensor, shape: tuple):
-        self.host = flags.to("cpu", non_blocking=True)  # pinned (a non-blocking copy to the host)
-        self.event = torch.cuda.Event()
-        self.event.record()
-        self.indices, self.batch_size, self.shape = x.indices, x.batch_size, shape
-
-    def finish(self) -> None:
-        self.event.synchronize()
-        if self.host.tolist() != [-1, -1]:  # the CPU kernel's check on a host copy: the message names the rows
-            cpu, D = self.indices.cpu(), len(self.shape)
-            torch.ops.lidarops.sparse_kernel_map(cpu, cpu[:0], self.batch_size, list(self.shape), [1] * D, [1] * D,
-                                                 [0] * D, [1] * D, False, True, 0)
-            raise ValueError("indices hold sites outside the grid or more than once")  # (not reached)
-        mark_sites_checked(self.indices, self.batch_size, self.shape)
-
-
-def _build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride, padding, dilation, output_padding,
-                      out_spatial_shape, method, defer: bool) -> tuple:
-    """(kernel map, pending check or None): ``defer`` leaves a CUDA map's check of new sites to the caller
-    (:class:`_PendingSitesCheck`), which finishes it after queueing the convolution."""
     if not isinstance(x, SparseConvTensor):
         raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
     extension.check_device(x.indices, "indices")
@@ -265,22 +233,16 @@ def _build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride, paddi
                                                   list(s), list(p), list(d), transposed, m, False)
     else:
         raise ValueError(f"kind must be 'subm', 'conv', 'pool' or 'transposed', got {kind!r}")
-    pending = None
-    if validate and defer and x.indices.is_cuda and not _compiling() and not torch.cuda.is_current_stream_capturing():
-        neighbors, flags = ops.sparse_kernel_map_flagged(x.indices, out_indices, x.batch_size, list(shape), list(k),
-                                                         list(s), list(p), list(d), transposed, m)
-        pending = _PendingSitesCheck(flags, x, shape)
-    else:
-        neighbors = ops.sparse_kernel_map(x.indices, out_indices, x.batch_size, list(shape), list(k), list(s),
-                                          list(p), list(d), transposed, validate, m)
-        if validate:
-            mark_sites_checked(x.indices, x.batch_size, shape)
+    neighbors = ops.sparse_kernel_map(x.indices, out_indices, x.batch_size, list(shape), list(k), list(s), list(p),
+                                      list(d), transposed, validate, m)
+    if validate:
+        mark_sites_checked(x.indices, x.batch_size, shape)
     if out_indices is not x.indices:  # made here: inside the output grid, each site once
         mark_sites_checked(out_indices, x.batch_size, out_shape)
     km = KernelMap(kind=kind, indices=x.indices, out_indices=out_indices, spatial_shape=shape,
                    out_spatial_shape=tuple(out_shape), kernel_size=k, stride=s, padding=p, dilation=d,
                    neighbors=neighbors)
-    return km, pending
+    return km
 
 
 def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Optional[Tensor] = None,
@@ -340,8 +302,7 @@ def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Opti
 
 def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, padding, dilation, output_padding,
                     indice_key, out_spatial_shape, method) -> tuple:
-    """(kernel map, indice_dict of the output, pending check of new sites or None: the caller finishes it
-    after queueing its kernel) under spconv's reuse rules, with fit checks."""
+    """(kernel map, indice_dict of the output) under spconv's reuse rules, with fit checks."""
     cache = x.indice_dict
     if kind == "inverse":
         if indice_key is None:
@@ -361,7 +322,7 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
                              f"is not the output of the convolution registered under {indice_key!r} "
                              f"({km.out_indices.shape[0]} sites on grid {list(km.out_spatial_shape)})")
         _check_sites(km, "out", x.indices, indice_key)
-        return km.inverse(), cache, None
+        return km.inverse(), cache
     D = x.ndim
     if indice_key is not None and indice_key in cache:
         km = cache[indice_key]
@@ -377,14 +338,13 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
                 f"{list(km.spatial_shape)}) that does not fit this {kind} layer (kernel {tuple(ksize)}, "
                 f"{x.indices.shape[0]} input sites on grid {x.spatial_shape}); give this layer its own indice_key")
         _check_sites(km, "in", x.indices, indice_key)
-        return km, cache, None
-    km, pending = _build_kernel_map(x, kind, ksize, stride, padding, dilation, output_padding, out_spatial_shape,
-                                    method, defer=True)
+        return km, cache
+    km = build_kernel_map(x, kind, ksize, stride, padding, dilation, output_padding, out_spatial_shape, method)
     if indice_key is not None:
         _site_checks[km] = _MapSites(km)
-        cache = dict(cache)  # (a failed check drops this copy with the layer's output: the input's dict is intact)
+        cache = dict(cache)
         cache[indice_key] = km
-    return km, cache, pending
+    return km, cache
 
 
 # A kernel map cached under an indice_key belongs to the sites it was built on: the same number of
@@ -621,8 +581,8 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
         out = x.features.matmul(w[:, 0, :].t())
         out = out + bias if bias is not None else out
         return x.replace_feature(_affine_torch(out, scale, shift, relu) if epilogue else out)
-    km, cache, pending = _kernel_map_for(x, kind, ksize, stride, padding, dilation, output_padding, indice_key,
-                                         out_spatial_shape, method)
+    km, cache = _kernel_map_for(x, kind, ksize, stride, padding, dilation, output_padding, indice_key,
+                                out_spatial_shape, method)
     grad = torch.is_grad_enabled() and (x.features.requires_grad or w.requires_grad
                                         or (bias is not None and bias.requires_grad))
     compiling = _compiling()
@@ -645,8 +605,6 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
                 out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, order, algo)
                 if bias is not None:
                     out = out + bias
-    if pending is not None:  # the new sites' check, read once the convolution is queued
-        pending.finish()
     return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)
 
 
@@ -676,11 +634,8 @@ def max_pool(x: SparseConvTensor, kernel_size, stride=None, padding=0, dilation=
     if not x.features.is_floating_point():
         raise ValueError(f"features must be floating point, got {describe(x.features)}")
     extension.check_device(x.features, "features")
-    km, cache, pending = _kernel_map_for(x, "subm" if subm else "pool", k, s, padding, dilation, 0, indice_key, None,
-                                         method)
+    km, cache = _kernel_map_for(x, "subm" if subm else "pool", k, s, padding, dilation, 0, indice_key, None, method)
     out, _ = torch.ops.lidarops.sparse_max_pool(x.features, km.neighbors)
-    if pending is not None:
-        pending.finish()
     return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)
 
 

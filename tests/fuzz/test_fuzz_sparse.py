@@ -92,39 +92,6 @@ def test_conv(device, data):
 
 @fuzz
 @given(data=st.data())
-def test_kernel_map_flagged(device, data):
-    """``sparse_kernel_map_flagged`` (the map whose site check the caller reads later): on CUDA its flags say
-    what the reference finds (the smallest row outside the batch or grid; whether a site inside repeats) and
-    its map is the unvalidated map's; on the CPU bad sites raise the named ValueError at once, flags -1."""
-    s = data.draw(sparse_sites(), "sites")
-    D = len(s.spatial_shape)
-    k = data.draw(st.lists(st.integers(1, 3), min_size=D, max_size=D), "kernel")
-    geo = [s.batch_size, s.spatial_shape, k, [1] * D, [kk // 2 for kk in k], [1] * D, False]
-    method = data.draw(st.integers(0, 2), "method")
-    idx = s.indices.to(device)
-    what = f"sparse_kernel_map_flagged({tuple(s.indices.shape)} sites on {s.spatial_shape} x {s.batch_size}, k {k})"
-    bound = torch.tensor([s.batch_size] + s.spatial_shape)
-    outside = torch.nonzero(~((s.indices >= 0) & (s.indices < bound)).all(1)).flatten()
-    inside = s.indices[~((s.indices < 0) | (s.indices >= bound)).any(1)]
-    repeats = torch.unique(inside, dim=0).shape[0] < inside.shape[0]
-    res, err = outcome(torch.ops.lidarops.sparse_kernel_map_flagged, idx, idx, *geo, method)
-    if device == "cpu" and (outside.numel() or repeats):
-        return assert_clear_error(err, ValueError, ["indices"], what)
-    assert_no_error(err, what)
-    nbr, flags = res
-    assert flags.device == idx.device and flags.dtype == torch.int64, what
-    want = [int(outside[0]) if outside.numel() else -1, 0 if repeats else -1]
-    if device == "cpu":
-        want = [-1, -1]
-    got = flags.cpu().tolist()
-    assert got[0] == want[0] and (got[1] == -1) == (want[1] == -1), f"{what}: flags {got}, want {want}"
-    if not repeats:  # of duplicates "one wins": which one may differ between calls on CUDA
-        plain = torch.ops.lidarops.sparse_kernel_map(idx, idx, *geo, False, method)
-        assert_same(nbr.cpu(), plain.cpu(), what + " map")
-
-
-@fuzz
-@given(data=st.data())
 def test_conv_without_validation_skips_rows_outside_the_grid(device, data):
     """Under lidarops.validation(False) a layer checks no site: rows outside the batch or grid are skipped
     (the result is the layer's on the other rows), never read out of bounds; then a second layer on the

@@ -189,32 +189,6 @@ def case_sparse_kernel_map_rows_outside_grid(dev):
            r"indices row 2 = \(0, 7\).*lies outside")
 
 
-def case_sparse_kernel_map_flagged_rows_outside_grid(dev):
-    ops = _ops()
-    idx = torch.tensor([[0, 0], [0, 2], [0, 7], [0, 2], [0, -1]], dtype=I32, device=dev)  # rows 2 and 4 outside
-    out_idx = torch.tensor([[0, 0], [0, 1], [0, 2], [0, 9], [5, 1], [-1, 0]], dtype=I32, device=dev)
-    args = (1, [3], [3], [1], [1], [1], False)
-    for method in (0, 1, 2):
-        if dev == "cpu":  # checked at once
-            raises(lambda: ops.sparse_kernel_map_flagged(idx, out_idx, *args, method),
-                   r"indices row 2 = \(0, 7\).*lies outside")
-            continue
-        nbr, flags = ops.sparse_kernel_map_flagged(idx, out_idx, *args, method)
-        f = flags.cpu().tolist()
-        assert f[0] == 2 and f[1] == 0, f"flags {f}: want the smallest row outside (2) and a duplicate (0)"
-        nbr = torch.where(nbr.cpu() == 3, torch.ones_like(nbr.cpu()), nbr.cpu())  # either duplicate may win
-        equal(nbr, _MAP_1D + [[-1, -1, -1]] * 3)
-        nbr, flags = ops.sparse_kernel_map_flagged(idx[:2], out_idx, *args, method)
-        equal(flags.cpu(), [-1, -1])
-        equal(nbr.cpu(), [[-1, 0, -1], [0, -1, 1], [-1, 1, -1]] + [[-1, -1, -1]] * 3)
-        nbr, flags = ops.sparse_kernel_map_flagged(idx, out_idx[:0], *args, method)  # no output: still flagged
-        assert nbr.shape == (0, 3) and flags.cpu().tolist()[0] == 2
-        nbr, flags = ops.sparse_kernel_map_flagged(idx[:0], out_idx, *args, method)  # no input: nothing bad
-        equal(flags.cpu(), [-1, -1])
-        equal(nbr.cpu(), [[-1, -1, -1]] * 6)
-    raises(lambda: ops.sparse_kernel_map_flagged(idx, out_idx.long(), *args, 0), r"out_indices must be int32")
-
-
 def case_sparse_kernel_map_transpose_out_of_range(dev):
     nbr = torch.tensor([[0, 5], [-7, 1]], dtype=I32, device=dev)
     on_cpu_raises_else(dev, lambda: _ops().sparse_kernel_map_transpose(nbr, 2),

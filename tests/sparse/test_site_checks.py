@@ -90,9 +90,9 @@ def test_out_indices_op_without_validation_skips_bad_rows(device):
 
 @pytest.mark.parametrize("kind", ["subm", "conv"])
 def test_a_failed_check_registers_no_map_and_marks_nothing(device, kind):
-    """On CUDA a new frame's check is read after the layer's convolution is queued: when it fails, the layer
-    still raises the named error before returning, and neither the sites nor the input's indice_dict keep
-    anything from the failed call (the same bad tensor raises again); a good frame is marked checked."""
+    """A failed check of a new frame's sites (the flags kept in the table's fill on CUDA) raises the named error,
+    and neither the sites nor the input's indice_dict keep anything from the failed call (the same bad tensor
+    raises again); a good frame is marked checked and its layer is the reference's."""
     x = random_tensor(1, SHAPE, 20, 3, seed=7, device=device)
     w = random_weight(4, (3, 3), 3, device=device)
     kw = {"indice_key": "k"} if kind == "subm" else {"stride": 2, "padding": 1, "indice_key": "k"}
