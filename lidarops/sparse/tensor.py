@@ -108,6 +108,8 @@ _MAX_SITES = 2**62  # batch_size * prod(spatial_shape): the kernel maps' int64 s
 def _int(v, name: str, lo: int, hi: int) -> int:
     """An int in [lo, hi]: Python and NumPy ints and one-element integer tensors; not bools or floats
     (a float would be truncated: 10.7 -> 10)."""
+    if type(v) is int and lo <= v <= hi:  # what nearly every caller passes
+        return v
     if isinstance(v, Tensor) and v.numel() == 1 and not (v.is_floating_point() or v.is_complex() or v.dtype == torch.bool):
         v = v.reshape(()).item()
     try:
