@@ -10,7 +10,7 @@ Core ops (registered as ``torch.ops.lidarops.*``; these are their validated wrap
                                           hard voxelization             -> voxels, coords, num_points
     lidarops.pillarize(points, grid)      decorated pillars (PointPillars) -> features, coords, num_points
     lidarops.box_iou_bev(a, b)            rotated BEV IoU (also box_overlap_bev, box_iou_3d) -> (N, M)
-    lidarops.nms_bev(boxes, scores, thr)  rotated NMS (also batched_nms_bev)  -> keep (K,)
+    lidarops.nms_bev(boxes, scores, thr)  rotated NMS (also batched_nms_bev, nms_bev_frames)  -> keep (K,)
     lidarops.points_in_boxes(points, boxes)  box index of each point          -> (P,)
     lidarops.PillarStream(grid, window)   streaming pillarization (lidarops.stream)
 
@@ -37,6 +37,7 @@ _LAZY = {
     "box_iou_3d": "lidarops.ops.boxes",
     "nms_bev": "lidarops.ops.boxes",
     "batched_nms_bev": "lidarops.ops.boxes",
+    "nms_bev_frames": "lidarops.ops.boxes",
     "points_in_boxes": "lidarops.ops.boxes",
     "pillarize": "lidarops.ops.pillars",
     "PillarGrid": "lidarops.ops.pillars",

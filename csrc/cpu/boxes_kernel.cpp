@@ -137,6 +137,26 @@ std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cpu(const at::Tensor& boxes_in
   return {keep, count};
 }
 
+// Frame by frame: the CPU has no launches to share.
+std::tuple<at::Tensor, at::Tensor> nms_bev_padded_batched_cpu(const at::Tensor& boxes, const at::Tensor& scores,
+                                                              double iou_threshold,
+                                                              c10::optional<double> score_threshold, int64_t pre_max,
+                                                              int64_t post_max) {
+  boxes::check_batched_nms_args(boxes, scores, iou_threshold);
+  boxes::check_score_threshold(score_threshold);
+  const int64_t B = boxes.size(0);
+  const int64_t K = boxes::padded_nms_sizes(boxes.size(1), pre_max, post_max).K;
+  auto keep = at::full({B, K}, -1, boxes.options().dtype(at::kLong));
+  auto count = at::zeros({B}, boxes.options().dtype(at::kLong));
+  for (int64_t b = 0; b < B && K > 0; ++b) {
+    auto [k, c] = nms_bev_padded_cpu(boxes[b], scores[b], c10::nullopt, iou_threshold, score_threshold, pre_max,
+                                     post_max);
+    keep[b].copy_(k);
+    count[b].copy_(c);
+  }
+  return {keep, count};
+}
+
 // Any finite box value outside the supported values (boxes::box_value_out_of_range), in its own precision.
 bool box_values_out_of_range(const at::Tensor& boxes_in) {
   auto b = boxes_in.contiguous();
@@ -200,6 +220,7 @@ TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
   m.impl("nms_bev", &nms_bev_cpu);
   m.impl("nms_bev_padded", &nms_bev_padded_cpu);
   m.impl("nms_bev_checked", &nms_bev_checked_cpu);
+  m.impl("nms_bev_padded_batched", &nms_bev_padded_batched_cpu);
   m.impl("points_in_boxes", &points_in_boxes_cpu);
 }
 

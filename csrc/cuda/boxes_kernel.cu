@@ -28,25 +28,28 @@ constexpr int kGeomDoubles = sizeof(BoxGeom) / sizeof(double);
 static_assert(sizeof(BoxGeom) == kGeomDoubles * sizeof(double), "BoxGeom must be a plain array of doubles");
 
 
+// per_frame > 0: `order` holds per_frame indices into each frame of frame_stride boxes (batched NMS).
 template <typename scalar_t>
 __global__ void geom_kernel(const scalar_t* __restrict__ boxes, const int64_t* __restrict__ order, int64_t n,
-                            BoxGeom* __restrict__ out) {
+                            int64_t per_frame, int64_t frame_stride, BoxGeom* __restrict__ out) {
   for (int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; i < n;
        i += static_cast<int64_t>(gridDim.x) * blockDim.x) {
-    const int64_t src = order != nullptr ? order[i] : i;
+    const int64_t src = order == nullptr ? i : order[i] + (per_frame > 0 ? i / per_frame * frame_stride : 0);
     out[i] = boxes::make_geom(boxes + 7 * src);
   }
 }
 
-// Geometry of boxes (in `order` when given) as an (n, kGeomDoubles) float64 tensor.
-at::Tensor geoms_of(const at::Tensor& boxes_in, const at::Tensor& order, cudaStream_t stream) {
+// Geometry of boxes (in `order` when given) as an (n, kGeomDoubles) float64 tensor; per_frame, frame_stride: as
+// geom_kernel's.
+at::Tensor geoms_of(const at::Tensor& boxes_in, const at::Tensor& order, cudaStream_t stream, int64_t per_frame = 0,
+                    int64_t frame_stride = 0) {
   auto b = boxes_in.contiguous();
   const int64_t n = order.defined() ? order.size(0) : b.size(0);
   auto out = at::empty({n, kGeomDoubles}, b.options().dtype(at::kDouble));
   if (n == 0) return out;
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, b.scalar_type(), "lidarops_box_geoms_cuda", [&] {
     geom_kernel<scalar_t><<<gpu::stride_blocks(n, 128), 128, 0, stream>>>(
-        b.data_ptr<scalar_t>(), order.defined() ? order.data_ptr<int64_t>() : nullptr, n,
+        b.data_ptr<scalar_t>(), order.defined() ? order.data_ptr<int64_t>() : nullptr, n, per_frame, frame_stride,
         reinterpret_cast<BoxGeom*>(out.data_ptr<double>()));
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
@@ -105,6 +108,8 @@ at::Tensor box_iou_3d_cuda(const at::Tensor& a, const at::Tensor& b) { return pa
 // the pairs left undecided are queued per warp and clipped one pair per lane.
 // (A thread per row would run the float64 clipping with one lane busy and the rest of the warp waiting:
 // with boxes clustered on objects that made the kernel FP64-bound on idle lanes.)
+// Batched (blockIdx.z = frame): each frame's n geometries, n_valid entry and n x nwords mask words follow the
+// previous frame's.
 __global__ void __launch_bounds__(64)
     nms_mask_kernel(const BoxGeom* __restrict__ g, const int64_t* __restrict__ group, int64_t n,
                     const int64_t* __restrict__ n_valid, int64_t nwords, double threshold,
@@ -113,7 +118,11 @@ __global__ void __launch_bounds__(64)
   __shared__ int64_t col_group[64];
   __shared__ unsigned long long row_bits[64];
   __shared__ uint16_t queue[2][32 * 64];  // per warp: (lane of the row << 6) | column
-  if (n_valid != nullptr) n = std::min(n, *n_valid);  // the padded variant: the grid is sized for all n
+  const int64_t frame = blockIdx.z;
+  g += frame * n;
+  mask += frame * n * nwords;
+  if (group != nullptr) group += frame * n;
+  if (n_valid != nullptr) n = std::min(n, n_valid[frame]);  // the padded variant: the grid is sized for all n
   const int64_t c = blockIdx.x, c0 = c * 64;
   if (c0 >= n) return;  // block-uniform
   const int ncols = static_cast<int>(std::min<int64_t>(64, n - c0));
@@ -165,7 +174,8 @@ __global__ void __launch_bounds__(64)
 // The diagonal words arrive through a cp.async ring kReduceDepth - 1 blocks ahead: most steps keep no
 // box and would otherwise wait for an L2 round trip each. With n_valid, only the first *n_valid boxes
 // take part (the words past them were not written). Writes keep[:num_kept] = the kept boxes' indices
-// (through `order`) and -1 up to max_keep.
+// (through `order`) and -1 up to max_keep. Batched (blockIdx.x = frame): each frame's mask, n_valid, n order
+// entries, max_keep keep entries and num_kept follow the previous frame's.
 constexpr int kReduceThreads = 256, kReduceDepth = 8;
 
 __global__ void __launch_bounds__(kReduceThreads)
@@ -175,7 +185,12 @@ __global__ void __launch_bounds__(kReduceThreads)
   extern __shared__ uint64_t removed[];  // stride words
   __shared__ uint64_t diag[kReduceDepth][64];
   __shared__ uint64_t kept_shared;
-  if (n_valid != nullptr) n = std::min(n, *n_valid);
+  const int64_t frame = blockIdx.x;
+  mask += frame * n * stride;
+  order += frame * n;
+  keep += frame * max_keep;
+  num_kept += frame;
+  if (n_valid != nullptr) n = std::min(n, n_valid[frame]);
   const int64_t nwords = (n + 63) / 64;
   const int t = threadIdx.x;
   for (int64_t w = t; w < nwords; w += kReduceThreads) removed[w] = 0;
@@ -277,6 +292,9 @@ __global__ void __launch_bounds__(kBlockSortThreads)
     nms_block_order_kernel(const scalar_t* __restrict__ scores, int64_t N, double threshold,
                            int64_t* __restrict__ order, int64_t* __restrict__ count) {
   using Sort = cub::BlockRadixSort<uint32_t, kBlockSortThreads, kBlockSortPerThread, int32_t>;
+  scores += blockIdx.x * N;  // batched: a block per frame of N scores
+  order += blockIdx.x * N;
+  if (count != nullptr) count += blockIdx.x;
   __shared__ typename Sort::TempStorage temp;
   __shared__ unsigned warp_counts[kBlockSortThreads / 32];
   uint32_t keys[kBlockSortPerThread];
@@ -445,6 +463,84 @@ std::tuple<at::Tensor, at::Tensor> nms_bev_padded_cuda(const at::Tensor& boxes_i
   return {keep, status};
 }
 
+// The batched key: key = 0 - score as nms_key_kernel's, frames of N scores; count[frame] += its scores >= threshold.
+template <typename scalar_t, typename key_t>
+__global__ void nms_batched_key_kernel(const scalar_t* __restrict__ scores, int64_t total, int64_t N, double threshold,
+                                       key_t* __restrict__ key, unsigned long long* __restrict__ count) {
+  LIDAROPS_GRID_STRIDE(i, total) {
+    const key_t v = static_cast<key_t>(scores[i]);
+    key[i] = key_t(0) - v;
+    if (count != nullptr && static_cast<double>(v) >= threshold) atomicAdd(count + i / N, 1ull);
+  }
+}
+
+// nms_bev_padded of each frame, the frames sharing every launch: their order from one block-sort launch (a
+// block per frame) or one segmented sort, one mask kernel (gridDim.z = frames), one reduction launch (a block
+// per frame).
+std::tuple<at::Tensor, at::Tensor> nms_bev_padded_batched_cuda(const at::Tensor& boxes_in, const at::Tensor& scores_in,
+                                                               double iou_threshold,
+                                                               c10::optional<double> score_threshold, int64_t pre_max,
+                                                               int64_t post_max) {
+  boxes::check_batched_nms_args(boxes_in, scores_in, iou_threshold);
+  boxes::check_score_threshold(score_threshold);
+  const int64_t B = boxes_in.size(0), N = boxes_in.size(1);
+  const boxes::PaddedNmsSizes sizes = boxes::padded_nms_sizes(N, pre_max, post_max);
+  const int64_t n = sizes.n, K = sizes.K;
+  c10::cuda::CUDAGuard guard(boxes_in.device());
+  const auto longs = boxes_in.options().dtype(at::kLong);
+  auto count = at::zeros({B}, longs);
+  if (K == 0 || B == 0) return {at::empty({B, K}, longs), count};
+  TORCH_CHECK_VALUE(B <= 65535, "nms_bev_padded_batched on CUDA takes at most 65,535 frames, got ", B);
+  cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  auto s = scores_in.contiguous();
+  // counted on the device and never read back: each frame's candidates are the first min(n, n_valid) of its order
+  at::Tensor n_valid;
+  if (score_threshold.has_value()) n_valid = at::zeros({B}, longs);
+  const double threshold = score_threshold.value_or(0.0);
+  at::Tensor order;
+  if (N <= kBlockSortItems && s.scalar_type() != at::kDouble) {
+    order = at::empty({B, N}, longs);
+    AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, s.scalar_type(), "lidarops_nms_batched_order_cuda", [&] {
+      nms_block_order_kernel<scalar_t><<<static_cast<unsigned>(B), kBlockSortThreads, 0, stream>>>(
+          s.data_ptr<scalar_t>(), N, threshold, order.data_ptr<int64_t>(),
+          n_valid.defined() ? n_valid.data_ptr<int64_t>() : nullptr);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
+  } else {
+    auto key = at::empty({B, N}, s.options().dtype(s.scalar_type() == at::kDouble ? at::kDouble : at::kFloat));
+    auto* cnt = n_valid.defined() ? reinterpret_cast<unsigned long long*>(n_valid.data_ptr<int64_t>()) : nullptr;
+    AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, s.scalar_type(), "lidarops_nms_batched_key_cuda", [&] {
+      if (key.scalar_type() == at::kDouble)
+        nms_batched_key_kernel<scalar_t, double><<<gpu::stride_blocks(B * N, 256, 1024), 256, 0, stream>>>(
+            s.data_ptr<scalar_t>(), B * N, N, threshold, key.data_ptr<double>(), cnt);
+      else
+        nms_batched_key_kernel<scalar_t, float><<<gpu::stride_blocks(B * N, 256, 1024), 256, 0, stream>>>(
+            s.data_ptr<scalar_t>(), B * N, N, threshold, key.data_ptr<float>(), cnt);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
+    order = std::get<1>(key.sort(/*stable=*/true, /*dim=*/1, /*descending=*/false));
+  }
+  order = order.slice(1, 0, n).contiguous();  // (B, n): each frame's first n boxes in visiting order
+  const int64_t nwords = gpu::ceil_div(n, 64);
+  TORCH_CHECK_VALUE(B * n * nwords * 8 <= (int64_t{1} << 31), "nms_bev_padded_batched on CUDA keeps an n x n/64 "
+                    "bitmask per frame; ", B, " frames of n = ", n, " boxes would need ", B * n * nwords * 8,
+                    " bytes (more than 2 GiB): lower pre_max");
+  auto g = geoms_of(boxes_in.contiguous().view({B * N, 7}), order.view({-1}), stream, n, N);
+  auto mask = at::empty({B * n * nwords}, longs);
+  const int64_t* nv = n_valid.defined() ? n_valid.data_ptr<int64_t>() : nullptr;
+  const dim3 grid(static_cast<unsigned>(nwords), static_cast<unsigned>(std::min<int64_t>(nwords, 65535)),
+                  static_cast<unsigned>(B));
+  nms_mask_kernel<<<grid, 64, 0, stream>>>(geom_ptr(g), nullptr, n, nv, nwords, iou_threshold,
+                                           reinterpret_cast<uint64_t*>(mask.data_ptr<int64_t>()));
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  auto keep = at::empty({B, K}, longs);
+  nms_reduce_kernel<<<static_cast<unsigned>(B), kReduceThreads, nwords * sizeof(uint64_t), stream>>>(
+      reinterpret_cast<const uint64_t*>(mask.data_ptr<int64_t>()), n, nv, nwords, order.data_ptr<int64_t>(), K,
+      keep.data_ptr<int64_t>(), count.data_ptr<int64_t>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return {keep, count};
+}
+
 constexpr int kPointThreads = 128;
 
 template <typename scalar_t>
@@ -502,6 +598,7 @@ TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("nms_bev", &nms_bev_cuda);
   m.impl("nms_bev_padded", &nms_bev_padded_cuda<false>);
   m.impl("nms_bev_checked", &nms_bev_padded_cuda<true>);
+  m.impl("nms_bev_padded_batched", &nms_bev_padded_batched_cuda);
   m.impl("points_in_boxes", &points_in_boxes_cuda);
 }
 

@@ -33,6 +33,13 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   m.def(
       "nms_bev_padded(Tensor boxes, Tensor scores, Tensor? idxs, float iou_threshold, float? score_threshold=None,"
       " int pre_max=-1, int post_max=-1) -> (Tensor, Tensor)");
+  // nms_bev_padded of B frames at once: boxes (B, N, 7), scores (B, N) -> (keep (B, K) int64, count (B,) int64),
+  // row b frame b's nms_bev_padded (indices into its N boxes, -1 after count[b]); K as nms_bev_padded's.
+  // On CUDA the frames share each launch (one sort of all frames' keys, one mask kernel, one reduction block
+  // per frame).
+  m.def(
+      "nms_bev_padded_batched(Tensor boxes, Tensor scores, float iou_threshold, float? score_threshold=None,"
+      " int pre_max=-1, int post_max=-1) -> (Tensor, Tensor)");
   // nms_bev_padded and the value checks of its inputs in one call: returns (keep (K,) int64, status (4,)
   // int64) with status[0] the number kept and status[1], [2], [3] nonzero when a box value is NaN or
   // infinite, a score is, a box has a negative size (the kernels are safe on any values; the caller reads

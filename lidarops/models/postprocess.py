@@ -67,33 +67,36 @@ def postprocess_padded(cls_logits: Tensor, boxes: Tensor, cfg: PointPillarsConfi
         :func:`postprocess` returns. ``K = min(anchors, nms_pre_maxsize, nms_post_maxsize)``, times the
         number of classes with ``multi_classes_nms``.
     """
-    from lidarops.ops.boxes import nms_bev
+    from lidarops.ops.boxes import nms_bev, nms_bev_frames
 
     pre, post = _limits(cfg)
     B, A, C = cls_logits.shape
+    if not cfg.multi_classes_nms:  # all frames in one NMS call: its launches are shared, not made per frame
+        scores, labels = torch.sigmoid(cls_logits).max(dim=-1)  # (B, A)
+        keep, count = nms_bev_frames(boxes, scores, cfg.nms_thresh, pre_max=pre, post_max=post,
+                                     score_threshold=cfg.score_thresh)
+        anchor = keep.clamp(min=0)
+        valid = torch.arange(anchor.shape[1], device=anchor.device) < count[:, None]
+        return {"boxes": torch.where(valid[..., None], boxes.gather(1, anchor[..., None].expand(-1, -1, 7)), 0),
+                "scores": torch.where(valid, scores.gather(1, anchor), 0),
+                "labels": torch.where(valid, labels.gather(1, anchor) + 1, 0), "count": count}
     out: dict[str, list] = {"boxes": [], "scores": [], "labels": [], "count": []}
     for b in range(B):
         scores_all = torch.sigmoid(cls_logits[b])
-        if not cfg.multi_classes_nms:
-            scores, labels = scores_all.max(dim=-1)
-            keep, count = nms_bev(boxes[b], scores, cfg.nms_thresh, pre_max=pre, post_max=post,
-                                  score_threshold=cfg.score_thresh, padded=True)
-            anchor = keep.clamp(min=0)
-            label = labels[anchor]
-        else:
-            kept = [nms_bev(boxes[b], scores_all[:, c], cfg.nms_thresh, pre_max=pre, post_max=post,
-                            score_threshold=cfg.score_thresh, padded=True) for c in range(C)]
-            keep = torch.stack([k for k, _ in kept])  # (C, Kc)
-            counts = torch.stack([n for _, n in kept])
-            valid = torch.arange(keep.shape[1], device=keep.device) < counts[:, None]
-            label = torch.arange(C, device=keep.device)[:, None].expand_as(keep)
-            # merge: by score, then by (anchor, class), the padding last
-            flat = torch.where(valid, keep * C + label, A * C).reshape(-1)
-            by_index = torch.sort(flat, stable=True).indices
-            key = torch.where(valid.reshape(-1), scores_all[keep.clamp(min=0), label].reshape(-1).float(),
-                              -math.inf)[by_index]
-            sel = by_index[torch.sort(key, stable=True, descending=True).indices]
-            anchor, label, count = keep.clamp(min=0).reshape(-1)[sel], label.reshape(-1)[sel], counts.sum()
+        # per class: a padded NMS per class, merged by score
+        kept = [nms_bev(boxes[b], scores_all[:, c], cfg.nms_thresh, pre_max=pre, post_max=post,
+                        score_threshold=cfg.score_thresh, padded=True) for c in range(C)]
+        keep = torch.stack([k for k, _ in kept])  # (C, Kc)
+        counts = torch.stack([n for _, n in kept])
+        valid = torch.arange(keep.shape[1], device=keep.device) < counts[:, None]
+        label = torch.arange(C, device=keep.device)[:, None].expand_as(keep)
+        # merge: by score, then by (anchor, class), the padding last
+        flat = torch.where(valid, keep * C + label, A * C).reshape(-1)
+        by_index = torch.sort(flat, stable=True).indices
+        key = torch.where(valid.reshape(-1), scores_all[keep.clamp(min=0), label].reshape(-1).float(),
+                          -math.inf)[by_index]
+        sel = by_index[torch.sort(key, stable=True, descending=True).indices]
+        anchor, label, count = keep.clamp(min=0).reshape(-1)[sel], label.reshape(-1)[sel], counts.sum()
         valid = torch.arange(anchor.shape[0], device=anchor.device) < count
         out["boxes"].append(torch.where(valid[:, None], boxes[b, anchor], 0))
         out["scores"].append(torch.where(valid, scores_all[anchor, label], 0))

@@ -2,7 +2,7 @@
 
 Schemas: ``csrc/ops/neighbors.cpp`` (fps, knn, ball_query, gather, gather_backward), ``checks.cpp``
 (value_flags), ``voxelize.cpp`` (voxelize_assign, voxelize_scatter), ``boxes.cpp`` (box_overlap_bev,
-box_iou_bev, box_iou_3d, nms_bev, nms_bev_padded, nms_bev_checked, points_in_boxes), ``pillar_stream.cpp``
+box_iou_bev, box_iou_3d, nms_bev, nms_bev_padded, nms_bev_padded_batched, nms_bev_checked, points_in_boxes), ``pillar_stream.cpp``
 (pillar_decorate, the one-shot pillarization's decoration), ``assign.cpp`` (greedy_assign, fill_repeats). No op of this
 package has a C++ autograd kernel (``csrc/ops/autograd``): every formula is here, and every backward is
 made of registered ops (gather / gather_backward) or ATen ops, so it works on every device, under
@@ -137,6 +137,13 @@ def _nms_bev_padded_fake(boxes, scores, idxs, iou_threshold, score_threshold=Non
     if post_max >= 0:
         k = torch.sym_min(k, post_max)
     return boxes.new_empty((k,), dtype=torch.int64), boxes.new_empty((), dtype=torch.int64)
+
+
+@torch.library.register_fake("lidarops::nms_bev_padded_batched")
+def _nms_bev_padded_batched_fake(boxes, scores, iou_threshold, score_threshold=None, pre_max=-1, post_max=-1):
+    keep, _ = _nms_bev_padded_fake(boxes[0], scores[0], None, iou_threshold, score_threshold, pre_max, post_max)
+    return boxes.new_empty((boxes.shape[0], keep.shape[0]), dtype=torch.int64), \
+        boxes.new_empty((boxes.shape[0],), dtype=torch.int64)
 
 
 @torch.library.register_fake("lidarops::nms_bev_checked")

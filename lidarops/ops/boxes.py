@@ -25,8 +25,8 @@ from lidarops.ops.validation import (DeferredChecks, check_output_size, check_te
 
 extension.load()
 
-__all__ = ["box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "batched_nms_bev", "points_in_boxes",
-           "unsupported_boxes"]
+__all__ = ["box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "nms_bev_frames", "batched_nms_bev",
+           "points_in_boxes", "unsupported_boxes"]
 
 
 def _check_boxes(boxes, name: str) -> None:
@@ -275,6 +275,47 @@ def nms_bev(boxes: Tensor, scores: Tensor, iou_threshold: float, pre_max: int | 
     if any(host[1:]):
         DeferredChecks(None, _nms_value_messages(boxes, scores)).raise_first(host[1:])
     return keep[:host[0]]
+
+
+def nms_bev_frames(boxes: Tensor, scores: Tensor, iou_threshold: float, pre_max: int | None = None,
+                   post_max: int | None = None, *, score_threshold: float | None = None) -> tuple[Tensor, Tensor]:
+    """:func:`nms_bev` with ``padded=True`` on each of B frames of N boxes, in one call: a detector's
+    post-processing of a batch. On CUDA the frames share every launch (one sort of all their scores, one
+    bitmask kernel, one reduction block per frame), where a loop over the frames makes a set of launches per
+    frame, run one after the other. Nothing is read back to the host (the call can be captured in a CUDA
+    graph) except the value checks' one read, when on.
+
+    Args:
+        boxes (Tensor[B, N, 7]): each frame's boxes.
+        scores (Tensor[B, N]): their scores, same device (any floating dtype).
+        iou_threshold, pre_max, post_max, score_threshold: as :func:`nms_bev`, per frame.
+
+    Returns:
+        tuple: ``keep (Tensor[B, K])`` int64 and ``count (Tensor[B])`` int64, ``K = min(N, pre_max,
+        post_max)``: row b's first ``count[b]`` entries are the indices (into frame b's N boxes) that
+        ``nms_bev(boxes[b], scores[b], ..., padded=True)`` keeps, in descending score order, the rest -1.
+    """
+    check_tensor(boxes, "boxes")
+    check_tensor(scores, "scores")
+    if boxes.dim() != 3 or boxes.shape[2] != 7 or not boxes.is_floating_point():
+        raise ValueError(f"boxes must be a floating (B, N, 7) tensor (x, y, z, dx, dy, dz, heading per frame), "
+                         f"got {describe(boxes)}")
+    if scores.shape != boxes.shape[:2] or not scores.is_floating_point():
+        raise ValueError(f"scores must be a floating (B, N) tensor with (B, N) = {tuple(boxes.shape[:2])}, "
+                         f"got {describe(scores)}")
+    if scores.device != boxes.device:
+        raise ValueError(f"scores is on {scores.device} but boxes is on {boxes.device}")
+    extension.check_device(boxes, "boxes")
+    threshold = _nms_args(boxes.reshape(-1, 7), scores.reshape(-1), iou_threshold)
+    pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
+    if value_checks_enabled() and boxes.numel():
+        flat = boxes.reshape(-1, 7)
+        nonfinite, out_of_range = _box_messages(flat, "boxes (as (B * N, 7))")
+        check_values(finite=[(flat, nonfinite), (scores, lambda: f"scores contains NaN or infinite values "
+                                                                  f"({describe(scores)})")],
+                     extra=[(_box_out_of_range(flat).any(), out_of_range)])
+    return torch.ops.lidarops.nms_bev_padded_batched(boxes, scores, threshold, _score_threshold(score_threshold),
+                                                     pre, post)
 
 
 def _rank_in_group(groups: Tensor) -> Tensor:

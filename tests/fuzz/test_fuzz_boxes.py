@@ -113,6 +113,44 @@ def test_nms(device, data, grouped):
 
 @fuzz
 @given(data=st.data())
+def test_nms_frames(device, data):
+    """nms_bev_frames on 1-3 frames (the drawn boxes in a drawn order per frame, each frame its own scores and
+    a common score threshold): bad values raise naming boxes / scores / iou_threshold; else row b is the
+    float64 reference of frame b, thresholded first, with the pre / post caps, padded with -1."""
+    b, scores, thr, _, pre, post = _nms_args(data, False)
+    n = b.boxes.shape[0]
+    frames = data.draw(st.integers(1, 3), "frames")
+    perms = [torch.tensor(data.draw(st.permutations(list(range(n))), f"order {f}"), dtype=torch.int64).reshape(n)
+             for f in range(1, frames)]
+    boxes = torch.stack([b.boxes] + [b.boxes[p] for p in perms])
+    allscores = torch.stack([scores] + [scores[p].flip(0) for p in perms])
+    st_ = data.draw(st.none() | st.sampled_from([0.1, 0.5, 0.95]), "score_threshold")
+    what = f"nms_bev_frames({b.regime} {tuple(boxes.shape)}, thr={thr}, pre={pre}, post={post}, score={st_})"
+    res, err = outcome(lidarops.nms_bev_frames, boxes.to(device), allscores.to(device), thr, pre, post,
+                       score_threshold=st_)
+    bad = _bad_names(("boxes", b)) + ([] if bool(torch.isfinite(scores).all()) else ["scores"]) \
+        + (["iou_threshold"] if thr < 0 else [])
+    if bad:
+        return assert_clear_error(err, ValueError, bad, what)
+    assert_no_error(err, what)
+    keep, count = res
+    if n:  # an IoU within rounding of the threshold may go either way: not compared
+        iou = _box_iou_bev_reference(b.boxes, b.boxes)
+        assume(bool(((iou - thr).abs() > _tolerance(b) + 1e-6).all()))
+    size = min(n, n if pre is None else pre, n if post is None else post)
+    assert keep.shape == (frames, size) and count.shape == (frames,), what
+    for f in range(frames):
+        s_f = allscores[f]
+        order = sorted(range(n), key=lambda i: (-float(s_f[i]), i))[:n if pre is None else pre]
+        cand = torch.tensor([i for i in order if st_ is None or float(s_f[i]) >= st_], dtype=torch.int64)
+        want = cand[_nms_bev_reference(boxes[f, cand], s_f[cand], thr)] if cand.numel() else cand
+        want = want if post is None else want[:post]
+        assert_same(keep[f].cpu(), torch.cat([want, torch.full((size - want.numel(),), -1)]), f"{what} frame {f}")
+        assert int(count[f]) == want.numel(), f"{what} frame {f}"
+
+
+@fuzz
+@given(data=st.data())
 def test_unsupported_boxes_flags_what_the_ops_refuse(device, data):
     """unsupported_boxes(b) flags a row exactly when the box ops refuse the set for it: each row on its own is
     accepted or refused by nms_bev as its flag says (non-finite, negative or out-of-range values)."""

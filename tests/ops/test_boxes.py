@@ -418,6 +418,96 @@ def test_nms_cuda_keeps_many_boxes_and_stops_at_post_max(n):
             assert_equal_report(cuda.cpu(), cpu, f"n={n} post={post} st={st}")
 
 
+def _frames(B, n, seed, dtype=torch.float64):
+    """B frames of n detector-like boxes with scores: ties, some exactly at the thresholds, and in the last
+    frame a block of equal boxes (all suppressed by the first)."""
+    boxes = torch.stack([lidar_boxes(n, seed=seed + b) for b in range(B)]).to(dtype)
+    g = torch.Generator().manual_seed(seed)
+    scores = (torch.rand(B, n, generator=g) * 20).round() / 20
+    if n >= 8:
+        boxes[-1, 1:6] = boxes[-1, 0]
+    return boxes, scores.to(dtype)
+
+
+@pytest.mark.parametrize("st,pre,post", [(None, None, None), (0.5, None, None), (0.5, 40, 6), (0.3, 70, None),
+                                         (0.99, None, 10), (2.0, 50, 50), (0.0, 0, 5), (-math.inf, 200, 3)])
+def test_nms_frames_is_each_frames_padded_nms(device, st, pre, post):
+    """nms_bev_frames, row by row, is nms_bev(..., padded=True) of each frame (itself checked against the
+    float64 reference above), which is the threshold-first reference NMS of each frame."""
+    B, n = 5, 120
+    boxes, scores = _frames(B, n, seed=21)
+    keep, count = lidarops.nms_bev_frames(boxes.to(device), scores.to(device), 0.1, pre_max=pre, post_max=post,
+                                          score_threshold=st)
+    size = min(n, n if pre is None else pre, n if post is None else post)
+    assert keep.shape == (B, size) and count.shape == (B,) and keep.dtype == count.dtype == torch.int64
+    for b in range(B):
+        want = _padded_expected(boxes[b], scores[b], 0.1, -math.inf if st is None else st, pre, post)
+        assert int(count[b]) == want.numel(), f"frame {b}"
+        assert_equal_report(keep[b, :int(count[b])].cpu(), want, f"frame {b} st={st} pre={pre} post={post}")
+        assert (keep[b, int(count[b]):] == -1).all()
+
+
+def test_nms_frames_empty_shapes_and_checks(device):
+    z = torch.zeros(3, 0, 7, device=device)
+    keep, count = lidarops.nms_bev_frames(z, torch.zeros(3, 0, device=device), 0.5)
+    assert keep.shape == (3, 0) and count.tolist() == [0, 0, 0]
+    keep, count = lidarops.nms_bev_frames(torch.zeros(0, 9, 7, device=device), torch.zeros(0, 9, device=device), 0.5)
+    assert keep.shape == (0, 9) and count.shape == (0,)
+    boxes, scores = _frames(2, 10, seed=3)
+    b, s = boxes.to(device), scores.to(device)
+    for pre, post, size in ((0, None, 0), (None, 0, 0), (3, 7, 3), (20, 4, 4)):
+        keep, count = lidarops.nms_bev_frames(b, s, 0.5, pre_max=pre, post_max=post)
+        assert keep.shape == (2, size) and (count <= size).all()
+    with pytest.raises(ValueError, match=r"boxes must be a floating \(B, N, 7\)"):
+        lidarops.nms_bev_frames(b[0], s, 0.5)
+    with pytest.raises(ValueError, match=r"scores must be a floating \(B, N\) tensor with \(B, N\) = \(2, 10\)"):
+        lidarops.nms_bev_frames(b, s[:, :9], 0.5)
+    with pytest.raises(ValueError, match="iou_threshold must be a finite number >= 0"):
+        lidarops.nms_bev_frames(b, s, -0.1)
+    bad = b.clone()
+    bad[1, 4, 3] = math.nan
+    with pytest.raises(ValueError, match=r"boxes \(as \(B \* N, 7\)\) contains NaN"):
+        lidarops.nms_bev_frames(bad, s, 0.5)
+    bad = s.clone()
+    bad[0, 2] = math.inf
+    with pytest.raises(ValueError, match="scores contains NaN or infinite"):
+        lidarops.nms_bev_frames(b, bad, 0.5)
+    with pytest.raises(ValueError, match="score_threshold must be None or a number"):
+        lidarops.nms_bev_frames(b, s, 0.5, score_threshold=math.nan)
+
+
+@pytest.mark.skipif(not LIDAROPS_CUDA, reason="needs a GPU and lidarops built with CUDA kernels")
+@pytest.mark.parametrize("B,n", [(1, 1), (3, 64), (4, 65), (2, 4096), (3, 4097), (16, 5000)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+def test_nms_frames_cuda_equals_cpu_and_replays_in_a_graph(B, n, dtype):
+    """Frames of up to 4,096 boxes take the block sort (a block per frame), more the segmented sort, float64
+    scores always the latter; the mask kernel and the reduction run a grid slice and a block per frame."""
+    boxes, scores = _frames(B, n, seed=n)
+    boxes, scores = boxes.to(dtype), torch.rand(B, n, generator=torch.Generator().manual_seed(n)).to(dtype)
+    scores[:, ::7] = 0.5
+    for st, pre, post in ((0.1, 4096, 500), (0.5, -1, 100), (None, 100, -1), (0.95, 4096, 500)):
+        cpu = torch.ops.lidarops.nms_bev_padded_batched(boxes, scores, 0.01, st, pre, post)
+        cuda = torch.ops.lidarops.nms_bev_padded_batched(boxes.cuda(), scores.cuda(), 0.01, st, pre, post)
+        assert_equal_report(cuda[0].cpu(), cpu[0], f"B={B} n={n} st={st}")
+        assert_equal_report(cuda[1].cpu(), cpu[1], f"B={B} n={n} st={st} counts")
+        for b in range(B):  # and each frame's own padded NMS on the GPU
+            one = torch.ops.lidarops.nms_bev_padded(boxes[b].cuda(), scores[b].cuda(), None, 0.01, st, pre, post)
+            assert_equal_report(cuda[0][b].cpu(), one[0].cpu(), f"frame {b}")
+    sb, ss = boxes.cuda(), scores.cuda()
+    torch.ops.lidarops.nms_bev_padded_batched(sb, ss, 0.01, 0.3, 4096, 500)  # warm-up outside the capture
+    torch.cuda.synchronize()
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out = torch.ops.lidarops.nms_bev_padded_batched(sb, ss, 0.01, 0.3, 4096, 500)
+    for seed in (1, 2):
+        new = (torch.rand(B, n, generator=torch.Generator().manual_seed(seed)) ** (seed + 1)).to(dtype)
+        ss.copy_(new)
+        graph.replay()
+        ref = torch.ops.lidarops.nms_bev_padded_batched(boxes, new, 0.01, 0.3, 4096, 500)
+        assert_equal_report(out[0].cpu(), ref[0], f"graph replay seed={seed}")
+        assert_equal_report(out[1].cpu(), ref[1], f"graph replay seed={seed} counts")
+
+
 def test_nms_checked_status_is_count_and_value_flags(device):
     boxes = lidar_boxes(50, seed=3).float().to(device)
     scores = torch.rand(50, device=device)

@@ -447,6 +447,29 @@ def case_boxes_shapes_and_groups(dev):
     raises(lambda: ops.points_in_boxes(torch.zeros(3, 2, dtype=F64, device=dev), boxes), r"points must be \(P, C >= 3\)")
 
 
+def case_nms_frames_shapes_and_values(dev):
+    ops = _ops()
+    box = torch.tensor([[0.0, 0, 0, 2, 2, 2, 0]], dtype=F64, device=dev)
+    far = torch.tensor([[50.0, 0, 0, 2, 2, 2, 0]], dtype=F64, device=dev)
+    boxes = torch.stack([torch.cat([box, box, far]), torch.cat([far, box, box])])  # (2, 3, 7)
+    scores = torch.tensor([[0.9, 0.8, 0.1], [0.2, 0.3, 0.3]], dtype=F64, device=dev)
+    keep, count = ops.nms_bev_padded_batched(boxes, scores, 0.5, None, -1, -1)
+    equal(keep, [[0, 2, -1], [1, 0, -1]])  # frame 1: a tie (0.3) visits the lower index first
+    equal(count, [2, 2])
+    keep, count = ops.nms_bev_padded_batched(boxes, scores, 0.5, 0.25, 2, 1)  # threshold, then the caps
+    equal(keep, [[0], [1]])
+    equal(count, [1, 1])
+    keep, count = ops.nms_bev_padded_batched(boxes, scores, 0.5, 0.95, -1, -1)  # no candidate
+    equal(count, [0, 0])
+    equal(keep, [[-1, -1, -1]] * 2)
+    raises(lambda: ops.nms_bev_padded_batched(boxes[0], scores, 0.5, None, -1, -1), r"boxes must be \(B, N, 7\)")
+    raises(lambda: ops.nms_bev_padded_batched(boxes, scores[:, :2], 0.5, None, -1, -1),
+           r"scores must be \(B, N\) with \(B, N\) = \(2, 3\)")
+    raises(lambda: ops.nms_bev_padded_batched(boxes, scores, -1.0, None, -1, -1), r"iou_threshold must be")
+    raises(lambda: ops.nms_bev_padded_batched(boxes, scores, 0.5, math.nan, -1, -1), r"score_threshold must be")
+    raises(lambda: ops.nms_bev_padded_batched(boxes.long(), scores, 0.5, None, -1, -1), r"boxes must be floating")
+
+
 def case_value_flags_shapes(dev):
     ops = _ops()
     raises(lambda: ops.value_flags([], [torch.arange(3, device=dev)], [0, 1], [2]), r"lo and hi must have 1 entries")

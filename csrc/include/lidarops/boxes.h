@@ -11,6 +11,7 @@
 // aligned or far-from-origin boxes lose no digits to the absolute position.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 
@@ -258,10 +259,33 @@ inline bool check_nms_args(const at::Tensor& boxes, const at::Tensor& scores, co
   return grouped;
 }
 
+// nms_bev_padded_batched: boxes (B, N, 7) and scores (B, N), frames of N boxes each.
+inline void check_batched_nms_args(const at::Tensor& boxes, const at::Tensor& scores, double iou_threshold) {
+  TORCH_CHECK_VALUE(boxes.dim() == 3 && boxes.size(2) == 7,
+                    "boxes must be (B, N, 7) boxes (x, y, z, dx, dy, dz, heading) per frame, got shape ", boxes.sizes());
+  TORCH_CHECK_VALUE(at::isFloatingType(boxes.scalar_type()), "boxes must be floating, got ", boxes.scalar_type());
+  TORCH_CHECK_VALUE(iou_threshold >= 0 && iou_threshold < INFINITY, "iou_threshold must be a finite number >= 0, got ",
+                    iou_threshold);
+  TORCH_CHECK_VALUE(scores.dim() == 2 && scores.size(0) == boxes.size(0) && scores.size(1) == boxes.size(1),
+                    "scores must be (B, N) with (B, N) = (", boxes.size(0), ", ", boxes.size(1), "), got shape ",
+                    scores.sizes());
+  TORCH_CHECK_VALUE(at::isFloatingType(scores.scalar_type()), "scores must be floating, got ", scores.scalar_type());
+  TORCH_CHECK_VALUE(scores.device() == boxes.device(), "scores is on ", scores.device(), " but boxes is on ", boxes.device());
+}
+
 // Candidates are boxes with score >= score_threshold: NaN would make none a candidate silently.
 inline void check_score_threshold(const c10::optional<double>& score_threshold) {
   TORCH_CHECK_VALUE(!score_threshold.has_value() || !std::isnan(*score_threshold),
                     "score_threshold must be a number or None, got nan");
+}
+
+// A padded NMS of N boxes: n = min(pre_max, N) candidates at most, K = min(post_max, n) kept (-1: no limit).
+struct PaddedNmsSizes {
+  int64_t n, K;
+};
+inline PaddedNmsSizes padded_nms_sizes(int64_t N, int64_t pre_max, int64_t post_max) {
+  const int64_t n = pre_max >= 0 ? std::min(pre_max, N) : N;
+  return {n, post_max >= 0 ? std::min(post_max, n) : n};
 }
 
 inline void check_points_args(const at::Tensor& points, const at::Tensor& boxes) {
