@@ -130,20 +130,23 @@ def _nms_bev_fake(boxes, scores, idxs, iou_threshold, pre_max=-1, post_max=-1):
 
 @torch.library.register_fake("lidarops::nms_bev_padded")
 def _nms_bev_padded_fake(boxes, scores, idxs, iou_threshold, score_threshold=None, pre_max=-1, post_max=-1):
-    # sizes fixed by the shapes: K = min(N, pre_max, post_max)
-    k = boxes.shape[0]
+    return boxes.new_empty((_padded_k(boxes.shape[0], pre_max, post_max),), dtype=torch.int64), \
+        boxes.new_empty((), dtype=torch.int64)
+
+
+def _padded_k(n, pre_max: int, post_max: int):
+    """A padded NMS's size, fixed by the shapes: K = min(N, pre_max, post_max) (-1: no limit)."""
     if pre_max >= 0:
-        k = torch.sym_min(k, pre_max)
+        n = torch.sym_min(n, pre_max)
     if post_max >= 0:
-        k = torch.sym_min(k, post_max)
-    return boxes.new_empty((k,), dtype=torch.int64), boxes.new_empty((), dtype=torch.int64)
+        n = torch.sym_min(n, post_max)
+    return n
 
 
 @torch.library.register_fake("lidarops::nms_bev_padded_batched")
 def _nms_bev_padded_batched_fake(boxes, scores, iou_threshold, score_threshold=None, pre_max=-1, post_max=-1):
-    keep, _ = _nms_bev_padded_fake(boxes[0], scores[0], None, iou_threshold, score_threshold, pre_max, post_max)
-    return boxes.new_empty((boxes.shape[0], keep.shape[0]), dtype=torch.int64), \
-        boxes.new_empty((boxes.shape[0],), dtype=torch.int64)
+    return (boxes.new_empty((boxes.shape[0], _padded_k(boxes.shape[1], pre_max, post_max)), dtype=torch.int64),
+            boxes.new_empty((boxes.shape[0],), dtype=torch.int64))
 
 
 @torch.library.register_fake("lidarops::nms_bev_checked")

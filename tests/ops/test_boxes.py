@@ -754,6 +754,18 @@ def test_compile_padded_nms_needs_no_dynamic_sizes(device):
     for a, b in zip(compiled(boxes, scores), post(boxes, scores)):
         assert_equal_report(a, b, "compiled padded nms")
 
+    def frames(boxes, scores):
+        keep, count = lidarops.nms_bev_frames(boxes, scores, 0.1, pre_max=30, post_max=10, score_threshold=0.2)
+        valid = torch.arange(keep.shape[1], device=keep.device) < count[:, None]
+        return torch.where(valid[..., None], boxes.gather(1, keep.clamp(min=0)[..., None].expand(-1, -1, 7)), 0), count
+
+    many = torch.stack([boxes, boxes.flip(0)])
+    manys = torch.stack([scores, torch.rand(40, device=device)])
+    with lidarops.validation(False):  # the value checks read back: a graph break under fullgraph
+        compiled = torch.compile(frames, fullgraph=True, backend="aot_eager")
+        for a, b in zip(compiled(many, manys), frames(many, manys)):
+            assert_equal_report(a, b, "compiled nms_bev_frames")
+
 
 def test_meta_tensors_give_shapes():
     a = torch.empty(6, 7, device="meta")
@@ -765,6 +777,9 @@ def test_meta_tensors_give_shapes():
     assert keep.shape == (4,) and count.shape == ()
     keep, status = torch.ops.lidarops.nms_bev_checked(a, torch.empty(6, device="meta"), None, 0.1, None, 5, -1)
     assert keep.shape == (5,) and status.shape == (4,)
+    keep, count = torch.ops.lidarops.nms_bev_padded_batched(a.expand(3, 6, 7), torch.empty(3, 6, device="meta"), 0.1,
+                                                            None, -1, 4)
+    assert keep.shape == (3, 4) and count.shape == (3,)
 
 
 def test_ops_are_registered_with_their_kernels():
@@ -772,7 +787,7 @@ def test_ops_are_registered_with_their_kernels():
 
     has = torch._C._dispatch_has_kernel_for_dispatch_key
     for op in ("box_overlap_bev", "box_iou_bev", "box_iou_3d", "nms_bev", "nms_bev_padded", "nms_bev_checked",
-               "points_in_boxes", "kitti_match"):
+               "nms_bev_padded_batched", "points_in_boxes", "kitti_match"):
         name = f"lidarops::{op}"
         assert has(name, "CPU") and has(name, "Meta"), name
         if extension.cuda_available() and op != "kitti_match":  # the evaluator's matching is CPU-only
