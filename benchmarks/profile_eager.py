@@ -67,7 +67,8 @@ def kernel_totals(events, calls: int) -> list[tuple[str, float, float]]:
     call)``, the longest first."""
     acc: dict[str, list] = {}
     for e in events:
-        if str(getattr(e, "device_type", "")).endswith("CUDA"):
+        # a record_function range also appears on the GPU's timeline, as an annotation spanning its kernels
+        if str(getattr(e, "device_type", "")).endswith("CUDA") and not getattr(e, "is_user_annotation", False):
             a = acc.setdefault(e.name, [0.0, 0])
             a[0] += e.time_range.elapsed_us()
             a[1] += 1
@@ -92,6 +93,8 @@ def profile_call(fn, calls: int = 20, top: int = 8) -> dict:
     host_ops = []
     for e in prof.events():
         dev = str(getattr(e, "device_type", "")).endswith("CUDA")
+        if dev and getattr(e, "is_user_annotation", False):  # a range's span on the GPU's timeline, not work
+            continue
         if dev:
             gpu_us += e.time_range.elapsed_us()
             if "DtoH" in e.name or "Device -> Pageable" in e.name or "Device -> Pinned" in e.name:

@@ -379,3 +379,18 @@ def test_bm_sscater_detector_section_times_the_same_boxes():
     for name in ("sscater_step", "detector_predict", "sscater_backbone", "detector_backbone"):
         s = summary[name]
         assert 0 < s["median_ms"] <= s["p95_ms"] and s["mean_ms"] > 0, name
+
+
+def test_kernel_totals_leave_out_the_ranges_gpu_annotations():
+    """A record_function range appears on the GPU's timeline too, as an annotation spanning its kernels and the
+    gaps between them: counting it as a kernel inflated profile/detector.py's stage sums several times over."""
+    from benchmarks.profile_eager import kernel_totals
+
+    def event(name, device, us, annotation=False):
+        span = types.SimpleNamespace(elapsed_us=lambda: us)
+        return types.SimpleNamespace(name=name, device_type=f"DeviceType.{device}", is_user_annotation=annotation,
+                                     time_range=span)
+
+    events = [event("backbone", "CPU", 900.0, annotation=True), event("backbone", "CUDA", 800.0, annotation=True),
+              event("conv_kernel", "CUDA", 300.0), event("conv_kernel", "CUDA", 100.0), event("aten::mm", "CPU", 50.0)]
+    assert kernel_totals(events, calls=2) == [("conv_kernel", 200.0, 1.0)]
