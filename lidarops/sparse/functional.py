@@ -462,9 +462,10 @@ def norm_affine(norm: torch.nn.Module, bias: Optional[Tensor] = None) -> tuple:
     Cached on the module until one of its parameters or buffers (or ``bias``) is replaced or changed
     in place (:func:`cached_by_version`).
     """
-    if not isinstance(norm, torch.nn.modules.batchnorm._BatchNorm) or norm.training or norm.running_mean is None:
-        raise ValueError(f"norm_affine takes a BatchNorm in eval mode with running statistics, got {norm!r}")
     params, buffers = norm._parameters, norm._buffers  # not through nn.Module.__getattr__: host time per layer
+    if not isinstance(norm, torch.nn.modules.batchnorm._BatchNorm) or norm.training \
+            or buffers.get("running_mean") is None:
+        raise ValueError(f"norm_affine takes a BatchNorm in eval mode with running statistics, got {norm!r}")
 
     def compute():
         with torch.no_grad():
@@ -552,43 +553,45 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
     _conv_algo(algo)
     D = x.ndim
     check_tensor(weight, "weight")
-    cin = x.features.shape[1]
+    f = x.features  # read once (a property): host time per layer
+    cin = f.shape[1]
     if weight.dim() != D + 2 or weight.shape[-1] != cin:
         raise ValueError(f"weight must be (Cout, *kernel ({D} dims), Cin = {cin}) for this {D}D input, "
                          f"got {describe(weight)}")
     x, weight, bias = _autocast(x, weight, bias)
-    if weight.dtype != x.features.dtype or weight.device != x.features.device:
+    f = x.features
+    if weight.dtype != f.dtype or weight.device != f.device:
         raise ValueError(f"weight ({weight.dtype}, {weight.device}) must match the features "
-                         f"({x.features.dtype}, {x.features.device})")
-    if not x.features.is_floating_point():
-        raise ValueError(f"features must be floating point, got {describe(x.features)}")
-    if bias is not None and (bias.shape != (weight.shape[0],) or bias.dtype != weight.dtype):
-        raise ValueError(f"bias must be ({weight.shape[0]},) of dtype {weight.dtype}, got {describe(bias)}")
+                         f"({f.dtype}, {f.device})")
+    if not f.is_floating_point():
+        raise ValueError(f"features must be floating point, got {describe(f)}")
+    cout = weight.shape[0]
+    if bias is not None and (bias.shape != (cout,) or bias.dtype != weight.dtype):
+        raise ValueError(f"bias must be ({cout},) of dtype {weight.dtype}, got {describe(bias)}")
     for name, t in (("scale", scale), ("shift", shift)):
-        if t is not None and (not isinstance(t, Tensor) or t.shape != (weight.shape[0],) or t.dtype != torch.float32
+        if t is not None and (not isinstance(t, Tensor) or t.shape != (cout,) or t.dtype != torch.float32
                               or t.device != weight.device):
-            raise ValueError(f"{name} must be a float32 ({weight.shape[0]},) tensor on {weight.device}, "
-                             f"got {describe(t)}")
+            raise ValueError(f"{name} must be a float32 ({cout},) tensor on {weight.device}, got {describe(t)}")
     epilogue = scale is not None or shift is not None or bool(relu)
-    extension.check_device(x.features, "features")
+    extension.check_device(f, "features")
     ksize = tuple(weight.shape[1:-1])
-    cout, K = weight.shape[0], math.prod(ksize)
+    K = math.prod(ksize)
     w = weight.reshape(cout, K, cin)
     if kind == "subm" and K == 1:
         # every site is its own only neighbour: a matrix product, no kernel map needed (and none checks the
         # sites, so they are checked here, once per indices tensor)
         check_sites(x)
-        out = x.features.matmul(w[:, 0, :].t())
+        out = f.matmul(w[:, 0, :].t())
         out = out + bias if bias is not None else out
         return x.replace_feature(_affine_torch(out, scale, shift, relu) if epilogue else out)
     km, cache = _kernel_map_for(x, kind, ksize, stride, padding, dilation, output_padding, indice_key,
                                 out_spatial_shape, method)
-    grad = torch.is_grad_enabled() and (x.features.requires_grad or w.requires_grad
+    grad = torch.is_grad_enabled() and (f.requires_grad or w.requires_grad
                                         or (bias is not None and bias.requires_grad))
     compiling = _compiling()
     order = km.order if compiling else km.layer_order()
-    if grad or compiling or (epilogue and x.features.dtype == torch.float64):  # float64: the float32
-        out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, order, algo)  # epilogue would round
+    if grad or compiling or (epilogue and f.dtype == torch.float64):  # float64: the float32 epilogue would round
+        out = torch.ops.lidarops.sparse_conv(f, w, km.neighbors, order, algo)
         if bias is not None:
             out = out + bias
         if epilogue:
@@ -599,10 +602,10 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
                 if bias is not None:  # (conv + bias) * scale + shift
                     b = bias.float() if scale is None else bias.float() * scale
                     shift = b if shift is None else shift + b
-                out = torch.ops.lidarops.sparse_conv_affine(x.features, w, km.neighbors, order, scale, shift,
-                                                            bool(relu), algo)
+                out = torch.ops.lidarops.sparse_conv_affine(f, w, km.neighbors, order, scale, shift, bool(relu),
+                                                            algo)
             else:
-                out = torch.ops.lidarops.sparse_conv(x.features, w, km.neighbors, order, algo)
+                out = torch.ops.lidarops.sparse_conv(f, w, km.neighbors, order, algo)
                 if bias is not None:
                     out = out + bias
     return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)

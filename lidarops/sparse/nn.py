@@ -145,9 +145,9 @@ class SparseConvolution(SparseModule):
         if x.features.shape[1] != self.in_channels:
             raise ValueError(f"{type(self).__name__} expects {self.in_channels} input channels, got features "
                              f"{tuple(x.features.shape)}")
-        return Fs.conv(x, self.weight, self.bias if with_bias else None, self.kind, self.stride, self.padding,
-                       self.dilation, self.output_padding, self.indice_key, self._out_spatial_shape(x), self.method,
-                       scale=scale, shift=shift, relu=relu, algo=self.algo)
+        return Fs.conv(x, _param(self, "weight"), _param(self, "bias") if with_bias else None, self.kind, self.stride,
+                       self.padding, self.dilation, self.output_padding, self.indice_key, self._out_spatial_shape(x),
+                       self.method, scale=scale, shift=shift, relu=relu, algo=self.algo)
 
 
 def _subm(ndim):
@@ -310,7 +310,8 @@ class SparseSequential(SparseModule):
             if isinstance(module, SparseConvolution) and isinstance(x, SparseConvTensor):
                 fused = _fusable(modules, i - 1, x)
                 if fused:  # conv -> BatchNorm (eval) [-> ReLU] in one kernel
-                    scale, shift = Fs.norm_affine(modules[i], module.bias)  # the bias folded into shift
+                    # the bias folded into shift (read from the dict, not through nn.Module.__getattr__)
+                    scale, shift = Fs.norm_affine(modules[i], _param(module, "bias"))
                     x = module._conv(x, scale, shift, fused == 3, with_bias=False)
                     i += fused - 1
                     continue
@@ -331,16 +332,28 @@ def _fusable(modules: list, i: int, x: SparseConvTensor) -> int:
     after it, BatchNorm in training mode or without running statistics, gradients needed, float64
     features, spconv's kernel-size-1 shortcut, or inside torch.compile)."""
     conv = modules[i]
-    if i + 1 >= len(modules) or getattr(conv, "conv1x1", False):
+    # the modules' dicts, not getattr (a missing attribute goes through nn.Module.__getattr__ and an exception)
+    if i + 1 >= len(modules) or conv.__dict__.get("conv1x1", False):
         return 0
     bn = modules[i + 1]
-    if not Fs.fusable_norm(x, bn, conv.weight, conv.bias):
+    if not Fs.fusable_norm(x, bn, _param(conv, "weight"), _param(conv, "bias")):
         return 0
     relu = i + 2 < len(modules) and type(modules[i + 2]) in (nn.ReLU, SparseReLU)
     hooked = modules[i:i + 3 if relu else i + 2]
     if any(m._forward_hooks or m._forward_pre_hooks for m in hooked) or _global_hooks():
         return 0  # the fused path does not call these modules, so their hooks would not run
     return 3 if relu else 2
+
+
+_MISSING = object()
+
+
+def _param(module: nn.Module, name: str):
+    """``module.<name>`` read from its parameter dict when it is there (a parameter, or None for no bias): the
+    attribute goes through ``nn.Module.__getattr__``, host time on every layer; a parametrized weight is not in
+    the dict and is read as an attribute."""
+    p = module._parameters.get(name, _MISSING)
+    return getattr(module, name) if p is _MISSING else p
 
 
 def _global_hooks() -> bool:

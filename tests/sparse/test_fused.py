@@ -233,3 +233,35 @@ def test_pointpillars_sparse_backbone_fused_equals_unfused(device):
         changed = bb(x)
     torch.testing.assert_close(changed, bb(x).detach(), rtol=1e-5, atol=1e-5)
     assert not torch.allclose(changed, got)
+
+
+def test_fused_layers_with_a_parametrized_weight():
+    """A layer whose weight is a parametrization (not in its parameter dict) is read as an attribute: fused or
+    alone, the result is that of the parametrized weight."""
+    import torch.nn.utils.parametrize as P
+
+    from lidarops.sparse import nn as snn
+    from helpers.sparse import random_tensor
+
+    class Double(torch.nn.Module):
+        def forward(self, w):
+            return 2 * w
+
+    torch.manual_seed(0)
+    x = random_tensor(1, (9, 11), 25, 4, seed=3, device="cpu").replace_feature(torch.randn(25, 4))
+    conv = snn.SubMConv2d(4, 5, 3, bias=True, indice_key="p")
+    bn = torch.nn.BatchNorm1d(5).eval()
+    bn.running_mean.uniform_(-1, 1)
+    bn.running_var.uniform_(0.5, 2)
+    plain = snn.SubMConv2d(4, 5, 3, bias=True, indice_key="p")
+    with torch.no_grad():
+        plain.weight.copy_(2 * conv.weight)
+        plain.bias.copy_(conv.bias)
+    P.register_parametrization(conv, "weight", Double())
+    assert "weight" not in conv._parameters
+    with torch.no_grad():
+        want = torch.relu(bn(plain(x).features))
+        got = snn.SparseSequential(conv, bn, torch.nn.ReLU())(x).features
+        alone = conv(x).features
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(alone, plain(x).features, rtol=1e-6, atol=1e-6)
