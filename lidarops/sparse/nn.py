@@ -332,8 +332,9 @@ def _fusable(modules: list, i: int, x: SparseConvTensor) -> int:
     after it, BatchNorm in training mode or without running statistics, gradients needed, float64
     features, spconv's kernel-size-1 shortcut, or inside torch.compile)."""
     conv = modules[i]
-    # the modules' dicts, not getattr (a missing attribute goes through nn.Module.__getattr__ and an exception)
-    if i + 1 >= len(modules) or conv.__dict__.get("conv1x1", False):
+    # the instance's and the class's dicts, not getattr (a missing attribute goes through nn.Module.__getattr__
+    # and an exception)
+    if i + 1 >= len(modules) or conv.__dict__.get("conv1x1", getattr(type(conv), "conv1x1", False)):
         return 0
     bn = modules[i + 1]
     if not Fs.fusable_norm(x, bn, _param(conv, "weight"), _param(conv, "bias")):
