@@ -53,7 +53,8 @@ import lidarops.compat.spconv as lspconv
 from lidarops.sparse import SparseConvTensor
 from lidarops.sparse import functional as Fs
 
-from benchmarks.common import env_meta, fmt_ms, fmt_ratio, print_table, short_status, time_call, write_results
+from benchmarks.common import (env_meta, fmt_ms, fmt_ratio, print_table, short_status, time_call, time_interleaved,
+                               write_results)
 
 ops = torch.ops.lidarops
 
@@ -261,6 +262,21 @@ def _try(fn, args, device, **kw):
         return _error(e)
 
 
+def _try_interleaved(calls, device, **kw) -> list:
+    """:func:`_try` for implementations timed side by side (``benchmarks.common.time_interleaved``): a Timing or a
+    status string each; ``None`` for an implementation not there (its call None)."""
+    present = [i for i, c in enumerate(calls) if c is not None]
+    out: list = [None] * len(calls)
+    for i, t in zip(present, time_interleaved([calls[i] for i in present], device, **kw)):
+        if isinstance(t, torch.cuda.OutOfMemoryError):
+            torch.cuda.empty_cache()
+            t = "skipped (memory: out of memory)"
+        elif isinstance(t, BaseException):
+            t = _error(t)
+        out[i] = t
+    return out
+
+
 def _cell(t) -> str:
     """Table cell: the median, the short status, or "-" for a measurement not taken."""
     if isinstance(t, str):
@@ -453,13 +469,25 @@ def down_path(net):
     return run
 
 
+def _on_new_sites(net, ns, checks: bool, idx, shape, feats) -> tuple:
+    """``(call, args)``: ``net`` on a new SparseConvTensor over a new copy of ``idx`` (a new frame), with the value
+    checks on or off."""
+    from lidarops.ops.validation import validation
+
+    def call(f):
+        with validation(checks):
+            return net(ns.SparseConvTensor(f, idx.clone(), list(shape), 1))
+    return call, (feats,)
+
+
 def bench_eager(device, modes, quick, rows_out):
     """What users see: every call starts from a new ``SparseConvTensor`` on a new copy of the indices (no
     ``indice_dict``, sites never seen: a new frame), so each call builds and checks its kernel maps. One SubM
     3x3 64 -> 64 layer module, and the 16-layer down path of the Sparse-PointPillars backbone, lidarops
     (its default, which checks a new frame's sites once: one host synchronisation, and under
-    ``lidarops.validation(False)``) against spconv (which checks nothing). The copy is in every column."""
-    from lidarops.ops.validation import validation
+    ``lidarops.validation(False)``) against spconv (which checks nothing). The copy is in every column. The three
+    columns' calls are interleaved (``benchmarks.common.time_interleaved``), so that their ratios compare calls
+    made side by side."""
     sp = _spconv() if torch.device(device).type == "cuda" else None
     grids = {"drone": GRIDS["drone"]} if quick else GRIDS
     table = []
@@ -469,31 +497,30 @@ def bench_eager(device, modes, quick, rows_out):
         for mode in modes:
             with precision(mode) as dtype, torch.no_grad():
                 feats = torch.randn(idx.shape[0], 64, device=device, dtype=dtype)
-                cells = {}
-                for impl, ns, checks in (("lidarops", lspconv, True), ("lidarops_unchecked", lspconv, False),
-                                         ("spconv", sp, True)):
-                    if ns is None:
-                        cells[impl] = (None, None)
-                        continue
-                    try:
-                        layer = ns.SubMConv2d(64, 64, 3, padding=1, bias=False, indice_key="k")
-                        layer = layer.to(device=device, dtype=dtype).eval()
-                        down = down_path(sparse_pointpillars(ns).to(device=device, dtype=dtype).eval())
-                        with validation(checks):
-                            t_layer = _try(lambda f: layer(ns.SparseConvTensor(f, idx.clone(), list(shape), 1)),
-                                           (feats,), device)
-                            t_down = _try(lambda f: down(ns.SparseConvTensor(f, idx.clone(), list(shape), 1)),
-                                          (feats,), device)
-                    except Exception as e:  # noqa: BLE001  (reported in the row)
-                        t_layer = t_down = _error(e)
-                    cells[impl] = (t_layer, t_down)
+                # the three implementations' calls interleaved: their ratios compare calls made side by side
+                impls = (("lidarops", lspconv, True), ("lidarops_unchecked", lspconv, False), ("spconv", sp, True))
+                layers, downs, failed = [], [], {}
+                for impl, ns, checks in impls:
+                    layer = down = None
+                    if ns is not None:
+                        try:
+                            layer = ns.SubMConv2d(64, 64, 3, padding=1, bias=False, indice_key="k")
+                            layer = layer.to(device=device, dtype=dtype).eval()
+                            down = down_path(sparse_pointpillars(ns).to(device=device, dtype=dtype).eval())
+                        except Exception as e:  # noqa: BLE001  (reported in the row)
+                            failed[impl], layer, down = _error(e), None, None
+                    layers.append(None if layer is None else _on_new_sites(layer, ns, checks, idx, shape, feats))
+                    downs.append(None if down is None else _on_new_sites(down, ns, checks, idx, shape, feats))
+                t_layers, t_downs = _try_interleaved(layers, device), _try_interleaved(downs, device)
+                cells = {impl: (failed.get(impl) or t_layers[j], failed.get(impl) or t_downs[j])
+                         for j, (impl, _, _) in enumerate(impls)}
                 (l_ours, d_ours), (l_off, d_off), (l_sp, d_sp) = (cells["lidarops"], cells["lidarops_unchecked"],
                                                                   cells["spconv"])
                 table.append([gname, idx.shape[0], mode, _cell(l_ours), _cell(l_off), _cell(l_sp),
                               _ratio(l_sp, l_ours), _cell(d_ours), _cell(d_off), _cell(d_sp), _ratio(d_sp, d_ours)])
                 rows_out.append({"section": "eager", "op": f"eager/{gname}/{mode}", "grid": gname,
                                  "sites": int(idx.shape[0]), "precision": mode, "channels": 64,
-                                 "indices": "a new copy per call",
+                                 "indices": "a new copy per call", "timing": "the columns' calls interleaved",
                                  "subm_with_map": {"lidarops": _row(l_ours), "lidarops_validation_off": _row(l_off),
                                                    "spconv": _row(l_sp)},
                                  "down_path_16_layers": {"lidarops": _row(d_ours),

@@ -210,6 +210,85 @@ def time_cpu_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]
     return out
 
 
+class _CudaClock:
+    """CUDA events and a device synchronisation (what :func:`time_cuda_interleaved` times with)."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+
+    def event(self):
+        return torch.cuda.Event(enable_timing=True)
+
+    def sync(self) -> None:
+        torch.cuda.synchronize(self.device)
+
+
+def time_cuda_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]]], *, warmup: int = 3,
+                          min_runs: int = 10, max_runs: int = 200, budget_s: float = 0.3, slow_single_s: float = 2.0,
+                          clock: Any = None) -> list[Timing | BaseException]:
+    """:func:`time_cuda` for several implementations of one case, their calls interleaved (A, B, C, A, B, C, ...),
+    as :func:`time_cpu_interleaved` on the CPU: a ratio between two columns then compares calls made side by side,
+    not two windows of a machine whose speed drifts. Each gets an untimed cold call and ``warmup`` timed warm-up
+    calls, whose mean (over the implementations) sets the common run count, ``clamp(budget_s / mean,
+    min_runs, max_runs)``; one slower than ``slow_single_s`` counts its warm-up alone. A call that raises gives
+    its exception in place of a Timing. ``clock`` (tests): ``event()`` and ``sync()``, CUDA's by default."""
+    clock = clock or _CudaClock(next((a.device for _, args in calls for a in args
+                                      if isinstance(a, torch.Tensor) and a.is_cuda), torch.device("cuda")))
+    out: list[Timing | BaseException] = [Timing() for _ in calls]
+    warm: dict[int, float] = {}
+    for i, (fn, args) in enumerate(calls):
+        try:
+            clock.sync()
+            fn(*args)  # cold: not timed
+            clock.sync()
+            t0 = time.perf_counter()
+            for _ in range(max(warmup, 1)):
+                fn(*args)
+            clock.sync()
+        except Exception as e:  # noqa: BLE001  (reported by the caller)
+            out[i] = e
+            continue
+        per_call = (time.perf_counter() - t0) / max(warmup, 1)
+        if per_call >= slow_single_s:
+            out[i].times_ms.append(per_call * 1e3)
+        else:
+            warm[i] = per_call
+    if not warm:
+        return out
+    runs = _run_count(sum(warm.values()) / len(warm), min_runs, max_runs, budget_s)
+    marks: dict[int, list] = {i: [] for i in warm}
+    for _ in range(runs):
+        for i in warm:
+            if not isinstance(out[i], Timing):
+                continue
+            fn, args = calls[i]
+            start, end = clock.event(), clock.event()
+            try:
+                start.record()
+                fn(*args)
+                end.record()
+            except Exception as e:  # noqa: BLE001  (a call that fails later: reported in its place)
+                out[i] = e
+                continue
+            marks[i].append((start, end))
+    clock.sync()
+    for i, pairs in marks.items():
+        if isinstance(out[i], Timing):
+            out[i].times_ms.extend(start.elapsed_time(end) for start, end in pairs)
+    return out
+
+
+def time_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]]], device: torch.device,
+                     **kw) -> list[Timing | BaseException]:
+    """:func:`time_cuda_interleaved` for CUDA, :func:`time_cpu_interleaved` otherwise (keyword options passed
+    through)."""
+    if torch.device(device).type == "cuda":
+        return time_cuda_interleaved(calls, **{k: v for k, v in kw.items()
+                                               if k in ("warmup", "min_runs", "max_runs", "budget_s", "slow_single_s")})
+    return time_cpu_interleaved(calls, **{k: v for k, v in kw.items()
+                                          if k in ("min_runs", "max_runs", "budget_s", "slow_single_s")})
+
+
 def time_call(fn: Callable[..., Any], args: Sequence[Any], device: torch.device, **kw) -> Timing:
     """:func:`time_cuda` for CUDA, :func:`time_cpu` otherwise (keyword options passed through)."""
     if torch.device(device).type == "cuda":

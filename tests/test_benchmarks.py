@@ -394,3 +394,90 @@ def test_kernel_totals_leave_out_the_ranges_gpu_annotations():
     events = [event("backbone", "CPU", 900.0, annotation=True), event("backbone", "CUDA", 800.0, annotation=True),
               event("conv_kernel", "CUDA", 300.0), event("conv_kernel", "CUDA", 100.0), event("aten::mm", "CPU", 50.0)]
     assert kernel_totals(events, calls=2) == [("conv_kernel", 200.0, 1.0)]
+
+
+class _FakeClock:
+    """Events stamped by a counter of calls made so far: a call's "time" is how many calls it made."""
+
+    def __init__(self):
+        self.now, self.syncs = 0, 0
+
+    def event(self):
+        clock = self
+
+        class Event:
+            def record(self):
+                self.t = clock.now
+
+            def elapsed_time(self, end):
+                return float(end.t - self.t)
+
+        return Event()
+
+    def sync(self):
+        self.syncs += 1
+
+
+def test_time_cuda_interleaved_takes_turns_and_reports_errors():
+    """The implementations' timed calls alternate (A, B, A, B, ...), each gets the same runs, an event pair
+    brackets each call alone, and a failing implementation reports its exception in its place."""
+    clock = _FakeClock()
+    order = []
+
+    def impl(name, cost):
+        def fn():
+            order.append(name)
+            clock.now += cost
+        return fn
+
+    def boom():
+        raise RuntimeError("no kernel for this")
+
+    calls = [(impl("a", 1), ()), (boom, ()), (impl("c", 3), ())]
+    out = common.time_cuda_interleaved(calls, warmup=2, min_runs=4, max_runs=4, budget_s=1e-9, clock=clock)
+    assert isinstance(out[1], RuntimeError)
+    a, c = out[0], out[2]
+    assert a.runs == c.runs == 4 and a.times_ms == [1.0] * 4 and c.times_ms == [3.0] * 4
+    # each: a cold call and 2 warm-up calls, in turn; then the timed calls alternate
+    assert order[:6] == ["a"] * 3 + ["c"] * 3 and order[6:] == ["a", "c"] * 4, order
+
+
+def test_time_cuda_interleaved_fails_mid_run_in_place():
+    clock = _FakeClock()
+    n = {"calls": 0}
+
+    def flaky():
+        n["calls"] += 1
+        clock.now += 1
+        if n["calls"] == 6:  # cold, 2 warm-up, then the third timed call fails
+            raise ValueError("late failure")
+
+    out = common.time_cuda_interleaved([(flaky, ()), (lambda: None, ())], warmup=2, min_runs=5, max_runs=5,
+                                       budget_s=1e-9, clock=clock)
+    assert isinstance(out[0], ValueError) and isinstance(out[1], common.Timing) and out[1].runs == 5
+    assert n["calls"] == 6  # not called again after it failed
+
+
+def test_bm_sparse_interleaved_cells_keep_missing_and_report_errors():
+    from benchmarks import bm_sparse
+
+    def boom():
+        raise RuntimeError("spconv: no such layer\nmore")
+
+    out = bm_sparse._try_interleaved([(lambda: None, ()), None, (boom, ())], "cpu", min_runs=3, max_runs=3,
+                                     budget_s=1e-9)
+    assert isinstance(out[0], common.Timing) and out[0].runs == 3
+    assert out[1] is None and bm_sparse._cell(out[1]) == "-"
+    assert out[2] == "error: RuntimeError: spconv: no such layer"
+
+
+def test_bm_sparse_eager_section_on_cpu(capsys):
+    """The eager section end to end on the CPU (no spconv there: its column is "-"), rows with the timing."""
+    from benchmarks import bm_sparse
+
+    rows = []
+    bm_sparse.bench_eager("cpu", ("fp32",), True, rows)
+    (row,) = rows
+    assert row["timing"] == "the columns' calls interleaved" and row["subm_with_map"]["spconv"] is None
+    assert row["subm_with_map"]["lidarops"]["median_ms"] > 0 and row["down_path_16_layers"]["lidarops"]["median_ms"] > 0
+    assert "drone" in capsys.readouterr().out
