@@ -14,6 +14,7 @@ import math
 import os
 import random
 import socket
+import sys
 import time
 
 import numpy as np
@@ -557,6 +558,12 @@ def _ddp_worker(rank: int, world: int, port: int, out_dir: str) -> None:
     with open(os.path.join(out_dir, f"result_{rank}.json"), "w") as f:
         json.dump({"world_size": result.world_size, "fps": result.frames_per_s, "fps_total": result.frames_per_s_total,
                    "metrics": result.metrics, "global_step": result.global_step}, f)
+    # Under CPU load a gloo rank sometimes aborts in the interpreter's teardown, after fit has left its process
+    # group ("terminate called without an active exception"; docs/train.md): not what this test checks,
+    # so the worker leaves without the teardown once its results are written (an error above still fails the run).
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 @pytest.fixture(scope="module")
