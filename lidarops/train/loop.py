@@ -9,6 +9,7 @@ no step is lost or taken twice relative to that checkpoint.
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import os
 import random
@@ -481,7 +482,7 @@ def fit(model: nn.Module, train_dataset: Dataset, collate_fn: Callable | None, c
         raise FileExistsError(f"{out} already holds a run (latest.pth): pass resume=True to continue it, "
                               f"or choose another out_dir")
     ctx = DistContext.from_env(config.device)
-    log = None
+    log = run = None
     try:
         if ctx.is_main:
             out.mkdir(parents=True, exist_ok=True)
@@ -525,4 +526,10 @@ def fit(model: nn.Module, train_dataset: Dataset, collate_fn: Callable | None, c
     finally:
         if log is not None:
             log.close()
+        if run is not None:
+            # DDP's reducer holds the process group: dropped here, the group goes when close() destroys it (after
+            # its barrier) instead of in some later garbage collection or Python's exit, where a gloo rank can
+            # abort while its peer tears down
+            run.ddp_model = run.module
+            gc.collect()
         ctx.close()
