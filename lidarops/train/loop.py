@@ -526,7 +526,7 @@ def fit(model: nn.Module, train_dataset: Dataset, collate_fn: Callable | None, c
     finally:
         if log is not None:
             log.close()
-        if run is not None:
+        if run is not None and ctx.distributed:
             # DDP's reducer holds the process group: dropped here, the group goes when close() destroys it (after
             # its barrier) instead of in some later garbage collection or Python's exit, where a gloo rank can
             # abort while its peer tears down
