@@ -203,15 +203,17 @@ def _nms_args(boxes, scores, iou_threshold, idxs=None) -> float:
     return float(iou_threshold)
 
 
-def _nms_value_messages(boxes, scores) -> list:
+def _nms_value_messages(boxes, scores, name: str = "boxes") -> list:
     """The messages of NMS' value checks, in the order of nms_bev_checked's status[1:] and check_values'."""
-    nonfinite, out_of_range = _box_messages(boxes, "boxes")
+    nonfinite, out_of_range = _box_messages(boxes, name)
     return [nonfinite, lambda: f"scores contains NaN or infinite values ({describe(scores)})", out_of_range]
 
 
-def _check_nms_values(boxes, scores) -> None:
+def _check_nms_values(boxes, scores, name: str = "boxes") -> None:
+    """``boxes (N, 7)`` finite and in the supported range, ``scores`` finite (one host read); ``name`` is what
+    the messages call the boxes."""
     if value_checks_enabled():
-        messages = _nms_value_messages(boxes, scores)
+        messages = _nms_value_messages(boxes, scores, name)
         check_values(finite=[(boxes, messages[0]), (scores, messages[1])],
                      extra=[(_box_out_of_range(boxes).any(), messages[2])])
 
@@ -306,14 +308,11 @@ def nms_bev_frames(boxes: Tensor, scores: Tensor, iou_threshold: float, pre_max:
     if scores.device != boxes.device:
         raise ValueError(f"scores is on {scores.device} but boxes is on {boxes.device}")
     extension.check_device(boxes, "boxes")
-    threshold = _nms_args(boxes.reshape(-1, 7), scores.reshape(-1), iou_threshold)
+    flat = boxes.reshape(-1, 7)
+    threshold = _nms_args(flat, scores.reshape(-1), iou_threshold)
     pre, post = _optional_count(pre_max, "pre_max"), _optional_count(post_max, "post_max")
-    if value_checks_enabled() and boxes.numel():
-        flat = boxes.reshape(-1, 7)
-        nonfinite, out_of_range = _box_messages(flat, "boxes (as (B * N, 7))")
-        check_values(finite=[(flat, nonfinite), (scores, lambda: f"scores contains NaN or infinite values "
-                                                                  f"({describe(scores)})")],
-                     extra=[(_box_out_of_range(flat).any(), out_of_range)])
+    if boxes.numel():
+        _check_nms_values(flat, scores, "boxes (as (B * N, 7))")
     return torch.ops.lidarops.nms_bev_padded_batched(boxes, scores, threshold, _score_threshold(score_threshold),
                                                      pre, post)
 
