@@ -23,8 +23,10 @@ Sections (times are medians in ms; the JSON has IQRs and run counts):
   16-layer down path of Sparse-PointPillars, against spconv; lidarops also under ``validation(False)``.
 * ``pillars``: PointPillars' backbone made sparse (strided sparse conv at the start of each block,
   then 3/5/5 submanifold convs, channels 64/128/256, transposed upsampling x1/x2/x4 to 128 channels,
-  dense concatenation), eval mode, on the KITTI grid: full forward (kernel maps built) and forward
-  with maps cached; against the dense PointPillars backbone (cuDNN) and spconv.
+  dense concatenation), eval mode, on the KITTI grid: full forward (kernel maps built), forward
+  with maps cached, that forward's kernels replayed as a CUDA graph, and ``GraphedSparseNet`` called as
+  users write it (a new ``SparseConvTensor`` on the same indices each call, a copy of the output);
+  against the dense PointPillars backbone (cuDNN) and spconv.
 * ``voxel``: SECOND's VoxelBackBone8x on a 41 x 1600 x 1408 grid with 40k and 120k voxels of a
   LiDAR-like scan (ground rings and car surfaces, voxelised), full forward, against spconv (the dense
   3D grid does not fit: no cuDNN column).
@@ -50,7 +52,7 @@ import torch.nn.functional as F
 from torch import nn
 
 import lidarops.compat.spconv as lspconv
-from lidarops.sparse import SparseConvTensor
+from lidarops.sparse import GraphedSparseNet, SparseConvTensor
 from lidarops.sparse import functional as Fs
 
 from benchmarks.common import (env_meta, fmt_ms, fmt_ratio, print_table, short_status, time_call, time_interleaved,
@@ -414,6 +416,12 @@ def bench_pillars(device, modes, quick, rows_out):
             t_full = _try(net, (x,), device)
             t_cached = _try(lambda f: net(cached.replace_feature(f)), (feats,), device)
             t_graph = _graphed(net, cached, feats) if torch.device(device).type == "cuda" else None
+            # the user's call: a new SparseConvTensor on the same indices each frame, replayed with a copy of the
+            # output (GraphedSparseNet's default)
+            graphed = GraphedSparseNet(net)
+            t_user = _try(lambda f: graphed(SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
+            if graphed.reason is not None:
+                print(f"  (GraphedSparseNet runs eagerly: {graphed.reason})")
             dnet = dense_pointpillars().to(device=device, dtype=dtype).eval()
             t_dense = _try(dnet, (x.dense(),), device)
             t_sp = None
@@ -423,18 +431,19 @@ def bench_pillars(device, modes, quick, rows_out):
                     t_sp = _try(lambda f: snet(sp.SparseConvTensor(f, idx, list(shape), 1)), (feats,), device)
                 except Exception as e:  # noqa: BLE001  (reported in the row)
                     t_sp = _error(e)
-            table.append([mode, idx.shape[0], _cell(t_full), _cell(t_cached), _cell(t_graph),
+            table.append([mode, idx.shape[0], _cell(t_full), _cell(t_cached), _cell(t_graph), _cell(t_user),
                           _cell(t_dense), _ratio(t_dense, t_full), _cell(t_sp), _ratio(t_sp, t_full)])
             rows_out.append({"section": "pillars", "op": f"pillars/{mode}", "precision": mode,
                              "sites": int(idx.shape[0]), "grid": list(shape),
                              "lidarops_full": _row(t_full),
                              "lidarops_cached_maps": _row(t_cached),
                              "lidarops_cached_maps_cuda_graph": _row(t_graph),
+                             "lidarops_graphed_sparse_net": _row(t_user),
                              "dense_cudnn": _row(t_dense),
                              "spconv": _row(t_sp)})
     print_table(f"Sparse-PointPillars backbone, grid {shape[0]} x {shape[1]} ({device})",
-                ["prec", "pillars", "lidarops", "maps cached", "+ CUDA graph", "dense", "dense/ours", "spconv",
-                 "spconv/ours"], table, right=(1, 2, 3, 4, 5, 6, 7, 8))
+                ["prec", "pillars", "lidarops", "maps cached", "+ CUDA graph", "GraphedSparseNet", "dense",
+                 "dense/ours", "spconv", "spconv/ours"], table, right=(1, 2, 3, 4, 5, 6, 7, 8, 9))
     _report_errors(rows_out[first:])
 
 

@@ -176,15 +176,15 @@ class BaseBEVBackbone(nn.Module):
         layers = backbone_layers(self)
         block_out = {}
         for layer in layers:
-            if layer.kind == "down":
-                x = _conv_norm_relu(x, layer, "conv", stride=layer.stride, padding=1)
+            if layer.kind == "down":  # every map under a key: GraphedSparseNet can record the forward
+                x = _conv_norm_relu(x, layer, "conv", stride=layer.stride, padding=1, indice_key=f"down{layer.block}")
             elif layer.kind == "subm":
                 x = _conv_norm_relu(x, layer, "subm", indice_key=f"subm{layer.block}")
             else:
                 break
             block_out[layer.block] = x
-        ups = [_conv_norm_relu(block_out[layer.block], layer, "transposed", stride=layer.stride)
-               for layer in layers if layer.kind == "up"]
+        ups = [_conv_norm_relu(block_out[layer.block], layer, "transposed", stride=layer.stride,
+                               indice_key=f"up{layer.block}") for layer in layers if layer.kind == "up"]
         # one zero map in channels_last memory, each branch's rows written into its channel slice: no
         # per-branch dense map, transposing copy or concatenation (they were most of the CPU time)
         H, W = ups[0].spatial_shape

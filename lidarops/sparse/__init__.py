@@ -12,6 +12,7 @@
   cache ``indice_dict``.
 - :mod:`lidarops.sparse.functional`: kernel maps (``conv_out_indices``, ``kernel_map``,
   ``build_kernel_map``), ``sparse_conv`` (gather-GEMM-scatter over a map), ``conv``, ``max_pool``.
+- :class:`GraphedSparseNet`: a sparse network replayed as one CUDA graph while its sites stay the same.
 - :mod:`lidarops.sparse.nn`: ``SubMConv2d/3d``, ``SparseConv2d/3d``, ``SparseConvTranspose2d/3d``,
   ``SparseInverseConv2d/3d``, ``SparseMaxPool2d/3d``, ``SparseSequential``, ``ToDense``.
 
@@ -20,6 +21,7 @@ Weights are ``[Cout, *kernel, Cin]`` (spconv 2.x). The drop-in face for spconv c
 """
 from lidarops.sparse import functional, nn
 from lidarops.sparse.functional import build_kernel_map, conv, kernel_map, max_pool, sparse_conv
+from lidarops.sparse.graph import GraphedSparseNet
 from lidarops.sparse.nn import (SparseConv2d, SparseConv3d, SparseConvTranspose2d, SparseConvTranspose3d,
                                 SparseInverseConv2d, SparseInverseConv3d, SparseMaxPool2d, SparseMaxPool3d,
                                 SparseModule, SparseSequential, SubMConv2d, SubMConv3d, ToDense)
@@ -29,5 +31,5 @@ __all__ = [
     "SparseConvTensor", "KernelMap", "functional", "nn", "build_kernel_map", "kernel_map", "conv", "max_pool",
     "sparse_conv", "SubMConv2d", "SubMConv3d", "SparseConv2d", "SparseConv3d", "SparseConvTranspose2d",
     "SparseConvTranspose3d", "SparseInverseConv2d", "SparseInverseConv3d", "SparseMaxPool2d", "SparseMaxPool3d",
-    "SparseModule", "SparseSequential", "ToDense",
+    "SparseModule", "SparseSequential", "ToDense", "GraphedSparseNet",
 ]

@@ -16,6 +16,7 @@ with ``w' = w.permute(0, D + 1, 1, ..., D)`` (``[Cout, Cin, *k]``) and ``w'' = w
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import weakref
 from typing import Optional, Sequence
@@ -344,7 +345,27 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
         _site_checks[km] = _MapSites(km)
         cache = dict(cache)
         cache[indice_key] = km
+        for maps in _recorders:
+            if maps.setdefault(indice_key, km) is not km:
+                maps[CONFLICT] = indice_key
     return km, cache
+
+
+# The maps a forward registers, for GraphedSparseNet: one dict holding every layer's map, also where
+# branches fork the indice_dict and the output carries only one branch's (or none: a dense output).
+_recorders: list = []
+CONFLICT = object()  # the key under which a recording notes an indice_key registered twice on other maps
+
+
+@contextlib.contextmanager
+def recording_maps(maps: dict):
+    """Within the block, every kernel map a layer builds and registers under an ``indice_key`` is also put in
+    ``maps`` (the first one per key; a second, different map under the same key sets ``maps[CONFLICT]``)."""
+    _recorders.append(maps)
+    try:
+        yield maps
+    finally:  # by identity: list.remove would drop the first equal dict
+        del _recorders[next(i for i, m in enumerate(_recorders) if m is maps)]
 
 
 # A kernel map cached under an indice_key belongs to the sites it was built on: the same number of

@@ -222,3 +222,40 @@ def _prod(v) -> int:
     for e in v:
         out *= e
     return out
+
+
+@fuzz
+@given(data=st.data())
+def test_graphed_sparse_net_equals_the_network(device, data):
+    """GraphedSparseNet over a sequence of calls on two sets of sites (the same tensors, equal copies, bad sites):
+    every result is the eager network's on a fresh tensor, and bad sites get the network's own error."""
+    from lidarops.sparse import GraphedSparseNet
+    from lidarops.sparse import nn as spnn
+
+    first = data.draw(sparse_sites(D=2, channels=2), "sites")
+    second = data.draw(sparse_sites(D=2, channels=2), "other sites")
+    torch.manual_seed(data.draw(st.integers(0, 3), "weights"))
+    k = data.draw(st.integers(1, 3), "kernel")
+    net = spnn.SparseSequential(
+        spnn.SubMConv2d(2, 3, 3, indice_key="s"), torch.nn.ReLU(),
+        spnn.SparseConv2d(3, 3, k, stride=data.draw(st.integers(1, 2), "stride"), indice_key="d"),
+        spnn.SparseInverseConv2d(3, 2, k, indice_key="d")).double().to(device).eval()
+    g = GraphedSparseNet(net)
+    sets = [(first, first.indices.to(device)), (second, second.indices.to(device))]
+    with torch.no_grad():
+        for call in range(data.draw(st.integers(1, 5), "calls")):
+            s, idx = sets[data.draw(st.integers(0, 1), f"sites of call {call}")]
+            if data.draw(st.booleans(), f"a copy at call {call}"):
+                idx = idx.clone()
+            f = torch.randn(idx.shape[0], 2, dtype=torch.float64, device=device)
+            what = f"call {call}: {tuple(idx.shape)} sites on {s.spatial_shape} x batch {s.batch_size}"
+            res, err = outcome(g, SparseConvTensor(f, idx, s.spatial_shape, s.batch_size))
+            want, want_err = outcome(net, SparseConvTensor(f.clone(), idx.clone(), s.spatial_shape, s.batch_size))
+            if s.indices.shape[0] and not (s.in_range() and s.unique()):
+                assert_clear_error(err, ValueError, ["indices"], what)
+            if want_err is not None:  # bad sites, or a grid too small for the kernel: the network's own error
+                assert type(err) is type(want_err) and str(err) == str(want_err), f"{what}: {err!r} vs {want_err!r}"
+                continue
+            assert_no_error(err, what)
+            assert_same(res.indices.cpu(), want.indices.cpu(), what + " sites")
+            assert_close(res.features.cpu(), want.features.cpu(), rtol=0, atol=1e-12, what=what + " features")

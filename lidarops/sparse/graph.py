@@ -1,0 +1,210 @@
+"""A sparse network replayed as one CUDA graph while its sites stay the same.
+
+An eager sparse forward is bound by the host (Python and a few launches per layer, with the GPU idle a
+quarter of the time); the same forward on cached kernel maps has no host synchronisation, so it can be
+recorded once as a CUDA graph and replayed for new features at the same sites: a stationary sensor's fixed
+grid, a region of interest, the same frame through several heads, the sites of a stream between changes.
+:class:`GraphedSparseNet` does the bookkeeping:
+
+    graphed = GraphedSparseNet(net)      # net: a sparse network in eval mode on a CUDA device
+    with torch.no_grad():
+        y = graphed(x)                   # first sites: eager, records the kernel maps the layers build
+        y = graphed(x2)                  # the same sites again (the same indices, or equal ones): recorded
+        y = graphed(x3)                  # ... and replayed from then on
+        y = graphed(other)               # other sites: eager again, and recorded when they come back
+
+Each call's result equals ``net(x)`` (the same kernels on the same maps). It runs eagerly, and records
+nothing, on CPU, in training mode and where autograd needs the result.
+"""
+from __future__ import annotations
+
+import contextlib
+from typing import Any, Optional
+
+import torch
+from torch import Tensor, nn
+
+from lidarops._cuda_graphs import uncached_autocast
+from lidarops.sparse import functional as Fs
+from lidarops.sparse.tensor import SparseConvTensor
+
+__all__ = ["GraphedSparseNet"]
+
+
+def _versions(tensors: list) -> tuple:
+    """Where each tensor lives and its in-place version: a change means a graph reads stale values (a BatchNorm's
+    folded affine is computed when recorded) or freed memory."""
+    return tuple((t.data_ptr(), None if t.is_inference() else t._version) for t in tensors)
+
+
+def _map_outputs(out, fn):
+    if isinstance(out, SparseConvTensor):
+        return SparseConvTensor._derived(fn(out.features), out.indices, out.spatial_shape, out.batch_size,
+                                         out.indice_dict)
+    if isinstance(out, Tensor):
+        return fn(out)
+    if isinstance(out, (list, tuple)):
+        mapped = [_map_outputs(o, fn) for o in out]
+        return type(out)(*mapped) if hasattr(out, "_fields") else type(out)(mapped)
+    if isinstance(out, dict):
+        return type(out)((k, _map_outputs(v, fn)) for k, v in out.items())
+    return out
+
+
+class GraphedSparseNet:
+    """``net`` on :class:`SparseConvTensor` inputs, replayed as one CUDA graph for sites it has seen twice.
+
+    Args:
+        net (nn.Module): a sparse network taking one ``SparseConvTensor`` (``SparseSequential``, a backbone, any
+            module made of ``lidarops.sparse`` or ``lidarops.compat.spconv`` layers).
+        clone_outputs (bool): return copies of the graph's outputs (default). ``False`` returns the graph's own
+            output tensors, which the next replay overwrites: faster, for callers that use a result before the
+            next call.
+
+    A call on sites not seen before runs ``net`` eagerly, as it would without this class, and remembers the
+    kernel maps its layers register under an ``indice_key``. When the next call has the same sites (the same
+    indices tensor, unchanged in place, or an equal one: one comparison on the device, one host
+    synchronisation), the forward is recorded on those maps (a warm-up and the capture, on a side stream) and
+    replayed; later calls on those sites copy their features into the graph's input and replay. One graph is kept:
+    a call on other sites runs eagerly and becomes the next candidate. A graph is also recorded again when the
+    network's parameters or buffers change (replaced or changed in place), the autocast state or the TF32 flags
+    differ, or the features' dtype or channels do.
+
+    Runs eagerly and records nothing: on CPU; while ``net`` is in training mode; when autograd needs the result
+    (gradients enabled and the features or a parameter requiring them); under ``torch.compile``. A forward that
+    cannot be recorded (a layer without an ``indice_key`` whose map needs a host read, such as a strided
+    convolution, or an ``indice_key`` registered on two different sites by two branches) runs eagerly from then
+    on; :attr:`reason` says why.
+
+    Attributes:
+        replays, captures, eager_calls (int): how the calls ran.
+        reason (str or None): why this network is no longer recorded, if it is not.
+    """
+
+    def __init__(self, net: nn.Module, clone_outputs: bool = True):
+        if not isinstance(net, nn.Module):
+            raise ValueError(f"net must be a torch.nn.Module, got {type(net).__name__}")
+        if not isinstance(clone_outputs, bool):
+            raise ValueError(f"clone_outputs must be True or False, got {clone_outputs!r}")
+        self.net = net
+        self.clone_outputs = clone_outputs
+        self.replays = self.captures = self.eager_calls = 0
+        self.reason: Optional[str] = None
+        self._tensors = [*net.parameters(), *net.buffers()]
+        self._candidate = None  # (sites, maps, key) of the last eager call on sites without a graph
+        self._graph = None      # (sites, key, graph, static features, outputs)
+
+    # ---- what a call is compared by ----------------------------------------------------------------------
+
+    def _key(self, x: SparseConvTensor) -> tuple:
+        f = x.features
+        dev = f.device.type
+        amp = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else None
+        return (f.dtype, f.shape[1], f.device, amp, torch.backends.cuda.matmul.allow_tf32,
+                torch.backends.cudnn.allow_tf32, _versions(self._tensors))
+
+    @staticmethod
+    def _sites(x: SparseConvTensor) -> tuple:
+        i = x.indices
+        return (i, None if i.is_inference() else i._version, tuple(x.spatial_shape), x.batch_size)
+
+    @staticmethod
+    def _same_sites(x: SparseConvTensor, sites: tuple) -> bool:
+        indices, version, shape, batch = sites
+        i = x.indices
+        if tuple(x.spatial_shape) != shape or x.batch_size != batch or i.shape != indices.shape:
+            return False
+        if i is indices and version is not None and i._version == version:
+            return True
+        if version is not None and indices._version != version:  # the recorded tensor changed in place
+            return False
+        return i.device == indices.device and bool(torch.equal(i, indices))
+
+    def _eager_only(self, x: SparseConvTensor) -> bool:
+        if x.features.device.type != "cuda" or self.net.training or torch.compiler.is_compiling():
+            return True
+        return torch.is_grad_enabled() and (x.features.requires_grad
+                                            or any(t.requires_grad for t in self._tensors))
+
+    # ---- calls ----------------------------------------------------------------------------------------
+
+    def __call__(self, x: SparseConvTensor) -> Any:
+        if not isinstance(x, SparseConvTensor):
+            raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
+        if self.reason is not None or self._eager_only(x):
+            self.eager_calls += 1
+            return self.net(x)
+        key = self._key(x)
+        g = self._graph
+        if g is not None and g[1] == key and self._same_sites(x, g[0]):
+            return self._replay(g, x.features)
+        c = self._candidate
+        if c is not None and c[2] == key and self._same_sites(x, c[0]):
+            self._candidate = None
+            self._graph = None  # its memory goes back before the new graph takes its own
+            self._graph = self._record(c[0], c[1], key, x.features)
+            if self._graph is not None:
+                return self._replay(self._graph, x.features)
+        return self._eager(x, key)
+
+    def _eager(self, x: SparseConvTensor, key: tuple) -> Any:
+        self.eager_calls += 1
+        maps: dict = {}
+        with Fs.recording_maps(maps):
+            out = self.net(x)
+        if maps.pop(Fs.CONFLICT, None) is not None:
+            self.reason = ("two layers registered the same indice_key on different sites (branches), so no one "
+                           "indice_dict holds the network's maps")
+            self._candidate = self._graph = None
+        else:
+            self._candidate = (self._sites(x), maps, key)
+        return out
+
+    def _replay(self, g: tuple, features: Tensor) -> Any:
+        _, _, graph, static, outputs = g
+        static.copy_(features)
+        graph.replay()
+        self.replays += 1
+        return _map_outputs(outputs, torch.clone) if self.clone_outputs else outputs
+
+    def _record(self, sites: tuple, maps: dict, key: tuple, features: Tensor):
+        indices, _, shape, batch = sites
+        with torch.inference_mode(False):  # a static input a later call outside inference mode can copy into
+            static = torch.empty_like(features)
+        static.copy_(features)
+        x = SparseConvTensor._derived(static, indices, shape, batch, maps)
+
+        def run():
+            with torch.inference_mode(False), torch.no_grad(), uncached_autocast():
+                return self.net(x)
+
+        try:
+            with torch.cuda.device(static.device):
+                side = torch.cuda.Stream()
+                side.wait_stream(torch.cuda.current_stream())
+                with torch.cuda.stream(side):  # warm-up: row orders made, cuDNN and the allocator settled
+                    run()
+                torch.cuda.current_stream().wait_stream(side)
+                graph = torch.cuda.CUDAGraph()
+                with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+                    outputs = run()
+        except (RuntimeError, ValueError) as e:  # a host read in the forward: it cannot be recorded
+            self.reason = ("the forward cannot be recorded as a CUDA graph (a layer builds a kernel map with a host "
+                           "read each call: give strided, transposed and pooling layers an indice_key): "
+                           + str(e).splitlines()[0])
+            with contextlib.suppress(RuntimeError):
+                torch.cuda.synchronize(static.device)
+            return None
+        self.captures += 1
+        return (sites, key, graph, static, outputs)
+
+    def reset(self) -> None:
+        """Drop the recorded graph and the candidate sites (and the reason, if recording had failed): the next
+        call runs eagerly."""
+        self._graph = self._candidate = None
+        self.reason = None
+
+    def __repr__(self) -> str:
+        state = "eager only: " + self.reason if self.reason else ("graph recorded" if self._graph else "no graph yet")
+        return (f"GraphedSparseNet({type(self.net).__name__}, {state}; replays={self.replays}, "
+                f"captures={self.captures}, eager_calls={self.eager_calls})")
