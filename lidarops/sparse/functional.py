@@ -348,6 +348,9 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
         for maps in _recorders:
             if maps.setdefault(indice_key, km) is not km:
                 maps[CONFLICT] = indice_key
+    elif kind != "subm":  # built again every call, with a host read (its output count)
+        for maps in _recorders:
+            maps.setdefault(UNKEYED, kind)
     return km, cache
 
 
@@ -355,12 +358,14 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
 # branches fork the indice_dict and the output carries only one branch's (or none: a dense output).
 _recorders: list = []
 CONFLICT = object()  # the key under which a recording notes an indice_key registered twice on other maps
+UNKEYED = object()   # ... and a strided, transposed or pooling map built without an indice_key
 
 
 @contextlib.contextmanager
 def recording_maps(maps: dict):
     """Within the block, every kernel map a layer builds and registers under an ``indice_key`` is also put in
-    ``maps`` (the first one per key; a second, different map under the same key sets ``maps[CONFLICT]``)."""
+    ``maps`` (the first one per key; a second, different map under the same key sets ``maps[CONFLICT]``, a
+    strided, transposed or pooling map without a key sets ``maps[UNKEYED]`` to its kind)."""
     _recorders.append(maps)
     try:
         yield maps

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from lidarops._cuda_graphs import uncached_autocast
+from lidarops.ops.validation import validation
 from lidarops.sparse import functional as Fs
 from lidarops.sparse.tensor import SparseConvTensor
 
@@ -66,15 +67,18 @@ class GraphedSparseNet:
     indices tensor, unchanged in place, or an equal one: one comparison on the device, one host
     synchronisation), the forward is recorded on those maps (a warm-up and the capture, on a side stream) and
     replayed; later calls on those sites copy their features into the graph's input and replay. One graph is kept:
-    a call on other sites runs eagerly and becomes the next candidate. A graph is also recorded again when the
-    network's parameters or buffers change (replaced or changed in place), the autocast state or the TF32 flags
-    differ, or the features' dtype or channels do.
+    a call on other sites runs eagerly and becomes the next candidate. A call on the recorded sites records the
+    graph again (on the same maps) when the network's parameters or buffers have changed (replaced or changed in
+    place), or the autocast state, the TF32 flags, the features' dtype or channels differ.
+
+    The graph is recorded with lidarops' value checks off (``lidarops.validation(False)``): the eager call that
+    found the sites checked them, and a check is a host read, which a graph cannot hold.
 
     Runs eagerly and records nothing: on CPU; while ``net`` is in training mode; when autograd needs the result
     (gradients enabled and the features or a parameter requiring them); under ``torch.compile``. A forward that
-    cannot be recorded (a layer without an ``indice_key`` whose map needs a host read, such as a strided
-    convolution, or an ``indice_key`` registered on two different sites by two branches) runs eagerly from then
-    on; :attr:`reason` says why.
+    cannot be recorded runs eagerly from then on, and :attr:`reason` says why: a strided, transposed or pooling
+    layer without an ``indice_key`` (its map is built every call, with a host read), an ``indice_key`` registered on
+    two different sites by two branches, or a host read of the network's own (the capture then fails).
 
     Attributes:
         replays, captures, eager_calls (int): how the calls ran.
@@ -92,7 +96,7 @@ class GraphedSparseNet:
         self.reason: Optional[str] = None
         self._tensors = [*net.parameters(), *net.buffers()]
         self._candidate = None  # (sites, maps, key) of the last eager call on sites without a graph
-        self._graph = None      # (sites, key, graph, static features, outputs)
+        self._graph = None      # (sites, key, graph, static features, outputs, static input with its maps)
 
     # ---- what a call is compared by ----------------------------------------------------------------------
 
@@ -136,7 +140,12 @@ class GraphedSparseNet:
             return self.net(x)
         key = self._key(x)
         g = self._graph
-        if g is not None and g[1] == key and self._same_sites(x, g[0]):
+        if g is not None and self._same_sites(x, g[0]):
+            if g[1] != key:  # the same sites and maps, other weights, precision or dtype: recorded again
+                self._graph = None
+                self._graph = g = self._record(g[0], g[5].indice_dict, key, x.features)
+                if g is None:
+                    return self._eager(x, key)
             return self._replay(g, x.features)
         c = self._candidate
         if c is not None and c[2] == key and self._same_sites(x, c[0]):
@@ -152,16 +161,23 @@ class GraphedSparseNet:
         maps: dict = {}
         with Fs.recording_maps(maps):
             out = self.net(x)
-        if maps.pop(Fs.CONFLICT, None) is not None:
-            self.reason = ("two layers registered the same indice_key on different sites (branches), so no one "
-                           "indice_dict holds the network's maps")
-            self._candidate = self._graph = None
+        conflict, unkeyed = maps.pop(Fs.CONFLICT, None), maps.pop(Fs.UNKEYED, None)
+        if conflict is not None:
+            self._eager_from_now(f"two layers registered indice_key {conflict!r} on different sites (branches), so no "
+                                 "one indice_dict holds the network's maps")
+        elif unkeyed is not None:
+            self._eager_from_now(f"a {unkeyed} layer without an indice_key builds its kernel map every call, with a host "
+                                 "read (its output count): give strided, transposed and pooling layers an indice_key")
         else:
             self._candidate = (self._sites(x), maps, key)
         return out
 
+    def _eager_from_now(self, reason: str) -> None:
+        self.reason = reason
+        self._candidate = self._graph = None
+
     def _replay(self, g: tuple, features: Tensor) -> Any:
-        _, _, graph, static, outputs = g
+        _, _, graph, static, outputs, _ = g
         static.copy_(features)
         graph.replay()
         self.replays += 1
@@ -174,8 +190,9 @@ class GraphedSparseNet:
         static.copy_(features)
         x = SparseConvTensor._derived(static, indices, shape, batch, maps)
 
-        def run():
-            with torch.inference_mode(False), torch.no_grad(), uncached_autocast():
+        def run():  # the sites were checked by the eager call that found them (a check is a host read, which a
+            # capture cannot hold: sites made under inference mode keep no version counter, so dense() would re-check)
+            with torch.inference_mode(False), torch.no_grad(), uncached_autocast(), validation(False):
                 return self.net(x)
 
         try:
@@ -188,15 +205,15 @@ class GraphedSparseNet:
                 graph = torch.cuda.CUDAGraph()
                 with torch.cuda.graph(graph, capture_error_mode="thread_local"):
                     outputs = run()
-        except (RuntimeError, ValueError) as e:  # a host read in the forward: it cannot be recorded
-            self.reason = ("the forward cannot be recorded as a CUDA graph (a layer builds a kernel map with a host "
-                           "read each call: give strided, transposed and pooling layers an indice_key): "
-                           + str(e).splitlines()[0])
+        except (RuntimeError, ValueError) as e:  # a host read in the forward (the network's own): not recordable
+            self._eager_from_now("the forward cannot be recorded as a CUDA graph (it reads from the device, which a "
+                                 "capture forbids): " + str(e).splitlines()[0])
             with contextlib.suppress(RuntimeError):
                 torch.cuda.synchronize(static.device)
             return None
         self.captures += 1
-        return (sites, key, graph, static, outputs)
+        # the maps (and the input holding them) stay alive with the graph: it reads their memory at every replay
+        return (sites, key, graph, static, outputs, x)
 
     def reset(self) -> None:
         """Drop the recorded graph and the candidate sites (and the reason, if recording had failed): the next

@@ -242,7 +242,7 @@ def test_graphed_sparse_net_equals_the_network(device, data):
         spnn.SparseInverseConv2d(3, 2, k, indice_key="d")).double().to(device).eval()
     g = GraphedSparseNet(net)
     sets = [(first, first.indices.to(device)), (second, second.indices.to(device))]
-    with torch.no_grad():
+    with torch.inference_mode() if data.draw(st.booleans(), "inference mode") else torch.no_grad():
         for call in range(data.draw(st.integers(1, 5), "calls")):
             s, idx = sets[data.draw(st.integers(0, 1), f"sites of call {call}")]
             if data.draw(st.booleans(), f"a copy at call {call}"):
@@ -259,3 +259,4 @@ def test_graphed_sparse_net_equals_the_network(device, data):
             assert_no_error(err, what)
             assert_same(res.indices.cpu(), want.indices.cpu(), what + " sites")
             assert_close(res.features.cpu(), want.features.cpu(), rtol=0, atol=1e-12, what=what + " features")
+    assert g.reason is None, g  # every map has an indice_key: the forward can always be recorded
