@@ -24,12 +24,12 @@ from lidarops.sparse.functional import build_kernel_map, conv, kernel_map, max_p
 from lidarops.sparse.graph import GraphedSparseNet
 from lidarops.sparse.nn import (SparseConv2d, SparseConv3d, SparseConvTranspose2d, SparseConvTranspose3d,
                                 SparseInverseConv2d, SparseInverseConv3d, SparseMaxPool2d, SparseMaxPool3d,
-                                SparseModule, SparseSequential, SubMConv2d, SubMConv3d, ToDense)
+                                SparseConvBNReLU, SparseModule, SparseSequential, SubMConv2d, SubMConv3d, ToDense)
 from lidarops.sparse.tensor import KernelMap, SparseConvTensor
 
 __all__ = [
     "SparseConvTensor", "KernelMap", "functional", "nn", "build_kernel_map", "kernel_map", "conv", "max_pool",
     "sparse_conv", "SubMConv2d", "SubMConv3d", "SparseConv2d", "SparseConv3d", "SparseConvTranspose2d",
     "SparseConvTranspose3d", "SparseInverseConv2d", "SparseInverseConv3d", "SparseMaxPool2d", "SparseMaxPool3d",
-    "SparseModule", "SparseSequential", "ToDense", "GraphedSparseNet",
+    "SparseModule", "SparseSequential", "SparseConvBNReLU", "ToDense", "GraphedSparseNet",
 ]

@@ -21,7 +21,8 @@ __all__ = [
     "SparseModule", "SparseConvolution", "SubMConv1d", "SubMConv2d", "SubMConv3d", "SparseConv1d", "SparseConv2d",
     "SparseConv3d", "SparseConvTranspose1d", "SparseConvTranspose2d", "SparseConvTranspose3d", "SparseInverseConv1d",
     "SparseInverseConv2d", "SparseInverseConv3d", "SparseMaxPool", "SparseMaxPool1d", "SparseMaxPool2d",
-    "SparseMaxPool3d", "SparseSequential", "ToDense", "SparseBatchNorm", "SparseReLU", "SparseIdentity",
+    "SparseMaxPool3d", "SparseSequential", "SparseConvBNReLU", "ToDense", "SparseBatchNorm", "SparseReLU",
+    "SparseIdentity",
 ]
 
 
@@ -324,6 +325,47 @@ class SparseSequential(SparseModule):
             else:
                 x = module(x)
         return x
+
+
+class SparseConvBNReLU(SparseModule):
+    """A sparse convolution, a BatchNorm and (optionally) a ReLU as one module: in eval mode without gradients the
+    three run as one convolution whose kernel applies the BatchNorm's affine map, the bias and the ReLU to its float
+    accumulator; otherwise (training, gradients, float64, ``torch.compile``) as the three modules in turn, with the
+    BatchNorm's own statistics and updates. What ``SparseSequential(conv, norm, nn.ReLU())`` does by recognising
+    the pattern, as an explicit module.
+
+    Args:
+        conv (SparseConvolution): the convolution (any kind; its ``indice_key`` rules apply).
+        norm (nn.BatchNorm1d or SparseBatchNorm): over ``conv.out_channels`` features.
+        relu (bool): apply a ReLU (default True).
+
+    State dict: ``conv.*`` and ``norm.*``, so the parts' checkpoints load unchanged.
+    """
+
+    def __init__(self, conv: SparseConvolution, norm: nn.Module, relu: bool = True):
+        super().__init__()
+        if not isinstance(conv, SparseConvolution):
+            raise ValueError(f"conv must be a sparse convolution (SparseConvolution), got {type(conv).__name__}")
+        if not isinstance(norm, nn.modules.batchnorm._BatchNorm) or norm.num_features != conv.out_channels:
+            raise ValueError(f"norm must be a BatchNorm over conv's {conv.out_channels} output channels, got {norm!r}")
+        if not isinstance(relu, bool):
+            raise ValueError(f"relu must be True or False, got {relu!r}")
+        self.conv, self.norm, self.relu = conv, norm, relu
+
+    def extra_repr(self) -> str:
+        return f"relu={self.relu}"
+
+    def forward(self, x: SparseConvTensor) -> SparseConvTensor:
+        conv, norm = self._modules["conv"], self._modules["norm"]
+        fused = (isinstance(x, SparseConvTensor) and _fusable([conv, norm], 0, x)
+                 and not (self._forward_hooks or self._forward_pre_hooks))
+        if fused:
+            scale, shift = Fs.norm_affine(norm, _param(conv, "bias"))
+            return conv._conv(x, scale, shift, self.relu, with_bias=False)
+        y = conv(x)
+        if y.features.shape[0]:  # skipped without sites, as in SparseSequential (no batch statistics there)
+            y = y.replace_feature(norm(y.features))
+        return y.replace_feature(torch.relu(y.features)) if self.relu else y
 
 
 def _fusable(modules: list, i: int, x: SparseConvTensor) -> int:

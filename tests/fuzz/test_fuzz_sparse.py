@@ -7,6 +7,8 @@ raise a ValueError naming the indices; otherwise the result must be the referenc
 """
 from __future__ import annotations
 
+import copy
+
 import torch
 from hypothesis import assume, given
 from hypothesis import strategies as st
@@ -260,3 +262,39 @@ def test_graphed_sparse_net_equals_the_network(device, data):
             assert_same(res.indices.cpu(), want.indices.cpu(), what + " sites")
             assert_close(res.features.cpu(), want.features.cpu(), rtol=0, atol=1e-12, what=what + " features")
     assert g.reason is None, g  # every map has an indice_key: the forward can always be recorded
+
+
+@fuzz
+@given(data=st.data())
+def test_sparse_conv_bn_relu_equals_its_parts_in_float64(device, data):
+    """SparseConvBNReLU in float32 (fused in eval mode without gradients, three steps otherwise) against the same
+    parameters run as conv -> BatchNorm -> ReLU in float64; bad sites get the convolution's own error."""
+    from lidarops.sparse import nn as spnn
+
+    s = data.draw(sparse_sites(D=2), "sites")
+    cin = s.features.shape[1]
+    kind = data.draw(st.sampled_from(["subm", "conv"]), "kind")
+    bias, relu, train = (data.draw(st.booleans(), n) for n in ("bias", "relu", "training"))
+    torch.manual_seed(data.draw(st.integers(0, 3), "weights"))
+    conv = spnn.SubMConv2d(cin, 3, 3, bias=bias) if kind == "subm" else \
+        spnn.SparseConv2d(cin, 3, 2, stride=data.draw(st.integers(1, 2), "stride"), bias=bias)
+    norm = torch.nn.BatchNorm1d(3)
+    with torch.no_grad():
+        norm.running_mean.uniform_(-1, 1)
+        norm.running_var.uniform_(0.5, 2)
+        norm.weight.uniform_(-2, 2)
+        norm.bias.uniform_(-1, 1)
+    block = spnn.SparseConvBNReLU(conv, norm, relu).to(device).train(train)
+    twin = spnn.SparseConvBNReLU(copy.deepcopy(conv), copy.deepcopy(norm), relu).double().to(device).train(train)
+    x = SparseConvTensor(s.features.float().to(device), s.indices.to(device), s.spatial_shape, s.batch_size)
+    what = f"SparseConvBNReLU({kind}, bias={bias}, relu={relu}, training={train}) on {tuple(s.indices.shape)} sites"
+    with torch.no_grad():
+        res, err = outcome(block, x)
+        want, want_err = outcome(twin, _tensor(s, device))
+    if want_err is not None:
+        assert type(err) is type(want_err) and str(err) == str(want_err), f"{what}: {err!r} vs {want_err!r}"
+        return
+    assert_no_error(err, what)
+    assert_same(res.indices.cpu(), want.indices.cpu(), what + " sites")
+    scale = max(1.0, float(want.features.abs().max())) if want.features.numel() else 1.0
+    assert_close(res.features.double().cpu(), want.features.cpu(), rtol=0, atol=2e-4 * scale, what=what + " features")

@@ -14,6 +14,7 @@ from torch import nn
 
 import lidarops.compat.spconv as spconv
 from lidarops.sparse import SparseConvTensor
+from lidarops.sparse import nn as spnn
 from lidarops.sparse import functional as Fs
 from helpers.sparse import TOL, random_tensor, random_weight
 
@@ -265,3 +266,86 @@ def test_fused_layers_with_a_parametrized_weight():
         alone = conv(x).features
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(alone, plain(x).features, rtol=1e-6, atol=1e-6)
+
+
+def _block(kind: str, bias: bool, relu: bool, cin=8, cout=12):
+    torch.manual_seed(len(kind) + bias + 2 * relu)
+    if kind == "subm":
+        conv = spnn.SubMConv2d(cin, cout, 3, bias=bias, indice_key="s")
+    else:
+        conv = spnn.SparseConv2d(cin, cout, 3, stride=2, padding=1, bias=bias, indice_key="d")
+    norm = _randomize_norms(nn.Sequential(nn.BatchNorm1d(cout, eps=1e-3)))[0]
+    return spnn.SparseConvBNReLU(conv, norm, relu=relu)
+
+
+def _unfused(block, x):
+    """The three modules in turn, BatchNorm as the module itself."""
+    y = block.conv(x)
+    y = y.replace_feature(block.norm(y.features))
+    return y.replace_feature(torch.relu(y.features)) if block.relu else y
+
+
+@pytest.mark.parametrize("kind", ["subm", "conv"])
+@pytest.mark.parametrize("bias,relu", [(False, True), (True, True), (True, False)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+def test_sparse_conv_bn_relu_module_matches_its_parts(device, kind, bias, relu, dtype):
+    if dtype == torch.float16 and device == "cpu":
+        pytest.skip("float16 networks run on CUDA")
+    block = _block(kind, bias, relu).to(device=device, dtype=dtype).eval()
+    x = random_tensor(2, (30, 30), 150, 8, seed=11, dtype=dtype, device=device)
+    calls = []
+    orig = ops.sparse_conv_affine
+    with torch.no_grad():
+        try:
+            ops.sparse_conv_affine = lambda *a: calls.append(1) or orig(*a)  # noqa: E731
+            got = block(x)
+        finally:
+            ops.sparse_conv_affine = orig
+        ref = _unfused(block, x)
+    assert len(calls) == 1  # one fused convolution
+    assert torch.equal(got.indices, ref.indices)
+    tol = 1e-5 if dtype == torch.float32 else 2e-2
+    torch.testing.assert_close(got.features, ref.features, rtol=tol, atol=tol)
+    if relu:
+        assert (got.features >= 0).all() and (ref.features < 0).sum() == 0
+    else:
+        assert (got.features < 0).any()  # a ReLU that should not be there would fail this
+
+
+def test_sparse_conv_bn_relu_module_in_training_and_with_gradients(device):
+    block = _block("subm", True, True).to(device)
+    twin = _block("subm", True, True).to(device)
+    twin.load_state_dict(block.state_dict())
+    x = random_tensor(2, (30, 30), 150, 8, seed=12, dtype=torch.float32, device=device)
+    block.train(), twin.train()
+    got, ref = block(x), _unfused(twin, x)
+    torch.testing.assert_close(got.features, ref.features)  # batch statistics
+    torch.testing.assert_close(block.norm.running_mean, twin.norm.running_mean)  # and their update
+    assert block.norm.num_batches_tracked.item() == 1
+    got.features.sum().backward()
+    assert block.conv.weight.grad is not None and block.norm.weight.grad is not None
+    # eval with gradients: not fused (autograd needs the three steps), the parts' result
+    block.eval(), twin.eval()
+    torch.testing.assert_close(block(x).features, _unfused(twin, x).features)
+    assert sorted(block.state_dict()) == sorted(["conv.weight", "conv.bias", "norm.weight", "norm.bias",
+                                                 "norm.running_mean", "norm.running_var", "norm.num_batches_tracked"])
+
+
+def test_sparse_conv_bn_relu_module_hooks_empty_input_and_arguments(device):
+    block = _block("subm", False, True).to(device).eval()
+    seen = []
+    block.norm.register_forward_hook(lambda m, i, o: seen.append(1))
+    x = random_tensor(2, (30, 30), 150, 8, seed=13, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        block(x)
+    assert seen == [1]  # a hooked part runs as a module
+    empty = SparseConvTensor(torch.zeros(0, 8, device=device), torch.zeros(0, 3, dtype=torch.int32, device=device),
+                             [30, 30], 2)
+    block.train()
+    assert block(empty).features.shape == (0, 12)
+    with pytest.raises(ValueError, match="conv must be a sparse convolution"):
+        spnn.SparseConvBNReLU(nn.Linear(2, 2), nn.BatchNorm1d(2))
+    with pytest.raises(ValueError, match="norm must be a BatchNorm over conv's 12 output channels"):
+        spnn.SparseConvBNReLU(spnn.SubMConv2d(8, 12, 3), nn.BatchNorm1d(8))
+    with pytest.raises(ValueError, match="relu must be True or False"):
+        spnn.SparseConvBNReLU(spnn.SubMConv2d(8, 12, 3), nn.BatchNorm1d(12), relu=1)
