@@ -32,10 +32,14 @@ from lidarops.sparse.tensor import SparseConvTensor
 __all__ = ["GraphedSparseNet"]
 
 
-def _versions(tensors: list) -> tuple:
-    """Where each tensor lives and its in-place version: a change means a graph reads stale values (a BatchNorm's
-    folded affine is computed when recorded) or freed memory."""
-    return tuple((t.data_ptr(), None if t.is_inference() else t._version) for t in tensors)
+def _versions(tensors: list) -> list:
+    """Which tensor sits in each slot, where it lives and its in-place version: a change means a graph reads stale
+    values (a BatchNorm's folded affine is computed when recorded) or freed memory."""
+    present = [t for t in tensors if t is not None]  # (an empty slot, a bias=False, is None: its id says so)
+    try:
+        return [id(t) for t in tensors] + [t.data_ptr() for t in present] + [t._version for t in present]
+    except RuntimeError:  # an inference tensor: no version counter
+        return [id(t) for t in tensors] + [(t.data_ptr(), None if t.is_inference() else t._version) for t in present]
 
 
 def _map_outputs(out, fn):
@@ -69,7 +73,8 @@ class GraphedSparseNet:
     replayed; later calls on those sites copy their features into the graph's input and replay. One graph is kept:
     a call on other sites runs eagerly and becomes the next candidate. A call on the recorded sites records the
     graph again (on the same maps) when the network's parameters or buffers have changed (replaced or changed in
-    place), or the autocast state, the TF32 flags, the features' dtype or channels differ.
+    place, in the modules the network had when wrapped: wrap it again after adding modules), or the autocast state,
+    the TF32 flags, the features' dtype or channels differ.
 
     The graph is recorded with lidarops' value checks off (``lidarops.validation(False)``): the eager call that
     found the sites checked them, and a check is a host read, which a graph cannot hold.
@@ -94,7 +99,8 @@ class GraphedSparseNet:
         self.clone_outputs = clone_outputs
         self.replays = self.captures = self.eager_calls = 0
         self.reason: Optional[str] = None
-        self._tensors = [*net.parameters(), *net.buffers()]
+        # the parameter and buffer slots of every module, read at each call: a tensor replaced in a slot is seen
+        self._slots = [(d, name) for m in net.modules() for d in (m._parameters, m._buffers) for name in d]
         self._candidate = None  # (sites, maps, key) of the last eager call on sites without a graph
         self._graph = None      # (sites, key, graph, static features, outputs, static input with its maps)
 
@@ -105,7 +111,10 @@ class GraphedSparseNet:
         dev = f.device.type
         amp = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else None
         return (f.dtype, f.shape[1], f.device, amp, torch.backends.cuda.matmul.allow_tf32,
-                torch.backends.cudnn.allow_tf32, _versions(self._tensors))
+                torch.backends.cudnn.allow_tf32, _versions(self._tensors()))
+
+    def _tensors(self) -> list:
+        return [d.get(name) for d, name in self._slots]
 
     @staticmethod
     def _sites(x: SparseConvTensor) -> tuple:
@@ -128,7 +137,7 @@ class GraphedSparseNet:
         if x.features.device.type != "cuda" or self.net.training or torch.compiler.is_compiling():
             return True
         return torch.is_grad_enabled() and (x.features.requires_grad
-                                            or any(t.requires_grad for t in self._tensors))
+                                            or any(t is not None and t.requires_grad for t in self._tensors()))
 
     # ---- calls ----------------------------------------------------------------------------------------
 

@@ -300,3 +300,32 @@ def test_bad_input():
     g = GraphedSparseNet(nn.Identity())
     with pytest.raises(ValueError, match="x must be a SparseConvTensor, got Tensor"):
         g(torch.zeros(3, 2))
+
+
+def test_the_key_sees_every_parameter_and_buffer_change(device):
+    """What decides a new recording (white box: on CPU no graph is recorded, but the key is the same code)."""
+    net = _net(device)
+    g = GraphedSparseNet(net)
+    x = _x(_sites(15, device), 0)
+    key = g._key(x)
+    assert g._key(x) == key
+    with torch.no_grad():
+        net.down[1].running_var.mul_(2)  # in place
+    assert g._key(x) != key
+    key = g._key(x)
+    net.up[0].weight = nn.Parameter(net.up[0].weight.detach().clone())  # replaced by another Parameter
+    assert g._key(x) != key
+    key = g._key(x)
+    net.up[0].weight.data = net.up[0].weight.data.clone()  # the same Parameter, new memory
+    assert g._key(x) != key
+    key = g._key(x)
+    net.down[3].bias = nn.Parameter(torch.zeros(16, device=device))  # a slot that held None
+    assert g._key(x) != key
+    key = g._key(x)
+    with torch.autocast(device, dtype=torch.bfloat16):
+        assert g._key(x) != key
+    assert g._key(_x(_sites(15, device), 0, torch.float64)) != key
+    with torch.inference_mode():
+        net.down[1].running_mean = torch.zeros(8, device=device)  # an inference tensor: no version counter
+    assert g._key(x) != key
+    assert g._key(x) == g._key(x)
