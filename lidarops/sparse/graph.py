@@ -177,7 +177,7 @@ class GraphedSparseNet:
         elif unkeyed is not None:
             self._eager_from_now(f"a {unkeyed} layer without an indice_key builds its kernel map every call, with a host "
                                  "read (its output count): give strided, transposed and pooling layers an indice_key")
-        else:
+        elif self.reason is None:  # (a failed recording has just ruled graphs out)
             self._candidate = (self._sites(x), maps, key)
         return out
 

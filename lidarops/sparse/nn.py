@@ -357,9 +357,8 @@ class SparseConvBNReLU(SparseModule):
 
     def forward(self, x: SparseConvTensor) -> SparseConvTensor:
         conv, norm = self._modules["conv"], self._modules["norm"]
-        fused = (isinstance(x, SparseConvTensor) and _fusable([conv, norm], 0, x)
-                 and not (self._forward_hooks or self._forward_pre_hooks))
-        if fused:
+        # (hooks on this module run either way; hooks on its parts need the parts to run)
+        if isinstance(x, SparseConvTensor) and _fusable([conv, norm], 0, x):
             scale, shift = Fs.norm_affine(norm, _param(conv, "bias"))
             return conv._conv(x, scale, shift, self.relu, with_bias=False)
         y = conv(x)
