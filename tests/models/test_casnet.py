@@ -207,7 +207,8 @@ def test_padding_slots_are_not_points():
     for fill in (6, 5):
         filled = torch.where(valid, idx, torch.full_like(idx, fill))
         got = emb.embed(with_nan, filled, valid)
-        close(got[..., :6], out, rtol=0, atol=0)
+        # equal to rounding: the padded slot's column changes the matmul's blocking
+        close(got[..., :6], out, rtol=1e-13, atol=1e-13)
         assert bool((got[..., 6] == 0).all())  # no neighbour at all: the zero vector
     # treating the slot as a point would change p0's embedding: the check above can fail
     idx, valid = idx[:, :6], valid[:, :6]
@@ -241,7 +242,7 @@ def test_knn_option_pads_short_clouds():
     out = emb(xyz, torch.tensor([3]))
     short = FeatureEmbedding(k=3, neighbors="knn").double().eval()
     short.load_state_dict(emb.state_dict())
-    close(out, short(xyz, torch.tensor([3])), rtol=0, atol=0)
+    close(out, short(xyz, torch.tensor([3])), rtol=1e-13, atol=1e-13)  # rounding: k changes the matmul's width
 
 
 # ---- ragged batches: padded rows are not there ----
