@@ -209,18 +209,50 @@ def fp_rows(fid: str, points: np.ndarray, det_boxes: np.ndarray, det_scores: np.
     return rows
 
 
+def parse_profile(text: str | None):
+    """``None``/``"none"`` (as cast), a profile name, or ``name:field=value,...``: the profile with those fields
+    changed (``kitti:roadside_structures=0.7``)."""
+    import dataclasses
+
+    from lidarops.data.realism import make_realism
+
+    if text in (None, "none"):
+        return None
+    name, _, changes = text.partition(":")
+    if not changes:
+        return name
+    fields = {}
+    for item in changes.split(","):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"--realism {text!r}: expected name:field=value,..., got {item!r}")
+        fields[key.strip()] = float(value)
+    return dataclasses.replace(make_realism(name), **fields)
+
+
 def sim_frames(n: int, realism: str | None = None):
     from lidarops.conventions import HELD_OUT_SEED
     from lidarops.data.formats.kitti import KittiCalib, kitti_fov_mask
     from lidarops.data.synthetic import SyntheticFrames
 
-    sim = SyntheticFrames("driving_city", num_frames=n, seed=HELD_OUT_SEED + 4242, realism=realism)
+    sim = SyntheticFrames("driving_city", num_frames=n, seed=HELD_OUT_SEED + 4242, realism=parse_profile(realism))
     calib = KittiCalib.default()
     for i in range(n):
         f = sim[i]
         keep = kitti_fov_mask(f.points, calib)
         names = [f.class_names[k] if k >= 0 else "Other" for k in f.labels]
         yield f"sim{i}", f.points[keep], f.boxes, names
+
+
+def seen_labels(points: np.ndarray, boxes: np.ndarray, names: list[str]) -> tuple[np.ndarray, list[str]]:
+    """A simulated frame's labels as KITTI's would be: the objects with a return among ``points`` (the camera's view;
+    the simulator labels every object of the scene, behind the car and hidden ones too)."""
+    from lidarops import points_in_boxes
+
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    idx = points_in_boxes(torch.as_tensor(points[:, :3], dtype=torch.float64), torch.as_tensor(boxes)).numpy()
+    keep = np.bincount(idx[idx >= 0], minlength=len(boxes)) > 0
+    return boxes[keep], [n for n, k in zip(names, keep) if k]
 
 
 def detections(model, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -439,21 +471,32 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sim-frames", type=int, default=40, help="simulated frames per profile (0: the real-scan "
                                                                    "figures alone)")
     p.add_argument("--realism", nargs="*", default=[None], help="the simulator's realism profiles to compare "
-                                                                   "(none: as cast; kitti; kitti_dr)")
+                                                                   "(none: as cast; kitti; kitti_dr; a profile with "
+                                                                   "fields changed: kitti:roadside_structures=0.7)")
+    p.add_argument("--sim-detect", action="store_true", help="also run each checkpoint on each profile's simulated "
+                                                             "frames: found and false positives against their labels")
     p.add_argument("--plot", type=Path, default=None)
     p.add_argument("--json", action="store_true")
     p.add_argument("--fp-list", action="store_true", help="print each false positive above 0.5 on the real frames")
     args = p.parse_args(argv)
-    if not (args.real / "ImageSets" / "val.txt").is_file():
+    use_real = str(args.real) != "none"
+    if use_real and not (args.real / "ImageSets" / "val.txt").is_file():
         p.error(f"--real {args.real}: no ImageSets/val.txt; bring the real frames with "
-                "tools/sim2real/kitti_real_frames.sh (they are not in git)")
+                "tools/sim2real/kitti_real_frames.sh (they are not in git), or --real none for the simulated "
+                "frames alone")
+    if not use_real and not (args.sim_detect and args.sim_frames > 0):
+        p.error("--real none needs --sim-detect and --sim-frames > 0 (there is nothing else to measure)")
+    for profile in args.realism:
+        try:
+            parse_profile(profile)
+        except (ValueError, TypeError) as e:
+            p.error(f"--realism {profile!r}: {e}")
     from lidarops.models import load_model, weights
 
-    real = list(real_frames(args.real))
+    real = list(real_frames(args.real)) if use_real else []
     rows = []
-    for ck in args.checkpoint:
-        path = weights.path(ck) if ck in weights.available() else ck
-        model = load_model(path).eval()
+    models = {ck: load_model(weights.path(ck) if ck in weights.available() else ck).eval() for ck in args.checkpoint}
+    for ck, model in models.items() if use_real else ():
         figs, top, fps = [], 0.0, []
         for fid, points, boxes, names, difficulty, calib, dontcare in real:
             db, ds, dn = detections(model, points)
@@ -475,20 +518,37 @@ def main(argv: list[str] | None = None) -> int:
             print_table(f"{Path(str(ck)).name}: false positives above 0.5, nearest first", keys,
                         [[r[k] for k in keys] for r in sorted(fps, key=lambda r: r["range_m"])],
                         right=range(2, len(keys)))
-    rstats = data_stats(real)
-    rows.append({"op": "sim2real", "case": "stats:real_kitti", "frames": len(real), **rstats["row"]})
+    if args.sim_detect and args.sim_frames > 0:
+        for profile in [None if r in (None, "none") else r for r in args.realism]:
+            frames = list(sim_frames(args.sim_frames, profile))
+            for ck, model in models.items():
+                figs = [frame_figures(*seen_labels(points, boxes, names), *detections(model, points))
+                        for _, points, boxes, names in frames]
+                row = {"op": "sim2real", "case": f"sim:{profile or 'none'}:{Path(str(ck)).name}", "checkpoint": str(ck),
+                       "realism": profile, **summarize(figs)}
+                rows.append(row)
+                print(f"{ck} on {args.sim_frames} simulated frames ({profile or 'as cast'}): "
+                      + ", ".join(f"{c} {row[f'{c}_found_3d{THRESHOLDS_3D[c][0]}']}/{row[f'{c}_labelled']}"
+                                  for c in CLASSES)
+                      + f"; false positives per frame above 0.3 / 0.5: {row['fp_per_frame_above_0.3']} / "
+                      f"{row['fp_per_frame_above_0.5']}", flush=True)
     sims = {}
+    stat_rows = []
+    if use_real:
+        rstats = data_stats(real)
+        stat_rows.append({"op": "sim2real", "case": "stats:real_kitti", "frames": len(real), **rstats["row"]})
     for profile in [None if r in (None, "none") else r for r in args.realism] if args.sim_frames > 0 else []:
         sims[profile] = data_stats(sim_frames(args.sim_frames, profile))
-        rows.append({"op": "sim2real", "case": "stats:simulated_driving_city" + (f":{profile}" if profile else ""),
-                     "frames": args.sim_frames, "realism": profile, **sims[profile]["row"]})
+        stat_rows.append({"op": "sim2real", "case": "stats:simulated_driving_city" + (f":{profile}" if profile else ""),
+                          "frames": args.sim_frames, "realism": profile, **sims[profile]["row"]})
+    rows += stat_rows
     keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
             "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share", "pedestrians_in_groups_share",
             "beam_line_share", "pedestrian_lower_half_share", "far_clusters_per_frame", "far_cluster_height",
             "far_cluster_footprint", "far_cluster_share_on_road"]
-    print_table("real against simulated", keys, [[r.get(k, "") for k in keys] for r in rows[-1 - len(sims):]],
-                right=range(1, len(keys)))
-    if args.plot:
+    print_table("real against simulated" if use_real else "simulated", keys,
+                [[r.get(k, "") for k in keys] for r in stat_rows], right=range(1, len(keys)))
+    if args.plot and use_real:
         plot(rstats, sims, args.plot)
     if args.json:
         print("results:", write_results("sim2real", "cpu", rows, env_meta("cpu"), replace_by="case"))

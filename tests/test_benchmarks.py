@@ -314,6 +314,41 @@ def test_bm_sim2real_counts_false_positives_in_dontcare_regions_as_kitti_does():
     assert row["height_span_m"] == 1.5 and row["bottom_m"] == -1.55
 
 
+def test_bm_sim2real_profiles_with_fields_and_simulated_frames_alone(capsys):
+    """``--realism kitti:roadside_structures=0.7`` is the kitti profile with that field changed; a field that is
+    not one, or a value out of range, is refused naming it; ``--real none --sim-detect`` runs a detector on the
+    simulated frames alone and prints its counts."""
+    import dataclasses
+
+    import numpy as np
+
+    from benchmarks.bm_sim2real import main, parse_profile, seen_labels
+    from lidarops.data.realism import make_realism
+
+    boxes = np.array([[10.0, 0, 0, 4, 2, 2, 0], [-10.0, 0, 0, 4, 2, 2, 0], [20.0, 5, 0, 1, 1, 2, 0]])
+    points = np.array([[10.5, 0.2, 0.1, 0.3], [19.9, 5.1, 0.5, 0.1], [30.0, 0, 0, 0]])
+    got, names = seen_labels(points, boxes, ["Car", "Car", "Pedestrian"])
+    np.testing.assert_array_equal(got, boxes[[0, 2]])  # the car with no return is not labelled
+    assert names == ["Car", "Pedestrian"]
+
+    assert parse_profile(None) is None and parse_profile("none") is None and parse_profile("kitti") == "kitti"
+    got = parse_profile("kitti_dr:roadside_structures=0.5,low_clutter=1")
+    assert got == dataclasses.replace(make_realism("kitti_dr"), roadside_structures=0.5, low_clutter=1.0)
+    with pytest.raises(TypeError, match="no_such_field"):
+        parse_profile("kitti:no_such_field=1")
+    with pytest.raises(ValueError, match="roadside_structures"):
+        parse_profile("kitti:roadside_structures=11")
+    with pytest.raises(SystemExit):
+        main(["--real", "none", "--realism", "kitti:roadside_structures"])
+    with pytest.raises(SystemExit):
+        main(["--real", "none"])  # nothing to measure
+    capsys.readouterr()
+    assert main(["--real", "none", "--sim-detect", "--sim-frames", "1", "--checkpoint", "pointpillars_synth",
+                 "--realism", "kitti:roadside_structures=1"]) == 0
+    out = capsys.readouterr().out
+    assert "on 1 simulated frames (kitti:roadside_structures=1)" in out and "false positives per frame" in out
+
+
 def test_bm_sim2real_frame_figures_on_a_hand_made_frame():
     """A car detected 0.4 m too low (3D IoU 1.1 / 1.9 = 0.58: found at 0.5, not at 0.7; found in bird's-eye
     view), a second detection of it (one-to-one: not found twice, not a false positive), a detection on a

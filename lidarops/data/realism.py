@@ -19,6 +19,8 @@ A :class:`Realism` applies these effects to the caster's returns:
 * it scales intensity per surface kind and per beam, zeroes weak returns near the detection limit, and
   quantises;
 * it adds street furniture and roadside clutter to driving scenes (the scenario option ``street_clutter``);
+* optionally, low clutter and roadside structures: guard rails, railings, walls with wheelie bins before them, bar
+  fences (``low_clutter``, ``roadside_structures``);
 * optionally (the ``kitti_dr`` profile), it reports returns at depth edges between the two surfaces (mixed
   pixels), walks pedestrians in groups, draws vehicle labels tighter than their bodies, and randomises each
   scene's sensor height, beam count, dropout, range noise and intensity scale.
@@ -68,6 +70,10 @@ class Realism:
         low_clutter (float): density of the low clutter added to driving scenes: planters, low walls, low bushes,
             stones and verge berms, 0.2-1 m tall, beside the road (the scenario option ``low_clutter``; 1 about one
             piece per 10 m of each roadside zone; 0 none).
+        roadside_structures (float): density of the roadside structures added to driving scenes: guard rails on
+            posts and metal railings along the kerb, walls with wheelie bins before them and bar fences with a tall
+            post along the walkway (the scenario option ``roadside_structures``; 1: 15 m free between two structures
+            of a roadside zone on average; 0 none).
         mixed_pixels (float): probability that a return at a depth edge is reported somewhere between the two
             surfaces its beam straddles (a mixed pixel): the return's neighbour on the same beam, one firing before
             or after, lies at least ``mixed_gap`` farther; the range moves a uniform fraction of the way to it.
@@ -115,6 +121,7 @@ class Realism:
     quantum: float = 0.01
     street_clutter: float = 1.0
     low_clutter: float = 0.0
+    roadside_structures: float = 0.0
     mixed_pixels: float = 0.0
     mixed_gap: float = 1.0
     mount_height_jitter: float = 0.0
@@ -136,6 +143,7 @@ class Realism:
         real(self.quantum, "quantum", 0, 0.5)
         real(self.street_clutter, "street_clutter", 0, 10)
         real(self.low_clutter, "low_clutter", 0, 10)
+        real(self.roadside_structures, "roadside_structures", 0, 10)
         real(self.mixed_pixels, "mixed_pixels", 0, 1)
         real(self.mixed_gap, "mixed_gap", 0.05, 100, unit=" m")
         real(self.mount_height_jitter, "mount_height_jitter", 0, 0.5, unit=" m")
@@ -240,14 +248,15 @@ class Realism:
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans) and ``kitti_dr`` (the same with
 #: mixed pixels at depth edges, pedestrians in groups as often as in the real scans, vehicle labels as tight as
 #: KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds and hair, low clutter
-#: beside the road, and the domain
+#: and roadside structures (guard rails, railings, walls with bins, fences) beside the road, and the domain
 #: randomisation of the sensor's height, beams, dropout, range noise and intensity scale, for what the real scans
 #: leave uncertain).
 REALISM_PRESETS = {"kitti": Realism(),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
                                        pedestrian_groups=0.3, label_tightness=0.07, beam_choices=(32, 64, 64, 128),
                                        dropout_max=0.2, range_noise_max=0.05, laser_offsets=True,
-                                       pedestrian_build=1.0, hair_dropout=0.4, low_clutter=2.0)}
+                                       pedestrian_build=1.0, hair_dropout=0.4, low_clutter=2.0,
+                                       roadside_structures=0.7)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

@@ -33,8 +33,8 @@ from lidarops.data.scene import (
 
 __all__ = ["SCENARIOS", "CLUTTERED_SCENARIOS", "SENSOR_HEIGHT", "MAX_OBJECTS", "build_scenario", "sample_object_counts"]
 
-#: The scenarios that take the options ``street_clutter`` and ``low_clutter`` (roadside clutter a detector must learn
-#: to reject).
+#: The scenarios that take the options ``street_clutter``, ``low_clutter`` and ``roadside_structures`` (roadside
+#: clutter a detector must learn to reject).
 CLUTTERED_SCENARIOS: tuple[str, ...] = ("driving_city", "driving_highway")
 #: the driving scenarios' default sensor height above the ground (m; their option ``sensor_height``)
 SENSOR_HEIGHT = 1.73
@@ -467,6 +467,102 @@ def _low_clutter(scenario: str):
     return build
 
 
+def _bar_fence(b: _StaticBuilder, rng: np.random.Generator, ground: Ground, x: float, y: float, length: float,
+               height: float) -> None:
+    """A metal fence or railing along x: posts every 2-3 m, a top and a bottom rail, vertical bars 0.1-0.16 m apart
+    (a beam returns from some bars and passes between others, as on real railings)."""
+    g = lambda xx: float(ground.height(np.array([xx]), np.array([y]))[0])  # noqa: E731
+    refl = rng.uniform(0.25, 0.6)
+    r_post, r_bar = rng.uniform(0.03, 0.05), rng.uniform(0.008, 0.015)
+    for xp in np.arange(x, x + length + 1e-9, rng.uniform(2.0, 3.0)):
+        b.cylinder(xp, y, r_post, height, refl=refl)
+    for xp in np.arange(x + rng.uniform(0.05, 0.1), x + length, rng.uniform(0.1, 0.16)):
+        b.cylinder(xp, y, r_bar, height - 0.05, refl=refl)
+    xm, bottom = x + length / 2, rng.uniform(0.08, 0.2)
+    for z, dz in ((height - 0.03, 0.05), (bottom, 0.04)):
+        b.box(xm, y, g(xm) + z, length, 0.04, dz, refl=refl, kind=SURFACE_STRUCTURE)
+
+
+def _guard_rail(b: _StaticBuilder, rng: np.random.Generator, ground: Ground, x: float, y: float, length: float,
+                side: float) -> None:
+    """A W-beam guard rail along x, its top 0.7-0.8 m above the ground, on posts every 2-4 m behind it."""
+    top = rng.uniform(0.7, 0.8)
+    refl = rng.uniform(0.35, 0.6)  # galvanised steel
+    b.box_on_ground(x + length / 2, y, length, 0.08, 0.31, refl=refl, lift=top - 0.31, kind=SURFACE_STRUCTURE)
+    for xp in np.arange(x + rng.uniform(0.2, 1.0), x + length, rng.uniform(2.0, 4.0)):
+        b.box_on_ground(xp, y + side * 0.1, 0.1, 0.12, top - 0.05, refl=refl * 0.8, kind=SURFACE_POLE, bury=0.3)
+
+
+def _wall_with_bins(b: _StaticBuilder, rng: np.random.Generator, ground: Ground, x: float, y: float, length: float,
+                    side: float, room: float) -> None:
+    """A garden or garage wall (or a board fence) 1.4-2.6 m tall along x, and often wheelie bins or a large waste
+    container standing before it on the road's side, within ``room`` of the wall's face."""
+    depth = rng.uniform(0.15, 0.3)
+    b.box_on_ground(x + length / 2, y, length, depth, rng.uniform(1.4, 2.6), refl=rng.uniform(0.15, 0.5), bury=0.1)
+    if rng.random() < 0.6:
+        xb = x + rng.uniform(0.2, max(length - 2.0, 0.3))
+        for _ in range(int(rng.integers(1, 4))):
+            if rng.random() < 0.15:  # a 1,100 l container
+                w, d, h = rng.uniform(1.2, 1.4), rng.uniform(0.9, 1.1), rng.uniform(1.25, 1.45)
+            else:  # a 120-360 l wheelie bin
+                w, d, h = rng.uniform(0.48, 0.7), rng.uniform(0.55, 0.88), rng.uniform(0.93, 1.2)
+            d = min(d, room - depth / 2 - 0.1)  # room for a turn of up to 0.08 rad
+            if d < 0.3 or xb + w > x + length:
+                break
+            face = y - side * (depth / 2 + 0.02 + d / 2)
+            b.box_on_ground(xb + w / 2, face, w, d, h, heading=rng.uniform(-0.08, 0.08),
+                            refl=rng.uniform(0.05, 0.45), bury=0.0)
+            xb += w + rng.uniform(0.05, 0.5)
+
+
+def _roadside_structures(scenario: str):
+    """A driving tile's roadside structures (the scenario option ``roadside_structures``), what the real scans'
+    confident false positives stand on: W-beam guard rails on posts and metal railings of vertical bars along the
+    kerb, garden and garage walls with wheelie bins before them, and bar fences with a tall post at their end along
+    the walkway's outer edge (on the highway: bar fences, tall posts and walls on the verges). Clear of every labelled
+    lane, as the other clutter; a random stream of its own."""
+    # (y from, y to, the structures the zone takes): the city's kerb strip and the walkway's outer edge, the
+    # highway's verges beyond the rails
+    zones = {"driving_city": ((-11.2, -10.8, "kerb"), (10.8, 11.2, "kerb"), (-15.8, -14.6, "edge"),
+                              (14.6, 15.8, "edge")),
+             "driving_highway": ((-17.0, -13.5, "verge"), (16.4, 19.5, "verge"))}[scenario]
+
+    def build(ground: Ground, seed: int, density: float, k: int, x0: float, x1: float) -> StaticPrimitives:
+        rng = _rng(seed, scenario, "roadside_structures", k)
+        b = _StaticBuilder(ground)
+        for y_lo, y_hi, zone in zones:
+            side = 1.0 if y_lo > 0 else -1.0
+            x = x0 + rng.exponential(15.0 / density)
+            while x < x1 - 1.0:
+                kind = rng.random()
+                if zone == "kerb":
+                    length = min(rng.uniform(6.0, 30.0), x1 - x)
+                    if kind < 0.5:
+                        _guard_rail(b, rng, ground, x, side * 11.0, length, side)
+                    else:
+                        _bar_fence(b, rng, ground, x, side * 11.05, length, rng.uniform(0.9, 1.2))
+                else:
+                    length = min(rng.uniform(3.0, 12.0), x1 - x)
+                    far = (y_hi if side > 0 else -y_lo) - 0.05  # the zone's edge away from the road
+                    if kind < 0.45 and zone == "edge":
+                        # the wall's centre 0.2 m inside the zone's far edge: the bins keep to the zone
+                        _wall_with_bins(b, rng, ground, x, side * (far - 0.15), length, side, y_hi - y_lo - 0.2)
+                    elif kind < 0.8:
+                        yf = side * (far - 0.05) if zone == "edge" else rng.uniform(y_lo + 0.2, y_hi - 0.2)
+                        _bar_fence(b, rng, ground, x, yf, length, rng.uniform(1.2, 2.0))
+                        if rng.random() < 0.5:  # a lamp or sign post at the fence's end
+                            b.cylinder(x + length + 0.3, yf, rng.uniform(0.05, 0.1), rng.uniform(3.0, 6.0),
+                                       refl=rng.uniform(0.3, 0.6))
+                    else:  # a solid wall, 1-2 m, along the verge or the walkway
+                        yw = side * (far - 0.15) if zone == "edge" else rng.uniform(y_lo + 0.3, y_hi - 0.3)
+                        b.box_on_ground(x + length / 2, yw, length, 0.25, rng.uniform(1.0, 2.0),
+                                        refl=rng.uniform(0.2, 0.45), bury=0.1)
+                x += length + rng.exponential(15.0 / density) + 0.5
+        return b.build()
+
+    return build
+
+
 def _cluttered(tile_fn, clutter, ground: Ground, seed: int, density: float, tile_length: float):
     """``tile_fn`` with each tile's ``clutter`` added (``density`` 0: the tiles as they are)."""
     if density <= 0:
@@ -486,10 +582,11 @@ def _sensor_height(value) -> float:
 
 def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
                   sensor_height: float = SENSOR_HEIGHT, pedestrian_groups: float = 0.0, low_clutter: float = 0.0,
-                  **unused) -> Scenario:
+                  roadside_structures: float = 0.0, **unused) -> Scenario:
     _no_unused(unused, "driving_city")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
     low_clutter = real(low_clutter, "low_clutter", 0, 10)
+    roadside_structures = real(roadside_structures, "roadside_structures", 0, 10)
     pedestrian_groups = real(pedestrian_groups, "pedestrian_groups", 0, 1)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_city", "scene")
@@ -533,9 +630,10 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
     objects, labels = placed.build()
     tile_length = 40.0
     return Scenario("driving_city", seed, "hdl64", ground, ego, objects, labels, 80.0, tile_length,
-                    _cluttered(_cluttered(_city_tile(ground, tile_length), _street_clutter, ground, seed, street_clutter,
-                                          tile_length), _low_clutter("driving_city"), ground, seed, low_clutter,
-                               tile_length), done)
+                    _cluttered(_cluttered(_cluttered(_city_tile(ground, tile_length), _street_clutter, ground, seed,
+                                                     street_clutter, tile_length), _low_clutter("driving_city"), ground,
+                                          seed, low_clutter, tile_length), _roadside_structures("driving_city"), ground,
+                               seed, roadside_structures, tile_length), done)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -606,10 +704,12 @@ def _highway_tile(ground: Ground, tile_length: float) -> Callable[[int, np.rando
 
 
 def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
-                     sensor_height: float = SENSOR_HEIGHT, low_clutter: float = 0.0, **unused) -> Scenario:
+                     sensor_height: float = SENSOR_HEIGHT, low_clutter: float = 0.0, roadside_structures: float = 0.0,
+                     **unused) -> Scenario:
     _no_unused(unused, "driving_highway")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
     low_clutter = real(low_clutter, "low_clutter", 0, 10)
+    roadside_structures = real(roadside_structures, "roadside_structures", 0, 10)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_highway", "scene")
     ground = Ground.random(rng, max_slope=0.02, roughness=0.02, material=_highway_material)
@@ -639,9 +739,10 @@ def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = No
     objects, labels = placed.build()
     tile_length = 50.0
     return Scenario("driving_highway", seed, "hdl64", ground, ego, objects, labels, 100.0, tile_length,
-                    _cluttered(_cluttered(_highway_tile(ground, tile_length), _roadside_clutter, ground, seed,
-                                          street_clutter, tile_length), _low_clutter("driving_highway"), ground, seed,
-                               low_clutter, tile_length), done)
+                    _cluttered(_cluttered(_cluttered(_highway_tile(ground, tile_length), _roadside_clutter, ground,
+                                                     seed, street_clutter, tile_length), _low_clutter("driving_highway"),
+                                          ground, seed, low_clutter, tile_length), _roadside_structures("driving_highway"),
+                               ground, seed, roadside_structures, tile_length), done)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -798,7 +899,7 @@ def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> S
         seed (int): random seed.
         object_counts: see :func:`sample_object_counts`.
         **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``low_clutter``,
-            ``sensor_height``;
+            ``roadside_structures``, ``sensor_height``;
             ``driving_city``: ``pedestrian_groups``).
 
     Returns:

@@ -144,9 +144,10 @@ class Simulator:
         self._intensity_scale = 1.0
         if self.realism is not None and scenario in CLUTTERED_SCENARIOS and "street_clutter" not in scenario_options:
             scenario_options = {**scenario_options, "street_clutter": self.realism.street_clutter}
-        if self.realism is not None and self.realism.low_clutter and scenario in CLUTTERED_SCENARIOS \
-                and "low_clutter" not in scenario_options:
-            scenario_options = {**scenario_options, "low_clutter": self.realism.low_clutter}
+        for option in ("low_clutter", "roadside_structures"):
+            if self.realism is not None and getattr(self.realism, option) and scenario in CLUTTERED_SCENARIOS \
+                    and option not in scenario_options:
+                scenario_options = {**scenario_options, option: getattr(self.realism, option)}
         if self.realism is not None:  # the scene's domain randomisation, from a stream of its own
             lift, self._intensity_scale = self.realism.scene_draws(_rng(self.seed, scenario, "realism", "scene"))
             if lift and scenario in CLUTTERED_SCENARIOS and "sensor_height" not in scenario_options:

@@ -12,6 +12,7 @@ from lidarops.data.frame import CLASSES
 from lidarops.data.realism import Realism, make_realism
 from lidarops.data.scene import SURFACE_GROUND, SURFACE_OBJECT
 from lidarops.data.synthetic import Simulator
+from tests.helpers.scenes import STRUCTURE_ZONES, in_zones, primitive_extents
 
 SEED = 7
 
@@ -385,6 +386,58 @@ def test_low_clutter_adds_low_wide_objects_clear_of_labelled_boxes(scenario):
         Simulator(scenario, seed=SEED, low_clutter=11.0)
     with pytest.raises(TypeError, match="low_clutter"):
         Simulator("drone_bridge", seed=SEED, low_clutter=1.0)
+
+
+@pytest.mark.parametrize("scenario", ["driving_city", "driving_highway"])
+def test_roadside_structures_stand_in_their_zones_and_cast_returns(scenario):
+    """Guard rails, railings, walls with bins and bar fences: every primitive within the roadside zones (so no
+    labelled box holds one), their kinds all drawn, more non-ground returns in the zones, the same frame for the same
+    seed, the scene as it was at density 0, on in kitti_dr only, and a bad density named."""
+    import torch
+
+    from lidarops import points_in_boxes
+    from lidarops.data.scenarios import _roadside_structures
+
+    sim = Simulator(scenario, seed=SEED)
+    build = _roadside_structures(scenario)
+    heights, radii, rails = [], [], []
+    for k in range(4):
+        prims = build(sim.scenario.ground, SEED, 3.0, k, 40.0 * k, 40.0 * (k + 1))
+        ext = primitive_extents(prims)
+        assert len(ext) > 10
+        inside = in_zones(ext[:, 0], ext[:, 1], STRUCTURE_ZONES[scenario])
+        assert inside.all(), ext[~inside]
+        heights += [h for h, yaw in zip(2 * prims.boxes.half[:, 2], prims.boxes.yaw) if yaw != 0]  # bins turn
+        radii += list(prims.cylinders.radius)
+        rails += [h for h in 2 * prims.boxes.half[:, 2] if abs(h - 0.31) < 1e-9]  # a guard rail's beam
+        assert len(prims.ellipsoids) == 0
+    radii = np.asarray(radii)
+    assert (radii < 0.02).sum() > 50, "bar fences: thin bars"
+    assert (radii >= 0.03).any(), "and their posts"
+    if scenario == "driving_city":
+        assert rails, "guard rails: a 0.31 m beam"
+        assert any(0.9 < h < 1.6 for h in heights), "wheelie bins"
+
+    plain = Simulator(scenario, seed=SEED).sweep(0)
+    np.testing.assert_array_equal(Simulator(scenario, seed=SEED, roadside_structures=0.0).sweep(0).points,
+                                  plain.points)
+    busy = Simulator(scenario, seed=SEED, roadside_structures=2.0)
+    frame = busy.sweep(0)
+    np.testing.assert_array_equal(Simulator(scenario, seed=SEED, roadside_structures=2.0).sweep(0).points, frame.points)
+
+    def returns_in_zones(f):
+        y = f.points[:, 1] + busy.scenario.ego.position0[1]  # the sensor's frame to the road's
+        return int((in_zones(y, y, STRUCTURE_ZONES[scenario]) & (f.surface != SURFACE_GROUND)).sum())
+
+    assert returns_in_zones(frame) > returns_in_zones(plain) + 500, (returns_in_zones(frame), returns_in_zones(plain))
+    idx = points_in_boxes(torch.as_tensor(frame.points[:, :3], dtype=torch.float64),
+                          torch.as_tensor(frame.boxes, dtype=torch.float64)).numpy()
+    assert not ((idx >= 0) & (frame.instance != idx) & (frame.surface != SURFACE_GROUND)).any()
+    assert make_realism("kitti").roadside_structures == 0 and make_realism("kitti_dr").roadside_structures > 0
+    with pytest.raises(ValueError, match="roadside_structures"):
+        Simulator(scenario, seed=SEED, roadside_structures=11.0)
+    with pytest.raises(TypeError, match="roadside_structures"):
+        Simulator("drone_lock", seed=SEED, roadside_structures=1.0)
 
 
 def test_highway_verges_get_shrubs_and_posts_clear_of_the_lanes():

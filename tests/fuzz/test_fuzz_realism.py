@@ -1,7 +1,8 @@
 """Fuzz: the simulator's realism profile (lidarops.data.realism). Any parameter in its documented range gives
 intensities in [0, 1] on the quantum's grid, zero wherever a return is weak or reads zero, and a keep mask that
 never drops a return below the greenhouse; a parameter out of range (negative, above its bound, NaN, infinite)
-raises a ValueError naming it; a Simulator refuses what is not a profile.
+raises a ValueError naming it; a Simulator refuses what is not a profile. The roadside structures stay in their
+zones (clear of every labelled lane) for any seed, tile and density, and a bad density is named.
 """
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ from hypothesis import strategies as st
 
 from lidarops.data.realism import Realism, make_realism
 from lidarops.data.shapes import SHAPES, box_exit, shape_distance, trace
+
+from tests.helpers.scenes import STRUCTURE_ZONES, in_zones, primitive_extents
 
 from .fuzzing import assert_clear_error, assert_no_error, fuzz, outcome
 
@@ -51,12 +54,12 @@ def test_any_profile_gives_intensities_on_its_grid(profile, n, seed):
     assert keep[height < profile.greenhouse_from].all()
 
 
-UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0}  # the others' ranges end at 1
+UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_structures": 10.0}  # others: 1
 
 
 @fuzz
-@given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "pedestrian_build",
-                                    "hair_dropout")),
+@given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "roadside_structures",
+                                    "pedestrian_build", "hair_dropout")),
        value=st.sampled_from([-0.5, "above", "far above", float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     if isinstance(value, str):  # just above the parameter's range, or twice its end
@@ -204,3 +207,26 @@ def test_laser_heights_refuse_bad_elevations(bad, at):
     table[at] = bad
     _, err = outcome(hdl64_beam_offsets, table)
     assert_clear_error(err, ValueError, [f"elevations_deg[{at}]"], f"hdl64_beam_offsets({table})")
+
+
+@fuzz
+@given(scenario=st.sampled_from(sorted(STRUCTURE_ZONES)), seed=st.integers(0, 2**31 - 1), k=st.integers(-50, 50),
+       density=st.floats(0.05, 10.0))
+def test_roadside_structures_stay_in_their_zones(scenario, seed, k, density):
+    from lidarops.data.scenarios import _roadside_structures
+    from lidarops.data.scene import Ground, _rng
+
+    ground = Ground.random(_rng(seed, "fuzz", "ground"))
+    ext = primitive_extents(_roadside_structures(scenario)(ground, seed, density, k, 40.0 * k, 40.0 * (k + 1)))
+    inside = in_zones(ext[:, 0], ext[:, 1], STRUCTURE_ZONES[scenario])
+    assert inside.all(), ext[~inside]
+
+
+@fuzz
+@given(scenario=st.sampled_from(sorted(STRUCTURE_ZONES)),
+       value=st.sampled_from([-0.1, 10.5, float("nan"), float("inf"), "dense", None, True]))
+def test_bad_roadside_structures_density_is_named(scenario, value):
+    from lidarops.data.scenarios import build_scenario
+
+    _, err = outcome(build_scenario, scenario, 0, roadside_structures=value)
+    assert_clear_error(err, (ValueError, TypeError), ["roadside_structures"], f"roadside_structures={value!r}")
