@@ -519,8 +519,9 @@ def _roadside_structures(scenario: str):
     """A driving tile's roadside structures (the scenario option ``roadside_structures``), what the real scans'
     confident false positives stand on: W-beam guard rails on posts and metal railings of vertical bars along the
     kerb, garden and garage walls with wheelie bins before them, and bar fences with a tall post at their end along
-    the walkway's outer edge (on the highway: bar fences, tall posts and walls on the verges). Clear of every labelled
-    lane, as the other clutter; a random stream of its own."""
+    the walkway's outer edge (on the highway: bar fences, tall posts and walls on the verges), and standing objects
+    of a pedestrian's size in every zone (:func:`_person_sized`). Clear of every labelled lane, as the other clutter;
+    a random stream of its own."""
     # (y from, y to, the structures the zone takes): the city's kerb strip and the walkway's outer edge, the
     # highway's verges beyond the rails
     zones = {"driving_city": ((-11.2, -10.8, "kerb"), (10.8, 11.2, "kerb"), (-15.8, -14.6, "edge"),
@@ -558,9 +559,49 @@ def _roadside_structures(scenario: str):
                         b.box_on_ground(x + length / 2, yw, length, 0.25, rng.uniform(1.0, 2.0),
                                         refl=rng.uniform(0.2, 0.45), bury=0.1)
                 x += length + rng.exponential(15.0 / density) + 0.5
+            for x in np.sort(rng.uniform(x0, x1, rng.poisson(density * (x1 - x0) / 12.0))):
+                _person_sized(b, rng, ground, x, y_lo, y_hi, zone)
         return b.build()
 
     return build
+
+
+def _person_sized(b: _StaticBuilder, rng: np.random.Generator, ground: Ground, x: float, y_lo: float, y_hi: float,
+                  zone: str) -> None:
+    """One standing object of a pedestrian's size and return count that is not one, within ``[y_lo, y_hi]``: the
+    dense, narrow clusters of 0.3-0.8 m across and 1-2 m tall that the real scans' confident pedestrian and cyclist
+    false positives stand on at 20-50 m. On the kerb strip (0.4 m wide): a post carrying a sign, a box or a mailbox
+    at chest height, or a narrow column; wider zones: also utility cabinets, narrow dense shrubs and conifers, and
+    young trees whose foliage starts low."""
+    width = y_hi - y_lo
+    y = rng.uniform(y_lo + min(0.2, width / 2), y_hi - min(0.2, width / 2))
+    room = min(y - y_lo, y_hi - y) - 0.01  # to the zone's edges
+    g = float(ground.height(np.array([x]), np.array([y]))[0])
+    kind = rng.random() if zone != "kerb" else rng.random() * 0.4
+    if kind < 0.2:  # a post with a sign, a parcel box or a mailbox at 0.9-1.6 m
+        r = min(rng.uniform(0.04, 0.08), room)
+        top = rng.uniform(1.1, 1.9)
+        b.cylinder(x, y, r, top, refl=rng.uniform(0.3, 0.6))
+        dz = rng.uniform(0.25, 0.6)
+        b.box(x, y, g + top - dz / 2, rng.uniform(0.3, 0.6), min(rng.uniform(0.15, 0.4), 2 * room), dz,
+              refl=rng.uniform(0.2, 0.8), kind=SURFACE_POLE)
+    elif kind < 0.4:  # a column or a bollard of a pedestrian's width
+        b.cylinder(x, y, min(rng.uniform(0.15, 0.3), room), rng.uniform(1.2, 2.5), refl=rng.uniform(0.2, 0.5),
+                   kind=SURFACE_STRUCTURE)
+    elif kind < 0.6:  # a utility cabinet
+        b.box_on_ground(x, y, rng.uniform(0.5, 1.1), min(rng.uniform(0.3, 0.5), 2 * room - 0.05),
+                        rng.uniform(1.0, 1.7), heading=0.0, refl=rng.uniform(0.15, 0.5), bury=0.05)
+    elif kind < 0.8:  # a narrow, dense shrub or conifer
+        rz = rng.uniform(0.5, 1.1)
+        r = rng.uniform(0.25, 0.5)
+        b.ellipsoid(x, y, g + rz * rng.uniform(0.8, 1.0), r, min(r, room), rz, refl=rng.uniform(0.3, 0.6),
+                    mean_free_path=rng.uniform(0.04, 0.15))
+    else:  # a young tree: a thin trunk, its foliage from 0.8-1.8 m
+        h = rng.uniform(0.8, 1.8)
+        b.cylinder(x, y, min(rng.uniform(0.04, 0.1), room), h + 0.3, refl=rng.uniform(0.25, 0.4))
+        r = rng.uniform(0.3, 0.7)
+        b.ellipsoid(x, y, g + h + r, r, min(r, room), r * rng.uniform(0.9, 1.4), refl=rng.uniform(0.4, 0.6),
+                    mean_free_path=rng.uniform(0.1, 0.3))
 
 
 def _cluttered(tile_fn, clutter, ground: Ground, seed: int, density: float, tile_length: float):

@@ -390,9 +390,9 @@ def test_low_clutter_adds_low_wide_objects_clear_of_labelled_boxes(scenario):
 
 @pytest.mark.parametrize("scenario", ["driving_city", "driving_highway"])
 def test_roadside_structures_stand_in_their_zones_and_cast_returns(scenario):
-    """Guard rails, railings, walls with bins and bar fences: every primitive within the roadside zones (so no
-    labelled box holds one), their kinds all drawn, more non-ground returns in the zones, the same frame for the same
-    seed, the scene as it was at density 0, on in kitti_dr only, and a bad density named."""
+    """Guard rails, railings, walls with bins, bar fences and person-sized objects: every primitive within the
+    roadside zones (so no labelled box holds one), their kinds all drawn, more non-ground returns in the zones, the
+    same frame for the same seed, the scene as it was at density 0, on in kitti_dr only, and a bad density named."""
     import torch
 
     from lidarops import points_in_boxes
@@ -400,7 +400,7 @@ def test_roadside_structures_stand_in_their_zones_and_cast_returns(scenario):
 
     sim = Simulator(scenario, seed=SEED)
     build = _roadside_structures(scenario)
-    heights, radii, rails = [], [], []
+    heights, radii, rails, crowns = [], [], [], []
     for k in range(4):
         prims = build(sim.scenario.ground, SEED, 3.0, k, 40.0 * k, 40.0 * (k + 1))
         ext = primitive_extents(prims)
@@ -410,10 +410,11 @@ def test_roadside_structures_stand_in_their_zones_and_cast_returns(scenario):
         heights += [h for h, yaw in zip(2 * prims.boxes.half[:, 2], prims.boxes.yaw) if yaw != 0]  # bins turn
         radii += list(prims.cylinders.radius)
         rails += [h for h in 2 * prims.boxes.half[:, 2] if abs(h - 0.31) < 1e-9]  # a guard rail's beam
-        assert len(prims.ellipsoids) == 0
+        crowns += list(prims.ellipsoids.radii[:, 2])
     radii = np.asarray(radii)
     assert (radii < 0.02).sum() > 50, "bar fences: thin bars"
     assert (radii >= 0.03).any(), "and their posts"
+    assert (radii >= 0.15).any() and len(crowns) > 2, "person-sized columns, shrubs and young trees"
     if scenario == "driving_city":
         assert rails, "guard rails: a 0.31 m beam"
         assert any(0.9 < h < 1.6 for h in heights), "wheelie bins"
