@@ -161,6 +161,34 @@ def _trainable(cfg: Mapping, config_path: str) -> Trainable:
     return TRAINABLE[name]
 
 
+def _load_pretrained(model, source: str, cfg: Mapping) -> None:
+    """Starts ``model`` from the weights of ``source`` (a checkpoint file, lidarops' or OpenPCDet's, or a shipped
+    model's name), as OpenPCDet's ``--pretrained_model``: every key and shape must fit."""
+    from lidarops.checkpoint import CheckpointError, model_record, read_checkpoint
+    from lidarops.models import load_model, weights
+
+    path = weights.path(source) if source in weights.available() else source
+    if not Path(path).is_file():
+        raise CliError(f"--pretrained-model {source}: no such file, nor a shipped model "
+                       f"({', '.join(sorted(weights.available()))})")
+    try:  # the model the file records; an OpenPCDet file records none and is read with the training config
+        own = model_record(read_checkpoint(path), str(path)).model_class is not None
+        pretrained = load_model(path) if own else load_model(path, config=cfg)
+    except (CheckpointError, ValueError, OSError) as e:
+        raise CliError(f"--pretrained-model {source}: {e}") from None
+    if type(pretrained) is not type(model):
+        raise CliError(f"--pretrained-model {source} holds a {type(pretrained).__name__}; the config trains a "
+                       f"{type(model).__name__}")
+    had, wants = (list(getattr(getattr(m, "config", None), "class_names", None) or []) for m in (pretrained, model))
+    if had != wants:  # the same shapes in another order would load, and mean other classes
+        raise CliError(f"--pretrained-model {source} detects {had}; the config's model {wants}")
+    try:
+        model.load_state_dict(pretrained.state_dict(), strict=True)
+    except RuntimeError as e:  # torch names the missing and unexpected keys and the shapes that differ
+        raise CliError(f"--pretrained-model {source} does not fit the config's model: "
+                       + " ".join(str(e).split())) from None
+
+
 def train(args: argparse.Namespace) -> int:
     """Trains the model a config names on its data folder; prints the evaluation and where the checkpoint is."""
     from lidarops.cli._device import resolve_device
@@ -198,10 +226,12 @@ def train(args: argparse.Namespace) -> int:
                        "lidarops data synth --out DIR ...")
     data_root = Path(data_path)
     model = model_class(entry.model)(cfg)
+    if args.pretrained_model is not None:
+        _load_pretrained(model, args.pretrained_model, cfg)
     names = list(model.config.class_names)
     train_set, val_set, collate_fn = entry.datasets(data_root, names, cfg, args)
     # model_class, model_config and class_names are the trainer's to write (from the model)
-    extra = {"config_path": str(args.config),
+    extra = {"config_path": str(args.config), "pretrained_model": args.pretrained_model and str(args.pretrained_model),
              "data_recipe": getattr(train_set, "recipe", None) or {"root": str(data_root)},
              "train_command": "lidarops " + shlex.join(sys.argv[1:])}
     result = fit(model, train_set, collate_fn, config, args.out, val_dataset=val_set if len(val_set or []) else None,
@@ -231,6 +261,10 @@ def register(subparsers) -> None:
                                                 "config's DATA_PATH)")
     t.add_argument("--out", required=True, help="run folder: checkpoints, log.csv, evaluations")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from latest.pth")
+    t.add_argument("--pretrained-model", default=None,
+                   help="start from these weights (fine-tuning; OpenPCDet's --pretrained_model): a checkpoint "
+                        "(lidarops' or OpenPCDet's) or a shipped model's name; every key and shape must fit the "
+                        "config's model. A run continued with --resume takes its own checkpoint's weights")
     t.add_argument("--epochs", type=int, default=None, help="epochs (default: the config's OPTIMIZATION.NUM_EPOCHS)")
     t.add_argument("--batch-size", type=int, default=None, help="frames per step and per process")
     t.add_argument("--lr", type=float, default=None, help="peak learning rate (default: the config's OPTIMIZATION.LR)")

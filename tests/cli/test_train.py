@@ -122,3 +122,57 @@ def test_aerial_pointpillars_config_trains_on_drone_scenes(tmp_path, run_cli):
         near = pos[((pos[:, :2] - box[:2]).norm(dim=1) < 0.5)]
         assert len(near), box  # every drone has a positive anchor over it
         assert ((near[:, 2] - box[2]).abs() <= 0.5 + box[5] / 2 + 1e-6).all()  # in the layers it overlaps
+
+
+def test_pretrained_model_starts_the_run_from_its_weights(synth_kitti, tmp_path, run_cli, monkeypatch):
+    """``--pretrained-model`` (a shipped name or a file) hands fit a model holding exactly those weights, recorded in
+    the checkpoint's extras; without it the run starts elsewhere; weights of another config, another class order, or
+    no file are one error line naming the flag, before any training."""
+    import lidarops.train
+    from lidarops.models import weights
+
+    seen = {}
+
+    def fake_fit(model, *args, **kwargs):
+        seen["state"] = {k: v.clone() for k, v in model.state_dict().items()}
+        seen["extra"] = kwargs["extra_checkpoint"]
+        raise SystemExit(0)  # stop before training: the start is what is tested
+
+    monkeypatch.setattr(lidarops.train, "fit", fake_fit)
+    shipped = weights.load("pointpillars_synth").state_dict()
+    args = ["train", "--config", "pointpillars_synth", "--data", synth_kitti, "--out", tmp_path / "run", "--workers",
+            "0", "--no-progress"]
+    for source in ("pointpillars_synth", weights.path("pointpillars_synth")):
+        with pytest.raises(SystemExit):
+            run_cli(args + ["--pretrained-model", source])
+        assert seen["state"].keys() == shipped.keys()
+        assert all(torch.equal(seen["state"][k], shipped[k]) for k in shipped)
+        assert seen["extra"]["pretrained_model"] == str(source)
+    with pytest.raises(SystemExit):
+        run_cli(args)
+    assert not all(torch.equal(seen["state"][k], shipped[k]) for k in shipped)  # the check above can fail
+    assert seen["extra"]["pretrained_model"] is None
+    seen.clear()
+    reordered = tmp_path / "reordered.yaml"
+    base = repo_config("pointpillars_synth.yaml")
+    import yaml
+
+    from lidarops.config import load_config
+
+    cfg = load_config(base)  # the same network for classes in another order: its weights would load
+    anchors = {a["class_name"]: a for a in cfg["MODEL"]["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"]}
+    cfg["CLASS_NAMES"] = ["Pedestrian", "Car", "Cyclist"]
+    cfg["MODEL"]["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"] = [anchors[c] for c in cfg["CLASS_NAMES"]]
+    reordered.write_text(yaml.safe_dump(cfg))
+    narrower = tmp_path / "narrower.yaml"
+    narrower.write_text(f"_BASE_CONFIG_: {base}\nMODEL:\n    VFE:\n        NUM_FILTERS: [32]\n")
+    for config, source, expected in (("pointpillars_demo", "pointpillars_synth", "the config's model ['Car']"),
+                                     (narrower, "pointpillars_synth", "vfe.pfn_layers.0.linear.weight"),
+                                     (reordered, "pointpillars_synth",
+                                      "detects ['Car', 'Pedestrian', 'Cyclist']; the config's model ['Pedestrian',"),
+                                     ("pointpillars_synth", tmp_path / "none.pth", "no such file")):
+        code, out, err = run_cli(["train", "--config", config, "--data", synth_kitti, "--out", tmp_path / "bad",
+                                  "--pretrained-model", source])
+        line = one_error_line(err, "train")
+        assert code == 2 and "--pretrained-model" in line and expected in line, line
+    assert not seen and not (tmp_path / "bad").exists()

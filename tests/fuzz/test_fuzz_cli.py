@@ -62,6 +62,7 @@ COMMANDS: dict[str, tuple[list[str], dict[str, list[str]]]] = {
         "--max-train-frames": _INT_JUNK + ["0", "-1"],
         "--max-val-frames": _INT_JUNK + ["0", "-1"],
         "--gt-database-frames": _INT_JUNK + ["0", "-1"],
+        "--pretrained-model": _NOT_A_FILE + ["{binary}", "{empty}", "no_such_model"],
         "--amp": ["fp8", ""],
         "--device": ["gpu", "", "cuda:x", "tpu", "meta"],
     }),
