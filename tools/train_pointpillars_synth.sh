@@ -6,6 +6,8 @@
 #                                                             # configs/pointpillars/pointpillars_synth_real.yaml
 #   SPARSE=1 bash tools/train_pointpillars_synth.sh OUT       # Sparse-PointPillars on the same data and recipe:
 #                                                             # configs/pointpillars/pointpillars_synth_sparse.yaml
+#   RESUME=1 ... (same OUT)                                   # continue OUT/run from latest.pth, on the data
+#                                                             # already in DATA when it is complete
 # Runs on the GPU machine; writes OUT_DIR/run (checkpoints, log.csv, evaluations) and
 # OUT_DIR/pointpillars_synth.pth (float16 weights with their config, recipe, command and evaluation).
 set -euo pipefail
@@ -16,8 +18,11 @@ NAME=pointpillars_synth${REALISM:+_real}${SPARSE:+_sparse}
 WORKERS=${WORKERS:-$(( $(nproc) / GPUS - 2 ))}
 s=$(date +%s)
 # 3,600 frames: driving_city 2,400 and driving_highway 1,200, each its own scene; 500 held out for val
-python3 -m lidarops data synth --scenario driving_city driving_highway --frames 2400 1200 --seed 0 \
-    --val-fraction 0.1389 --workers "$(nproc)" --out "$DATA" --no-progress ${REALISM:+--realism $REALISM}
+# (RESUME=1 on a machine that still holds the data: made once, not again)
+if [ -z "${RESUME:-}" ] || [ ! -f "$DATA/recipe.json" ]; then
+  python3 -m lidarops data synth --scenario driving_city driving_highway --frames 2400 1200 --seed 0 \
+      --val-fraction 0.1389 --workers "$(nproc)" --out "$DATA" --no-progress ${REALISM:+--realism $REALISM}
+fi
 echo "[train] data: $(( $(date +%s) - s )) s"
 TRAIN=(--config configs/pointpillars/$NAME.yaml --data "$DATA" --out "$OUT/run" --amp bf16 --batch-size "$BATCH"
        --workers "$WORKERS" --epochs "$EPOCHS" --eval-every 5 --gt-database-frames 1000 --no-progress
