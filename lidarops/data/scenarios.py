@@ -253,6 +253,33 @@ def _companions(rng: np.random.Generator, ground: Ground, lane: Lane, occupied: 
     return done
 
 
+def _place_crossing(rng: np.random.Generator, ground: Ground, n: int, placed: _Placed,
+                    road: tuple[float, float] = (-10.0, 10.0), x_range: tuple[float, float] = (5.0, 30.0)
+                    ) -> tuple[float, int]:
+    """Up to ``n`` pedestrians crossing the road ahead of the ego on a crosswalk 3 m wide at a random ``x``
+    (0.7 m at least between two of them, walking across at 1.0-1.6 m/s, some diagonally); returns the crosswalk's
+    ``x`` and how many were placed. The real scans' nearest pedestrians cross in front of the car, often in
+    groups; on the sidewalks alone a pedestrian is never nearer than about 15 m in the camera's view."""
+    xc = float(rng.uniform(*x_range))
+    centres: list[np.ndarray] = []
+    for _ in range(n):
+        for _attempt in range(30):
+            c = np.array([xc + rng.uniform(-1.5, 1.5), rng.uniform(*road)])
+            if all(np.hypot(*(c - o)) >= 0.7 for o in centres):
+                break
+        else:
+            continue
+        centres.append(c)
+        size = _sample_size(rng, "Pedestrian")
+        heading = (np.pi / 2 if rng.random() < 0.5 else -np.pi / 2) + rng.normal(0, 0.3)
+        v = rng.uniform(1.0, 1.6)
+        vx, vy = v * np.cos(heading), v * np.sin(heading)
+        z = float(ground.height(c[:1], c[1:])[0]) + size[2] / 2
+        placed.add("Pedestrian", (c[0], c[1], z), size, heading, (vx, vy, ground.slope[0] * vx + ground.slope[1] * vy),
+                   0.0, rng)
+    return xc, len(centres)
+
+
 def _place_drones(rng: np.random.Generator, n: int, region: tuple[tuple[float, float], ...], speed: tuple[float, float],
                   placed: _Placed, avoid: Sequence[np.ndarray] = ()) -> int:
     """Drones at random 3D positions (at least 3 m apart), flying with random 3D velocity and yaw rate."""
@@ -623,12 +650,13 @@ def _sensor_height(value) -> float:
 
 def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
                   sensor_height: float = SENSOR_HEIGHT, pedestrian_groups: float = 0.0, low_clutter: float = 0.0,
-                  roadside_structures: float = 0.0, **unused) -> Scenario:
+                  roadside_structures: float = 0.0, crossing_pedestrians: float = 0.0, **unused) -> Scenario:
     _no_unused(unused, "driving_city")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
     low_clutter = real(low_clutter, "low_clutter", 0, 10)
     roadside_structures = real(roadside_structures, "roadside_structures", 0, 10)
     pedestrian_groups = real(pedestrian_groups, "pedestrian_groups", 0, 1)
+    crossing_pedestrians = real(crossing_pedestrians, "crossing_pedestrians", 0, 1)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_city", "scene")
     ground = Ground.random(rng, material=_city_material)
@@ -662,9 +690,17 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
             Lane(side * 14.0, rng.choice([0.0, np.pi]), 0.0, (-40.0, 70.0), ("Pedestrian",), gap=0.4, jitter=0.1),
         ]
     placed = _Placed()
-    # the ego car occupies its lane around x = 0
-    done = _place_in_lanes(rng, ground, lanes, counts, placed, reserved=[(0, -3.5, 3.5)], groups=pedestrian_groups,
+    # the ego car occupies its lane around x = 0; a crosswalk, where there is one, every lane across the road
+    reserved, crossing = [(0, -3.5, 3.5)], 0
+    cross_rng = _rng(seed, "driving_city", "crossing") if crossing_pedestrians else None
+    if cross_rng is not None and cross_rng.random() < crossing_pedestrians and counts.get("Pedestrian", 0):
+        want = min(counts["Pedestrian"], int(cross_rng.integers(1, 9)))
+        xc, crossing = _place_crossing(cross_rng, ground, want, placed)
+        reserved += [(i, xc - 3.0, xc + 3.0) for i in range(8)]  # the eight vehicle, bike and parking lanes
+        counts = {**counts, "Pedestrian": counts["Pedestrian"] - crossing}
+    done = _place_in_lanes(rng, ground, lanes, counts, placed, reserved=reserved, groups=pedestrian_groups,
                            group_rng=_rng(seed, "driving_city", "groups") if pedestrian_groups else None)
+    done["Pedestrian"] += crossing
     z0 = float(ground.z0)
     done["Drone"] = _place_drones(rng, counts["Drone"], ((-30.0, 70.0), (-9.0, 9.0), (z0 + 6.0, z0 + 15.0)), (1.0, 8.0),
                                   placed, avoid=[ego.position0])
@@ -941,7 +977,7 @@ def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> S
         object_counts: see :func:`sample_object_counts`.
         **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``low_clutter``,
             ``roadside_structures``, ``sensor_height``;
-            ``driving_city``: ``pedestrian_groups``).
+            ``driving_city``: ``pedestrian_groups``, ``crossing_pedestrians``).
 
     Returns:
         Scenario.

@@ -152,8 +152,9 @@ class Simulator:
             lift, self._intensity_scale = self.realism.scene_draws(_rng(self.seed, scenario, "realism", "scene"))
             if lift and scenario in CLUTTERED_SCENARIOS and "sensor_height" not in scenario_options:
                 scenario_options = {**scenario_options, "sensor_height": SENSOR_HEIGHT + lift}
-            if self.realism.pedestrian_groups and scenario == "driving_city" and "pedestrian_groups" not in scenario_options:
-                scenario_options = {**scenario_options, "pedestrian_groups": self.realism.pedestrian_groups}
+            for option in ("pedestrian_groups", "crossing_pedestrians"):
+                if getattr(self.realism, option) and scenario == "driving_city" and option not in scenario_options:
+                    scenario_options = {**scenario_options, option: getattr(self.realism, option)}
         self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)
         self.sensor: LidarSensor = make_sensor(sensor if sensor is not None else self.scenario.default_sensor)
         if self.realism is not None:  # the scene's sensor under the profile's domain randomisation

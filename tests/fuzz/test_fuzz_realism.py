@@ -59,7 +59,7 @@ UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_
 
 @fuzz
 @given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "roadside_structures",
-                                    "pedestrian_build", "hair_dropout")),
+                                    "pedestrian_build", "hair_dropout", "crossing_pedestrians")),
        value=st.sampled_from([-0.5, "above", "far above", float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     if isinstance(value, str):  # just above the parameter's range, or twice its end
