@@ -257,20 +257,22 @@ def _place_crossing(rng: np.random.Generator, ground: Ground, n: int, placed: _P
                     road: tuple[float, float] = (-10.0, 10.0), x_range: tuple[float, float] = (5.0, 30.0)
                     ) -> tuple[float, int]:
     """Up to ``n`` pedestrians crossing the road ahead of the ego on a crosswalk 3 m wide at a random ``x``
-    (0.7 m at least between two of them, walking across at 1.0-1.6 m/s, some diagonally); returns the crosswalk's
-    ``x`` and how many were placed. The real scans' nearest pedestrians cross in front of the car, often in
-    groups; on the sidewalks alone a pedestrian is never nearer than about 15 m in the camera's view."""
+    (their footprints' circumscribed circles apart, so no two boxes overlap at any heading; walking across at
+    1.0-1.6 m/s, some diagonally); returns the crosswalk's ``x`` and how many were placed. The real scans' nearest
+    pedestrians cross in front of the car, often in groups; on the sidewalks alone a pedestrian is never nearer
+    than about 15 m in the camera's view."""
     xc = float(rng.uniform(*x_range))
-    centres: list[np.ndarray] = []
+    centres: list[tuple[np.ndarray, float]] = []
     for _ in range(n):
+        size = _sample_size(rng, "Pedestrian")
+        radius = float(np.hypot(size[0], size[1])) / 2
         for _attempt in range(30):
             c = np.array([xc + rng.uniform(-1.5, 1.5), rng.uniform(*road)])
-            if all(np.hypot(*(c - o)) >= 0.7 for o in centres):
+            if all(np.hypot(*(c - o)) >= radius + r for o, r in centres):
                 break
         else:
             continue
-        centres.append(c)
-        size = _sample_size(rng, "Pedestrian")
+        centres.append((c, radius))
         heading = (np.pi / 2 if rng.random() < 0.5 else -np.pi / 2) + rng.normal(0, 0.3)
         v = rng.uniform(1.0, 1.6)
         vx, vy = v * np.cos(heading), v * np.sin(heading)

@@ -297,7 +297,7 @@ def test_crossing_pedestrians_cross_ahead_without_overlaps():
     scene's pedestrian count kept (an ``object_counts`` of 2 too), and with the option off the scene of before."""
     ped = CLASSES.index("Pedestrian")
     crossing, across = 0, []
-    for seed in range(16):
+    for seed in range(40):
         on = Simulator("driving_city", seed=seed, crossing_pedestrians=1.0).scenario
         off = Simulator("driving_city", seed=seed).scenario
         assert (on.object_labels == ped).sum() == (off.object_labels == ped).sum()
