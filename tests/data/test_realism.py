@@ -272,29 +272,13 @@ def test_pedestrian_groups_walk_in_single_file_without_overlaps():
         Simulator("driving_highway", seed=3, pedestrian_groups=0.3)
 
 
-def _bev_corners(center, half, yaw):
-    c, s = np.cos(yaw), np.sin(yaw)
-    local = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], np.float64)[None] * half[:, None, :2]
-    return center[:, None, :2] + np.stack([local[..., 0] * c[:, None] - local[..., 1] * s[:, None],
-                                           local[..., 0] * s[:, None] + local[..., 1] * c[:, None]], -1)
-
-
-def _separated(a, b):
-    """Whether two convex quadrilaterals (4, 2) are apart: a separating axis among their edges' normals."""
-    for poly in (a, b):
-        for i in range(4):
-            e = poly[(i + 1) % 4] - poly[i]
-            n = np.array([-e[1], e[0]])
-            pa, pb = a @ n, b @ n
-            if pa.max() <= pb.min() + 1e-9 or pb.max() <= pa.min() + 1e-9:
-                return True
-    return False
-
-
 def test_crossing_pedestrians_cross_ahead_without_overlaps():
     """driving_city's crossing_pedestrians (kitti, kitti_dr: 0.4): pedestrians on the road ahead, walking across
-    it, none overlapping another object in bird's-eye view (a separating-axis test of the rotated boxes), the
+    it, none overlapping another object in bird's-eye view (shapely's intersection of the rotated footprints), the
     scene's pedestrian count kept (an ``object_counts`` of 2 too), and with the option off the scene of before."""
+    shapely = pytest.importorskip("shapely")
+    from lidarops.data.geometry import box_corners
+
     ped = CLASSES.index("Pedestrian")
     crossing, across = 0, []
     for seed in range(40):
@@ -308,11 +292,12 @@ def test_crossing_pedestrians_cross_ahead_without_overlaps():
             x = b.center[road, 0]
             assert x.min() >= 3.5 - 1e-9 and x.max() <= 31.5 + 1e-9 and x.max() - x.min() <= 3.0 + 1e-9
             across.extend(np.abs(np.cos(b.yaw[road])))  # 0 when walking straight across
-        corners = _bev_corners(b.center, b.half, b.yaw)
+        boxes = np.concatenate([b.center, 2 * b.half, b.yaw[:, None]], axis=1)
+        footprints = shapely.polygons(box_corners(boxes)[:, :4, :2])
         for i in np.flatnonzero(road):
-            for j in range(len(corners)):
-                if j != i:
-                    assert _separated(corners[i], corners[j]), (seed, i, j, on.object_labels[j])
+            shared = shapely.area(shapely.intersection(footprints[i], footprints))
+            shared[i] = 0.0
+            assert (shared < 1e-9).all(), (seed, i, np.flatnonzero(shared >= 1e-9), on.object_labels[shared >= 1e-9])
     assert crossing >= 30, crossing
     assert np.mean(np.asarray(across) < np.cos(np.pi / 2 - 0.75)) > 0.9, np.round(across, 2)
     two = Simulator("driving_city", seed=1, crossing_pedestrians=1.0, object_counts={"Pedestrian": 2}).scenario

@@ -230,3 +230,12 @@ def test_bad_roadside_structures_density_is_named(scenario, value):
 
     _, err = outcome(build_scenario, scenario, 0, roadside_structures=value)
     assert_clear_error(err, (ValueError, TypeError), ["roadside_structures"], f"roadside_structures={value!r}")
+
+
+@fuzz
+@given(value=st.sampled_from([-0.1, 1.5, float("nan"), float("inf"), "often", None, True]))
+def test_bad_crossing_pedestrians_probability_is_named(value):
+    from lidarops.data.scenarios import build_scenario
+
+    _, err = outcome(build_scenario, "driving_city", 0, crossing_pedestrians=value)
+    assert_clear_error(err, (ValueError, TypeError), ["crossing_pedestrians"], f"crossing_pedestrians={value!r}")
