@@ -88,6 +88,12 @@ class Realism:
             to eight of its pedestrians crossing the road on it (the scenario option ``crossing_pedestrians``): the
             real scans' nearest pedestrians; on the sidewalks alone none is nearer than about 15 m in the camera's
             view. The traffic does not stop for them: meant for single frames, not long sequences.
+        crossing_cyclists (float): probability that a ``driving_city`` scene has one to three of its cyclists riding
+            across the road 6-40 m ahead (the scenario option ``crossing_cyclists``): seen broadside, as the real
+            scans' cyclists crossing at junctions are; the bicycle lanes never show one so. Single frames, as above.
+        parking_lots (float): probability that a ``driving_city`` scene has a parking lot beside the street, beyond
+            the walkway (the scenario option ``parking_lots``): its cars parked across the street, at a slant or along
+            it side by side, often under trees; the street's lanes park cars along the road only.
         label_tightness (float): a vehicle's label is tighter than its body, as KITTI's annotators draw it: each
             side of the label's length and of its width moves in by a uniform amount up to this (m), drawn once
             per vehicle (the returns stay where they are: some fall just outside the label).
@@ -132,6 +138,8 @@ class Realism:
     intensity_scale_jitter: float = 0.0
     pedestrian_groups: float = 0.0
     crossing_pedestrians: float = 0.0
+    crossing_cyclists: float = 0.0
+    parking_lots: float = 0.0
     label_tightness: float = 0.0
     beam_choices: tuple[int, ...] = ()
     dropout_max: float = 0.0
@@ -155,6 +163,8 @@ class Realism:
         real(self.intensity_scale_jitter, "intensity_scale_jitter", 0, 1)
         real(self.pedestrian_groups, "pedestrian_groups", 0, 1)
         real(self.crossing_pedestrians, "crossing_pedestrians", 0, 1)
+        real(self.crossing_cyclists, "crossing_cyclists", 0, 1)
+        real(self.parking_lots, "parking_lots", 0, 1)
         real(self.label_tightness, "label_tightness", 0, 0.5, unit=" m")
         real(self.dropout_max, "dropout_max", 0, 0.9)
         real(self.range_noise_max, "range_noise_max", 0, 1, unit=" m")
@@ -251,19 +261,21 @@ class Realism:
         return out.astype(np.float32)
 
 
-#: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans, and pedestrians crossing the road
-#: ahead in two scenes of five) and ``kitti_dr`` (the same with
+#: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans, pedestrians crossing the road
+#: ahead in two scenes of five, cyclists riding across it in three of ten, a parking lot beside it in two of
+#: five) and ``kitti_dr`` (the same with
 #: mixed pixels at depth edges, pedestrians in groups as often as in the real scans, vehicle labels as tight as
 #: KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds and hair, low clutter
 #: and roadside structures (guard rails, railings, walls with bins, fences) beside the road, and the domain
 #: randomisation of the sensor's height, beams, dropout, range noise and intensity scale, for what the real scans
 #: leave uncertain).
-REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4),
+REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4, crossing_cyclists=0.3, parking_lots=0.4),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
                                        pedestrian_groups=0.3, label_tightness=0.07, beam_choices=(32, 64, 64, 128),
                                        dropout_max=0.2, range_noise_max=0.05, laser_offsets=True,
                                        pedestrian_build=1.0, hair_dropout=0.4, low_clutter=2.0,
-                                       roadside_structures=0.7, crossing_pedestrians=0.4)}
+                                       roadside_structures=0.7, crossing_pedestrians=0.4,
+                                       crossing_cyclists=0.3, parking_lots=0.4)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

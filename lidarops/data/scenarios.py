@@ -253,6 +253,32 @@ def _companions(rng: np.random.Generator, ground: Ground, lane: Lane, occupied: 
     return done
 
 
+def _place_across(rng: np.random.Generator, ground: Ground, name: str, n: int, placed: _Placed,
+                  taken: list[tuple[np.ndarray, float]], draw_xy: Callable[[], np.ndarray],
+                  speed: tuple[float, float], heading_sd: float) -> list[float]:
+    """Up to ``n`` objects of class ``name`` moving across the road at ``draw_xy()`` positions, their footprints'
+    circumscribed circles clear of ``taken`` (extended with theirs: no two boxes overlap at any heading), heading
+    across it (normal spread ``heading_sd``), at a speed drawn in ``speed``; returns their ``x``."""
+    xs: list[float] = []
+    for _ in range(n):
+        size = _sample_size(rng, name)
+        radius = float(np.hypot(size[0], size[1])) / 2
+        for _attempt in range(30):
+            c = draw_xy()
+            if all(np.hypot(*(c - o)) >= radius + r for o, r in taken):
+                break
+        else:
+            continue
+        taken.append((c, radius))
+        heading = (np.pi / 2 if rng.random() < 0.5 else -np.pi / 2) + rng.normal(0, heading_sd)
+        v = rng.uniform(*speed)
+        vx, vy = v * np.cos(heading), v * np.sin(heading)
+        z = float(ground.height(c[:1], c[1:])[0]) + size[2] / 2
+        placed.add(name, (c[0], c[1], z), size, heading, (vx, vy, ground.slope[0] * vx + ground.slope[1] * vy), 0.0, rng)
+        xs.append(float(c[0]))
+    return xs
+
+
 def _place_crossing(rng: np.random.Generator, ground: Ground, n: int, placed: _Placed,
                     road: tuple[float, float] = (-10.0, 10.0), x_range: tuple[float, float] = (5.0, 30.0)
                     ) -> tuple[float, int]:
@@ -262,24 +288,106 @@ def _place_crossing(rng: np.random.Generator, ground: Ground, n: int, placed: _P
     pedestrians cross in front of the car, often in groups; on the sidewalks alone a pedestrian is never nearer
     than about 15 m in the camera's view."""
     xc = float(rng.uniform(*x_range))
-    centres: list[tuple[np.ndarray, float]] = []
-    for _ in range(n):
-        size = _sample_size(rng, "Pedestrian")
-        radius = float(np.hypot(size[0], size[1])) / 2
-        for _attempt in range(30):
-            c = np.array([xc + rng.uniform(-1.5, 1.5), rng.uniform(*road)])
-            if all(np.hypot(*(c - o)) >= radius + r for o, r in centres):
-                break
-        else:
-            continue
-        centres.append((c, radius))
-        heading = (np.pi / 2 if rng.random() < 0.5 else -np.pi / 2) + rng.normal(0, 0.3)
-        v = rng.uniform(1.0, 1.6)
-        vx, vy = v * np.cos(heading), v * np.sin(heading)
-        z = float(ground.height(c[:1], c[1:])[0]) + size[2] / 2
-        placed.add("Pedestrian", (c[0], c[1], z), size, heading, (vx, vy, ground.slope[0] * vx + ground.slope[1] * vy),
-                   0.0, rng)
-    return xc, len(centres)
+    xs = _place_across(rng, ground, "Pedestrian", n, placed, [],
+                       lambda: np.array([xc + rng.uniform(-1.5, 1.5), rng.uniform(*road)]), (1.0, 1.6), 0.3)
+    return xc, len(xs)
+
+
+def _place_crossing_cyclists(rng: np.random.Generator, ground: Ground, n: int, placed: _Placed,
+                             road: tuple[float, float] = (-10.0, 10.0), x_range: tuple[float, float] = (6.0, 40.0)
+                             ) -> list[float]:
+    """Up to ``n`` cyclists riding across the road ahead of the ego, each at its own ``x`` in ``x_range`` (heading
+    across it, some at a slant; 3-6 m/s), none overlapping an object placed before (a crosswalk's pedestrians) or
+    another; returns their ``x``. The sensor sees them broadside, their whole length: the real scans hold such
+    cyclists (crossing at a junction), the bicycle lanes along the road never show one that way."""
+    taken = [(np.asarray(c[:2], np.float64), float(np.hypot(*h[:2]))) for c, h in zip(placed.center, placed.half)]
+    return _place_across(rng, ground, "Cyclist", n, placed, taken,
+                         lambda: np.array([rng.uniform(*x_range), rng.uniform(*road)]), (3.0, 6.0), 0.35)
+
+
+#: |y| (m) where a ``driving_city`` parking lot begins: beyond the walkway and the clutter along its outer edge
+_LOT_FRONT = 16.2
+
+
+@dataclass
+class _Lot:
+    """A parking lot beside the city street, on ``side`` (+1 / -1), from ``x0`` to ``x1``, reaching ``depth`` metres
+    beyond :data:`_LOT_FRONT`; ``trees``: rows of ``(x, y, trunk radius, crown bottom above the ground, crown
+    radius, crown half-height, reflectivity)`` along its front, their crowns over the first row of cars."""
+
+    side: float
+    x0: float
+    x1: float
+    depth: float
+    trees: list = field(default_factory=list)
+
+    def covers(self, side: float, lo: float, hi: float) -> bool:
+        return side == self.side and lo < self.x1 and hi > self.x0
+
+
+def _place_parking_lot(rng: np.random.Generator, ground: Ground, placed: _Placed) -> tuple[_Lot, int]:
+    """One parking lot beside the street, 20-45 m long, its cars parked in bays across the street (in one row or two
+    back to back), at a slant (35-63 deg), or along it side by side in columns; 55-95 % of the bays taken. The real
+    scans' parked cars stand at every heading, in lots and at the kerb, often under trees; the street's lanes hold
+    them along the road only. Returns the lot (for the tiles: no building front on it, trees along it) and how many
+    cars it holds."""
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    x0 = float(rng.uniform(-10.0, 45.0))
+    x1 = x0 + float(rng.uniform(20.0, 45.0))
+    layout = int(rng.integers(3))  # 0 across, 1 at a slant, 2 along the street in columns
+    taken = rng.uniform(0.55, 0.95)
+    l_max = CLASS_SIZE_STATS["Car"][0][0] + 2 * CLASS_SIZE_STATS["Car"][1][0]
+    w_max = CLASS_SIZE_STATS["Car"][0][1] + 2 * CLASS_SIZE_STATS["Car"][1][1]
+    cars: list[tuple[float, float, float]] = []  # x, |y| beyond the front, heading
+    if layout < 2:
+        angle = np.pi / 2 if layout == 0 else float(rng.uniform(0.6, 1.1))
+        pitch = (w_max + rng.uniform(0.5, 1.1)) / np.sin(angle)  # parallel neighbours, their sides apart
+        reach_x = l_max / 2 * abs(np.cos(angle)) + w_max / 2 * np.sin(angle)
+        half_y = l_max / 2 * np.sin(angle) + w_max / 2 * abs(np.cos(angle)) + 0.15  # a row's half-depth
+        rows = 1 if rng.random() < 0.5 else 2
+        for row in range(rows):
+            # the nose to the aisle or to the street; at a slant all one way, as painted bays are
+            heading = angle if rng.random() < 0.5 else angle + np.pi
+            heading = heading if row == 0 else heading + np.pi
+            for x in np.arange(x0 + reach_x, x1 - reach_x, pitch):
+                if rng.random() < taken:
+                    cars.append((float(x), half_y * (2 * row + 1), heading))
+        depth = 2 * half_y * rows
+    else:
+        pitch = w_max + rng.uniform(0.5, 1.1)
+        deep = int(rng.integers(2, 6))
+        for x in np.arange(x0 + l_max / 2, x1 - l_max / 2, l_max + rng.uniform(5.5, 7.0)):
+            heading = 0.0 if rng.random() < 0.5 else np.pi
+            for j in range(deep):
+                if rng.random() < taken:
+                    cars.append((float(x), pitch * (j + 0.5), heading))
+        depth = pitch * deep
+    for x, dy, heading in cars:
+        size = _sample_size(rng, "Car")
+        y = side * (_LOT_FRONT + dy)
+        z = float(ground.height(np.array([x]), np.array([y]))[0]) + size[2] / 2
+        # a small skew, bounded so neighbours 0.5 m apart never touch
+        placed.add("Car", (x, y, z), size, heading + np.clip(rng.normal(0, 0.03), -0.06, 0.06), (0.0, 0.0, 0.0), 0.0,
+                   rng)
+    trees = []
+    if rng.random() < 0.6:
+        for x in np.arange(x0 + rng.uniform(0, 4), x1, rng.uniform(7.0, 12.0)):
+            r = float(rng.uniform(1.5, 3.0))
+            trees.append((float(x), side * (_LOT_FRONT - 0.3), float(rng.uniform(0.12, 0.25)), float(rng.uniform(2.2, 3.2)),
+                          r, r * float(rng.uniform(0.6, 1.0)), float(rng.uniform(0.4, 0.65))))
+    return _Lot(side, x0, x1, depth + 1.0, trees), len(cars)
+
+
+def _lot_material(material, lots: Sequence[_Lot]):
+    """``material`` with asphalt on the lots."""
+    def lot_material(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        refl, drop = material(x, y)
+        for lot in lots:
+            on = (x >= lot.x0) & (x <= lot.x1) & (lot.side * y >= _LOT_FRONT) & (lot.side * y <= _LOT_FRONT + lot.depth)
+            refl = np.where(on, 0.12, refl)
+        return refl, drop
+
+    return lot_material
 
 
 def _place_drones(rng: np.random.Generator, n: int, region: tuple[tuple[float, float], ...], speed: tuple[float, float],
@@ -315,7 +423,8 @@ def _city_material(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return refl, np.zeros_like(refl)
 
 
-def _city_tile(ground: Ground, tile_length: float) -> Callable[[int, np.random.Generator], StaticPrimitives]:
+def _city_tile(ground: Ground, tile_length: float, lots: Sequence["_Lot"] = ()
+               ) -> Callable[[int, np.random.Generator], StaticPrimitives]:
     def build(k: int, rng: np.random.Generator) -> StaticPrimitives:
         b = _StaticBuilder(ground)
         x0, x1 = k * tile_length, (k + 1) * tile_length
@@ -334,16 +443,17 @@ def _city_tile(ground: Ground, tile_length: float) -> Callable[[int, np.random.G
                     else:
                         x = cross[1] + rng.uniform(0, 2)
                         continue
+                lot = next((lot for lot in lots if lot.covers(side, x, x + length)), None)
                 if length >= 3:
                     depth = rng.uniform(8, 20)
-                    setback = rng.uniform(0, 2.0)
+                    setback = rng.uniform(0, 2.0) + (lot.depth + _LOT_FRONT - 16 if lot else 0.0)  # behind a lot
                     b.box_on_ground(x + length / 2, side * (16 + setback + depth / 2), length, depth,
                                     rng.uniform(6, 30), refl=rng.uniform(0.2, 0.45))
-                    if rng.random() < 0.4:  # hedge along the facade
+                    if rng.random() < 0.4 and lot is None:  # hedge along the facade
                         b.ellipsoid(x + length / 2, side * 15.2, float(ground.height(np.array([x]), np.array([side * 15.2]))[0]) + 0.5,
                                     length / 2 * 0.9, 0.45, 0.75, refl=rng.uniform(0.4, 0.6), mean_free_path=0.25)
                 gap = rng.uniform(0.5, 5.0)
-                if gap > 2.5 and rng.random() < 0.6:  # fence closing the alley
+                if gap > 2.5 and rng.random() < 0.6 and lot is None:  # fence closing the alley
                     b.box_on_ground(x + length + gap / 2, side * 16.0, gap, 0.06, rng.uniform(1.2, 2.0),
                                     refl=rng.uniform(0.2, 0.5), bury=0.1)
                 x += length + gap
@@ -365,6 +475,12 @@ def _city_tile(ground: Ground, tile_length: float) -> Callable[[int, np.random.G
                     else:
                         b.tree(rng, x, side * 11.2)
                 x += rng.uniform(6, 18)
+        for lot in lots:  # trees along a lot's front, their crowns over its first row
+            for tx, ty, trunk, bottom, r, rz, refl in lot.trees:
+                if x0 <= tx < x1:
+                    g = float(ground.height(np.array([tx]), np.array([ty]))[0])
+                    b.cylinder(tx, ty, trunk, bottom + rz * 0.3, refl=0.3, kind=SURFACE_POLE)
+                    b.ellipsoid(tx, ty, g + bottom + rz, r, r, rz, refl=refl)
         return b.build()
 
     return build
@@ -652,13 +768,16 @@ def _sensor_height(value) -> float:
 
 def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
                   sensor_height: float = SENSOR_HEIGHT, pedestrian_groups: float = 0.0, low_clutter: float = 0.0,
-                  roadside_structures: float = 0.0, crossing_pedestrians: float = 0.0, **unused) -> Scenario:
+                  roadside_structures: float = 0.0, crossing_pedestrians: float = 0.0, crossing_cyclists: float = 0.0,
+                  parking_lots: float = 0.0, **unused) -> Scenario:
     _no_unused(unused, "driving_city")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
     low_clutter = real(low_clutter, "low_clutter", 0, 10)
     roadside_structures = real(roadside_structures, "roadside_structures", 0, 10)
     pedestrian_groups = real(pedestrian_groups, "pedestrian_groups", 0, 1)
     crossing_pedestrians = real(crossing_pedestrians, "crossing_pedestrians", 0, 1)
+    crossing_cyclists = real(crossing_cyclists, "crossing_cyclists", 0, 1)
+    parking_lots = real(parking_lots, "parking_lots", 0, 1)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_city", "scene")
     ground = Ground.random(rng, material=_city_material)
@@ -700,16 +819,30 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
         xc, crossing = _place_crossing(cross_rng, ground, want, placed)
         reserved += [(i, xc - 3.0, xc + 3.0) for i in range(8)]  # the eight vehicle, bike and parking lanes
         counts = {**counts, "Pedestrian": counts["Pedestrian"] - crossing}
+    across = []
+    cyc_rng = _rng(seed, "driving_city", "crossing_cyclists") if crossing_cyclists else None
+    if cyc_rng is not None and cyc_rng.random() < crossing_cyclists and counts.get("Cyclist", 0):
+        across = _place_crossing_cyclists(cyc_rng, ground, min(counts["Cyclist"], int(cyc_rng.integers(1, 4))), placed)
+        reserved += [(i, x - 1.5, x + 1.5) for x in across for i in range(8)]
+        counts = {**counts, "Cyclist": counts["Cyclist"] - len(across)}
     done = _place_in_lanes(rng, ground, lanes, counts, placed, reserved=reserved, groups=pedestrian_groups,
                            group_rng=_rng(seed, "driving_city", "groups") if pedestrian_groups else None)
     done["Pedestrian"] += crossing
+    done["Cyclist"] += len(across)
+    lots: list[_Lot] = []
+    lot_rng = _rng(seed, "driving_city", "parking_lots") if parking_lots else None
+    if lot_rng is not None and lot_rng.random() < parking_lots:
+        lot, n_lot = _place_parking_lot(lot_rng, ground, placed)
+        lots.append(lot)
+        done["Car"] += n_lot
+        ground.material = _lot_material(ground.material, lots)
     z0 = float(ground.z0)
     done["Drone"] = _place_drones(rng, counts["Drone"], ((-30.0, 70.0), (-9.0, 9.0), (z0 + 6.0, z0 + 15.0)), (1.0, 8.0),
                                   placed, avoid=[ego.position0])
     objects, labels = placed.build()
     tile_length = 40.0
     return Scenario("driving_city", seed, "hdl64", ground, ego, objects, labels, 80.0, tile_length,
-                    _cluttered(_cluttered(_cluttered(_city_tile(ground, tile_length), _street_clutter, ground, seed,
+                    _cluttered(_cluttered(_cluttered(_city_tile(ground, tile_length, lots), _street_clutter, ground, seed,
                                                      street_clutter, tile_length), _low_clutter("driving_city"), ground,
                                           seed, low_clutter, tile_length), _roadside_structures("driving_city"), ground,
                                seed, roadside_structures, tile_length), done)
@@ -979,7 +1112,8 @@ def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> S
         object_counts: see :func:`sample_object_counts`.
         **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``low_clutter``,
             ``roadside_structures``, ``sensor_height``;
-            ``driving_city``: ``pedestrian_groups``, ``crossing_pedestrians``).
+            ``driving_city``: ``pedestrian_groups``, ``crossing_pedestrians``, ``crossing_cyclists``,
+            ``parking_lots``).
 
     Returns:
         Scenario.

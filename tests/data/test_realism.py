@@ -170,7 +170,8 @@ def test_bad_profiles_are_refused():
         make_realism("carla")
     with pytest.raises(ValueError, match="realism"):
         Simulator("driving_city", seed=0, realism=3)
-    assert make_realism(None) is None and make_realism("kitti") == Realism(crossing_pedestrians=0.4)
+    assert make_realism(None) is None
+    assert make_realism("kitti") == Realism(crossing_pedestrians=0.4, crossing_cyclists=0.3, parking_lots=0.4)
 
 
 def test_mixed_pixels_move_edge_returns_along_their_rays_toward_the_background():
@@ -272,13 +273,37 @@ def test_pedestrian_groups_walk_in_single_file_without_overlaps():
         Simulator("driving_highway", seed=3, pedestrian_groups=0.3)
 
 
+def _assert_clear(scenario, rows, seed):
+    """No labelled box of ``rows`` overlaps another object's in bird's-eye view (shapely's intersection of the
+    rotated footprints)."""
+    import shapely
+
+    from lidarops.data.geometry import box_corners
+
+    b = scenario.objects
+    footprints = shapely.polygons(box_corners(np.concatenate([b.center, 2 * b.half, b.yaw[:, None]], axis=1))[:, :4, :2])
+    for i in np.flatnonzero(rows):
+        shared = shapely.area(shapely.intersection(footprints[i], footprints))
+        shared[i] = 0.0
+        assert (shared < 1e-9).all(), (seed, i, np.flatnonzero(shared >= 1e-9), scenario.object_labels[shared >= 1e-9])
+
+
+def _assert_city_option_checked(option):
+    """``option`` at 0 leaves driving_city's scene as it was; a value above 1 and the option on the highway are
+    named."""
+    np.testing.assert_array_equal(Simulator("driving_city", seed=3, **{option: 0.0}).scenario.objects.center,
+                                  Simulator("driving_city", seed=3).scenario.objects.center)
+    with pytest.raises(ValueError, match=option):
+        Simulator("driving_city", seed=3, **{option: 1.5})
+    with pytest.raises(TypeError, match=option):
+        Simulator("driving_highway", seed=3, **{option: 0.3})
+
+
 def test_crossing_pedestrians_cross_ahead_without_overlaps():
     """driving_city's crossing_pedestrians (kitti, kitti_dr: 0.4): pedestrians on the road ahead, walking across
     it, none overlapping another object in bird's-eye view (shapely's intersection of the rotated footprints), the
     scene's pedestrian count kept (an ``object_counts`` of 2 too), and with the option off the scene of before."""
-    shapely = pytest.importorskip("shapely")
-    from lidarops.data.geometry import box_corners
-
+    pytest.importorskip("shapely")
     ped = CLASSES.index("Pedestrian")
     crossing, across = 0, []
     for seed in range(40):
@@ -292,22 +317,87 @@ def test_crossing_pedestrians_cross_ahead_without_overlaps():
             x = b.center[road, 0]
             assert x.min() >= 3.5 - 1e-9 and x.max() <= 31.5 + 1e-9 and x.max() - x.min() <= 3.0 + 1e-9
             across.extend(np.abs(np.cos(b.yaw[road])))  # 0 when walking straight across
-        boxes = np.concatenate([b.center, 2 * b.half, b.yaw[:, None]], axis=1)
-        footprints = shapely.polygons(box_corners(boxes)[:, :4, :2])
-        for i in np.flatnonzero(road):
-            shared = shapely.area(shapely.intersection(footprints[i], footprints))
-            shared[i] = 0.0
-            assert (shared < 1e-9).all(), (seed, i, np.flatnonzero(shared >= 1e-9), on.object_labels[shared >= 1e-9])
+        _assert_clear(on, road, seed)
     assert crossing >= 30, crossing
     assert np.mean(np.asarray(across) < np.cos(np.pi / 2 - 0.75)) > 0.9, np.round(across, 2)
     two = Simulator("driving_city", seed=1, crossing_pedestrians=1.0, object_counts={"Pedestrian": 2}).scenario
     assert (two.object_labels == ped).sum() <= 2
-    np.testing.assert_array_equal(Simulator("driving_city", seed=3, crossing_pedestrians=0.0).scenario.objects.center,
-                                  Simulator("driving_city", seed=3).scenario.objects.center)
-    with pytest.raises(ValueError, match="crossing_pedestrians"):
-        Simulator("driving_city", seed=3, crossing_pedestrians=1.5)
-    with pytest.raises(TypeError, match="crossing_pedestrians"):
-        Simulator("driving_highway", seed=3, crossing_pedestrians=0.3)
+    _assert_city_option_checked("crossing_pedestrians")
+
+
+def test_crossing_cyclists_ride_across_ahead_without_overlaps():
+    """driving_city's crossing_cyclists: one to three of the scene's cyclists on the road 6-40 m ahead, heading
+    across it (seen broadside), none overlapping another object in bird's-eye view (shapely, the rotated footprints;
+    crossing pedestrians on too), the scene's cyclist count kept, and with the option off the scene of before."""
+    pytest.importorskip("shapely")
+    cyc = CLASSES.index("Cyclist")
+    riding, across, scenes = 0, [], 0
+    for seed in range(40):
+        on = Simulator("driving_city", seed=seed, crossing_cyclists=1.0, crossing_pedestrians=1.0).scenario
+        off = Simulator("driving_city", seed=seed, crossing_pedestrians=1.0).scenario
+        assert (on.object_labels == cyc).sum() == (off.object_labels == cyc).sum()
+        b = on.objects
+        # the bicycle lanes are at |y| = 7.75 heading along x; a crossing cyclist heads across
+        road = (on.object_labels == cyc) & (np.abs(np.cos(b.yaw)) < 0.95)
+        riding += road.sum()
+        scenes += road.any()
+        if road.any():
+            assert road.sum() <= 3
+            assert (b.center[road, 0] >= 6.0 - 1e-9).all() and (b.center[road, 0] <= 40.0 + 1e-9).all()
+            assert (np.abs(b.center[road, 1]) <= 10.0 + 1e-9).all()
+            across.extend(np.abs(np.cos(b.yaw[road])))
+            speed = np.hypot(b.velocity[road, 0], b.velocity[road, 1])
+            assert (speed >= 3.0 - 1e-9).all() and (speed <= 6.0 + 1e-9).all()
+        _assert_clear(on, road, seed)
+    assert scenes >= 20 and riding >= 30, (scenes, riding)
+    assert np.mean(np.asarray(across) < np.cos(np.pi / 2 - 0.75)) > 0.9, np.round(across, 2)
+    _assert_city_option_checked("crossing_cyclists")
+
+
+def test_parking_lots_hold_cars_at_every_heading_clear_of_everything_else():
+    """driving_city's parking_lots: a lot beside the street beyond the walkway whose cars stand across the street,
+    at a slant or along it side by side; no labelled box overlaps another (shapely, the rotated footprints), no
+    return of anything but the car itself or the ground falls in a lot car's box (the clutter, the structures and
+    the lot's trees on too: buildings stand behind the lot, crowns above the roofs), the lot cars are seen, the same
+    frame for the same seed, and with the option off the scene of before."""
+    pytest.importorskip("shapely")
+    import torch
+
+    from lidarops import points_in_boxes
+
+    car = CLASSES.index("Car")
+    headings, lots, seen, own, foreign = [], 0, 0, 0, 0
+    busy = dict(street_clutter=1.0, low_clutter=2.0, roadside_structures=0.7)
+    for seed in range(24):
+        sim = Simulator("driving_city", seed=seed, parking_lots=1.0, **busy)
+        sc = sim.scenario
+        b = sc.objects
+        lot = (sc.object_labels == car) & (np.abs(b.center[:, 1]) > 16.2)
+        lots += lot.any()
+        headings.extend(np.abs(np.cos(b.yaw[lot])))
+        _assert_clear(sc, lot, seed)
+        if seed < 8:
+            f = sim.sweep(0)
+            idx = points_in_boxes(torch.as_tensor(f.points[:, :3], dtype=torch.float64),
+                                  torch.as_tensor(f.boxes, dtype=torch.float64)).numpy()
+            in_lot = (idx >= 0) & (np.abs(f.boxes[np.maximum(idx, 0), 1]) > 16.2) & (f.surface != SURFACE_GROUND)
+            own += (in_lot & (f.instance == idx)).sum()
+            foreign += (in_lot & (f.instance != idx)).sum()
+            seen += int((np.bincount(idx[in_lot], minlength=len(f.boxes)) >= 30).sum())
+        if seed < 3:
+            np.testing.assert_array_equal(
+                Simulator("driving_city", seed=seed, parking_lots=0.0, **busy).sweep(0).points,
+                Simulator("driving_city", seed=seed, **busy).sweep(0).points)
+    assert lots == 24
+    headings = np.asarray(headings)
+    # across the street, at a slant and along it: each a good share
+    assert (headings < 0.2).mean() > 0.15 and ((headings > 0.3) & (headings < 0.85)).mean() > 0.1 \
+        and (headings > 0.98).mean() > 0.15, np.histogram(headings, bins=5, range=(0, 1))
+    assert seen >= 10 and own > 1000, (seen, own)
+    assert foreign <= 0.002 * own, (foreign, own)
+    f1 = Simulator("driving_city", seed=5, parking_lots=1.0).sweep(0)
+    np.testing.assert_array_equal(Simulator("driving_city", seed=5, parking_lots=1.0).sweep(0).points, f1.points)
+    _assert_city_option_checked("parking_lots")
 
 
 def test_label_tightness_draws_vehicle_labels_inside_their_bodies():

@@ -59,7 +59,8 @@ UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_
 
 @fuzz
 @given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "roadside_structures",
-                                    "pedestrian_build", "hair_dropout", "crossing_pedestrians")),
+                                    "pedestrian_build", "hair_dropout", "crossing_pedestrians",
+                                    "crossing_cyclists", "parking_lots")),
        value=st.sampled_from([-0.5, "above", "far above", float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     if isinstance(value, str):  # just above the parameter's range, or twice its end
@@ -233,9 +234,10 @@ def test_bad_roadside_structures_density_is_named(scenario, value):
 
 
 @fuzz
-@given(value=st.sampled_from([-0.1, 1.5, float("nan"), float("inf"), "often", None, True]))
-def test_bad_crossing_pedestrians_probability_is_named(value):
+@given(option=st.sampled_from(["crossing_pedestrians", "crossing_cyclists", "parking_lots"]),
+       value=st.sampled_from([-0.1, 1.5, float("nan"), float("inf"), "often", None, True]))
+def test_bad_crossing_probability_is_named(option, value):
     from lidarops.data.scenarios import build_scenario
 
-    _, err = outcome(build_scenario, "driving_city", 0, crossing_pedestrians=value)
-    assert_clear_error(err, (ValueError, TypeError), ["crossing_pedestrians"], f"crossing_pedestrians={value!r}")
+    _, err = outcome(build_scenario, "driving_city", 0, **{option: value})
+    assert_clear_error(err, (ValueError, TypeError), [option], f"{option}={value!r}")
