@@ -94,6 +94,9 @@ class Realism:
         parking_lots (float): probability that a ``driving_city`` scene has a parking lot beside the street, beyond
             the walkway (the scenario option ``parking_lots``): its cars parked across the street, at a slant or along
             it side by side, often under trees; the street's lanes park cars along the road only.
+        open_ground (float): probability that a ``driving_city`` building stands behind raised open ground (a lawn or
+            a terrace 0.15-0.9 m above the street, 4-14 m deep) instead of at the walkway (the scenario option
+            ``open_ground``): flat returns above the road's level beside it, which hold no car.
         label_tightness (float): a vehicle's label is tighter than its body, as KITTI's annotators draw it: each
             side of the label's length and of its width moves in by a uniform amount up to this (m), drawn once
             per vehicle (the returns stay where they are: some fall just outside the label).
@@ -140,6 +143,7 @@ class Realism:
     crossing_pedestrians: float = 0.0
     crossing_cyclists: float = 0.0
     parking_lots: float = 0.0
+    open_ground: float = 0.0
     label_tightness: float = 0.0
     beam_choices: tuple[int, ...] = ()
     dropout_max: float = 0.0
@@ -165,6 +169,7 @@ class Realism:
         real(self.crossing_pedestrians, "crossing_pedestrians", 0, 1)
         real(self.crossing_cyclists, "crossing_cyclists", 0, 1)
         real(self.parking_lots, "parking_lots", 0, 1)
+        real(self.open_ground, "open_ground", 0, 1)
         real(self.label_tightness, "label_tightness", 0, 0.5, unit=" m")
         real(self.dropout_max, "dropout_max", 0, 0.9)
         real(self.range_noise_max, "range_noise_max", 0, 1, unit=" m")
@@ -262,20 +267,20 @@ class Realism:
 
 
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans, pedestrians crossing the road
-#: ahead in two scenes of five, cyclists riding across it in three of ten, a parking lot beside it in two of
-#: five) and ``kitti_dr`` (the same with
+#: ahead in two scenes of five, cyclists riding across it in one of five, a parking lot beside it in two of
+#: five, raised open ground before three buildings of ten) and ``kitti_dr`` (the same with
 #: mixed pixels at depth edges, pedestrians in groups as often as in the real scans, vehicle labels as tight as
 #: KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds and hair, low clutter
 #: and roadside structures (guard rails, railings, walls with bins, fences) beside the road, and the domain
 #: randomisation of the sensor's height, beams, dropout, range noise and intensity scale, for what the real scans
 #: leave uncertain).
-REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4, crossing_cyclists=0.3, parking_lots=0.4),
+REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4, crossing_cyclists=0.2, parking_lots=0.4, open_ground=0.3),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
                                        pedestrian_groups=0.3, label_tightness=0.07, beam_choices=(32, 64, 64, 128),
                                        dropout_max=0.2, range_noise_max=0.05, laser_offsets=True,
                                        pedestrian_build=1.0, hair_dropout=0.4, low_clutter=2.0,
                                        roadside_structures=0.7, crossing_pedestrians=0.4,
-                                       crossing_cyclists=0.3, parking_lots=0.4)}
+                                       crossing_cyclists=0.2, parking_lots=0.4, open_ground=0.3)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

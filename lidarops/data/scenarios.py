@@ -327,7 +327,8 @@ class _Lot:
 
 def _place_parking_lot(rng: np.random.Generator, ground: Ground, placed: _Placed) -> tuple[_Lot, int]:
     """One parking lot beside the street, 20-45 m long, its cars parked in bays across the street (in one row or two
-    back to back), at a slant (35-63 deg), or along it side by side in columns; 55-95 % of the bays taken. The real
+    back to back), at a slant (35-63 deg), or along it side by side in columns; 55-95 % of the bays taken, or (one
+    lot in five) none. The real
     scans' parked cars stand at every heading, in lots and at the kerb, often under trees; the street's lanes hold
     them along the road only. Returns the lot (for the tiles: no building front on it, trees along it) and how many
     cars it holds."""
@@ -335,7 +336,7 @@ def _place_parking_lot(rng: np.random.Generator, ground: Ground, placed: _Placed
     x0 = float(rng.uniform(-10.0, 45.0))
     x1 = x0 + float(rng.uniform(20.0, 45.0))
     layout = int(rng.integers(3))  # 0 across, 1 at a slant, 2 along the street in columns
-    taken = rng.uniform(0.55, 0.95)
+    taken = 0.0 if rng.random() < 0.2 else rng.uniform(0.55, 0.95)  # an empty lot: open asphalt
     l_max = CLASS_SIZE_STATS["Car"][0][0] + 2 * CLASS_SIZE_STATS["Car"][1][0]
     w_max = CLASS_SIZE_STATS["Car"][0][1] + 2 * CLASS_SIZE_STATS["Car"][1][1]
     cars: list[tuple[float, float, float]] = []  # x, |y| beyond the front, heading
@@ -423,10 +424,13 @@ def _city_material(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return refl, np.zeros_like(refl)
 
 
-def _city_tile(ground: Ground, tile_length: float, lots: Sequence["_Lot"] = ()
-               ) -> Callable[[int, np.random.Generator], StaticPrimitives]:
+def _city_tile(ground: Ground, tile_length: float, lots: Sequence["_Lot"] = (), open_ground: float = 0.0,
+               seed: int = 0) -> Callable[[int, np.random.Generator], StaticPrimitives]:
     def build(k: int, rng: np.random.Generator) -> StaticPrimitives:
         b = _StaticBuilder(ground)
+        # raised open ground before a building (lawns, terraces): from a stream of its own, so that without it the
+        # tile is what it was
+        open_rng = _rng(seed, "driving_city", "open_ground", k) if open_ground else None
         x0, x1 = k * tile_length, (k + 1) * tile_length
         cross = None
         if rng.random() < 0.3:  # a cross street in this tile
@@ -447,6 +451,11 @@ def _city_tile(ground: Ground, tile_length: float, lots: Sequence["_Lot"] = ()
                 if length >= 3:
                     depth = rng.uniform(8, 20)
                     setback = rng.uniform(0, 2.0) + (lot.depth + _LOT_FRONT - 16 if lot else 0.0)  # behind a lot
+                    if open_rng is not None and lot is None and open_rng.random() < open_ground:
+                        terrace = open_rng.uniform(4.0, 14.0)
+                        b.box_on_ground(x + length / 2, side * (16 + terrace / 2), length, terrace,
+                                        open_rng.uniform(0.15, 0.9), refl=open_rng.uniform(0.25, 0.5), bury=0.1)
+                        setback += terrace
                     b.box_on_ground(x + length / 2, side * (16 + setback + depth / 2), length, depth,
                                     rng.uniform(6, 30), refl=rng.uniform(0.2, 0.45))
                     if rng.random() < 0.4 and lot is None:  # hedge along the facade
@@ -769,7 +778,7 @@ def _sensor_height(value) -> float:
 def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
                   sensor_height: float = SENSOR_HEIGHT, pedestrian_groups: float = 0.0, low_clutter: float = 0.0,
                   roadside_structures: float = 0.0, crossing_pedestrians: float = 0.0, crossing_cyclists: float = 0.0,
-                  parking_lots: float = 0.0, **unused) -> Scenario:
+                  parking_lots: float = 0.0, open_ground: float = 0.0, **unused) -> Scenario:
     _no_unused(unused, "driving_city")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
     low_clutter = real(low_clutter, "low_clutter", 0, 10)
@@ -778,6 +787,7 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
     crossing_pedestrians = real(crossing_pedestrians, "crossing_pedestrians", 0, 1)
     crossing_cyclists = real(crossing_cyclists, "crossing_cyclists", 0, 1)
     parking_lots = real(parking_lots, "parking_lots", 0, 1)
+    open_ground = real(open_ground, "open_ground", 0, 1)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_city", "scene")
     ground = Ground.random(rng, material=_city_material)
@@ -842,7 +852,7 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
     objects, labels = placed.build()
     tile_length = 40.0
     return Scenario("driving_city", seed, "hdl64", ground, ego, objects, labels, 80.0, tile_length,
-                    _cluttered(_cluttered(_cluttered(_city_tile(ground, tile_length, lots), _street_clutter, ground, seed,
+                    _cluttered(_cluttered(_cluttered(_city_tile(ground, tile_length, lots, open_ground, seed), _street_clutter, ground, seed,
                                                      street_clutter, tile_length), _low_clutter("driving_city"), ground,
                                           seed, low_clutter, tile_length), _roadside_structures("driving_city"), ground,
                                seed, roadside_structures, tile_length), done)
@@ -1113,7 +1123,7 @@ def build_scenario(name: str, seed: int = 0, object_counts=None, **options) -> S
         **options: scenario options (the driving scenarios: ``ego_speed``, ``street_clutter``, ``low_clutter``,
             ``roadside_structures``, ``sensor_height``;
             ``driving_city``: ``pedestrian_groups``, ``crossing_pedestrians``, ``crossing_cyclists``,
-            ``parking_lots``).
+            ``parking_lots``, ``open_ground``).
 
     Returns:
         Scenario.

@@ -60,7 +60,7 @@ UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_
 @fuzz
 @given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "roadside_structures",
                                     "pedestrian_build", "hair_dropout", "crossing_pedestrians",
-                                    "crossing_cyclists", "parking_lots")),
+                                    "crossing_cyclists", "parking_lots", "open_ground")),
        value=st.sampled_from([-0.5, "above", "far above", float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     if isinstance(value, str):  # just above the parameter's range, or twice its end
@@ -234,7 +234,8 @@ def test_bad_roadside_structures_density_is_named(scenario, value):
 
 
 @fuzz
-@given(option=st.sampled_from(["crossing_pedestrians", "crossing_cyclists", "parking_lots"]),
+@given(option=st.sampled_from(["crossing_pedestrians", "crossing_cyclists", "parking_lots",
+                                        "open_ground"]),
        value=st.sampled_from([-0.1, 1.5, float("nan"), float("inf"), "often", None, True]))
 def test_bad_crossing_probability_is_named(option, value):
     from lidarops.data.scenarios import build_scenario
