@@ -274,7 +274,8 @@ def _place_across(rng: np.random.Generator, ground: Ground, name: str, n: int, p
         v = rng.uniform(*speed)
         vx, vy = v * np.cos(heading), v * np.sin(heading)
         z = float(ground.height(c[:1], c[1:])[0]) + size[2] / 2
-        placed.add(name, (c[0], c[1], z), size, heading, (vx, vy, ground.slope[0] * vx + ground.slope[1] * vy), 0.0, rng)
+        vz = ground.slope[0] * vx + ground.slope[1] * vy
+        placed.add(name, (c[0], c[1], z), size, heading, (vx, vy, vz), 0.0, rng)
         xs.append(float(c[0]))
     return xs
 
@@ -374,7 +375,8 @@ def _place_parking_lot(rng: np.random.Generator, ground: Ground, placed: _Placed
     if rng.random() < 0.6:
         for x in np.arange(x0 + rng.uniform(0, 4), x1, rng.uniform(7.0, 12.0)):
             r = float(rng.uniform(1.5, 3.0))
-            trees.append((float(x), side * (_LOT_FRONT - 0.3), float(rng.uniform(0.12, 0.25)), float(rng.uniform(2.2, 3.2)),
+            trees.append((float(x), side * (_LOT_FRONT - 0.3), float(rng.uniform(0.12, 0.25)),
+                          float(rng.uniform(2.2, 3.2)),
                           r, r * float(rng.uniform(0.6, 1.0)), float(rng.uniform(0.4, 0.65))))
     return _Lot(side, x0, x1, depth + 1.0, trees), len(cars)
 
@@ -851,11 +853,11 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
                                   placed, avoid=[ego.position0])
     objects, labels = placed.build()
     tile_length = 40.0
+    tiles = _city_tile(ground, tile_length, lots, open_ground, seed)
     return Scenario("driving_city", seed, "hdl64", ground, ego, objects, labels, 80.0, tile_length,
-                    _cluttered(_cluttered(_cluttered(_city_tile(ground, tile_length, lots, open_ground, seed), _street_clutter, ground, seed,
-                                                     street_clutter, tile_length), _low_clutter("driving_city"), ground,
-                                          seed, low_clutter, tile_length), _roadside_structures("driving_city"), ground,
-                               seed, roadside_structures, tile_length), done)
+                    _cluttered(_cluttered(_cluttered(tiles, _street_clutter, ground, seed, street_clutter, tile_length),
+                                          _low_clutter("driving_city"), ground, seed, low_clutter, tile_length),
+                               _roadside_structures("driving_city"), ground, seed, roadside_structures, tile_length), done)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -171,8 +171,7 @@ def test_bad_profiles_are_refused():
     with pytest.raises(ValueError, match="realism"):
         Simulator("driving_city", seed=0, realism=3)
     assert make_realism(None) is None
-    assert make_realism("kitti") == Realism(crossing_pedestrians=0.4, crossing_cyclists=0.2, parking_lots=0.4,
-                                            open_ground=0.3)
+    assert make_realism("kitti") == Realism(crossing_pedestrians=0.4, parking_lots=0.4, open_ground=0.3)
 
 
 def test_mixed_pixels_move_edge_returns_along_their_rays_toward_the_background():
