@@ -8,6 +8,8 @@
 #                                                             # configs/pointpillars/pointpillars_synth_sparse.yaml
 #   RESUME=1 ... (same OUT)                                   # continue OUT/run from latest.pth, on the data
 #                                                             # already in DATA when it is complete
+#   PRETRAINED=FILE LR=0.001 EPOCHS=10 REALISM=kitti ...      # fine-tune FILE (a checkpoint or a shipped name)
+#                                                             # on the recipe's data, at peak learning rate LR
 # Runs on the GPU machine; writes OUT_DIR/run (checkpoints, log.csv, evaluations) and
 # OUT_DIR/pointpillars_synth.pth (float16 weights with their config, recipe, command and evaluation).
 set -euo pipefail
@@ -26,7 +28,8 @@ fi
 echo "[train] data: $(( $(date +%s) - s )) s"
 TRAIN=(--config configs/pointpillars/$NAME.yaml --data "$DATA" --out "$OUT/run" --amp bf16 --batch-size "$BATCH"
        --workers "$WORKERS" --epochs "$EPOCHS" --eval-every 5 --gt-database-frames 1000 --no-progress
-       ${MAX_MINUTES:+--max-minutes $MAX_MINUTES} ${RESUME:+--resume})
+       ${MAX_MINUTES:+--max-minutes $MAX_MINUTES} ${RESUME:+--resume} ${PRETRAINED:+--pretrained-model $PRETRAINED}
+       ${LR:+--lr $LR})
 export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1   # the DataLoader workers' numpy/torch: one thread each
 if [ "$GPUS" -gt 1 ]; then
     torchrun --standalone --nproc_per_node="$GPUS" -m lidarops train "${TRAIN[@]}"
