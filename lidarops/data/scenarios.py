@@ -329,10 +329,9 @@ class _Lot:
 def _place_parking_lot(rng: np.random.Generator, ground: Ground, placed: _Placed) -> tuple[_Lot, int]:
     """One parking lot beside the street, 20-45 m long, its cars parked in bays across the street (in one row or two
     back to back), at a slant (35-63 deg), or along it side by side in columns; 55-95 % of the bays taken, or (one
-    lot in five) none. The real
-    scans' parked cars stand at every heading, in lots and at the kerb, often under trees; the street's lanes hold
-    them along the road only. Returns the lot (for the tiles: no building front on it, trees along it) and how many
-    cars it holds."""
+    lot in five) none. The real scans' parked cars stand at every heading, in lots and at the kerb, often under
+    trees; the street's lanes hold them along the road only. Returns the lot (for the tiles: no building front on
+    it, trees along it) and how many cars it holds."""
     side = 1.0 if rng.random() < 0.5 else -1.0
     x0 = float(rng.uniform(-10.0, 45.0))
     x1 = x0 + float(rng.uniform(20.0, 45.0))
@@ -376,8 +375,7 @@ def _place_parking_lot(rng: np.random.Generator, ground: Ground, placed: _Placed
         for x in np.arange(x0 + rng.uniform(0, 4), x1, rng.uniform(7.0, 12.0)):
             r = float(rng.uniform(1.5, 3.0))
             trees.append((float(x), side * (_LOT_FRONT - 0.3), float(rng.uniform(0.12, 0.25)),
-                          float(rng.uniform(2.2, 3.2)),
-                          r, r * float(rng.uniform(0.6, 1.0)), float(rng.uniform(0.4, 0.65))))
+                          float(rng.uniform(2.2, 3.2)), r, r * float(rng.uniform(0.6, 1.0)), float(rng.uniform(0.4, 0.65))))
     return _Lot(side, x0, x1, depth + 1.0, trees), len(cars)
 
 
