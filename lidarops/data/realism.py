@@ -268,13 +268,14 @@ class Realism:
 
 #: Named profiles: ``kitti`` (the HDL-64E of KITTI, calibrated against its scans, pedestrians crossing the road
 #: ahead in two scenes of five, a parking lot beside it in two of five, raised open ground before three buildings
-#: of ten; not the cyclists riding across the road, which cost the real pedestrians, docs/data.md) and
+#: of ten, low clutter and roadside structures (guard rails, railings, walls with bins, fences) beside the road;
+#: not the cyclists riding across the road, which cost the real pedestrians, docs/data.md) and
 #: ``kitti_dr`` (the same with mixed pixels at depth edges, pedestrians in groups as often as in the real scans,
 #: vehicle labels as tight as KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds
-#: and hair, low clutter and roadside structures (guard rails, railings, walls with bins, fences) beside the road,
-#: and the domain randomisation of the sensor's height, beams, dropout, range noise and intensity scale, for what
+#: and hair, and the domain randomisation of the sensor's height, beams, dropout, range noise and intensity scale, for what
 #: the real scans leave uncertain).
-REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4, parking_lots=0.4, open_ground=0.3),
+REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4, parking_lots=0.4, open_ground=0.3, low_clutter=2.0,
+                                     roadside_structures=0.7),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
                                        pedestrian_groups=0.3, label_tightness=0.07, beam_choices=(32, 64, 64, 128),
                                        dropout_max=0.2, range_noise_max=0.05, laser_offsets=True,

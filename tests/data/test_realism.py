@@ -171,7 +171,8 @@ def test_bad_profiles_are_refused():
     with pytest.raises(ValueError, match="realism"):
         Simulator("driving_city", seed=0, realism=3)
     assert make_realism(None) is None
-    assert make_realism("kitti") == Realism(crossing_pedestrians=0.4, parking_lots=0.4, open_ground=0.3)
+    assert make_realism("kitti") == Realism(crossing_pedestrians=0.4, parking_lots=0.4, open_ground=0.3, low_clutter=2.0,
+                                            roadside_structures=0.7)
 
 
 def test_mixed_pixels_move_edge_returns_along_their_rays_toward_the_background():
@@ -506,7 +507,7 @@ def test_street_clutter_adds_furniture_and_keeps_clear_of_labelled_boxes():
 def test_low_clutter_adds_low_wide_objects_clear_of_labelled_boxes(scenario):
     """The low clutter (planters, low walls, bushes, stones, berms): more non-ground returns below 1.2 m above the
     ground beside the road, the same frame for the same seed, none inside labelled boxes, the scene as it was at
-    density 0, on in kitti_dr only, and a bad density named."""
+    density 0, on in both profiles, and a bad density named."""
     import torch
 
     from lidarops import points_in_boxes
@@ -532,7 +533,7 @@ def test_low_clutter_adds_low_wide_objects_clear_of_labelled_boxes(scenario):
                                 torch.as_tensor(plain.boxes, dtype=torch.float64)).numpy()
     plain_foreign = (plain_idx >= 0) & (plain.instance != plain_idx) & (plain.surface != SURFACE_GROUND)
     assert foreign.sum() <= plain_foreign.sum(), "the low clutter stands in no labelled box"
-    assert make_realism("kitti").low_clutter == 0 and make_realism("kitti_dr").low_clutter > 0
+    assert make_realism("kitti").low_clutter > 0 and make_realism("kitti_dr").low_clutter > 0
     with pytest.raises(ValueError, match="low_clutter"):
         Simulator(scenario, seed=SEED, low_clutter=11.0)
     with pytest.raises(TypeError, match="low_clutter"):
@@ -543,7 +544,7 @@ def test_low_clutter_adds_low_wide_objects_clear_of_labelled_boxes(scenario):
 def test_roadside_structures_stand_in_their_zones_and_cast_returns(scenario):
     """Guard rails, railings, walls with bins, bar fences and person-sized objects: every primitive within the
     roadside zones (so no labelled box holds one), their kinds all drawn, more non-ground returns in the zones, the
-    same frame for the same seed, the scene as it was at density 0, on in kitti_dr only, and a bad density named."""
+    same frame for the same seed, the scene as it was at density 0, on in both profiles, and a bad density named."""
     import torch
 
     from lidarops import points_in_boxes
@@ -585,7 +586,7 @@ def test_roadside_structures_stand_in_their_zones_and_cast_returns(scenario):
     idx = points_in_boxes(torch.as_tensor(frame.points[:, :3], dtype=torch.float64),
                           torch.as_tensor(frame.boxes, dtype=torch.float64)).numpy()
     assert not ((idx >= 0) & (frame.instance != idx) & (frame.surface != SURFACE_GROUND)).any()
-    assert make_realism("kitti").roadside_structures == 0 and make_realism("kitti_dr").roadside_structures > 0
+    assert make_realism("kitti").roadside_structures > 0 and make_realism("kitti_dr").roadside_structures > 0
     with pytest.raises(ValueError, match="roadside_structures"):
         Simulator(scenario, seed=SEED, roadside_structures=11.0)
     with pytest.raises(TypeError, match="roadside_structures"):
