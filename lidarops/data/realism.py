@@ -88,6 +88,9 @@ class Realism:
             to eight of its pedestrians crossing the road on it (the scenario option ``crossing_pedestrians``): the
             real scans' nearest pedestrians; on the sidewalks alone none is nearer than about 15 m in the camera's
             view. The traffic does not stop for them: meant for single frames, not long sequences.
+        crossing_groups (float): probability that a pedestrian crossing the road (``crossing_pedestrians``) leads one
+            to three others walking with it, side by side or in file, 0.1-0.5 m between their boxes (the scenario
+            option ``crossing_groups``): the real scans' crossing pedestrians walk so, their centres 0.6-0.9 m apart.
         crossing_cyclists (float): probability that a ``driving_city`` scene has one to three of its cyclists riding
             across the road 6-40 m ahead (the scenario option ``crossing_cyclists``): seen broadside, as the real
             scans' cyclists crossing at junctions are; the bicycle lanes never show one so. Single frames, as above.
@@ -141,6 +144,7 @@ class Realism:
     intensity_scale_jitter: float = 0.0
     pedestrian_groups: float = 0.0
     crossing_pedestrians: float = 0.0
+    crossing_groups: float = 0.0
     crossing_cyclists: float = 0.0
     parking_lots: float = 0.0
     open_ground: float = 0.0
@@ -167,6 +171,7 @@ class Realism:
         real(self.intensity_scale_jitter, "intensity_scale_jitter", 0, 1)
         real(self.pedestrian_groups, "pedestrian_groups", 0, 1)
         real(self.crossing_pedestrians, "crossing_pedestrians", 0, 1)
+        real(self.crossing_groups, "crossing_groups", 0, 1)
         real(self.crossing_cyclists, "crossing_cyclists", 0, 1)
         real(self.parking_lots, "parking_lots", 0, 1)
         real(self.open_ground, "open_ground", 0, 1)

@@ -152,8 +152,8 @@ class Simulator:
             lift, self._intensity_scale = self.realism.scene_draws(_rng(self.seed, scenario, "realism", "scene"))
             if lift and scenario in CLUTTERED_SCENARIOS and "sensor_height" not in scenario_options:
                 scenario_options = {**scenario_options, "sensor_height": SENSOR_HEIGHT + lift}
-            for option in ("pedestrian_groups", "crossing_pedestrians", "crossing_cyclists", "parking_lots",
-                           "open_ground"):
+            for option in ("pedestrian_groups", "crossing_pedestrians", "crossing_groups", "crossing_cyclists",
+                           "parking_lots", "open_ground"):
                 if getattr(self.realism, option) and scenario == "driving_city" and option not in scenario_options:
                     scenario_options = {**scenario_options, option: getattr(self.realism, option)}
         self.scenario: Scenario = build_scenario(scenario, self.seed, object_counts=object_counts, **scenario_options)

@@ -326,6 +326,44 @@ def test_crossing_pedestrians_cross_ahead_without_overlaps():
     _assert_city_option_checked("crossing_pedestrians")
 
 
+def test_crossing_groups_walk_close_together_without_overlaps():
+    """driving_city's crossing_groups: crossing pedestrians walking with others, side by side or in file, so their
+    nearest neighbours stand much nearer than pedestrians placed one by one (the real scans' crossing groups: centres
+    0.6-0.9 m apart), a companion at its group's heading and speed, no two footprints overlapping (shapely), the
+    scene's pedestrian count kept, the same scene for the same seed, and with the option off the scene of before."""
+    pytest.importorskip("shapely")
+    ped = CLASSES.index("Pedestrian")
+    nearest = {0.0: [], 1.0: []}
+    paired = 0
+    for seed in range(30):
+        off = Simulator("driving_city", seed=seed, crossing_pedestrians=1.0).scenario
+        for groups in (0.0, 1.0):
+            sc = Simulator("driving_city", seed=seed, crossing_pedestrians=1.0, crossing_groups=groups).scenario
+            assert (sc.object_labels == ped).sum() == (off.object_labels == ped).sum()
+            b = sc.objects
+            road = np.flatnonzero((sc.object_labels == ped) & (np.abs(b.center[:, 1]) < 10.5))
+            _assert_clear(sc, np.isin(np.arange(len(b.center)), road), seed)
+            if len(road) > 1:
+                c = b.center[road, :2]
+                d = np.hypot(*(c[:, None] - c[None]).transpose(2, 0, 1))
+                np.fill_diagonal(d, np.inf)
+                nearest[groups] += list(d.min(1))
+                if groups:
+                    x = b.center[road, 0]  # the crosswalk, widened by a group walking abreast along it
+                    assert x.max() - x.min() <= 6.0 + 1e-9, x
+                    for i, j in zip(road, road[d.argmin(1)]):
+                        if np.hypot(*(b.center[i, :2] - b.center[j, :2])) < 1.0:  # companions
+                            paired += 1
+                            assert b.yaw[i] == b.yaw[j] and np.array_equal(b.velocity[i], b.velocity[j]), (seed, i, j)
+    near, apart = np.median(nearest[1.0]), np.median(nearest[0.0])
+    assert near < 1.2 < 1.5 < apart, (near, apart)
+    assert paired >= 20, paired
+    same = Simulator("driving_city", seed=4, crossing_pedestrians=1.0, crossing_groups=0.7).scenario.objects.center
+    np.testing.assert_array_equal(
+        same, Simulator("driving_city", seed=4, crossing_pedestrians=1.0, crossing_groups=0.7).scenario.objects.center)
+    _assert_city_option_checked("crossing_groups")
+
+
 def test_crossing_cyclists_ride_across_ahead_without_overlaps():
     """driving_city's crossing_cyclists: one to three of the scene's cyclists on the road 6-40 m ahead, heading
     across it (seen broadside), none overlapping another object in bird's-eye view (shapely, the rotated footprints;

@@ -2,7 +2,8 @@
 intensities in [0, 1] on the quantum's grid, zero wherever a return is weak or reads zero, and a keep mask that
 never drops a return below the greenhouse; a parameter out of range (negative, above its bound, NaN, infinite)
 raises a ValueError naming it; a Simulator refuses what is not a profile. The roadside structures stay in their
-zones (clear of every labelled lane) for any seed, tile and density, and a bad density is named.
+zones (clear of every labelled lane) for any seed, tile and density, and a bad density is named; crossing groups
+never overlap.
 """
 from __future__ import annotations
 
@@ -60,7 +61,7 @@ UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_
 @fuzz
 @given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "roadside_structures",
                                     "pedestrian_build", "hair_dropout", "crossing_pedestrians",
-                                    "crossing_cyclists", "parking_lots", "open_ground")),
+                                    "crossing_cyclists", "crossing_groups", "parking_lots", "open_ground")),
        value=st.sampled_from([-0.5, "above", "far above", float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     if isinstance(value, str):  # just above the parameter's range, or twice its end
@@ -234,7 +235,31 @@ def test_bad_roadside_structures_density_is_named(scenario, value):
 
 
 @fuzz
-@given(option=st.sampled_from(["crossing_pedestrians", "crossing_cyclists", "parking_lots",
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 8), groups=st.floats(0.0, 1.0))
+def test_crossing_groups_never_overlap(seed, n, groups):
+    """Any seed, crosser count and group probability: at most ``n`` pedestrians, every one on the road, no two
+    footprints overlapping in bird's-eye view."""
+    import torch
+
+    from lidarops import box_iou_bev
+    from lidarops.data.scenarios import _Placed, _place_crossing_groups
+    from lidarops.data.scene import Ground, _rng
+
+    placed = _Placed()
+    ground = Ground.random(_rng(seed, "fuzz", "ground"))
+    done = _place_crossing_groups(_rng(seed, "fuzz", "crossing"), _rng(seed, "fuzz", "groups"), ground, n, placed,
+                                  17.0, (-10.0, 10.0), groups)
+    assert 1 <= done <= n and len(placed.center) == done
+    c, half = np.asarray(placed.center), np.asarray(placed.half)
+    assert (np.abs(c[:, 1]) <= 10.0 + 3.0).all()
+    boxes = torch.as_tensor(np.concatenate([c, 2 * half, np.asarray(placed.yaw)[:, None]], 1), dtype=torch.float64)
+    iou = box_iou_bev(boxes, boxes).numpy()
+    np.fill_diagonal(iou, 0.0)
+    assert (iou <= 1e-9).all(), iou
+
+
+@fuzz
+@given(option=st.sampled_from(["crossing_pedestrians", "crossing_groups", "crossing_cyclists", "parking_lots",
                                         "open_ground"]),
        value=st.sampled_from([-0.1, 1.5, float("nan"), float("inf"), "often", None, True]))
 def test_bad_crossing_probability_is_named(option, value):
