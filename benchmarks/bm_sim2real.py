@@ -35,6 +35,10 @@ returns at 15-60 m in the 64 densest 0.05-degree bins of apparent elevation (``b
 starts at the sensor's origin), the share of a pedestrian's points (10 or more) below half its height, and the far
 clutter: clusters of 3-30 non-ground returns at 40-75 m outside every labelled box, per frame, with their median
 height and footprint and the share on the road (|y| < 10.5 m), where far false positives stand.
+* **by score threshold** (``curve_*``): the easy and moderate objects found and the false positives per frame
+  when only the detections scoring at least 0.1, 0.2, ... 0.8 are kept, what a user picking a threshold sees;
+  ``--curve-plot PNG`` draws them.
+
 ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
 """
 from __future__ import annotations
@@ -54,6 +58,7 @@ from benchmarks.common import env_meta, print_table, write_results  # noqa: E402
 CLASSES = ("Car", "Pedestrian", "Cyclist")
 THRESHOLDS_3D = {"Car": (0.5, 0.7), "Pedestrian": (0.25, 0.5), "Cyclist": (0.25, 0.5)}
 FP_SCORES = (0.3, 0.5)
+CURVE_SCORES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)  # score_curve: the thresholds a user might pick
 BANDS = ("bottom", "middle", "top")
 LINES_RANGE, LINES_BINS = (15.0, 60.0), np.arange(-25.0, 3.0, 0.05)  # beam_line_share: the returns and the bins
 HALO_RANGE, HALO_MARGIN = 30.0, 0.5  # the cars whose halo is counted (m), and its width around the box (m)
@@ -127,6 +132,62 @@ def frame_figures(gt_boxes: np.ndarray, gt_names: list[str], det_boxes: np.ndarr
             got = det_names[over[np.argmax(det_scores[over])]] if over.size else "none"
             out["taken_for"][(name, got)] = out["taken_for"].get((name, got), 0) + 1
     return out
+
+
+def score_curve(frames: list[tuple], scores: tuple[float, ...] = CURVE_SCORES) -> dict:
+    """What a user who keeps the detections scoring at least ``s`` sees, for each ``s`` in ``scores``: per class the
+    easy and moderate labelled objects found at the class's first 3D threshold, and the false positives per frame
+    (and those outside DontCare regions). ``frames``: per frame ``(gt_boxes, gt_names, difficulty, det_boxes,
+    det_scores, det_names, det_dontcare)``. Returns lists over ``scores``: ``found_em[class]``, ``labelled_em[class]``
+    (one number), ``fp_per_frame``, ``fp_per_frame_outside_dontcare``."""
+    out = {"scores": list(scores), "found_em": {c: [] for c in CLASSES}, "labelled_em": {c: 0 for c in CLASSES},
+           "fp_per_frame": [], "fp_per_frame_outside_dontcare": []}
+    n = max(len(frames), 1)
+    for k, s in enumerate(scores):
+        found, fp, fp_out = dict.fromkeys(CLASSES, 0), 0, 0
+        for gt, names, difficulty, db, ds, dn, overlap in frames:
+            keep = ds >= s
+            f = frame_figures(gt, names, db[keep], ds[keep], [d for d, kk in zip(dn, keep) if kk], difficulty)
+            for c in CLASSES:
+                found[c] += f["found_em"][c]
+                if k == 0:
+                    out["labelled_em"][c] += f["labelled_em"][c]
+            fp += int(f["alone"].sum())
+            fp_out += int((f["alone"] & (overlap[keep] <= 0.5)).sum())
+        for c in CLASSES:
+            out["found_em"][c].append(found[c])
+        out["fp_per_frame"].append(round(fp / n, 2))
+        out["fp_per_frame_outside_dontcare"].append(round(fp_out / n, 2))
+    return out
+
+
+def plot_curves(curves: dict, path: Path) -> None:
+    """Per class, the share of the easy and moderate labelled objects found against the false positives per frame,
+    one line per checkpoint, each point a score threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(CLASSES), figsize=(5 * len(CLASSES), 4.2))
+    for ax, c in zip(axes, CLASSES):
+        for name, cv in curves.items():
+            share = np.asarray(cv["found_em"][c], np.float64) / max(cv["labelled_em"][c], 1)
+            ax.plot(cv["fp_per_frame"], share, "o-", label=name)
+            for s, x, y in zip(cv["scores"], cv["fp_per_frame"], share):
+                if s in (0.3, 0.5, 0.7):
+                    ax.annotate(f"{s:g}", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        ax.set_title(f"{c}: found (easy and moderate, 3D IoU >= {THRESHOLDS_3D[c][0]})")
+        ax.set_xscale("symlog", linthresh=1.0)  # the low thresholds' tens of false positives would squash the rest
+        ax.set_xlabel("false positives per frame (all classes; linear to 1, then log)")
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("share found at score >= threshold (labels: thresholds)")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    print(f"plot: {path}")
 
 
 def object_stats(points: np.ndarray, boxes: np.ndarray, names: list[str]) -> dict:
@@ -478,6 +539,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot", type=Path, default=None)
     p.add_argument("--json", action="store_true")
     p.add_argument("--fp-list", action="store_true", help="print each false positive above 0.5 on the real frames")
+    p.add_argument("--curve-plot", type=Path, default=None,
+                   help="plot each checkpoint's found share against false positives per frame by score threshold")
     args = p.parse_args(argv)
     use_real = str(args.real) != "none"
     if use_real and not (args.real / "ImageSets" / "val.txt").is_file():
@@ -496,16 +559,22 @@ def main(argv: list[str] | None = None) -> int:
     real = list(real_frames(args.real)) if use_real else []
     rows = []
     models = {ck: load_model(weights.path(ck) if ck in weights.available() else ck).eval() for ck in args.checkpoint}
+    curves = {}
     for ck, model in models.items() if use_real else ():
-        figs, top, fps = [], 0.0, []
+        figs, top, fps, kept = [], 0.0, [], []
         for fid, points, boxes, names, difficulty, calib, dontcare in real:
             db, ds, dn = detections(model, points)
             overlap = dontcare_overlap(db, calib, dontcare)
             figs.append(frame_figures(boxes.astype(np.float64), names, db, ds, dn, difficulty, overlap))
+            kept.append((boxes.astype(np.float64), names, difficulty, db, ds, dn, overlap))
             fps += fp_rows(fid, points, db, ds, dn, figs[-1]["alone"], overlap)
             top = max([top, *ds.tolist()])
+        cv = curves[Path(str(ck)).name] = score_curve(kept)
         row = {"op": "sim2real", "case": f"real_kitti:{Path(str(ck)).name}", "checkpoint": str(ck), **summarize(figs),
-               "max_score": round(top, 3)}
+               "max_score": round(top, 3), "curve_scores": cv["scores"],
+               **{f"curve_{c}_found_easy_moderate": cv["found_em"][c] for c in CLASSES},
+               "curve_fp_per_frame": cv["fp_per_frame"],
+               "curve_fp_per_frame_outside_dontcare": cv["fp_per_frame_outside_dontcare"]}
         rows.append(row)
         print(f"{ck}: " + ", ".join(f"{c} {row[f'{c}_found_3d{THRESHOLDS_3D[c][0]}']}/{row[f'{c}_labelled']} at 3D "
                                     f"{THRESHOLDS_3D[c][0]} (easy and moderate: "
@@ -513,6 +582,11 @@ def main(argv: list[str] | None = None) -> int:
                                     f"{row[f'{c}_labelled_easy_moderate']})" for c in CLASSES)
               + f"; false positives per frame above 0.5: {row['fp_per_frame_above_0.5']} "
               f"({row['fp_per_frame_above_0.5_outside_dontcare']} outside DontCare regions)", flush=True)
+        print_table(f"{Path(str(ck)).name}: kept at score >= s, easy and moderate found / labelled",
+                    ["score >=", *CLASSES, "FP / frame", "outside DontCare"],
+                    [[s, *(f"{cv['found_em'][c][k]} / {cv['labelled_em'][c]}" for c in CLASSES),
+                      cv["fp_per_frame"][k], cv["fp_per_frame_outside_dontcare"][k]] for k, s in enumerate(cv["scores"])],
+                    right=range(0, 6))
         if args.fp_list and fps:
             keys = list(fps[0])
             print_table(f"{Path(str(ck)).name}: false positives above 0.5, nearest first", keys,
@@ -550,6 +624,8 @@ def main(argv: list[str] | None = None) -> int:
                 [[r.get(k, "") for k in keys] for r in stat_rows], right=range(1, len(keys)))
     if args.plot and use_real:
         plot(rstats, sims, args.plot)
+    if args.curve_plot and curves:
+        plot_curves(curves, args.curve_plot)
     if args.json:
         print("results:", write_results("sim2real", "cpu", rows, env_meta("cpu"), replace_by="case"))
     return 0

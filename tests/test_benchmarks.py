@@ -385,6 +385,30 @@ def test_bm_sim2real_frame_figures_on_a_hand_made_frame():
         assert out["labelled_em"]["Pedestrian"] == 1 and out["found_em"]["Pedestrian"] == 0
 
 
+def test_bm_sim2real_score_curve_by_hand(tmp_path):
+    """Two frames: a car found at score 0.9, a pedestrian found at 0.4, a false positive at 0.6 inside a DontCare
+    region and one at 0.35 outside; kept at >= 0.3 / 0.5 / 0.7 / 0.95 a user sees, per class and per frame, what is
+    counted by hand here; the plot is written."""
+    import numpy as np
+
+    from benchmarks.bm_sim2real import plot_curves, score_curve
+
+    car = [10.0, 0.0, -0.8, 4.0, 1.7, 1.5, 0.0]
+    ped = [5.0, 3.0, -0.9, 0.8, 0.6, 1.7, 0.0]
+    nowhere = [[40.0, -10.0, -0.8, 4.0, 1.7, 1.5, 0.0], [30.0, 12.0, -0.9, 0.8, 0.6, 1.7, 0.0]]
+    frames = [(np.array([car]), ["Car"], np.array([0]), np.array([car, nowhere[0]]), np.array([0.9, 0.6]),
+               ["Car", "Car"], np.array([0.0, 0.8])),
+              (np.array([ped]), ["Pedestrian"], np.array([1]), np.array([ped, nowhere[1]]), np.array([0.4, 0.35]),
+               ["Pedestrian", "Pedestrian"], np.array([0.0, 0.1]))]
+    cv = score_curve(frames, (0.3, 0.5, 0.7, 0.95))
+    assert cv["labelled_em"] == {"Car": 1, "Pedestrian": 1, "Cyclist": 0}
+    assert cv["found_em"] == {"Car": [1, 1, 1, 0], "Pedestrian": [1, 0, 0, 0], "Cyclist": [0, 0, 0, 0]}
+    assert cv["fp_per_frame"] == [1.0, 0.5, 0.0, 0.0]  # 2, 1, 0, 0 over 2 frames
+    assert cv["fp_per_frame_outside_dontcare"] == [0.5, 0.0, 0.0, 0.0]
+    plot_curves({"hand": cv}, tmp_path / "curve.png")
+    assert (tmp_path / "curve.png").stat().st_size > 1000
+
+
 def test_sscater_sparsity_figures_by_hand():
     """Two 2 x 2 maps of 3 channels: one site changes one channel, another two; zeros counted over everything."""
     from benchmarks.sscater_sparsity import figures
