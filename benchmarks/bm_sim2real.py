@@ -272,23 +272,12 @@ def fp_rows(fid: str, points: np.ndarray, det_boxes: np.ndarray, det_scores: np.
 
 def parse_profile(text: str | None):
     """``None``/``"none"`` (as cast), a profile name, or ``name:field=value,...``: the profile with those fields
-    changed (``kitti:roadside_structures=0.7``)."""
-    import dataclasses
-
+    changed (``kitti:roadside_structures=0.7``; :func:`lidarops.data.realism.make_realism` reads it)."""
     from lidarops.data.realism import make_realism
 
     if text in (None, "none"):
         return None
-    name, _, changes = text.partition(":")
-    if not changes:
-        return name
-    fields = {}
-    for item in changes.split(","):
-        key, eq, value = item.partition("=")
-        if not eq:
-            raise ValueError(f"--realism {text!r}: expected name:field=value,..., got {item!r}")
-        fields[key.strip()] = float(value)
-    return dataclasses.replace(make_realism(name), **fields)
+    return text if ":" not in text else make_realism(text)
 
 
 def sim_frames(n: int, realism: str | None = None):

@@ -4,6 +4,8 @@
 #   bash tools/train_pointpillars_synth.sh OUT_DIR            # environment: GPUS (1), EPOCHS, BATCH, WORKERS, DATA
 #   REALISM=kitti bash tools/train_pointpillars_synth.sh OUT  # the real-scan model: data with --realism kitti,
 #                                                             # configs/pointpillars/pointpillars_synth_real.yaml
+#                                                             # (or a profile with fields changed:
+#                                                             # REALISM=kitti:crossing_groups=0.6,crossing_cyclists=0.2)
 #   SPARSE=1 bash tools/train_pointpillars_synth.sh OUT       # Sparse-PointPillars on the same data and recipe:
 #                                                             # configs/pointpillars/pointpillars_synth_sparse.yaml
 #   RESUME=1 ... (same OUT)                                   # continue OUT/run from latest.pth, on the data

@@ -43,6 +43,18 @@ def _object_counts(text: str | None):
     return {k: tuple(v) if isinstance(v, list) else v for k, v in counts.items()}
 
 
+def _realism_arg(text: str) -> str:
+    """``--realism``: a preset or a preset with fields changed, checked here (argparse names the option on error)
+    and passed on as written, so the recipe records it."""
+    from lidarops.data.realism import make_realism
+
+    try:
+        make_realism(text)
+    except (ValueError, TypeError) as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
+
+
 def _scenario_plan(args: argparse.Namespace) -> list[dict]:
     """Frames, seed and first frame id of each ``--scenario``: ``--frames`` is one total split evenly (the
     first scenarios take the remainder) or one count per scenario; scenario ``k`` is simulated with seed
@@ -338,11 +350,12 @@ def register(subparsers) -> None:
                    help=f"first scenario's seed (default {HELD_OUT_SEED}: frames no shipped model was trained on)")
     s.add_argument("--sensor", choices=("hdl64", "pandar64", "avia"), default=None,
                    help="sensor preset (default: the scenario's)")
-    s.add_argument("--realism", default=None, choices=("kitti", "kitti_dr"),
+    s.add_argument("--realism", default=None, type=_realism_arg, metavar="PROFILE",
                    help="a real sensor's intensity response and real vehicles' surfaces (glass, dark paint) on the "
                         "returns: kitti (calibrated against KITTI's HDL-64E scans), kitti_dr (the same with mixed "
-                        "pixels at depth edges and each scene's sensor height and intensity scale randomised); "
-                        "default: as ray-cast")
+                        "pixels at depth edges and each scene's sensor height and intensity scale randomised), or "
+                        "either with fields of lidarops.data.realism.Realism changed "
+                        "(kitti:crossing_groups=0.6,crossing_cyclists=0.2); default: as ray-cast")
     s.add_argument("--object-counts", default=None,
                    help="'dense', 'empty' or JSON such as '{\"Car\": 35, \"Pedestrian\": [0, 5]}' (default: the "
                         "scenario's)")

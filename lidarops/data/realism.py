@@ -290,9 +290,42 @@ REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4, parking_lots=0.4, 
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:
-    """``None``, a preset name or a :class:`Realism` (returned as is)."""
+    """``None``, a preset name, a preset with fields changed (``"kitti:crossing_groups=0.6,low_clutter=1"``; a
+    tuple field's items joined by ``/``: ``beam_choices=32/64``; a flag ``true`` or ``false``) or a
+    :class:`Realism` (returned as is)."""
     if realism is None or isinstance(realism, Realism):
         return realism
-    if isinstance(realism, str) and realism in REALISM_PRESETS:
-        return dataclasses.replace(REALISM_PRESETS[realism])
-    raise ValueError(f"realism must be None, a Realism or one of {sorted(REALISM_PRESETS)}, got {realism!r}")
+    if isinstance(realism, str):
+        name, colon, changes = realism.partition(":")
+        if name in REALISM_PRESETS and not colon:
+            return dataclasses.replace(REALISM_PRESETS[name])
+        if name in REALISM_PRESETS and changes:
+            return dataclasses.replace(REALISM_PRESETS[name], **_parse_fields(realism, changes))
+    raise ValueError(f"realism must be None, a Realism, one of {sorted(REALISM_PRESETS)} or one with fields changed "
+                     f"('kitti:crossing_groups=0.6'), got {realism!r}")
+
+
+def _parse_fields(text: str, changes: str) -> dict:
+    """``field=value,...`` of a profile string, each value read as its field's type."""
+    kinds = {f.name: f.type for f in dataclasses.fields(Realism)}
+    out: dict = {}
+    for item in changes.split(","):
+        key, eq, value = (part.strip() for part in item.partition("="))
+        if not eq or not key or not value:
+            raise ValueError(f"realism {text!r}: expected preset:field=value,..., got {item!r}")
+        if key not in kinds:
+            raise ValueError(f"realism {text!r}: {key!r} is not a Realism field (fields: {', '.join(kinds)})")
+        kind = str(kinds[key])
+        try:
+            if kind == "bool":
+                if value.lower() not in ("true", "false"):
+                    raise ValueError(value)
+                out[key] = value.lower() == "true"
+            elif kind.startswith("tuple"):
+                cast = int if "int" in kind else float if "float" in kind else str
+                out[key] = tuple(cast(v) for v in value.split("/") if v) if value != "()" else ()
+            else:
+                out[key] = float(value)
+        except ValueError:
+            raise ValueError(f"realism {text!r}: {key}={value!r} is not a {kind}") from None
+    return out

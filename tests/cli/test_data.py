@@ -210,3 +210,20 @@ def test_synth_errors(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("lidarops data synth: error:") and "\n" not in err
     assert main(["data", "synth", "--out", str(existing)]) == 2 and "existing file" in capsys.readouterr().err
+
+
+def test_data_synth_takes_a_profile_with_fields_changed(tmp_path, run_cli, capsys):
+    """``--realism kitti:crossing_groups=0.5`` makes the frames and the recipe records it as written; a field that
+    is not one is refused naming it."""
+    import json
+
+    out = tmp_path / "synth"
+    code, _, err = run_cli(["data", "synth", "--frames", "1", "--seed", "7", "--val-fraction", "0", "--out", out,
+                            "--no-progress", "--realism", "kitti:crossing_groups=0.5"])
+    assert code == 0, err
+    assert json.loads((out / "recipe.json").read_text())["realism"] == "kitti:crossing_groups=0.5"
+    with pytest.raises(SystemExit) as e:
+        run_cli(["data", "synth", "--frames", "1", "--out", tmp_path / "bad", "--no-progress", "--realism",
+                 "kitti:nope=1"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "--realism" in err and "'nope' is not a Realism field" in err, err

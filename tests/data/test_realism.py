@@ -171,8 +171,29 @@ def test_bad_profiles_are_refused():
     with pytest.raises(ValueError, match="realism"):
         Simulator("driving_city", seed=0, realism=3)
     assert make_realism(None) is None
+    for bad, named in (("kitti:nope=1", "nope"), ("kitti:parking_lots=often", "parking_lots"),
+                       ("kitti:parking_lots", "parking_lots"), ("carla:parking_lots=1", "carla"),
+                       ("kitti:laser_offsets=yes", "laser_offsets"), ("kitti:beam_choices=32/x", "beam_choices"),
+                       ("kitti:parking_lots=2", "parking_lots")):
+        with pytest.raises(ValueError, match=named):
+            make_realism(bad)
     assert make_realism("kitti") == Realism(crossing_pedestrians=0.4, parking_lots=0.4, open_ground=0.3, low_clutter=2.0,
                                             roadside_structures=0.7)
+
+
+def test_profile_strings_change_the_fields_they_name():
+    """``preset:field=value,...``: the preset with those fields changed, each read as its field's type (a number,
+    a flag, a tuple joined by ``/``), the others the preset's; the simulator and ``data synth`` take it, and the
+    recipe records it as written."""
+    got = make_realism("kitti:crossing_groups=0.6, crossing_cyclists=0.2,laser_offsets=true,beam_choices=32/64")
+    assert got == dataclasses.replace(make_realism("kitti"), crossing_groups=0.6, crossing_cyclists=0.2,
+                                      laser_offsets=True, beam_choices=(32, 64))
+    assert make_realism("kitti_dr:beam_choices=()").beam_choices == ()
+    assert make_realism("kitti:shaped_classes=Car/Pedestrian").shaped_classes == ("Car", "Pedestrian")
+    a = Simulator("driving_city", seed=2, realism="kitti:crossing_pedestrians=1,crossing_groups=1").scenario
+    b = Simulator("driving_city", seed=2, realism=dataclasses.replace(make_realism("kitti"), crossing_pedestrians=1.0,
+                                                                      crossing_groups=1.0)).scenario
+    np.testing.assert_array_equal(a.objects.center, b.objects.center)
 
 
 def test_mixed_pixels_move_edge_returns_along_their_rays_toward_the_background():

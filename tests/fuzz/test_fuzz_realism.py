@@ -234,6 +234,29 @@ def test_bad_roadside_structures_density_is_named(scenario, value):
     assert_clear_error(err, (ValueError, TypeError), ["roadside_structures"], f"roadside_structures={value!r}")
 
 
+FIELD_NAMES = [f.name for f in dataclasses.fields(Realism)]
+
+
+@fuzz
+@given(preset=st.sampled_from(["kitti", "kitti_dr", "carla", ""]),
+       items=st.lists(st.tuples(st.sampled_from(FIELD_NAMES + ["nope", ""]),
+                                st.sampled_from(["0.5", "0", "1.5", "-1", "nan", "x", "true", "false", "32/64",
+                                                 "Car/Truck", "", "()"])), min_size=1, max_size=3))
+def test_profile_strings_give_a_profile_or_name_the_field(preset, items):
+    """``preset:field=value,...``: a Realism with exactly those fields changed, or a ValueError naming the text (and
+    the field, when it is one that does not exist or a value it cannot take)."""
+    text = preset + ":" + ",".join(f"{k}={v}" for k, v in items)
+    got, err = outcome(make_realism, text)
+    if err is None:
+        assert isinstance(got, Realism)
+        base = make_realism(preset)
+        for k, _ in items:
+            assert k in FIELD_NAMES
+        assert {f for f in FIELD_NAMES if getattr(got, f) != getattr(base, f)} <= {k for k, _ in items}
+    else:
+        assert_clear_error(err, ValueError, [text, *(k for k, _ in items if k)], f"make_realism({text!r})")
+
+
 @fuzz
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 8), groups=st.floats(0.0, 1.0))
 def test_crossing_groups_never_overlap(seed, n, groups):
