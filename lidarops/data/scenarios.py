@@ -316,8 +316,12 @@ def _place_crossing_groups(rng: np.random.Generator, group_rng: np.random.Genera
             offsets.append(offsets[-1] - ((a[k] + b[k]) / 2 + gap))
         offsets = np.asarray(offsets) - (offsets[0] + offsets[-1]) / 2
         radius = max(abs(o) + float(np.hypot(sz[0], sz[1])) / 2 for o, sz in zip(offsets, sizes))
+        # the whole group inside the crosswalk's reserved 6 m and within half a metre of the road's edges, where
+        # the lanes, the walkways and their clutter keep clear, as a lone crosser is
+        half_x = max(0.0, min(1.5, 3.0 - radius))
+        lo, hi = road[0] + max(0.0, radius - 0.5), road[1] - max(0.0, radius - 0.5)
         for _attempt in range(30):
-            c = np.array([xc + rng.uniform(-1.5, 1.5), rng.uniform(*road)])
+            c = np.array([xc + rng.uniform(-half_x, half_x), rng.uniform(lo, hi)])
             if all(np.hypot(*(c - o)) >= radius + r for o, r in taken):
                 break
         else:

@@ -260,8 +260,8 @@ def test_profile_strings_give_a_profile_or_name_the_field(preset, items):
 @fuzz
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 8), groups=st.floats(0.0, 1.0))
 def test_crossing_groups_never_overlap(seed, n, groups):
-    """Any seed, crosser count and group probability: at most ``n`` pedestrians, every one on the road, no two
-    footprints overlapping in bird's-eye view."""
+    """Any seed, crosser count and group probability: at most ``n`` pedestrians, every footprint inside the
+    crosswalk's reserved 6 m and within 0.5 m of the road, no two overlapping in bird's-eye view."""
     import torch
 
     from lidarops import box_iou_bev
@@ -274,7 +274,9 @@ def test_crossing_groups_never_overlap(seed, n, groups):
                                   17.0, (-10.0, 10.0), groups)
     assert 1 <= done <= n and len(placed.center) == done
     c, half = np.asarray(placed.center), np.asarray(placed.half)
-    assert (np.abs(c[:, 1]) <= 10.0 + 3.0).all()
+    # each footprint (within its circumscribed circle) inside the crosswalk's 6 m and 0.5 m of the road's edges
+    reach = np.hypot(half[:, 0], half[:, 1])
+    assert (np.abs(c[:, 0] - 17.0) + reach <= 3.0 + 1e-9).all() and (np.abs(c[:, 1]) + reach <= 10.5 + 1e-9).all()
     boxes = torch.as_tensor(np.concatenate([c, 2 * half, np.asarray(placed.yaw)[:, None]], 1), dtype=torch.float64)
     iou = box_iou_bev(boxes, boxes).numpy()
     np.fill_diagonal(iou, 0.0)
