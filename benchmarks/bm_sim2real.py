@@ -554,8 +554,9 @@ def main(argv: list[str] | None = None) -> int:
         for fid, points, boxes, names, difficulty, calib, dontcare in real:
             db, ds, dn = detections(model, points)
             overlap = dontcare_overlap(db, calib, dontcare)
-            figs.append(frame_figures(boxes.astype(np.float64), names, db, ds, dn, difficulty, overlap))
-            kept.append((boxes.astype(np.float64), names, difficulty, db, ds, dn, overlap))
+            gt = boxes.astype(np.float64)
+            figs.append(frame_figures(gt, names, db, ds, dn, difficulty, overlap))
+            kept.append((gt, names, difficulty, db, ds, dn, overlap))
             fps += fp_rows(fid, points, db, ds, dn, figs[-1]["alone"], overlap)
             top = max([top, *ds.tolist()])
         cv = curves[Path(str(ck)).name] = score_curve(kept)

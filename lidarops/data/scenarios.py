@@ -216,11 +216,8 @@ def _place_in_lanes(rng: np.random.Generator, ground: Ground, lanes: Sequence[La
                     occupied[li].append((x - half_len, x + half_len))
                     y = lane.y + rng.uniform(-lane.jitter, lane.jitter)
                     yaw = lane.heading + rng.normal(0, 0.02 if lane.speed > 0 else 0.05)
-                    vx = lane.speed * np.cos(lane.heading)
-                    vy = lane.speed * np.sin(lane.heading)
-                    z = float(ground.height(np.array([x]), np.array([y]))[0]) + size[2] / 2
-                    vz = ground.slope[0] * vx + ground.slope[1] * vy  # follow the mean slope
-                    placed.add(name, (x, y, z), size, yaw, (vx, vy, vz), 0.0, rng)
+                    _add_on_ground(placed, ground, name, x, y, size, yaw, lane.speed * np.cos(lane.heading),
+                                   lane.speed * np.sin(lane.heading), rng)
                     n_ok += 1
                     if groups and name == "Pedestrian" and group_rng.random() < groups:
                         n_ok += _companions(group_rng, ground, lane, occupied[li], placed, x, size,
@@ -245,10 +242,8 @@ def _companions(rng: np.random.Generator, ground: Ground, lane: Lane, occupied: 
             break
         occupied.append((min(lo, prev_x), max(hi, prev_x)))
         y = lane.y + rng.uniform(-lane.jitter, lane.jitter)
-        vx, vy = lane.speed * np.cos(lane.heading), lane.speed * np.sin(lane.heading)
-        z = float(ground.height(np.array([cx]), np.array([y]))[0]) + sz[2] / 2
-        placed.add("Pedestrian", (cx, y, z), sz, lane.heading + rng.normal(0, 0.05),
-                   (vx, vy, ground.slope[0] * vx + ground.slope[1] * vy), 0.0, rng)
+        _add_on_ground(placed, ground, "Pedestrian", cx, y, sz, lane.heading + rng.normal(0, 0.05),
+                       lane.speed * np.cos(lane.heading), lane.speed * np.sin(lane.heading), rng)
         done, prev_x, prev_len = done + 1, cx, sz[0]
     return done
 
@@ -270,14 +265,26 @@ def _place_across(rng: np.random.Generator, ground: Ground, name: str, n: int, p
         else:
             continue
         taken.append((c, radius))
-        heading = (np.pi / 2 if rng.random() < 0.5 else -np.pi / 2) + rng.normal(0, heading_sd)
-        v = rng.uniform(*speed)
-        vx, vy = v * np.cos(heading), v * np.sin(heading)
-        z = float(ground.height(c[:1], c[1:])[0]) + size[2] / 2
-        vz = ground.slope[0] * vx + ground.slope[1] * vy
-        placed.add(name, (c[0], c[1], z), size, heading, (vx, vy, vz), 0.0, rng)
+        heading, vx, vy = _across(rng, speed, heading_sd)
+        _add_on_ground(placed, ground, name, c[0], c[1], size, heading, vx, vy, rng)
         xs.append(float(c[0]))
     return xs
+
+
+def _across(rng: np.random.Generator, speed: tuple[float, float], heading_sd: float) -> tuple[float, float, float]:
+    """A heading across the road (either way, normal spread ``heading_sd``) and the velocity at a speed drawn in
+    ``speed``: ``(heading, vx, vy)``."""
+    heading = (np.pi / 2 if rng.random() < 0.5 else -np.pi / 2) + rng.normal(0, heading_sd)
+    v = rng.uniform(*speed)
+    return heading, v * np.cos(heading), v * np.sin(heading)
+
+
+def _add_on_ground(placed: _Placed, ground: Ground, name: str, x: float, y: float, size, yaw: float, vx: float,
+                   vy: float, rng: np.random.Generator) -> None:
+    """An object of class ``name`` standing on the ground at ``(x, y)``, moving at ``(vx, vy)`` along the ground's
+    mean slope."""
+    z = float(ground.height(np.array([x]), np.array([y]))[0]) + size[2] / 2
+    placed.add(name, (x, y, z), size, yaw, (vx, vy, ground.slope[0] * vx + ground.slope[1] * vy), 0.0, rng)
 
 
 def _place_crossing(rng: np.random.Generator, ground: Ground, n: int, placed: _Placed,
@@ -327,16 +334,12 @@ def _place_crossing_groups(rng: np.random.Generator, group_rng: np.random.Genera
         else:
             break
         taken.append((c, radius))
-        heading = (np.pi / 2 if rng.random() < 0.5 else -np.pi / 2) + rng.normal(0, 0.3)
-        v = rng.uniform(1.0, 1.6)
-        vx, vy = v * np.cos(heading), v * np.sin(heading)
+        heading, vx, vy = _across(rng, (1.0, 1.6), 0.3)
         axis = np.array([-np.sin(heading), np.cos(heading)]) if abreast else np.array([np.cos(heading), np.sin(heading)])
         for o, sz in zip(offsets, sizes):
             p = c + o * axis
-            z = float(ground.height(p[:1], p[1:])[0]) + sz[2] / 2
             # one heading for the whole group: boxes side by side at a common yaw cannot touch across the gaps
-            placed.add("Pedestrian", (p[0], p[1], z), sz, heading, (vx, vy, ground.slope[0] * vx + ground.slope[1] * vy),
-                       0.0, rng)
+            _add_on_ground(placed, ground, "Pedestrian", p[0], p[1], sz, heading, vx, vy, rng)
         done += m
     return done
 
