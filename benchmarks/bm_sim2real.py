@@ -350,21 +350,37 @@ def grouped_pedestrians(boxes: np.ndarray, names: list[str], within: float = 1.5
     return len(xy), int((d.min(1) < within).sum())
 
 
+def _returns_of(points: np.ndarray, boxes: np.ndarray, names: list[str], cls: str, least: int):
+    """(label index, its returns [n, 3] in float64) for each object of class ``cls`` with at least ``least``."""
+    from lidarops import points_in_boxes
+
+    chosen = [i for i, n in enumerate(names) if n == cls]
+    if not chosen or not len(points):
+        return []
+    idx = points_in_boxes(torch.as_tensor(points[:, :3], dtype=torch.float64),
+                          torch.as_tensor(boxes[chosen], dtype=torch.float64)).numpy()
+    found = [(i, np.asarray(points[idx == k, :3], np.float64)) for k, i in enumerate(chosen)]
+    return [(i, q) for i, q in found if len(q) >= least]
+
+
 def pedestrian_lower_half(points: np.ndarray, boxes: np.ndarray, names: list[str], least: int = 10) -> list[float]:
     """Per pedestrian with at least ``least`` points in its box: the share of them below half its height (legs,
     a coat's hem: about half in real scans)."""
-    from lidarops import points_in_boxes
+    return [float(((q[:, 2] - (boxes[i, 2] - boxes[i, 5] / 2)) < boxes[i, 5] / 2).mean())
+            for i, q in _returns_of(points, boxes, names, "Pedestrian", least)]
 
-    peds = [i for i, n in enumerate(names) if n == "Pedestrian"]
-    if not peds or not len(points):
-        return []
-    idx = points_in_boxes(torch.as_tensor(points[:, :3], dtype=torch.float64),
-                          torch.as_tensor(boxes[peds], dtype=torch.float64)).numpy()
+
+def cyclist_head_offset(points: np.ndarray, boxes: np.ndarray, names: list[str], least: int = 15) -> list[float]:
+    """Per cyclist with at least ``least`` points in its box: where its highest returns (the top fifth of their
+    height span: the rider's head and shoulders) lie along its heading, as a share of half its length (positive:
+    ahead of the box's centre). A rider sitting upright over the saddle is behind the centre, one leaning to low
+    handlebars ahead of it."""
     out = []
-    for k, i in enumerate(peds):
-        z = points[idx == k, 2]
-        if len(z) >= least:
-            out.append(float(((z - (boxes[i, 2] - boxes[i, 5] / 2)) < boxes[i, 5] / 2).mean()))
+    for i, q in _returns_of(points, boxes, names, "Cyclist", least):
+        b = boxes[i]
+        along = (q[:, 0] - b[0]) * np.cos(b[6]) + (q[:, 1] - b[1]) * np.sin(b[6])
+        top = q[:, 2] >= q[:, 2].max() - 0.2 * np.ptp(q[:, 2])
+        out.append(float(along[top].mean() / (b[3] / 2)))
     return out
 
 
@@ -426,7 +442,7 @@ def far_clusters(points: np.ndarray, boxes: np.ndarray, lo: float = FAR_RANGE[0]
 
 
 def data_stats(frames) -> dict:
-    allint, cars, peds, lines, elev, legs = [], [], np.zeros(2, np.int64), [], [], []
+    allint, cars, peds, lines, elev, legs, heads = [], [], np.zeros(2, np.int64), [], [], [], []
     far, far_counts = [], []
     for _, points, boxes, names, *_ in frames:
         clusters = far_clusters(points, boxes)
@@ -437,6 +453,7 @@ def data_stats(frames) -> dict:
         cars.append(object_stats(points, boxes, names))
         peds += grouped_pedestrians(boxes, names)
         legs += pedestrian_lower_half(points, np.asarray(boxes, np.float64), names)
+        heads += cyclist_head_offset(points, np.asarray(boxes, np.float64), names)
         share = beam_line_share(points)
         if share is not None:
             lines.append(share)
@@ -460,6 +477,7 @@ def data_stats(frames) -> dict:
                     "pedestrians_in_groups_share": round(float(peds[1] / peds[0]), 3) if peds[0] else None,
                     "beam_line_share": round(float(np.median(lines)), 3) if lines else None,
                     "pedestrian_lower_half_share": round(float(np.mean(legs)), 3) if legs else None,
+                    "cyclist_head_offset": round(float(np.mean(heads)), 3) if heads else None,
                     "far_clusters_per_frame": round(float(np.mean(far_counts)), 1) if far_counts else None,
                     "far_cluster_height": round(float(np.median(far[:, 1])), 2) if len(far) else None,
                     "far_cluster_footprint": round(float(np.median(far[:, 2])), 2) if len(far) else None,
@@ -608,8 +626,8 @@ def main(argv: list[str] | None = None) -> int:
     rows += stat_rows
     keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
             "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share", "pedestrians_in_groups_share",
-            "beam_line_share", "pedestrian_lower_half_share", "far_clusters_per_frame", "far_cluster_height",
-            "far_cluster_footprint", "far_cluster_share_on_road"]
+            "beam_line_share", "pedestrian_lower_half_share", "cyclist_head_offset", "far_clusters_per_frame",
+            "far_cluster_height", "far_cluster_footprint", "far_cluster_share_on_road"]
     print_table("real against simulated" if use_real else "simulated", keys,
                 [[r.get(k, "") for k in keys] for r in stat_rows], right=range(1, len(keys)))
     if args.plot and use_real:

@@ -409,6 +409,26 @@ def test_bm_sim2real_score_curve_by_hand(tmp_path):
     assert (tmp_path / "curve.png").stat().st_size > 1000
 
 
+def test_bm_sim2real_cyclist_head_offset_by_hand():
+    """A cyclist heading along +y (yaw 90 degrees, 1.8 m long): its top returns (z within a fifth of the span of the
+    highest) at y = 0.3 and 0.1 below its centre lie 0.2 m behind it, -0.2 / 0.9 of half its length; the low
+    returns do not count; a cyclist with fewer than ``least`` returns and a pedestrian give nothing."""
+    import numpy as np
+
+    from benchmarks.bm_sim2real import cyclist_head_offset
+
+    boxes = np.array([[5.0, 2.0, -0.9, 1.8, 0.6, 1.7, np.pi / 2], [20.0, 0.0, -0.9, 1.8, 0.6, 1.7, 0.0],
+                      [5.0, 10.0, -0.9, 0.8, 0.6, 1.7, 0.0]])
+    low = [[5.0, 2.0 + y, -1.6, 0.1] for y in (-0.8, 0.8, 0.0)]
+    top = [[5.0, 1.7, -0.1, 0.2], [5.05, 1.9, -0.15, 0.2]]   # within 0.2 x 1.5 m of the highest (-0.1)
+    far = [[20.0, 0.0, -0.5, 0.1]] * 3
+    ped = [[5.0, 10.0, -0.5, 0.1]] * 20
+    points = np.array(low + top + far + ped)
+    got = cyclist_head_offset(points, boxes, ["Cyclist", "Cyclist", "Pedestrian"], least=5)
+    np.testing.assert_allclose(got, [-0.2 / 0.9], atol=1e-9)
+    assert cyclist_head_offset(points, boxes, ["Pedestrian"] * 3, least=5) == []
+
+
 def test_sscater_sparsity_figures_by_hand():
     """Two 2 x 2 maps of 3 channels: one site changes one channel, another two; zeros counted over everything."""
     from benchmarks.sscater_sparsity import figures

@@ -142,9 +142,9 @@ double cyclist(V3 p, V3 h, const double* u) {
                           {head_tube, hub_f}, {head_tube, bar}};
   double frame = INFINITY;
   for (const auto& tb : tubes) frame = std::min(frame, capsule(p, tb[0], tb[1], 0.025));
-  const V3 hip{xr + 0.3 * D, 0, z0 + 0.53 * H}, shoulder{xr + 0.62 * D, 0, z0 + 0.79 * H};
+  const V3 hip{xr + 0.3 * D, 0, z0 + 0.53 * H}, shoulder{xr + (0.37 + 0.2 * u[1]) * D, 0, z0 + 0.79 * H};
   const double torso = capsule(p, hip, shoulder, 0.07 * H);
-  const double head = sphere(p, shoulder + V3{0.07, 0, 0.12 * H}, 0.062 * H);
+  const double head = sphere(p, shoulder + V3{0.04, 0, 0.12 * H}, 0.062 * H);
   const double sw = std::min(0.17, h.y - 0.08);
   double arms = INFINITY;
   for (int s : {-1, 1})

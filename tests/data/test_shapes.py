@@ -131,6 +131,24 @@ def test_pedestrian_builds_by_hand():
         assert 0.3 - t[0] > half_width - _STEP_TOL, (u3, 0.3 - t[0])
 
 
+def test_cyclist_lean_by_hand():
+    """u[:, 1] places the rider's shoulders over the wheelbase: with R = min(0.34, 0.42 hx) = 0.34 the rear hub is at
+    xr = -hx + R + 0.02 and the front at -xr (D = -2 xr); the shoulders are at xr + (0.37 + 0.2 u1) D, 0.79 H up,
+    the head's centre 0.04 m ahead of them and 0.12 H above. A level ray from the front at the head's centre meets
+    the head's front (radius 0.062 H); upright (u1 = 0) that is behind the box's centre, as the real riders' are."""
+    half, H = np.array([[0.88, 0.3, 0.865]]), 1.73
+    xr = -0.88 + 0.34 + 0.02
+    D = -2 * xr
+    z_head = -0.865 + 0.79 * H + 0.12 * H
+    for u1 in (0.0, 0.5, 1.0):
+        x_head = xr + (0.37 + 0.2 * u1) * D + 0.04
+        u = np.array([[0.25, u1, 0.0, 0.0]])  # pedals at a quarter turn: both feet clear of the head's height
+        t, hit, cos = trace("Cyclist", np.array([[0.88, 0.0, z_head]]), np.array([[-1.0, 0.0, 0.0]]), half, u)
+        assert hit[0] and abs((0.88 - t[0]) - (x_head + 0.062 * H)) < _STEP_TOL, (u1, 0.88 - t[0])
+        assert cos[0] > 0.99
+    assert xr + 0.37 * D + 0.04 + 0.062 * H < 0.05 and xr + 0.37 * D + 0.04 < 0  # upright: the head behind
+
+
 def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="name"):
         shape_distance("Boat", np.zeros((1, 3)), np.ones((1, 3)), np.zeros((1, 4)))
