@@ -13,7 +13,8 @@ Behind a sampler (issue 37): ``--sampler random|fps|chunked-fps|casnet --ratio D
 samplers of ``lidarops sample``, and runs the detector on them; each frame's line, the summary and
 ``detect.json`` give the points in and kept and the sampling time. ``--ratio 1`` keeps every point (the
 reference). ``casnet`` reads ``--sampler-checkpoint`` (a file or a shipped name), by default the shipped
-``casnet_pointpillars_d8`` when there is one.
+``casnet_pointpillars_d8`` when there is one (``casnet_pointpillars_real_d8`` in front of
+``pointpillars_synth_real``).
 
 Examples::
 
@@ -38,6 +39,8 @@ import numpy as np
 from lidarops._progress import progress_bar
 from lidarops.cli.errors import CliError, guarded
 from lidarops.cli.sample import SHIPPED_CASNET  # --sampler casnet without --sampler-checkpoint
+#: --sampler casnet without --sampler-checkpoint in front of pointpillars_synth_real (docs/casnet.md)
+SHIPPED_CASNET_REAL = "casnet_pointpillars_real_d8"
 from lidarops.conventions import HELD_OUT_SEED
 
 __all__ = ["register", "detect", "save_detections_png"]
@@ -94,10 +97,12 @@ def _sampling(args: argparse.Namespace) -> "_Sampling | None":
 
         shipped = weights.available()
         if checkpoint is None:
-            if SHIPPED_CASNET not in shipped:
+            # the shipped sampler trained in front of the shipped detector that runs, when there is one
+            real = (args.checkpoint or _default_checkpoint(args)) == SHIPPED_REAL and SHIPPED_CASNET_REAL in shipped
+            checkpoint = SHIPPED_CASNET_REAL if real else SHIPPED_CASNET
+            if checkpoint not in shipped:
                 raise CliError(f"--sampler casnet: the shipped detection CAS-Net ({SHIPPED_CASNET}) is missing; give "
                                f"--sampler-checkpoint: {_CASNET_FILES}")
-            checkpoint = SHIPPED_CASNET
         if not Path(checkpoint).is_file():
             if checkpoint not in shipped:
                 why = "is a directory" if Path(checkpoint).is_dir() else "not found"
@@ -553,7 +558,8 @@ def register(subparsers) -> None:
     s.add_argument("--ratio", default=None, metavar="D", help="keep N // D points of a frame of N (default 8; "
                    "1 keeps every point, the reference)")
     s.add_argument("--sampler-checkpoint", default=None, metavar="PATH_OR_NAME",
-                   help=f"--sampler casnet: {_CASNET_FILES} (default: the shipped {SHIPPED_CASNET})")
+                   help=f"--sampler casnet: {_CASNET_FILES} (default: the shipped {SHIPPED_CASNET_REAL} in front "
+                        f"of {SHIPPED_REAL}, else {SHIPPED_CASNET})")
     s.add_argument("--sampler-seed", default=None, metavar="S",
                    help="--sampler random: the generator's seed (default 0); each frame draws new points")
     d.set_defaults(func=guarded("detect", detect))

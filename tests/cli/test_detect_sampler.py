@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -165,6 +166,35 @@ def test_casnet_reads_the_shipped_detection_casnet_when_there_is_one(scene, tmp_
                            SHIPPED_CASNET)
     assert record["sampler"]["checkpoint"] == str(shipped / f"{SHIPPED_CASNET}.pth")
     assert len(detector_inputs) == 2 and np.array_equal(detector_inputs[0], detector_inputs[1])
+
+
+def test_casnet_default_is_the_one_trained_for_the_detector_that_runs(scene, tmp_path, monkeypatch):
+    import argparse
+    import shutil
+
+    from lidarops.cli.detect import SHIPPED_CASNET, SHIPPED_CASNET_REAL, _sampling
+    from lidarops.models import weights
+
+    shipped = tmp_path / "weights"
+    shipped.mkdir()
+    for name in (SHIPPED_CASNET, SHIPPED_CASNET_REAL):
+        shutil.copy(scene["casnet"], shipped / f"{name}.pth")
+    monkeypatch.setattr(weights, "WEIGHTS_DIR", shipped)
+
+    def default_for(checkpoint, scenario=None):
+        args = argparse.Namespace(sampler="casnet", ratio=None, sampler_seed=None, sampler_checkpoint=None,
+                                  checkpoint=checkpoint, scenario=scenario, input=str(scene["scan"]))
+        return Path(_sampling(args).checkpoint).name
+
+    # a user's scan without --checkpoint runs pointpillars_synth_real: its own CAS-Net
+    assert default_for(None) == f"{SHIPPED_CASNET_REAL}.pth"
+    assert default_for("pointpillars_synth_real") == f"{SHIPPED_CASNET_REAL}.pth"
+    # the ray-cast model (named, or picked for --scenario) and a user's own file: the one of pointpillars_synth
+    assert default_for("pointpillars_synth") == f"{SHIPPED_CASNET}.pth"
+    assert default_for(None, scenario="driving_city") == f"{SHIPPED_CASNET}.pth"
+    assert default_for(str(scene["detector"])) == f"{SHIPPED_CASNET}.pth"
+    (shipped / f"{SHIPPED_CASNET_REAL}.pth").unlink()
+    assert default_for(None) == f"{SHIPPED_CASNET}.pth"
 
 
 def test_casnet_without_a_shipped_one_asks_for_a_checkpoint(scene, tmp_path, run_cli, monkeypatch):

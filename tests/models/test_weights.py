@@ -70,6 +70,17 @@ def test_shipped_casnets_load_and_sample():
     idx = CASNetSampler(load_casnet("casnet_pointpillars_d8"), whole=True)(points, 375)[0]
     assert idx.unique().numel() == 375 and bool(((idx >= 0) & (idx < 3000)).all())
 
+    # in front of the real-scan detector, trained on frames of the realism profile
+    real = weights.load("casnet_pointpillars_real_d8")
+    info = weights.info("casnet_pointpillars_real_d8")
+    assert isinstance(real, CASNet) and real.head_kind == "anchored" and real.dedup and real.num_out == 4096
+    assert info["task"] == "pointpillars_synth_real" and "--realism kitti" in info["data_recipe"]["train_data"]
+    assert "casnet_pointpillars_synth_real.yaml" in info["train_command"]
+    assert set(info["evaluation"]["real_frames"]) >= {"all_points", "random", "fps", "casnet_whole_cloud"}
+    idx_real = CASNetSampler(real, whole=True)(points, 375)[0]
+    assert idx_real.unique().numel() == 375 and bool(((idx_real >= 0) & (idx_real < 3000)).all())
+    assert not torch.equal(idx_real.sort().values, idx.sort().values)  # its own weights, not a copy
+
     cls = weights.load("casnet_pointnet_d8")
     assert isinstance(cls, CASNetPointNet) and cls.config.ratio == 8 and cls.casnet.head_kind == "anchored"
     assert load_casnet("casnet_pointnet_d8").num_out == 128

@@ -107,7 +107,9 @@ def plot(report: dict, path: Path) -> None:
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle(f"pointpillars_synth behind each sampler, {report['frames']} unseen frames ({report['device']})",
+    what = "real frames" if "real" in Path(report["data"]).name else "unseen frames"
+    fig.suptitle(f"{Path(report.get('detector', 'pointpillars_synth')).stem} behind each sampler, {report['frames']} "
+                 f"{what} ({report['device']})",
                  fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

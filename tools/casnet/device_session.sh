@@ -2,6 +2,9 @@
 # CAS-Net's experiments in one GPU-machine session (issue 37; docs/casnet.md quotes the results):
 #   bash tools/casnet/device_session.sh classify   # CUDA tests + sanitizer, PointNet, CAS-Net at D = 2..32, the table
 #   bash tools/casnet/device_session.sh detect     # CAS-Net in front of pointpillars_synth at D = 2, 4, 8, Table I
+# In front of the real-scan detector: REALISM=kitti DET_CONFIG=configs/casnet/casnet_pointpillars_synth_real.yaml
+# DET_TASK=pointpillars_synth_real TABLE_ARGS="--detector pointpillars_synth_real --config <the same> ..." (the
+# training and held-out frames made with --realism kitti).
 # The anchored head (ours): CAS_SET="MODEL.HEAD anchored" (classify), DET_SET="MODEL.HEAD anchored" and
 # TABLE_ARGS="--casnet-dedup 1 --chunked-fps --anchored-init --whole" (detect).
 # classify builds the object-set cache in data/objects with 15 processes (or finds it there: `lidarops train --config
@@ -110,15 +113,17 @@ if [ "$what" = detect ]; then
        --plot "$OUT/casnet_classification.png" > /tmp/cls_table.log 2>&1; tail -30 /tmp/cls_table.log) & cls_pid=$!
   fi
   $L data synth --scenario driving_city driving_highway --frames ${TRAIN_FRAMES:-400 200} --seed 0 \
-    --val-fraction 0 --out /tmp/synth --workers 16 --no-progress > /tmp/synth.log 2>&1 || tail /tmp/synth.log
+    --val-fraction 0 --out /tmp/synth --workers 16 --no-progress ${REALISM:+--realism $REALISM} > /tmp/synth.log 2>&1 \
+    || tail /tmp/synth.log
   $L data synth --scenario driving_city driving_highway --frames ${VAL_FRAMES:-100 100} --seed 5000 \
-    --val-fraction 0 --out /tmp/val --workers 16 --no-progress > /tmp/val.log 2>&1 || tail /tmp/val.log
+    --val-fraction 0 --out /tmp/val --workers 16 --no-progress ${REALISM:+--realism $REALISM} > /tmp/val.log 2>&1 \
+    || tail /tmp/val.log
   stamp "data"
   RUNS=/tmp/runs; mkdir -p $RUNS; pids=()
   # each run: name:D:dedup[:variant[:lr]]; DET_SET adds --set pairs to every run (e.g. "MODEL.HEAD anchored")
   for run in ${DET_RUNS:-"d2:2:False" "d4:4:False" "d8:8:False" "d8_dedup:8:True"}; do
     IFS=: read name D dedup variant lr <<< "$run"
-    $L train --config configs/casnet/casnet_pointpillars_synth.yaml --data /tmp/synth --out $RUNS/det_$name \
+    $L train --config ${DET_CONFIG:-configs/casnet/casnet_pointpillars_synth.yaml} --data /tmp/synth --out $RUNS/det_$name \
       --epochs ${DET_EPOCHS:-4} --workers 3 --eval-every 0 --no-progress --gt-database-frames 300 \
       --max-minutes ${DET_MIN:-4} ${lr:+--lr $lr} --set MODEL.RATIO $D MODEL.DEDUP $dedup MODEL.VARIANT ${variant:-full} \
       ${DET_SET:-} > $RUNS/det_$name.log 2>&1 & pids+=($!)
@@ -131,9 +136,9 @@ if [ "$what" = detect ]; then
     c=$d/final.pth; [ -f $c ] || c=$d/latest.pth
     [ -f $c ] && python3 -c "import sys, torch; from lidarops.models.casnet import load_casnet
 ck = torch.load(sys.argv[1], weights_only=False)
-load_casnet(sys.argv[1]).save(sys.argv[2], task='pointpillars_synth', model_config_of_run=ck['model_config'],
+load_casnet(sys.argv[1]).save(sys.argv[2], task=sys.argv[3], model_config_of_run=ck['model_config'],
                               train_command=ck.get('train_command'), epoch=ck.get('epoch'), it=ck.get('it'))" \
-      $c /tmp/ship/casnet_$(basename $d).pth
+      $c /tmp/ship/casnet_$(basename $d).pth ${DET_TASK:-pointpillars_synth}
     cp $d/log.csv /tmp/ship/$(basename $d)_log.csv 2>/dev/null
   done
   tail -n 4 $RUNS/*.log > /tmp/ship/train_logs.txt
