@@ -39,11 +39,12 @@ import numpy as np
 from lidarops._progress import progress_bar
 from lidarops.cli.errors import CliError, guarded
 from lidarops.cli.sample import SHIPPED_CASNET  # --sampler casnet without --sampler-checkpoint
-#: --sampler casnet without --sampler-checkpoint in front of pointpillars_synth_real (docs/casnet.md)
-SHIPPED_CASNET_REAL = "casnet_pointpillars_real_d8"
 from lidarops.conventions import HELD_OUT_SEED
 
 __all__ = ["register", "detect", "save_detections_png"]
+
+#: --sampler casnet without --sampler-checkpoint in front of pointpillars_synth_real (docs/casnet.md)
+SHIPPED_CASNET_REAL = "casnet_pointpillars_real_d8"
 
 _CASNET_FILES = ("a CAS-Net file of CASNet.save, a lidarops train checkpoint of CASNetPointNet / CASNetPointPillars, "
                  "or a shipped name")

@@ -52,7 +52,10 @@ def main(argv=None) -> int:
     ck = torch.load(args.src, map_location="cpu", weights_only=False)
     model = load_casnet(args.src)
     model.dedup = True  # the shipped samplers keep distinct points, as the tables measured them
-    ratio = int(ck.get("ratio") or round(32768 / model.num_out))
+    run = ck.get("model_config_of_run") or {}
+    ratio = ck.get("ratio") or run.get("ratio")
+    if not ratio:
+        raise SystemExit(f"{args.src} records no sampling ratio (model_config_of_run['ratio'])")
     stem = args.stem or Path(args.src).stem
     table = json.loads(Path(args.table).read_text())
     evaluation = {"protocol": f"tools/casnet/detection_table.py, {table['frames']} frames of {table['data']}, "
@@ -65,7 +68,8 @@ def main(argv=None) -> int:
                                      "device": real["device"], "command": real["command"],
                                      **rows_of(real, ratio, stem)}
     name = Path(args.dst).stem
-    model.save(args.dst, task=ck["task"], ratio=ratio, train_command=ck.get("train_command"),
+    model.save(args.dst, task=ck["task"], ratio=int(ratio), model_config_of_run=run or None,
+               train_command=ck.get("train_command"),
                data_recipe={"train_data": args.train_data, "session": args.session, "steps": ck.get("it"),
                             "commit": args.commit},
                evaluation=evaluation, it=ck.get("it"),
