@@ -16,6 +16,8 @@
 #       the seven classes, CounterNet's augmentations) trained on the training frames until DET_END s;
 #       tools/counternet/evaluate.py (every counter, model selection, the seed's metrics), results_table.py;
 #       benchmarks/bm_counternet.py.
+# REALISM=kitti (either command): every frame made with `data synth --realism kitti` (issue 40: the shipped models
+#   retrained on the simulator's realism profile).
 # LIDAROPS_SO: a devbuild.tar.xz of an earlier call (used when csrc/ and setup.py are unchanged) or a folder
 # holding _C*.so (used as is); otherwise lidarops is built (~100 s). Everything printed goes to $OUT/counternet.log.
 # Dry run on a CPU (every command line, tiny): DEVICE=cpu NO_BUILD=1 PY=.venv/bin/python TRAIN_FRAMES=12 \
@@ -77,7 +79,7 @@ RUNS=${RUNS:-"CN:1:0.0:1.0 CN_pt:4:0.0:1.0 CN_pt_o:4:0.2:1.0 CN_nocount:1:0.0:0.
 CN_CONFIG=configs/counternet/counternet_synth.yaml
 
 synth_train() {  # the training frames: a pure function of the command (any number of workers), made once a call
-  local args="--frames $TRAIN_FRAMES --seed $TRAIN_SEED --val-fraction $VAL_FRACTION"
+  local args="--frames $TRAIN_FRAMES --seed $TRAIN_SEED --val-fraction $VAL_FRACTION${REALISM:+ --realism $REALISM}"
   if [ "$(cat $TRAIN_DATA/.synth_args 2>/dev/null)" = "$args" ]; then echo "[counternet] training frames already made"; return; fi
   $L data synth --scenario driving_city --object-counts dense $args \
     --out $TRAIN_DATA --workers $SYNTH_WORKERS --no-progress > /tmp/synth_train.log 2>&1 \
@@ -191,7 +193,8 @@ if [ "$what" = eval ] || [ "$what" = all ]; then
   [ ${#sel[@]} -ge 2 ] || sel=()  # a selection needs two models
   synth_train
   $L data synth --scenario driving_city --object-counts dense --frames $VAL_FRAMES --seed $VAL_SEED --val-fraction 0 \
-    --out $VAL_DATA --workers $SYNTH_WORKERS --no-progress > /tmp/synth_val.log 2>&1 || { tail -20 /tmp/synth_val.log; exit 1; }
+    --out $VAL_DATA --workers $SYNTH_WORKERS --no-progress ${REALISM:+--realism $REALISM} > /tmp/synth_val.log 2>&1 \
+    || { tail -20 /tmp/synth_val.log; exit 1; }
   tail -1 /tmp/synth_val.log
   stamp "training and held-out data"
 
