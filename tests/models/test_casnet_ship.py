@@ -1,0 +1,94 @@
+"""tools/casnet/ship_detection.py: a trained detection CAS-Net written as a shipped file, with the rows of its own
+run picked out of the evaluation tables."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _tool():
+    spec = importlib.util.spec_from_file_location("ship_detection", ROOT / "tools/casnet/ship_detection.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(method, ratio, map3d, checkpoint=None):
+    return {"method": method, "ratio": ratio, "checkpoint": checkpoint, "mAP_3d_moderate_R40": map3d,
+            "mAP_3d_moderate_R11": map3d + 1, "mAP_bev_moderate_R40": map3d + 2,
+            "3d_moderate_R40": {"Car": map3d}, "points_kept_mean": 100.0, "distinct_kept_mean": 99.0,
+            "sample_ms_median": 1.5, "frames": 3}
+
+
+def _table(path, frames, data, rows):
+    path.write_text(json.dumps({"frames": frames, "data": data, "detector": "pointpillars_synth_real",
+                                "device": "cpu", "command": "detection_table.py ...", "rows": rows}))
+    return path
+
+
+@pytest.fixture
+def run(tmp_path):
+    from lidarops.models.casnet import CASNet
+
+    torch.manual_seed(0)
+    model = CASNet(num_out=64, k=4, head="anchored").eval()
+    src = model.save(tmp_path / "casnet_det_a.pth", task="pointpillars_synth_real",
+                     model_config_of_run={"ratio": 8, "segment_points": 512}, train_command="lidarops train ...", it=7)
+    # two CAS-Nets in the tables: only the row of the file named like the run's may be taken
+    rows = [_row("all points", 1, 70.0), _row("random", 2, 60.0), _row("random", 8, 35.0), _row("fps", 8, 55.0),
+            _row("casnet (casnet_det_b)", 8, 40.0, "/x/casnet_det_b.pth"),
+            _row("casnet (casnet_det_a)", 8, 56.0, "/x/casnet_det_a.pth")]
+    real = [_row("all points", 1, 12.8), _row("random", 8, 4.6), _row("fps", 8, 1.1),
+            _row("casnet", 8, 1.4, "/y/casnet_det_a.pth")]
+    return (src, _table(tmp_path / "sim.json", 100, "/tmp/val", rows),
+            _table(tmp_path / "real.json", 14, ".peers/kitti_real", real), model)
+
+
+def _ship(tool, src, table, dst, *extra):
+    return tool.main([str(src), str(dst), "--table", str(table), "--train-data", "lidarops data synth ... --realism kitti",
+                      "--session", "REALISM=kitti ... detect", "--commit", "abc1234", *extra])
+
+
+def test_ship_detection_writes_the_sampler_with_its_own_rows(run, tmp_path):
+    from lidarops.models.casnet import load_casnet
+
+    src, sim, real, model = run
+    dst = tmp_path / "weights" / "casnet_test_d8.pth"
+    assert _ship(_tool(), src, sim, dst, "--real-table", str(real)) == 0
+    shipped = load_casnet(dst)
+    assert shipped.dedup and not model.dedup  # the shipped sampler keeps distinct points
+    for a, b in zip(shipped.state_dict().values(), model.state_dict().values()):
+        assert torch.equal(a, b)
+    ck = torch.load(dst, map_location="cpu", weights_only=False)
+    assert ck["task"] == "pointpillars_synth_real" and ck["ratio"] == 8 and ck["it"] == 7
+    assert ck["model_config_of_run"]["segment_points"] == 512
+    ev = ck["evaluation"]
+    assert ev["casnet_whole_cloud"]["mAP_3d_moderate_R40"] == 56.0  # its own row, not casnet_det_b's
+    assert (ev["fps"]["mAP_3d_moderate_R40"], ev["random"]["mAP_3d_moderate_R40"]) == (55.0, 35.0)  # D = 8, not 2
+    assert ev["all_points"]["mAP_3d_moderate_R40"] == 70.0
+    assert ev["real_frames"]["casnet_whole_cloud"]["mAP_3d_moderate_R40"] == 1.4
+    assert "14 real KITTI frames" in ev["real_frames"]["protocol"]
+    assert ck["data_recipe"]["commit"] == "abc1234" and "--realism kitti" in ck["data_recipe"]["train_data"]
+    assert ck["usage"] == "CASNetSampler(load_casnet('casnet_test_d8'), whole=True)(points, n // 8)"
+
+
+def test_ship_detection_refuses_a_table_without_the_run(run, tmp_path):
+    src, sim, _, _ = run
+    with pytest.raises(SystemExit, match="no row of a CAS-Net file named casnet_det_c"):
+        _ship(_tool(), src, sim, tmp_path / "out.pth", "--stem", "casnet_det_c")
+    assert not (tmp_path / "out.pth").exists()
+
+
+def test_ship_detection_refuses_a_run_without_its_ratio(run, tmp_path):
+    from lidarops.models.casnet import CASNet
+
+    _, sim, _, _ = run
+    bare = CASNet(num_out=64, k=4, head="anchored").save(tmp_path / "casnet_det_a.pth", task="pointpillars_synth")
+    with pytest.raises(SystemExit, match="records no sampling ratio"):
+        _ship(_tool(), bare, sim, tmp_path / "out.pth")
