@@ -96,3 +96,10 @@ def test_train_set_flag_refuses_an_unknown_key(tmp_path, capsys):
                  "--set", "MODEL.RATIOO", "4"])
     err = capsys.readouterr().err
     assert code == 2 and "--set MODEL.RATIOO: MODEL has no key 'RATIOO'" in err and not (tmp_path / "r").exists()
+
+
+def test_the_real_scan_casnet_trains_on_the_real_scan_detectors_augmentations():
+    # casnet_pointpillars_synth_real.yaml repeats the list (a base file would also merge the detector's MODEL keys)
+    casnet = load_config(REPO / "configs/casnet/casnet_pointpillars_synth_real.yaml")["DATA_CONFIG"]["DATA_AUGMENTOR"]
+    detector = load_config(REPO / "configs/pointpillars/pointpillars_synth_real.yaml")["DATA_CONFIG"]["DATA_AUGMENTOR"]
+    assert casnet == detector

@@ -107,9 +107,8 @@ def plot(report: dict, path: Path) -> None:
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    what = "real frames" if "real" in Path(report["data"]).name else "unseen frames"
     fig.suptitle(f"{Path(report.get('detector', 'pointpillars_synth')).stem} behind each sampler, {report['frames']} "
-                 f"{what} ({report['device']})",
+                 f"frames of {Path(report['data']).name} ({report['device']})",
                  fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
