@@ -80,10 +80,10 @@ demo: build
 	$(PY) -m lidarops query retrieve demo_index --where "Car>=5" --where "Pedestrian<=3" --compare --html demo_index/answer.html
 	$(PY) -m lidarops query count demo_index --where "Pedestrian>=2" --compare
 	$(PY) -m lidarops query sum demo_index --class Car --compare
-	@echo "[demo] CounterNet: the shipped counter (lidarops/weights/counternet_road7, seven road classes) on 4 dense simulated"
-	@echo "       frames it never saw, its counts beside the labels, and its answers to two queries (demo_counter_index/)"
-	$(PY) -m lidarops index build --scenario driving_city --object-counts dense --frames 4 --out demo_counter_index --no-progress --classes Car Truck Bus Pedestrian Cyclist Barrier TrafficCone
-	$(PY) -m lidarops index build --scenario driving_city --object-counts dense --frames 4 --out demo_counter_index --no-progress --source counter
+	@echo "[demo] CounterNet: the shipped counter (lidarops/weights/counternet_road7, seven road classes) on 4 dense frames of the"
+	@echo "       simulator's realism profile it never saw, its counts beside the labels, and its answers to two queries (demo_counter_index/)"
+	$(PY) -m lidarops index build --scenario driving_city --object-counts dense --realism kitti --frames 4 --out demo_counter_index --no-progress --classes Car Truck Bus Pedestrian Cyclist Barrier TrafficCone
+	$(PY) -m lidarops index build --scenario driving_city --object-counts dense --realism kitti --frames 4 --out demo_counter_index --no-progress --source counter
 	$(PY) -m lidarops query retrieve demo_counter_index --where "Car>=1" --counts
 	$(PY) -m lidarops query retrieve demo_counter_index --where "Pedestrian>=3" --compare
 	$(PY) -m lidarops query sum demo_counter_index --class Car --compare

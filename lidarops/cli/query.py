@@ -7,6 +7,7 @@ import re
 import sys
 from pathlib import Path
 
+from lidarops.cli.data import _realism_arg
 from lidarops.cli.errors import CliError, guarded
 from lidarops.conventions import HELD_OUT_SEED
 
@@ -25,10 +26,13 @@ def _frames_of(args: argparse.Namespace, needs_labels: bool):
             raise CliError(f"--frames must be >= 1 with --scenario, got {args.frames}")
         if args.frames_per_scene < 1:
             raise CliError(f"--frames-per-scene must be >= 1, got {args.frames_per_scene}")
+        realism = getattr(args, "realism", None)
         data = SyntheticFrames(args.scenario, num_frames=args.frames, seed=args.seed,
                                frames_per_scene=args.frames_per_scene,
-                               object_counts=None if args.object_counts == "default" else args.object_counts)
-        return list(range(len(data))), _ScenarioLoader(data, f"{args.scenario}:{args.seed}")
+                               object_counts=None if args.object_counts == "default" else args.object_counts,
+                               realism=realism)
+        sequence = f"{args.scenario}:{args.seed}" + (f":{realism}" if realism else "")
+        return list(range(len(data))), _ScenarioLoader(data, sequence)
     if not args.input:
         raise CliError("give a KITTI folder, or --scenario NAME --frames N")
     path = Path(args.input)
@@ -388,6 +392,9 @@ def register(subparsers) -> None:
                    help="scenario traffic (default: the scenario's own)")
     b.add_argument("--frames-per-scene", type=int, default=1, help="scenario: consecutive sweeps of one drive per "
                                                                    "scene (default 1: a new scene each frame)")
+    b.add_argument("--realism", default=None, type=_realism_arg, metavar="PROFILE",
+                   help="scenario: the simulator's realism profile (kitti, kitti_dr, avia; as `data synth "
+                        "--realism`): the frames the shipped CounterNets were trained on; default: as ray-cast")
     b.add_argument("--source", choices=["labels", "detector", "counter"], default="labels",
                    help="what counts (default labels); detector: a detector's boxes; counter: a CounterNet")
     b.add_argument("--checkpoint", help="detector checkpoint (default: the shipped PointPillars), or a CounterNet's "

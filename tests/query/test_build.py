@@ -318,6 +318,30 @@ def test_cli_build_and_query(tmp_path, capsys):
     assert capsys.readouterr().out.strip() == "0"
 
 
+def test_cli_build_counts_frames_of_a_realism_profile(tmp_path, capsys):
+    """--realism: the frames of `data synth --realism` (the same simulator), counted by the same rule; its sequence
+    names the profile; a profile that is none is named."""
+    from lidarops.data.synthetic import SyntheticFrames
+
+    out = str(tmp_path / "idx")
+    assert main(["index", "build", "--scenario", "driving_city", "--frames", "2", "--out", out, "--no-progress",
+                 "--workers", "0", "--labels-range", "all", "--min-points", "1", "--realism", "kitti"]) == 0
+    capsys.readouterr()
+    real = SyntheticFrames("driving_city", num_frames=2, seed=5000, realism="kitti")
+    cast = SyntheticFrames("driving_city", num_frames=2, seed=5000)
+    idx = FrameIndex.open(out)
+    for i in range(2):
+        f = real[i]
+        assert f.points.shape != cast[i].points.shape  # the profile's frames, not the ray-cast ones
+        seen = f.num_points_in_box >= 1
+        assert stored(idx)[i] == {c: int(((f.labels == f.class_names.index(c)) & seen).sum()) for c in CLASSES}
+    assert idx.sql("SELECT DISTINCT sequence FROM counts")["sequence"].tolist() == ["driving_city:5000:kitti"]
+    with pytest.raises(SystemExit) as bad:  # argparse's own refusal, the option named
+        main(["index", "build", "--scenario", "driving_city", "--frames", "1", "--out", str(tmp_path / "n"),
+              "--realism", "glossy"])
+    assert bad.value.code == 2 and "--realism" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv,message", [
     (["query", "retrieve", "{idx}", "--where", "Car=>1"], "expected CLASS OP NUMBER"),
     (["query", "retrieve", "{idx}", "--where", "Truck>=1"], "unknown class 'Truck'; the index's classes: Car"),
