@@ -353,8 +353,9 @@ def register(subparsers) -> None:
     s.add_argument("--realism", default=None, type=_realism_arg, metavar="PROFILE",
                    help="a real sensor's intensity response and real vehicles' surfaces (glass, dark paint) on the "
                         "returns: kitti (calibrated against KITTI's HDL-64E scans), kitti_dr (the same with mixed "
-                        "pixels at depth edges and each scene's sensor height and intensity scale randomised), or "
-                        "either with fields of lidarops.data.realism.Realism changed "
+                        "pixels at depth edges and each scene's sensor height and intensity scale randomised), avia "
+                        "(a Livox Avia's reflectivity and quadcopter drones, from its datasheet), or "
+                        "any with fields of lidarops.data.realism.Realism changed "
                         "(kitti:crossing_groups=0.6,crossing_cyclists=0.2); default: as ray-cast")
     s.add_argument("--object-counts", default=None,
                    help="'dense', 'empty' or JSON such as '{\"Car\": 35, \"Pedestrian\": [0, 5]}' (default: the "

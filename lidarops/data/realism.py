@@ -118,6 +118,12 @@ class Realism:
             height) is lost: hair, often dark, returns less than skin and clothes (0: none lost).
         laser_offsets (bool): an HDL-64E's beams start at its lasers' heights above its origin
             (:func:`lidarops.data.sensors.hdl64_beam_offsets`), as on the real sensor; other sensors as they are.
+        rotor_keep (float): probability that a return from a shaped drone's rotor discs (the top ``rotor_from`` of
+            its box) comes back: two thin blades spinning at thousands of turns a minute cover a small part of the
+            disc they sweep at the instant of a pulse (1: every return kept).
+        rotor_from (float): height fraction of a drone's box above which lie its rotors.
+        reflectivity_output (bool): the sensor reports calibrated reflectivity, as Livox sensors do, rather than a
+            raw intensity: the return's strength corrected for range, so it does not fall with distance.
     """
 
     vehicle_classes: tuple[str, ...] = ("Car", "Truck", "Bus")
@@ -155,6 +161,9 @@ class Realism:
     pedestrian_build: float = 0.0
     hair_dropout: float = 0.0
     laser_offsets: bool = False
+    rotor_keep: float = 1.0
+    rotor_from: float = 0.83
+    reflectivity_output: bool = False
 
     def __post_init__(self) -> None:
         for name in ("greenhouse_from", "greenhouse_keep", "roof_keep", "greenhouse_zero", "dark_paint", "dark_zero",
@@ -180,8 +189,11 @@ class Realism:
         real(self.range_noise_max, "range_noise_max", 0, 1, unit=" m")
         real(self.pedestrian_build, "pedestrian_build", 0, 1)
         real(self.hair_dropout, "hair_dropout", 0, 1)
-        if self.laser_offsets not in (True, False):
-            raise ValueError(f"laser_offsets must be True or False, got {self.laser_offsets!r}")
+        real(self.rotor_keep, "rotor_keep", 0, 1)
+        real(self.rotor_from, "rotor_from", 0, 1)
+        for flag in ("laser_offsets", "reflectivity_output"):
+            if getattr(self, flag) not in (True, False):
+                raise ValueError(f"{flag} must be True or False, got {getattr(self, flag)!r}")
         if not isinstance(self.beam_choices, tuple) or not all(
                 isinstance(b, int) and not isinstance(b, bool) and 1 <= b <= 1024 for b in self.beam_choices):
             raise ValueError(f"beam_choices must be a tuple of beam counts in [1, 1024], got {self.beam_choices!r}")
@@ -210,26 +222,34 @@ class Realism:
         p_zero = np.where(glass, self.greenhouse_zero, p_zero)
         return keep, u_zero < p_zero
 
+    def rotor_returns(self, rng: np.random.Generator, height: np.ndarray) -> np.ndarray:
+        """For returns on drones at ``height`` (fraction of the box, 0 bottom, 1 top): which come back (the rotors'
+        discs lose most)."""
+        return (height < self.rotor_from) | (rng.random(height.size) < self.rotor_keep)
+
     def scene_draws(self, rng: np.random.Generator) -> tuple[float, float]:
         """A scene's domain randomisation: ``(mounting height offset in m, intensity gain)``."""
         u = rng.uniform(-1.0, 1.0, size=2)
         return float(self.mount_height_jitter * u[0]), float(np.exp(np.log1p(self.intensity_scale_jitter) * u[1]))
 
     def scene_sensor(self, rng: np.random.Generator, sensor):
-        """A scene's sensor under the domain randomisation of its beams, dropout and range noise, and with its lasers'
-        offsets (a spinning sensor; any other is returned as it is)."""
+        """A scene's sensor under the domain randomisation of its beams (a spinning sensor), dropout and range noise,
+        with its lasers' offsets (an HDL-64E) and reporting reflectivity (``reflectivity_output``)."""
         from lidarops.data.sensors import SpinningLidar, hdl64_beam_offsets
 
-        offsets = self.laser_offsets and isinstance(sensor, SpinningLidar) and sensor.name == "hdl64" \
-            and not sensor.beam_offsets_z
-        if not isinstance(sensor, SpinningLidar) or not (self.beam_choices or self.dropout_max or self.range_noise_max
-                                                         or offsets):
+        spinning = isinstance(sensor, SpinningLidar)
+        offsets = self.laser_offsets and spinning and sensor.name == "hdl64" and not sensor.beam_offsets_z
+        if not (self.beam_choices and spinning or self.dropout_max or self.range_noise_max or offsets
+                or self.reflectivity_output):
             return sensor
         u = rng.random(3)
         changes = {}
-        table = np.asarray(sensor.elevations_deg, np.float64)
-        heights = np.asarray(hdl64_beam_offsets(table) if offsets else sensor.beam_offsets_z, np.float64)
-        if self.beam_choices:  # the lasers' heights follow their beams
+        if self.reflectivity_output:  # corrected for range: exp(-range / scale) stays 1
+            changes["intensity_range_scale"] = 1e12
+        table = np.asarray(sensor.elevations_deg if spinning else (), np.float64)
+        heights = np.asarray(hdl64_beam_offsets(table) if offsets else getattr(sensor, "beam_offsets_z", ()),
+                             np.float64)
+        if self.beam_choices and spinning:  # the lasers' heights follow their beams
             want = self.beam_choices[min(int(u[0] * len(self.beam_choices)), len(self.beam_choices) - 1)]
             if want < len(table):  # every other beam, as many times as it takes
                 while len(table) > want and len(table) > 1:
@@ -278,7 +298,11 @@ class Realism:
 #: ``kitti_dr`` (the same with mixed pixels at depth edges, pedestrians in groups as often as in the real scans,
 #: vehicle labels as tight as KITTI's, the lasers' heights above the sensor's origin, pedestrians of varied builds
 #: and hair, and the domain randomisation of the sensor's height, beams, dropout, range noise and intensity scale, for what
-#: the real scans leave uncertain).
+#: the real scans leave uncertain); ``avia`` (a Livox Avia on a drone, from its datasheet: no labelled real scans of
+#: one were found to calibrate against): reflectivity reported in 256 steps, diffuse surfaces of 0-100 % on 0-150
+#: (0-0.59), not falling with range; mixed pixels at depth edges (its beam is 0.28 deg tall); drones shaped as
+#: quadcopters whose spinning rotors return a quarter of the rays that meet their discs; the domain randomisation of
+#: dropout, range noise and the intensity scale.
 REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4, parking_lots=0.4, open_ground=0.3, low_clutter=2.0,
                                      roadside_structures=0.7),
                    "kitti_dr": Realism(mixed_pixels=0.5, mount_height_jitter=0.2, intensity_scale_jitter=0.3,
@@ -286,7 +310,12 @@ REALISM_PRESETS = {"kitti": Realism(crossing_pedestrians=0.4, parking_lots=0.4, 
                                        dropout_max=0.2, range_noise_max=0.05, laser_offsets=True,
                                        pedestrian_build=1.0, hair_dropout=0.4, low_clutter=2.0,
                                        roadside_structures=0.7, crossing_pedestrians=0.4,
-                                       parking_lots=0.4, open_ground=0.3)}
+                                       parking_lots=0.4, open_ground=0.3),
+                   "avia": Realism(shaped_classes=("Car", "Truck", "Bus", "Pedestrian", "Cyclist", "Drone"),
+                                   surface_gain=(0.59,) * 6, beam_gain_std=0.02, weak_from=1.0, quantum=1 / 255,
+                                   street_clutter=0.0, mixed_pixels=0.3, mixed_gap=0.5, rotor_keep=0.25,
+                                   reflectivity_output=True, intensity_scale_jitter=0.2, dropout_max=0.1,
+                                   range_noise_max=0.04)}
 
 
 def make_realism(realism: "str | Realism | None") -> Realism | None:

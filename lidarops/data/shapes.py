@@ -8,11 +8,11 @@ rings. A detector trained on boxes expects points on every face of the box and m
 Each shape here is a signed distance function in its box's frame (x forward along the heading, y left,
 z up, the origin at the box's centre; metres), scaled to the box's size and varied per object by four
 uniform numbers ``u`` (a car's beltline and cabin, a pedestrian's stride, legs, coat and shoulders, a
-cyclist's pedals and lean). The shape always lies inside its box, so the label stays the tight box around it.
+cyclist's pedals and lean, a drone's skids, body, rotors and camera). The shape always lies inside its box, so the label stays the tight box around it.
 :func:`trace` follows rays that enter a box onto the shape (sphere tracing); the simulator sends the rays that
 miss it on into the scene (``Simulator(..., realism=...)``, :mod:`lidarops.data.realism`). With the compiled
 extension the tracing runs in ``torch.ops.lidarops.trace_shapes`` (the same arithmetic; ``LIDAROPS_DATA_NATIVE=0``
-keeps NumPy, as for the ray caster), and ``import lidarops.data.shapes`` still needs no torch.
+keeps NumPy, as for the ray caster; the drone has no compiled twin), and ``import lidarops.data.shapes`` still needs no torch.
 """
 from __future__ import annotations
 
@@ -21,6 +21,8 @@ import numpy as np
 __all__ = ["SHAPES", "shape_distance", "trace", "box_exit"]
 
 _HIT, _MIN_STEP, _STEPS, _BISECT = 1e-4, 1e-2, 160, 7
+#: shapes whose parts are thin next to the 1 cm step (a drone's arms and rotor discs, 2-3 cm across) step finer
+_FINE_STEP = {"Drone": 2.5e-3}
 
 
 def _norm(v: np.ndarray) -> np.ndarray:
@@ -186,8 +188,50 @@ def _cyclist(p, h, u):
     return np.minimum.reduce([wheels, frame, torso, head, arms, *legs])
 
 
+def _disc(p, c, radius, half_thickness):
+    """A flat disc about the z axis (a spinning rotor's swept disc)."""
+    d_r = np.hypot(p[:, 0] - c[:, 0], p[:, 1] - c[:, 1]) - radius
+    d_z = np.abs(p[:, 2] - c[:, 2]) - half_thickness
+    return np.minimum(np.maximum(d_r, d_z), 0.0) + np.hypot(np.maximum(d_r, 0.0), np.maximum(d_z, 0.0))
+
+
+def _drone(p, h, u):
+    """A quadcopter in X layout: a rounded body, four arms out to motors under four rotor discs at the top of the
+    box, skids below on three drones in five and a camera under the nose on half. The discs stand for rotors
+    spinning too fast to see: the realism profile keeps only some of their returns (``rotor_keep``)."""
+    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    z0, H = -hz, 2 * hz
+    zero = np.zeros_like(hx)
+    m = np.minimum(hx, hy)
+    R = (0.30 + 0.08 * u[:, 2]) * m
+    z_rotor = z0 + 0.9 * H
+    a, b = hx - R - 0.01 * m, hy - R - 0.01 * m
+    body_c = _vec(zero, zero, z0 + 0.55 * H)
+    body_b = _vec((0.26 + 0.1 * u[:, 1]) * hx, (0.2 + 0.06 * u[:, 1]) * hy, 0.22 * H)
+    parts = [_round_box(p, body_c, body_b, 0.4 * np.minimum(body_b[:, 1], body_b[:, 2]))]
+    z_arm = z0 + 0.62 * H
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            hub = _vec(sx * a, sy * b, z_rotor)
+            parts += [_disc(p, hub, R, 0.035 * H),
+                      _capsule(p, _vec(zero, zero, z_arm), _vec(sx * a, sy * b, z_arm), 0.05 * H),
+                      _capsule(p, _vec(sx * a, sy * b, z_arm), hub, 0.06 * m)]
+    skids = u[:, 0] < 0.6
+    far = np.full_like(hx, 10.0)  # no skids: far away, never the nearest part
+    for sy in (-1, 1):
+        y = sy * 0.55 * hy
+        skid = _capsule(p, _vec(-0.5 * hx, y, z0 + 0.06 * H), _vec(0.5 * hx, y, z0 + 0.06 * H), 0.05 * H)
+        struts = np.minimum.reduce([_capsule(p, _vec(sx * 0.25 * hx, y, z0 + 0.06 * H),
+                                             _vec(sx * 0.15 * hx, sy * 0.5 * body_b[:, 1], z0 + 0.4 * H), 0.04 * H)
+                                    for sx in (-1, 1)])
+        parts.append(np.where(skids, np.minimum(skid, struts), far))
+    camera = _sphere(p, _vec(0.6 * body_b[:, 0], zero, z0 + 0.28 * H), 0.14 * H)
+    parts.append(np.where(u[:, 3] < 0.5, camera, far))
+    return np.minimum.reduce(parts)
+
+
 #: The shaped classes and their signed distance functions ``f(points, half_sizes, u)``.
-SHAPES = {"Car": _car, "Truck": _truck, "Bus": _bus, "Pedestrian": _pedestrian, "Cyclist": _cyclist}
+SHAPES = {"Car": _car, "Truck": _truck, "Bus": _bus, "Pedestrian": _pedestrian, "Cyclist": _cyclist, "Drone": _drone}
 
 
 def _checked(name: str, **arrays) -> list[np.ndarray]:
@@ -260,7 +304,8 @@ def _native_op():
 def _trace(name, entry, d, half, u):
     """:func:`trace` on checked float64 arrays (the simulator's own calls): the compiled tracer when there is one
     (the same arithmetic, about ten times faster), else :func:`_trace_numpy`."""
-    op = _native_op() if len(entry) else None
+    # a shape without a compiled twin (the drone: few rays a frame meet one) is traced in NumPy
+    op = _native_op() if len(entry) and name in _NATIVE_KIND else None
     if op is None:
         return _trace_numpy(name, entry, d, half, u)
     import torch
@@ -276,7 +321,8 @@ def _trace_numpy(name, entry, d, half, u):
     t, before, hit = np.zeros(n), np.zeros(n), np.zeros(n, bool)
     exit_t = box_exit(entry, d, half)
     active = np.arange(n)
-    for _ in range(_STEPS):
+    min_step = _FINE_STEP.get(name, _MIN_STEP)
+    for _ in range(int(_STEPS * _MIN_STEP / min_step)):
         if not active.size:
             break
         dist = _distance(name, entry[active] + d[active] * t[active, None], half[active], u[active])
@@ -285,7 +331,7 @@ def _trace_numpy(name, entry, d, half, u):
         # steps of at least 1 cm, so that grazing rays finish; a step can sink up to 1 cm into the shape,
         # which the bisection below takes back
         before[active] = np.where(on, before[active], t[active])
-        t[active] += np.where(on, 0.0, np.maximum(dist, _MIN_STEP))
+        t[active] += np.where(on, 0.0, np.maximum(dist, min_step))
         active = active[~on & (t[active] <= exit_t[active])]
     k = np.flatnonzero(hit)
     lo, hi = before[k], t[k]

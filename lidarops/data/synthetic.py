@@ -188,6 +188,7 @@ class Simulator:
             # a pedestrian's legs, coat and shoulders (its shape's u[:, 1:]) vary by the profile's pedestrian_build
             self._shape_u[labels == CLASSES.index("Pedestrian"), 1:] *= self.realism.pedestrian_build
             self._dark = _rng(self.seed, name, "realism", "paint").random(n_obj) < self.realism.dark_paint
+            self._rotors = (labels == CLASSES.index("Drone")) & ("Drone" in shaped) & (self.realism.rotor_keep < 1)
             # how far each side of a vehicle's label (length, width) sits inside its body
             self._label_inset = (self.realism.label_tightness * self._vehicle[:, None]
                                  * _rng(self.seed, name, "realism", "labels").random((n_obj, 2))
@@ -463,8 +464,8 @@ class Simulator:
 
     def _vehicle_surfaces(self, b: int, hits, hit: np.ndarray, keep: np.ndarray, origins: np.ndarray,
                           dirs: np.ndarray, t: np.ndarray, distance: np.ndarray) -> np.ndarray:
-        """Drops the vehicle returns that glass and round roofs lose (``keep`` in place); returns, per hit,
-        whether it reads zero intensity (dark paint, glass, tyres)."""
+        """Drops the vehicle returns that glass and round roofs lose and the drone returns that spinning rotors lose
+        (``keep`` in place); returns, per hit, whether it reads zero intensity (dark paint, glass, tyres)."""
         zero = np.zeros(hit.size, bool)
         obj = hits.object_index[hit]
         v = np.flatnonzero(keep & (obj >= 0))
@@ -478,6 +479,15 @@ class Simulator:
             back, reads_zero = self.realism.vehicle_returns(rng, height, self._dark[o])
             keep[v[~back]] = False
             zero[v] = reads_zero
+        r = np.flatnonzero(keep & (obj >= 0))
+        r = r[self._rotors[obj[r]]]
+        if r.size:  # a drone's spinning rotors: a stream of its own, so that scenes without drones stay the same
+            o, rays = obj[r], hit[r]
+            objects = self.scenario.objects
+            local, _ = self._object_frame(o, rays, origins, dirs, t, distance[r])
+            height = local[:, 2] / (2.0 * objects.half[o, 2]) + 0.5
+            rng = _rng(self.seed, self.scenario.name, "realism", "rotors", self.sensor.name, b)
+            keep[r[~self.realism.rotor_returns(rng, height)]] = False
         return zero
 
     def _span(self, k0: int, k1: int) -> dict:

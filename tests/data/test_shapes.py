@@ -13,9 +13,10 @@ from lidarops.data.shapes import SHAPES, box_exit, shape_distance, trace
 from lidarops.data.synthetic import Simulator
 
 SIZES = {"Car": (3.9, 1.6, 1.56), "Truck": (8.0, 2.5, 3.2), "Bus": (11.0, 2.6, 3.2), "Pedestrian": (0.8, 0.6, 1.75),
-         "Cyclist": (1.76, 0.6, 1.73)}
+         "Cyclist": (1.76, 0.6, 1.73), "Drone": (0.7, 0.7, 0.3)}
 #: share of the box's volume the shape fills: a car is most of its box, a cyclist little of it
-FILL = {"Car": (0.45, 0.8), "Truck": (0.6, 0.95), "Bus": (0.8, 1.0), "Pedestrian": (0.08, 0.3), "Cyclist": (0.02, 0.15)}
+FILL = {"Car": (0.45, 0.8), "Truck": (0.6, 0.95), "Bus": (0.8, 1.0), "Pedestrian": (0.08, 0.3), "Cyclist": (0.02, 0.15),
+        "Drone": (0.03, 0.12)}
 
 
 def _rays_into_box(rng, half, n):
@@ -62,8 +63,11 @@ def test_sphere_tracing_finds_what_a_fine_march_finds(name):
     assert agree.mean() > 0.985, f"{name}: {100 * (1 - agree.mean()):.1f} % of the rays disagree"
     both = hit & ref_hit
     err = np.abs(t[both] - ref[both])
-    # within a bisection's 0.1 mm, but for the rare ray whose 1 cm step crosses a thin part's edge
-    assert np.quantile(err, 0.99) < 1e-3 and (err > 0.012).mean() < 0.005, (name, np.quantile(err, 0.99), err.max())
+    # within a bisection's 0.1 mm, but for the rare ray whose 1 cm step crosses a thin part's edge; a drone's rotor
+    # discs are flat faces often met at grazing angles, where a hit within 0.1 mm of the face lies 0.1 mm / cos
+    # along the ray (a few mm)
+    q99 = 3e-3 if name == "Drone" else 1e-3
+    assert np.quantile(err, 0.99) < q99 and (err > 0.012).mean() < 0.005, (name, np.quantile(err, 0.99), err.max())
     assert ((cos >= 0) & (cos <= 1)).all() and (cos[~hit] == 0).all()
 
 
@@ -147,6 +151,33 @@ def test_cyclist_lean_by_hand():
         assert hit[0] and abs((0.88 - t[0]) - (x_head + 0.062 * H)) < _STEP_TOL, (u1, 0.88 - t[0])
         assert cos[0] > 0.99
     assert xr + 0.37 * D + 0.04 + 0.062 * H < 0.05 and xr + 0.37 * D + 0.04 < 0  # upright: the head behind
+
+
+def test_drone_by_hand():
+    """A 0.7 x 0.7 x 0.3 m drone (m = 0.35): rotor discs of radius R = (0.30 + 0.08 u2) m about hubs at
+    (+-(hx - R - 0.01 m), +-(hy - R - 0.01 m), z0 + 0.9 H), 0.035 H thick each side; the body a rounded box of half
+    sizes (0.26 + 0.1 u1) hx, (0.2 + 0.06 u1) hy, 0.22 H about z0 + 0.55 H; with u3 < 0.5 a camera (radius 0.14 H)
+    under the nose at (0.6 x the body's half length, 0, z0 + 0.28 H); with u0 < 0.6 skids."""
+    half, H = np.array([[0.35, 0.35, 0.15]]), 0.3
+    R = 0.30 * 0.35
+    hub = 0.35 - R - 0.0035
+    down, level = np.array([[0.0, 0.0, -1.0]]), np.array([[-1.0, 0.0, 0.0]])
+    bare = np.array([[0.9, 0.0, 0.0, 0.9]])  # no skids, no camera
+    # from above, half way out along a rotor's disc: its top face, clear of the motor's cap
+    t, hit, cos = trace("Drone", np.array([[hub + 0.5 * R, hub, 0.15]]), down, half, bare)
+    assert hit[0] and abs(t[0] - (0.15 - (-0.15 + 0.9 * H + 0.035 * H))) < _STEP_TOL and cos[0] > 0.99
+    # from above, just beyond a disc's rim and outside the arms: nothing
+    t, hit, _ = trace("Drone", np.array([[hub + R + 0.004, 0.0, 0.15]]), down, half, bare)
+    assert not hit[0]
+    # level from the front at the body's middle height: its flat front face at 0.26 hx
+    t, hit, cos = trace("Drone", np.array([[0.35, 0.0, -0.15 + 0.55 * H]]), level, half, bare)
+    assert hit[0] and abs(t[0] - (0.35 - 0.26 * 0.35)) < _STEP_TOL and cos[0] > 0.99
+    # below the body, at the camera's centre height: nothing bare, the camera's front with u3 < 0.5
+    z_cam = -0.15 + 0.28 * H
+    t, hit, _ = trace("Drone", np.array([[0.35, 0.0, z_cam]]), level, half, bare)
+    assert not hit[0]
+    t, hit, _ = trace("Drone", np.array([[0.35, 0.0, z_cam]]), level, half, np.array([[0.9, 0.0, 0.0, 0.1]]))
+    assert hit[0] and abs(t[0] - (0.35 - (0.6 * 0.26 * 0.35 + 0.14 * H))) < _STEP_TOL
 
 
 def test_bad_arguments_are_named():

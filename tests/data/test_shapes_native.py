@@ -49,7 +49,7 @@ def _native(name, *arrays):
     return t.numpy(), hit.numpy(), cos.numpy()
 
 
-@pytest.mark.parametrize("name", sorted(SHAPES))
+@pytest.mark.parametrize("name", sorted(shapes._NATIVE_KIND))
 @pytest.mark.parametrize("spread", [0.3, 1.5])  # 1.5: many rays graze the shape or miss it
 def test_native_tracer_equals_the_numpy_reference(name, spread):
     arrays = _rays(name, 6000, seed=len(name), spread=spread)
@@ -75,6 +75,20 @@ def test_trace_uses_the_native_tracer_and_the_plain_shape_by_hand():
     for tracer in (shapes.trace, shapes._trace_numpy):
         t, hit, _ = tracer("Pedestrian", entry, np.tile(level, (2, 1)), np.tile(ped, (2, 1)), np.zeros((2, 4)))
         assert not hit[0] and hit[1] and abs(t[1] - (0.4 - 0.035 * H)) < 1e-3
+
+
+def test_a_shape_without_a_compiled_twin_is_traced_in_numpy(monkeypatch):
+    """The drone has no kernel: trace() gives the NumPy reference's answer and never calls the op."""
+    assert set(SHAPES) - set(shapes._NATIVE_KIND) == {"Drone"}
+    entry, d, half, u = _rays("Car", 500, seed=3)
+    half = half * np.array([0.18, 0.44, 0.19])  # drone-sized boxes
+    entry = entry * np.array([0.18, 0.44, 0.19])
+    want = shapes._trace_numpy("Drone", entry, d, half, u)
+    monkeypatch.setattr(shapes, "_native_op", lambda: pytest.fail("the op was called for a drone"))
+    got = shapes.trace("Drone", entry, d, half, u)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
+    assert want[1].any() and (~want[1]).any()
 
 
 def test_empty_input():

@@ -1,9 +1,9 @@
 """Fuzz: the simulator's realism profile (lidarops.data.realism). Any parameter in its documented range gives
 intensities in [0, 1] on the quantum's grid, zero wherever a return is weak or reads zero, and a keep mask that
-never drops a return below the greenhouse; a parameter out of range (negative, above its bound, NaN, infinite)
-raises a ValueError naming it; a Simulator refuses what is not a profile. The roadside structures stay in their
-zones (clear of every labelled lane) for any seed, tile and density, and a bad density is named; crossing groups
-never overlap.
+never drops a return below the greenhouse (nor below a drone's rotors); a parameter out of range (negative, above its
+bound, NaN, infinite) raises a ValueError naming it; a Simulator refuses what is not a profile. The roadside
+structures stay in their zones (clear of every labelled lane) for any seed, tile and density, and a bad density is
+named; crossing groups never overlap.
 """
 from __future__ import annotations
 
@@ -14,14 +14,14 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from lidarops.data.realism import Realism, make_realism
-from lidarops.data.shapes import SHAPES, box_exit, shape_distance, trace
+from lidarops.data.shapes import _NATIVE_KIND, SHAPES, box_exit, shape_distance, trace
 
 from tests.helpers.scenes import STRUCTURE_ZONES, in_zones, primitive_extents
 
 from .fuzzing import assert_clear_error, assert_no_error, fuzz, outcome
 
 UNIT = ("greenhouse_from", "greenhouse_keep", "greenhouse_zero", "dark_paint", "dark_zero", "light_zero",
-        "tyre_band", "tyre_zero", "weak_from")
+        "tyre_band", "tyre_zero", "weak_from", "rotor_keep", "rotor_from")
 
 
 @st.composite
@@ -53,6 +53,8 @@ def test_any_profile_gives_intensities_on_its_grid(profile, n, seed):
     keep, reads_zero = profile.vehicle_returns(rng, height, dark)
     assert keep.dtype == bool and reads_zero.dtype == bool and keep.shape == reads_zero.shape == (n,)
     assert keep[height < profile.greenhouse_from].all()
+    rotors = profile.rotor_returns(rng, height)
+    assert rotors.dtype == bool and rotors.shape == (n,) and rotors[height < profile.rotor_from].all()
 
 
 UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_structures": 10.0}  # others: 1
@@ -136,7 +138,7 @@ def test_any_box_and_rays_give_hits_on_the_shape_inside_the_box(name, n, seed, s
 
 
 @fuzz
-@given(name=st.sampled_from(sorted(SHAPES)), n=st.integers(0, 40), seed=st.integers(0, 2**16),
+@given(name=st.sampled_from(sorted(_NATIVE_KIND)), n=st.integers(0, 40), seed=st.integers(0, 2**16),
        scale=st.floats(0.05, 8.0), spread=st.floats(0.0, 2.0))
 def test_compiled_tracer_equals_the_numpy_one(name, n, seed, scale, spread):
     """The compiled shape tracer (when built) follows the NumPy reference: the same hits, distances and cosines to
@@ -148,7 +150,6 @@ def test_compiled_tracer_equals_the_numpy_one(name, n, seed, scale, spread):
     rng = np.random.default_rng(seed)
     entry, d, half, u = _face_rays(rng, n, scale, spread + 1e-3)
     t, hit, cos = _trace_numpy(name, entry, d, half, u)
-    from lidarops.data.shapes import _NATIVE_KIND
     nt, nhit, ncos = (a.numpy() for a in _native_op()(_NATIVE_KIND[name],
                                                        *(torch.from_numpy(a) for a in (entry, d, half, u))))
     same = nhit == hit  # a ray within rounding of the hit tolerance may go either way: rare
