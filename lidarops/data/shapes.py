@@ -8,11 +8,12 @@ rings. A detector trained on boxes expects points on every face of the box and m
 Each shape here is a signed distance function in its box's frame (x forward along the heading, y left,
 z up, the origin at the box's centre; metres), scaled to the box's size and varied per object by four
 uniform numbers ``u`` (a car's beltline and cabin, a pedestrian's stride, legs, coat and shoulders, a
-cyclist's pedals and lean, a drone's skids, body, rotors and camera). The shape always lies inside its box, so the label stays the tight box around it.
-:func:`trace` follows rays that enter a box onto the shape (sphere tracing); the simulator sends the rays that
-miss it on into the scene (``Simulator(..., realism=...)``, :mod:`lidarops.data.realism`). With the compiled
-extension the tracing runs in ``torch.ops.lidarops.trace_shapes`` (the same arithmetic; ``LIDAROPS_DATA_NATIVE=0``
-keeps NumPy, as for the ray caster; the drone has no compiled twin), and ``import lidarops.data.shapes`` still needs no torch.
+cyclist's pedals and lean, a drone's skids, body, rotors and camera). The shape always lies inside its box, so the
+label stays the tight box around it. :func:`trace` follows rays that enter a box onto the shape (sphere tracing);
+the simulator sends the rays that miss it on into the scene (``Simulator(..., realism=...)``,
+:mod:`lidarops.data.realism`). With the compiled extension the tracing runs in ``torch.ops.lidarops.trace_shapes``
+(the same arithmetic; ``LIDAROPS_DATA_NATIVE=0`` keeps NumPy, as for the ray caster; the drone has no compiled
+twin), and ``import lidarops.data.shapes`` still needs no torch.
 """
 from __future__ import annotations
 
@@ -217,7 +218,7 @@ def _drone(p, h, u):
                       _capsule(p, _vec(zero, zero, z_arm), _vec(sx * a, sy * b, z_arm), 0.05 * H),
                       _capsule(p, _vec(sx * a, sy * b, z_arm), hub, 0.06 * m)]
     skids = u[:, 0] < 0.6
-    far = np.full_like(hx, 10.0)  # no skids: far away, never the nearest part
+    far = np.full_like(hx, 10.0)  # a part a drone lacks: far away, never the nearest
     for sy in (-1, 1):
         y = sy * 0.55 * hy
         skid = _capsule(p, _vec(-0.5 * hx, y, z0 + 0.06 * H), _vec(0.5 * hx, y, z0 + 0.06 * H), 0.05 * H)
@@ -328,8 +329,8 @@ def _trace_numpy(name, entry, d, half, u):
         dist = _distance(name, entry[active] + d[active] * t[active, None], half[active], u[active])
         on = dist < _HIT
         hit[active[on]] = True
-        # steps of at least 1 cm, so that grazing rays finish; a step can sink up to 1 cm into the shape,
-        # which the bisection below takes back
+        # steps of at least 1 cm (a thin-parted shape's finer step), so that grazing rays finish; a step can sink
+        # that far into the shape, which the bisection below takes back
         before[active] = np.where(on, before[active], t[active])
         t[active] += np.where(on, 0.0, np.maximum(dist, min_step))
         active = active[~on & (t[active] <= exit_t[active])]
