@@ -462,6 +462,12 @@ class Simulator:
                 getattr(hits, field)[gone] = getattr(again, field)
             todo = gone[again.object_index >= 0]
 
+    def _box_heights(self, o: np.ndarray, rays: np.ndarray, origins: np.ndarray, dirs: np.ndarray, t: np.ndarray,
+                     distance: np.ndarray) -> np.ndarray:
+        """Height fractions (0 bottom, 1 top) in the boxes of objects ``o`` of returns ``rays`` at ``distance``."""
+        local, _ = self._object_frame(o, rays, origins, dirs, t, distance)
+        return local[:, 2] / (2.0 * self.scenario.objects.half[o, 2]) + 0.5
+
     def _vehicle_surfaces(self, b: int, hits, hit: np.ndarray, keep: np.ndarray, origins: np.ndarray,
                           dirs: np.ndarray, t: np.ndarray, distance: np.ndarray) -> np.ndarray:
         """Drops the vehicle returns that glass and round roofs lose and the drone returns that spinning rotors lose
@@ -471,10 +477,8 @@ class Simulator:
         v = np.flatnonzero(keep & (obj >= 0))
         v = v[self._vehicle[obj[v]]]
         if v.size:
-            o, rays = obj[v], hit[v]
-            objects = self.scenario.objects
-            local, _ = self._object_frame(o, rays, origins, dirs, t, distance[v])
-            height = local[:, 2] / (2.0 * objects.half[o, 2]) + 0.5
+            o = obj[v]
+            height = self._box_heights(o, hit[v], origins, dirs, t, distance[v])
             rng = _rng(self.seed, self.scenario.name, "realism", "block", self.sensor.name, b)
             back, reads_zero = self.realism.vehicle_returns(rng, height, self._dark[o])
             keep[v[~back]] = False
@@ -482,10 +486,7 @@ class Simulator:
         r = np.flatnonzero(keep & (obj >= 0))
         r = r[self._rotors[obj[r]]]
         if r.size:  # a drone's spinning rotors: a stream of its own, so that scenes without drones stay the same
-            o, rays = obj[r], hit[r]
-            objects = self.scenario.objects
-            local, _ = self._object_frame(o, rays, origins, dirs, t, distance[r])
-            height = local[:, 2] / (2.0 * objects.half[o, 2]) + 0.5
+            height = self._box_heights(obj[r], hit[r], origins, dirs, t, distance[r])
             rng = _rng(self.seed, self.scenario.name, "realism", "rotors", self.sensor.name, b)
             keep[r[~self.realism.rotor_returns(rng, height)]] = False
         return zero
