@@ -55,6 +55,34 @@ def _realism_arg(text: str) -> str:
     return text
 
 
+def _realism_or_none_arg(text: str) -> str | None:
+    """``data synth --realism``'s values: a profile as :func:`_realism_arg` takes, or ``none`` (ray-cast)."""
+    return None if text == "none" else _realism_arg(text)
+
+
+def _realism_per_scenario(args: argparse.Namespace) -> list[str | None]:
+    """``--realism``: one profile for every ``--scenario`` or one per scenario (``none``: ray-cast)."""
+    given = getattr(args, "realism", None)
+    if given is None:
+        return [None] * len(args.scenario)
+    if isinstance(given, str):
+        given = [given]
+    if len(given) == 1:
+        return list(given) * len(args.scenario)
+    if len(given) != len(args.scenario):
+        raise ValueError(f"--realism takes one profile or one per --scenario ({len(args.scenario)}), got "
+                         f"{len(given)}: {' '.join(g or 'none' for g in given)}")
+    return list(given)
+
+
+def _recipe_realism(args: argparse.Namespace):
+    """What ``recipe.json`` records as ``realism``: None (ray-cast), the one profile, or one per scenario."""
+    per = _realism_per_scenario(args)
+    if all(r is None for r in per):
+        return None
+    return per[0] if len(set(per)) == 1 else per
+
+
 def _scenario_plan(args: argparse.Namespace) -> list[dict]:
     """Frames, seed and first frame id of each ``--scenario``: ``--frames`` is one total split evenly (the
     first scenarios take the remainder) or one count per scenario; scenario ``k`` is simulated with seed
@@ -67,11 +95,12 @@ def _scenario_plan(args: argparse.Namespace) -> list[dict]:
         raise ValueError(f"--frames takes one total or one count per scenario ({len(scenarios)}), got {len(frames)} values")
     if any(n < 0 for n in frames) or sum(frames) == 0:
         raise ValueError(f"--frames must be >= 0 per scenario and at least 1 in all, got {frames}")
+    realism = _realism_per_scenario(args)
     plan, first = [], 0
     for k, (name, n) in enumerate(zip(scenarios, frames)):
         labels = getattr(args, "labels", None) or ("all" if name in _WHOLE_VIEW_SCENARIOS else "camera")
         plan.append({"scenario": name, "frames": n, "seed": args.seed + _SCENARIO_SEED_STRIDE * k, "first_id": first,
-                     "labels": labels})
+                     "labels": labels, "realism": realism[k]})
         first += n
     return plan
 
@@ -185,8 +214,9 @@ def _command_line(args: argparse.Namespace) -> str:
         words += ["--sensor", args.sensor]
     if args.object_counts is not None:
         words += ["--object-counts", args.object_counts]
-    if getattr(args, "realism", None):
-        words += ["--realism", args.realism]
+    realism = _recipe_realism(args)
+    if realism is not None:
+        words += ["--realism", *([realism] if isinstance(realism, str) else [r or "none" for r in realism])]
     if getattr(args, "labels", None):
         words += ["--labels", args.labels]
     if args.format == "kitti":
@@ -203,7 +233,7 @@ def _write_recipe(out: Path, args: argparse.Namespace, **fields) -> None:
 
     recipe = {"format": args.format, "lidarops_version": lidarops.__version__, "command": _command_line(args),
               "seed": args.seed, "sensor": args.sensor, "object_counts": args.object_counts,
-              "realism": getattr(args, "realism", None), **fields}
+              "realism": _recipe_realism(args), **fields}
     (out / "recipe.json").write_text(json.dumps(recipe, indent=2) + "\n")
 
 
@@ -213,7 +243,7 @@ def _synth_kitti(args: argparse.Namespace, out: Path, counts) -> None:
     tasks = []
     for entry in plan:
         source = {"scenario": entry["scenario"], "num_frames": entry["frames"], "seed": entry["seed"],
-                  "frames_per_scene": k, "sensor": args.sensor, "object_counts": counts, "realism": args.realism}
+                  "frames_per_scene": k, "sensor": args.sensor, "object_counts": counts, "realism": entry["realism"]}
         for lo in range(0, entry["frames"], k):  # a scene at a time, in chunks
             for start in range(lo, min(lo + k, entry["frames"]), _CHUNK_FRAMES):
                 tasks.append({"source": source, "out": str(out), "split": args.split, "first_id": entry["first_id"],
@@ -259,7 +289,8 @@ def synth(args: argparse.Namespace) -> int:
     if len(args.scenario) != 1 or len(args.frames) != 1:
         raise ValueError("--format pandaset writes one sequence: give one --scenario and one --frames")
     scenario, n_frames = args.scenario[0], args.frames[0]
-    sim = Simulator(scenario, seed=args.seed, sensor=args.sensor, object_counts=counts, realism=args.realism)
+    sim = Simulator(scenario, seed=args.seed, sensor=args.sensor, object_counts=counts,
+                    realism=_realism_per_scenario(args)[0])
     seq_dir = out / args.sequence
     poses, stamps = [], []
     for i in progress(range(n_frames), n_frames, f"{scenario} -> PandaSet", not args.no_progress):
@@ -350,13 +381,15 @@ def register(subparsers) -> None:
                    help=f"first scenario's seed (default {HELD_OUT_SEED}: frames no shipped model was trained on)")
     s.add_argument("--sensor", choices=("hdl64", "pandar64", "avia"), default=None,
                    help="sensor preset (default: the scenario's)")
-    s.add_argument("--realism", default=None, type=_realism_arg, metavar="PROFILE",
+    s.add_argument("--realism", default=None, type=_realism_or_none_arg, nargs="+", metavar="PROFILE",
                    help="a real sensor's intensity response and real vehicles' surfaces (glass, dark paint) on the "
                         "returns: kitti (calibrated against KITTI's HDL-64E scans), kitti_dr (the same with mixed "
                         "pixels at depth edges and each scene's sensor height and intensity scale randomised), avia "
                         "(a Livox Avia's reflectivity and quadcopter drones, from its datasheet), or "
                         "any with fields of lidarops.data.realism.Realism changed "
-                        "(kitti:crossing_groups=0.6,crossing_cyclists=0.2); default: as ray-cast")
+                        "(kitti:crossing_groups=0.6,crossing_cyclists=0.2); one for every --scenario or one per "
+                        "scenario, none for ray-cast (--scenario drone_lock drone_lock --realism avia none: a mix); "
+                        "default: as ray-cast")
     s.add_argument("--object-counts", default=None,
                    help="'dense', 'empty' or JSON such as '{\"Car\": 35, \"Pedestrian\": [0, 5]}' (default: the "
                         "scenario's)")

@@ -43,6 +43,7 @@ from torch import Tensor
 
 from lidarops._progress import progress_bar
 from lidarops.cli._device import resolve_device
+from lidarops.cli.data import _realism_arg
 from lidarops.cli.errors import CliError, guarded
 from lidarops.models.sscater_calibration import build_model, calibrate_relu_zeros, layer_labels, relu_zero_shares
 
@@ -116,11 +117,12 @@ def run(scenario: str = "drone_bridge", seconds: float = 5.0, slice_s: float = 0
         refresh_every: Optional[int] = None, relu_zeros: float = 0.5, seed: int = 0, small: Optional[bool] = None,
         out: Optional[str] = None, json_path: Optional[str] = None, max_points_per_pillar: Optional[int] = None,
         max_pillars: Optional[int] = None, profile: Optional[bool] = None, progress: bool = True,
-        threads: Optional[int] = None) -> int:
+        threads: Optional[int] = None, realism: Optional[str] = None) -> int:
     """Streams ``seconds`` of ``scenario`` through SSCATeR PointPillars; prints the table, writes the PNG
     (and the JSON). Returns 0 when every identity check is within tolerance, 1 otherwise.
 
     ``threads``: CPU threads of torch during the run (default 1 on CPU, see ``--threads``; restored after).
+    ``realism``: the simulator's realism profile of the scene (:mod:`lidarops.data.realism`; None or "none": ray-cast).
 
     Raises:
         ValueError: a bad argument, ``device="cuda"`` without CUDA torch or lidarops' CUDA kernels, an
@@ -130,6 +132,7 @@ def run(scenario: str = "drone_bridge", seconds: float = 5.0, slice_s: float = 0
     """
     _check_arguments(scenario, seconds, slice_s, window, dtype, check_every, refresh_every, relu_zeros, seed,
                      max_points_per_pillar, max_pillars, threads)
+    realism = _check_realism(realism)
     dev = resolve_device(device)
     out = _check_output(Path(out or f"lidarops_stream_{scenario}.png"), "--out", image=True)
     if json_path:
@@ -143,7 +146,7 @@ def run(scenario: str = "drone_bridge", seconds: float = 5.0, slice_s: float = 0
         torch.set_num_threads(threads)
     try:
         return _run(scenario, seconds, slice_s, window, dev, dtype, check_every, refresh_every, relu_zeros, seed,
-                    small, out, json_path, max_points_per_pillar, max_pillars, profile, progress)
+                    small, out, json_path, max_points_per_pillar, max_pillars, profile, progress, realism)
     finally:
         torch.set_num_threads(saved)
 
@@ -196,8 +199,24 @@ def _check_output(path: Path, flag: str, image: bool = False) -> Path:
     return path
 
 
+def _check_realism(realism) -> "str | None":
+    """``realism`` checked before anything runs: None or ``"none"`` (ray-cast: None), or a profile that
+    :func:`lidarops.data.realism.make_realism` accepts (returned as given)."""
+    from lidarops.data.realism import make_realism
+
+    if realism is not None and not isinstance(realism, str):
+        raise ValueError(f"--realism must be a profile name such as 'avia', got {realism!r}")
+    if realism == "none":
+        return None
+    try:
+        make_realism(realism)
+    except ValueError as e:
+        raise ValueError(f"--realism: {e}") from None
+    return realism
+
+
 def _run(scenario, seconds, slice_s, window, device, dtype, check_every, refresh_every, relu_zeros, seed, small,
-         out, json_path, max_points_per_pillar, max_pillars, profile, progress) -> int:
+         out, json_path, max_points_per_pillar, max_pillars, profile, progress, realism=None) -> int:
     import lidarops
     from lidarops.data.synthetic import Simulator
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
@@ -211,9 +230,9 @@ def _run(scenario, seconds, slice_s, window, device, dtype, check_every, refresh
     grid = getattr(PillarGrid, grid_name)()
     steps = max(1, int(math.ceil(seconds / slice_s - 1e-9)))
     tol = _TOL[dtype]
-    print(_intro(scenario, seconds, steps, slice_s, window, check_every))
+    print(_intro(scenario, seconds, steps, slice_s, window, check_every, realism))
 
-    sim = Simulator(scenario, seed=seed)
+    sim = Simulator(scenario, seed=seed, realism=realism)
     # simulate first: the steps then time only the model, and the stream's capacity can be measured
     sim0 = time.perf_counter()
     bounds = [(i * slice_s, min((i + 1) * slice_s, seconds)) for i in range(steps)]
@@ -337,7 +356,8 @@ def _run(scenario, seconds, slice_s, window, device, dtype, check_every, refresh
     except ImportError as e:
         print(f"no picture written: {e}", file=sys.stderr)
     if json_path:
-        doc = {"scenario": scenario, "seed": seed, "seconds": seconds, "slice": slice_s, "window": window,
+        doc = {"scenario": scenario, "realism": realism, "seed": seed, "seconds": seconds, "slice": slice_s,
+               "window": window,
                "device": str(device), "device_name": dev_name, "dtype": str(dtype).replace("torch.", ""),
                "small": small, "grid": {"preset": grid_name, "shape": list(grid.shape)},
                "max_points_per_pillar": N, "max_pillars": M, "refresh_every": model.refresh_every,
@@ -423,7 +443,8 @@ def _wrap(text: str, first: str = "", rest: str = "  ") -> str:
     return textwrap.fill(text, width=110, initial_indent=first, subsequent_indent=rest, break_on_hyphens=False)
 
 
-def _intro(scenario: str, seconds: float, steps: int, slice_s: float, window: float, check_every: int) -> str:
+def _intro(scenario: str, seconds: float, steps: int, slice_s: float, window: float, check_every: int,
+           realism: Optional[str] = None) -> str:
     """What the run demonstrates, printed before anything runs."""
     sl, win = f"{slice_s * 1e3:g} ms", f"{window * 1e3:g} ms"
     checked = f"checked every {check_every} steps" if check_every else "not checked here: --check-every 0"
@@ -432,7 +453,8 @@ def _intro(scenario: str, seconds: float, steps: int, slice_s: float, window: fl
             "SSCATeR updates the previous result where the input changed: the PFN on the pillars that gained or "
             "lost points, each convolution by O += (I_curr - I_prev) * W at the sites the changes reach. The output "
             f"must be the same ({checked}); the cost follows the share of sites that change.")
-    title = f"lidarops stream: SSCATeR on {seconds:g} s of simulated LiDAR ({scenario}), {steps} steps of {sl}"
+    scene = f"{scenario}, realism profile {realism}" if realism else scenario
+    title = f"lidarops stream: SSCATeR on {seconds:g} s of simulated LiDAR ({scene}), {steps} steps of {sl}"
     return "\n".join([title, _wrap(what, "  "), _wrap(f"Scene: {SCENARIO_NOTES[scenario]}.", "  ")])
 
 
@@ -668,13 +690,16 @@ def _trained_scenario(path: Path) -> str:
 def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float = 0.3, slice_s: float = 0.01,
                  window: float = 0.1, device: Optional[str] = None, dtype: torch.dtype = torch.float32,
                  check_every: int = 5, refresh_every: Optional[int] = None, seed: int = 0,
-                 json_path: Optional[str] = None, threads: Optional[int] = None, print_every: int = 1) -> int:
+                 json_path: Optional[str] = None, threads: Optional[int] = None, print_every: int = 1,
+                 realism: Optional[str] = None) -> int:
     """Streaming detection (``lidarops stream --checkpoint``): ``seconds`` of ``scenario`` through
     :meth:`SSCATeRPointPillars.from_detector` of a trained PointPillars; each step's boxes printed, and every
     ``check_every`` steps compared with the detector's own eager call on the points the stream holds (the same
     labels, scores within 1e-5 / 1e-12 relative in float32 / float64). Returns 0 when every check held, 1 otherwise.
     ``checkpoint``: a file, or the name of shipped weights ("shipped": the default detector); ``scenario``: default
-    the first one the detector was trained on (its data recipe), else driving_city."""
+    the first one the detector was trained on (its data recipe), else driving_city; ``realism``: the simulator's
+    realism profile of the scene, default (None) the one the detector's first frames of that scenario were made
+    with (its data recipe), ``"none"``: ray-cast."""
     import json as json_module
 
     from torch.nn import functional as F
@@ -691,6 +716,8 @@ def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float
             raise ValueError(f"--{name} must be a positive number, got {v!r}")
     if isinstance(check_every, bool) or not isinstance(check_every, int) or check_every < 0:
         raise ValueError(f"--check-every must be an int >= 0, got {check_every!r}")
+    ray_cast = realism == "none"
+    realism = _check_realism(realism)
     dev = resolve_device(device)
     if json_path:
         json_path = _check_output(Path(json_path), "--json")
@@ -699,6 +726,8 @@ def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float
     detector = load_model(path, map_location=dev).to(dtype).eval()
     if scenario is None:
         scenario = _trained_scenario(path)
+    if realism is None and not ray_cast:
+        realism = weights.trained_realism(path, scenario)
     if type(detector).__name__ != "PointPillars":
         raise ValueError(f"--checkpoint {checkpoint} holds a {type(detector).__name__}; streaming detection needs a "
                          "PointPillars")
@@ -709,10 +738,11 @@ def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float
     saved = torch.get_num_threads()
     if threads:
         torch.set_num_threads(threads)
-    sim = Simulator(scenario, seed=seed)
+    sim = Simulator(scenario, seed=seed, realism=realism)
     tol = _TOL[dtype]
+    scene = f"{scenario}, realism profile {realism}" if realism else f"{scenario}, ray-cast"
     print(_wrap(f"lidarops stream --checkpoint: SSCATeR with the detector {path.name} on {seconds:g} s of simulated "
-                f"{scenario} ({steps} steps of {slice_s * 1e3:g} ms, a {window * 1e3:g} ms window, {dev.type}, "
+                f"{scene} ({steps} steps of {slice_s * 1e3:g} ms, a {window * 1e3:g} ms window, {dev.type}, "
                 f"{str(dtype).replace('torch.', '')}). Each step recomputes the pillars that gained or lost points "
                 f"and the sites their change reaches, then runs the detector's head and NMS on the recycled map; every "
                 f"{check_every or 'no'} step(s) the boxes are compared with the detector run on the same points.", ""))
@@ -759,8 +789,8 @@ def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float
                 (f", the detector on a window: median {_median([r['ms_detector'] for r in checks]):.1f} ms" if checks
                  else "") + "."))
     if json_path:
-        json_path.write_text(json_module.dumps({"checkpoint": str(path), "scenario": scenario, "steps": records},
-                                               indent=1))
+        json_path.write_text(json_module.dumps({"checkpoint": str(path), "scenario": scenario, "realism": realism,
+                                                "steps": records}, indent=1))
     return 1 if failed else 0
 
 
@@ -775,16 +805,22 @@ def _main(args: argparse.Namespace) -> int:
     check_every = args.check_every if args.check_every is not None else (5 if detecting else 10)
     if detecting:
         return run_detector(args.checkpoint, scenario, seconds, args.slice, args.window, args.device, dtype,
-                            check_every, args.refresh_every, args.seed, args.json, args.threads)
+                            check_every, args.refresh_every, args.seed, args.json, args.threads,
+                            realism=args.realism)
     args.scenario, args.seconds, args.check_every = scenario, seconds, check_every
     small = True if args.small else (False if args.full_size else None)
     try:
         return run(args.scenario, args.seconds, args.slice, args.window, args.device, dtype, args.check_every,
                    args.refresh_every, args.relu_zeros, args.seed, small, args.out, args.json,
                    args.max_points_per_pillar, args.max_pillars, args.profile or None, not args.no_progress,
-                   args.threads)
+                   args.threads, args.realism)
     except PillarOverflowError as e:  # the stream never drops points: name the flags that give it room
         raise CliError(f"{e} (--max-points-per-pillar / --max-pillars)") from None
+
+
+def _profile_or_none(text: str) -> str:
+    """``--realism``: a profile (checked as ``data synth`` checks it) or ``none``, kept as written."""
+    return text if text == "none" else _realism_arg(text)
 
 
 def register(subparsers) -> None:
@@ -824,6 +860,11 @@ def register(subparsers) -> None:
                    help="share of negative pre-activations BatchNorm is calibrated for on the first window "
                         "(default 0.5; random weights stand in for a trained network)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scene and of the weights")
+    p.add_argument("--realism", default=None, type=_profile_or_none, metavar="PROFILE",
+                   help="the simulator's realism profile of the scene (as lidarops data synth --realism): avia for "
+                        "the drone scenes (a Livox Avia's reflectivity, quadcopter drones), kitti for the driving "
+                        "scenes, none: ray-cast; default: with --checkpoint the profile the detector was trained on "
+                        "for the scene (its data recipe), else ray-cast")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--small", action="store_true",
                       help="narrow network (PFN 16, backbone 16/32/64, upsampling 32 each); the default on CPU")

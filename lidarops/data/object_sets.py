@@ -88,6 +88,10 @@ class ObjectSetRecipe:
         test_fraction (float): [TEST_FRACTION] share of each class (and point-count bin) in the test split.
         margin (float): [MARGIN] grow the boxes by this many metres when cutting.
         fov_deg (float or None): [FOV_DEG] keep only the frames' forward field of view (e.g. 90, KITTI-like).
+        realism (str, dict[str, str] or None): [REALISM] the simulator's realism profile the scenes are made
+            with (:mod:`lidarops.data.realism`): one profile for every scenario (``"kitti"``), or one per scenario
+            (``{"driving_city": "kitti", "drone_lock": "avia"}``; a scenario left out is ray-cast, one that is
+            not among ``scenarios`` is not used); None: every scene ray-cast.
     """
 
     scenarios: dict[str, int] = field(default_factory=lambda: {"driving_city": 400, "driving_highway": 200,
@@ -97,6 +101,7 @@ class ObjectSetRecipe:
     test_fraction: float = 0.2
     margin: float = 0.0
     fov_deg: float | None = None
+    realism: str | dict[str, str] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.scenarios, Mapping) or not self.scenarios:
@@ -113,6 +118,13 @@ class ObjectSetRecipe:
         self.margin = real(self.margin, "margin", 0, 10)
         if self.fov_deg is not None:
             self.fov_deg = real(self.fov_deg, "fov_deg", 0, 360, lo_open=True)
+        self.realism = _realism_of_recipe(self.realism, self.scenarios)
+
+    def profile(self, scenario: str) -> str | None:
+        """The realism profile the scenes of ``scenario`` are made with (None: ray-cast)."""
+        if isinstance(self.realism, Mapping):
+            return self.realism.get(scenario)
+        return self.realism
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -127,9 +139,10 @@ class ObjectSetRecipe:
 
     @classmethod
     def from_openpcdet(cls, block: Mapping[str, Any]) -> "ObjectSetRecipe":
-        """From ``DATA_CONFIG.OBJECT_SET`` (keys SCENES, SEED, MIN_POINTS, TEST_FRACTION, MARGIN, FOV_DEG)."""
+        """From ``DATA_CONFIG.OBJECT_SET`` (keys SCENES, SEED, MIN_POINTS, TEST_FRACTION, MARGIN, FOV_DEG,
+        REALISM)."""
         keys = {"SCENES": "scenarios", "SEED": "seed", "MIN_POINTS": "min_points", "TEST_FRACTION": "test_fraction",
-                "MARGIN": "margin", "FOV_DEG": "fov_deg"}
+                "MARGIN": "margin", "FOV_DEG": "fov_deg", "REALISM": "realism"}
         if not isinstance(block, Mapping):
             raise ValueError(f"DATA_CONFIG.OBJECT_SET must be a mapping, got {block!r}")
         unknown = sorted(set(block) - set(keys))
@@ -139,17 +152,45 @@ class ObjectSetRecipe:
 
     def key(self) -> str:
         """12 hex digits naming the cached set (a hash of the recipe and the build version)."""
-        text = json.dumps({"build": _BUILD_VERSION, **self.to_dict()}, sort_keys=True)
+        fields = self.to_dict()
+        if fields["realism"] is None:  # sets built before the field existed keep their key
+            del fields["realism"]
+        text = json.dumps({"build": _BUILD_VERSION, **fields}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def _realism_of_recipe(realism, scenarios: Mapping[str, int]):
+    """``realism`` checked: None, one profile name, or a mapping of the recipe's scenarios to profile names."""
+    from lidarops.data.realism import make_realism
+
+    if realism is None:
+        return None
+    if isinstance(realism, str):
+        make_realism(realism)
+        return realism
+    if not isinstance(realism, Mapping):
+        raise ValueError(f"realism must be None, a profile name or a mapping scenario -> profile name, got {realism!r}")
+    unknown = sorted(k for k in realism if k not in SCENE_CLASSES)
+    if unknown:
+        raise ValueError(f"realism: unknown scenario(s) {unknown}; choose from {sorted(SCENE_CLASSES)}")
+    out = {}
+    for name, profile in realism.items():
+        if profile is None or name not in scenarios:  # a config's mapping outlives a --set of fewer SCENES
+            continue
+        if not isinstance(profile, str):
+            raise ValueError(f"realism[{name!r}] must be a profile name, got {profile!r}")
+        make_realism(profile)
+        out[name] = profile
+    return out or None
 
 
 # ------------------------------------------------------------------------------------------------ building
 def _objects_of_scenes(scenario: str, seed: int, start: int, stop: int, min_points: int, margin: float,
-                       fov_deg: float | None) -> list[ObjectSample]:
+                       fov_deg: float | None, realism: str | None = None) -> list[ObjectSample]:
     """The objects of scenes ``[start, stop)`` of one scenario (a worker's task: module level, picklable)."""
     from lidarops.data.synthetic import SyntheticFrames
 
-    frames = SyntheticFrames(scenario, num_frames=stop, seed=seed, fov_deg=fov_deg)
+    frames = SyntheticFrames(scenario, num_frames=stop, seed=seed, fov_deg=fov_deg, realism=realism)
     return extract_objects((frames[i] for i in range(start, stop)), min_points=min_points, canonical=True,
                            margin=margin)
 
@@ -180,11 +221,12 @@ def build_object_set(recipe: ObjectSetRecipe | Mapping, cache_dir: str | os.Path
     tasks = []
     for name, n in recipe.scenarios.items():
         step = max(1, math.ceil(n / (4 * workers))) if workers else max(n, 1)
-        tasks += [(name, recipe.seed, a, min(a + step, n), recipe.min_points, recipe.margin, recipe.fov_deg)
-                  for a in range(0, n, step)]
+        tasks += [(name, recipe.seed, a, min(a + step, n), recipe.min_points, recipe.margin, recipe.fov_deg,
+                   recipe.profile(name)) for a in range(0, n, step)]
     if log:
         log(f"object set {recipe.key()}: simulating {sum(recipe.scenarios.values())} scenes "
-            f"({', '.join(f'{k} {v}' for k, v in recipe.scenarios.items())}) with {workers or 1} process(es)")
+            f"({', '.join(f'{k} {v}' + (f' [{recipe.profile(k)}]' if recipe.profile(k) else '') for k, v in recipe.scenarios.items())})"
+            f" with {workers or 1} process(es)")
     if workers:
         # spawn: forking a process that holds torch's thread pools can hang the children
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:

@@ -94,6 +94,26 @@ def trained_scenarios(checkpoint: "str | Path") -> list[str]:
     return [s["scenario"] for s in scenarios or [] if isinstance(s, dict) and isinstance(s.get("scenario"), str)]
 
 
+def trained_realism(checkpoint: "str | Path", scenario: str) -> "str | None":
+    """The simulator's realism profile of the first frames of ``scenario`` in a checkpoint's data recipe (a
+    ``data synth --realism`` per scenario, or the one profile of older recipes); None: ray-cast, not named, or
+    unreadable."""
+    from lidarops.checkpoint import read_checkpoint
+
+    file = Path(checkpoint)
+    try:
+        recipe = read_checkpoint(file if file.is_file() else path(str(checkpoint))).get("data_recipe") or {}
+    except (OSError, ValueError):
+        return None
+    if not isinstance(recipe, dict):
+        return None
+    for entry in recipe.get("scenarios") or []:
+        if isinstance(entry, dict) and entry.get("scenario") == scenario:
+            profile = entry["realism"] if "realism" in entry else recipe.get("realism")
+            return profile if isinstance(profile, str) else None
+    return None
+
+
 def load(name: str = DEFAULT, map_location="cpu"):
     """The shipped model ``name`` in eval mode (float32 weights), of the class its file records."""
     from lidarops.models import load_model

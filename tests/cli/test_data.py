@@ -227,3 +227,32 @@ def test_data_synth_takes_a_profile_with_fields_changed(tmp_path, run_cli, capsy
                  "kitti:nope=1"])
     err = capsys.readouterr().err
     assert e.value.code == 2 and "--realism" in err and "'nope' is not a Realism field" in err, err
+
+
+def test_data_synth_takes_one_profile_per_scenario(tmp_path, run_cli, capsys):
+    """``--scenario drone_lock drone_lock --realism avia none``: a mix of the profile's frames and ray-cast ones, each
+    the simulator's frame of its scenario, seed and profile; the recipe records the profile of each entry; a count
+    that fits neither one nor one per scenario is refused."""
+    import json
+
+    from lidarops.data.formats.kitti import read_velodyne
+    from lidarops.data.synthetic import SyntheticFrames
+
+    out = tmp_path / "mix"
+    code, _, err = run_cli(["data", "synth", "--scenario", "drone_lock", "drone_lock", "--frames", "2", "2", "--seed",
+                            "7", "--val-fraction", "0", "--out", out, "--no-progress", "--realism", "avia", "none"])
+    assert code == 0, err
+    recipe = json.loads((out / "recipe.json").read_text())
+    assert recipe["realism"] == ["avia", None]
+    assert [(e["seed"], e["realism"], e["first_id"]) for e in recipe["scenarios"]] == [(7, "avia", 0), (1007, None, 2)]
+    assert "--realism avia none" in recipe["command"]
+    for frame_id, seed, profile, index in ((1, 7, "avia", 1), (3, 1007, None, 1)):
+        want = SyntheticFrames("drone_lock", num_frames=2, seed=seed, realism=profile)[index]
+        got = read_velodyne(out / "training" / "velodyne" / f"{frame_id:06d}.bin")
+        assert got.shape == want.points[:, :4].shape and np.allclose(got, want.points[:, :4], atol=1e-6)
+    plain = SyntheticFrames("drone_lock", num_frames=2, seed=7)[1].points[:, :4]
+    got = read_velodyne(out / "training" / "velodyne" / "000001.bin")
+    assert plain.shape != got.shape or not np.allclose(plain, got)  # the profile's frame, not the ray-cast one
+    code, _, err = run_cli(["data", "synth", "--scenario", "drone_lock", "drone_bridge", "driving_city", "--frames", "1",
+                            "--out", tmp_path / "bad", "--no-progress", "--realism", "avia", "none"])
+    assert code == 2 and "--realism takes one profile or one per --scenario (3), got 2: avia none" in err, err

@@ -234,3 +234,71 @@ def test_stream_checkpoint_defaults_to_the_scene_it_was_trained_on(tmp_path):
                                                           else "driving_city")
     (tmp_path / "bad.pth").write_bytes(b"not a checkpoint")
     assert _trained_scenario(tmp_path / "bad.pth") == "driving_city"
+
+
+class _Recorded(Exception):
+    pass
+
+
+def _record_simulator(monkeypatch):
+    """Replaces the simulator the stream builds by one that records its arguments and stops the run."""
+    import lidarops.data.synthetic as synthetic
+
+    seen = []
+
+    def simulator(scenario, seed=0, realism=None, **kwargs):
+        seen.append({"scenario": scenario, "seed": seed, "realism": realism})
+        raise _Recorded
+
+    monkeypatch.setattr(synthetic, "Simulator", simulator)
+    return seen
+
+
+def test_trained_realism_reads_the_recipe_per_scenario(tmp_path):
+    """The profile of a scenario's first frames in a checkpoint's data recipe: per entry (data synth --realism per
+    scenario), else the recipe's one profile, else none."""
+    from lidarops.checkpoint import read_checkpoint, save_checkpoint
+    from lidarops.models import weights
+
+    record = read_checkpoint(weights.path("aerial_pointpillars"))
+    cases = [({"scenarios": [{"scenario": "drone_bridge", "realism": None},
+                             {"scenario": "drone_bridge", "realism": "avia"}], "realism": ["none", "avia"]},
+              "drone_bridge", None),
+             ({"scenarios": [{"scenario": "drone_lock", "realism": None}, {"scenario": "drone_bridge", "realism": "avia"}]},
+              "drone_bridge", "avia"),
+             ({"scenarios": [{"scenario": "driving_city"}], "realism": "kitti"}, "driving_city", "kitti"),
+             ({"scenarios": [{"scenario": "driving_city"}], "realism": "kitti"}, "drone_lock", None),
+             ({"root": "/data/kitti"}, "driving_city", None), (None, "driving_city", None)]
+    for recipe, scenario, want in cases:
+        save_checkpoint({**record, "data_recipe": recipe}, tmp_path / "c.pth")
+        assert weights.trained_realism(tmp_path / "c.pth", scenario) == want, (recipe, scenario)
+    (tmp_path / "bad.pth").write_bytes(b"not a checkpoint")
+    assert weights.trained_realism(tmp_path / "bad.pth", "drone_lock") is None
+
+
+def test_stream_realism_reaches_the_simulator(tmp_path, monkeypatch, capsys):
+    """--realism builds the scene with the profile; with --checkpoint it defaults to the profile the detector's
+    recipe made that scenario with, and `none` streams ray-cast frames."""
+    from lidarops.checkpoint import read_checkpoint, save_checkpoint
+    from lidarops.models import weights
+
+    seen = _record_simulator(monkeypatch)
+    with pytest.raises(_Recorded):
+        stream_cli.run("drone_lock", seconds=0.05, device="cpu", out=str(tmp_path / "x.png"), realism="avia")
+    with pytest.raises(_Recorded):
+        stream_cli.run("drone_lock", seconds=0.05, device="cpu", out=str(tmp_path / "x.png"), realism="none")
+    record = read_checkpoint(weights.path("aerial_pointpillars"))
+    save_checkpoint({**record, "data_recipe": {"scenarios": [{"scenario": "drone_bridge", "realism": "avia"}]}},
+                    tmp_path / "c.pth")
+    for realism in (None, "none", "avia:rotor_keep=0.5"):
+        with pytest.raises(_Recorded):
+            stream_cli.run_detector(str(tmp_path / "c.pth"), device="cpu", realism=realism)
+    assert [s["realism"] for s in seen] == ["avia", None, "avia", None, "avia:rotor_keep=0.5"]
+    assert [s["scenario"] for s in seen] == ["drone_lock", "drone_lock"] + ["drone_bridge"] * 3
+    for bad in ("avai", "avia:nope=1"):
+        with pytest.raises(ValueError, match="--realism"):
+            stream_cli.run("drone_lock", seconds=0.05, device="cpu", out=str(tmp_path / "x.png"), realism=bad)
+        with pytest.raises(SystemExit) as e:
+            main(["stream", "--realism", bad])
+        assert e.value.code == 2 and "argument --realism" in capsys.readouterr().err
+    assert len(seen) == 5  # refused before any scene was built

@@ -225,6 +225,42 @@ def test_the_cache_round_trips_without_simulating(tiny, monkeypatch):
         build_object_set(other, cache)  # another recipe is another set
 
 
+def test_a_realism_recipe_cuts_the_profiles_scenes_per_scenario():
+    from lidarops.data.objects import extract_objects
+    from lidarops.data.synthetic import SyntheticFrames
+
+    recipe = ObjectSetRecipe({"driving_highway": 2, "drone_lock": 3}, seed=3, min_points=5,
+                             realism={"driving_highway": "kitti", "drone_bridge": "avia"})
+    # drone_bridge is not among the scenes: dropped, so the recipe (and its key) is that of highway scenes alone
+    assert recipe.realism == {"driving_highway": "kitti"}
+    assert recipe.profile("driving_highway") == "kitti" and recipe.profile("drone_lock") is None
+    objset = build_object_set(recipe)
+    want = []
+    for name, profile in (("driving_highway", "kitti"), ("drone_lock", None)):
+        frames = SyntheticFrames(name, num_frames=recipe.scenarios[name], seed=3, realism=profile)
+        want += extract_objects((frames[i] for i in range(len(frames))), min_points=5, canonical=True)
+    assert len(objset) == len(want) > 0
+    for a, b in zip(objset.samples, want):
+        assert a.label == b.label and np.array_equal(a.points, b.points)
+    # the profile changes the returns: a ray-cast set of the same scenes holds other points
+    plain = build_object_set(ObjectSetRecipe({"driving_highway": 2}, seed=3, min_points=5))
+    kitti = build_object_set(ObjectSetRecipe({"driving_highway": 2}, seed=3, min_points=5, realism="kitti"))
+    assert sum(s.num_points for s in plain.samples) != sum(s.num_points for s in kitti.samples)
+    keys = {ObjectSetRecipe({"driving_highway": 2}, realism=r).key() for r in (None, "kitti", "kitti_dr")}
+    assert len(keys) == 3
+    assert ObjectSetRecipe({"driving_highway": 2}, realism={"drone_lock": "avia"}).realism is None
+    cfg = ObjectSetRecipe.from_openpcdet({"SCENES": {"drone_lock": 2}, "REALISM": {"drone_lock": "avia"}})
+    assert cfg.profile("drone_lock") == "avia"
+
+
+@pytest.mark.parametrize("realism, match", [("kitty", "realism must be None"), ({"driving_town": "kitti"}, "unknown scenario"),
+                                            ({"drone_lock": 3}, r"realism\['drone_lock'\] must be a profile name"),
+                                            ({"drone_lock": "avai"}, "realism must be None"), (["kitti"], "mapping")])
+def test_bad_recipe_realism_names_the_field(realism, match):
+    with pytest.raises(ValueError, match=match):
+        ObjectSetRecipe({"drone_lock": 2}, realism=realism)
+
+
 @pytest.mark.slow
 def test_worker_processes_build_the_same_set(tiny, tmp_path):
     objset, _, _ = tiny

@@ -293,3 +293,29 @@ def test_bad_crossing_probability_is_named(option, value):
 
     _, err = outcome(build_scenario, "driving_city", 0, **{option: value})
     assert_clear_error(err, (ValueError, TypeError), [option], f"{option}={value!r}")
+
+
+# ---- the object sets' REALISM (lidarops.data.object_sets.ObjectSetRecipe) ----
+_PROFILE_NAMES = ("kitti", "kitti_dr", "avia", "kitti:rotor_keep=0.5", "avia:nope=1", "kitty", "", None)
+
+
+@fuzz
+@given(value=st.one_of(st.sampled_from(_PROFILE_NAMES), st.integers(), st.lists(st.text(max_size=4), max_size=2),
+                       st.dictionaries(st.sampled_from(["driving_city", "drone_lock", "drone_bridge", "mars"]),
+                                       st.one_of(st.sampled_from(_PROFILE_NAMES), st.integers()), max_size=3)))
+def test_object_set_realism_gives_a_profile_per_scenario_or_names_the_field(value):
+    from lidarops.data.object_sets import ObjectSetRecipe
+
+    scenarios = {"driving_city": 1, "drone_lock": 2}
+    out, err = outcome(ObjectSetRecipe, scenarios, realism=value)
+    if err is not None:
+        assert_clear_error(err, ValueError, ["realism"], f"ObjectSetRecipe(realism={value!r})")
+        return
+    for name in scenarios:  # what each scenario is made with: a profile make_realism takes, or ray-cast
+        profile = out.profile(name)
+        assert profile is None or make_realism(profile) is not None
+        if isinstance(value, str):
+            assert profile == value
+        elif isinstance(value, dict):
+            assert profile == value.get(name)
+    assert out.key() == ObjectSetRecipe.from_dict(out.to_dict()).key()  # the key survives the cache's JSON

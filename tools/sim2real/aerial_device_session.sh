@@ -2,7 +2,8 @@
 # Aerial-PointPillars on the simulator's `avia` realism profile (issue 40) in one GPU-machine call:
 #   LIDAROPS_SO=<folder holding _C*.so> bash tools/sim2real/aerial_device_session.sh
 # 1. the training frames of the shipped model's recipe made with `--realism avia` (4,500 drone frames, seeds 0 and
-#    1000), and two held-out sets of 300 (seeds 5000 and 6000): the profile's, and the ray-cast frames of before;
+#    1000; RAY_FRAMES="750 750": ray-cast frames of seeds 2000 and 3000 beside them, so the model keeps the ray-cast
+#    scenes), and two held-out sets of 300 (seeds 5000 and 6000): the profile's, and the ray-cast frames of before;
 # 2. the shipped aerial_pointpillars fine-tuned on them (EPOCHS, LR, at most MAX_MINUTES);
 # 3. `lidarops detect` of the shipped and the fine-tuned model on both held-out sets (KITTI AP, whole view;
 #    DETECT_RUNS: model:set pairs, the last run first to be left out when time is short).
@@ -35,7 +36,14 @@ synth() {  # synth OUT SEED VAL_FRACTION FRAMES... [--realism R]
     --no-progress "$@" > $out.log 2>&1 || { tail -20 $out.log; exit 1; }
   tail -1 $out.log
 }
-synth /tmp/aer 0 0.1112 --frames $FRAMES --realism $REALISM
+if [ -n "${RAY_FRAMES:-}" ]; then  # the profile's scenes and ray-cast ones (data synth: one --realism per scenario)
+  $L data synth --scenario drone_bridge drone_lock drone_bridge drone_lock --seed 0 --val-fraction 0.1112 --out /tmp/aer \
+    --workers 16 --no-progress --frames $FRAMES $RAY_FRAMES --realism $REALISM $REALISM none none > /tmp/aer.log 2>&1 \
+    || { tail -20 /tmp/aer.log; exit 1; }
+  tail -1 /tmp/aer.log
+else
+  synth /tmp/aer 0 0.1112 --frames $FRAMES --realism $REALISM
+fi
 synth /tmp/aer_ho 5000 1.0 --frames $HELD_OUT --realism $REALISM
 synth /tmp/aer_ho_ray 5000 1.0 --frames $HELD_OUT
 stamp "data"
@@ -60,4 +68,10 @@ for run in ${DETECT_RUNS:-shipped:aer_ho tuned:aer_ho tuned:aer_ho_ray shipped:a
   echo "[aerial] $model on $ho:"; grep -iE "Drone|AP" /tmp/det_${model}_$ho.log | head -8
   stamp "$model on $ho"
 done
+if [ -n "${STREAM_CHECK:-}" ]; then  # SSCATeR streaming detection with the new model on the profile's scene
+  $L stream --checkpoint "$OUT/aerial_pointpillars.pth" --scenario drone_lock --realism $REALISM --seconds 0.5 \
+    --device $DEVICE --json "$OUT/aerial_stream.json" > /tmp/aer_stream.log 2>&1; echo "[aerial] stream exit $?"
+  tail -4 /tmp/aer_stream.log
+  stamp "stream"
+fi
 stamp "done"
