@@ -345,12 +345,14 @@ def bench_channel_sparse(device, rows: list, quick: bool = False) -> None:
 
 def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, scenario: str = "driving_city",
                    warm: int = 12, channel_sparse: Optional[float] = None,
-                   sparse_refresh: bool = False, refresh_format: Optional[str] = None) -> dict:
+                   sparse_refresh: bool = False, refresh_format: Optional[str] = None,
+                   realism: Optional[str] = None) -> dict:
     """A trained PointPillars streamed (``SSCATeRPointPillars.from_detector``): each 10 ms step's boxes by
     SSCATeR (stream push, the detector's pillar net on the changed pillars, the recycled backbone, the head at
     the changed output sites, NMS) against the detector on the same window, stage by stage (pillarize + pillar
     net + scatter, backbone, head + NMS) and as ``predict`` (on CUDA replayed as one CUDA graph, and eager inside
-    ``eager_predict()``); every ``every`` steps, with the boxes compared."""
+    ``eager_predict()``); every ``every`` steps, with the boxes compared. ``realism``: the simulator's realism
+    profile of the scene (None: ray-cast)."""
     from lidarops.data.synthetic import Simulator
     from lidarops.models import load_model, weights
     from lidarops.models.pointpillars import eager_predict
@@ -361,7 +363,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     model = SSCATeRPointPillars.from_detector(det, device=device)
     if channel_sparse is not None:  # before the first update: a CUDA graph keeps the value it was captured with
         model.delta.channel_sparse = float(channel_sparse)
-    sim = Simulator(scenario, seed=0)
+    sim = Simulator(scenario, seed=0, realism=realism)
     ours, full, same, pfn, pfn_full = [], [], [], 0, 0
     for k in range(warm + steps):
         pts, t = sim.stream(k * 0.01, (k + 1) * 0.01)
@@ -441,8 +443,9 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     tag += "/sparse_refresh" if sparse_refresh else ""
     tag += f"/{refresh_format}" if refresh_format else ""
     tag += f"/tiling_{os.environ['LIDAROPS_SSCATER_TILING']}" if os.environ.get("LIDAROPS_SSCATER_TILING") else ""
-    rows.append({"op": f"detector_stream/{scenario}/{path.stem}{tag}", **summary})
-    print_table(f"trained detector streamed: {path.name} on {scenario}, {steps} steps of 10 ms ({device}); "
+    scene = f"{scenario}+{realism}" if realism else scenario
+    rows.append({"op": f"detector_stream/{scene}/{path.stem}{tag}", **summary})
+    print_table(f"trained detector streamed: {path.name} on {scene}, {steps} steps of 10 ms ({device}); "
                 f"{summary['refreshes']} refreshes, {100 * summary['pillars_changed_share']:.1f} % of pillars changed "
                 f"per step, PFN work saved {100 * summary['pfn_saved']:.1f} %, same boxes {sum(same)} of {len(full)}",
                 ["", "mean ms", "median ms", "p95 ms", "max ms"],
@@ -494,6 +497,9 @@ def main(argv=None) -> int:
                          "default detector)")
     ap.add_argument("--detector-scenario", default=None,
                     help="--only detector: the stream (default: the first scene the checkpoint was trained on)")
+    ap.add_argument("--realism", default=None,
+                    help="--only detector: the scene's realism profile (default: the one the checkpoint's first "
+                         "frames of that scene were made with; none: ray-cast)")
     ap.add_argument("--channel-sparse", type=float, default=None,
                     help="--only detector: the streamed backbone's channel_sparse (default: the device's, "
                          "lidarops.sscater.delta.CHANNEL_SPARSE)")
@@ -526,10 +532,15 @@ def main(argv=None) -> int:
         from lidarops.sscater import delta
         delta.DENSE_CHANNELS_LAST[device.type] = a.refresh_format == "channels_last"
     if "detector" in only:
+        from lidarops.models import weights
+
+        scenario = a.detector_scenario or _first_scenario(a.checkpoint)
+        realism = None if a.realism == "none" else \
+            (a.realism or weights.trained_realism(_checkpoint_path(a.checkpoint), scenario))
         bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
                        a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
-                       a.detector_scenario or _first_scenario(a.checkpoint), channel_sparse=a.channel_sparse,
-                       sparse_refresh=a.sparse_refresh, refresh_format=a.refresh_format)
+                       scenario, channel_sparse=a.channel_sparse, sparse_refresh=a.sparse_refresh,
+                       refresh_format=a.refresh_format, realism=realism)
     if traces and not a.quick:
         from benchmarks.common import device_slug
         plot(traces, rows, str(device), Path(a.plot) if a.plot else

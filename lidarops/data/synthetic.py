@@ -483,7 +483,7 @@ class Simulator:
             back, reads_zero = self.realism.vehicle_returns(rng, height, self._dark[o])
             keep[v[~back]] = False
             zero[v] = reads_zero
-        r = np.flatnonzero(keep & (obj >= 0))
+        r = np.flatnonzero(keep & (obj >= 0)) if self._rotors.any() else np.zeros(0, np.int64)
         r = r[self._rotors[obj[r]]]
         if r.size:  # a drone's spinning rotors: a stream of its own, so that scenes without drones stay the same
             height = self._box_heights(obj[r], hit[r], origins, dirs, t, distance[r])
