@@ -64,12 +64,13 @@ demo: build
 	@echo "[demo] SSCATeR 1/3: the shipped PointPillars streaming driving_city: boxes every 10 ms from a map recycled from"
 	@echo "       the last step (only the pillars that changed are recomputed), checked against the detector on the same window"
 	$(PY) -m lidarops stream --checkpoint shipped --scenario driving_city --seconds 0.15 --check-every 5
-	@echo "[demo] SSCATeR 2/3: the shipped Aerial-PointPillars streaming drone_bridge (a rosette-scan LiDAR on a drone):"
-	@echo "       drones found every 10 ms; the scan changes pillars all over the view, so there is less to recycle"
-	$(PY) -m lidarops stream --checkpoint aerial_pointpillars --scenario drone_bridge --seconds 0.2 --check-every 10
+	@echo "[demo] SSCATeR 2/3: the shipped Aerial-PointPillars streaming drone_bridge (a rosette-scan LiDAR on a drone, the"
+	@echo "       simulator's avia profile: quadcopters, a Livox Avia's reflectivity): drones found every 10 ms; the scan"
+	@echo "       changes pillars all over the view, so there is less to recycle"
+	$(PY) -m lidarops stream --checkpoint aerial_pointpillars --scenario drone_bridge --realism avia --seconds 0.2 --check-every 10
 	@echo "[demo] SSCATeR 3/3: the random-weights benchmark mode on the same stream, with 90 % ReLU zeros (sparser"
 	@echo "       activations stop the change spreading)"
-	$(PY) -m lidarops stream --scenario drone_bridge --seconds 1.5 --relu-zeros 0.9 --out lidarops_stream_drone_bridge_relu90.png
+	$(PY) -m lidarops stream --scenario drone_bridge --realism avia --seconds 1.5 --relu-zeros 0.9 --out lidarops_stream_drone_bridge_relu90.png
 	@echo "[demo] detection: the shipped PointPillars (lidarops/weights) on 40 simulated frames it never saw: boxes,"
 	@echo "       a bird's-eye view (demo_detections/*.png), ms per frame, KITTI 3D AP beside the trained model's, found / labelled"
 	$(PY) -m lidarops detect --scenario driving_city --frames 40 --seed 2026 --out demo_detections --print-frames 1 --print-boxes 5
