@@ -107,12 +107,14 @@ def test_shipped_aerial_pointpillars_finds_drones_on_unseen_frames(realism):
     """aerial_pointpillars (issue 39) on drone frames of a seed its data never used, ray-cast and of the `avia`
     realism profile (its data holds both): most drones with points in its range are found, each by a box at the
     drone's place and height (its anchors stand in 13 height layers: a model whose anchors were paired with the
-    wrong outputs finds nothing), and few boxes stand elsewhere."""
+    wrong outputs finds nothing), most by a box of the drone's footprint (bird's-eye IoU >= 0.5: the model trained on
+    ray-cast frames alone matched 1 of the profile's 11 drones so), and few boxes stand elsewhere."""
     import numpy as np
     import torch
 
     from lidarops.conventions import HELD_OUT_SEED
     from lidarops.data.synthetic import SyntheticFrames
+    from lidarops.ops.boxes import box_iou_bev
 
     model = weights.load("aerial_pointpillars")
     info = weights.info("aerial_pointpillars")
@@ -121,7 +123,7 @@ def test_shipped_aerial_pointpillars_finds_drones_on_unseen_frames(realism):
     assert realism in {s.get("realism") for s in info["data_recipe"]["scenarios"]}
     assert info["data_recipe"]["seed"] != HELD_OUT_SEED
     lo, hi = np.array(model.config.point_cloud_range[:3]), np.array(model.config.point_cloud_range[3:])
-    drones = found = false = 0
+    drones = found = false = fitted = 0
     for scenario in ("drone_bridge", "drone_lock"):
         n = 5 if realism is None else 10  # the profile's quadcopters return fewer points: fewer are seen
         frames = SyntheticFrames(scenario, num_frames=n, seed=HELD_OUT_SEED, realism=realism)
@@ -135,5 +137,9 @@ def test_shipped_aerial_pointpillars_finds_drones_on_unseen_frames(realism):
                    (np.abs(boxes[None, :, 2] - gt[:, None, 2]) < 0.3)
             drones, found = drones + len(gt), found + int(near.any(1).sum())
             false += int((~near.any(0)).sum() if len(gt) else len(boxes))
+            if len(gt) and len(boxes):
+                iou = box_iou_bev(torch.from_numpy(gt.astype(np.float32)), torch.from_numpy(boxes))
+                fitted += int((iou.max(1).values >= 0.5).sum())
     assert drones >= 10 and found >= 0.7 * drones, (found, drones)
+    assert fitted >= 0.6 * drones, (fitted, drones)
     assert false <= 2 * drones, (false, drones)
