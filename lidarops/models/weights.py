@@ -91,7 +91,9 @@ def trained_scenarios(checkpoint: "str | Path") -> list[str]:
     except (OSError, ValueError):
         return []
     scenarios = recipe.get("scenarios") if isinstance(recipe, dict) else None
-    return [s["scenario"] for s in scenarios or [] if isinstance(s, dict) and isinstance(s.get("scenario"), str)]
+    if not isinstance(scenarios, list):
+        return []
+    return [s["scenario"] for s in scenarios if isinstance(s, dict) and isinstance(s.get("scenario"), str)]
 
 
 def trained_realism(checkpoint: "str | Path", scenario: str) -> "str | None":
@@ -105,9 +107,10 @@ def trained_realism(checkpoint: "str | Path", scenario: str) -> "str | None":
         recipe = read_checkpoint(file if file.is_file() else path(str(checkpoint))).get("data_recipe") or {}
     except (OSError, ValueError):
         return None
-    if not isinstance(recipe, dict):
+    entries = recipe.get("scenarios") if isinstance(recipe, dict) else None
+    if not isinstance(entries, list):
         return None
-    for entry in recipe.get("scenarios") or []:
+    for entry in entries:
         if isinstance(entry, dict) and entry.get("scenario") == scenario:
             profile = entry["realism"] if "realism" in entry else recipe.get("realism")
             return profile if isinstance(profile, str) else None

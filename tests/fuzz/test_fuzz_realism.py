@@ -3,7 +3,8 @@ intensities in [0, 1] on the quantum's grid, zero wherever a return is weak or r
 never drops a return below the greenhouse (nor below a drone's rotors); a parameter out of range (negative, above its
 bound, NaN, infinite) raises a ValueError naming it; a Simulator refuses what is not a profile. The roadside
 structures stay in their zones (clear of every labelled lane) for any seed, tile and density, and a bad density is
-named; crossing groups never overlap.
+named; crossing groups never overlap. An object set's REALISM gives each scenario a profile or names the field, and
+any checkpoint recipe gives the stream a profile or none.
 """
 from __future__ import annotations
 
@@ -319,3 +320,59 @@ def test_object_set_realism_gives_a_profile_per_scenario_or_names_the_field(valu
         elif isinstance(value, dict):
             assert profile == value.get(name)
     assert out.key() == ObjectSetRecipe.from_dict(out.to_dict()).key()  # the key survives the cache's JSON
+
+
+# ---- what a checkpoint's data recipe says (lidarops.models.weights.trained_realism, trained_scenarios) ----
+_ENTRY_VALUES = st.one_of(st.none(), st.sampled_from(["avia", "kitti", "kitti:quantum=0.01"]), st.integers(),
+                          st.lists(st.integers(), max_size=2))
+
+
+@fuzz
+@given(recipe=st.one_of(
+    st.none(), st.integers(), st.text(max_size=4),
+    st.fixed_dictionaries({}, optional={
+        "realism": _ENTRY_VALUES,
+        "scenarios": st.one_of(st.integers(), st.lists(st.one_of(st.integers(), st.fixed_dictionaries(
+            {"scenario": st.sampled_from(["drone_bridge", "drone_lock", "driving_city", 3])},
+            optional={"realism": _ENTRY_VALUES})), max_size=4))})),
+    scenario=st.sampled_from(["drone_bridge", "drone_lock"]))
+def test_trained_realism_reads_any_recipe_without_raising(recipe, scenario):
+    """Whatever a checkpoint's data recipe holds, the profile is a string or None and the scenarios a list of
+    names: a malformed recipe is never an error for the stream that asks (it falls back to ray-cast, driving_city)."""
+    import tempfile
+    from pathlib import Path
+
+    from lidarops.checkpoint import save_checkpoint
+    from lidarops.models import weights
+
+    record = _aerial_record()
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "c.pth"
+        save_checkpoint({**record, "data_recipe": recipe}, path)
+        out, err = outcome(weights.trained_realism, path, scenario)
+        names, names_err = outcome(weights.trained_scenarios, path)
+    assert_no_error(err, f"trained_realism({recipe!r}, {scenario!r})")
+    assert_no_error(names_err, f"trained_scenarios({recipe!r})")
+    assert isinstance(names, list) and all(isinstance(n, str) for n in names)
+    assert out is None or isinstance(out, str)
+    entries = [e for e in (recipe or {}).get("scenarios", []) if isinstance(e, dict)] \
+        if isinstance(recipe, dict) and isinstance(recipe.get("scenarios"), list) else []
+    first = next((e for e in entries if e.get("scenario") == scenario), None)
+    if first is None:
+        assert out is None
+    else:
+        want = first["realism"] if "realism" in first else recipe.get("realism")
+        assert out == (want if isinstance(want, str) else None)
+
+
+_RECORD: dict = {}
+
+
+def _aerial_record() -> dict:
+    """The shipped Aerial-PointPillars' record, read once (the fuzz examples change only its data recipe)."""
+    if not _RECORD:
+        from lidarops.checkpoint import read_checkpoint
+        from lidarops.models import weights
+
+        _RECORD.update(read_checkpoint(weights.path("aerial_pointpillars")))
+    return _RECORD
