@@ -357,8 +357,8 @@ def _run(scenario, seconds, slice_s, window, device, dtype, check_every, refresh
         print(f"no picture written: {e}", file=sys.stderr)
     if json_path:
         doc = {"scenario": scenario, "realism": realism, "seed": seed, "seconds": seconds, "slice": slice_s,
-               "window": window,
-               "device": str(device), "device_name": dev_name, "dtype": str(dtype).replace("torch.", ""),
+               "window": window, "device": str(device), "device_name": dev_name,
+               "dtype": str(dtype).replace("torch.", ""),
                "small": small, "grid": {"preset": grid_name, "shape": list(grid.shape)},
                "max_points_per_pillar": N, "max_pillars": M, "refresh_every": model.refresh_every,
                "check_every": check_every, "relu_zeros_target": relu_zeros,

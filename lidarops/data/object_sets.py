@@ -224,9 +224,10 @@ def build_object_set(recipe: ObjectSetRecipe | Mapping, cache_dir: str | os.Path
         tasks += [(name, recipe.seed, a, min(a + step, n), recipe.min_points, recipe.margin, recipe.fov_deg,
                    recipe.profile(name)) for a in range(0, n, step)]
     if log:
-        log(f"object set {recipe.key()}: simulating {sum(recipe.scenarios.values())} scenes "
-            f"({', '.join(f'{k} {v}' + (f' [{recipe.profile(k)}]' if recipe.profile(k) else '') for k, v in recipe.scenarios.items())})"
-            f" with {workers or 1} process(es)")
+        scenes = ", ".join(f"{k} {v}" + (f" [{recipe.profile(k)}]" if recipe.profile(k) else "")
+                           for k, v in recipe.scenarios.items())
+        log(f"object set {recipe.key()}: simulating {sum(recipe.scenarios.values())} scenes ({scenes}) with "
+            f"{workers or 1} process(es)")
     if workers:
         # spawn: forking a process that holds torch's thread pools can hang the children
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:

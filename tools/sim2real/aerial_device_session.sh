@@ -48,6 +48,7 @@ synth /tmp/aer_ho 5000 1.0 --frames $HELD_OUT --realism $REALISM
 synth /tmp/aer_ho_ray 5000 1.0 --frames $HELD_OUT
 stamp "data"
 
+rm -rf /tmp/aer_run  # a machine still warm from an earlier call keeps its run: the trainer would refuse the folder
 $L train --config $CONFIG --data /tmp/aer --out /tmp/aer_run --amp bf16 --batch-size $BATCH --workers $WORKERS \
   --epochs $EPOCHS --eval-every 0 --lr $LR --pretrained-model aerial_pointpillars --max-minutes $MAX_MINUTES \
   --device $DEVICE --no-progress > /tmp/aer_train.log 2>&1
