@@ -37,6 +37,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from lidarops._progress import progress_bar
+from lidarops.cli.data import _realism_arg
 from lidarops.cli.errors import CliError, guarded
 from lidarops.cli.sample import SHIPPED_CASNET  # --sampler casnet without --sampler-checkpoint
 from lidarops.conventions import HELD_OUT_SEED
@@ -134,11 +135,11 @@ SHIPPED_REAL, SHIPPED_CAST = "pointpillars_synth_real", "pointpillars_synth"
 
 
 def _default_checkpoint(args: argparse.Namespace) -> str:
-    """The shipped detector for the input: the simulator's ray-cast frames (``--scenario``, or a ``data synth``
-    folder made without ``--realism``) get the model trained on them; everything else, a user's own scans
+    """The shipped detector for the input: the simulator's ray-cast frames (``--scenario`` without ``--realism``,
+    or a ``data synth`` folder made without it) get the model trained on them; everything else, a user's own scans
     above all, the model trained for real scans."""
     if args.scenario:
-        return SHIPPED_CAST
+        return SHIPPED_REAL if getattr(args, "realism", None) else SHIPPED_CAST
     recipe = Path(args.input) / "recipe.json" if args.input else None
     if recipe is not None and recipe.is_file():
         try:
@@ -256,8 +257,11 @@ def _frames(args: argparse.Namespace) -> Iterator[tuple]:
     if args.scenario:
         from lidarops.data.synthetic import SyntheticFrames
 
-        source = SyntheticFrames(args.scenario, num_frames=1 if args.frames is None else args.frames, seed=args.seed)
+        source = SyntheticFrames(args.scenario, num_frames=1 if args.frames is None else args.frames, seed=args.seed,
+                                 realism=getattr(args, "realism", None))
         return ((f"{args.scenario}_{i:06d}", source[i], KittiCalib.default(), None) for i in range(len(source)))
+    if getattr(args, "realism", None):
+        raise CliError("--realism makes --scenario frames; the frames of a file or folder are already made")
     if not args.input:
         raise CliError("give a .bin file, a KITTI folder, or --scenario NAME")
     path = Path(args.input)
@@ -526,6 +530,9 @@ def register(subparsers) -> None:
                                           "prints KITTI AP when the frames have labels.")
     d.add_argument("input", nargs="?", help="a KITTI velodyne .bin or a KITTI folder")
     d.add_argument("--scenario", default=None, help="simulate frames of this scenario instead (e.g. driving_city)")
+    d.add_argument("--realism", default=None, type=_realism_arg, metavar="PROFILE",
+                   help="--scenario: the simulator's realism profile of the frames (kitti, kitti_dr, avia; as data "
+                        "synth --realism); default: ray-cast")
     d.add_argument("--frames", type=int, default=None, help="number of frames (scenario: default 1; folder: all)")
     d.add_argument("--format", choices=("auto", "kitti", "nuscenes"), default="auto",
                    help="layout of a scan file: KITTI (4 floats per point) or nuScenes (5); default from the name "
@@ -534,8 +541,8 @@ def register(subparsers) -> None:
                    help=f"scenario seed (default {HELD_OUT_SEED}: frames no shipped model was trained on)")
     d.add_argument("--split", default=None, help="KITTI folder: an ImageSets name (train, val)")
     d.add_argument("--checkpoint", default=None, help="checkpoint file or shipped name (default: the shipped "
-                   "pointpillars_synth_real for scans, pointpillars_synth for --scenario and folders data synth "
-                   "made without --realism)")
+                   "pointpillars_synth_real for scans and --realism, pointpillars_synth for --scenario and folders "
+                   "data synth made without --realism)")
     d.add_argument("--config", default=None, help="config for an OpenPCDet checkpoint (lidarops ones carry theirs)")
     d.add_argument("--out", default="detections", help="output folder (default ./detections)")
     d.add_argument("--score-thresh", type=float, default=None,

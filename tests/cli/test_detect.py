@@ -79,7 +79,8 @@ def test_detect_picks_the_shipped_model_for_its_input(tmp_path, run_cli):
     scan = tmp_path / "000000.bin"
     SyntheticFrames("driving_city", num_frames=1, seed=5001)[0].points.astype(np.float32).tofile(scan)
     cases = [([scan], "pointpillars_synth_real"),
-             (["--scenario", "driving_city", "--frames", "1"], "pointpillars_synth ")]
+             (["--scenario", "driving_city", "--frames", "1"], "pointpillars_synth "),
+             (["--scenario", "driving_city", "--frames", "1", "--realism", "kitti"], "pointpillars_synth_real")]
     for realism, name in ((None, "pointpillars_synth "), ("kitti", "pointpillars_synth_real")):
         folder = tmp_path / f"synth_{realism}"
         assert run_cli(["data", "synth", "--scenario", "driving_city", "--frames", "1", "--seed", "5002",
@@ -94,6 +95,26 @@ def test_detect_picks_the_shipped_model_for_its_input(tmp_path, run_cli):
                               "--out", tmp_path / "named", "--no-progress", "--print-frames", "0"])
     assert code == 0 and "model: the shipped" not in out
     assert "pointpillars_synth.pth" in json.loads((tmp_path / "named" / "detect.json").read_text())["checkpoint"]
+    code, out, err = run_cli(["detect", scan, "--realism", "kitti", "--out", tmp_path / "bad", "--no-progress"])
+    assert code == 2 and "--realism makes --scenario frames" in err, err
+
+
+def test_detect_realism_makes_the_profiles_frames(monkeypatch, tmp_path, run_cli):
+    """--scenario with --realism: the frames are the simulator's frames of that profile (the same points), and a
+    profile that is not one is refused by argparse, naming the option."""
+    from lidarops.cli import detect as detect_cli
+    from lidarops.data.synthetic import SyntheticFrames
+
+    args = detect_cli.argparse.Namespace(scenario="drone_lock", frames=1, seed=7, realism="avia", png=0, print_frames=0,
+                                         print_boxes=0, draw_score=0.3, input=None)
+    frame_id, frame, _, _ = next(iter(detect_cli._frames(args)))
+    want = SyntheticFrames("drone_lock", num_frames=1, seed=7, realism="avia")[0]
+    plain = SyntheticFrames("drone_lock", num_frames=1, seed=7)[0]
+    assert frame_id == "drone_lock_000000" and np.array_equal(frame.points, want.points)
+    assert plain.points.shape != want.points.shape or not np.array_equal(plain.points, want.points)
+    with pytest.raises(SystemExit) as e:
+        run_cli(["detect", "--scenario", "drone_lock", "--realism", "avai", "--out", tmp_path / "x"])
+    assert e.value.code == 2
 
 
 @pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
