@@ -92,3 +92,75 @@ def test_ship_detection_refuses_a_run_without_its_ratio(run, tmp_path):
     bare = CASNet(num_out=64, k=4, head="anchored").save(tmp_path / "casnet_det_a.pth", task="pointpillars_synth")
     with pytest.raises(SystemExit, match="records no sampling ratio"):
         _ship(_tool(), bare, sim, tmp_path / "out.pth")
+
+
+# ------------------------------------------------------------------------ tools/casnet/ship_classification.py
+def _classification_tool():
+    spec = importlib.util.spec_from_file_location("ship_classification", ROOT / "tools/casnet/ship_classification.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture
+def classification_run(tmp_path):
+    """A trained-looking CAS-Net (its own file) and PointNet (another), a table of the runs and a config whose
+    object set has a known key: what device_session.sh classify brings back."""
+    import yaml
+
+    from lidarops.config import load_config
+    from lidarops.data.object_sets import ObjectSetRecipe
+    from lidarops.models.casnet_pointnet import CASNetPointNet
+
+    torch.manual_seed(0)
+    model = CASNetPointNet({"num_points": 64, "ratio": 8, "variant": "fast", "head": "anchored",
+                            "task": {"mlp": [16, 32], "fc": [16]}}).eval()
+    for p in model.parameters():  # no two files of the test hold the same numbers by chance
+        p.data.normal_()
+    cas = model.casnet.save(tmp_path / "cas_d8_fast.pth", task="pointnet_objects",
+                            model_config_of_run=model.config.to_dict(), train_command="lidarops train ... RATIO 8", it=9)
+    pointnet = model.task.save(tmp_path / "pointnet_objects.pth", train_command="lidarops train --config pointnet")
+    cfg = load_config(ROOT / "configs/casnet/pointnet_objects.yaml")
+    cfg["DATA_CONFIG"]["OBJECT_SET"]["SCENES"] = {"driving_highway": 2, "drone_lock": 3}
+    config = tmp_path / "objects.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    key = ObjectSetRecipe.from_openpcdet(cfg["DATA_CONFIG"]["OBJECT_SET"]).key()
+    rows = [{"method": m, "ratio": d, "checkpoint": None, "accuracy": a, "mean_class_accuracy": a - 5}
+            for m, d, a in (("random", 8, 90.0), ("fps", 8, 91.0), ("casnet-fast-anchored", 8, 92.0),
+                            ("fps", 16, 80.0))]
+    table = tmp_path / "table.json"
+    table.write_text(json.dumps({"device": "NVIDIA H200", "objects": 12, "num_points": 64, "rows": rows,
+                                 "full_density": {"accuracy": 93.0, "mean_class_accuracy": 88.0}}))
+    return model, cas, pointnet, config, key, table
+
+
+def test_ship_classification_holds_the_sampler_its_pointnet_and_its_rows(classification_run, tmp_path):
+    from lidarops.checkpoint import read_checkpoint
+    from lidarops.models import load_model
+
+    model, cas, pointnet, config, key, table = classification_run
+    out = tmp_path / "casnet_pointnet_d8.pth"
+    assert _classification_tool().main([str(cas), str(pointnet), str(out), "--table", str(table), "--config",
+                                        str(config), "--key", key, "--commit", "abc1234"]) == 0
+    shipped = load_model(out).eval()
+    assert type(shipped).__name__ == "CASNetPointNet"
+    for name, value in model.state_dict().items():  # both parts, from their own files
+        assert torch.equal(shipped.state_dict()[name], value), name
+    objects = torch.randn(3, 64, 3)
+    assert torch.equal(shipped({"points": objects}), model({"points": objects}))
+    record = read_checkpoint(out)
+    assert record["train_command"] == "lidarops train ... RATIO 8" and record["it"] == 9
+    assert record["task_train_command"] == "lidarops train --config pointnet"
+    assert record["data_recipe"]["key"] == key and record["data_recipe"]["num_points"] == 1024
+    assert record["data_recipe"]["realism"]["drone_lock"] == "avia" and "driving_city" not in record["data_recipe"]["realism"]
+    rows = record["evaluation"]["rows_d8"]
+    assert [r["method"] for r in rows] == ["random", "fps", "casnet-fast-anchored"]  # D = 16 left out
+    assert record["evaluation"]["commit"] == "abc1234" and "8 kept" in record["evaluation"]["protocol"]
+
+
+def test_ship_classification_refuses_another_object_set(classification_run, tmp_path):
+    _, cas, pointnet, config, key, table = classification_run
+    with pytest.raises(SystemExit, match=f"names the object set {key}, the runs used 000000000000"):
+        _classification_tool().main([str(cas), str(pointnet), str(tmp_path / "x.pth"), "--table", str(table),
+                                     "--config", str(config), "--key", "000000000000", "--commit", "abc1234"])
+    assert not (tmp_path / "x.pth").exists()

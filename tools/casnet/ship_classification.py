@@ -19,7 +19,7 @@ sys.path.insert(0, str(ROOT))
 
 
 def main(argv=None) -> int:
-    from lidarops.checkpoint import format_fields, read_checkpoint, save_checkpoint
+    from lidarops.checkpoint import read_checkpoint
     from lidarops.config import load_config
     from lidarops.data.object_sets import Augmentation, ObjectSetRecipe
     from lidarops.models.casnet import load_casnet
@@ -65,13 +65,9 @@ def main(argv=None) -> int:
                               f"each, {table['num_points'] // ratio} kept",
                   "device": table["device"], "commit": args.commit, "full_density": table["full_density"],
                   f"rows_d{ratio}": rows}
-    task_record = read_checkpoint(args.pointnet)
-    record = {**format_fields(), "model_class": "CASNetPointNet",
-              "model_config": model.config.to_dict(), "class_names": list(model.config.class_names),
-              "model_state": model.state_dict(), "train_command": run["train_command"],
-              "task_train_command": task_record.get("train_command"), "data_recipe": data_recipe,
-              "evaluation": evaluation, "it": int(run["it"])}
-    save_checkpoint(record, args.out)
+    model.save(args.out, train_command=run["train_command"],
+               task_train_command=read_checkpoint(args.pointnet).get("train_command"), data_recipe=data_recipe,
+               evaluation=evaluation, it=int(run["it"]))
     print(f"wrote {args.out} ({Path(args.out).stat().st_size:,} bytes): D = {ratio}, "
           + ", ".join(f"{r['method']} {r['accuracy']:.1f} %" for r in rows))
     return 0
