@@ -55,9 +55,9 @@ def _realism_arg(text: str) -> str:
     return text
 
 
-def _realism_or_none_arg(text: str) -> str | None:
-    """``data synth --realism``'s values: a profile as :func:`_realism_arg` takes, or ``none`` (ray-cast)."""
-    return None if text == "none" else _realism_arg(text)
+def _realism_or_none_arg(text: str) -> str:
+    """A profile as :func:`_realism_arg` takes, or ``none`` (ray-cast), kept as written."""
+    return text if text == "none" else _realism_arg(text)
 
 
 def _realism_per_scenario(args: argparse.Namespace) -> list[str | None]:
@@ -67,12 +67,13 @@ def _realism_per_scenario(args: argparse.Namespace) -> list[str | None]:
         return [None] * len(args.scenario)
     if isinstance(given, str):
         given = [given]
+    given = [None if g in (None, "none") else g for g in given]
     if len(given) == 1:
-        return list(given) * len(args.scenario)
+        return given * len(args.scenario)
     if len(given) != len(args.scenario):
         raise ValueError(f"--realism takes one profile or one per --scenario ({len(args.scenario)}), got "
                          f"{len(given)}: {' '.join(g or 'none' for g in given)}")
-    return list(given)
+    return given
 
 
 def _recipe_realism(args: argparse.Namespace):

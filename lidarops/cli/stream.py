@@ -43,7 +43,7 @@ from torch import Tensor
 
 from lidarops._progress import progress_bar
 from lidarops.cli._device import resolve_device
-from lidarops.cli.data import _realism_arg
+from lidarops.cli.data import _realism_or_none_arg
 from lidarops.cli.errors import CliError, guarded
 from lidarops.models.sscater_calibration import build_model, calibrate_relu_zeros, layer_labels, relu_zero_shares
 
@@ -818,11 +818,6 @@ def _main(args: argparse.Namespace) -> int:
         raise CliError(f"{e} (--max-points-per-pillar / --max-pillars)") from None
 
 
-def _profile_or_none(text: str) -> str:
-    """``--realism``: a profile (checked as ``data synth`` checks it) or ``none``, kept as written."""
-    return text if text == "none" else _realism_arg(text)
-
-
 def register(subparsers) -> None:
     """Adds ``stream`` to the ``lidarops`` parser."""
     p = subparsers.add_parser(
@@ -860,7 +855,7 @@ def register(subparsers) -> None:
                    help="share of negative pre-activations BatchNorm is calibrated for on the first window "
                         "(default 0.5; random weights stand in for a trained network)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scene and of the weights")
-    p.add_argument("--realism", default=None, type=_profile_or_none, metavar="PROFILE",
+    p.add_argument("--realism", default=None, type=_realism_or_none_arg, metavar="PROFILE",
                    help="the simulator's realism profile of the scene (as lidarops data synth --realism): avia for "
                         "the drone scenes (a Livox Avia's reflectivity, quadcopter drones), kitti for the driving "
                         "scenes, none: ray-cast; default: with --checkpoint the profile the detector was trained on "

@@ -141,7 +141,8 @@ def test_ship_classification_holds_the_sampler_its_pointnet_and_its_rows(classif
     model, cas, pointnet, config, key, table = classification_run
     out = tmp_path / "casnet_pointnet_d8.pth"
     assert _classification_tool().main([str(cas), str(pointnet), str(out), "--table", str(table), "--config",
-                                        str(config), "--key", key, "--commit", "abc1234"]) == 0
+                                        str(config), "--data", str(tmp_path / "objects"), "--key", key,
+                                        "--commit", "abc1234"]) == 0
     shipped = load_model(out).eval()
     assert type(shipped).__name__ == "CASNetPointNet"
     for name, value in model.state_dict().items():  # both parts, from their own files
@@ -162,5 +163,6 @@ def test_ship_classification_refuses_another_object_set(classification_run, tmp_
     _, cas, pointnet, config, key, table = classification_run
     with pytest.raises(SystemExit, match=f"names the object set {key}, the runs used 000000000000"):
         _classification_tool().main([str(cas), str(pointnet), str(tmp_path / "x.pth"), "--table", str(table),
-                                     "--config", str(config), "--key", "000000000000", "--commit", "abc1234"])
+                                     "--config", str(config), "--data", str(tmp_path / "objects"),
+                                     "--key", "000000000000", "--commit", "abc1234"])
     assert not (tmp_path / "x.pth").exists()

@@ -1,6 +1,6 @@
 """A classification CAS-Net of ``device_session.sh classify`` as a shipped file: a ``CASNetPointNet`` holding the
-sampler and the PointNet it was trained for, the training commands of both, the object set's recipe (read from the
-config, checked against the cache key the device built) and its rows of ``classification_table.py``.
+sampler and the PointNet it was trained for, the training commands of both, the training set's recipe (from the
+config's object set, checked against the cache key the device built) and its rows of ``classification_table.py``.
 
     python tools/casnet/ship_classification.py RUNS/cas_d8_fast.pth RUNS/pointnet_objects.pth \\
         lidarops/weights/casnet_pointnet_d8.pth --table casnet_classification.json --key 9ad8417de3e1 --commit abc1234
@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT))
 def main(argv=None) -> int:
     from lidarops.checkpoint import read_checkpoint
     from lidarops.config import load_config
-    from lidarops.data.object_sets import Augmentation, ObjectSetRecipe
+    from lidarops.data.object_sets import datasets_from_config
     from lidarops.models.casnet import load_casnet
     from lidarops.models.casnet_pointnet import CASNetPointNet
     from lidarops.models.pointnet import PointNet
@@ -32,6 +32,8 @@ def main(argv=None) -> int:
     p.add_argument("out")
     p.add_argument("--table", required=True, help="classification_table.py's JSON of the same runs")
     p.add_argument("--config", default=str(ROOT / "configs/casnet/pointnet_objects.yaml"))
+    p.add_argument("--data", default=None, help="the object-set cache (default: the config's DATA_PATH; built when "
+                                                "absent)")
     p.add_argument("--key", required=True, help="the object set's cache key the device built (objects_KEY.json)")
     p.add_argument("--commit", required=True, help="the commit the runs were made at")
     args = p.parse_args(argv)
@@ -44,17 +46,10 @@ def main(argv=None) -> int:
     if model.config.task != task.config.to_dict():
         raise SystemExit(f"the CAS-Net's run names another PointNet: {model.config.task} vs {task.config.to_dict()}")
 
-    data = load_config(args.config)["DATA_CONFIG"]
-    recipe = ObjectSetRecipe.from_openpcdet(data["OBJECT_SET"])
-    if recipe.key() != args.key:
-        raise SystemExit(f"{args.config} names the object set {recipe.key()}, the runs used {args.key}")
-    augment = Augmentation.from_openpcdet(data.get("AUGMENT"))
-    data_recipe = {"source": "simulator", "key": recipe.key(), "split": "train", **recipe.to_dict(),
-                   "num_points": data["NUM_POINTS"], "in_channels": model.config.in_channels,
-                   "normalize": data["NORMALIZE"], "augment": None if augment is None else {
-                       "rot_z_deg": augment.rot_z_deg, "scale_range": list(augment.scale_range),
-                       "jitter_sigma": augment.jitter_sigma, "jitter_clip": augment.jitter_clip},
-                   "sample_seed": data.get("SAMPLE_SEED", 0), "class_names": list(model.config.class_names)}
+    # the training set's own recipe, as a lidarops train run records it (the set is read from its cache)
+    data_recipe = datasets_from_config(load_config(args.config), data_path=args.data)[0].recipe
+    if data_recipe["key"] != args.key:
+        raise SystemExit(f"{args.config} names the object set {data_recipe['key']}, the runs used {args.key}")
 
     table = json.loads(Path(args.table).read_text())
     ratio = model.config.ratio
