@@ -376,3 +376,26 @@ def _aerial_record() -> dict:
 
         _RECORD.update(read_checkpoint(weights.path("aerial_pointpillars")))
     return _RECORD
+
+
+# ---- data synth --realism: one profile, or one per --scenario (lidarops.cli.data) ----
+@fuzz
+@given(scenarios=st.lists(st.sampled_from(["driving_city", "drone_lock", "drone_bridge"]), min_size=1, max_size=4),
+       given_=st.one_of(st.none(), st.lists(st.sampled_from(["avia", "kitti", "none", "kitti:quantum=0.01"]),
+                                            min_size=1, max_size=5)))
+def test_synth_realism_gives_one_profile_per_scenario_or_names_the_option(scenarios, given_):
+    import argparse
+
+    from lidarops.cli import data as data_cli
+
+    args = argparse.Namespace(scenario=scenarios, realism=given_)
+    out, err = outcome(data_cli._realism_per_scenario, args)
+    if given_ is not None and len(given_) not in (1, len(scenarios)):
+        assert_clear_error(err, ValueError, ["--realism", f"({len(scenarios)})"], f"--realism {given_}")
+        return
+    assert_no_error(err, f"--realism {given_} for {scenarios}")
+    want = [None] * len(scenarios) if given_ is None else \
+        [None if g == "none" else g for g in (given_ * len(scenarios) if len(given_) == 1 else given_)]
+    assert out == want
+    recorded = data_cli._recipe_realism(args)  # what recipe.json keeps: None, the one profile, or the list
+    assert recorded == (None if all(w is None for w in want) else want[0] if len(set(want)) == 1 else want)
