@@ -473,6 +473,16 @@ def _checkpoint_path(checkpoint: str) -> Path:
     return Path(checkpoint) if Path(checkpoint).exists() else weights.path(checkpoint)
 
 
+def stream_realism(checkpoint: str, scenario: str, realism: Optional[str]) -> Optional[str]:
+    """The realism profile a detector's stream is made with: ``realism`` as given (``"none"``: ray-cast), else the
+    one the checkpoint's first training frames of ``scenario`` were made with (``lidarops stream``'s default)."""
+    from lidarops.models import weights
+
+    if realism == "none":
+        return None
+    return realism or weights.trained_realism(_checkpoint_path(checkpoint), scenario)
+
+
 def _first_scenario(checkpoint: str) -> str:
     """The first scene a checkpoint was trained on (its data recipe), else driving_city."""
     from lidarops.models import weights
@@ -532,11 +542,8 @@ def main(argv=None) -> int:
         from lidarops.sscater import delta
         delta.DENSE_CHANNELS_LAST[device.type] = a.refresh_format == "channels_last"
     if "detector" in only:
-        from lidarops.models import weights
-
         scenario = a.detector_scenario or _first_scenario(a.checkpoint)
-        realism = None if a.realism == "none" else \
-            (a.realism or weights.trained_realism(_checkpoint_path(a.checkpoint), scenario))
+        realism = stream_realism(a.checkpoint, scenario, a.realism)
         bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
                        a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
                        scenario, channel_sparse=a.channel_sparse, sparse_refresh=a.sparse_refresh,

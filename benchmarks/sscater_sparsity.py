@@ -56,14 +56,14 @@ def figures(feats: torch.Tensor, prev: torch.Tensor) -> torch.Tensor:
 
 
 def measure(device: torch.device, steps: int, scenario: str = "driving_city", seed: int = 0,
-            checkpoint: str = "pointpillars_synth") -> tuple[list[dict], dict]:
+            checkpoint: str = "pointpillars_synth", realism: str | None = None) -> tuple[list[dict], dict]:
     from lidarops.data.synthetic import Simulator
     from lidarops.models import weights
     from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
 
     detector = weights.load(checkpoint, map_location=device).float().to(device).eval()
     model = SSCATeRPointPillars.from_detector(detector, dtype=torch.float32, device=device)
-    sim = Simulator(scenario, seed=seed)
+    sim = Simulator(scenario, seed=seed, realism=realism)
     sums: dict[str, list[float]] = {}
     prev: dict[str, torch.Tensor] = {}
     pillar_share, counted, refreshed = [], 0, 0
@@ -91,11 +91,12 @@ def measure(device: torch.device, steps: int, scenario: str = "driving_city", se
             print(f"  step {k + 1} of {steps} ({time.perf_counter() - t0:.0f} s)", flush=True)
     rows = []
     for name, (zeros, ch, zd, n_any) in sums.items():
-        rows.append(dict(section=SECTION, op=f"{SECTION}/{scenario}/{name}", scenario=scenario, checkpoint=checkpoint,
-                         node=name,
+        scene = f"{scenario}+{realism}" if realism else scenario
+        rows.append(dict(section=SECTION, op=f"{SECTION}/{scene}/{name}", scenario=scenario, checkpoint=checkpoint,
+                         realism=realism, node=name,
                          zeros=round(zeros / counted, 4), changed=round(ch / counted, 4),
                          zero_delta_channels=round(zd / n_any, 4) if n_any else None, steps=counted))
-    info = dict(scenario=scenario, checkpoint=checkpoint, seed=seed, steps=steps, steps_measured=counted,
+    info = dict(scenario=scenario, checkpoint=checkpoint, realism=realism, seed=seed, steps=steps, steps_measured=counted,
                 refresh_steps=refreshed,
                 pillars_changed_share=round(sum(pillar_share) / max(1, len(pillar_share)), 4),
                 seconds=round(time.perf_counter() - t0, 1))
@@ -111,6 +112,9 @@ def main(argv: list[str] | None = None) -> int:
                          "scenes)")
     ap.add_argument("--scenario", default=None,
                     help="the stream (default: the first scene the checkpoint was trained on)")
+    ap.add_argument("--realism", default=None,
+                    help="the scene's realism profile (default: the one the checkpoint's first frames of that scene "
+                         "were made with; none: ray-cast)")
     ap.add_argument("--json", action="store_true", help="write benchmarks/results/<device>.json")
     a = ap.parse_args(argv)
     if a.steps < 12:
@@ -118,11 +122,13 @@ def main(argv: list[str] | None = None) -> int:
     dev = bench_device(a.device)
     if dev is None:
         return 2
-    from lidarops.models.weights import trained_scenarios
+    from benchmarks.bm_sscater import _first_scenario, stream_realism
 
-    scenario = a.scenario or next(iter(trained_scenarios(a.checkpoint)), "driving_city")
-    rows, info = measure(dev, a.steps, scenario, checkpoint=a.checkpoint)
-    print_table(f"== {a.checkpoint} streaming {info['scenario']} ({device_name(dev)}), {info['steps_measured']} "
+    scenario = a.scenario or _first_scenario(a.checkpoint)
+    realism = stream_realism(a.checkpoint, scenario, a.realism)
+    rows, info = measure(dev, a.steps, scenario, checkpoint=a.checkpoint, realism=realism)
+    scene = f"{scenario} ({realism} profile)" if realism else scenario
+    print_table(f"== {a.checkpoint} streaming {scene} ({device_name(dev)}), {info['steps_measured']} "
                 f"steps measured; pillars changed per step: {100 * info['pillars_changed_share']:.1f} % of the active",
                 ["node", "zeros", "changed sites", "zero delta channels at changed sites"],
                 [[r["node"], f"{100 * r['zeros']:.1f} %", f"{100 * r['changed']:.1f} %",
@@ -131,7 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.json:
         meta = env_meta(dev)
         meta.update(benchmark=f"benchmarks/sscater_sparsity.py --device {dev.type} --steps {a.steps} "
-                              f"--checkpoint {a.checkpoint} --scenario {scenario}", **info)
+                              f"--checkpoint {a.checkpoint} --scenario {scenario} --realism {realism or 'none'}",
+                    **info)
         print("wrote", write_results(SECTION, dev, rows, meta, replace_by="op"))
     return 0
 

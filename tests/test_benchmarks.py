@@ -560,3 +560,37 @@ def test_bm_sparse_eager_section_on_cpu(capsys):
     assert row["timing"] == "the columns' calls interleaved" and row["subm_with_map"]["spconv"] is None
     assert row["subm_with_map"]["lidarops"]["median_ms"] > 0 and row["down_path_16_layers"]["lidarops"]["median_ms"] > 0
     assert "drone" in capsys.readouterr().out
+
+
+def test_sscater_tools_stream_the_profile_the_detector_was_trained_on(monkeypatch):
+    """bm_sscater, sscater_sparsity and sscater_work_bound stream a checkpoint's scene with the realism profile its
+    first training frames of that scene were made with, unless --realism says otherwise (none: ray-cast)."""
+    from benchmarks import sscater_sparsity
+    from benchmarks.bm_sscater import stream_realism
+    from benchmarks.profile import sscater_work_bound
+    from lidarops.data import synthetic
+
+    assert stream_realism("aerial_pointpillars", "drone_bridge", None) == "avia"
+    assert stream_realism("aerial_pointpillars", "drone_bridge", "none") is None
+    assert stream_realism("aerial_pointpillars", "drone_bridge", "kitti") == "kitti"
+    assert stream_realism("pointpillars_synth", "driving_city", None) is None  # trained on ray-cast frames
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    class Recording(synthetic.Simulator):
+        def __init__(self, scenario, seed=0, realism=None, **kw):
+            seen.append((scenario, realism))
+            raise Stop
+
+    monkeypatch.setattr(synthetic, "Simulator", Recording)
+    for argv in ([], ["--realism", "none"]):
+        with pytest.raises(Stop):
+            sscater_sparsity.main(["--device", "cpu", "--steps", "12", "--checkpoint", "aerial_pointpillars"] + argv)
+        with pytest.raises(Stop):
+            sscater_work_bound.main(["--checkpoint", "aerial_pointpillars", "--steps", "1"] + argv)
+    assert seen == [("drone_bridge", "avia")] * 2 + [("drone_bridge", None)] * 2
+    with pytest.raises(SystemExit):  # the random-weights mode has no profile to stream
+        sscater_work_bound.main(["--realism", "avia"])

@@ -50,6 +50,9 @@ def _reach_counts(layer, in_active: torch.Tensor) -> tuple[torch.Tensor, torch.T
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenario", default="drone_bridge")
+    ap.add_argument("--realism", default=None,
+                    help="with --checkpoint: the scene's realism profile (default: the one the checkpoint's first "
+                         "frames of that scene were made with; none: ray-cast); without it, ray-cast")
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--relu-zeros", type=float, default=0.5)
     ap.add_argument("--checkpoint", default=None, help="a trained PointPillars: 'shipped', a shipped name or a file "
@@ -61,6 +64,13 @@ def main(argv=None) -> int:
     from lidarops.sscater.delta import DeltaBackbone
 
     dev = torch.device("cpu")
+    realism = None
+    if a.checkpoint:
+        from benchmarks.bm_sscater import stream_realism
+
+        realism = stream_realism(a.checkpoint, a.scenario, a.realism)
+    elif a.realism not in (None, "none"):
+        ap.error("--realism needs --checkpoint (the random-weights mode streams ray-cast scenes)")
     if a.checkpoint:
         from lidarops.models import load_model, weights
         from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
@@ -101,7 +111,7 @@ def main(argv=None) -> int:
         return result
 
     DeltaBackbone._layer_step = counting_step
-    slices = list(Simulator(a.scenario, seed=0).slices(0.0, 0.01 * (20 + a.steps), 0.01))
+    slices = list(Simulator(a.scenario, seed=0, realism=realism).slices(0.0, 0.01 * (20 + a.steps), 0.01))
     for i, (p, t) in enumerate(slices[:10]):
         model.step(torch.from_numpy(p), torch.from_numpy(t), now=0.01 * (i + 1))
     if not a.checkpoint:
@@ -113,7 +123,8 @@ def main(argv=None) -> int:
     DeltaBackbone._layer_step = original
     n = a.steps
     what = f"the trained {a.checkpoint}" if a.checkpoint else f"ReLU zeros {a.relu_zeros:.0%}"
-    print(f"{a.scenario}, {n} steps, {what}: multiply-adds per step (millions)")
+    scene = f"{a.scenario} ({realism} profile)" if realism else a.scenario
+    print(f"{scene}, {n} steps, {what}: multiply-adds per step (millions)")
     print(f"{'layer':16s} {'active':>7s} {'changed in':>10s} {'full':>8s} {'SSCATeR':>8s} {'skip 0 ch':>9s}")
     tot = [0.0, 0.0, 0.0]
     for name, (full, ss, sk, act, ch) in work.items():

@@ -747,39 +747,42 @@ def run_detector(checkpoint: str, scenario: Optional[str] = None, seconds: float
                 f"and the sites their change reaches, then runs the detector's head and NMS on the recycled map; every "
                 f"{check_every or 'no'} step(s) the boxes are compared with the detector run on the same points.", ""))
     records, failed = [], 0
+    # float32 without TF32 for the whole run on CUDA: the recycled backbone sums in float32 whatever the flags, the
+    # pillar net and the head follow them, and the check runs the detector so (cuDNN's TF32 is on by default)
     try:
-        for k in range(steps):
-            a, b = k * slice_s, min((k + 1) * slice_s, seconds)
-            pts, t = sim.stream(a, b)
-            t0 = time.perf_counter()
-            model.step(torch.from_numpy(pts).to(dev), torch.from_numpy(t).to(dev), now=b)
-            det = model.detect()
-            _sync(dev)
-            ms = (time.perf_counter() - t0) * 1e3
-            labels = det["labels"].tolist()
-            rec = {"step": k, "t": b, "ms": ms, "refreshed": model.stats.refreshed,
-                   "pillars_active": model.stats.pillars_active, "pillars_changed": model.stats.pillars_changed,
-                   "boxes": {c: labels.count(i + 1) for i, c in enumerate(names)}}
-            if check_every and (k + 1) % check_every == 0:
-                t1 = time.perf_counter()
-                window_pts = model.window_points().to(dtype)
-                # float32 without TF32, as the stream computes: TF32 rounds the convolutions' inputs to 10 bits
-                with torch.no_grad(), precision_mode("fp32" if dev.type == "cuda" else None):
-                    want = detector.predict({"points": F.pad(window_pts, (1, 0)), "batch_size": 1})[0]
+        with precision_mode("fp32" if dev.type == "cuda" else None):
+            for k in range(steps):
+                a, b = k * slice_s, min((k + 1) * slice_s, seconds)
+                pts, t = sim.stream(a, b)
+                t0 = time.perf_counter()
+                model.step(torch.from_numpy(pts).to(dev), torch.from_numpy(t).to(dev), now=b)
+                det = model.detect()
                 _sync(dev)
-                rec["ms_detector"] = (time.perf_counter() - t1) * 1e3
-                same = labels == want["labels"].tolist() and torch.allclose(
-                    det["scores"], want["scores"], rtol=tol * 10, atol=tol * 10)
-                rec["same_as_detector"] = bool(same)
-                failed += not same
-            records.append(rec)
-            if print_every and (k % print_every == 0 or k == steps - 1 or "same_as_detector" in rec):
-                found = ", ".join(f"{c} {n}" for c, n in rec["boxes"].items() if n) or "no boxes"
-                check = "" if "same_as_detector" not in rec else \
-                    (f"; detector on the window {rec['ms_detector']:.0f} ms: " +
-                     ("same boxes" if rec["same_as_detector"] else "DIFFERENT boxes"))
-                print(f"  t {b * 1e3:6.0f} ms  {'refresh' if rec['refreshed'] else 'recycle'}  changed "
-                      f"{rec['pillars_changed']:5d} of {rec['pillars_active']:5d} pillars  {ms:7.1f} ms  {found}{check}")
+                ms = (time.perf_counter() - t0) * 1e3
+                labels = det["labels"].tolist()
+                rec = {"step": k, "t": b, "ms": ms, "refreshed": model.stats.refreshed,
+                       "pillars_active": model.stats.pillars_active, "pillars_changed": model.stats.pillars_changed,
+                       "boxes": {c: labels.count(i + 1) for i, c in enumerate(names)}}
+                if check_every and (k + 1) % check_every == 0:
+                    t1 = time.perf_counter()
+                    window_pts = model.window_points().to(dtype)
+                    with torch.no_grad():
+                        want = detector.predict({"points": F.pad(window_pts, (1, 0)), "batch_size": 1})[0]
+                    _sync(dev)
+                    rec["ms_detector"] = (time.perf_counter() - t1) * 1e3
+                    same = labels == want["labels"].tolist() and torch.allclose(
+                        det["scores"], want["scores"], rtol=tol * 10, atol=tol * 10)
+                    rec["same_as_detector"] = bool(same)
+                    failed += not same
+                records.append(rec)
+                if print_every and (k % print_every == 0 or k == steps - 1 or "same_as_detector" in rec):
+                    found = ", ".join(f"{c} {n}" for c, n in rec["boxes"].items() if n) or "no boxes"
+                    check = "" if "same_as_detector" not in rec else \
+                        (f"; detector on the window {rec['ms_detector']:.0f} ms: " +
+                         ("same boxes" if rec["same_as_detector"] else "DIFFERENT boxes"))
+                    print(f"  t {b * 1e3:6.0f} ms  {'refresh' if rec['refreshed'] else 'recycle'}  changed "
+                          f"{rec['pillars_changed']:5d} of {rec['pillars_active']:5d} pillars  {ms:7.1f} ms  "
+                          f"{found}{check}")
     finally:
         torch.set_num_threads(saved)
     checks = [r for r in records if "same_as_detector" in r]

@@ -8,6 +8,7 @@ import torch
 
 from lidarops.cli import main
 from lidarops.cli import stream as stream_cli
+from helpers.devices import requires_cuda
 
 
 @pytest.mark.slow  # end to end, seconds: `make test` runs it, `make test-fast` does not
@@ -302,3 +303,30 @@ def test_stream_realism_reaches_the_simulator(tmp_path, monkeypatch, capsys):
             main(["stream", "--realism", bad])
         assert e.value.code == 2 and "argument --realism" in capsys.readouterr().err
     assert len(seen) == 5  # refused before any scene was built
+
+
+@requires_cuda
+def test_stream_checkpoint_on_cuda_runs_without_tf32(monkeypatch):
+    """On CUDA, `stream --checkpoint` steps, detects and checks in float32 without TF32 whatever torch's flags
+    (cuDNN's TF32 is on by default): the recycled layers sum in float32, so the pillar net, the head and the detector
+    it is checked against must too, or a box near the threshold comes out on one side only."""
+    from lidarops.models.sscater_pointpillars import SSCATeRPointPillars
+
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", True)
+    seen = []
+
+    def flags(fn):
+        def wrapped(*args, **kwargs):
+            seen.append((fn.__name__, torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32))
+            return fn(*args, **kwargs)
+        return wrapped
+
+    from lidarops.models.pointpillars import PointPillars
+
+    for cls, name in ((SSCATeRPointPillars, "step"), (SSCATeRPointPillars, "detect"), (PointPillars, "predict")):
+        monkeypatch.setattr(cls, name, flags(getattr(cls, name)))
+    assert stream_cli.run_detector("aerial_pointpillars", seconds=0.1, device="cuda", check_every=5) == 0
+    assert {name for name, *_ in seen} == {"step", "detect", "predict"}
+    assert all(not cudnn and not matmul for _, cudnn, matmul in seen), seen
+    assert torch.backends.cudnn.allow_tf32 and torch.backends.cuda.matmul.allow_tf32  # the user's flags, restored
