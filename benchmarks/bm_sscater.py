@@ -42,6 +42,7 @@ from typing import Optional
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -365,6 +366,10 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
         model.delta.channel_sparse = float(channel_sparse)
     sim = Simulator(scenario, seed=0, realism=realism)
     ours, full, same, pfn, pfn_full = [], [], [], 0, 0
+    # detection AP: the windows that are whole frames of the simulator (their labels), SSCATeR's boxes and the
+    # detector's on each
+    per_frame = max(1, round(sim.frame_period / 0.01))
+    ap_frames, ap_ours, ap_full = [], [], []
     for k in range(warm + steps):
         pts, t = sim.stream(k * 0.01, (k + 1) * 0.01)
         _sync(device)
@@ -380,9 +385,17 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
         ours.append({"k": k - warm, "step": ms, "stream": st.ms_stream, "pfn": st.ms_pfn, "backbone": st.ms_backbone,
                      "head_nms": ms - st.ms_stream - st.ms_pfn - st.ms_backbone, "refreshed": st.refreshed,
                      "changed": st.pillars_changed, "active": st.pillars_active})
-        if (k - warm) % every:
+        checked, whole_frame = not (k - warm) % every, (k + 1) % per_frame == 0
+        if not (checked or whole_frame):
             continue
         batch = {"points": F.pad(model.window_points(), (1, 0)), "batch_size": 1}
+        if whole_frame:  # untimed: the frame's labels and, off the checks, the detector's boxes
+            ap_frames.append(sim.sweep((k + 1) // per_frame - 1))
+            ap_ours.append({key: v.cpu() for key, v in boxes.items()})
+            if not checked:
+                with torch.no_grad():
+                    ap_full.append({key: v.cpu() for key, v in det.predict(batch)[0].items()})
+                continue
         with torch.no_grad():
             _sync(device)
             t0 = time.perf_counter()
@@ -404,6 +417,8 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
             det.postprocess(det.dense_head(bev))
             _sync(device)
             t4 = time.perf_counter()
+        if whole_frame:
+            ap_full.append({key: v.cpu() for key, v in want.items()})
         full.append({"predict": t_predict, "predict_eager": t_eager,
                      "pillars_pfn": 1e3 * (t2 - t1), "backbone": 1e3 * (t3 - t2),
                      "head_nms": 1e3 * (t4 - t3)})
@@ -416,6 +431,11 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
                "channel_sparse": model.delta.channel_sparse, "sparse_refresh": sparse_refresh,
                "refresh_format": refresh_format or "default",
                "tiling": os.environ.get("LIDAROPS_SSCATER_TILING", "default")}
+    if ap_frames:
+        summary["ap_frames"] = len(ap_frames)
+        summary["ap_sscater"], summary["ap_detector"] = stream_ap(ap_frames, ap_ours, ap_full, det.config.class_names,
+                                                                  path, list(det.config.point_cloud_range))
+        summary["ap_identical"] = summary["ap_sscater"] == summary["ap_detector"]
     for name, xs in (("sscater_step", [r["step"] for r in ours]), ("sscater_backbone", [r["backbone"] for r in ours]),
                      ("sscater_pfn", [r["pfn"] for r in ours]), ("sscater_head_nms", [r["head_nms"] for r in ours]),
                      ("detector_predict", [r["predict"] for r in full]),
@@ -457,11 +477,58 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
                   "sscater_backbone_recycled") if name in summary], right=(1, 2, 3, 4))
     print(f"speed-up by the mean step {summary['step_speedup_mean']:.2f}x (median {summary['step_speedup_median']:.2f}x); "
           f"backbone {summary['backbone_speedup_mean']:.2f}x (median {summary['backbone_speedup_median']:.2f}x)")
+    if ap_frames:
+        names = list(det.config.class_names)
+        print_table(f"detection on the {len(ap_frames)} windows that are whole frames of the simulator (moderate AP "
+                    f"R40, %): {'identical' if summary['ap_identical'] else 'DIFFERENT'}",
+                    ["", *(f"{c} {m}" for c in names for m in ("3D", "BEV"))],
+                    [[who, *(f"{summary[key][f'{c}_{m}_moderate_R40']:.2f}" for c in names for m in ("3d", "bev"))]
+                     for who, key in (("SSCATeR", "ap_sscater"), ("the detector", "ap_detector"))]
+                    + [["objects", *(str(summary["ap_sscater"][f"{c}_moderate_objects"]) for c in names
+                                     for _ in range(2))]],
+                    right=tuple(range(1, 1 + 2 * len(names))))
     print("slowest steps: " + "; ".join(
         f"#{r['k']} {r['step']:.2f} ms (stream {r['stream']:.2f}, pillar net {r['pfn']:.2f}, backbone "
         f"{r['backbone']:.2f}, head and NMS {r['head_nms']:.2f}{', refresh' if r['refreshed'] else ''})"
         for r in summary["slowest_steps"]))
     return summary
+
+
+def stream_ap(frames: list, ours: list[dict], full: list[dict], class_names, checkpoint: Path,
+              point_cloud_range: list) -> tuple[dict, dict]:
+    """Moderate AP R40 (3D and BEV, per class, with the number of objects it counts: below 41, R40 cannot reach
+    100) of SSCATeR's boxes and of the detector's on the same windows,
+    scored as ``lidarops detect`` scores the simulator's frames: labels and detections of the camera's view, or of
+    the sensor's whole view for a model trained on whole-view labels (the drone scenes). ``frames``: the windows'
+    labelled frames; ``ours`` / ``full``: per window ``{"boxes", "scores", "labels"}``."""
+    from lidarops.checkpoint import read_checkpoint
+    from lidarops.cli.detect import _sees_whole_view
+    from lidarops.data.formats.kitti import KittiCalib, boxes_to_kitti_labels, kitti_fov_mask
+    from lidarops.eval import kitti as kitti_eval
+
+    whole = _sees_whole_view(read_checkpoint(checkpoint))
+    calib = KittiCalib.default()
+    gt = [kitti_eval.frame_annos(f, calib, camera_fov_only=not whole) for f in frames]
+    if whole:
+        gt = [kitti_eval.whole_view_annos(g, calib, point_cloud_range) for g in gt]
+
+    def annos(det: dict) -> dict:
+        boxes, scores, labels = (det[k].numpy() for k in ("boxes", "scores", "labels"))
+        if not whole and len(boxes):
+            keep = kitti_fov_mask(boxes[:, :3].astype(np.float64), calib)
+            boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
+        rows = boxes_to_kitti_labels(boxes, [class_names[int(c) - 1] for c in labels], calib, score=scores)
+        a = kitti_eval.annos_from_labels(rows)
+        return kitti_eval.whole_view_annos(a) if whole else a
+
+    counts = kitti_eval.count_difficulties(gt, list(class_names))
+    out = []
+    for dets in (ours, full):
+        _, results = kitti_eval.evaluate(gt, [annos(d) for d in dets], list(class_names), metrics=("bev", "3d"))
+        out.append({key: round(v, 4) for key, v in results.items()
+                    if key.endswith("_moderate_R40") and key.split("_")[1] in ("3d", "bev")})
+        out[-1].update({f"{c}_moderate_objects": counts[c]["moderate"] for c in class_names})
+    return out[0], out[1]
 
 
 def _checkpoint_path(checkpoint: str) -> Path:

@@ -594,3 +594,36 @@ def test_sscater_tools_stream_the_profile_the_detector_was_trained_on(monkeypatc
     assert seen == [("drone_bridge", "avia")] * 2 + [("drone_bridge", None)] * 2
     with pytest.raises(SystemExit):  # the random-weights mode has no profile to stream
         sscater_work_bound.main(["--realism", "avia"])
+
+
+@pytest.mark.parametrize("name, cls, box", [
+    ("pointpillars_synth", "Car", [15.0, 1.0, -0.9, 3.9, 1.6, 1.56, 0.1]),        # labels of the camera's view
+    ("aerial_pointpillars", "Drone", [20.0, -30.0, 4.0, 0.7, 0.7, 0.3, 0.4])])    # of the sensor's whole view
+def test_stream_ap_scores_the_windows_as_detect_does(name, cls, box):
+    """bm_sscater's detection AP of SSCATeR against the detector: boxes equal to the labels score 100 (45 objects:
+    R40 can reach it), none score 0, the same boxes on both sides the same figures; for a whole-view model an
+    object outside the camera's view still counts."""
+    import numpy as np
+
+    from benchmarks.bm_sscater import _checkpoint_path, stream_ap
+    from lidarops.data.frame import Frame
+    from lidarops.models import weights
+
+    model = weights.load(name)
+    names = list(model.config.class_names)
+    label = names.index(cls)
+    frames = [Frame(points=np.zeros((0, 4), np.float32), boxes=np.array([box], np.float32),
+                    labels=np.array([label]), num_points_in_box=np.array([50]), visibility=np.array([1.0], np.float32),
+                    class_names=tuple(names), frame_index=i) for i in range(45)]
+    exact = [{"boxes": torch.tensor([box]), "scores": torch.tensor([0.9]), "labels": torch.tensor([label + 1])}] * 45
+    none = [{"boxes": torch.zeros(0, 7), "scores": torch.zeros(0), "labels": torch.zeros(0, dtype=torch.long)}] * 45
+    args = (names, _checkpoint_path(name), list(model.config.point_cloud_range))
+    ours, full = stream_ap(frames, exact, none, *args)
+    assert ours[f"{cls}_3d_moderate_R40"] == pytest.approx(100.0)
+    assert ours[f"{cls}_bev_moderate_R40"] == pytest.approx(100.0)
+    assert full[f"{cls}_3d_moderate_R40"] == 0.0 and ours[f"{cls}_moderate_objects"] == 45
+    same = stream_ap(frames, exact, exact, *args)
+    assert same[0] == same[1]
+    shifted = [{**d, "boxes": d["boxes"] + torch.tensor([0.0, 0.0, 0.6, 0, 0, 0, 0])} for d in exact]  # too high
+    ours, _ = stream_ap(frames, shifted, exact, *args)
+    assert ours[f"{cls}_3d_moderate_R40"] < 100.0
