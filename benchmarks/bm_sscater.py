@@ -14,13 +14,15 @@ Sections (``--only``):
   backbone) and the dense backbone (pillarize + PFN + scatter + cuDNN), with the identity of SSCATeR
   and the full recomputation checked on every timed step.
 * ``detector`` (``--only detector``; ``--checkpoint``, default the shipped detector): the trained PointPillars
-  streamed on ``driving_city`` with its boxes every 10 ms (``SSCATeRPointPillars.from_detector``), against the
-  detector on the same window, stage by stage; the boxes compared on every timed step.
+  streamed on the scene it was trained on (``--detector-scenario``, ``--realism``) with its boxes every 10 ms
+  (``SSCATeRPointPillars.from_detector``), against the detector on the same window, stage by stage; the boxes
+  compared every ``--every`` steps, and SSCATeR's detection AP against the detector's on the windows that are whole
+  frames of the simulator (their labels; untimed).
 * ``layer``: one 3x3 submanifold layer on the stream's 512 x 512 pillar map (the paper's Tables IV/V):
   Cin in {16, 32, 64, 128} x Cout in {8, 16, 32, 64, 128}; SSCATeR's update for one step's changed
   sites against the full sparse layer (kernel map cached) and the dense layer (cuDNN).
 
-No trained checkpoint exists, so the weights are seeded random ones (``lidarops.models.sscater_calibration``, as
+The ``stream`` and ``layer`` sections use seeded random weights (``lidarops.models.sscater_calibration``, as
 in ``lidarops stream``) whose BatchNorms are calibrated on the first window so that each layer's
 pre-activations have unit spread and a chosen share of them is negative (``--relu-zeros``, default
 0.5): a trained network's ReLU sparsity, which is what stops changes from spreading through the layers.
