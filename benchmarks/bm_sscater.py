@@ -499,10 +499,10 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
 def stream_ap(frames: list, ours: list[dict], full: list[dict], class_names, checkpoint: Path,
               point_cloud_range: list) -> tuple[dict, dict]:
     """Moderate AP R40 (3D and BEV, per class, with the number of objects it counts: below 41, R40 cannot reach
-    100) of SSCATeR's boxes and of the detector's on the same windows,
-    scored as ``lidarops detect`` scores the simulator's frames: labels and detections of the camera's view, or of
-    the sensor's whole view for a model trained on whole-view labels (the drone scenes). ``frames``: the windows'
-    labelled frames; ``ours`` / ``full``: per window ``{"boxes", "scores", "labels"}``."""
+    100) of SSCATeR's boxes and of the detector's on the same windows, scored as ``lidarops detect`` scores the
+    simulator's frames: labels and detections of the camera's view, or of the sensor's whole view for a model
+    trained on whole-view labels (the drone scenes). ``frames``: the windows' labelled frames; ``ours`` / ``full``:
+    per window ``{"boxes", "scores", "labels"}``."""
     from lidarops.checkpoint import read_checkpoint
     from lidarops.cli.detect import _sees_whole_view
     from lidarops.data.formats.kitti import KittiCalib, boxes_to_kitti_labels, kitti_fov_mask
