@@ -496,7 +496,9 @@ class SSCATeRPointPillars:
         """Streaming detection with a trained PointPillars (``backbone_mode="dense"``): its grid, its own pillar net
         (:class:`DetectorPFN`) on the pillars that changed, its backbone recycled over every site (``dense=True``)
         and, by :meth:`detect`, its head and post-processing. Each step's boxes equal ``detector.predict`` on
-        :meth:`window_points` (float rounding aside: the recycled sums add in another order).
+        :meth:`window_points` (float rounding aside: the recycled sums add in another order). On CUDA compare with
+        TF32 off (``torch.backends.cudnn.allow_tf32 = False``, on by default): the recycled layers always sum in
+        float32, while the pillar net, the head and the detector follow torch's flags.
 
         The stream holds the detector's ``MAX_POINTS_PER_VOXEL`` points per pillar and ``MAX_NUMBER_OF_VOXELS``
         (test) pillars, dropping what does not fit (``overflow="drop"``, the stream's rule), unless given.
