@@ -44,7 +44,6 @@ from typing import Optional
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -505,7 +504,7 @@ def stream_ap(frames: list, ours: list[dict], full: list[dict], class_names, che
     per window ``{"boxes", "scores", "labels"}``."""
     from lidarops.checkpoint import read_checkpoint
     from lidarops.cli.detect import _sees_whole_view
-    from lidarops.data.formats.kitti import KittiCalib, boxes_to_kitti_labels, kitti_fov_mask
+    from lidarops.data.formats.kitti import KittiCalib
     from lidarops.eval import kitti as kitti_eval
 
     whole = _sees_whole_view(read_checkpoint(checkpoint))
@@ -513,20 +512,12 @@ def stream_ap(frames: list, ours: list[dict], full: list[dict], class_names, che
     gt = [kitti_eval.frame_annos(f, calib, camera_fov_only=not whole) for f in frames]
     if whole:
         gt = [kitti_eval.whole_view_annos(g, calib, point_cloud_range) for g in gt]
-
-    def annos(det: dict) -> dict:
-        boxes, scores, labels = (det[k].numpy() for k in ("boxes", "scores", "labels"))
-        if not whole and len(boxes):
-            keep = kitti_fov_mask(boxes[:, :3].astype(np.float64), calib)
-            boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
-        rows = boxes_to_kitti_labels(boxes, [class_names[int(c) - 1] for c in labels], calib, score=scores)
-        a = kitti_eval.annos_from_labels(rows)
-        return kitti_eval.whole_view_annos(a) if whole else a
-
     counts = kitti_eval.count_difficulties(gt, list(class_names))
     out = []
     for dets in (ours, full):
-        _, results = kitti_eval.evaluate(gt, [annos(d) for d in dets], list(class_names), metrics=("bev", "3d"))
+        dt = [kitti_eval.detection_annos(d, calib, class_names=list(class_names), index=i, camera_fov_only=not whole)
+              for i, d in enumerate(dets)]
+        _, results = kitti_eval.evaluate(gt, dt, list(class_names), metrics=("bev", "3d"))
         out.append({key: round(v, 4) for key, v in results.items()
                     if key.endswith("_moderate_R40") and key.split("_")[1] in ("3d", "bev")})
         out[-1].update({f"{c}_moderate_objects": counts[c]["moderate"] for c in class_names})

@@ -80,38 +80,35 @@ def info(name: str = DEFAULT) -> dict:
     return {k: v for k, v in ckpt.items() if k != "model_state"}
 
 
-def trained_scenarios(checkpoint: "str | Path") -> list[str]:
-    """The simulator scenarios a checkpoint's data recipe names, in order (a shipped name or a file); ``[]``
-    when it names none or cannot be read."""
+def _recipe_entries(checkpoint: "str | Path") -> tuple[dict, list]:
+    """A checkpoint's data recipe and its list of scenario entries (a shipped name or a file); empty when it has
+    none or cannot be read."""
     from lidarops.checkpoint import read_checkpoint
 
     file = Path(checkpoint)
     try:
         recipe = read_checkpoint(file if file.is_file() else path(str(checkpoint))).get("data_recipe") or {}
     except (OSError, ValueError):
-        return []
-    scenarios = recipe.get("scenarios") if isinstance(recipe, dict) else None
-    if not isinstance(scenarios, list):
-        return []
-    return [s["scenario"] for s in scenarios if isinstance(s, dict) and isinstance(s.get("scenario"), str)]
+        return {}, []
+    if not isinstance(recipe, dict):
+        return {}, []
+    entries = recipe.get("scenarios")
+    return recipe, [e for e in entries if isinstance(e, dict)] if isinstance(entries, list) else []
+
+
+def trained_scenarios(checkpoint: "str | Path") -> list[str]:
+    """The simulator scenarios a checkpoint's data recipe names, in order (a shipped name or a file); ``[]``
+    when it names none or cannot be read."""
+    return [e["scenario"] for e in _recipe_entries(checkpoint)[1] if isinstance(e.get("scenario"), str)]
 
 
 def trained_realism(checkpoint: "str | Path", scenario: str) -> "str | None":
     """The simulator's realism profile of the first frames of ``scenario`` in a checkpoint's data recipe (a
     ``data synth --realism`` per scenario, or the one profile of older recipes); None: ray-cast, not named, or
     unreadable."""
-    from lidarops.checkpoint import read_checkpoint
-
-    file = Path(checkpoint)
-    try:
-        recipe = read_checkpoint(file if file.is_file() else path(str(checkpoint))).get("data_recipe") or {}
-    except (OSError, ValueError):
-        return None
-    entries = recipe.get("scenarios") if isinstance(recipe, dict) else None
-    if not isinstance(entries, list):
-        return None
+    recipe, entries = _recipe_entries(checkpoint)
     for entry in entries:
-        if isinstance(entry, dict) and entry.get("scenario") == scenario:
+        if entry.get("scenario") == scenario:
             profile = entry["realism"] if "realism" in entry else recipe.get("realism")
             return profile if isinstance(profile, str) else None
     return None
