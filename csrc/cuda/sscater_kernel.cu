@@ -803,6 +803,63 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> finalize_compact_cuda(const at::T
   return {sites_out, delta_out, counts};
 }
 
+// A tile of 32 sites x 32 channels per block (32 x 8 threads): y is read and out_nchw written along the sites
+// (coalesced for NCHW), acc and out written along the channels (coalesced for channels-last maps).
+template <typename T>
+__global__ void __launch_bounds__(256) dense_finalize_kernel(
+    const T* __restrict__ y, T* __restrict__ acc, T* __restrict__ out, T* __restrict__ nchw,
+    const bool* __restrict__ active, const T* __restrict__ scale, const T* __restrict__ shift, int64_t C, int64_t Wo,
+    int64_t S, int64_t ysc, int64_t ysy, int64_t ysx, int64_t osy, int64_t osx, int64_t osc) {
+  __shared__ T tile[32][33];
+  const int64_t s0 = static_cast<int64_t>(blockIdx.x) * 32, c0 = static_cast<int64_t>(blockIdx.y) * 32;
+  for (int i = threadIdx.y; i < 32; i += 8) {
+    const int64_t c = c0 + i, s = s0 + threadIdx.x;
+    if (c < C && s < S) {
+      const bool on = active == nullptr || active[s];
+      const T v = on ? y[c * ysc + (s / Wo) * ysy + (s % Wo) * ysx] : T(0);
+      tile[i][threadIdx.x] = v;
+      if (nchw != nullptr) {
+        const T f = on ? v * scale[c] + shift[c] : T(0);
+        nchw[c * S + s] = f > T(0) ? f : T(0);
+      }
+    }
+  }
+  __syncthreads();
+  for (int i = threadIdx.y; i < 32; i += 8) {
+    const int64_t s = s0 + i, c = c0 + threadIdx.x;
+    if (c < C && s < S) {
+      const bool on = active == nullptr || active[s];
+      const T v = tile[threadIdx.x][i];
+      const T f = on ? v * scale[c] + shift[c] : T(0);
+      acc[s * C + c] = v;
+      out[(s / Wo) * osy + (s % Wo) * osx + c * osc] = f > T(0) ? f : T(0);
+    }
+  }
+}
+
+void dense_finalize_cuda(const at::Tensor& y, at::Tensor& acc, at::Tensor& out, const at::Tensor& scale_in,
+                         const at::Tensor& shift_in, const c10::optional<at::Tensor>& active,
+                         const c10::optional<at::Tensor>& out_nchw) {
+  check_dense_finalize_args(y, acc, out, scale_in, shift_in, active, out_nchw);
+  const int64_t Wo = acc.size(1), C = acc.size(2), S = acc.size(0) * Wo;
+  if (acc.numel() == 0) return;
+  c10::cuda::CUDAGuard guard(acc.device());
+  auto stream = c10::cuda::getCurrentCUDAStream();
+  auto scale = scale_in.contiguous(), shift = shift_in.contiguous();
+  const dim3 grid(static_cast<unsigned>((S + 31) / 32), static_cast<unsigned>((C + 31) / 32));
+  TORCH_CHECK_VALUE((S + 31) / 32 < (int64_t(1) << 31) && (C + 31) / 32 < 65536, "the (Ho, Wo, C) = ", acc.sizes(),
+                    " map is too large for one launch");
+  AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_dense_finalize_cuda", [&] {
+    dense_finalize_kernel<scalar_t><<<grid, dim3(32, 8), 0, stream>>>(
+        y.data_ptr<scalar_t>(), acc.data_ptr<scalar_t>(), out.data_ptr<scalar_t>(),
+        out_nchw.has_value() ? out_nchw->data_ptr<scalar_t>() : nullptr,
+        active.has_value() ? active->data_ptr<bool>() : nullptr, scale.data_ptr<scalar_t>(),
+        shift.data_ptr<scalar_t>(), C, Wo, S, y.stride(0), y.stride(1), y.stride(2), out.stride(0), out.stride(1),
+        out.stride(2));
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
@@ -813,6 +870,7 @@ TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("sscater_gather_", &gather_cuda);
   m.impl("sscater_touch_", &touch_cuda);
   m.impl("sscater_finalize_compact_", &finalize_compact_cuda);
+  m.impl("sscater_dense_finalize_", &dense_finalize_cuda);
 }
 
 }  // namespace sscater

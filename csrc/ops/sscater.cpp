@@ -79,4 +79,12 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   m.def(
       "sscater_finalize_compact_(Tensor acc, Tensor(a!) out, Tensor active, Tensor cand, Tensor count,"
       " Tensor stamp, int status_value, Tensor scale, Tensor shift) -> (Tensor, Tensor, Tensor)");
+  // A layer set from a dense convolution of its whole input (a refresh): y (C, Ho, Wo), any strides (the
+  // convolution's output, NCHW or channels-last), into acc (Ho, Wo, C) contiguous = active ? y : 0 and
+  // out (Ho, Wo, C), any strides = active ? relu(y * scale + shift) : 0; with out_nchw (C, Ho, Wo)
+  // contiguous, the same values as out there too (the next layer's NCHW input). active None: every site.
+  // One pass over y for what takes torch a transposing copy and separate BatchNorm, ReLU and mask passes.
+  m.def(
+      "sscater_dense_finalize_(Tensor y, Tensor(a!) acc, Tensor(b!) out, Tensor scale, Tensor shift,"
+      " Tensor? active=None, Tensor(c!)? out_nchw=None) -> ()");
 }

@@ -48,3 +48,8 @@ def _touch_fake(stamp, acc, value, targets, added, removed):
 def _finalize_compact_fake(acc, out, active, cand, count, stamp, status_value, scale, shift):
     rows = cand.shape[0]
     return cand.new_empty((rows, 2)), acc.new_empty((rows, acc.shape[2])), count.new_empty((3,))
+
+
+@torch.library.register_fake("lidarops::sscater_dense_finalize_")
+def _dense_finalize_fake(y, acc, out, scale, shift, active=None, out_nchw=None):
+    return None

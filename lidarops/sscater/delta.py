@@ -240,6 +240,7 @@ class DeltaBackbone:
         self.in_feats = self._in_feats[:H * W].view(H, W, self.in_channels)
         self.in_active = self._in_active[:H * W].view(H, W)
         self._graphs: dict = {}  # CUDA graphs of the step, by input capacity
+        self._nchw: dict = {}  # the dense refresh's NCHW copies of the features, by shape
         self.layers: list[_Layer] = []
         block_shape, block_active, self.block_cover = {}, {}, {}
         shape = (H, W)
@@ -349,19 +350,32 @@ class DeltaBackbone:
         site is active and every layer's kernels cover their outputs, so every site of every layer is active (no
         masks)."""
         F = torch.nn.functional
-        prev = self.in_active
-        for layer in self.layers:
+        # in NCHW each layer also writes its features in NCHW for the next convolution (no transposing copy), into
+        # one buffer per shape (a layer's convolution has read its input before the layer writes there); each
+        # block's upsampling layers run right after its last layer, while that layer's copy is current
+        nchw = _dense_format(self.device) == torch.contiguous_format
+        prev, x_nchw = self.in_active, None
+        for i, layer in enumerate(self.layers):
             if layer.kind == "down":
                 self._set_cover(layer, prev)
-            self._set_dense(layer, full)
-            prev = layer.active
-        for layer in self.up_layers:
-            ones = torch.ones(1, 1, layer.kh, layer.kw, dtype=self.dtype, device=self.device)
-            src = self.layers[self.block_last[layer.block]].active
-            reached = F.conv_transpose2d(src.to(self.dtype)[None, None], ones, stride=layer.stride,
-                                         padding=layer.padding)[0, 0]
-            layer.active.copy_(reached > 0.5)
-            self._set_dense(layer, full)
+            out_nchw = self._nchw_buffer(layer) if nchw else None
+            self._set_dense(layer, full, x_nchw, out_nchw)
+            prev, x_nchw = layer.active, out_nchw
+            if i != self.block_last[layer.block]:
+                continue
+            for up in self.up_layers:
+                if up.block == layer.block:
+                    ones = torch.ones(1, 1, up.kh, up.kw, dtype=self.dtype, device=self.device)
+                    reached = F.conv_transpose2d(layer.active.to(self.dtype)[None, None], ones, stride=up.stride,
+                                                 padding=up.padding)[0, 0]
+                    up.active.copy_(reached > 0.5)
+                    self._set_dense(up, full, out_nchw, None)
+
+    def _nchw_buffer(self, layer: _Layer) -> Tensor:
+        key = (layer.cout, *layer.out_shape)
+        if key not in self._nchw:
+            self._nchw[key] = torch.empty(layer.cout, *layer.out_shape, dtype=self.dtype, device=self.device)
+        return self._nchw[key]
 
     def _set_cover(self, layer: _Layer, active_in: Tensor) -> None:
         """A strided layer's cover (active inputs under each output's kernel) and active map, from its input's
@@ -372,16 +386,11 @@ class DeltaBackbone:
         self.block_cover[layer.block].copy_(cover.round().to(torch.int32))
         layer.active.copy_(self.block_cover[layer.block] > 0)
 
-    def _set_dense(self, layer: _Layer, full: bool) -> None:
-        y = _dense_conv(layer)
-        if full:
-            layer.acc.copy_(y)
-        else:
-            torch.mul(y, layer.active[..., None], out=layer.acc)
-        torch.addcmul(layer.shift, layer.acc, layer.scale, out=layer.feats)  # feats may be a view of the output map
-        layer.feats.clamp_min_(0)
-        if not full:
-            layer.feats.mul_(layer.active[..., None])
+    def _set_dense(self, layer: _Layer, full: bool, x_nchw: Optional[Tensor], out_nchw: Optional[Tensor]) -> None:
+        """The layer's acc and features (feats may be a view of the output map) from the dense convolution of its
+        input (``x_nchw``: the input's NCHW copy, when the previous layer wrote one), in one pass over it."""
+        torch.ops.lidarops.sscater_dense_finalize_(_dense_conv(layer, x_nchw), layer.acc, layer.feats, layer.scale,
+                                                   layer.shift, None if full else layer.active, out_nchw)
 
     def _refresh_sparse(self, sites: Tensor, features: Tensor) -> None:
         """The refresh by the sparse convolution ops on the active sites."""
@@ -664,11 +673,13 @@ def _dense_format(device: torch.device) -> torch.memory_format:
     return torch.channels_last if DENSE_CHANNELS_LAST.get(device.type, False) else torch.contiguous_format
 
 
-def _dense_conv(layer: _Layer) -> Tensor:
-    """The layer's convolution (no bias) of its whole input map, (Ho, Wo, Cout), by torch's dense convolution."""
+def _dense_conv(layer: _Layer, x_nchw: Optional[Tensor] = None) -> Tensor:
+    """The layer's convolution (no bias) of its whole input map (or of ``x_nchw (Tensor[Cin, H, W])``, the same
+    values in NCHW), (Cout, Ho, Wo) in the device's format, by torch's dense convolution."""
     F = torch.nn.functional
     # (1, Cin, H, W), a view of the channels-last map or a copy in the device's format
-    x = layer.input.permute(2, 0, 1).unsqueeze(0).contiguous(memory_format=_dense_format(layer.input.device))
+    x = x_nchw[None] if x_nchw is not None else \
+        layer.input.permute(2, 0, 1).unsqueeze(0).contiguous(memory_format=_dense_format(layer.input.device))
     cudnn = torch.backends.cudnn
     # float32 sums, as the recycled layers' (TF32 would round the inputs to 10 bits); the user's other flags kept
     with cudnn.flags(enabled=cudnn.enabled, benchmark=cudnn.benchmark, deterministic=cudnn.deterministic,
@@ -677,7 +688,7 @@ def _dense_conv(layer: _Layer) -> Tensor:
             y = F.conv_transpose2d(x, layer.weight_dense, None, layer.stride, layer.padding)
         else:
             y = F.conv2d(x, layer.weight_dense, None, layer.stride, layer.padding)
-    return y[0].permute(1, 2, 0)
+    return y[0]
 
 
 def _batch0(sites: Tensor) -> Tensor:

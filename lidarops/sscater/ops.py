@@ -25,7 +25,8 @@ from lidarops.ops.validation import check_same_device, check_tensor, describe
 
 extension.load()
 
-__all__ = ["scatter_", "finalize_", "cover_update_", "children_", "gather_", "touch_", "finalize_compact_"]
+__all__ = ["scatter_", "finalize_", "cover_update_", "children_", "gather_", "touch_", "finalize_compact_",
+           "dense_finalize_"]
 
 _FLOATS = (torch.float32, torch.float64)
 
@@ -254,6 +255,41 @@ def finalize_compact_(acc: Tensor, out: Tensor, active: Tensor, cand: Tensor, co
                                                         shift)
 
 
+def dense_finalize_(y: Tensor, acc: Tensor, out: Tensor, scale: Tensor, shift: Tensor,
+                    active: Optional[Tensor] = None, out_nchw: Optional[Tensor] = None) -> None:
+    """A layer's state from a dense convolution of its whole input (a full recomputation): ``acc`` (contiguous)
+    = ``active ? y : 0`` and ``out`` (any strides) = ``active ? relu(y * scale + shift) : 0`` at every site,
+    in one pass over ``y (Tensor[C, Ho, Wo])`` (any strides: the convolution's NCHW or channels-last output).
+    ``active`` None: every site. ``out_nchw (Tensor[C, Ho, Wo])`` (contiguous), when given, gets ``out``'s
+    values too: the next layer's input for a convolution in NCHW. The ReLU is ``v > 0 ? v : 0``, as in
+    :func:`finalize_`: a NaN gives 0 in ``out`` and stays in ``acc``, where the state check looks."""
+    _check_grid(acc, "acc", 3)
+    if not acc.is_contiguous():
+        raise ValueError(f"acc must be contiguous, got {describe(acc)}")
+    Ho, Wo, C = acc.shape
+    _check_grid(y, "y", 3)
+    if tuple(y.shape) != (C, Ho, Wo) or y.dtype != acc.dtype:
+        raise ValueError(f"y must be {acc.dtype} (C, Ho, Wo) = {(C, Ho, Wo)}, got {describe(y)}")
+    _check_grid(out, "out", 3)
+    if out.shape != acc.shape or out.dtype != acc.dtype:
+        raise ValueError(f"out must be {acc.dtype} {tuple(acc.shape)} like acc, got {describe(out)}")
+    _check_channels(scale, shift, acc)
+    named = [("y", y), ("acc", acc), ("out", out), ("scale", scale), ("shift", shift)]
+    if active is not None:
+        _check_grid(active, "active", 2, torch.bool)
+        if active.shape != acc.shape[:2]:
+            raise ValueError(f"active must be ({Ho}, {Wo}), got {describe(active)}")
+        named.append(("active", active))
+    if out_nchw is not None:
+        _check_grid(out_nchw, "out_nchw", 3)
+        if tuple(out_nchw.shape) != (C, Ho, Wo) or out_nchw.dtype != acc.dtype or not out_nchw.is_contiguous():
+            raise ValueError(f"out_nchw must be a contiguous {acc.dtype} (C, Ho, Wo) = {(C, Ho, Wo)} tensor, "
+                             f"got {describe(out_nchw)}")
+        named.append(("out_nchw", out_nchw))
+    check_same_device(named)
+    torch.ops.lidarops.sscater_dense_finalize_(y, acc, out, scale, shift, active, out_nchw)
+
+
 # ---- pure-PyTorch references (float64 arithmetic; they return new tensors, inputs are not changed) -----
 
 def _reach_reference(i: int, k: int, stride: int, padding: int, n_out: int, transposed: bool) -> int:
@@ -322,6 +358,17 @@ def _finalize_reference(acc, out, active, sites, scale, shift) -> tuple[Tensor, 
     old = new_out[ys, xs]
     new_out[ys, xs] = new
     return new_out, (new != old).any(1), new - old
+
+
+def _dense_finalize_reference(y, scale, shift, active=None) -> tuple[Tensor, Tensor]:
+    """(acc, out) after :func:`dense_finalize_`, (Ho, Wo, C) float64."""
+    zero = torch.zeros((), dtype=torch.float64)
+    acc = y.detach().cpu().double().permute(1, 2, 0)
+    on = torch.ones(acc.shape[:2], dtype=torch.bool) if active is None else active.cpu()
+    acc = torch.where(on[..., None], acc, zero)  # an inactive site's y is not read (a NaN there stays out)
+    v = acc * scale.cpu().double() + shift.cpu().double()
+    out = torch.where(on[..., None] & (v > 0), v, zero)  # max(v, 0) as the kernels take it: NaN gives 0
+    return acc.contiguous(), out.contiguous()
 
 
 def _cover_update_reference(cover, active, stamp, value, added, removed, kh, kw, stride, padding):

@@ -339,6 +339,23 @@ def case_sscater_finalize_sites_outside(dev):
            r"acc must be a contiguous float32/float64")
 
 
+def case_sscater_dense_finalize_shapes(dev):
+    # no site lists: the kernel's only bounds are the shapes, which it checks before indexing with them
+    y = torch.randn(2, 3, 3, dtype=F64, device=dev)
+    acc, out = torch.zeros(3, 3, 2, dtype=F64, device=dev), torch.zeros(3, 3, 2, dtype=F64, device=dev)
+    one, zero = torch.ones(2, dtype=F64, device=dev), torch.zeros(2, dtype=F64, device=dev)
+    _ops().sscater_dense_finalize_(y, acc, out, one, zero)
+    equal(acc, y.permute(1, 2, 0))
+    raises(lambda: _ops().sscater_dense_finalize_(y[:, :2], acc, out, one, zero), r"y must be Double \(C, Ho, Wo\)")
+    raises(lambda: _ops().sscater_dense_finalize_(y, acc, out, one, zero, None, torch.zeros(2, 3, 2, dtype=F64,
+                                                                                              device=dev)),
+           r"out_nchw must be a contiguous")
+    raises(lambda: _ops().sscater_dense_finalize_(y, acc, out, one, zero, torch.ones(9, dtype=torch.bool, device=dev)),
+           r"active must be a contiguous bool \(Ho, Wo\) map")
+    raises(lambda: _ops().sscater_dense_finalize_(y.float(), acc.float(), out.float(), one, zero),
+           r"scale and shift must be \(C = 2,\) of acc's dtype")
+
+
 def case_sscater_cover_and_children_sites_outside(dev):
     cover = torch.zeros(3, 3, dtype=I32, device=dev)
     active = torch.zeros(3, 3, dtype=torch.bool, device=dev)

@@ -548,10 +548,13 @@ def test_recycling_backbone_float32_and_emptying_the_grid(device, mode):
 @pytest.mark.parametrize("mode", STEP_MODES)
 @pytest.mark.parametrize("negative_bias", [0.0, 0.8])
 @pytest.mark.parametrize("given", [0.7, 1.0])  # 1.0: every site, so every layer's every site is active (no masks)
-def test_dense_refresh_equals_the_sparse_recomputation(device, mode, negative_bias, given, monkeypatch):
+@pytest.mark.parametrize("channels_last", [False, True])  # NCHW: each layer passes an NCHW copy to the next
+def test_dense_refresh_equals_the_sparse_recomputation(device, mode, negative_bias, given, channels_last,
+                                                       monkeypatch):
     """A refresh given most of the grid's sites runs dense convolutions: its output equals the sparse backbone's,
     and the recycled steps after it stay equal (its active maps, covers and accumulators are the sparse refresh's)."""
     monkeypatch.setitem(delta_module.DENSE_REFRESH, torch.device(device).type, 0.5)  # whatever the default
+    monkeypatch.setitem(delta_module.DENSE_CHANNELS_LAST, torch.device(device).type, channels_last)
     H, W = 24, 32
     bb = small_backbone(seed=6, negative_bias=negative_bias).to(device)
     stream = PillarMapStream(H, W, 8, seed=4, start=int(given * H * W))

@@ -78,6 +78,59 @@ def test_finalize_matches_reference(device, dtype, seed):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("layout", ["nchw", "channels_last", "strided"])
+def test_dense_finalize_matches_reference(device, dtype, masked, layout):
+    g = torch.Generator().manual_seed(7 + masked)
+    C, H, W = 37, 9, 35  # more than one 32-wide tile of channels and of sites, partial tiles at both ends
+    y = torch.randn(C, H, W, generator=g, dtype=torch.float64)
+    y[:, 2, 3] = 0.0  # zeros and ties at the ReLU's edge
+    scale = (torch.rand(C, generator=g, dtype=torch.float64) + 0.5)
+    shift = torch.randn(C, generator=g, dtype=torch.float64)
+    shift[:4] = 0.0
+    active = torch.rand(H, W, generator=g) > 0.4 if masked else None
+    ref_acc, ref_out = sops._dense_finalize_reference(y.to(dtype), scale.to(dtype), shift.to(dtype), active)
+    if layout == "nchw":
+        y_dev = y.to(device, dtype)
+    elif layout == "channels_last":  # the CPU refresh's convolution output: (C, H, W) view of (H, W, C) memory
+        y_dev = y.permute(1, 2, 0).contiguous().to(device, dtype).permute(2, 0, 1)
+    else:
+        y_dev = torch.randn(C, H, 2 * W, dtype=torch.float64).to(device, dtype)[:, :, ::2]
+        y_dev.copy_(y)
+    acc = torch.full((H, W, C), float("nan"), dtype=dtype, device=device)
+    # out as the output map's view (channels-last memory, more channels than this layer's) or its own buffer
+    big = torch.full((H, W, C + 5), float("nan"), dtype=dtype, device=device)
+    out = big[:, :, 2:2 + C] if layout != "nchw" else torch.full((C, H, W), float("nan"), dtype=dtype,
+                                                                   device=device).permute(1, 2, 0)
+    out_nchw = torch.full((C, H, W), float("nan"), dtype=dtype, device=device)
+    sops.dense_finalize_(y_dev, acc, out, scale.to(device, dtype), shift.to(device, dtype),
+                         None if active is None else active.to(device), out_nchw)
+    _close(acc, ref_acc, dtype, "acc")
+    _close(out, ref_out, dtype, "out")
+    _close(out_nchw.permute(1, 2, 0), ref_out, dtype, "out_nchw")
+    if layout != "nchw":  # the map's other channels are not touched
+        assert torch.isnan(big[:, :, :2]).all() and torch.isnan(big[:, :, 2 + C:]).all()
+    if dtype == torch.float64:  # zeros exactly where the reference has them (masked sites, ReLU)
+        assert torch.equal(out.cpu() == 0, ref_out == 0)
+    acc2 = torch.zeros_like(acc)
+    sops.dense_finalize_(y_dev, acc2, torch.zeros_like(acc), scale.to(device, dtype), shift.to(device, dtype))
+    _close(acc2, y.to(dtype).double().permute(1, 2, 0), dtype, "acc without a mask or out_nchw")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_dense_finalize_empty_and_opcheck(device):
+    for H, W, C in ((0, 4, 3), (4, 0, 3), (4, 4, 0)):
+        acc = torch.zeros(H, W, C, device=device)
+        sops.dense_finalize_(torch.zeros(C, H, W, device=device), acc, torch.zeros(H, W, C, device=device),
+                             torch.ones(C, device=device), torch.zeros(C, device=device))
+    y = torch.randn(5, 3, 4, device=device)
+    args = (y, torch.zeros(3, 4, 5, device=device), torch.zeros(3, 4, 5, device=device), torch.ones(5, device=device),
+            torch.zeros(5, device=device), torch.rand(3, 4, device=device) > 0.5, torch.zeros(5, 3, 4, device=device))
+    torch.library.opcheck(torch.ops.lidarops.sscater_dense_finalize_, args)
+
+
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_cover_update_matches_reference(device, seed):
     g = torch.Generator().manual_seed(seed)
@@ -194,6 +247,19 @@ def test_wrappers_name_the_bad_argument():
         sops.finalize_(acc, acc.clone(), torch.ones(4, 4), sites, torch.ones(3), torch.zeros(3))
     with pytest.raises(ValueError, match="scale must be"):
         sops.finalize_(acc, acc.clone(), torch.ones(4, 4, dtype=torch.bool), sites, torch.ones(2), torch.zeros(3))
+    y = torch.zeros(3, 4, 4)
+    with pytest.raises(ValueError, match=r"y must be torch.float32 \(C, Ho, Wo\)"):
+        sops.dense_finalize_(y.permute(1, 2, 0), acc, acc.clone(), torch.ones(3), torch.zeros(3))
+    with pytest.raises(ValueError, match="acc must be contiguous"):
+        sops.dense_finalize_(y, acc.transpose(0, 1), acc.clone(), torch.ones(3), torch.zeros(3))
+    with pytest.raises(ValueError, match="out must be"):
+        sops.dense_finalize_(y, acc, acc.double(), torch.ones(3), torch.zeros(3))
+    with pytest.raises(ValueError, match="shift must be"):
+        sops.dense_finalize_(y, acc, acc.clone(), torch.ones(3), torch.zeros(4))
+    with pytest.raises(ValueError, match="active must be"):
+        sops.dense_finalize_(y, acc, acc.clone(), torch.ones(3), torch.zeros(3), torch.ones(4, 3, dtype=torch.bool))
+    with pytest.raises(ValueError, match="out_nchw must be a contiguous"):
+        sops.dense_finalize_(y, acc, acc.clone(), torch.ones(3), torch.zeros(3), None, acc.clone())
     with pytest.raises(ValueError, match="stamp must be"):
         sops.touch_(torch.zeros(4, 4), acc, 1, torch.zeros(1, dtype=torch.int64), sites, sites)
     with pytest.raises(ValueError, match="targets must be"):

@@ -121,6 +121,47 @@ inline void check_finalize_args(const at::Tensor& acc, const at::Tensor& out, co
                       t->device());
 }
 
+// sscater_dense_finalize_'s arguments: y (C, Ho, Wo) and out (Ho, Wo, C), any strides; acc (Ho, Wo, C)
+// contiguous; scale, shift (C,); active (Ho, Wo) bool contiguous; out_nchw (C, Ho, Wo) contiguous.
+inline void check_dense_finalize_args(const at::Tensor& y, const at::Tensor& acc, const at::Tensor& out,
+                                      const at::Tensor& scale, const at::Tensor& shift,
+                                      const c10::optional<at::Tensor>& active,
+                                      const c10::optional<at::Tensor>& out_nchw) {
+  TORCH_CHECK_VALUE(acc.dim() == 3 && acc.is_contiguous() &&
+                        (acc.scalar_type() == at::kFloat || acc.scalar_type() == at::kDouble),
+                    "acc must be a contiguous float32/float64 (Ho, Wo, C) tensor, got ", acc.scalar_type(), " ",
+                    acc.sizes());
+  const int64_t Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
+  TORCH_CHECK_VALUE(y.dim() == 3 && y.size(0) == C && y.size(1) == Ho && y.size(2) == Wo &&
+                        y.scalar_type() == acc.scalar_type(),
+                    "y must be ", acc.scalar_type(), " (C, Ho, Wo) = (", C, ", ", Ho, ", ", Wo, "), got ",
+                    y.scalar_type(), " ", y.sizes());
+  TORCH_CHECK_VALUE(out.sizes() == acc.sizes() && out.scalar_type() == acc.scalar_type(),
+                    "out must be a (Ho, Wo, C) view of acc's shape and dtype (any strides), got ", out.sizes(), " ",
+                    out.scalar_type());
+  TORCH_CHECK_VALUE(scale.dim() == 1 && scale.size(0) == C && shift.sizes() == scale.sizes() &&
+                        scale.scalar_type() == acc.scalar_type() && shift.scalar_type() == acc.scalar_type(),
+                    "scale and shift must be (C = ", C, ",) of acc's dtype, got ", scale.sizes(), " ",
+                    scale.scalar_type(), " and ", shift.sizes(), " ", shift.scalar_type());
+  if (active.has_value())
+    TORCH_CHECK_VALUE(active->dim() == 2 && active->size(0) == Ho && active->size(1) == Wo &&
+                          active->scalar_type() == at::kBool && active->is_contiguous(),
+                      "active must be a contiguous bool (Ho, Wo) map, got ", active->scalar_type(), " ",
+                      active->sizes());
+  if (out_nchw.has_value())
+    TORCH_CHECK_VALUE(out_nchw->dim() == 3 && out_nchw->size(0) == C && out_nchw->size(1) == Ho &&
+                          out_nchw->size(2) == Wo && out_nchw->scalar_type() == acc.scalar_type() &&
+                          out_nchw->is_contiguous(),
+                      "out_nchw must be a contiguous ", acc.scalar_type(), " (C, Ho, Wo) tensor, got ",
+                      out_nchw->scalar_type(), " ", out_nchw->sizes());
+  for (const auto* t : {&y, &out, &scale, &shift})
+    TORCH_CHECK_VALUE(t->device() == acc.device(), "all tensors must be on acc's device ", acc.device(), ", got ",
+                      t->device());
+  for (const auto* t : {&active, &out_nchw})
+    TORCH_CHECK_VALUE(!t->has_value() || (*t)->device() == acc.device(), "all tensors must be on acc's device ",
+                      acc.device(), ", got ", (*t)->device());
+}
+
 // ---- the fused layer step ----------------------------------------------------------------------
 
 inline void check_map(const at::Tensor& t, const char* name, at::ScalarType dt, const at::Tensor& ref) {
