@@ -299,6 +299,11 @@ def plot(traces: dict, rows: list, device: str, path: Path) -> None:
     print(f"plot: {path}")
 
 
+def _refresh_graph(model) -> bool:
+    """Whether the stream's refreshes replayed a CUDA graph."""
+    return model.delta._refresh_graph is not None
+
+
 def _p95(xs: list) -> float:
     return sorted(xs)[min(len(xs) - 1, int(round(0.95 * (len(xs) - 1))))]
 
@@ -430,7 +435,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
                "refreshes": sum(r["refreshed"] for r in ours),
                "pillars_changed_share": statistics.mean(r["changed"] / max(r["active"], 1) for r in ours),
                "channel_sparse": model.delta.channel_sparse, "sparse_refresh": sparse_refresh,
-               "refresh_format": refresh_format or "default",
+               "refresh_format": refresh_format or "default", "refresh_graph": _refresh_graph(model),
                "tiling": os.environ.get("LIDAROPS_SSCATER_TILING", "default")}
     if ap_frames:
         summary["ap_frames"] = len(ap_frames)
@@ -463,6 +468,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     tag = "" if channel_sparse is None else f"/channel_sparse_{channel_sparse:g}"
     tag += "/sparse_refresh" if sparse_refresh else ""
     tag += f"/{refresh_format}" if refresh_format else ""
+    tag += "/eager_refresh" if model.delta.cuda_graph and not _refresh_graph(model) else ""
     tag += f"/tiling_{os.environ['LIDAROPS_SSCATER_TILING']}" if os.environ.get("LIDAROPS_SSCATER_TILING") else ""
     scene = f"{scenario}+{realism}" if realism else scenario
     rows.append({"op": f"detector_stream/{scene}/{path.stem}{tag}", **summary})
@@ -578,6 +584,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refresh-format", choices=("nchw", "channels_last"), default=None,
                     help="--only detector: the dense refresh's memory format (default: the device's, "
                          "lidarops.sscater.delta.DENSE_CHANNELS_LAST)")
+    ap.add_argument("--eager-refresh", action="store_true",
+                    help="--only detector: no CUDA graph of the refresh (lidarops.sscater.delta.REFRESH_CUDA_GRAPH)")
     a = ap.parse_args(argv)
     import lidarops.extension as ext
     ext.load()
@@ -601,6 +609,9 @@ def main(argv=None) -> int:
     if a.refresh_format:
         from lidarops.sscater import delta
         delta.DENSE_CHANNELS_LAST[device.type] = a.refresh_format == "channels_last"
+    if a.eager_refresh:
+        from lidarops.sscater import delta
+        delta.REFRESH_CUDA_GRAPH = False
     if "detector" in only:
         scenario = a.detector_scenario or _first_scenario(a.checkpoint)
         realism = stream_realism(a.checkpoint, scenario, a.realism)

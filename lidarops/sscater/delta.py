@@ -47,7 +47,8 @@ from torch import Tensor
 from lidarops._cuda_graphs import uncached_autocast
 
 __all__ = [
-    "CHANNEL_SPARSE", "DENSE_CHANNELS_LAST", "DENSE_REFRESH", "Change", "DeltaBackbone", "LayerStats", "DeltaLayer",
+    "CHANNEL_SPARSE", "DENSE_CHANNELS_LAST", "DENSE_REFRESH", "REFRESH_CUDA_GRAPH", "Change", "DeltaBackbone",
+    "LayerStats", "DeltaLayer",
 ]
 
 # Share of zero delta values from which the channel-sparse scatter beats the per-tap GEMM, by device type
@@ -59,6 +60,9 @@ CHANNEL_SPARSE = {"cpu": 0.85, "cuda": 2.0}
 DENSE_REFRESH = {"cpu": 0.5, "cuda": 0.5}
 # The dense refresh's convolutions on the maps' own channels-last memory (True), or on NCHW copies, by device type.
 DENSE_CHANNELS_LAST = {"cpu": True, "cuda": False}
+# With cuda_graph, a refresh of every site of the grid replays a CUDA graph of the whole refresh: eager, its
+# hundred-odd launches, not its convolutions, set its time.
+REFRESH_CUDA_GRAPH = True
 
 
 @runtime_checkable
@@ -241,6 +245,7 @@ class DeltaBackbone:
         self.in_active = self._in_active[:H * W].view(H, W)
         self._graphs: dict = {}  # CUDA graphs of the step, by input capacity
         self._nchw: dict = {}  # the dense refresh's NCHW copies of the features, by shape
+        self._refresh_graph: Optional[tuple] = None  # a refresh of every site as a CUDA graph (cuda_graph)
         self.layers: list[_Layer] = []
         block_shape, block_active, self.block_cover = {}, {}, {}
         shape = (H, W)
@@ -314,9 +319,26 @@ class DeltaBackbone:
         dense convolutions when the device's :data:`DENSE_REFRESH` share of the grid's sites is given (half; a
         dense stream, such as ``SSCATeRPointPillars.from_detector``'s, lists every site). ``check=False`` is for
         input that is already right (int32 sites inside the grid, each once, features in the state's dtype on its
-        device): no wait for the device to check it."""
+        device): no wait for the device to check it. With ``cuda_graph``, a refresh given every site of the grid
+        replays a CUDA graph of the whole refresh (recorded by the first such refresh)."""
         if check:
             sites, features = self._check_input(sites, features)
+        H, W = self.shape
+        dense = sites.shape[0] >= DENSE_REFRESH.get(self.device.type, 2.0) * H * W
+        if REFRESH_CUDA_GRAPH and self.cuda_graph and dense and sites.shape[0] == H * W and self._covering:
+            values = self._refresh_replay(sites, features)
+        else:
+            values = self._refresh_body(sites, features, dense).tolist()
+        for st, a in zip(self.stats, values):
+            st.active = st.changed = st.touched = int(a)
+        if self.state_check:
+            self.state_max = values[-1]
+        self.steps = 0
+        return self.out
+
+    def _refresh_body(self, sites: Tensor, features: Tensor, dense: bool) -> Tensor:
+        """The refresh on checked input; returns its figures on the device (float64: each layer's active count,
+        then ``state_max``), read at once: a wait for the device per layer would stall the launch queue."""
         H, W = self.shape
         self.in_feats.zero_()
         self.in_active.zero_()
@@ -326,22 +348,33 @@ class DeltaBackbone:
         # the state's dtype decides, not a caller's autocast: the steps' own ops do not autocast, and a refresh
         # in another precision would leave accumulators that the recycled updates no longer match
         with torch.autocast(self.device.type, enabled=False):
-            if sites.shape[0] >= DENSE_REFRESH.get(self.device.type, 2.0) * H * W:
+            if dense:
                 self._refresh_dense(full=sites.shape[0] == H * W and self._covering)
             else:
                 self._refresh_sparse(sites, features)
-        # the figures in one read: a wait for the device per layer would stall the launch queue on CUDA
-        every = self.layers + self.up_layers
-        figures = [layer.active.sum().to(torch.float64) for layer in every]  # exact: counts far below 2^53
+        figures = [layer.active.sum().to(torch.float64) for layer in self.layers + self.up_layers]  # exact
         if self.state_check:
             figures.append(self._state_max().to(torch.float64))
-        values = torch.stack(figures).tolist()
-        for st, a in zip(self.stats, values):
-            st.active = st.changed = st.touched = int(a)
-        if self.state_check:
-            self.state_max = values[-1]
-        self.steps = 0
-        return self.out
+        return torch.stack(figures)
+
+    def _refresh_replay(self, sites: Tensor, features: Tensor) -> list:
+        """A refresh of every site of the grid as a CUDA graph (its shapes are the grid's): the first one runs
+        eagerly, which also warms up the convolutions, and then records the graph, which the later ones replay.
+        Returns the figures, read."""
+        if self._refresh_graph is None:
+            s_sites, s_feats = sites.clone(), features.clone()
+            values = self._refresh_body(s_sites, s_feats, True).tolist()
+            graph = torch.cuda.CUDAGraph()
+            with uncached_autocast():
+                with torch.cuda.graph(graph):  # recording runs nothing: the state stays this refresh's
+                    figures = self._refresh_body(s_sites, s_feats, True)
+            self._refresh_graph = (s_sites, s_feats, graph, figures)
+            return values
+        s_sites, s_feats, graph, figures = self._refresh_graph
+        s_sites.copy_(sites)
+        s_feats.copy_(features)
+        graph.replay()
+        return figures.tolist()
 
     def _refresh_dense(self, full: bool) -> None:
         """The refresh by torch's dense convolutions over every site (most sites hold a pillar): the active maps

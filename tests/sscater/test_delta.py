@@ -578,6 +578,39 @@ def test_dense_refresh_equals_the_sparse_recomputation(device, mode, negative_bi
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("mode", STEP_MODES)
+def test_refreshes_of_every_site_again_and_again(device, mode):
+    """A stream that lists every site (SSCATeRPointPillars.from_detector's): each refresh (with cuda_graph the
+    first records a CUDA graph, the later ones replay it) equals the full recomputation of its own input, the
+    recycled steps between refreshes stay equal, and the figures are the refresh's own."""
+    H, W = 24, 32
+    bb = small_backbone(seed=9, negative_bias=0.8).to(device)
+    stream = PillarMapStream(H, W, 8, seed=5, start=int(0.8 * H * W))
+    db = _delta_backbone(bb, (H, W), torch.float64, device, mode)
+    every = torch.stack(torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij"), -1).view(-1, 2).int()
+    for r in range(3):
+        sites, feats = stream.current()
+        dense = torch.zeros(H * W, feats.shape[1], dtype=feats.dtype)
+        dense[sites[:, 0].long() * W + sites[:, 1].long()] = feats  # every site listed: the empty ones with 0
+        out = db.refresh(every.to(device), dense.to(device))
+        ref = _full(bb, every, dense, H, W, device)
+        assert (out - ref).abs().max() <= 1e-12 * ref.abs().max(), f"refresh {r}"
+        assert [st.active for st in db.stats] == [int(lay.active.sum()) for lay in db.layers + db.up_layers]
+        assert db.state_max == max(float(lay.acc.abs().max()) for lay in db.layers + db.up_layers)
+        for i in range(3):  # every site stays listed: an emptied one is a site whose input went back to 0
+            sites, feats, removed = stream.step(40)
+            feats = torch.where(removed[:, None], torch.zeros_like(feats), feats)
+            out = db.update(sites.to(device), feats.to(device), torch.zeros_like(removed).to(device))
+            dense = torch.zeros(H * W, feats.shape[1], dtype=feats.dtype)
+            cur_sites, cur_feats = stream.current()
+            dense[cur_sites[:, 0].long() * W + cur_sites[:, 1].long()] = cur_feats
+            ref = _full(bb, every, dense, H, W, device)
+            assert (out - ref).abs().max() <= 1e-12 * ref.abs().max(), f"refresh {r}, step {i}"
+    if mode == "cuda_graph":
+        assert db._refresh_graph is not None  # the later refreshes replayed it
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("mode", STEP_MODES)
 def test_features_given_as_a_function_of_the_sites(device, mode):
     """update(sites, fn, removed, check=False): the features computed from the sites by ``fn`` (in a CUDA graph
     step, inside the graph, on sites padded with (-1, -1) rows) give what the same features given as a tensor
