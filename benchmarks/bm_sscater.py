@@ -301,7 +301,7 @@ def plot(traces: dict, rows: list, device: str, path: Path) -> None:
 
 def _refresh_graph(model) -> bool:
     """Whether the stream's refreshes replayed a CUDA graph."""
-    return model.delta._refresh_graph is not None
+    return bool(model.delta._refresh_graphs)
 
 
 def _p95(xs: list) -> float:

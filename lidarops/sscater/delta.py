@@ -245,7 +245,7 @@ class DeltaBackbone:
         self.in_active = self._in_active[:H * W].view(H, W)
         self._graphs: dict = {}  # CUDA graphs of the step, by input capacity
         self._nchw: dict = {}  # the dense refresh's NCHW copies of the features, by shape
-        self._refresh_graph: Optional[tuple] = None  # a refresh of every site as a CUDA graph (cuda_graph)
+        self._refresh_graphs: dict = {}  # refreshes of every site as CUDA graphs, by features function
         self.layers: list[_Layer] = []
         block_shape, block_active, self.block_cover = {}, {}, {}
         shape = (H, W)
@@ -313,14 +313,18 @@ class DeltaBackbone:
 
     # ---- full recomputation ----------------------------------------------------------------------
 
-    def refresh(self, sites: Tensor, features: Tensor, check: bool = True) -> Tensor:
+    def refresh(self, sites: Tensor, features, check: bool = True) -> Tensor:
         """Set the input to ``features (Tensor[P, Cin])`` at ``sites (Tensor[P, 2] int, (y, x))`` and
         recompute every layer's state from it (no recycling): with the sparse convolution ops, or with torch's
         dense convolutions when the device's :data:`DENSE_REFRESH` share of the grid's sites is given (half; a
         dense stream, such as ``SSCATeRPointPillars.from_detector``'s, lists every site). ``check=False`` is for
         input that is already right (int32 sites inside the grid, each once, features in the state's dtype on its
-        device): no wait for the device to check it. With ``cuda_graph``, a refresh given every site of the grid
-        replays a CUDA graph of the whole refresh (recorded by the first such refresh)."""
+        device): no wait for the device to check it; ``features`` may then be a function of the sites giving
+        them (``features(sites) -> Tensor[P, Cin]``), which a CUDA graph records. With ``cuda_graph``, a refresh
+        given every site of the grid replays a CUDA graph of the whole refresh (one per features function,
+        recorded by the first such refresh; :data:`REFRESH_CUDA_GRAPH`)."""
+        if callable(features) and check:
+            raise ValueError("features can be a function of the sites only with check=False")
         if check:
             sites, features = self._check_input(sites, features)
         H, W = self.shape
@@ -328,6 +332,8 @@ class DeltaBackbone:
         if REFRESH_CUDA_GRAPH and self.cuda_graph and dense and sites.shape[0] == H * W and self._covering:
             values = self._refresh_replay(sites, features)
         else:
+            if callable(features):
+                features = features(sites)
             values = self._refresh_body(sites, features, dense).tolist()
         for st, a in zip(self.stats, values):
             st.active = st.changed = st.touched = int(a)
@@ -357,22 +363,30 @@ class DeltaBackbone:
             figures.append(self._state_max().to(torch.float64))
         return torch.stack(figures)
 
-    def _refresh_replay(self, sites: Tensor, features: Tensor) -> list:
-        """A refresh of every site of the grid as a CUDA graph (its shapes are the grid's): the first one runs
-        eagerly, which also warms up the convolutions, and then records the graph, which the later ones replay.
-        Returns the figures, read."""
-        if self._refresh_graph is None:
-            s_sites, s_feats = sites.clone(), features.clone()
-            values = self._refresh_body(s_sites, s_feats, True).tolist()
-            graph = torch.cuda.CUDAGraph()
-            with uncached_autocast():
+    def _refresh_replay(self, sites: Tensor, features) -> list:
+        """A refresh of every site of the grid as a CUDA graph (its shapes are the grid's), one per features
+        function (None: given as a tensor): the first runs eagerly, which also warms up the convolutions, and then
+        records the graph, which the later ones replay. Returns the figures, read."""
+        fn = features if callable(features) else None
+        g = self._refresh_graphs.get(fn)
+        if g is None:
+            s_sites = sites.clone()
+            s_feats = None if fn else features.clone()
+
+            def body():
+                return self._refresh_body(s_sites, fn(s_sites) if fn else s_feats, True)
+
+            with uncached_autocast():  # the pillar net of fn may run under a caller's autocast
+                values = body().tolist()
+                graph = torch.cuda.CUDAGraph()
                 with torch.cuda.graph(graph):  # recording runs nothing: the state stays this refresh's
-                    figures = self._refresh_body(s_sites, s_feats, True)
-            self._refresh_graph = (s_sites, s_feats, graph, figures)
+                    figures = body()
+            self._refresh_graphs[fn] = (s_sites, s_feats, graph, figures)
             return values
-        s_sites, s_feats, graph, figures = self._refresh_graph
+        s_sites, s_feats, graph, figures = g
         s_sites.copy_(sites)
-        s_feats.copy_(features)
+        if s_feats is not None:
+            s_feats.copy_(features)
         graph.replay()
         return figures.tolist()
 

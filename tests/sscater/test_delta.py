@@ -578,20 +578,29 @@ def test_dense_refresh_equals_the_sparse_recomputation(device, mode, negative_bi
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("mode", STEP_MODES)
-def test_refreshes_of_every_site_again_and_again(device, mode):
+@pytest.mark.parametrize("as_function", [False, True])
+def test_refreshes_of_every_site_again_and_again(device, mode, as_function):
     """A stream that lists every site (SSCATeRPointPillars.from_detector's): each refresh (with cuda_graph the
-    first records a CUDA graph, the later ones replay it) equals the full recomputation of its own input, the
-    recycled steps between refreshes stay equal, and the figures are the refresh's own."""
+    first records a CUDA graph, the later ones replay it) equals the full recomputation of its own input, given
+    as a tensor or as a function of the sites (recorded in the graph), the recycled steps between refreshes stay
+    equal, and the figures are the refresh's own."""
     H, W = 24, 32
     bb = small_backbone(seed=9, negative_bias=0.8).to(device)
     stream = PillarMapStream(H, W, 8, seed=5, start=int(0.8 * H * W))
     db = _delta_backbone(bb, (H, W), torch.float64, device, mode)
     every = torch.stack(torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij"), -1).view(-1, 2).int()
+    held = torch.zeros(H * W, 8, dtype=torch.float64, device=device)  # what the function reads
+
+    def features(sites):
+        assert sites.shape == (H * W, 2)
+        return held * 1.0  # computed from the held input (inside a graph: at each replay)
+
     for r in range(3):
         sites, feats = stream.current()
         dense = torch.zeros(H * W, feats.shape[1], dtype=feats.dtype)
         dense[sites[:, 0].long() * W + sites[:, 1].long()] = feats  # every site listed: the empty ones with 0
-        out = db.refresh(every.to(device), dense.to(device))
+        held.copy_(dense)
+        out = db.refresh(every.to(device), features if as_function else dense.to(device), check=not as_function)
         ref = _full(bb, every, dense, H, W, device)
         assert (out - ref).abs().max() <= 1e-12 * ref.abs().max(), f"refresh {r}"
         assert [st.active for st in db.stats] == [int(lay.active.sum()) for lay in db.layers + db.up_layers]
@@ -606,7 +615,7 @@ def test_refreshes_of_every_site_again_and_again(device, mode):
             ref = _full(bb, every, dense, H, W, device)
             assert (out - ref).abs().max() <= 1e-12 * ref.abs().max(), f"refresh {r}, step {i}"
     if mode == "cuda_graph":
-        assert db._refresh_graph is not None  # the later refreshes replayed it
+        assert list(db._refresh_graphs) == [features if as_function else None]  # the later ones replayed it
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -698,6 +707,8 @@ def test_recycling_backbone_bad_input():
         db.update(torch.tensor([[1, 0]]), torch.zeros(1, 4), torch.tensor([False]))
     with pytest.raises(ValueError, match="removed must be bool"):
         db.update(torch.tensor([[1, 0]]), torch.zeros(1, 8), torch.tensor([0]))
+    with pytest.raises(ValueError, match="a function of the sites only with check=False"):
+        db.refresh(torch.tensor([[1, 0]]), lambda sites: torch.zeros(1, 8, dtype=torch.float64))
     with pytest.raises(ValueError, match="eval mode"):
         DeltaBackbone(small_backbone().train(), (16, 16))
     with pytest.raises(ValueError, match="dtype must be"):
