@@ -319,7 +319,8 @@ class SSCATeRPointPillars:
             if refresh and self._graphed_refresh():
                 # the pillar net runs inside the refresh's CUDA graph: its time counts in ms_backbone
                 m2 = self._mark()
-                out = self.delta.refresh(self._all_sites, self._refresh_features(upd.active), check=False)
+                features = self._refresh_features(upd.active)
+                out = self.delta.refresh(self._every_site(), features, check=False)
                 pfn_points = pfn_points_full = self._pfn_points
                 self._since_refresh = 0
             elif refresh:
@@ -412,7 +413,6 @@ class SSCATeRPointPillars:
         coords, fn = self._refresh_inputs[cap]
         coords[n:, 1:].fill_(-1)
         coords[:n].copy_(active)
-        self._every_site()
         return fn
 
     def _features_of_every_site(self, coords: Tensor, sites: Tensor) -> Tensor:
