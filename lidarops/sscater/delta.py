@@ -350,7 +350,7 @@ class DeltaBackbone:
         self.in_active.zero_()
         keys = _keys(sites, W)
         self.in_feats.view(H * W, -1)[keys] = features
-        self.in_active.view(-1)[keys] = True
+        self.in_active.view(-1).index_fill_(0, keys, True)  # no host scalar: a CUDA graph records it
         # the state's dtype decides, not a caller's autocast: the steps' own ops do not autocast, and a refresh
         # in another precision would leave accumulators that the recycled updates no longer match
         with torch.autocast(self.device.type, enabled=False):
