@@ -61,7 +61,8 @@ DENSE_REFRESH = {"cpu": 0.5, "cuda": 0.5}
 # The dense refresh's convolutions on the maps' own channels-last memory (True), or on NCHW copies, by device type.
 DENSE_CHANNELS_LAST = {"cpu": True, "cuda": False}
 # With cuda_graph, a refresh of every site of the grid replays a CUDA graph of the whole refresh: eager, its
-# hundred-odd launches, not its convolutions, set its time.
+# hundred-odd launches, not its convolutions, set its time. Each graph (one per features function: for
+# SSCATeRPointPillars one per pillar capacity) keeps its own memory for the refresh's intermediate maps.
 REFRESH_CUDA_GRAPH = True
 
 
