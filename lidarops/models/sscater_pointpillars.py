@@ -381,11 +381,17 @@ class SSCATeRPointPillars:
         """Every layer recomputed from the window's pillars; in the dense mode from every site of the grid."""
         if not self.dense:  # the stream's active pillars: inside the grid, each once, int32
             return self.delta.refresh(pillars.coords[:, 1:], feats, check=False)
-        H, W = self.grid.shape
-        full = feats.new_zeros(H * W, feats.shape[1])
-        keys = pillars.coords[:, 1].long() * W + pillars.coords[:, 2].long()
-        full[keys] = feats
+        full = self._on_grid(pillars.coords, feats)
         return self.delta.refresh(self._every_site(), full, check=False)  # every site once, int32, by construction
+
+    def _on_grid(self, coords: Tensor, feats: Tensor) -> Tensor:
+        """The pillars' features (P, C) at their sites of the grid, (H * W, C), zero elsewhere; rows whose coords
+        are (0, -1, -1) (a graph's padding) land in a scratch row past the grid."""
+        H, W = self.grid.shape
+        keys = torch.where(coords[:, 1] >= 0, coords[:, 1].long() * W + coords[:, 2].long(), H * W)
+        full = feats.new_zeros(H * W + 1, feats.shape[1])
+        full[keys] = feats
+        return full[:H * W]
 
     def _every_site(self) -> Tensor:
         if self._all_sites is None:
@@ -416,15 +422,9 @@ class SSCATeRPointPillars:
         return fn
 
     def _features_of_every_site(self, coords: Tensor, sites: Tensor) -> Tensor:
-        H, W = self.grid.shape
         pillars = self.stream.pillars(coords, check=False)
         self._pfn_points.copy_(pillars.num_points.sum())
-        feats = self._pfn(pillars)
-        # padding rows land in a scratch row past the grid
-        keys = torch.where(coords[:, 1] >= 0, coords[:, 1].long() * W + coords[:, 2].long(), H * W)
-        full = feats.new_zeros(H * W + 1, feats.shape[1])
-        full[keys] = feats
-        return full[:H * W]
+        return self._on_grid(coords, self._pfn(pillars))
 
     def _note_head_sites(self, refreshed: bool) -> None:
         """After a step: the output sites it changed, for the head (a refresh, or a step whose site lists are
