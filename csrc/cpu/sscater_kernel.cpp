@@ -11,6 +11,7 @@
 #include <ATen/ops/zeros.h>
 
 #include <algorithm>
+#include <cstring>
 #include <functional>
 #include <type_traits>
 #include <vector>
@@ -498,46 +499,78 @@ std::tuple<at::Tensor, at::Tensor> touch_cpu(at::Tensor& stamp, at::Tensor& acc,
 std::tuple<at::Tensor, at::Tensor, at::Tensor> finalize_compact_cpu(const at::Tensor& acc, at::Tensor& out,
                                                                     const at::Tensor& active, const at::Tensor& cand,
                                                                     const at::Tensor& count, const at::Tensor& stamp,
-                                                                    int64_t status_value, const at::Tensor& scale,
-                                                                    const at::Tensor& shift) {
-  check_finalize_args(acc, out, active, cand, scale, shift, "cand");
+                                                                    int64_t status_value, const at::Tensor& scale_in,
+                                                                    const at::Tensor& shift_in) {
+  check_finalize_args(acc, out, active, cand, scale_in, shift_in, "cand");
   check_finalize_compact_args(acc, cand, count, stamp, status_value);
   // count is the caller's: clamped to the rows of cand (the CUDA kernel reads it on the device)
   const int64_t m = std::clamp<int64_t>(count.item<int64_t>(), 0, cand.size(0));
-  auto used = cand.narrow(0, 0, std::max<int64_t>(m, 0));
-  auto [changed, delta] = finalize_cpu(acc, out, active, used, scale, shift);
-  const int64_t C = acc.size(2), Wo = acc.size(1);
-  auto sites_out = at::full({cand.size(0), 2}, -1, cand.options());
+  const int64_t R = cand.size(0), Ho = acc.size(0), Wo = acc.size(1), C = acc.size(2);
+  auto sites = cand.contiguous();
+  const int32_t* sp = sites.data_ptr<int32_t>();
+  for (int64_t i = 0; i < m; ++i)
+    TORCH_CHECK_VALUE(sp[2 * i] >= 0 && sp[2 * i] < Ho && sp[2 * i + 1] >= 0 && sp[2 * i + 1] < Wo, "cand[", i,
+                      "] = (", sp[2 * i], ", ", sp[2 * i + 1], ") lies outside the (", Ho, ", ", Wo, ") grid");
+  auto sites_out = at::empty({R, 2}, cand.options());
+  auto delta_out = at::empty({R, C}, acc.options());
   auto counts = at::zeros({3}, count.options());
-  const bool* ch = changed.data_ptr<bool>();
-  const int32_t* sp = used.data_ptr<int32_t>();
+  auto scale = scale_in.contiguous(), shift = shift_in.contiguous();
   const int32_t* st = stamp.data_ptr<int32_t>();
+  const bool* act = active.data_ptr<bool>();
   int32_t* so = sites_out.data_ptr<int32_t>();
-  // the changed rows' places in the compacted list (in order), then their deltas copied in parallel
-  std::vector<int64_t> from;
-  from.reserve(m);
-  int64_t flagged = 0;
-  for (int64_t i = 0; i < m; ++i) {
-    flagged += ch[i] || st[sp[2 * i] * Wo + sp[2 * i + 1]] == status_value;
-    if (!ch[i]) continue;
-    so[2 * from.size()] = sp[2 * i];
-    so[2 * from.size() + 1] = sp[2 * i + 1];
-    from.push_back(i);
-  }
-  const int64_t n = static_cast<int64_t>(from.size());
-  auto delta_out = at::empty({cand.size(0), C}, acc.options());
-  delta_out.narrow(0, n, cand.size(0) - n).zero_();  // padding rows: zero
+  const int64_t sy = out.stride(0), sx = out.stride(1), sc = out.stride(2);
+  // Each chunk of rows evaluates its sites and writes the changed ones' deltas and sites compacted from
+  // its own first row (a row's compacted place is never after it, so chunks write disjoint rows and no
+  // row is overwritten before it is read); the chunks' runs are then moved down to their places in order.
+  // One pass over the rows and no (m, C) temporary: the deltas are written where they end up, or moved once.
+  const int64_t chunk = std::max<int64_t>(std::max<int64_t>(1, 8192 / std::max<int64_t>(C, 1)),
+                                          (m + 4 * at::get_num_threads() - 1) / (4 * at::get_num_threads()));
+  const int64_t chunks = m == 0 ? 0 : (m + chunk - 1) / chunk;
+  std::vector<int64_t> kept(chunks, 0), flagged(chunks, 0);
   AT_DISPATCH_FLOATING_TYPES(acc.scalar_type(), "lidarops_sscater_finalize_compact_cpu", [&] {
-    const scalar_t* d = delta.data_ptr<scalar_t>();
-    scalar_t* dout = delta_out.data_ptr<scalar_t>();
-    at::parallel_for(0, n, std::max<int64_t>(1, 4096 / std::max<int64_t>(C, 1)), [&](int64_t j0, int64_t j1) {
-      for (int64_t j = j0; j < j1; ++j) std::copy(d + from[j] * C, d + (from[j] + 1) * C, dout + j * C);
+    const scalar_t* a = acc.data_ptr<scalar_t>();
+    scalar_t* o = out.data_ptr<scalar_t>();
+    const scalar_t* g = scale.data_ptr<scalar_t>();
+    const scalar_t* b = shift.data_ptr<scalar_t>();
+    scalar_t* d = delta_out.data_ptr<scalar_t>();
+    at::parallel_for(0, chunks, 1, [&](int64_t k0, int64_t k1) {
+      for (int64_t k = k0; k < k1; ++k) {
+        const int64_t i0 = k * chunk, i1 = std::min(m, i0 + chunk);
+        int64_t n = i0, f = 0;  // the chunk's next compacted row
+        for (int64_t i = i0; i < i1; ++i) {
+          const int64_t y = sp[2 * i], x = sp[2 * i + 1], s = y * Wo + x;
+          const scalar_t* ai = a + s * C;
+          scalar_t* oi = o + y * sy + x * sx;
+          const bool ch = sc == 1 ? finalize_row<scalar_t, true>(ai, g, b, act[s], oi, sc, d + n * C, C)
+                                  : finalize_row<scalar_t, false>(ai, g, b, act[s], oi, sc, d + n * C, C);
+          f += ch || st[s] == status_value;
+          if (!ch) continue;
+          so[2 * n] = static_cast<int32_t>(y);
+          so[2 * n + 1] = static_cast<int32_t>(x);
+          ++n;
+        }
+        kept[k] = n - i0;
+        flagged[k] = f;
+      }
     });
+    int64_t n = 0, f = 0;
+    for (int64_t k = 0; k < chunks; ++k) {
+      const int64_t i0 = k * chunk;
+      if (n != i0 && kept[k] > 0) {  // down, over rows already moved or spent: memmove for the overlap
+        std::memmove(d + n * C, d + i0 * C, sizeof(scalar_t) * kept[k] * C);
+        std::memmove(so + 2 * n, so + 2 * i0, sizeof(int32_t) * 2 * kept[k]);
+      }
+      n += kept[k];
+      f += flagged[k];
+    }
+    // padding rows: (-1, -1) sites, zero deltas
+    std::fill(so + 2 * n, so + 2 * R, int32_t(-1));
+    std::fill(d + n * C, d + R * C, scalar_t(0));
+    int64_t* cn = counts.data_ptr<int64_t>();
+    cn[0] = n;
+    cn[1] = f;
+    cn[2] = m;
   });
-  int64_t* cn = counts.data_ptr<int64_t>();
-  cn[0] = n;
-  cn[1] = flagged;
-  cn[2] = m;
   return {sites_out, delta_out, counts};
 }
 

@@ -226,6 +226,46 @@ def test_touch_then_finalize_compact_match_references(device, seed):
     _close(delta.cpu()[:n], ref_delta[[order[site] for site in got_sites]], torch.float64, "delta")
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("C,unchanged", [(2, 0.5), (3, 0.97), (1, 0.0)])
+def test_finalize_compact_over_many_rows_keeps_the_candidates_order(device, C, unchanged):
+    # Tens of thousands of candidates, so that the CPU op splits them into chunks and moves the later
+    # chunks' changed rows down (the first rows, a run of unchanged ones, or none); a tail of rows past count.
+    g = torch.Generator().manual_seed(C)
+    H, W = 170, 160
+    keys = torch.randperm(H * W, generator=g)
+    m = 24_000
+    cand = torch.stack([keys // W, keys % W], 1).to(torch.int32)
+    count = torch.tensor([m])
+    acc = torch.randn(H, W, C, generator=g, dtype=torch.float64)
+    active = torch.rand(H, W, generator=g) > 0.1
+    scale, shift = torch.rand(C, generator=g, dtype=torch.float64) + 0.5, torch.randn(C, generator=g, dtype=torch.float64)
+    value = torch.where(active[..., None], torch.relu(acc * scale + shift), torch.zeros(()))
+    out = torch.relu(torch.randn(H, W, C, generator=g, dtype=torch.float64))
+    same = torch.rand(H, W, generator=g) < unchanged
+    same[keys[:3000] // W, keys[:3000] % W] = unchanged > 0.9  # the first rows all unchanged, or none
+    out = torch.where(same[..., None], value, out)
+    stamp = torch.randint(0, 3, (H, W), generator=g, dtype=torch.int32)
+    ref_out, ref_sites, ref_delta, ref_counts = sops._finalize_compact_reference(
+        acc, out, active, cand, count, stamp, 2, scale, shift)
+    got = out.to(device)
+    sites, delta, counts = sops.finalize_compact_(acc.to(device), got, active.to(device), cand.to(device),
+                                                  count.to(device), stamp.to(device), 2, scale.to(device),
+                                                  shift.to(device))
+    assert counts.cpu().tolist() == ref_counts and 0 < ref_counts[0] < m
+    _close(got, ref_out, torch.float64, "out")
+    n = ref_counts[0]
+    assert sites.shape == cand.shape and sites.cpu()[n:].eq(-1).all()
+    if device == "cpu":  # in the candidates' order (CUDA compacts in any order)
+        assert [tuple(r) for r in sites[:n].tolist()] == ref_sites
+        _close(delta[:n], ref_delta, torch.float64, "delta")
+    else:
+        got_sites = [tuple(r) for r in sites.cpu()[:n].tolist()]
+        order = {site: i for i, site in enumerate(ref_sites)}
+        assert set(got_sites) == set(ref_sites)
+        _close(delta.cpu()[:n], ref_delta[[order[site] for site in got_sites]], torch.float64, "delta")
+
+
 def test_wrappers_name_the_bad_argument():
     acc = torch.zeros(4, 4, 3)
     sites = torch.zeros(2, 2, dtype=torch.int32)
