@@ -301,7 +301,7 @@ def plot(traces: dict, rows: list, device: str, path: Path) -> None:
 
 def _graphs_recorded(model) -> int:
     """CUDA graphs the stream has recorded so far (each new input capacity of a step or a refresh records one, once)."""
-    return len(model.delta._graphs) + len(model.delta._refresh_graphs) + (model._detect_graph is not None)
+    return model.delta.cuda_graphs + (model._detect_graph is not None)
 
 
 def _refresh_graph(model) -> bool:
@@ -358,13 +358,15 @@ def bench_channel_sparse(device, rows: list, quick: bool = False) -> None:
 def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, scenario: str = "driving_city",
                    warm: int = 12, channel_sparse: Optional[float] = None,
                    sparse_refresh: bool = False, refresh_format: Optional[str] = None,
-                   realism: Optional[str] = None) -> dict:
+                   realism: Optional[str] = None, warm_up: Optional[int] = 0) -> dict:
     """A trained PointPillars streamed (``SSCATeRPointPillars.from_detector``): each 10 ms step's boxes by
     SSCATeR (stream push, the detector's pillar net on the changed pillars, the recycled backbone, the head at
     the changed output sites, NMS) against the detector on the same window, stage by stage (pillarize + pillar
     net + scatter, backbone, head + NMS) and as ``predict`` (on CUDA replayed as one CUDA graph, and eager inside
     ``eager_predict()``); every ``every`` steps, with the boxes compared. ``realism``: the simulator's realism
-    profile of the scene (None: ray-cast)."""
+    profile of the scene (None: ray-cast). ``warm_up``: the stream's CUDA graphs recorded before the first step
+    (:meth:`SSCATeRPointPillars.warm_up`) for up to that many pillars (0: the stream's ``max_pillars``; None: not
+    at all, each is recorded by the first step of its size)."""
     from lidarops.data.synthetic import Simulator
     from lidarops.models import load_model, weights
     from lidarops.models.pointpillars import eager_predict
@@ -376,6 +378,17 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     if channel_sparse is not None:  # before the first update: a CUDA graph keeps the value it was captured with
         model.delta.channel_sparse = float(channel_sparse)
     sim = Simulator(scenario, seed=0, realism=realism)
+    warmed = {}
+    if warm_up is not None:
+        _sync(device)
+        mem = torch.cuda.memory_reserved(device) if device.type == "cuda" else 0
+        t0 = time.perf_counter()
+        recorded = model.warm_up(warm_up or None)
+        _sync(device)
+        warmed = {"warm_up_ms": 1e3 * (time.perf_counter() - t0), "warm_up_graphs": recorded,
+                  "warm_up_pillars": warm_up or model.stream.max_pillars,
+                  "warm_up_memory_mb": ((torch.cuda.memory_reserved(device) - mem) / 2 ** 20
+                                        if device.type == "cuda" else 0.0)}
     ours, full, same, pfn, pfn_full = [], [], [], 0, 0
     # detection AP: the windows that are whole frames of the simulator (their labels), SSCATeR's boxes and the
     # detector's on each
@@ -443,7 +456,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
                "pillars_changed_share": statistics.mean(r["changed"] / max(r["active"], 1) for r in ours),
                "channel_sparse": model.delta.channel_sparse, "sparse_refresh": sparse_refresh,
                "refresh_format": refresh_format or "default", "refresh_graph": _refresh_graph(model),
-               "tiling": os.environ.get("LIDAROPS_SSCATER_TILING", "default")}
+               "tiling": os.environ.get("LIDAROPS_SSCATER_TILING", "default"), **warmed}
     if ap_frames:
         summary["ap_frames"] = len(ap_frames)
         summary["ap_sscater"], summary["ap_detector"] = stream_ap(ap_frames, ap_ours, ap_full, det.config.class_names,
@@ -481,6 +494,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     tag += "/sparse_refresh" if sparse_refresh else ""
     tag += f"/{refresh_format}" if refresh_format else ""
     tag += "/eager_refresh" if model.delta.cuda_graph and not _refresh_graph(model) else ""
+    tag += "/no_warm_up" if warm_up is None and device.type == "cuda" else ""
     tag += f"/tiling_{os.environ['LIDAROPS_SSCATER_TILING']}" if os.environ.get("LIDAROPS_SSCATER_TILING") else ""
     scene = f"{scenario}+{realism}" if realism else scenario
     rows.append({"op": f"detector_stream/{scene}/{path.stem}{tag}", **summary})
@@ -510,6 +524,9 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
         f"#{r['k']} {r['step']:.2f} ms (stream {r['stream']:.2f}, pillar net {r['pfn']:.2f}, backbone "
         f"{r['backbone']:.2f}, head and NMS {r['head_nms']:.2f}{', refresh' if r['refreshed'] else ''}"
         f"{', recorded a CUDA graph' if r['recorded'] else ''})" for r in summary["slowest_steps"]))
+    if warmed.get("warm_up_graphs"):
+        print(f"warm_up() recorded {warmed['warm_up_graphs']} CUDA graphs for up to {warmed['warm_up_pillars']} pillars "
+              f"in {warmed['warm_up_ms']:.0f} ms, holding {warmed['warm_up_memory_mb']:.0f} MB more of the device's memory")
     if summary["steps_recording_graphs"] and "max_step_replayed_ms" in summary:
         print(f"{summary['steps_recording_graphs']} step(s) recorded a CUDA graph (once per new input capacity); the "
               f"slowest of the others took {summary['max_step_replayed_ms']:.2f} ms")
@@ -601,6 +618,11 @@ def main(argv=None) -> int:
                          "lidarops.sscater.delta.DENSE_CHANNELS_LAST)")
     ap.add_argument("--eager-refresh", action="store_true",
                     help="--only detector: no CUDA graph of the refresh (lidarops.sscater.delta.REFRESH_CUDA_GRAPH)")
+    ap.add_argument("--warm-up", type=int, default=0, metavar="PILLARS",
+                    help="--only detector: record the stream's CUDA graphs before the first step for up to PILLARS "
+                         "pillars (SSCATeRPointPillars.warm_up; default 0: the stream's max_pillars)")
+    ap.add_argument("--no-warm-up", action="store_true",
+                    help="--only detector: no warm_up(): each CUDA graph is recorded by the first step of its size")
     a = ap.parse_args(argv)
     import lidarops.extension as ext
     ext.load()
@@ -633,7 +655,8 @@ def main(argv=None) -> int:
         bench_detector(device, a.steps or (20 if a.quick else (1000 if device.type == "cuda" else 120)),
                        a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
                        scenario, channel_sparse=a.channel_sparse, sparse_refresh=a.sparse_refresh,
-                       refresh_format=a.refresh_format, realism=realism)
+                       refresh_format=a.refresh_format, realism=realism,
+                       warm_up=None if a.no_warm_up else a.warm_up)
     if traces and not a.quick:
         from benchmarks.common import device_slug
         plot(traces, rows, str(device), Path(a.plot) if a.plot else

@@ -406,12 +406,13 @@ class SSCATeRPointPillars:
         return bool(self.dense and self.delta.cuda_graph and not self.profile and delta_module.REFRESH_CUDA_GRAPH
                     and self.device.type == "cuda")
 
-    def _refresh_features(self, active: Tensor):
+    def _refresh_features(self, active: Tensor, cap: Optional[int] = None):
         """The features function of a graphed refresh: the window's active pillars ``(P, 3)`` go into a list padded
-        to a power-of-two capacity (one graph per capacity); the function gives the pillar net's features of
-        every site of the grid (zero where no pillar is) and counts their points in ``_pfn_points``."""
+        to a power-of-two capacity (one graph per capacity; ``cap``, else the smallest from 1024 that holds them);
+        the function gives the pillar net's features of every site of the grid (zero where no pillar is) and
+        counts their points in ``_pfn_points``."""
         n = active.shape[0]
-        cap = max(1024, 1 << max(n - 1, 0).bit_length())
+        cap = cap or max(1024, 1 << max(n - 1, 0).bit_length())
         if cap not in self._refresh_inputs:
             coords = torch.full((cap, 3), -1, dtype=torch.int32, device=self.device)
             coords[:, 0] = 0  # padding rows (0, -1, -1): the stream's gather gives them no points
@@ -420,6 +421,40 @@ class SSCATeRPointPillars:
         coords[n:, 1:].fill_(-1)
         coords[:n].copy_(active)
         return fn
+
+    def warm_up(self, pillars: Optional[int] = None) -> int:
+        """Record now, before the first step, the CUDA graphs a stream records the first time it meets a size: the
+        refresh for every capacity up to ``pillars`` pillars in the window (default: the stream's ``max_pillars``),
+        the update for every capacity of up to as many changed pillars, and :meth:`detect`'s. A step that records
+        one takes several milliseconds more, once per size; after ``warm_up()`` none does below ``pillars``. The
+        graphs' memory is held as long as the model, and grows with ``pillars`` (each refresh graph keeps its own,
+        with the pillar net's activations for its capacity): give the most pillars you expect a window to hold.
+        Returns how many graphs it recorded: 0 on the CPU and when there is nothing to record."""
+        if self._since_refresh is not None:
+            raise ValueError("warm_up() must come before the first step (or right after reset())")
+        if pillars is None:
+            pillars = self.stream.max_pillars
+        if isinstance(pillars, bool) or not isinstance(pillars, int) or pillars < 1:
+            raise ValueError(f"pillars must be an int >= 1, got {pillars!r}")
+        top = 1 << max(pillars - 1, 0).bit_length()
+        recorded = 0
+        with torch.no_grad():
+            if self._graphed_refresh():  # refreshes of the empty window: the first step recomputes everything
+                empty = self.stream.active_coords()[:0]
+                known = self.delta.cuda_graphs
+                for cap in (1 << k for k in range(10, max(top, 1024).bit_length())):
+                    self.delta.refresh(self._every_site(), self._refresh_features(empty, cap), check=False)
+                recorded += self.delta.cuda_graphs - known
+            if self.delta.cuda_graph and not self.profile and self.device.type == "cuda":
+                for cap in (1 << k for k in range(8, max(top, 256).bit_length())):
+                    recorded += self.delta.prepare_update(cap, self._changed_features)
+            if self.detector is not None and self.device.type == "cuda":
+                known = self._detect_graph
+                self.detect()
+                recorded += self._detect_graph is not known
+        self._head = self._head_sites = None
+        self.stats = StepStats()
+        return recorded
 
     def _features_of_every_site(self, coords: Tensor, sites: Tensor) -> Tensor:
         pillars = self.stream.pillars(coords, check=False)

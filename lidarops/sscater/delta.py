@@ -594,6 +594,25 @@ class DeltaBackbone:
         graph.replay()
         return outputs
 
+    @property
+    def cuda_graphs(self) -> int:
+        """How many CUDA graphs the engine has recorded: one per capacity (and features function) of its updates
+        and of its refreshes of every site."""
+        return len(self._graphs) + len(self._refresh_graphs)
+
+    def prepare_update(self, capacity: int, features) -> bool:
+        """Record now the CUDA graph of an update of up to ``capacity`` changed sites (a power of two, at least
+        256) with ``features``, a function of the sites, as :meth:`update` would on the first step of that size;
+        it changes no state. Returns whether a graph was recorded (False: not ``cuda_graph``, or recorded)."""
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 256 or capacity & (capacity - 1):
+            raise ValueError(f"capacity must be a power of two >= 256, got {capacity!r}")
+        if not callable(features):
+            raise ValueError(f"features must be a function of the sites, got {type(features).__name__}")
+        if not self.cuda_graph or (capacity, features) in self._graphs:
+            return False
+        self._capture(capacity, features)
+        return True
+
     def _capture(self, cap: int, fn=None):
         s_sites = torch.full((cap, 2), -1, dtype=torch.int32, device=self.device)
         s_feats = None if fn else torch.zeros(cap, self.in_channels, dtype=self.dtype, device=self.device)

@@ -345,8 +345,9 @@ def _scatter_reference(acc, sites, delta, weight, stride=1, padding=0, transpose
 
 def _finalize_values(acc, active, scale, shift, ys, xs) -> Tensor:
     acc, scale, shift = acc.cpu().double(), scale.cpu().double(), shift.cpu().double()
-    y = torch.relu(acc[ys, xs] * scale + shift)
-    return torch.where(active.cpu()[ys, xs][:, None], y, torch.zeros((), dtype=torch.float64))
+    v = acc[ys, xs] * scale + shift
+    zero = torch.zeros((), dtype=torch.float64)
+    return torch.where(active.cpu()[ys, xs][:, None] & (v > 0), v, zero)  # as the kernels: NaN gives 0
 
 
 def _finalize_reference(acc, out, active, sites, scale, shift) -> tuple[Tensor, Tensor, Tensor]:

@@ -101,3 +101,74 @@ def test_dense_finalize_bad_arguments(device, data):
     _, err = outcome(sops.dense_finalize_, **moved)
     names = [name] + (["acc"] if name in ("scale", "shift") else []) + (["y", "out", "scale"] if name == "acc" else [])
     assert_clear_error(err, ValueError, names, f"dense_finalize_ with a bad {bad} of {name}")
+
+
+@fuzz
+@given(data=st.data())
+def test_finalize_compact_matches_its_reference(device, data):
+    """finalize_compact_ over up to tens of thousands of candidates (the CPU op compacts them chunk by chunk): out,
+    the changed sites in the candidates' order (any order on CUDA), their deltas and the counts as the float64
+    reference, with NaN, infinities, exact zeros and rows already up to date among them."""
+    dtype = data.draw(st.sampled_from([torch.float32, torch.float64]), "dtype")
+    C = data.draw(st.integers(1, 5), "C")
+    H, W = data.draw(st.integers(1, 140), "H"), data.draw(st.integers(1, 150), "W")
+    g = torch.Generator().manual_seed(data.draw(st.integers(0, 2**31 - 1), "seed"))
+    keys = torch.randperm(H * W, generator=g)[:data.draw(st.integers(0, H * W), "candidates")]
+    cand = torch.stack([keys // W, keys % W], 1).to(torch.int32)
+    count = torch.tensor([data.draw(st.integers(-2, len(keys) + 2), "count")])
+    acc = _values(data.draw, (H, W, C), dtype)
+    scale, shift = _values(data.draw, (C,), dtype), _values(data.draw, (C,), dtype)
+    active = torch.rand(H, W, generator=g) < data.draw(st.sampled_from([0.0, 0.5, 1.0]), "active share")
+    # rows already up to date: their new value is 0 whatever the rounding (inactive, or BatchNorm's output clearly
+    # negative) and out holds 0 there; the other rows hold other values, so they change
+    pre = acc.double() * scale.double() + shift.double()
+    zero = ~active[..., None] | (pre < 0) & (pre.abs() > 1e-6 * ((acc.double() * scale.double()).abs() + shift.double().abs()))
+    same = zero.all(-1) & (torch.rand(H, W, generator=g) < data.draw(st.sampled_from([0.0, 0.5, 0.95]), "share unchanged"))
+    out = torch.where(same[..., None], 0.0, _values(data.draw, (H, W, C), torch.float64).abs() + 0.5).to(dtype)
+    stamp = torch.randint(0, 3, (H, W), generator=g, dtype=torch.int32)
+    ref_out, ref_sites, ref_delta, ref_counts = sops._finalize_compact_reference(
+        acc.double(), out.double(), active, cand, count, stamp, 2, scale.double(), shift.double())
+    old = out.double()  # the values the op replaces
+    got = out.clone().to(device)
+    res, err = outcome(sops.finalize_compact_, acc.to(device), got, active.to(device), cand.to(device),
+                       count.to(device), stamp.to(device), 2, scale.to(device), shift.to(device))
+    assert_no_error(err, "finalize_compact_ on valid input")
+    sites, delta, counts = res
+    # the op computes in dtype: compare where the float64 reference rounds to the same value, specials exactly
+    assert counts.cpu().tolist() == ref_counts
+    n = ref_counts[0]
+    assert sites.shape == cand.shape and bool(sites.cpu()[n:].eq(-1).all())
+    got_sites = [tuple(r) for r in sites.cpu()[:n].tolist()]
+    if device == "cpu":
+        assert got_sites == ref_sites
+    else:
+        assert sorted(got_sites) == sorted(ref_sites)
+    _check_out(got, acc.double(), scale, shift, ref_out, dtype, "out")
+    order = {site: i for i, site in enumerate(ref_sites)}
+    rows = [order[site] for site in got_sites]
+    ys, xs = [y for y, _ in got_sites], [x for _, x in got_sites]
+    # delta = new - old: within the rounding of the new value and of the subtraction, specials exact
+    ref, got_d = ref_delta[rows], delta.cpu()[:n].double()
+    bound = 8 * _EPS[dtype] * (ref_out[ys, xs].abs() + old[ys, xs].abs()) + 1e-300
+    finite = torch.isfinite(ref) & torch.isfinite(bound)
+    ok = torch.where(finite, (got_d - ref).abs() <= bound, (got_d == ref) | (torch.isnan(got_d) & torch.isnan(ref)))
+    assert bool(ok.all()), f"delta: {int((~ok).sum())} entries off"
+
+
+@fuzz
+@given(pillars=st.one_of(st.integers(-5, 0), st.floats(allow_nan=True), st.booleans(), st.text(max_size=3),
+                         st.none(), st.integers(1, 3000)))
+def test_warm_up_takes_a_count_of_pillars(pillars):
+    """SSCATeRPointPillars.warm_up(pillars): an int >= 1 (or None, the stream's max_pillars) records the graphs (none
+    on the CPU); anything else raises ValueError naming pillars; after the first step it raises."""
+    from lidarops.models.sscater_pointpillars import PillarFeatureNet, SSCATeRPointPillars
+    from lidarops.models import BaseBEVBackbone
+    from lidarops.stream import PillarGrid
+    model = SSCATeRPointPillars(PillarFeatureNet(9, 64).eval(), BaseBEVBackbone().eval(),
+                                PillarGrid((0.0, -8.0, -3.0, 16.0, 8.0, 1.0), (0.5, 0.5, 4.0)), device="cpu")
+    res, err = outcome(model.warm_up, pillars)
+    if pillars is None or (isinstance(pillars, int) and not isinstance(pillars, bool) and pillars >= 1):
+        assert_no_error(err, f"warm_up({pillars!r})")
+        assert res == 0
+    else:
+        assert_clear_error(err, ValueError, ["pillars"], f"warm_up({pillars!r})")

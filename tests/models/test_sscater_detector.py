@@ -109,6 +109,42 @@ def test_detect_as_a_cuda_graph_equals_the_eager_head_and_postprocess(monkeypatc
         stream.detect()
 
 
+def test_warm_up_records_every_graph_before_the_first_step(monkeypatch, device):
+    """warm_up() records the CUDA graphs of the refresh, the update and detect() for every capacity up to the pillars
+    given, so that no step records one below that; the steps' boxes are those of a stream without it. On the CPU
+    it records nothing and changes nothing. It refuses to run once the stream has started, and a bad count."""
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    dtype = torch.float32
+    detector = _detector(dtype, seed=2).to(device)
+    warm = SSCATeRPointPillars.from_detector(detector, window=0.1, refresh_every=7, dtype=dtype)
+    cold = SSCATeRPointPillars.from_detector(detector, window=0.1, refresh_every=7, dtype=dtype)
+    recorded = warm.warm_up(pillars=700)
+    graphs = warm.delta.cuda_graphs
+    if device == "cuda":  # refreshes 1024; updates 256, 512, 1024; detect
+        assert recorded == 5 and graphs == 4 and warm._detect_graph is not None, (recorded, graphs)
+    else:
+        assert recorded == 0 and graphs == 0
+    for k, (pts, t) in enumerate(_slices(16, seed=3)):
+        warm.step(pts.to(device), t.to(device))
+        cold.step(pts.to(device), t.to(device))
+        assert warm.stats.pillars_active <= 700
+        assert warm.delta.cuda_graphs == graphs, k  # nothing recorded by a step
+        got, want = warm.detect(), cold.detect()
+        assert got["labels"].tolist() == want["labels"].tolist(), k
+        assert torch.allclose(got["scores"], want["scores"], rtol=0, atol=1e-5), k
+    with pytest.raises(ValueError, match="before the first step"):
+        warm.warm_up()
+    warm.reset()
+    for bad in (0, -3, 2.5, True, "64"):
+        with pytest.raises(ValueError, match="pillars must be an int >= 1"):
+            warm.warm_up(bad)
+    for bad in (300, 128, 512.0, True):
+        with pytest.raises(ValueError, match="capacity must be a power of two >= 256"):
+            warm.delta.prepare_update(bad, warm._changed_features)
+    with pytest.raises(ValueError, match="features must be a function of the sites"):
+        warm.delta.prepare_update(512, torch.zeros(512, 4))
+
+
 @pytest.mark.parametrize("dense_share", [2.0, 0.5, 0.0])  # never, the default, always the dense head
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
 def test_head_on_changed_sites_equals_the_head_on_the_whole_map(monkeypatch, device, dtype, tol, dense_share):
