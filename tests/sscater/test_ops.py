@@ -238,13 +238,14 @@ def test_finalize_compact_over_many_rows_keeps_the_candidates_order(device, C, u
     cand = torch.stack([keys // W, keys % W], 1).to(torch.int32)
     count = torch.tensor([m])
     acc = torch.randn(H, W, C, generator=g, dtype=torch.float64)
-    active = torch.rand(H, W, generator=g) > 0.1
     scale, shift = torch.rand(C, generator=g, dtype=torch.float64) + 0.5, torch.randn(C, generator=g, dtype=torch.float64)
-    value = torch.where(active[..., None], torch.relu(acc * scale + shift), torch.zeros(()))
-    out = torch.relu(torch.randn(H, W, C, generator=g, dtype=torch.float64))
+    out = torch.relu(torch.randn(H, W, C, generator=g, dtype=torch.float64)) + 0.5
     same = torch.rand(H, W, generator=g) < unchanged
     same[keys[:3000] // W, keys[:3000] % W] = unchanged > 0.9  # the first rows all unchanged, or none
-    out = torch.where(same[..., None], value, out)
+    # an unchanged row: an inactive site that already holds 0 (exact on every device, whatever the rounding of
+    # the BatchNorm, which CUDA fuses into one multiply-add)
+    active = ~same & (torch.rand(H, W, generator=g) > 0.1)
+    out = torch.where(same[..., None], 0.0, out)
     stamp = torch.randint(0, 3, (H, W), generator=g, dtype=torch.int32)
     ref_out, ref_sites, ref_delta, ref_counts = sops._finalize_compact_reference(
         acc, out, active, cand, count, stamp, 2, scale, shift)
@@ -252,7 +253,7 @@ def test_finalize_compact_over_many_rows_keeps_the_candidates_order(device, C, u
     sites, delta, counts = sops.finalize_compact_(acc.to(device), got, active.to(device), cand.to(device),
                                                   count.to(device), stamp.to(device), 2, scale.to(device),
                                                   shift.to(device))
-    assert counts.cpu().tolist() == ref_counts and 0 < ref_counts[0] < m
+    assert counts.cpu().tolist() == ref_counts and 0 < ref_counts[0] <= m and (ref_counts[0] < m) == (unchanged > 0)
     _close(got, ref_out, torch.float64, "out")
     n = ref_counts[0]
     assert sites.shape == cand.shape and sites.cpu()[n:].eq(-1).all()
