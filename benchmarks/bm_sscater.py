@@ -358,7 +358,7 @@ def bench_channel_sparse(device, rows: list, quick: bool = False) -> None:
 def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, scenario: str = "driving_city",
                    warm: int = 12, channel_sparse: Optional[float] = None,
                    sparse_refresh: bool = False, refresh_format: Optional[str] = None,
-                   realism: Optional[str] = None, warm_up: Optional[int] = 0) -> dict:
+                   realism: Optional[str] = None, warm_up: Optional[int] = 0, eager_push: bool = False) -> dict:
     """A trained PointPillars streamed (``SSCATeRPointPillars.from_detector``): each 10 ms step's boxes by
     SSCATeR (stream push, the detector's pillar net on the changed pillars, the recycled backbone, the head at
     the changed output sites, NMS) against the detector on the same window, stage by stage (pillarize + pillar
@@ -366,7 +366,8 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     ``eager_predict()``); every ``every`` steps, with the boxes compared. ``realism``: the simulator's realism
     profile of the scene (None: ray-cast). ``warm_up``: the stream's CUDA graphs recorded before the first step
     (:meth:`SSCATeRPointPillars.warm_up`) for up to that many pillars (0: the stream's ``max_pillars``; None: not
-    at all, each is recorded by the first step of its size)."""
+    at all, each is recorded by the first step of its size). ``eager_push``: the stream pushes eagerly
+    (``PillarStream.cuda_graph = False``)."""
     from lidarops.data.synthetic import Simulator
     from lidarops.models import load_model, weights
     from lidarops.models.pointpillars import eager_predict
@@ -378,6 +379,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     if channel_sparse is not None:  # before the first update: a CUDA graph keeps the value it was captured with
         model.delta.channel_sparse = float(channel_sparse)
     sim = Simulator(scenario, seed=0, realism=realism)
+    model.stream.cuda_graph = not eager_push
     warmed = {}
     if warm_up is not None:
         _sync(device)
@@ -495,6 +497,7 @@ def bench_detector(device, steps: int, every: int, checkpoint: str, rows: list, 
     tag += f"/{refresh_format}" if refresh_format else ""
     tag += "/eager_refresh" if model.delta.cuda_graph and not _refresh_graph(model) else ""
     tag += "/no_warm_up" if warm_up is None and device.type == "cuda" else ""
+    tag += "/eager_push" if eager_push and device.type == "cuda" else ""
     tag += f"/tiling_{os.environ['LIDAROPS_SSCATER_TILING']}" if os.environ.get("LIDAROPS_SSCATER_TILING") else ""
     scene = f"{scenario}+{realism}" if realism else scenario
     rows.append({"op": f"detector_stream/{scene}/{path.stem}{tag}", **summary})
@@ -621,6 +624,8 @@ def main(argv=None) -> int:
     ap.add_argument("--warm-up", type=int, default=0, metavar="PILLARS",
                     help="--only detector: record the stream's CUDA graphs before the first step for up to PILLARS "
                          "pillars (SSCATeRPointPillars.warm_up; default 0: the stream's max_pillars)")
+    ap.add_argument("--eager-push", action="store_true",
+                    help="--only detector: the stream pushes eagerly, not as a CUDA graph (PillarStream.cuda_graph)")
     ap.add_argument("--no-warm-up", action="store_true",
                     help="--only detector: no warm_up(): each CUDA graph is recorded by the first step of its size")
     a = ap.parse_args(argv)
@@ -656,7 +661,7 @@ def main(argv=None) -> int:
                        a.every or (5 if a.quick else (10 if device.type == "cuda" else 3)), a.checkpoint, rows,
                        scenario, channel_sparse=a.channel_sparse, sparse_refresh=a.sparse_refresh,
                        refresh_format=a.refresh_format, realism=realism,
-                       warm_up=None if a.no_warm_up else a.warm_up)
+                       warm_up=None if a.no_warm_up else a.warm_up, eager_push=a.eager_push)
     if traces and not a.quick:
         from benchmarks.common import device_slug
         plot(traces, rows, str(device), Path(a.plot) if a.plot else

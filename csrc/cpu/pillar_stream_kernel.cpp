@@ -340,7 +340,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cpu(
     at::Tensor& pool_xyzi, at::Tensor& pool_t, at::Tensor& head, at::Tensor& count, at::Tensor& slot_cell,
     at::Tensor& cell_slot, at::Tensor& free_slots, at::Tensor& num_free, at::Tensor& log_cell, at::Tensor& log_t,
     const at::Tensor& points_in, const at::Tensor& t_in, const at::Tensor& runs_in, int64_t log_head, double cutoff,
-    at::ArrayRef<double> point_range, at::ArrayRef<double> pillar_size, at::IntArrayRef grid_hw, bool drop) {
+    at::ArrayRef<double> point_range, at::ArrayRef<double> pillar_size, at::IntArrayRef grid_hw, bool drop,
+    const c10::optional<at::Tensor>& scalars) {
+  bool bad_scalars = false;  // state values, as the CUDA kernels read them: reported, not raised
+  if (scalars.has_value()) {
+    check_pillar_stream_scalars(*scalars, pool_xyzi);
+    const auto sc = scalars->contiguous();
+    log_head = sc.data_ptr<int64_t>()[0];
+    std::memcpy(&cutoff, sc.data_ptr<int64_t>() + 1, sizeof(double));
+    bad_scalars = !(log_head >= 0 && log_head < kPsMaxLogHead) || std::isnan(cutoff);
+    if (bad_scalars) log_head = 0, cutoff = 0.0;
+  }
   const PillarStreamArgs a =
       check_pillar_stream_push_args(pool_xyzi, pool_t, head, count, slot_cell, cell_slot, free_slots, num_free,
                                     log_cell, log_t, points_in, t_in, runs_in, log_head, cutoff, point_range,
@@ -354,6 +364,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cpu(
   auto stats = at::zeros({kNumPillarStreamStats}, points.options().dtype(at::kLong));
   auto run_pops = at::zeros({R}, points.options().dtype(at::kLong));
   int64_t* st = stats.data_ptr<int64_t>();
+  if (bad_scalars) {
+    st[kPsOverflow] = kPsBadLog;
+    return {change_map, stats, run_pops};
+  }
   StreamState s{pool_xyzi.data_ptr<float>(),
                 pool_t.data_ptr<double>(),
                 head.data_ptr<int32_t>(),

@@ -146,9 +146,15 @@ std::tuple<at::Tensor, at::Tensor> pillar_stream_gather_cuda(const at::Tensor& p
 
 // ---- pillar_stream_push: plan ----
 
+// scalars (nullable): log_head and the bits of cutoff, read on the device in place of the arguments.
+__device__ __forceinline__ double ps_cutoff(const int64_t* scalars, double cutoff) {
+  return scalars != nullptr ? __longlong_as_double(scalars[1]) : cutoff;
+}
+
 __global__ void ps_keys_kernel(const float* __restrict__ points, const double* __restrict__ t, int64_t n,
-                               VoxelGrid<float> g, double cutoff, int64_t* __restrict__ ckey,
-                               double* __restrict__ tkey, int64_t* __restrict__ stats) {
+                               VoxelGrid<float> g, double cutoff_arg, const int64_t* __restrict__ scalars,
+                               int64_t* __restrict__ ckey, double* __restrict__ tkey, int64_t* __restrict__ stats) {
+  const double cutoff = ps_cutoff(scalars, cutoff_arg);
   LIDAROPS_GRID_STRIDE(i, n) {
     const float* q = points + 4 * i;
     const int64_t key = voxel_key(g, q[0], q[1], q[2]);
@@ -166,11 +172,13 @@ __global__ void ps_keys_kernel(const float* __restrict__ points, const double* _
 // count per entry on its pillar's slot.
 __global__ void ps_expire_count_kernel(const int64_t* __restrict__ runs, const int32_t* __restrict__ log_cell,
                                        const double* __restrict__ log_t, int64_t L, int64_t cells, int64_t M,
-                                       double cutoff, const int32_t* __restrict__ cell_slot,
+                                       double cutoff_arg, const int64_t* __restrict__ scalars,
+                                       const int32_t* __restrict__ cell_slot,
                                        const int32_t* __restrict__ slot_cell, int32_t* __restrict__ pops,
                                        int32_t* __restrict__ touched, int64_t* __restrict__ run_pops,
                                        int64_t* __restrict__ stats) {
   __shared__ int64_t expired;
+  const double cutoff = ps_cutoff(scalars, cutoff_arg);
   const int64_t r = blockIdx.x;
   const int64_t start = runs[2 * r], end = runs[2 * r + 1];
   if (threadIdx.x == 0 && !(0 <= start && start <= end && end - start <= L)) {
@@ -318,7 +326,9 @@ __global__ void ps_free_check_kernel(const int32_t* __restrict__ num_free, const
 }
 
 __global__ void ps_finalize_kernel(const int32_t* __restrict__ num_free, int64_t M, int64_t N,
-                                   int64_t* __restrict__ stats) {
+                                   const int64_t* __restrict__ scalars, int64_t* __restrict__ stats) {
+  if (scalars != nullptr && (!(scalars[0] >= 0 && scalars[0] < kPsMaxLogHead) || isnan(ps_cutoff(scalars, 0.0))))
+    stats[kPsOverflow] |= kPsBadLog;  // before the apply kernels, which then change nothing
   const int64_t active_after = (M - num_free[0]) - stats[kPsEmptied] + stats[kPsNewPillars];
   stats[kPsPillarsNeeded] = active_after;
   stats[kPsPointsIn] -= stats[kPsDroppedPoints] + stats[kPsDroppedPillars];
@@ -407,10 +417,11 @@ __global__ void ps_insert_kernel(const int64_t* __restrict__ skeys, const int64_
 // inclusive-sum positions.
 __global__ void ps_log_kernel(const double* __restrict__ sorted_t, const int64_t* __restrict__ order_t,
                               const int64_t* __restrict__ ckey, const double* __restrict__ t,
-                              const int64_t* __restrict__ pos, int64_t n, int64_t log_head, int64_t L,
-                              int32_t* __restrict__ log_cell, double* __restrict__ log_t,
-                              const int64_t* __restrict__ stats) {
+                              const int64_t* __restrict__ pos, int64_t n, int64_t log_head_arg,
+                              const int64_t* __restrict__ scalars, int64_t L, int32_t* __restrict__ log_cell,
+                              double* __restrict__ log_t, const int64_t* __restrict__ stats) {
   if (stats[kPsOverflow]) return;
+  const int64_t log_head = scalars != nullptr ? scalars[0] : log_head_arg;
   LIDAROPS_GRID_STRIDE(j, n) {
     if (isinf(sorted_t[j])) continue;  // the entering points come first in t order
     int64_t at = j;
@@ -434,11 +445,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
     at::Tensor& pool_xyzi, at::Tensor& pool_t, at::Tensor& head, at::Tensor& count, at::Tensor& slot_cell,
     at::Tensor& cell_slot, at::Tensor& free_slots, at::Tensor& num_free, at::Tensor& log_cell, at::Tensor& log_t,
     const at::Tensor& points_in, const at::Tensor& t_in, const at::Tensor& runs_in, int64_t log_head, double cutoff,
-    at::ArrayRef<double> point_range, at::ArrayRef<double> pillar_size, at::IntArrayRef grid_hw, bool drop) {
+    at::ArrayRef<double> point_range, at::ArrayRef<double> pillar_size, at::IntArrayRef grid_hw, bool drop,
+    const c10::optional<at::Tensor>& scalars_in) {
+  at::Tensor scalars;
+  if (scalars_in.has_value()) {
+    check_pillar_stream_scalars(*scalars_in, pool_xyzi);
+    scalars = scalars_in->contiguous();
+  }
+  const int64_t* sc = scalars.defined() ? scalars.data_ptr<int64_t>() : nullptr;
   const PillarStreamArgs a =
       check_pillar_stream_push_args(pool_xyzi, pool_t, head, count, slot_cell, cell_slot, free_slots, num_free,
-                                    log_cell, log_t, points_in, t_in, runs_in, log_head, cutoff, point_range,
-                                    pillar_size, grid_hw);
+                                    log_cell, log_t, points_in, t_in, runs_in, sc ? 0 : log_head,
+                                    sc ? 0.0 : cutoff, point_range, pillar_size, grid_hw);  // scalars: read there
   const VoxelGrid<float> g = pillar_voxel_grid(point_range, pillar_size, a);
   const c10::cuda::CUDAGuard guard(pool_xyzi.device());
   const auto stream = c10::cuda::getCurrentCUDAStream();
@@ -463,13 +481,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
   auto seg_start = at::empty({n}, opts.dtype(at::kLong)), seg_len = at::empty({n}, opts.dtype(at::kLong));
   if (n > 0) {
     ps_keys_kernel<<<num_blocks(n), kThreads, 0, stream>>>(points.data_ptr<float>(), t.data_ptr<double>(), n, g,
-                                                            cutoff, ckey.data_ptr<int64_t>(), tkey.data_ptr<double>(),
+                                                            cutoff, sc, ckey.data_ptr<int64_t>(), tkey.data_ptr<double>(),
                                                             st);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
   if (R > 0) {
     ps_expire_count_kernel<<<static_cast<unsigned int>(R), kThreads, 0, stream>>>(
-        runs.data_ptr<int64_t>(), log_cell.data_ptr<int32_t>(), log_t.data_ptr<double>(), L, a.H * a.W, M, cutoff,
+        runs.data_ptr<int64_t>(), log_cell.data_ptr<int32_t>(), log_t.data_ptr<double>(), L, a.H * a.W, M, cutoff, sc,
         cell_slot.data_ptr<int32_t>(), slot_cell.data_ptr<int32_t>(), pops.data_ptr<int32_t>(),
         touched.data_ptr<int32_t>(), run_pops.data_ptr<int64_t>(), st);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
@@ -518,7 +536,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
   ps_free_check_kernel<<<num_blocks(M), kThreads, 0, stream>>>(
       num_free.data_ptr<int32_t>(), free_slots.data_ptr<int32_t>(), slot_cell.data_ptr<int32_t>(), M, st);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  ps_finalize_kernel<<<1, 1, 0, stream>>>(num_free.data_ptr<int32_t>(), M, N, st);
+  ps_finalize_kernel<<<1, 1, 0, stream>>>(num_free.data_ptr<int32_t>(), M, N, sc, st);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 
   // apply
@@ -537,7 +555,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pillar_stream_push_cuda(
     C10_CUDA_KERNEL_LAUNCH_CHECK();
     ps_log_kernel<<<num_blocks(n), kThreads, 0, stream>>>(
         sorted_t.data_ptr<double>(), order_t.data_ptr<int64_t>(), ckey.data_ptr<int64_t>(), t.data_ptr<double>(),
-        drop ? log_pos.data_ptr<int64_t>() : nullptr, n, log_head, L, log_cell.data_ptr<int32_t>(),
+        drop ? log_pos.data_ptr<int64_t>() : nullptr, n, log_head, sc, L, log_cell.data_ptr<int32_t>(),
         log_t.data_ptr<double>(), st);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }

@@ -33,11 +33,14 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // checked where they are read; a broken invariant sets a kPsBad* bit of stats[kPsOverflow] and
   // nothing is changed either (csrc/include/lidarops/pillar_stream.h; docs/stream.md).
   // Returns change_map (H, W) bool (pillars that gained or lost a point), stats (kNumPillarStreamStats,)
-  // int64, run_pops (R,) int64 (entries expired from the front of each run).
+  // int64, run_pops (R,) int64 (entries expired from the front of each run). With scalars, an int64 (2,)
+  // tensor on the state's device holding log_head and the bits of cutoff (float64), the op reads those two
+  // there and ignores the arguments: a CUDA graph's push, whose window is decided on the device.
   m.def(
       "pillar_stream_push(Tensor(a!) pool_xyzi, Tensor(b!) pool_t, Tensor(c!) head, Tensor(d!) count,"
       " Tensor(e!) slot_cell, Tensor(f!) cell_slot, Tensor(g!) free_slots, Tensor(h!) num_free,"
       " Tensor(i!) log_cell, Tensor(j!) log_t, Tensor points, Tensor t, Tensor runs, int log_head, float cutoff,"
-      " float[6] point_range, float[2] pillar_size, int[2] grid_hw, bool drop=False) -> (Tensor change_map,"
+      " float[6] point_range, float[2] pillar_size, int[2] grid_hw, bool drop=False, Tensor? scalars=None) ->"
+      " (Tensor change_map,"
       " Tensor stats, Tensor run_pops)");
 }

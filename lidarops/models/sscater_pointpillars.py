@@ -422,10 +422,11 @@ class SSCATeRPointPillars:
         coords[:n].copy_(active)
         return fn
 
-    def warm_up(self, pillars: Optional[int] = None) -> int:
+    def warm_up(self, pillars: Optional[int] = None, points: int = 16384) -> int:
         """Record now, before the first step, the CUDA graphs a stream records the first time it meets a size: the
         refresh for every capacity up to ``pillars`` pillars in the window (default: the stream's ``max_pillars``),
-        the update for every capacity of up to as many changed pillars, and :meth:`detect`'s. A step that records
+        the update for every capacity of up to as many changed pillars, :meth:`detect`'s, and the stream's push for
+        slices of up to ``points`` points (:meth:`PillarStream.warm_up`). A step that records
         one takes several milliseconds more, once per size; after ``warm_up()`` none does below ``pillars``. The
         graphs' memory is held as long as the model, and grows with ``pillars`` (each refresh graph keeps its own,
         with the pillar net's activations for its capacity): give the most pillars you expect a window to hold.
@@ -436,6 +437,8 @@ class SSCATeRPointPillars:
             pillars = self.stream.max_pillars
         if isinstance(pillars, bool) or not isinstance(pillars, int) or pillars < 1:
             raise ValueError(f"pillars must be an int >= 1, got {pillars!r}")
+        if isinstance(points, bool) or not isinstance(points, int) or points < 0:
+            raise ValueError(f"points must be an int >= 0, got {points!r}")
         top = 1 << max(pillars - 1, 0).bit_length()
         recorded = 0
         with torch.no_grad():
@@ -452,6 +455,7 @@ class SSCATeRPointPillars:
                 known = self._detect_graph
                 self.detect()
                 recorded += self._detect_graph is not known
+            recorded += self.stream.warm_up(points)
         self._head = self._head_sites = None
         self.stats = StepStats()
         return recorded

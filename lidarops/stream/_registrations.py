@@ -24,7 +24,7 @@ def _pillar_stream_gather_fake(pool_xyzi, head, count, cell_slot, cells):
 @torch.library.register_fake("lidarops::pillar_stream_push")
 def _pillar_stream_push_fake(pool_xyzi, pool_t, head, count, slot_cell, cell_slot, free_slots, num_free, log_cell,
                              log_t, points, t, runs, log_head, cutoff, point_range, pillar_size, grid_hw,
-                             drop=False):
+                             drop=False, scalars=None):
     H, W = grid_hw
     return (points.new_empty((H, W), dtype=torch.bool), points.new_empty((_NUM_STATS,), dtype=torch.int64),
             points.new_empty((runs.shape[0],), dtype=torch.int64))

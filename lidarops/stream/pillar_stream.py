@@ -152,6 +152,10 @@ class PillarStream:
             :class:`PillarOverflowError` and has no effect; ``"drop"``: the points that do not fit are
             dropped by a deterministic rule (the module docstring; ``docs/stream.md``) and counted
             in ``StreamUpdate.points_dropped``.
+        cuda_graph (bool): on CUDA, run each push as one CUDA graph (default): the pushed points are
+            padded to a power-of-two capacity (one graph per capacity, recorded by its first push or by
+            :meth:`warm_up`), the window is decided on the device and the push's figures come back in one
+            read. The same results as the eager push; ignored on the CPU.
 
     Example::
 
@@ -174,8 +178,12 @@ class PillarStream:
     """
 
     def __init__(self, grid: PillarGrid, window: float = 0.100, max_points_per_pillar: int = 100,
-                 max_pillars: int = 12000, device: str | torch.device = "cpu", overflow: str = "raise") -> None:
+                 max_pillars: int = 12000, device: str | torch.device = "cpu", overflow: str = "raise",
+                 cuda_graph: bool = True) -> None:
         self._grid = check_grid(grid)
+        if not isinstance(cuda_graph, bool):
+            raise ValueError(f"cuda_graph must be a bool, got {cuda_graph!r}")
+        self._cuda_graph = cuda_graph
         if not isinstance(overflow, str) or overflow not in ("raise", "drop"):
             raise ValueError(f"overflow must be 'raise' or 'drop', got {overflow!r}")
         self._overflow = overflow
@@ -229,6 +237,17 @@ class PillarStream:
         return self._overflow
 
     @property
+    def cuda_graph(self) -> bool:
+        """Whether a push on CUDA runs as one CUDA graph (settable: False pushes eagerly from then on)."""
+        return self._cuda_graph and self._device.type == "cuda"
+
+    @cuda_graph.setter
+    def cuda_graph(self, value: bool) -> None:
+        if not isinstance(value, bool):
+            raise ValueError(f"cuda_graph must be a bool, got {value!r}")
+        self._cuda_graph = value
+
+    @property
     def num_active(self) -> int:
         """Pillars holding at least one point."""
         return self._num_active
@@ -270,6 +289,7 @@ class PillarStream:
         self._counts = StreamCounts()
 
     def _alloc_log(self, length: int) -> None:
+        self._push_graphs = {}  # they write the log they were recorded with
         self._log_cell = torch.full((length,), -1, dtype=torch.int32, device=self._device)
         self._log_t = torch.zeros(length, dtype=torch.float64, device=self._device)
 
@@ -339,6 +359,11 @@ class PillarStream:
         if now is not None:
             if isinstance(now, bool) or not isinstance(now, (int, float)) or not abs(now) <= MAX_ABS_TIME:
                 raise ValueError(f"now must be a finite number of seconds with |now| <= {MAX_ABS_TIME:g}, got {now!r}")
+        if self.cuda_graph and not torch.cuda.is_current_stream_capturing():
+            floor = self._t if now is None else max(self._t, float(now))
+            graphed = self._graph_push(points, t, floor)
+            if graphed is not None:
+                return self._commit(*graphed)
         newest = self._t
         n_invalid = bad_i = bad_t = 0
         if n:
@@ -363,6 +388,19 @@ class PillarStream:
             runs = runs.pin_memory().to(dev, non_blocking=True)
         # with overflow="drop" the op admits what fits by the rule above and counts the rest
         change_map, st, pops, n_changed = self._push_op(points, t, runs, cutoff)
+
+        def outputs():  # the lengths are known on the host: nonzero_static does not wait for the device
+            changed_yx = torch.nonzero_static(change_map, size=n_changed)
+            keys = changed_yx[:, 0] * self._grid.shape[1] + changed_yx[:, 1]
+            return (self.active_coords(), _batch0(changed_yx), self._cell_slot.index_select(0, keys) < 0,
+                    change_map)
+
+        return self._commit(n, newest, n_invalid, bad_i, bad_t, st, pops, outputs)
+
+    def _commit(self, n: int, newest: float, n_invalid: int, bad_i: int, bad_t: int, st: list, pops: list,
+                outputs) -> StreamUpdate:
+        """After the op: raise for an overflow or a corrupt state (the push had no effect), else commit the
+        host's bookkeeping and return the update (``outputs()``: active, changed, removed, change_map)."""
         if st[_P_OVERFLOW] & ~_OVERFLOW_BITS:
             raise RuntimeError(self._corruption_message(st[_P_OVERFLOW], st[_P_EMPTIED]))
         if st[_P_OVERFLOW] and self._overflow == "raise":
@@ -394,12 +432,129 @@ class PillarStream:
                                     c.points_invalid + n_invalid, c.invalid_intensity + bad_i, c.invalid_t + bad_t,
                                     c.points_dropped + n_dropped, c.dropped_max_points + drop_points,
                                     c.dropped_max_pillars + drop_pillars)
-        # the lengths are known on the host: nonzero_static does not wait for the device
-        changed_yx = torch.nonzero_static(change_map, size=n_changed)
-        keys = changed_yx[:, 0] * self._grid.shape[1] + changed_yx[:, 1]
-        removed = self._cell_slot.index_select(0, keys) < 0
-        return StreamUpdate(self._t, self.active_coords(), _batch0(changed_yx), removed, change_map,
+        active, changed, removed, change_map = outputs()
+        return StreamUpdate(self._t, active, changed, removed, change_map,
                             st[_P_IN], st[_P_OUT], outside, st[_P_LATE], n_invalid, n_dropped)
+
+    # ---- the push as a CUDA graph ----
+    def warm_up(self, points: int = 16384) -> int:
+        """Record now the CUDA graphs of pushes of up to ``points`` points (one per power-of-two capacity from
+        1024), which the first push of each capacity would otherwise record. Returns how many it recorded (0 on
+        the CPU or with ``cuda_graph=False``). Growing the log (a window holding more points than it has held
+        before) records them again."""
+        if isinstance(points, bool) or not isinstance(points, int) or points < 0:
+            raise ValueError(f"points must be an int >= 0, got {points!r}")
+        if not self.cuda_graph:
+            return 0
+        rcap = self._runs_capacity(len(self._runs))
+        known = len(self._push_graphs)
+        for k in range(10, max(1024, self._points_capacity(points)).bit_length()):
+            if (1 << k) <= self._log_cell.numel():
+                self._push_graph(1 << k, rcap)
+        return len(self._push_graphs) - known
+
+    @staticmethod
+    def _points_capacity(n: int) -> int:
+        return max(1024, 1 << max(n - 1, 0).bit_length())
+
+    @staticmethod
+    def _runs_capacity(r: int) -> int:
+        return max(16, 1 << max(r - 1, 0).bit_length())
+
+    def _graph_push(self, points: Tensor, t: Tensor, floor: float):
+        """The push as one CUDA graph: the points copied into the graph's buffers (the rows past them padding,
+        invalid), the runs, the log head and the window's floor (``max(t_newest, now)``) in one copy from pinned
+        memory, the graph replayed and its figures read once. Returns ``_commit``'s arguments, or None when the
+        log cannot hold the padded points (the eager push then runs)."""
+        n = points.shape[0]
+        cap = self._points_capacity(n)
+        self._ensure_log_space(n)
+        if cap > self._log_cell.numel():
+            return None
+        R = len(self._runs)
+        rec = self._push_graph(cap, self._runs_capacity(R))
+        host = rec["host_np"]
+        host[0], host[1] = n, self._log_head
+        host[2:3].view(np.float64)[0] = floor
+        host[3:] = 0
+        if R:
+            host[3:3 + 2 * R] = np.asarray(self._runs, dtype=np.int64).ravel()
+        rec["scalars"].copy_(rec["host"], non_blocking=True)  # the last push's read finished the previous copy
+        if n:
+            rec["points"][:n].copy_(points)
+            rec["t"][:n].copy_(t)
+        rec["graph"].replay()
+        vals = rec["figures"].tolist()
+        rcap = rec["rcap"]
+        st = vals[:_NUM_STATS]
+        st[_P_OUTSIDE] -= cap - n  # the padding rows count as outside the grid
+        n_changed, n_invalid, bad_i, bad_t, newest_bits = vals[_NUM_STATS + rcap:]
+        newest = float(np.array(newest_bits, dtype=np.int64).view(np.float64))
+        active, changed, removed, change_map = rec["outputs"]
+
+        def outputs():  # copies: the graph's buffers are the next push's
+            return (active[:st[_P_PILLARS]].clone(), changed[:n_changed].clone(), removed[:n_changed].clone(),
+                    change_map.clone())
+
+        return n, newest, n_invalid, bad_i, bad_t, st, vals[_NUM_STATS:_NUM_STATS + R], outputs
+
+    def _push_graph(self, cap: int, rcap: int) -> dict:
+        """The graph of a push of up to ``cap`` points with up to ``rcap`` runs, recorded on first use."""
+        rec = self._push_graphs.get((cap, rcap))
+        if rec is not None:
+            return rec
+        from lidarops._cuda_graphs import uncached_autocast
+
+        dev, g = self._device, self._grid
+        H, W = g.shape
+        host = torch.zeros(3 + 2 * rcap, dtype=torch.int64).pin_memory()
+        rec = {"cap": cap, "rcap": rcap, "host": host, "host_np": host.numpy(),
+               "scalars": torch.zeros(3 + 2 * rcap, dtype=torch.int64, device=dev),
+               "points": torch.zeros((cap, 4), dtype=torch.float32, device=dev),
+               "t": torch.zeros(cap, dtype=torch.float64, device=dev),
+               "rows": torch.arange(cap, device=dev)}
+        changed_rows = min(2 * self._M, H * W)  # pillars that gained or lost points: active before or after
+
+        def body():
+            sc = rec["scalars"]
+            row_ok = rec["rows"] < sc[0]
+            pts, tt = rec["points"], rec["t"]
+            bad_i, bad_t = invalid_points(pts, tt)
+            bad_i, bad_t = bad_i & row_ok, bad_t & row_ok
+            bad = bad_i | bad_t
+            invalid = bad | ~row_ok
+            newest = torch.maximum(torch.where(invalid, float("-inf"), tt).max().view(1),
+                                   sc[2:3].view(torch.float64))
+            op_scalars = torch.cat([sc[1:2], (newest - self._window).view(torch.int64)])
+            change_map, stats, run_pops = torch.ops.lidarops.pillar_stream_push(
+                self._pool_xyzi, self._pool_t, self._head, self._count, self._slot_cell, self._cell_slot,
+                self._free_slots, self._num_free, self._log_cell, self._log_t, without_invalid(pts, invalid),
+                torch.where(invalid, 0.0, tt), sc[3:].view(rcap, 2), 0, 0.0, list(g.point_cloud_range),
+                list(g.pillar_size), list(g.shape), self._overflow == "drop", op_scalars)
+            figures = torch.cat([stats, run_pops, change_map.sum().view(1), bad.sum().view(1), bad_i.sum().view(1),
+                                 bad_t.sum().view(1), newest.view(torch.int64)])
+            changed_yx = torch.nonzero_static(change_map, size=changed_rows, fill_value=0)
+            keys = changed_yx[:, 0] * W + changed_yx[:, 1]
+            removed = self._cell_slot.index_select(0, keys) < 0
+            active = torch.nonzero_static(self._cell_slot.view(H, W) >= 0, size=self._M, fill_value=0)
+            return figures, (_batch0(active), _batch0(changed_yx), removed, change_map)
+
+        rec["host_np"][1] = self._log_head  # the warm-up's push: no points, empty runs: it changes nothing
+        rec["host_np"][2:3].view(np.float64)[0] = float("-inf")
+        rec["scalars"].copy_(rec["host"])
+        side, current = torch.cuda.Stream(dev), torch.cuda.current_stream(dev)
+        side.wait_stream(current)
+        with torch.no_grad(), uncached_autocast():
+            with torch.cuda.stream(side):
+                body()
+            current.wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            pool = next(iter(self._push_graphs.values()))["graph"].pool() if self._push_graphs else None
+            with torch.cuda.graph(graph, pool=pool):
+                rec["figures"], rec["outputs"] = body()
+        rec["graph"] = graph
+        self._push_graphs[(cap, rcap)] = rec
+        return rec
 
     def _push_op(self, points: Tensor, t: Tensor, runs: Tensor, cutoff: float):
         """One call of the op; returns (change_map, stats, run pops, changed count) with the figures

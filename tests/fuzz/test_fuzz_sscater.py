@@ -157,18 +157,25 @@ def test_finalize_compact_matches_its_reference(device, data):
 
 @fuzz
 @given(pillars=st.one_of(st.integers(-5, 0), st.floats(allow_nan=True), st.booleans(), st.text(max_size=3),
-                         st.none(), st.integers(1, 3000)))
-def test_warm_up_takes_a_count_of_pillars(pillars):
-    """SSCATeRPointPillars.warm_up(pillars): an int >= 1 (or None, the stream's max_pillars) records the graphs (none
-    on the CPU); anything else raises ValueError naming pillars; after the first step it raises."""
+                         st.none(), st.integers(1, 3000)),
+       points=st.one_of(st.just(16384), st.integers(-3, 5000), st.floats(allow_nan=True), st.booleans(), st.none()))
+def test_warm_up_takes_a_count_of_pillars(pillars, points):
+    """SSCATeRPointPillars.warm_up(pillars, points): pillars an int >= 1 (or None, the stream's max_pillars) and
+    points an int >= 0 record the graphs (none on the CPU); anything else raises ValueError naming the argument;
+    after the first step it raises."""
     from lidarops.models.sscater_pointpillars import PillarFeatureNet, SSCATeRPointPillars
     from lidarops.models import BaseBEVBackbone
     from lidarops.stream import PillarGrid
     model = SSCATeRPointPillars(PillarFeatureNet(9, 64).eval(), BaseBEVBackbone().eval(),
                                 PillarGrid((0.0, -8.0, -3.0, 16.0, 8.0, 1.0), (0.5, 0.5, 4.0)), device="cpu")
-    res, err = outcome(model.warm_up, pillars)
+    res, err = outcome(model.warm_up, pillars, points)
+    what = f"warm_up({pillars!r}, points={points!r})"
+    good_points = isinstance(points, int) and not isinstance(points, bool) and points >= 0
     if pillars is None or (isinstance(pillars, int) and not isinstance(pillars, bool) and pillars >= 1):
-        assert_no_error(err, f"warm_up({pillars!r})")
-        assert res == 0
+        if good_points:
+            assert_no_error(err, what)
+            assert res == 0
+        else:
+            assert_clear_error(err, ValueError, ["points"], what)
     else:
-        assert_clear_error(err, ValueError, ["pillars"], f"warm_up({pillars!r})")
+        assert_clear_error(err, ValueError, ["pillars"], what)

@@ -45,8 +45,9 @@ def slices(draw, t0: float, invalid: bool):
     return np.array(rows, dtype=np.float32).reshape(n, 4), np.array(t, dtype=np.float64).reshape(n)
 
 
-def check_stream(pushes, N: int, M: int, device: str, what: str) -> None:
-    stream = PillarStream(GRID, window=WINDOW, max_points_per_pillar=N, max_pillars=M, device=device)
+def check_stream(pushes, N: int, M: int, device: str, what: str, cuda_graph: bool = True) -> None:
+    stream = PillarStream(GRID, window=WINDOW, max_points_per_pillar=N, max_pillars=M, device=device,
+                          cuda_graph=cuda_graph)
     kept_p, kept_t = np.zeros((0, 4), np.float32), np.zeros(0)  # valid points pushed so far, in arrival order
     newest = -math.inf
     for i, (points, t) in enumerate(pushes):
@@ -83,7 +84,7 @@ def test_stream_window(device, data):
     for i in range(data.draw(st.integers(1, 3), "pushes")):
         pushes.append(data.draw(slices(t0 + 0.06 * i, invalid=False), f"push {i}"))
     check_stream(pushes, data.draw(st.integers(1, 6), "N"), data.draw(st.integers(1, 16), "M"), device,
-                 "PillarStream")
+                 "PillarStream", cuda_graph=data.draw(st.booleans(), "cuda_graph"))
 
 
 @fuzz
@@ -91,4 +92,38 @@ def test_stream_window(device, data):
 def test_stream_invalid_values(device, data):
     pushes = [data.draw(slices(0.06 * i, invalid=True), f"push {i}") for i in range(data.draw(st.integers(1, 3)))]
     assume(any(not _valid(p, t).all() for p, t in pushes))
-    check_stream(pushes, 8, 16, device, "PillarStream with invalid values")
+    check_stream(pushes, 8, 16, device, "PillarStream with invalid values",
+                 cuda_graph=data.draw(st.booleans(), "cuda_graph"))
+
+
+@fuzz
+@given(data=st.data())
+def test_stream_graph_arguments(device, data):
+    """cuda_graph must be a bool; warm_up(points) an int >= 0, returning how many graphs it recorded (none on
+    the CPU), after which pushes of up to that many points record none."""
+    flag = data.draw(st.booleans() | st.sampled_from([None, 0, 1, "yes", 1.0]), "cuda_graph")
+    res, err = outcome(PillarStream, GRID, window=WINDOW, device=device, overflow="drop", cuda_graph=flag)
+    if not isinstance(flag, bool):
+        assert_clear_error(err, ValueError, ["cuda_graph"], f"cuda_graph={flag!r}")
+        return
+    assert_no_error(err, f"cuda_graph={flag!r}")
+    again = data.draw(st.booleans() | st.sampled_from([None, 0, "no"]), "cuda_graph set")
+    _, err = outcome(setattr, res, "cuda_graph", again)
+    if isinstance(again, bool):
+        assert_no_error(err, f"stream.cuda_graph = {again!r}")
+        assert res.cuda_graph == (again and device != "cpu")
+        flag = again
+    else:
+        assert_clear_error(err, ValueError, ["cuda_graph"], f"stream.cuda_graph = {again!r}")
+    points = data.draw(st.integers(-2, 3000) | st.sampled_from([None, True, 2.0, "10"]), "points")
+    got, err = outcome(res.warm_up, points)
+    if isinstance(points, bool) or not isinstance(points, int) or points < 0:
+        assert_clear_error(err, ValueError, ["points"], f"warm_up({points!r})")
+        return
+    assert_no_error(err, f"warm_up({points!r})")
+    assert got == (0 if device == "cpu" or not flag else max(1024, 1 << max(points - 1, 0).bit_length()).bit_length() - 10), \
+        f"warm_up({points!r}) recorded {got}"
+    graphs = len(res._push_graphs)
+    n = data.draw(st.integers(0, points), "n")
+    res.push(torch.rand(n, 4, device=device) * 4, torch.zeros(n, dtype=torch.float64, device=device))
+    assert len(res._push_graphs) == graphs, f"a push of {n} points after warm_up({points}) recorded a graph"

@@ -118,17 +118,18 @@ def test_warm_up_records_every_graph_before_the_first_step(monkeypatch, device):
     detector = _detector(dtype, seed=2).to(device)
     warm = SSCATeRPointPillars.from_detector(detector, window=0.1, refresh_every=7, dtype=dtype)
     cold = SSCATeRPointPillars.from_detector(detector, window=0.1, refresh_every=7, dtype=dtype)
-    recorded = warm.warm_up(pillars=700)
-    graphs = warm.delta.cuda_graphs
-    if device == "cuda":  # refreshes 1024; updates 256, 512, 1024; detect
-        assert recorded == 5 and graphs == 4 and warm._detect_graph is not None, (recorded, graphs)
+    recorded = warm.warm_up(pillars=700, points=4096)
+    graphs, pushes = warm.delta.cuda_graphs, len(warm.stream._push_graphs)
+    if device == "cuda":  # refreshes 1024; updates 256, 512, 1024; detect; pushes of 1024 ... 4096 points
+        assert recorded == 5 + pushes and graphs == 4 and warm._detect_graph is not None, (recorded, graphs)
+        assert pushes == 3, pushes
     else:
-        assert recorded == 0 and graphs == 0
+        assert recorded == 0 and graphs == 0 and pushes == 0
     for k, (pts, t) in enumerate(_slices(16, seed=3)):
         warm.step(pts.to(device), t.to(device))
         cold.step(pts.to(device), t.to(device))
         assert warm.stats.pillars_active <= 700
-        assert warm.delta.cuda_graphs == graphs, k  # nothing recorded by a step
+        assert warm.delta.cuda_graphs == graphs and len(warm.stream._push_graphs) == pushes, k  # none by a step
         got, want = warm.detect(), cold.detect()
         assert got["labels"].tolist() == want["labels"].tolist(), k
         assert torch.allclose(got["scores"], want["scores"], rtol=0, atol=1e-5), k
@@ -138,6 +139,9 @@ def test_warm_up_records_every_graph_before_the_first_step(monkeypatch, device):
     for bad in (0, -3, 2.5, True, "64"):
         with pytest.raises(ValueError, match="pillars must be an int >= 1"):
             warm.warm_up(bad)
+    for bad in (-1, 2.5, True, None):
+        with pytest.raises(ValueError, match="points must be an int >= 0"):
+            warm.warm_up(100, points=bad)
     for bad in (300, 128, 512.0, True):
         with pytest.raises(ValueError, match="capacity must be a power of two >= 256"):
             warm.delta.prepare_update(bad, warm._changed_features)

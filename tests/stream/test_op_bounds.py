@@ -76,6 +76,16 @@ PUSH_CASES = {
     "t length differs": ("a['t'] = torch.zeros(2, dtype=torch.float64)", ("value_error", r"t must be float64 \(n,\) with n = 4")),
     "more points than the log": ("a['points'] = torch.zeros(5000, 4); a['t'] = torch.zeros(5000, dtype=torch.float64)", ("value_error", "needs a log of at least")),
     "grid_hw wrong": ("a['grid_hw'] = [4, 0]", ("value_error", "grid_hw must be")),
+    # scalars (log_head and cutoff read on the device, a CUDA graph's push): shapes raise, values are state
+    "scalars wrong dtype": ("a['scalars'] = torch.zeros(2, dtype=torch.int32, device=dev)",
+                            ("value_error", r"scalars must be int64 \(2,\)")),
+    "scalars wrong shape": ("a['scalars'] = torch.zeros(3, dtype=torch.int64, device=dev)",
+                            ("value_error", r"scalars must be int64 \(2,\)")),
+    "scalars log_head < 0": ("a['scalars'] = scal(-1, 0.1)", ("flag", BAD_LOG)),
+    "scalars log_head huge": ("a['scalars'] = scal(2**62, 0.1)", ("flag", BAD_LOG)),
+    "scalars cutoff NaN": ("a['scalars'] = scal(a['log_head'], float('nan'))", ("flag", BAD_LOG)),
+    "scalars in place of bad arguments": ("a['scalars'] = scal(a['log_head'], 0.1); a['log_head'] = -1; "
+                                          "a['cutoff'] = float('nan')", ("ok", None)),
 }
 
 GATHER_CASES = {  # cells = [A, B, C (empty), 99 (outside the grid)]: expected num_points
@@ -125,13 +135,17 @@ def _child(device: str) -> None:
     def slot(s, key):
         return int(s["cell_slot"][key])
 
+    def scal(log_head, cutoff):  # the op's scalars: log_head and the bits of cutoff
+        bits = torch.tensor([cutoff], dtype=torch.float64).view(torch.int64)
+        return torch.cat([torch.tensor([log_head], dtype=torch.int64), bits]).to(dev)
+
     def run(case: str, code: str, call) -> dict:
         st = fresh()
         s = state(st)
         a = call(st)
         try:
             exec(code, {"s": s, "a": a, "st": st, "torch": torch, "dev": dev, "slot": slot, "N": N, "M": M,
-                        "KEY_A": KEY_A, "KEY_B": KEY_B, "KEY_C": KEY_C, "push": a.get("push")})
+                        "KEY_A": KEY_A, "KEY_B": KEY_B, "KEY_C": KEY_C, "push": a.get("push"), "scal": scal})
             if "op" not in a:
                 return {"outcome": "no error"}
             for k in ("runs", "points", "t", "cells"):
@@ -158,7 +172,7 @@ def _child(device: str) -> None:
         def op(s, a):
             return torch.ops.lidarops.pillar_stream_push(
                 *(s[k] for k in STATE), a["points"], a["t"], a["runs"], a["log_head"], a["cutoff"],
-                list(g.point_cloud_range), list(g.pillar_size), a["grid_hw"], drop)
+                list(g.point_cloud_range), list(g.pillar_size), a["grid_hw"], drop, scalars=a.get("scalars"))
         a["op"] = op
         return a
 
@@ -203,7 +217,9 @@ def _check(device: str, name: str, expected) -> None:
     assert name in results, f"{name}: no result: the child process died before or in this case ({tail})"
     got = results[name]
     kind, want = expected
-    if kind == "flag":
+    if kind == "ok":  # the push ran: no flag, and it changed the state
+        assert got["outcome"] == "flag" and got["flags"] == 0 and not got["unchanged"], f"{name}: {got}"
+    elif kind == "flag":
         assert got["outcome"] == "flag", f"{name}: {got}"
         assert got["flags"] & want, f"{name}: expected bit {want} in stats[4], got {got['flags']}"
         assert got["unchanged"], f"{name}: the push changed the state although it reported corruption"

@@ -419,3 +419,142 @@ def test_stream_and_pillarize_input_policy(device):
     assert u.points_invalid == 12 and u.points_in == 0 and u.changed.shape == (0, 3) and u.t == MAX_ABS_TIME
     stream.reset()
     assert stream.counts == StreamCounts()
+
+
+# ---- the push's scalars read on the device, and the push as a CUDA graph ----
+
+def _bits(x: float) -> int:
+    return int(np.array([x], np.float64).view(np.int64)[0])
+
+
+def test_push_op_reads_its_scalars(device):
+    """With ``scalars`` (log_head and the bits of cutoff, on the state's device) the op ignores its log_head and
+    cutoff arguments: the same outputs and state as the call given them as arguments."""
+    streams = [PillarStream(SMALL, window=0.05, max_points_per_pillar=200, max_pillars=256, device=device,
+                            cuda_graph=False) for _ in range(2)]
+    slices = list(_jittered_slices(5, steps=8))
+    for p, t in slices[:6]:
+        for s in streams:
+            s.push(p, t)
+    p, t = (torch.from_numpy(x).to(device) for x in slices[6])
+    a, b = streams
+    runs = torch.tensor(list(a._runs), dtype=torch.int64, device=device).reshape(-1, 2)
+    cutoff = max(a.t, float(t.max())) - 0.05
+    g = SMALL
+
+    def call(s, log_head, cut, scalars=None):
+        return torch.ops.lidarops.pillar_stream_push(
+            s._pool_xyzi, s._pool_t, s._head, s._count, s._slot_cell, s._cell_slot, s._free_slots, s._num_free,
+            s._log_cell, s._log_t, p, t, runs, log_head, cut, list(g.point_cloud_range), list(g.pillar_size),
+            list(g.shape), False, scalars=scalars)
+
+    want = call(a, a._log_head, cutoff)
+    got = call(b, 0, 0.0, torch.tensor([b._log_head, _bits(cutoff)], dtype=torch.int64, device=device))
+    assert int(want[1][0]) > 0 and int(want[1][1]) > 0, "the push should bring points in and expire some"
+    for x, y, k in zip(got, want, ("change_map", "stats", "run_pops")):
+        assert_equal_report(x, y, k)
+    for k in ("_num_free", "_log_cell", "_log_t"):  # CUDA's slots are taken in any order: pillars compared by key
+        assert_equal_report(getattr(b, k), getattr(a, k), k)
+
+    def window(s):
+        yx = torch.nonzero(s._cell_slot.view(SMALL.shape) >= 0)
+        return s.pillars(torch.cat([torch.zeros_like(yx[:, :1]), yx], 1).int(), check=False)
+
+    assert_same_pillars(window(b), window(a), "the pillars after the push")
+    wrong = call(streams[0], 0, 0.0, torch.tensor([a._log_head, _bits(cutoff - 0.02)], dtype=torch.int64,
+                                                  device=device))
+    assert int(wrong[1][1]) != int(want[1][1]) or not torch.equal(wrong[0], want[0]), \
+        "another cutoff in the scalars should change what expires"
+
+
+def _update_fields(u):
+    return {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in u._asdict().items()}
+
+
+def _assert_same_update(got, want, what):
+    for k, v in want.items():
+        if isinstance(v, torch.Tensor):
+            assert_equal_report(got[k], v, f"{what} {k}")
+        else:
+            assert got[k] == v or (k == "t" and math.isinf(v) and got[k] == v), f"{what} {k}: {got[k]} != {v}"
+
+
+@requires_cuda
+@pytest.mark.parametrize("overflow", ["raise", "drop"])
+def test_graphed_push_equals_the_eager_push(overflow):
+    """Every field of every update, the counts, t_newest, the pillars and the raised errors: a push replayed as a
+    CUDA graph against the eager push, on out-of-order, duplicated, invalid and late points, empty slices, gaps
+    closed by ``now``, capacities that overflow, and slices large enough to need bigger graphs and a longer log."""
+    N, M = (200, 256) if overflow == "raise" else (6, 40)
+    make = lambda graph: PillarStream(SMALL, window=0.05, max_points_per_pillar=N, max_pillars=M,  # noqa: E731
+                                      device="cuda", overflow=overflow, cuda_graph=graph)
+    streams = {True: make(True), False: make(False)}
+    assert streams[True].cuda_graph and not streams[False].cuda_graph
+    rng = np.random.default_rng(3)
+    raised = 0
+    for i, (p, t) in enumerate(_jittered_slices(11, steps=60, per_slice=2500 if overflow == "drop" else 300)):
+        if i % 7 == 3 and len(p) > 2:  # invalid intensities and timestamps
+            p[0, 3], t[1] = np.nan, np.inf
+        now = None if i % 5 else 0.01 * (i + 1) + 0.02 * rng.random()
+        if i == 40:  # a gap: nothing pushed, the window moves on
+            p, t, now = p[:0], t[:0], 0.01 * (i + 1) + 0.2
+        res = {}
+        for graph, s in streams.items():
+            try:
+                res[graph] = ("ok", _update_fields(s.push(torch.from_numpy(p).cuda(), torch.from_numpy(t).cuda(),
+                                                          now=now)))
+            except PillarOverflowError as e:
+                res[graph] = ("raised", str(e))
+        assert res[True][0] == res[False][0], f"step {i}: {res[True][0]} against {res[False][0]}"
+        if res[True][0] == "raised":
+            raised += 1
+            assert res[True][1] == res[False][1], f"step {i}: the messages differ"
+        else:
+            _assert_same_update(res[True][1], res[False][1], f"step {i}")
+        a, b = streams[True], streams[False]
+        assert a.counts == b.counts and a.t == b.t and a.num_points == b.num_points, f"step {i}"
+        assert_same_pillars(a.pillars(), b.pillars(), f"step {i}")
+    if overflow == "drop":
+        assert streams[True].counts.points_dropped > 0, "the drop stream should have dropped points"
+        assert max(k[0] for k in streams[True]._push_graphs) >= 2048, "slices above 1024 points need a larger graph"
+    assert len(streams[True]._push_graphs) >= 1
+
+
+@requires_cuda
+def test_graphed_push_raises_as_the_eager_push():
+    """An overflow with overflow="raise": the same error, and the push has no effect, in a graph as eagerly."""
+    for graph in (True, False):
+        s = PillarStream(SMALL, window=1.0, max_points_per_pillar=2, max_pillars=8, device="cuda", cuda_graph=graph)
+        p = torch.tensor([[0.5, 0.5, 0.0, 1.0]] * 3, device="cuda")
+        with pytest.raises(PillarOverflowError, match="max_points_per_pillar=2"):
+            s.push(p, torch.zeros(3, dtype=torch.float64, device="cuda"))
+        assert s.num_points == 0 and s.counts == StreamCounts() and s.t == -math.inf
+        u = s.push(p[:2], torch.zeros(2, dtype=torch.float64, device="cuda"))
+        assert u.points_in == 2 and s.num_points == 2
+
+
+@requires_cuda
+def test_graphed_push_updates_are_not_overwritten():
+    """An update's tensors are its own: the next push, which replays the same graph, leaves them as they were."""
+    s = PillarStream(SMALL, window=0.05, max_points_per_pillar=200, max_pillars=256, device="cuda")
+    slices = list(_jittered_slices(2, steps=6))
+    kept = []
+    for p, t in slices:
+        u = s.push(torch.from_numpy(p).cuda(), torch.from_numpy(t).cuda())
+        kept.append((u, _update_fields(u)))
+    for i, (u, copy) in enumerate(kept):
+        _assert_same_update(_update_fields(u), copy, f"update {i} after later pushes")
+    assert len({k for k in s._push_graphs}) == 1, "every slice here fits the first graph"
+
+
+@requires_cuda
+def test_warm_up_records_the_push_graphs_before_the_first_push():
+    s = PillarStream(SMALL, window=0.05, max_points_per_pillar=200, max_pillars=256, device="cuda")
+    assert s.warm_up(3000) == 3  # 1024, 2048, 4096 points
+    assert s.warm_up(3000) == 0
+    for p, t in _jittered_slices(4, steps=5, per_slice=3000):
+        s.push(torch.from_numpy(p).cuda(), torch.from_numpy(t).cuda())
+    assert len(s._push_graphs) == 3
+    s.reset()
+    assert not s._push_graphs and s.warm_up(10) == 1
+    assert PillarStream(SMALL, device="cuda", cuda_graph=False).warm_up(3000) == 0

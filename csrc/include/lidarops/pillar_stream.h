@@ -45,7 +45,8 @@ enum : int64_t { kPsOverflowPoints = 1, kPsOverflowPillars = 2 };
 // stats[kPsOverflow] with one of these bits and changes nothing (as for an overflow):
 enum : int64_t {
   kPsBadRuns = 4,        // a run [start, end) with start < 0, end < start or end - start > L
-  kPsBadLog = 8,         // an expiring log entry names a cell outside [0, H W) or an empty pillar
+  kPsBadLog = 8,         // an expiring log entry names a cell outside [0, H W) or an empty pillar; or, read from
+                         // the op's scalars, log_head outside [0, 2^62) or a NaN cutoff
   kPsBadCellSlot = 16,   // cell_slot holds a value outside [-1, M), or cell_slot[c] = s but slot_cell[s] != c
   kPsBadQueue = 32,      // head outside [0, N), count outside [0, N], or more of a queue's points expire
                          // than it holds
@@ -199,6 +200,15 @@ inline PillarStreamArgs check_pillar_stream_push_args(
   TORCH_CHECK_VALUE(!std::isnan(cutoff), "cutoff must not be NaN");
   TORCH_CHECK_VALUE(point_range.size() == 6 && pillar_size.size() == 2, "point_range must have 6 values and pillar_size 2");
   return a;
+}
+
+// scalars of pillar_stream_push: int64 (2,) on the state's device (log_head, the bits of cutoff).
+inline void check_pillar_stream_scalars(const at::Tensor& scalars, const at::Tensor& pool_xyzi) {
+  TORCH_CHECK_VALUE(scalars.dim() == 1 && scalars.size(0) == 2 && scalars.scalar_type() == at::kLong,
+                    "scalars must be int64 (2,): log_head and the bits of cutoff (float64), got shape ",
+                    scalars.sizes(), " dtype ", scalars.scalar_type());
+  TORCH_CHECK_VALUE(scalars.device() == pool_xyzi.device(), "scalars is on ", scalars.device(),
+                    " but pool_xyzi (the stream state) is on ", pool_xyzi.device());
 }
 
 // The voxel grid of a pillar grid: one cell along z (as pillarize's call of voxelize_assign).
