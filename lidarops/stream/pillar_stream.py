@@ -361,7 +361,8 @@ class PillarStream:
             if isinstance(now, bool) or not isinstance(now, (int, float)) or not abs(now) <= MAX_ABS_TIME:
                 raise ValueError(f"now must be a finite number of seconds with |now| <= {MAX_ABS_TIME:g}, got {now!r}")
         # a graph records and replays on the current device's stream: a stream on another device pushes eagerly
-        if self.cuda_graph and dev.index == torch.cuda.current_device() and not torch.cuda.is_current_stream_capturing():
+        if self.cuda_graph and dev.index == torch.cuda.current_device() \
+                and not torch.cuda.is_current_stream_capturing():
             floor = self._t if now is None else max(self._t, float(now))
             graphed = self._graph_push(points, t, floor)
             if graphed is not None:
@@ -442,8 +443,8 @@ class PillarStream:
     def warm_up(self, points: int = 16384) -> int:
         """Record now the CUDA graphs of pushes of up to ``points`` points (one per power-of-two capacity from
         1024), which the first push of each capacity would otherwise record. Returns how many it recorded (0 on
-        the CPU, with ``cuda_graph=False``, or when the stream's device is not the current one). Growing the log (a window holding more points than it has held
-        before) records them again."""
+        the CPU, with ``cuda_graph=False``, or when the stream's device is not the current one). Growing the log
+        (a window holding more points than it has held before) records them again."""
         if isinstance(points, bool) or not isinstance(points, int) or points < 0:
             raise ValueError(f"points must be an int >= 0, got {points!r}")
         if not self.cuda_graph or self._device.index != torch.cuda.current_device():
