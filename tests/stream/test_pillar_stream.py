@@ -476,7 +476,7 @@ def _assert_same_update(got, want, what):
         if isinstance(v, torch.Tensor):
             assert_equal_report(got[k], v, f"{what} {k}")
         else:
-            assert got[k] == v or (k == "t" and math.isinf(v) and got[k] == v), f"{what} {k}: {got[k]} != {v}"
+            assert got[k] == v, f"{what} {k}: {got[k]} != {v}"
 
 
 @requires_cuda
