@@ -1,12 +1,18 @@
 """What every CUDA graph lidarops records shares (the predict and index graphs, SSCATeR's backbone and detect
-graphs): the rule for autocast during the warm-up and the capture."""
+graphs): the rule for autocast during the warm-up and the capture, and the padded capacities graphs are recorded
+for."""
 from __future__ import annotations
 
 import contextlib
 
 import torch
 
-__all__ = ["uncached_autocast"]
+__all__ = ["graph_capacity", "uncached_autocast"]
+
+
+def graph_capacity(n: int, least: int) -> int:
+    """The power of two at least ``n`` and ``least``: inputs are padded to it, one graph per capacity."""
+    return max(least, 1 << max(n - 1, 0).bit_length())
 
 
 @contextlib.contextmanager

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor, nn
 
 import lidarops
-from lidarops._cuda_graphs import uncached_autocast
+from lidarops._cuda_graphs import graph_capacity, uncached_autocast
 from lidarops.models.anchor_head import AnchorHeadSingle
 from lidarops.models.counternet import CounterNet
 from lidarops.models.map_to_bev import PointPillarScatter
@@ -911,7 +911,7 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
             return None
         order = torch.argsort(frame, stable=True)
         frames, biggest, bad_index = list(torch.split(points[order, 1:1 + c], sizes)), max(sizes), None
-    capacity = max(MIN_CAPACITY, 1 << max(biggest - 1, 0).bit_length())
+    capacity = graph_capacity(biggest, MIN_CAPACITY)
     if capacity > MAX_CAPACITY:
         return None
     cache = model.__dict__.get("_predict_graphs")

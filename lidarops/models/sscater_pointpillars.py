@@ -31,7 +31,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from lidarops._cuda_graphs import uncached_autocast
+from lidarops._cuda_graphs import graph_capacity, uncached_autocast
 from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.ops.boxes import unsupported_boxes
 from lidarops.ops.validation import check_tensor, describe, validation, value_checks_enabled
@@ -412,7 +412,7 @@ class SSCATeRPointPillars:
         the function gives the pillar net's features of every site of the grid (zero where no pillar is) and
         counts their points in ``_pfn_points``."""
         n = active.shape[0]
-        cap = cap or max(1024, 1 << max(n - 1, 0).bit_length())
+        cap = cap or graph_capacity(n, 1024)
         if cap not in self._refresh_inputs:
             coords = torch.full((cap, 3), -1, dtype=torch.int32, device=self.device)
             coords[:, 0] = 0  # padding rows (0, -1, -1): the stream's gather gives them no points
@@ -439,7 +439,7 @@ class SSCATeRPointPillars:
             raise ValueError(f"pillars must be an int >= 1, got {pillars!r}")
         if isinstance(points, bool) or not isinstance(points, int) or points < 0:
             raise ValueError(f"points must be an int >= 0, got {points!r}")
-        top = 1 << max(pillars - 1, 0).bit_length()
+        top = graph_capacity(pillars, 1)
         recorded = 0
         with torch.no_grad():
             if self._graphed_refresh():  # refreshes of the empty window: the first step recomputes everything

@@ -44,7 +44,7 @@ from typing import Optional, Protocol, Sequence, runtime_checkable
 import torch
 from torch import Tensor
 
-from lidarops._cuda_graphs import uncached_autocast
+from lidarops._cuda_graphs import graph_capacity, uncached_autocast
 
 __all__ = [
     "CHANNEL_SPARSE", "DENSE_CHANNELS_LAST", "DENSE_REFRESH", "REFRESH_CUDA_GRAPH", "Change", "DeltaBackbone",
@@ -579,7 +579,7 @@ class DeltaBackbone:
         """The step as a CUDA graph: the input is padded to a power-of-two capacity (one graph per
         capacity and features function, captured on first use from a step that changes nothing)."""
         n = sites.shape[0]
-        cap = max(256, 1 << max(n - 1, 0).bit_length())
+        cap = graph_capacity(n, 256)
         fn = features if callable(features) else None
         g = self._graphs.get((cap, fn))
         if g is None:

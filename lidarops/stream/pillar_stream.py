@@ -41,6 +41,7 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
+from lidarops._cuda_graphs import graph_capacity, uncached_autocast
 from lidarops.ops.validation import describe
 from lidarops.ops.voxelize import check_capacity
 from lidarops.ops.pillars import (
@@ -182,9 +183,7 @@ class PillarStream:
                  max_pillars: int = 12000, device: str | torch.device = "cpu", overflow: str = "raise",
                  cuda_graph: bool = True) -> None:
         self._grid = check_grid(grid)
-        if not isinstance(cuda_graph, bool):
-            raise ValueError(f"cuda_graph must be a bool, got {cuda_graph!r}")
-        self._cuda_graph = cuda_graph
+        self.cuda_graph = cuda_graph
         if not isinstance(overflow, str) or overflow not in ("raise", "drop"):
             raise ValueError(f"overflow must be 'raise' or 'drop', got {overflow!r}")
         self._overflow = overflow
@@ -449,20 +448,12 @@ class PillarStream:
             raise ValueError(f"points must be an int >= 0, got {points!r}")
         if not self.cuda_graph or self._device.index != torch.cuda.current_device():
             return 0
-        rcap = self._runs_capacity(len(self._runs))
+        rcap = graph_capacity(len(self._runs), 16)
         known = len(self._push_graphs)
-        for k in range(10, max(1024, self._points_capacity(points)).bit_length()):
+        for k in range(10, graph_capacity(points, 1024).bit_length()):
             if (1 << k) <= self._log_cell.numel():
                 self._push_graph(1 << k, rcap)
         return len(self._push_graphs) - known
-
-    @staticmethod
-    def _points_capacity(n: int) -> int:
-        return max(1024, 1 << max(n - 1, 0).bit_length())
-
-    @staticmethod
-    def _runs_capacity(r: int) -> int:
-        return max(16, 1 << max(r - 1, 0).bit_length())
 
     def _graph_push(self, points: Tensor, t: Tensor, floor: float):
         """The push as one CUDA graph: the points copied into the graph's buffers (the rows past them padding,
@@ -470,12 +461,12 @@ class PillarStream:
         memory, the graph replayed and its figures read once. Returns ``_commit``'s arguments, or None when the
         log cannot hold the padded points (the eager push then runs)."""
         n = points.shape[0]
-        cap = self._points_capacity(n)
+        cap = graph_capacity(n, 1024)
         self._ensure_log_space(n)
         if cap > self._log_cell.numel():
             return None
         R = len(self._runs)
-        rec = self._push_graph(cap, self._runs_capacity(R))
+        rec = self._push_graph(cap, graph_capacity(R, 16))
         host = rec["host_np"]
         host[0], host[1] = n, self._log_head
         host[2:3].view(np.float64)[0] = floor
@@ -506,8 +497,6 @@ class PillarStream:
         rec = self._push_graphs.get((cap, rcap))
         if rec is not None:
             return rec
-        from lidarops._cuda_graphs import uncached_autocast
-
         dev, g = self._device, self._grid
         H, W = g.shape
         host = torch.zeros(3 + 2 * rcap, dtype=torch.int64).pin_memory()
