@@ -157,3 +157,11 @@ class AnchorHeadSingle(nn.Module):
             else:  # the decoder's own new tensor: the heading column written in place, not a copy of all seven
                 boxes[..., 6] = heading
         return cls, boxes
+
+    def _decode_rows(self, preds: Mapping[str, Tensor], b: int, anchors: Tensor) -> Tensor:
+        """The boxes ``(n, 7)`` :meth:`decode` gives frame ``b``'s anchors at the indices ``anchors (n,)``, decoding
+        only those."""
+        A = self.anchors_flat.shape[0]
+        keys = ("cls_preds", "box_preds") + (("dir_cls_preds",) if self.conv_dir_cls is not None else ())
+        rows = {k: preds[k][b].reshape(A, -1)[anchors][None] for k in keys}
+        return self.decode(rows, self.anchors_flat[anchors][None])[1][0]

@@ -38,7 +38,7 @@ from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.models.config import PointPillarsConfig
 from lidarops.models.map_to_bev import PointPillarScatter
 from lidarops.models.pillar_vfe import PillarVFE
-from lidarops.models.postprocess import postprocess
+from lidarops.models.postprocess import _postprocess_rows, postprocess
 from lidarops.ops.pillars import MAX_ABS_INTENSITY
 from lidarops.ops.validation import (check_positive_int, check_tensor, describe, run_value_checks,
                                       value_checks_enabled)
@@ -183,7 +183,14 @@ class PointPillars(PredictMixin, nn.Module):
 
     def postprocess(self, raw: Mapping[str, Tensor], batch: Mapping[str, Any] | None = None) -> list[dict]:
         """Per-frame detections (see :func:`postprocess`) from the raw outputs of ``forward`` in eval mode."""
-        return postprocess(*self.dense_head.decode(raw), self.config)
+        head = self.dense_head
+        if raw["cls_preds"].is_cuda:  # every anchor decoded in a few launches, once for the whole batch
+            return postprocess(*head.decode(raw), self.config)
+        # on the CPU only the anchors the score threshold keeps are decoded (decoding every anchor costs more than
+        # the rest of the post-processing); each anchor's box depends on its own row alone
+        B = raw["cls_preds"].shape[0]
+        return _postprocess_rows(raw["cls_preds"].view(B, -1, head.num_class).float(),
+                                 lambda b, anchors: head._decode_rows(raw, b, anchors), self.config)
 
     def _predict_replayed(self, batch: Mapping[str, Any]) -> list[dict] | None:
         # cheap tests first: the graph module is imported only for a CUDA batch

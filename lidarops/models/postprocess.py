@@ -6,6 +6,7 @@ the shapes for CUDA graphs (:func:`postprocess_padded`). Labels are 1-based into
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -30,6 +31,14 @@ def postprocess(cls_logits: Tensor, boxes: Tensor, cfg: PointPillarsConfig) -> l
         list of B dicts: ``boxes (K, 7)``, ``scores (K,)``, ``labels (K,)`` int64 (1-based into
         ``cfg.class_names``), in descending score order.
     """
+    return _postprocess_rows(cls_logits, lambda b, anchors: boxes[b, anchors], cfg)
+
+
+def _postprocess_rows(cls_logits: Tensor, boxes_of: Callable[[int, Tensor], Tensor],
+                      cfg: PointPillarsConfig) -> list[dict[str, Tensor]]:
+    """:func:`postprocess` with the boxes decoded on demand: ``boxes_of(b, anchors)`` gives frame ``b``'s boxes
+    ``(len(anchors), 7)`` of the anchors at those indices, asked only for the anchors the score threshold keeps
+    (on the CPU, decoding every anchor costs more than the rest of the post-processing)."""
     from lidarops.ops.boxes import batched_nms_bev, nms_bev
 
     pre, post = _limits(cfg)
@@ -39,13 +48,14 @@ def postprocess(cls_logits: Tensor, boxes: Tensor, cfg: PointPillarsConfig) -> l
         if not cfg.multi_classes_nms:
             scores, labels = scores_all.max(dim=-1)
             keep = torch.nonzero(scores >= cfg.score_thresh).squeeze(1)
-            sel = keep[nms_bev(boxes[b, keep], scores[keep], cfg.nms_thresh, pre_max=pre, post_max=post)]
-            out.append({"boxes": boxes[b, sel], "scores": scores[sel], "labels": labels[sel] + 1})
+            boxes, scores, labels = boxes_of(b, keep), scores[keep], labels[keep]
+            sel = nms_bev(boxes, scores, cfg.nms_thresh, pre_max=pre, post_max=post)
+            out.append({"boxes": boxes[sel], "scores": scores[sel], "labels": labels[sel] + 1})
             continue
         anchor, label = torch.nonzero(scores_all >= cfg.score_thresh, as_tuple=True)
-        scores = scores_all[anchor, label]
-        sel = batched_nms_bev(boxes[b, anchor], scores, label, cfg.nms_thresh, pre_max=pre, post_max=post)
-        out.append({"boxes": boxes[b, anchor[sel]], "scores": scores[sel], "labels": label[sel] + 1})
+        boxes, scores = boxes_of(b, anchor), scores_all[anchor, label]
+        sel = batched_nms_bev(boxes, scores, label, cfg.nms_thresh, pre_max=pre, post_max=post)
+        out.append({"boxes": boxes[sel], "scores": scores[sel], "labels": label[sel] + 1})
     return out
 
 

@@ -217,6 +217,56 @@ def test_postprocess_threshold_and_nms():
     assert torch.equal(multi["boxes"], boxes[0, [1, 2, 0]])
 
 
+@pytest.mark.parametrize("multi", [False, True])
+@pytest.mark.parametrize("direction", [True, False])
+def test_cpu_postprocess_decodes_only_the_anchors_above_the_threshold(multi, direction, monkeypatch):
+    """On the CPU, PointPillars.postprocess decodes only the anchors with a class at or above the score threshold:
+    the detections of decoding every anchor (scores and labels bit for bit), per frame of a batch (one frame with
+    nothing above), per class or not, with and without the direction classifier; a box out of range above the
+    threshold raises the same error."""
+    cfg = {**TINY, "class_names": ["Car", "Pedestrian"], "multi_classes_nms": multi, "score_thresh": 0.45,
+           "nms_thresh": 0.1, "use_direction_classifier": direction,
+           "anchor_generator_config": TINY["anchor_generator_config"] + [
+               {**TINY["anchor_generator_config"][0], "class_name": "Pedestrian", "anchor_sizes": [[0.8, 0.6, 1.7]]}]}
+    torch.manual_seed(3)
+    model = PointPillars(cfg).eval()
+    head = model.dense_head
+    g = torch.Generator().manual_seed(4)
+    frames = [torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0])
+              for n in (300, 80, 5)]
+    with torch.no_grad():
+        head.conv_box.bias.normal_(0, 0.3, generator=g)
+        raw = model(_batch(frames))
+        # logits around -1.2: some anchors above 0.45 (logit -0.2), most below
+        raw["cls_preds"].copy_(torch.randn(raw["cls_preds"].shape, generator=g) - 1.2)
+    B, A = 3, head.anchors_flat.shape[0]
+    scores = torch.sigmoid(raw["cls_preds"].view(B, A, -1))
+    above = (scores >= 0.45).any(-1)
+    assert 0 < int(above[0].sum()) < A // 2, "some anchors above the threshold, most below"
+    with torch.no_grad():  # a frame with no anchor above the threshold
+        raw["cls_preds"][2] = -1.0
+    asked = []
+    decode_rows = head._decode_rows
+    monkeypatch.setattr(head, "_decode_rows",
+                        lambda p, b, anchors: asked.append((b, anchors)) or decode_rows(p, b, anchors))
+    with torch.no_grad():
+        got = model.postprocess(raw)
+        want = postprocess(*head.decode(raw), model.config)
+    for b in range(B):
+        assert torch.equal(got[b]["labels"], want[b]["labels"]) and torch.equal(got[b]["scores"], want[b]["scores"]), b
+        assert torch.allclose(got[b]["boxes"], want[b]["boxes"], rtol=1e-6, atol=1e-6), b
+    assert sum(len(w["labels"]) for w in want) > 0 and len(want[2]["labels"]) == 0
+    assert {b for b, _ in asked} >= {0, 1}  # frames with anchors above the threshold decode them here
+    for b, anchors in asked:  # only anchors above the threshold were decoded
+        assert bool(above[b, anchors].all()) and anchors.numel() <= int(above[b].sum()) * (2 if multi else 1), b
+    with torch.no_grad():
+        raw["box_preds"][0].view(A, -1)[above[0].nonzero()[0, 0], 3:6] = 80.0  # exp(80): beyond every size
+        with pytest.raises(ValueError, match="boxes must hold"):
+            postprocess(*head.decode(raw), model.config)
+        with pytest.raises(ValueError, match="boxes must hold"):
+            model.postprocess(raw)
+
+
 def _assert_padded_equals(padded: dict, eager: list[dict], what: str) -> None:
     for b, want in enumerate(eager):
         n = int(padded["count"][b])
