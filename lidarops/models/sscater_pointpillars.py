@@ -33,7 +33,6 @@ from torch.nn import functional as F
 
 from lidarops._cuda_graphs import graph_capacity, uncached_autocast
 from lidarops.models.bev_backbone import BaseBEVBackbone
-from lidarops.ops.boxes import unsupported_boxes
 from lidarops.ops.validation import check_tensor, describe, validation, value_checks_enabled
 from lidarops.sscater import delta as delta_module
 from lidarops.sscater.delta import DeltaBackbone, LayerStats
@@ -539,19 +538,19 @@ class SSCATeRPointPillars:
         return {k: out[k][0, :n].clone() for k in ("boxes", "scores", "labels")}
 
     def _capture_detect(self) -> tuple:
+        from lidarops.models.cuda_graph import _bad_boxes, _decode_candidates
         from lidarops.models.postprocess import postprocess_padded
         head, cfg = self.detector.dense_head, self.detector.config
         dtype = head.conv_cls.weight.dtype
 
         def body():
             raw = head(self.delta.out.to(dtype))
-            cls_logits, boxes = head.decode(raw)
-            out = postprocess_padded(cls_logits, boxes, cfg)
-            # the eager post-processing's value checks, on the boxes it would check (some class's score at least
-            # the threshold), as a flag read with the count: the padded NMS inside a graph cannot read back
-            above = (torch.sigmoid(cls_logits[0]) >= cfg.score_thresh).any(-1)
-            bad = unsupported_boxes(boxes[0]) & above
-            out["read"] = torch.stack([out["count"][0], bad.any().to(out["count"].dtype)])
+            # only the anchors the NMS can visit are decoded, as in the detector's own graph; the eager
+            # post-processing's value checks come back as a flag read with the count (a graph cannot raise)
+            decoded, bad = _decode_candidates(head, raw, cfg)
+            out = postprocess_padded(*decoded, cfg)
+            bad = _bad_boxes(*decoded, cfg) if bad is None else bad
+            out["read"] = torch.stack([out["count"][0], bad[0].to(out["count"].dtype)])
             return raw, out
 
         side, current = torch.cuda.Stream(self.device), torch.cuda.current_stream(self.device)
