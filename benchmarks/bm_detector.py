@@ -14,7 +14,8 @@ statistics from a few frames (the time does not depend on the values, except NMS
   the dense backbone that call replays a CUDA graph of the whole inference from its second call on
   (``lidarops.models.pointpillars.PREDICT_CUDA_GRAPH``); **eager, no graph** is the same call inside
   ``eager_predict()``: validation, voxelization with its host read, every launch, post-processing with its host
-  reads.
+  reads. On the CPU ``predict`` runs an inference copy of the model (BatchNorm and padding folded,
+  channels-last: ``PREDICT_CPU_COPY``); **eager, the model itself** is the call inside ``eager_predict()``.
 * **graph of the model itself** (fp16): ``predict`` under fp16 autocast replays a graph of an optimized copy
   (BatchNorm folded, channels-last: ``lidarops.models.cuda_graph.OPTIMIZE_UNDER_AUTOCAST``); this row turns
   that off, replaying a graph of the model's own modules.
@@ -169,7 +170,10 @@ def run(device: str, modes=("dense", "sparse"), precisions=PRECISIONS, frame: to
             finally:
                 cuda_graph.OPTIMIZE_UNDER_AUTOCAST = old
 
-        calls = [("eager", eager)] + ([("eager, no graph", no_graph)] if device == "cuda" and mode == "dense" else [])
+        calls = [("eager", eager)]
+        if mode == "dense":  # predict without its graph (CUDA) or its inference copy (CPU): the model itself
+            calls.append(("eager, no graph" if device == "cuda" else "eager, the model itself (no inference copy)",
+                          no_graph))
         if device == "cuda" and mode == "dense" and precision == "fp16":
             calls.append(("eager, graph of the model itself (not optimized)", exact_graph))
         for impl, fn in calls:

@@ -259,15 +259,9 @@ def cuda_pointpillars():
     return model
 
 
-@fuzz
-@given(data=st.data())
-def test_cuda_predict_replayed_is_the_eager_call(cuda_pointpillars, data):
-    """predict on CUDA batches (ragged frames, bad frame indices, fractional ones, other dtypes, bad intensities),
-    called until it replays a graph: the eager call's detections, or its error word for word."""
-    from lidarops.models import cuda_graph
-    from lidarops.models.pointpillars import eager_predict
-
-    model = cuda_pointpillars
+def _predict_batch(data) -> dict:
+    """A drawn CPU batch for predict: ragged frames of TINY's range, maybe one bad value (a frame index or an
+    intensity: NaN, inf, huge, fractional, negative, past the batch), float32, float64 or float16."""
     n = data.draw(st.integers(0, 300), "points")
     batch_size = data.draw(st.integers(1, 3), "batch_size")
     g = torch.Generator().manual_seed(data.draw(st.integers(0, 100), "seed"))
@@ -277,8 +271,21 @@ def test_cuda_predict_replayed_is_the_eager_call(cuda_pointpillars, data):
     if n and data.draw(st.booleans(), "a bad value"):
         row, col = data.draw(st.integers(0, n - 1), "row"), data.draw(st.sampled_from([0, 4]), "column")
         points[row, col] = data.draw(st.sampled_from([float("nan"), float("inf"), 1e9, 0.5, -1.0, 7.0]), "value")
-    points = data.draw(st.sampled_from([points, points.double(), points.half()]), "dtype").cuda()
-    batch = {"points": points, "batch_size": batch_size}
+    points = data.draw(st.sampled_from([points, points.double(), points.half()]), "dtype")
+    return {"points": points, "batch_size": batch_size}
+
+
+@fuzz
+@given(data=st.data())
+def test_cuda_predict_replayed_is_the_eager_call(cuda_pointpillars, data):
+    """predict on CUDA batches (ragged frames, bad frame indices, fractional ones, other dtypes, bad intensities),
+    called until it replays a graph: the eager call's detections, or its error word for word."""
+    from lidarops.models import cuda_graph
+    from lidarops.models.pointpillars import eager_predict
+
+    model = cuda_pointpillars
+    batch = _predict_batch(data)
+    batch["points"] = batch["points"].cuda()
     with eager_predict():
         want, want_err = outcome(model.predict, batch)
     keep, recorded = cuda_graph.KEEP_GRAPHS, cuda_graph.MAX_RECORDINGS
@@ -295,6 +302,48 @@ def test_cuda_predict_replayed_is_the_eager_call(cuda_pointpillars, data):
     assert err is None, f"the eager call accepted the batch, the replay refused it: {err!r}"
     assert len(got) == len(want)
     for d, w in zip(got, want):
+        assert d["labels"].tolist() == w["labels"].tolist()
+        assert torch.allclose(d["scores"].double(), w["scores"].double(), atol=1e-5)
+        assert torch.allclose(d["boxes"].double(), w["boxes"].double(), atol=1e-4)
+
+
+@pytest.fixture(scope="module")
+def cpu_pointpillars():
+    from helpers.models import randomize_bn
+
+    torch.manual_seed(0)
+    model = PointPillars({**TINY, "score_thresh": 0.3})
+    randomize_bn(model.backbone_2d, 3)  # what the inference copy folds
+    with torch.no_grad():  # scores around 0.5, so that boxes pass the threshold
+        model.dense_head.conv_cls.bias.zero_()
+    return model.eval()
+
+
+@fuzz
+@given(data=st.data())
+def test_cpu_predict_through_the_inference_copy_is_the_eager_call(cpu_pointpillars, data):
+    """predict on CPU batches (ragged frames, bad frame indices, fractional ones, other dtypes, bad values) runs
+    the model's inference copy: the eager call's detections up to rounding, or its error word for word; the eager
+    call's detections are those of decoding every anchor."""
+    from lidarops.models.pointpillars import eager_predict
+    from lidarops.models.postprocess import postprocess
+
+    model = cpu_pointpillars
+    batch = _predict_batch(data)
+    with eager_predict():
+        want, want_err = outcome(model.predict, batch)
+    got, err = outcome(model.predict, batch)
+    if want_err is not None:
+        assert err is not None and type(err) is type(want_err) and str(err) == str(want_err), \
+            f"eager: {want_err!r}; inference copy: {err!r}"
+        return
+    assert err is None, f"the eager call accepted the batch, the inference copy refused it: {err!r}"
+    with torch.no_grad():
+        whole = postprocess(*model.dense_head.decode(model(batch)), model.config)
+    assert len(got) == len(want) == len(whole)
+    for d, w, h in zip(got, want, whole):
+        assert w["labels"].tolist() == h["labels"].tolist() and torch.equal(w["scores"], h["scores"])
+        assert torch.equal(w["boxes"], h["boxes"])
         assert d["labels"].tolist() == w["labels"].tolist()
         assert torch.allclose(d["scores"].double(), w["scores"].double(), atol=1e-5)
         assert torch.allclose(d["boxes"].double(), w["boxes"].double(), atol=1e-4)

@@ -944,6 +944,131 @@ def test_predict_graphs_are_not_copied_with_the_model(tmp_path):
     assert "_predict_graphs" not in fresh.__dict__
 
 
+def _bn_trained(model: PointPillars, seed: int) -> PointPillars:
+    """BatchNorm statistics and affines away from the identity (what folding must get right), biases that put
+    some anchors above the score threshold."""
+    from helpers.models import randomize_bn
+
+    randomize_bn(model.backbone_2d, seed)
+    randomize_bn(model.vfe, seed + 1)
+    with torch.no_grad():
+        model.dense_head.conv_cls.bias.fill_(-0.3)
+    return model.eval()
+
+
+def _frames_batch(seed: int, sizes=(300, 120, 40)) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    return _batch([torch.rand(n, 4, generator=g) * torch.tensor([8.0, 8.0, 4.0, 1.0]) + torch.tensor([0, -4.0, -3, 0])
+                   for n in sizes])
+
+
+def _own_detections(model: PointPillars, batch: dict) -> list[dict]:
+    """The model's own forward and post-processing, no inference copy."""
+    with torch.no_grad():
+        return model.postprocess(model(batch), batch)
+
+
+def _close_detections(got: list[dict], want: list[dict], tol: float, what: str) -> int:
+    for b, (g, w) in enumerate(zip(got, want, strict=True)):
+        assert g["labels"].tolist() == w["labels"].tolist(), (what, b)
+        assert torch.allclose(g["scores"], w["scores"], rtol=0, atol=tol), (what, b)
+        assert torch.allclose(g["boxes"], w["boxes"], rtol=0, atol=tol * 10), (what, b)
+    return sum(len(w["labels"]) for w in want)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_cpu_predict_runs_an_inference_copy_with_the_models_detections(dtype, tol):
+    """On the CPU predict runs an inference copy (BatchNorm and padding folded, channels-last): the detections of
+    the model's own forward and post-processing up to rounding, per frame of a batch; nothing for autograd."""
+    model = _bn_trained(PointPillars(TINY), seed=6).to(dtype)
+    batch = _frames_batch(7)
+    batch["points"] = batch["points"].to(dtype)
+    got = model.predict(batch)
+    copy = model.__dict__["_predict_copy"].graphs["copy"][1]
+    assert copy is not model and not any(isinstance(m, torch.nn.BatchNorm2d) for m in copy.backbone_2d.modules())
+    assert _close_detections(got, _own_detections(model, batch), tol, str(dtype)) > 0
+    assert not any(d["scores"].requires_grad or d["boxes"].requires_grad for d in got)
+    assert model.predict(batch)[0]["scores"].tolist() == got[0]["scores"].tolist()
+    assert model.__dict__["_predict_copy"].graphs["copy"][1] is copy  # kept while the model is unchanged
+
+
+def test_cpu_predict_sees_every_change_of_the_model():
+    """The inference copy is made again when the model changes: weights loaded in place, an in-place update of
+    one parameter, BatchNorm statistics moved by a training forward, tensors replaced (``.double()``); each
+    predict gives the changed model's own detections."""
+    model = _bn_trained(PointPillars(TINY), seed=8)
+    other = _bn_trained(PointPillars(TINY), seed=9)
+    batch = _frames_batch(10)
+    before = model.predict(batch)
+    _close_detections(before, _own_detections(model, batch), 1e-5, "first")
+
+    def copy():
+        return model.__dict__["_predict_copy"].graphs["copy"][1]
+
+    made = copy()
+    model.load_state_dict(other.state_dict())
+    after = model.predict(batch)
+    assert copy() is not made
+    assert _close_detections(after, _own_detections(other, batch), 1e-5, "loaded") > 0
+    assert [d["scores"].tolist() for d in after] != [d["scores"].tolist() for d in before]
+    for change in ("in place", "training forward", "double"):
+        made = copy()
+        if change == "in place":
+            with torch.no_grad():
+                model.dense_head.conv_box.bias[:3] += 0.5
+        elif change == "training forward":
+            model.train()
+            with torch.no_grad():
+                model({**batch, "gt_boxes": torch.zeros(3, 1, 8)})  # BatchNorm's running statistics move
+            model.eval()
+        else:
+            model.double()
+            batch["points"] = batch["points"].double()
+        got = model.predict(batch)
+        assert copy() is not made, change
+        _close_detections(got, _own_detections(model, batch), 1e-5 if change != "double" else 1e-12, change)
+
+
+def test_cpu_predict_copy_can_be_turned_off(monkeypatch):
+    """PREDICT_CPU_COPY = False or eager_predict(): the model's own forward, bit for bit; a model made under
+    inference_mode (no version counters to see an update by) runs itself too."""
+    from lidarops.models import pointpillars as pp
+
+    torch.manual_seed(0)
+    model = _bn_trained(PointPillars(TINY), seed=11)
+    batch = _frames_batch(12)
+    want = _own_detections(model, batch)
+    with pp.eager_predict():
+        got = model.predict(batch)
+    assert "_predict_copy" not in model.__dict__
+    monkeypatch.setattr(pp, "PREDICT_CPU_COPY", False)
+    for d in (got, model.predict(batch)):
+        assert all(torch.equal(g[k], w[k]) for g, w in zip(d, want) for k in ("boxes", "scores", "labels"))
+    assert "_predict_copy" not in model.__dict__
+    monkeypatch.setattr(pp, "PREDICT_CPU_COPY", True)
+    with torch.inference_mode():
+        torch.manual_seed(0)
+        frozen = _bn_trained(PointPillars(TINY), seed=11)
+        got = frozen.predict(batch)
+    assert frozen.__dict__["_predict_copy"].graphs == {}
+    assert all(torch.equal(g[k], w[k]) for g, w in zip(got, want) for k in ("boxes", "scores", "labels"))
+
+
+def test_cpu_predict_copy_refuses_what_the_model_refuses():
+    """A bad batch gets the model's own error through the inference copy."""
+    from lidarops.models import pointpillars as pp
+
+    model = _bn_trained(PointPillars(TINY), seed=13)
+    bad = _frames_batch(14)
+    bad["points"][5, 4] = float("nan")  # an intensity
+    messages = []
+    for ctx in (pp.eager_predict(), torch.no_grad()):
+        with ctx, pytest.raises(ValueError) as err:
+            model.predict(bad)
+        messages.append(str(err.value))
+    assert messages[0] == messages[1] and "points" in messages[0]
+
+
 def test_predict_graph_versions_see_in_place_updates():
     """The tensors' version counters that tell an optimized predict graph its copy is stale: they move with an
     in-place update of any parameter or buffer, and are None for a model of inference tensors (no counters)."""
