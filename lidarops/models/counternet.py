@@ -42,7 +42,7 @@ from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.models.config import PointPillarsConfig, _check_value
 from lidarops.models.map_to_bev import PointPillarScatter
 from lidarops.models.pillar_vfe import PillarVFE
-from lidarops.models.pointpillars import _check_batch, voxelize_frames
+from lidarops.models.pointpillars import _check_batch, _predict_on_cpu_copy, voxelize_frames
 
 __all__ = ["CounterNet", "CounterNetConfig", "CountHead"]
 
@@ -305,6 +305,12 @@ class CounterNet(PredictMixin, nn.Module):
         loss = loss_hm + cfg.count_weight * loss_count
         return {"loss": loss, "loss_heatmap": loss_hm.detach(), "loss_count": loss_count.detach(),
                 "count_error": torch.stack(count_errors, dim=1).mean().detach()}
+
+    def _predict_replayed(self, batch: Mapping[str, Any]) -> list[dict] | None:
+        # on the CPU: the inference copy (BatchNorm and padding folded, channels-last), as PointPillars' predict
+        if self.config.floor_config().backbone_mode != "dense":
+            return None
+        return _predict_on_cpu_copy(self, batch)
 
     @torch.no_grad()
     def postprocess(self, raw: Mapping[str, Any], batch: Mapping[str, Any] | None = None) -> list[dict]:

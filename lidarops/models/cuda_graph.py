@@ -871,13 +871,14 @@ class _PredictGraphs:
         return _PredictGraphs, ()
 
 
-def copy_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
-    """:meth:`PointPillars.predict` on the CPU through an :func:`inference_copy` of the eval-mode model (BatchNorm
-    folded into the convolutions, the padding into the convolutions, channels-last maps, the head's convolutions
-    as one): the same detections up to float rounding, in about half the time. The copy is made at the first call
-    and again when the model's tensors are replaced or updated in place (their version counters), or None where
-    the model itself must run: a model off the CPU, an autocast on the CPU, tensors without version counters
-    (made under ``torch.inference_mode``), where an update could not be seen. No autograd graph is recorded."""
+def copy_predict(model: nn.Module, batch: Mapping) -> list[dict] | None:
+    """``predict`` of a PointPillars or a CounterNet on the CPU through an :func:`inference_copy` of the eval-mode
+    model (BatchNorm folded into the convolutions, the padding into the convolutions, channels-last maps, the
+    head's convolutions as one): the same results up to float rounding, in about 55-60 % of the time. The copy is
+    made at the first call and again when the model's tensors are replaced or updated in place (their version
+    counters), or None where the model itself must run: a model off the CPU, an autocast on the CPU, tensors
+    without version counters (made under ``torch.inference_mode``), where an update could not be seen. No
+    autograd graph is recorded."""
     points = batch.get("points") if isinstance(batch, Mapping) else None
     if not isinstance(points, Tensor) or points.device.type != "cpu" or torch.is_autocast_enabled("cpu"):
         return None

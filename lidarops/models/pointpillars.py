@@ -206,11 +206,20 @@ class PointPillars(PredictMixin, nn.Module):
             from lidarops.models.cuda_graph import graphed_predict
 
             return graphed_predict(self, batch)
-        if points.device.type == "cpu" and PREDICT_CPU_COPY:
-            from lidarops.models.cuda_graph import copy_predict
+        return _predict_on_cpu_copy(self, batch)
 
-            return copy_predict(self, batch)
+
+def _predict_on_cpu_copy(model: nn.Module, batch: Mapping[str, Any]) -> list[dict] | None:
+    """``model.predict(batch)`` through the model's inference copy (:data:`PREDICT_CPU_COPY`) for a CPU batch, or
+    None where the model itself runs (the switch off, inside :func:`eager_predict`, another device). For models
+    on PointPillars' dense floor."""
+    points = batch.get("points") if isinstance(batch, Mapping) else None
+    if not (PREDICT_CPU_COPY and isinstance(points, Tensor) and points.device.type == "cpu"
+            and not _EAGER_PREDICT.get()):
         return None
+    from lidarops.models.cuda_graph import copy_predict
+
+    return copy_predict(model, batch)
 
 
 def voxelize_frames(points: Tensor, batch_size: int, cfg: PointPillarsConfig,

@@ -187,6 +187,46 @@ def test_overfits_two_frames_until_the_counts_are_exact():
     assert [f["counts"].tolist() for f in frames] == [[2, 1], [1, 3]]
 
 
+@pytest.mark.parametrize("partitions, delta", [(1, 0.0), (4, 0.25)])
+def test_cpu_predict_runs_an_inference_copy_with_the_models_counts(partitions, delta):
+    """On the CPU predict runs an inference copy (BatchNorm and padding folded, channels-last; the count head reading
+    the upsampled maps one by one): the model's own counts and centres up to rounding, made again after an in-place
+    update; eager_predict() runs the model itself."""
+    from helpers.models import randomize_bn
+
+    from lidarops.models.pointpillars import eager_predict
+
+    torch.manual_seed(1)
+    model = CounterNet(_tiny_cfg(partitions, delta))
+    randomize_bn(model.backbone_2d, 2)
+    randomize_bn(model.count_head, 3)
+    with torch.no_grad():  # heatmaps around 0.5 with peaks: something to count
+        for branch in model.count_head.heatmaps:
+            branch[-1].bias.zero_()
+            branch[-1].weight.mul_(20)
+    model.eval()
+    batch = _batch([_scene(i, s) for i, s in enumerate(SCENES)])
+
+    def own():
+        with torch.no_grad():
+            return model.postprocess(model(batch), batch)
+
+    for step in range(2):
+        got, want = model.predict(batch), own()
+        copy = model.__dict__["_predict_copy"].graphs["copy"][1]
+        assert copy is not model and not any(isinstance(m, torch.nn.BatchNorm2d) for m in copy.modules())
+        for g, w in zip(got, want, strict=True):
+            assert g["counts"].tolist() == w["counts"].tolist(), step
+            assert torch.allclose(g["centres"], w["centres"], atol=1e-5), step
+            assert torch.allclose(g["features"], w["features"], atol=1e-5), step
+        assert sum(int(w["counts"].sum()) for w in want) > 0
+        with torch.no_grad():  # an in-place update: the next predict makes the copy again
+            model.count_head.shared_conv[0].weight.mul_(1.5)
+    with eager_predict():
+        mine = model.predict(batch)
+    assert all(torch.equal(m["centres"], w["centres"]) for m, w in zip(mine, own()))
+
+
 def test_counting_evaluator_by_hand():
     from lidarops.eval.counting import CountingEvaluator
 
