@@ -198,7 +198,7 @@ class PointPillars(PredictMixin, nn.Module):
                                  lambda b, anchors: head._decode_rows(raw, b, anchors), self.config)
 
     def _predict_replayed(self, batch: Mapping[str, Any]) -> list[dict] | None:
-        # cheap tests first: the graph module is imported only for a CUDA batch
+        # cheap tests first: the graph module is imported only when a graph or the CPU's inference copy runs
         points = batch.get("points") if isinstance(batch, Mapping) else None
         if not (isinstance(points, Tensor) and self.config.backbone_mode == "dense" and not _EAGER_PREDICT.get()):
             return None
