@@ -198,7 +198,7 @@ class PointPillars(PredictMixin, nn.Module):
                                  lambda b, anchors: head._decode_rows(raw, b, anchors), self.config)
 
     def _predict_replayed(self, batch: Mapping[str, Any]) -> list[dict] | None:
-        # cheap tests first: the graph module is imported only when a graph or the CPU's inference copy runs
+        # cheap tests first: the graph module is imported only when a graph or the inference copy may run
         points = batch.get("points") if isinstance(batch, Mapping) else None
         if not (isinstance(points, Tensor) and self.config.backbone_mode == "dense" and not _EAGER_PREDICT.get()):
             return None
@@ -210,12 +210,10 @@ class PointPillars(PredictMixin, nn.Module):
 
 
 def _predict_on_cpu_copy(model: nn.Module, batch: Mapping[str, Any]) -> list[dict] | None:
-    """``model.predict(batch)`` through the model's inference copy (:data:`PREDICT_CPU_COPY`) for a CPU batch, or
-    None where the model itself runs (the switch off, inside :func:`eager_predict`, another device). For models
-    on PointPillars' dense floor."""
-    points = batch.get("points") if isinstance(batch, Mapping) else None
-    if not (PREDICT_CPU_COPY and isinstance(points, Tensor) and points.device.type == "cpu"
-            and not _EAGER_PREDICT.get()):
+    """``model.predict(batch)`` through the model's inference copy (:data:`PREDICT_CPU_COPY`), or None where the
+    model itself runs (the switch off, inside :func:`eager_predict`, or what :func:`copy_predict` leaves to it: a
+    batch or model off the CPU). For models on PointPillars' dense floor."""
+    if not PREDICT_CPU_COPY or _EAGER_PREDICT.get():
         return None
     from lidarops.models.cuda_graph import copy_predict
 
