@@ -7,7 +7,7 @@ import contextlib
 
 import torch
 
-__all__ = ["graph_capacity", "uncached_autocast"]
+__all__ = ["graph_capacity", "record_graph", "uncached_autocast"]
 
 
 def graph_capacity(n: int, least: int) -> int:
@@ -25,3 +25,20 @@ def uncached_autocast(device_type: str = "cuda"):
         return
     with torch.autocast(device_type, dtype=torch.get_autocast_dtype(device_type), cache_enabled=False):
         yield
+
+
+def record_graph(fn, device, *, warmups: int = 1, pool=None, capture_error_mode: str = "global"):
+    """Run ``fn`` ``warmups`` times on a side stream (cuDNN picks its algorithms, the allocator settles its blocks,
+    lazy state is made: torch's rule before a capture), then capture it on ``device``; returns the graph and the
+    outputs of the captured call. The caller's contexts (no_grad, autocast, validation) hold for both."""
+    with torch.cuda.device(device):
+        side, current = torch.cuda.Stream(), torch.cuda.current_stream()
+        side.wait_stream(current)
+        with torch.cuda.stream(side):
+            for _ in range(warmups):
+                fn()
+        current.wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, pool=pool, capture_error_mode=capture_error_mode):
+            outputs = fn()
+    return graph, outputs

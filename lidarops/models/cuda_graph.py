@@ -37,7 +37,7 @@ import torch
 from torch import Tensor, nn
 
 import lidarops
-from lidarops._cuda_graphs import graph_capacity, uncached_autocast
+from lidarops._cuda_graphs import graph_capacity, record_graph, uncached_autocast
 from lidarops.models.anchor_head import AnchorHeadSingle
 from lidarops.models.counternet import CounterNet
 from lidarops.models.map_to_bev import PointPillarScatter
@@ -497,18 +497,9 @@ class _GraphedFrames:
             with torch.no_grad(), precision_mode(precision, autocast=not half_model), uncached_autocast():
                 return body(graphed, self._points)
 
-        with torch.cuda.device(self.device):
-            side = torch.cuda.Stream()
-            side.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(side):  # warm-up: cuDNN picks its algorithms, the allocator its blocks
-                for _ in range(2):
-                    run()
-            torch.cuda.current_stream().wait_stream(side)
-            self._graph = torch.cuda.CUDAGraph()
-            # thread_local: a DataLoader's pin-memory thread allocating pinned buffers meanwhile (the index
-            # build) must not invalidate this capture, as the default global mode lets it
-            with torch.cuda.graph(self._graph, capture_error_mode="thread_local"):
-                self._out = run()
+        # thread_local: a DataLoader's pin-memory thread allocating pinned buffers meanwhile (the index
+        # build) must not invalidate this capture, as the default global mode lets it
+        self._graph, self._out = record_graph(run, self.device, warmups=2, capture_error_mode="thread_local")
 
     def _check(self, points: Tensor, name: str) -> None:
         check_tensor(points, name)

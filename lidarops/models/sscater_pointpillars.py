@@ -31,7 +31,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from lidarops._cuda_graphs import graph_capacity, uncached_autocast
+from lidarops._cuda_graphs import graph_capacity, record_graph, uncached_autocast
 from lidarops.models.bev_backbone import BaseBEVBackbone
 from lidarops.ops.validation import check_tensor, describe, validation, value_checks_enabled
 from lidarops.sscater import delta as delta_module
@@ -553,15 +553,8 @@ class SSCATeRPointPillars:
             out["read"] = torch.stack([out["count"][0], bad[0].to(out["count"].dtype)])
             return raw, out
 
-        side, current = torch.cuda.Stream(self.device), torch.cuda.current_stream(self.device)
-        side.wait_stream(current)
         with torch.no_grad(), validation(False), uncached_autocast():
-            with torch.cuda.stream(side):
-                body()  # warm-up outside the graph: cuDNN's choice of algorithms, the allocator's blocks
-            current.wait_stream(side)
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph):
-                raw, out = body()
+            graph, (raw, out) = record_graph(body, self.device)
         return graph, raw, out
 
     def window_points(self) -> Tensor:

@@ -24,7 +24,7 @@ from typing import Any, Optional
 import torch
 from torch import Tensor, nn
 
-from lidarops._cuda_graphs import uncached_autocast
+from lidarops._cuda_graphs import record_graph, uncached_autocast
 from lidarops.ops.validation import validation
 from lidarops.sparse import functional as Fs
 from lidarops.sparse.tensor import SparseConvTensor
@@ -205,15 +205,8 @@ class GraphedSparseNet:
                 return self.net(x)
 
         try:
-            with torch.cuda.device(static.device):
-                side = torch.cuda.Stream()
-                side.wait_stream(torch.cuda.current_stream())
-                with torch.cuda.stream(side):  # warm-up: row orders made, cuDNN and the allocator settled
-                    run()
-                torch.cuda.current_stream().wait_stream(side)
-                graph = torch.cuda.CUDAGraph()
-                with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-                    outputs = run()
+            # the warm-up also makes the maps' row orders, which a capture cannot
+            graph, outputs = record_graph(run, static.device, capture_error_mode="thread_local")
         except (RuntimeError, ValueError) as e:  # a host read in the forward (the network's own): not recordable
             self._eager_from_now("the forward cannot be recorded as a CUDA graph (it reads from the device, which a "
                                  "capture forbids): " + str(e).splitlines()[0])

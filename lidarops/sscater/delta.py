@@ -44,7 +44,7 @@ from typing import Optional, Protocol, Sequence, runtime_checkable
 import torch
 from torch import Tensor
 
-from lidarops._cuda_graphs import graph_capacity, uncached_autocast
+from lidarops._cuda_graphs import graph_capacity, record_graph, uncached_autocast
 
 __all__ = [
     "CHANNEL_SPARSE", "DENSE_CHANNELS_LAST", "DENSE_REFRESH", "REFRESH_CUDA_GRAPH", "Change", "DeltaBackbone",
@@ -621,16 +621,10 @@ class DeltaBackbone:
         def body():
             return self._step(s_sites, fn(s_sites) if fn else s_feats, s_removed)
 
-        side = torch.cuda.Stream(self.device)
-        side.wait_stream(torch.cuda.current_stream(self.device))
+        pool = next(iter(self._graphs.values()))[3].pool() if self._graphs else None
         with uncached_autocast():  # the pillar net of fn may run under a caller's autocast
-            with torch.cuda.stream(side):  # warm-up on all-padding input: changes no state
-                body()
-            torch.cuda.current_stream(self.device).wait_stream(side)
-            graph = torch.cuda.CUDAGraph()
-            pool = next(iter(self._graphs.values()))[3].pool() if self._graphs else None
-            with torch.cuda.graph(graph, pool=pool):
-                outputs = body()
+            # the warm-up runs on all-padding input: it changes no state
+            graph, outputs = record_graph(body, self.device, pool=pool)
         self._graphs[(cap, fn)] = (s_sites, s_feats, s_removed, graph, outputs)
         return self._graphs[(cap, fn)]
 

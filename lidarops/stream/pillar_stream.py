@@ -41,7 +41,7 @@ import torch
 from torch import Tensor
 
 from lidarops import extension
-from lidarops._cuda_graphs import graph_capacity, uncached_autocast
+from lidarops._cuda_graphs import graph_capacity, record_graph, uncached_autocast
 from lidarops.ops.validation import describe
 from lidarops.ops.voxelize import check_capacity
 from lidarops.ops.pillars import (
@@ -534,17 +534,9 @@ class PillarStream:
         rec["host_np"][1] = self._log_head  # the warm-up's push: no points, empty runs: it changes nothing
         rec["host_np"][2:3].view(np.float64)[0] = float("-inf")
         rec["scalars"].copy_(rec["host"])
-        side, current = torch.cuda.Stream(dev), torch.cuda.current_stream(dev)
-        side.wait_stream(current)
+        pool = next(iter(self._push_graphs.values()))["graph"].pool() if self._push_graphs else None
         with torch.no_grad(), uncached_autocast():
-            with torch.cuda.stream(side):
-                body()
-            current.wait_stream(side)
-            graph = torch.cuda.CUDAGraph()
-            pool = next(iter(self._push_graphs.values()))["graph"].pool() if self._push_graphs else None
-            with torch.cuda.graph(graph, pool=pool):
-                rec["figures"], rec["outputs"] = body()
-        rec["graph"] = graph
+            rec["graph"], (rec["figures"], rec["outputs"]) = record_graph(body, dev, pool=pool)
         self._push_graphs[(cap, rcap)] = rec
         return rec
 
