@@ -836,6 +836,16 @@ class _PredictGraphs:
         self.graphs: OrderedDict = OrderedDict()
         self.recorded = 0
         self.pillars: dict = {}  # graph key -> the most pillar rows its frames have needed
+        self.config = None  # a copy of the model's config the graphs and the copy were made with
+
+    def config_changed(self, model: nn.Module) -> bool:
+        """Whether ``model.config`` differs from the one the graphs and the copy were made with (they hold its
+        thresholds and capacities: a user's ``model.config.score_thresh = 0.5`` must be seen). A new one is kept,
+        copied, so that a later change in place is seen too."""
+        if self.config is not None and model.config == self.config:
+            return False
+        self.config = copy.deepcopy(model.config)
+        return True
 
     def current(self, model: nn.Module) -> tuple:
         """The model's tensors as the graphs would read them: data pointers, in the order of :attr:`places`
@@ -883,7 +893,7 @@ def copy_predict(model: nn.Module, batch: Mapping) -> list[dict] | None:
     if state[1] is None:
         return None
     made = cache.graphs.get("copy")
-    if made is None or made[0] != state:
+    if cache.config_changed(model) or made is None or made[0] != state:
         with torch.no_grad():
             cache.graphs["copy"] = made = (state, inference_copy(model))
     with torch.no_grad():
@@ -940,6 +950,10 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     if cache is None:
         cache = model._predict_graphs = _PredictGraphs()
     tensors = cache.current(model)
+    if cache.config_changed(model):  # the graphs hold the old config's thresholds, and its pillars' sizes
+        cache.graphs.clear()
+        cache.seen.clear()
+        cache.pillars.clear()
     if cache.tensors != tensors:  # new tensors: every graph recorded the old ones
         cache.graphs.clear()
         cache.seen.clear()

@@ -21,6 +21,7 @@ would leave its rounding residue behind), forces a full refresh within the same 
 """
 from __future__ import annotations
 
+import copy
 import functools
 import math
 import time
@@ -254,7 +255,7 @@ class SSCATeRPointPillars:
         self.detector = None  # the PointPillars whose head and post-processing turn the map into boxes
         self._head: Optional[dict] = None  # the head's output maps on the recycled map (detect)
         self._head_sites: Optional[list] = None  # output sites changed since the last detect; None: all
-        self._detect_graph: Optional[tuple] = None  # (precision flags, graph, head maps, padded boxes) on CUDA
+        self._detect_graph: Optional[tuple] = None  # (precision flags, config, graph, head maps, padded boxes)
         self._pfn_points = torch.zeros((), dtype=torch.int64, device=self.device)  # written by _changed_features
         self._all_sites: Optional[Tensor] = None  # (H * W, 2) every site, for the dense mode's refresh
         self._refresh_inputs: dict = {}  # a graphed refresh's padded pillar list and features function, by capacity
@@ -525,9 +526,11 @@ class SSCATeRPointPillars:
         chosen under them)."""
         flags = (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32,
                  torch.is_autocast_enabled("cuda"))
-        if self._detect_graph is None or self._detect_graph[0] != flags:
-            self._detect_graph = (flags, *self._capture_detect())
-        _, graph, raw, out = self._detect_graph
+        graphed = self._detect_graph
+        # the graph holds the config's thresholds: a change of the detector's config records it again
+        if graphed is None or graphed[0] != flags or graphed[1] != self.detector.config:
+            self._detect_graph = (flags, copy.deepcopy(self.detector.config), *self._capture_detect())
+        _, _, graph, raw, out = self._detect_graph
         graph.replay()
         self._head, self._head_sites = raw, []
         n, bad = out["read"].tolist()  # the one host read

@@ -3,6 +3,7 @@ OpenPCDet's state-dict layout and anchor order, the pillar features and losses a
 hand, post-processing, configs, bad input, export, and an overfit run on simulated frames."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -1067,6 +1068,34 @@ def test_cpu_predict_copy_refuses_what_the_model_refuses():
             model.predict(bad)
         messages.append(str(err.value))
     assert messages[0] == messages[1] and "points" in messages[0]
+
+
+def test_predict_sees_a_changed_config(device):
+    """The CPU's inference copy and the CUDA graphs hold the config's thresholds: after a field of
+    ``model.config`` is changed in place, or the config replaced, predict gives what the model's own forward and
+    post-processing give under the new config (the calls before had made the copy and recorded the graph)."""
+    from lidarops.models.pointpillars import eager_predict
+
+    model = _bn_trained(PointPillars({**TINY, "score_thresh": 0.05}), seed=15).to(device)
+    batch = _frames_batch(16)
+    batch["points"] = batch["points"].to(device)
+
+    def eager():
+        with eager_predict():
+            return model.predict(batch)
+
+    for _ in range(3):  # on CUDA the second call records a graph, the third replays it
+        _close_detections(model.predict(batch), eager(), 1e-5, "before")
+    before = sum(len(d["labels"]) for d in eager())
+    scores = torch.cat([d["scores"] for d in eager()]).sort().values
+    model.config.score_thresh = float(scores[len(scores) // 2])  # in place: about half the boxes go
+    for k in range(3):
+        assert _close_detections(model.predict(batch), eager(), 1e-5, f"in place {k}") < before
+    model.config = dataclasses.replace(model.config, score_thresh=0.05, nms_post_maxsize=1)
+    for k in range(3):
+        got = model.predict(batch)
+        _close_detections(got, eager(), 1e-5, f"replaced {k}")
+        assert [len(d["labels"]) for d in got] == [1, 1, 1]
 
 
 def test_predict_graph_versions_see_in_place_updates():

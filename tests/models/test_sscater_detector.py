@@ -75,7 +75,8 @@ def test_streamed_boxes_equal_the_detector_on_the_window(device, dtype, tol):
 def test_detect_as_a_cuda_graph_equals_the_eager_head_and_postprocess(monkeypatch, dtype):
     """detect() on CUDA replays the head, decode and padded post-processing as one graph (DETECT_CUDA_GRAPH): the
     same boxes as the eager head and postprocess on the same map, at every step; the boxes it returned are the
-    caller's (the next replay does not overwrite them); a change of TF32 captures the graph again."""
+    caller's (the next replay does not overwrite them); a change of TF32 or of the detector's config captures the
+    graph again."""
     monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
     monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
     detector = _detector(dtype, seed=4).cuda()
@@ -96,10 +97,16 @@ def test_detect_as_a_cuda_graph_equals_the_eager_head_and_postprocess(monkeypatc
     for got, copy in kept:
         assert all(torch.equal(got[key], copy[key]) for key in copy)
     assert boxes_seen > 0
-    graph = stream._detect_graph[1]
+    graph = stream._detect_graph[2]
     monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
     stream.detect()
-    assert stream._detect_graph[1] is not graph
+    assert stream._detect_graph[2] is not graph
+    # the graph holds the config's thresholds: a change in place is seen
+    with torch.no_grad():
+        want = detector.postprocess(detector.dense_head(stream.delta.out.to(dtype)))[0]
+    assert len(want["scores"]) > 0
+    detector.config.score_thresh = float(want["scores"].max()) + 1e-3  # no box is kept
+    assert stream.detect()["labels"].tolist() == []
     # boxes out of the supported range (sizes exp(40) times the anchor's): the eager post-processing's error
     with torch.no_grad():
         detector.dense_head.conv_box.bias[3:6] += 40.0  # in place: the graph reads the parameter's memory
