@@ -483,6 +483,51 @@ def test_open_ground_raises_flat_ground_before_the_buildings_clear_of_the_lanes(
     _assert_city_option_checked("open_ground")
 
 
+@pytest.mark.parametrize("scenario, default", [("driving_city", 0.015), ("driving_highway", 0.02)])
+def test_ground_slope_tilts_the_road_ahead_in_the_sensors_frame(scenario, default):
+    """ground_slope (the scenarios' option, a profile's field): the scene's grade drawn up to it instead of the
+    scenario's own (the same draw, scaled); the level sensor sees the ground ahead rise by the grade times the
+    distance (its ray-cast returns), the objects' labels standing on that ground; the same frame for the same seed;
+    the default value gives the scene of before; values outside [0, 0.1] are named."""
+    steep = Simulator(scenario, seed=SEED, ground_slope=0.04, object_counts="dense")
+    plain = Simulator(scenario, seed=SEED, object_counts="dense")
+    np.testing.assert_allclose(steep.scenario.ground.slope, plain.scenario.ground.slope * 0.04 / default, rtol=1e-12)
+    grade = float(steep.scenario.ground.slope[0])
+    f = steep.sweep(0)
+    x, y, z = f.points[:, 0], f.points[:, 1], f.points[:, 2]
+    road = (f.surface == SURFACE_GROUND) & (np.abs(y) < 8)
+
+    def ground_at(x0):
+        near = road & (np.abs(x - x0) < 2.0)
+        assert near.sum() >= 20, (x0, near.sum())
+        return float(np.median(z[near]))
+
+    rise = ground_at(25.0) - ground_at(5.0)
+    assert abs(grade) > 0.005, grade  # this seed's scene slopes enough to tell
+    # the cross slope and the waves move the ground by up to about 0.1 m
+    assert abs(rise - 20.0 * grade) < 0.15, (rise, 20.0 * grade)
+    ahead = (f.boxes[:, 0] > 5) & (f.boxes[:, 0] < 40) & (f.num_points_in_box >= 20)
+    checked = 0
+    for b in f.boxes[ahead]:  # each label's bottom on the ground returns around it (where the road shows)
+        ring = (f.surface == SURFACE_GROUND) & (np.hypot(x - b[0], y - b[1]) < b[3] / 2 + 3.0)
+        if ring.sum() >= 5:
+            assert abs((b[2] - b[5] / 2) - np.median(z[ring])) < 0.25, b
+            checked += 1
+    assert checked >= 3, checked
+    for slope, want in ((0.04, f), (default, plain.sweep(0))):
+        again = Simulator(scenario, seed=SEED, ground_slope=slope, object_counts="dense").sweep(0)
+        np.testing.assert_array_equal(again.points, want.points)
+    profiled = Simulator(scenario, seed=SEED, realism="kitti:ground_slope=0.04")
+    np.testing.assert_array_equal(profiled.scenario.ground.slope, steep.scenario.ground.slope)
+    np.testing.assert_array_equal(Simulator(scenario, seed=SEED, realism="kitti").scenario.ground.slope,
+                                  plain.scenario.ground.slope)
+    for bad in (-0.01, 0.2, float("nan")):
+        with pytest.raises(ValueError, match="ground_slope"):
+            Simulator(scenario, seed=SEED, ground_slope=bad)
+    with pytest.raises(ValueError, match="ground_slope"):
+        Realism(ground_slope=0.5)
+
+
 def test_label_tightness_draws_vehicle_labels_inside_their_bodies():
     """label_tightness: the same returns; vehicles' labels shorter and narrower by up to twice the tightness (each
     side), at the same centre, height and heading; other classes' labels unchanged."""

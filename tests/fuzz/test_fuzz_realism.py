@@ -58,13 +58,15 @@ def test_any_profile_gives_intensities_on_its_grid(profile, n, seed):
     assert rotors.dtype == bool and rotors.shape == (n,) and rotors[height < profile.rotor_from].all()
 
 
-UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_structures": 10.0}  # others: 1
+UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_structures": 10.0,
+         "ground_slope": 0.1}  # others: 1
 
 
 @fuzz
 @given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "roadside_structures",
                                     "pedestrian_build", "hair_dropout", "crossing_pedestrians",
-                                    "crossing_cyclists", "crossing_groups", "parking_lots", "open_ground")),
+                                    "crossing_cyclists", "crossing_groups", "parking_lots", "open_ground",
+                                    "ground_slope")),
        value=st.sampled_from([-0.5, "above", "far above", float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     if isinstance(value, str):  # just above the parameter's range, or twice its end
@@ -294,6 +296,16 @@ def test_bad_crossing_probability_is_named(option, value):
 
     _, err = outcome(build_scenario, "driving_city", 0, **{option: value})
     assert_clear_error(err, (ValueError, TypeError), [option], f"{option}={value!r}")
+
+
+@fuzz
+@given(scenario=st.sampled_from(["driving_city", "driving_highway"]),
+       value=st.sampled_from([-0.01, 0.11, 1.0, float("nan"), float("inf"), "steep", True]))
+def test_bad_ground_slope_is_named(scenario, value):
+    from lidarops.data.scenarios import build_scenario
+
+    _, err = outcome(build_scenario, scenario, 0, ground_slope=value)
+    assert_clear_error(err, (ValueError, TypeError), ["ground_slope"], f"{scenario}: ground_slope={value!r}")
 
 
 # ---- the object sets' REALISM (lidarops.data.object_sets.ObjectSetRecipe) ----
