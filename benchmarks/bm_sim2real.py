@@ -60,6 +60,7 @@ THRESHOLDS_3D = {"Car": (0.5, 0.7), "Pedestrian": (0.25, 0.5), "Cyclist": (0.25,
 FP_SCORES = (0.3, 0.5)
 CURVE_SCORES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)  # score_curve: the thresholds a user might pick
 BANDS = ("bottom", "middle", "top")
+GRADE_RANGE = (10.0, 45.0)  # object_grades: objects far enough for a grade to show, near enough to be labelled
 LINES_RANGE, LINES_BINS = (15.0, 60.0), np.arange(-25.0, 3.0, 0.05)  # beam_line_share: the returns and the bins
 HALO_RANGE, HALO_MARGIN = 30.0, 0.5  # the cars whose halo is counted (m), and its width around the box (m)
 FAR_RANGE, FAR_POINTS = (40.0, 75.0), (3, 30)  # far_clusters: the range band (m) and the clusters' sizes counted
@@ -384,6 +385,24 @@ def cyclist_head_offset(points: np.ndarray, boxes: np.ndarray, names: list[str],
     return out
 
 
+def object_grades(points: np.ndarray, boxes: np.ndarray, names: list[str], lo: float = GRADE_RANGE[0],
+                  hi: float = GRADE_RANGE[1]) -> list[float]:
+    """Per labelled Car, Pedestrian and Cyclist ahead (x > 0, as KITTI labels only what its camera sees) at
+    ``lo``-``hi`` m: how far its label's bottom stands above the ground under the sensor (the 5th percentile of the
+    heights of the returns within 8 m), as a share of its range: the grade of the road between them as the level
+    sensor sees it."""
+    near = points[np.hypot(points[:, 0], points[:, 1]) < 8.0]
+    if len(near) < 20:
+        return []
+    ground = float(np.percentile(near[:, 2], 5))
+    out = []
+    for b, n in zip(np.asarray(boxes, np.float64).reshape(-1, 7), names):
+        r = float(np.hypot(b[0], b[1]))
+        if n in CLASSES and lo <= r <= hi and b[0] > 0:
+            out.append((b[2] - b[5] / 2 - ground) / r)
+    return out
+
+
 def elevations(points: np.ndarray, lo: float = LINES_RANGE[0], hi: float = LINES_RANGE[1]) -> np.ndarray:
     """Apparent elevation (degrees, seen from the sensor's origin) of the returns between ``lo`` and ``hi`` m."""
     xyz = points[:, :3].astype(np.float64)
@@ -443,8 +462,9 @@ def far_clusters(points: np.ndarray, boxes: np.ndarray, lo: float = FAR_RANGE[0]
 
 def data_stats(frames) -> dict:
     allint, cars, peds, lines, elev, legs, heads = [], [], np.zeros(2, np.int64), [], [], [], []
-    far, far_counts = [], []
+    far, far_counts, grades = [], [], []
     for _, points, boxes, names, *_ in frames:
+        grades += object_grades(points, boxes, names)
         clusters = far_clusters(points, boxes)
         small = clusters[(clusters[:, 0] >= FAR_POINTS[0]) & (clusters[:, 0] <= FAR_POINTS[1])]
         far.append(small)
@@ -481,7 +501,9 @@ def data_stats(frames) -> dict:
                     "far_clusters_per_frame": round(float(np.mean(far_counts)), 1) if far_counts else None,
                     "far_cluster_height": round(float(np.median(far[:, 1])), 2) if len(far) else None,
                     "far_cluster_footprint": round(float(np.median(far[:, 2])), 2) if len(far) else None,
-                    "far_cluster_share_on_road": round(float((far[:, 3] < 10.5).mean()), 2) if len(far) else None}}
+                    "far_cluster_share_on_road": round(float((far[:, 3] < 10.5).mean()), 2) if len(far) else None,
+                    "object_grade_median": round(float(np.median(grades)), 4) if grades else None,
+                    "object_grade_p90": round(float(np.percentile(grades, 90)), 4) if grades else None}}
 
 
 def _sim_name(profile: str | None) -> str:
@@ -627,7 +649,8 @@ def main(argv: list[str] | None = None) -> int:
     keys = ["case", "median_intensity", "zero_intensity_share", "car_median_intensity", "car_zero_intensity_share",
             "car_share_bottom", "car_share_middle", "car_share_top", "car_halo_share", "pedestrians_in_groups_share",
             "beam_line_share", "pedestrian_lower_half_share", "cyclist_head_offset", "far_clusters_per_frame",
-            "far_cluster_height", "far_cluster_footprint", "far_cluster_share_on_road"]
+            "far_cluster_height", "far_cluster_footprint", "far_cluster_share_on_road", "object_grade_median",
+            "object_grade_p90"]
     print_table("real against simulated" if use_real else "simulated", keys,
                 [[r.get(k, "") for k in keys] for r in stat_rows], right=range(1, len(keys)))
     if args.plot and use_real:

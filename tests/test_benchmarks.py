@@ -429,6 +429,25 @@ def test_bm_sim2real_cyclist_head_offset_by_hand():
     assert cyclist_head_offset(points, boxes, ["Pedestrian"] * 3, least=5) == []
 
 
+def test_bm_sim2real_object_grades_by_hand():
+    """A car 20 m ahead whose label's bottom is 0.5 m above the ground under the sensor (the 5th percentile of the
+    returns within 8 m, -1.7 here) stands on a 2.5 % grade, a cyclist 30 m ahead to the side 0.3 m below it on -1 %;
+    a pedestrian 5 m away, a car behind the sensor and a van are not counted; without returns near the sensor there
+    is no ground to measure."""
+    import numpy as np
+
+    from benchmarks.bm_sim2real import object_grades
+
+    ground = [[x, y, -1.7, 0.1] for x in np.linspace(1, 5, 10) for y in (-2.0, 2.0)]
+    points = np.array(ground + [[3.0, 0.0, -1.0, 0.1]])  # one raised return: the 5th percentile keeps the ground
+    boxes = np.array([[20.0, 0.0, -1.2 + 0.75, 4.0, 1.6, 1.5, 0.0], [18.0, 24.0, -2.0 + 0.85, 1.8, 0.6, 1.7, 0.0],
+                      [5.0, 0.0, -0.8, 0.8, 0.6, 1.7, 0.0], [-20.0, 0.0, -0.5, 4.0, 1.6, 1.5, 0.0],
+                      [25.0, 0.0, -0.5, 4.5, 1.8, 2.0, 0.0]])
+    got = object_grades(points, boxes, ["Car", "Cyclist", "Pedestrian", "Car", "Van"])
+    np.testing.assert_allclose(got, [0.5 / 20.0, -0.3 / 30.0], atol=1e-9)
+    assert object_grades(points[-1:], boxes, ["Car"] * 5) == []
+
+
 def test_sscater_sparsity_figures_by_hand():
     """Two 2 x 2 maps of 3 channels: one site changes one channel, another two; zeros counted over everything."""
     from benchmarks.sscater_sparsity import figures

@@ -825,17 +825,23 @@ def _sensor_height(value) -> float:
     return real(value, "sensor_height", 0.5, 5.0, unit=" m")
 
 
-def _ground_slope(value: float | None, default: float) -> float:
-    """A driving scene's greatest grade along the road (rise over run; across it 0.3 of that), drawn per scene: the
-    sensor stays level, so the road ahead rises or falls in its frame as at a change of grade."""
-    return default if value is None else real(value, "ground_slope", 0, 0.1)
+def _road_ground(rng: np.random.Generator, ground_slope: float | None, default: float, bias: float,
+                 **kwargs) -> Ground:
+    """A driving scene's ground, its grade along the road drawn up to ``ground_slope`` (rise over run; across it 0.3
+    of that; None: ``default``) and shifted by ``bias``: the sensor stays level, so the road ahead rises or falls in
+    its frame as at a change of grade."""
+    slope = default if ground_slope is None else real(ground_slope, "ground_slope", 0, 0.1)
+    ground = Ground.random(rng, max_slope=slope, **kwargs)
+    if real(bias, "ground_slope_bias", -0.05, 0.05):
+        ground.slope = ground.slope + np.array([bias, 0.0])
+    return ground
 
 
 def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
                   sensor_height: float = SENSOR_HEIGHT, pedestrian_groups: float = 0.0, low_clutter: float = 0.0,
                   roadside_structures: float = 0.0, crossing_pedestrians: float = 0.0, crossing_cyclists: float = 0.0,
                   parking_lots: float = 0.0, open_ground: float = 0.0, crossing_groups: float = 0.0,
-                  ground_slope: float | None = None, **unused) -> Scenario:
+                  ground_slope: float | None = None, ground_slope_bias: float = 0.0, **unused) -> Scenario:
     _no_unused(unused, "driving_city")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
     low_clutter = real(low_clutter, "low_clutter", 0, 10)
@@ -848,7 +854,7 @@ def _driving_city(seed: int, object_counts=None, ego_speed: float | None = None,
     open_ground = real(open_ground, "open_ground", 0, 1)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_city", "scene")
-    ground = Ground.random(rng, max_slope=_ground_slope(ground_slope, 0.015), material=_city_material)
+    ground = _road_ground(rng, ground_slope, 0.015, ground_slope_bias, material=_city_material)
     speed = float(rng.uniform(3.0, 12.0)) if ego_speed is None else _ego_speed(ego_speed)
     ego_y = -1.75
     g0 = float(ground.height(np.array([0.0]), np.array([ego_y]))[0])
@@ -986,14 +992,14 @@ def _highway_tile(ground: Ground, tile_length: float) -> Callable[[int, np.rando
 
 def _driving_highway(seed: int, object_counts=None, ego_speed: float | None = None, street_clutter: float = 0.0,
                      sensor_height: float = SENSOR_HEIGHT, low_clutter: float = 0.0, roadside_structures: float = 0.0,
-                     ground_slope: float | None = None, **unused) -> Scenario:
+                     ground_slope: float | None = None, ground_slope_bias: float = 0.0, **unused) -> Scenario:
     _no_unused(unused, "driving_highway")
     street_clutter = real(street_clutter, "street_clutter", 0, 10)
     low_clutter = real(low_clutter, "low_clutter", 0, 10)
     roadside_structures = real(roadside_structures, "roadside_structures", 0, 10)
     height = _sensor_height(sensor_height)
     rng = _rng(seed, "driving_highway", "scene")
-    ground = Ground.random(rng, max_slope=_ground_slope(ground_slope, 0.02), roughness=0.02, material=_highway_material)
+    ground = _road_ground(rng, ground_slope, 0.02, ground_slope_bias, roughness=0.02, material=_highway_material)
     speeds = rng.uniform([24.0, 27.0, 30.0], [26.0, 30.0, 34.0])  # right, middle, left lane
     speed = float(speeds[1]) if ego_speed is None else _ego_speed(ego_speed)
     ego_y = -5.55

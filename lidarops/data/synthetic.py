@@ -144,7 +144,7 @@ class Simulator:
         self._intensity_scale = 1.0
         if self.realism is not None and scenario in CLUTTERED_SCENARIOS and "street_clutter" not in scenario_options:
             scenario_options = {**scenario_options, "street_clutter": self.realism.street_clutter}
-        for option in ("low_clutter", "roadside_structures", "ground_slope"):
+        for option in ("low_clutter", "roadside_structures", "ground_slope", "ground_slope_bias"):
             if self.realism is not None and getattr(self.realism, option) and scenario in CLUTTERED_SCENARIOS \
                     and option not in scenario_options:
                 scenario_options = {**scenario_options, option: getattr(self.realism, option)}

@@ -526,6 +526,15 @@ def test_ground_slope_tilts_the_road_ahead_in_the_sensors_frame(scenario, defaul
             Simulator(scenario, seed=SEED, ground_slope=bad)
     with pytest.raises(ValueError, match="ground_slope"):
         Realism(ground_slope=0.5)
+    # ground_slope_bias: the grade along the road shifted by it, across it kept; a profile's field passes it on
+    for bias in (0.012, -0.02):
+        shifted = Simulator(scenario, seed=SEED, ground_slope=0.04, ground_slope_bias=bias)
+        np.testing.assert_allclose(shifted.scenario.ground.slope, steep.scenario.ground.slope + [bias, 0.0], atol=1e-15)
+        profiled = Simulator(scenario, seed=SEED, realism=f"kitti:ground_slope=0.04,ground_slope_bias={bias}")
+        np.testing.assert_array_equal(profiled.scenario.ground.slope, shifted.scenario.ground.slope)
+    for bad in (0.06, -0.06, float("inf")):
+        with pytest.raises(ValueError, match="ground_slope_bias"):
+            Simulator(scenario, seed=SEED, ground_slope_bias=bad)
 
 
 def test_label_tightness_draws_vehicle_labels_inside_their_bodies():

@@ -59,14 +59,14 @@ def test_any_profile_gives_intensities_on_its_grid(profile, n, seed):
 
 
 UPPER = {"quantum": 0.5, "street_clutter": 10.0, "low_clutter": 10.0, "roadside_structures": 10.0,
-         "ground_slope": 0.1}  # others: 1
+         "ground_slope": 0.1, "ground_slope_bias": 0.05}  # others: 1
 
 
 @fuzz
 @given(name=st.sampled_from(UNIT + ("beam_gain_std", "quantum", "street_clutter", "low_clutter", "roadside_structures",
                                     "pedestrian_build", "hair_dropout", "crossing_pedestrians",
                                     "crossing_cyclists", "crossing_groups", "parking_lots", "open_ground",
-                                    "ground_slope")),
+                                    "ground_slope", "ground_slope_bias")),
        value=st.sampled_from([-0.5, "above", "far above", float("nan"), float("inf"), -float("inf")]))
 def test_out_of_range_parameters_are_named(name, value):
     if isinstance(value, str):  # just above the parameter's range, or twice its end
@@ -306,6 +306,16 @@ def test_bad_ground_slope_is_named(scenario, value):
 
     _, err = outcome(build_scenario, scenario, 0, ground_slope=value)
     assert_clear_error(err, (ValueError, TypeError), ["ground_slope"], f"{scenario}: ground_slope={value!r}")
+
+
+@fuzz
+@given(scenario=st.sampled_from(["driving_city", "driving_highway"]),
+       value=st.sampled_from([-0.06, 0.051, 1.0, float("nan"), -float("inf"), "uphill", True]))
+def test_bad_ground_slope_bias_is_named(scenario, value):
+    from lidarops.data.scenarios import build_scenario
+
+    _, err = outcome(build_scenario, scenario, 0, ground_slope_bias=value)
+    assert_clear_error(err, (ValueError, TypeError), ["ground_slope_bias"], f"{scenario}: ground_slope_bias={value!r}")
 
 
 # ---- the object sets' REALISM (lidarops.data.object_sets.ObjectSetRecipe) ----

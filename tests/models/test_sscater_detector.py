@@ -105,8 +105,10 @@ def test_detect_as_a_cuda_graph_equals_the_eager_head_and_postprocess(monkeypatc
     with torch.no_grad():
         want = detector.postprocess(detector.dense_head(stream.delta.out.to(dtype)))[0]
     assert len(want["scores"]) > 0
+    kept = detector.config.score_thresh
     detector.config.score_thresh = float(want["scores"].max()) + 1e-3  # no box is kept
     assert stream.detect()["labels"].tolist() == []
+    detector.config.score_thresh = kept
     # boxes out of the supported range (sizes exp(40) times the anchor's): the eager post-processing's error
     with torch.no_grad():
         detector.dense_head.conv_box.bias[3:6] += 40.0  # in place: the graph reads the parameter's memory
