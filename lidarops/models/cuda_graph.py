@@ -597,7 +597,8 @@ class GraphedPointPillars(_GraphedFrames):
     :meth:`replay` leaves the padded outputs on the device, for callers that gather them there. The graph
     also checks the points' features as the eager call does; with ``lidarops.validation`` on (the default)
     a bad frame raises the eager call's ``ValueError`` (the flag comes back with the number of boxes: still
-    one host read).
+    one host read). The graph keeps the thresholds and capacities of ``model.config`` as they were when it was
+    made: after changing the config, make a new one (``predict``'s own graphs are made again by themselves).
     """
 
     def __init__(self, model: PointPillars, capacity: int = 150_000, precision: str | None = "fp32",
@@ -769,7 +770,8 @@ class GraphedCounterNet(_GraphedFrames):
     :meth:`CounterNet.predict` returns for each: ``counts (C,)``, ``centres (K, 4)``, ``features (S,)``. A
     replay whose frames need more pillar rows or peak rows than the graph holds, or whose merge has not settled,
     is redone by the eager ``predict``. The counts are the eager call's except where Otsu's threshold ties
-    between two splits to within rounding (the graph computes it on the device: ``exact=False``).
+    between two splits to within rounding (the graph computes it on the device: ``exact=False``). The graph keeps
+    ``model.config`` as it was when it was made: after changing the config, make a new one.
     """
 
     def __init__(self, model: CounterNet, capacity: int = 150_000, precision: str | None = "fp32",
