@@ -232,20 +232,23 @@ def test_batch_dicts_give_one_result_per_frame_or_name_the_key(tiny_model, data)
     batch = {"points": points, "batch_size": batch_size}
     with torch.no_grad():
         out, err = outcome(tiny_model.predict, batch)
-    ok_size = type(batch_size) is int and 1 <= batch_size
+    # an int, or a 0-d integer tensor (as a NumPy int is taken); not a bool, a float or a string
+    size = batch_size if type(batch_size) is int else int(batch_size) if isinstance(batch_size, torch.Tensor) \
+        and batch_size.dim() == 0 and not batch_size.is_floating_point() and batch_size.dtype != torch.bool else None
+    ok_size = size is not None and 1 <= size
     # any floating dtype (cast to the weights'), frame index and x, y, z, intensity
     ok_points = points.is_floating_point() and points.shape[1] == 5
     if n == 0:  # an empty scan is a batch of its own
-        frames_ok = ok_points and batch_size == 1 and type(batch_size) is int
+        frames_ok = ok_points and size == 1
     else:  # every point in a frame of the batch, every frame with a point
-        frames_ok = ok_points and ok_size and batch_size <= n and bool((idx.frac() == 0).all()) \
-            and set(frames) == set(range(batch_size))
+        frames_ok = ok_points and ok_size and size <= n and bool((idx.frac() == 0).all()) \
+            and set(frames) == set(range(size))
     if not frames_ok:
         assert err is not None, f"batch_size={batch_size!r}, frames {sorted(set(frames))}: accepted"
         assert_clear_error(err, (ValueError, TypeError), ["batch_size", "points"], f"predict(batch_size={batch_size!r})")
         return
     assert err is None, f"a valid batch was refused: {err}"
-    assert len(out) == batch_size
+    assert len(out) == size
     for o in out:  # a detector's boxes, or a counter's counts
         assert torch.isfinite(o["boxes"]).all() if "boxes" in o else bool((o["counts"] >= 0).all())
 
