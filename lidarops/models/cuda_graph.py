@@ -952,14 +952,13 @@ def graphed_predict(model: PointPillars, batch: Mapping) -> list[dict] | None:
     if cache is None:
         cache = model._predict_graphs = _PredictGraphs()
     tensors = cache.current(model)
-    if cache.config_changed(model):  # the graphs hold the old config's thresholds, and its pillars' sizes
-        cache.graphs.clear()
-        cache.seen.clear()
-        cache.pillars.clear()
-    if cache.tensors != tensors:  # new tensors: every graph recorded the old ones
+    config_changed = cache.config_changed(model)  # the graphs hold its thresholds, the pillar counts its sizes
+    if config_changed or cache.tensors != tensors:  # new tensors: every graph recorded the old ones
         cache.graphs.clear()
         cache.seen.clear()
         cache.tensors = tensors
+        if config_changed:
+            cache.pillars.clear()
     autocast = torch.is_autocast_enabled("cuda")
     versions = cache.versions() if (OPTIMIZE_UNDER_AUTOCAST and autocast and torch.get_autocast_dtype("cuda")
                                     in (torch.float16, torch.bfloat16)) else None
