@@ -11,6 +11,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cstring>
+#include <tuple>
 
 #include "lidarops/sparse.h"
 
@@ -283,6 +284,20 @@ at::Tensor sparse_kernel_map_cpu(const at::Tensor& indices_in, const at::Tensor&
   return nbr;
 }
 
+std::tuple<at::Tensor, int64_t> sparse_kernel_map_deferred_cpu(
+    const at::Tensor& indices, const at::Tensor& out_indices, int64_t batch_size, at::IntArrayRef spatial_shape,
+    at::IntArrayRef kernel_size, at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
+    bool transposed, int64_t method) {
+  return {sparse_kernel_map_cpu(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding,
+                                dilation, transposed, /*validate=*/true, method),
+          -1};  // checked already: nothing to redeem
+}
+
+void sparse_site_check_cpu(const at::Tensor& indices, int64_t ticket, int64_t, at::IntArrayRef) {
+  TORCH_CHECK_VALUE(ticket == -1, "site-check ticket ", ticket, " was not issued for CPU indices (the CPU checks at "
+                    "once and issues -1)");
+}
+
 at::Tensor sparse_kernel_map_transpose_cpu(const at::Tensor& nbr_in, int64_t n_in) {
   TORCH_CHECK_VALUE(nbr_in.dim() == 2 && nbr_in.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
                     nbr_in.sizes(), " and dtype ", nbr_in.scalar_type());
@@ -320,6 +335,8 @@ void raise_if_duplicates(const at::Tensor& indices_cpu, const char* name, int64_
 TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
   m.impl("sparse_conv_out_indices", &sparse_conv_out_indices_cpu);
   m.impl("sparse_kernel_map", &sparse_kernel_map_cpu);
+  m.impl("sparse_kernel_map_deferred", &sparse_kernel_map_deferred_cpu);
+  m.impl("sparse_site_check", &sparse_site_check_cpu);
   m.impl("sparse_kernel_map_transpose", &sparse_kernel_map_transpose_cpu);
 }
 

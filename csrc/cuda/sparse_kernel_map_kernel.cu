@@ -6,11 +6,14 @@
 //     open-addressing hash table (atomicCAS on 64-bit keys, linear probing, capacity >= 2N); one
 //     thread per (output row, kernel offset) looks its input up.
 // Validation (coordinates outside the grid, duplicates) is flagged on the device and costs one host
-// sync per map; when a flag is set, the message is produced by the CPU checks on a host copy, so it
+// sync per map (or a deferred read: sparse_kernel_map_deferred); when a flag is set, the message is produced by the CPU checks on a host copy, so it
 // names the same rows as on CPU. Without validation (the sparse layers skip it for sites they checked
 // or produced) no flag is kept and bad rows are skipped.
 #include <ATen/ATen.h>
 #include <c10/cuda/CUDAException.h>
+#include <array>
+#include <mutex>
+#include <tuple>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
@@ -149,16 +152,82 @@ __global__ void transpose_kernel(const int32_t* __restrict__ nbr, int64_t m, int
   if (i >= 0 && i < n_in) out[static_cast<int64_t>(i) * K + t % K] = static_cast<int32_t>(t / K);
 }
 
-// Raise the CPU's message for the rows flagged on the device (one host sync).
-void raise_flags(const at::Tensor& flags, const at::Tensor& idx, const ConvGeometry& g, bool check_dups) {
-  const auto host = flags.cpu();
-  const auto* f = reinterpret_cast<const unsigned long long*>(host.data_ptr<int64_t>());
+// Raise the CPU's message for the rows flagged on the device (f: the two flags, read on the host).
+void raise_for_flags(const unsigned long long* f, const at::Tensor& idx, const ConvGeometry& g, bool check_dups) {
   const bool bad_range = f[0] != ~0ULL, dup = check_dups && f[1] != ~0ULL;
   if (!bad_range && !dup) return;
   const auto cpu = idx.cpu();
   raise_if_out_of_range(cpu, "indices", g.batch, g.in_shape, g.ndim);
   raise_if_duplicates(cpu, "indices", g.batch, g.in_shape, g.ndim);
   TORCH_CHECK_VALUE(false, "indices hold duplicate coordinates; a sparse tensor needs unique coordinates");
+}
+
+// ... read now (one host sync).
+void raise_flags(const at::Tensor& flags, const at::Tensor& idx, const ConvGeometry& g, bool check_dups) {
+  const auto host = flags.cpu();
+  raise_for_flags(reinterpret_cast<const unsigned long long*>(host.data_ptr<int64_t>()), idx, g, check_dups);
+}
+
+// A map's site check read later: its two flags are copied into pinned host memory behind the table's fill (in
+// stream order) and an event is recorded; the ticket is redeemed (sparse_site_check) once the caller has queued
+// the work that follows, so the host launches it while the GPU builds the map instead of waiting for the flags.
+// A ring of slots: a ticket never redeemed (its caller raised in between) is waited for when its slot comes round.
+class DeferredChecks {
+ public:
+  int64_t issue(const at::Tensor& flags) {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (host_ == nullptr) {
+      void* p = nullptr;
+      C10_CUDA_CHECK(cudaHostAlloc(&p, sizeof(unsigned long long) * 2 * kSlots, cudaHostAllocPortable));
+      host_ = static_cast<unsigned long long*>(p);
+    }
+    const int64_t ticket = next_++;
+    Slot& s = slots_[ticket % kSlots];
+    if (s.ticket >= 0) C10_CUDA_CHECK(cudaEventSynchronize(s.event));  // its copy must land before the slot is reused
+    const int device = flags.device().index();
+    if (s.event == nullptr || s.device != device) {
+      if (s.event != nullptr) C10_CUDA_CHECK(cudaEventDestroy(s.event));
+      s.event = nullptr;
+      C10_CUDA_CHECK(cudaEventCreateWithFlags(&s.event, cudaEventDisableTiming));
+      s.device = device;
+    }
+    auto stream = c10::cuda::getCurrentCUDAStream();
+    C10_CUDA_CHECK(cudaMemcpyAsync(host_ + 2 * (ticket % kSlots), flags.data_ptr<int64_t>(),
+                                   sizeof(unsigned long long) * 2, cudaMemcpyDeviceToHost, stream));
+    C10_CUDA_CHECK(cudaEventRecord(s.event, stream));
+    s.ticket = ticket;
+    return ticket;
+  }
+
+  // The two flags of ticket (waits for its copy).
+  std::array<unsigned long long, 2> redeem(int64_t ticket) {
+    std::lock_guard<std::mutex> lock(mu_);
+    Slot& s = slots_[ticket % kSlots];
+    TORCH_CHECK_VALUE(ticket >= 0 && ticket < next_ && s.ticket == ticket, "site-check ticket ", ticket,
+                      " is unknown or was redeemed already (tickets come from sparse_kernel_map_deferred; each is "
+                      "redeemed once, among the last ", kSlots, " issued)");
+    C10_CUDA_CHECK(cudaEventSynchronize(s.event));
+    s.ticket = -1;
+    const unsigned long long* f = host_ + 2 * (ticket % kSlots);
+    return {f[0], f[1]};
+  }
+
+ private:
+  static constexpr int64_t kSlots = 64;
+  struct Slot {
+    cudaEvent_t event = nullptr;
+    int device = -1;
+    int64_t ticket = -1;  // the ticket whose copy the slot holds, -1 when redeemed
+  };
+  std::mutex mu_;
+  unsigned long long* host_ = nullptr;  // kSlots pairs of flags; pinned, never freed (process lifetime)
+  Slot slots_[kSlots];
+  int64_t next_ = 0;
+};
+
+DeferredChecks& deferred_checks() {
+  static DeferredChecks* checks = new DeferredChecks();  // never destroyed: no CUDA calls at process exit
+  return *checks;
 }
 
 // Both flags start with all bits set: "no bad row" for atomicMin on unsigned, "no duplicate" (one fill).
@@ -186,8 +255,9 @@ struct DeviceTable {
 
 // validate: the rows outside the grid and the duplicates are flagged in two int64 slots kept at the end of the
 // table's own fill (no launch of their own), which the table's -1 fill already sets to "none"; then raised
-// here (one host sync).
-DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64_t method, bool validate) {
+// here (one host sync), or, given ticket, copied for a later read (DeferredChecks) and the ticket set.
+DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64_t method, bool validate,
+                             int64_t* ticket = nullptr) {
   const int64_t n = idx.size(0);
   TORCH_CHECK_VALUE(n < INT32_MAX, "indices has ", n, " rows; at most 2^31 - 2 are supported");
   auto stream = c10::cuda::getCurrentCUDAStream();
@@ -213,7 +283,8 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
         t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), validate ? flag_ptr(flags) : nullptr);
   }
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  if (validate) raise_flags(flags, idx, g, /*check_dups=*/true);
+  if (validate && ticket != nullptr) *ticket = deferred_checks().issue(flags);
+  else if (validate) raise_flags(flags, idx, g, /*check_dups=*/true);
   return t;
 }
 
@@ -265,10 +336,10 @@ at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t ba
   return out;
 }
 
-at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_indices_in, int64_t batch_size,
+at::Tensor kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_indices_in, int64_t batch_size,
                                   at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
                                   at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
-                                  int64_t method) {
+                                  int64_t method, int64_t* ticket) {
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, {}, kernel_size, stride, padding, dilation, transposed);
   check_indices(indices_in, "indices", g.ndim);
   check_indices(out_indices_in, "out_indices", g.ndim);
@@ -281,16 +352,47 @@ at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor
   const int64_t m = oidx.size(0), K = g.kvol;
   auto nbr = at::empty({m, K}, idx.options());
   if (m == 0) {  // nothing to pair, but the sites are still checked (a strided layer may reach no output)
-    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true);
+    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true, ticket);
     return nbr;
   }
   if (idx.size(0) == 0) return nbr.fill_(-1);
-  const DeviceTable table = build_table_cuda(idx, g, method, validate);
+  const DeviceTable table = build_table_cuda(idx, g, method, validate, ticket);
   auto stream = c10::cuda::getCurrentCUDAStream();
   lookup_kernel<<<blocks_for(m * K), kThreads, 0, stream>>>(oidx.data_ptr<int32_t>(), m, g, table.view(),
                                                             nbr.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return nbr;
+}
+
+at::Tensor sparse_kernel_map_cuda(const at::Tensor& indices, const at::Tensor& out_indices, int64_t batch_size,
+                                  at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
+                                  at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
+                                  int64_t method) {
+  return kernel_map_cuda(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding, dilation,
+                         transposed, validate, method, nullptr);
+}
+
+std::tuple<at::Tensor, int64_t> sparse_kernel_map_deferred_cuda(
+    const at::Tensor& indices, const at::Tensor& out_indices, int64_t batch_size, at::IntArrayRef spatial_shape,
+    at::IntArrayRef kernel_size, at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
+    bool transposed, int64_t method) {
+  int64_t ticket = -1;  // stays -1 where nothing is checked (no input sites)
+  auto nbr = kernel_map_cuda(indices, out_indices, batch_size, spatial_shape, kernel_size, stride, padding, dilation,
+                             transposed, /*validate=*/true, method, &ticket);
+  return {nbr, ticket};
+}
+
+void sparse_site_check_cuda(const at::Tensor& indices, int64_t ticket, int64_t batch_size,
+                            at::IntArrayRef spatial_shape) {
+  if (ticket < 0) return;
+  const auto flags = deferred_checks().redeem(ticket);
+  ConvGeometry g;
+  g.ndim = static_cast<int>(spatial_shape.size());
+  TORCH_CHECK_VALUE(g.ndim >= 1 && g.ndim <= kMaxDim, "spatial_shape must have 1 to ", kMaxDim, " dimensions, got ",
+                    spatial_shape);
+  g.batch = batch_size;
+  for (int d = 0; d < g.ndim; ++d) g.in_shape[d] = spatial_shape[d];
+  raise_for_flags(flags.data(), indices, g, /*check_dups=*/true);
 }
 
 at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_in) {
@@ -314,6 +416,8 @@ at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_
 TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("sparse_conv_out_indices", &sparse_conv_out_indices_cuda);
   m.impl("sparse_kernel_map", &sparse_kernel_map_cuda);
+  m.impl("sparse_kernel_map_deferred", &sparse_kernel_map_deferred_cuda);
+  m.impl("sparse_site_check", &sparse_site_check_cuda);
   m.impl("sparse_kernel_map_transpose", &sparse_kernel_map_transpose_cuda);
 }
 

@@ -207,6 +207,16 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     Returns:
         KernelMap.
     """
+    km, _ = _build_kernel_map(x, kind, kernel_size, stride, padding, dilation, output_padding, out_spatial_shape,
+                              method, defer=False)
+    return km
+
+
+def _build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride, padding, dilation, output_padding,
+                      out_spatial_shape, method, defer: bool) -> tuple:
+    """:func:`build_kernel_map` and the site check it leaves to the caller (None when none is left): with
+    ``defer`` a new frame's check on CUDA is read later (:func:`_settle`, after the caller has queued the
+    convolution on the map), not before the map's last kernel is launched."""
     if not isinstance(x, SparseConvTensor):
         raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
     extension.check_device(x.indices, "indices")
@@ -234,16 +244,30 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
                                                   list(s), list(p), list(d), transposed, m, False)
     else:
         raise ValueError(f"kind must be 'subm', 'conv', 'pool' or 'transposed', got {kind!r}")
-    neighbors = ops.sparse_kernel_map(x.indices, out_indices, x.batch_size, list(shape), list(k), list(s), list(p),
-                                      list(d), transposed, validate, m)
-    if validate:
-        mark_sites_checked(x.indices, x.batch_size, shape)
+    pending = None
+    if validate and defer and x.indices.is_cuda and not torch.cuda.is_current_stream_capturing():
+        neighbors, ticket = ops.sparse_kernel_map_deferred(x.indices, out_indices, x.batch_size, list(shape), list(k),
+                                                           list(s), list(p), list(d), transposed, m)
+        pending = (x.indices, ticket, x.batch_size, shape)
+    else:
+        neighbors = ops.sparse_kernel_map(x.indices, out_indices, x.batch_size, list(shape), list(k), list(s),
+                                          list(p), list(d), transposed, validate, m)
+        if validate:
+            mark_sites_checked(x.indices, x.batch_size, shape)
     if out_indices is not x.indices:  # made here: inside the output grid, each site once
         mark_sites_checked(out_indices, x.batch_size, out_shape)
     km = KernelMap(kind=kind, indices=x.indices, out_indices=out_indices, spatial_shape=shape,
                    out_spatial_shape=tuple(out_shape), kernel_size=k, stride=s, padding=p, dilation=d,
                    neighbors=neighbors)
-    return km
+    return km, pending
+
+
+def _settle(pending) -> None:
+    """Read a deferred site check (ValueError for sites outside the grid or repeated, as the map's own check)
+    and remember the sites as checked."""
+    indices, ticket, batch_size, shape = pending
+    torch.ops.lidarops.sparse_site_check(indices, ticket, batch_size, list(shape))
+    mark_sites_checked(indices, batch_size, shape)
 
 
 def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Optional[Tensor] = None,
@@ -302,8 +326,9 @@ def sparse_conv(features: Tensor, weight: Tensor, neighbors: Tensor, order: Opti
 # ---- layer-level functions on SparseConvTensor ----------------------------------------------------
 
 def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, padding, dilation, output_padding,
-                    indice_key, out_spatial_shape, method) -> tuple:
-    """(kernel map, indice_dict of the output) under spconv's reuse rules, with fit checks."""
+                    indice_key, out_spatial_shape, method, defer: bool = False) -> tuple:
+    """(kernel map, indice_dict of the output, the site check left to the caller or None) under spconv's reuse
+    rules, with fit checks; ``defer``: :func:`_build_kernel_map`'s."""
     cache = x.indice_dict
     if kind == "inverse":
         if indice_key is None:
@@ -323,7 +348,7 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
                              f"is not the output of the convolution registered under {indice_key!r} "
                              f"({km.out_indices.shape[0]} sites on grid {list(km.out_spatial_shape)})")
         _check_sites(km, "out", x.indices, indice_key)
-        return km.inverse(), cache
+        return km.inverse(), cache, None
     D = x.ndim
     if indice_key is not None and indice_key in cache:
         km = cache[indice_key]
@@ -339,8 +364,9 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
                 f"{list(km.spatial_shape)}) that does not fit this {kind} layer (kernel {tuple(ksize)}, "
                 f"{x.indices.shape[0]} input sites on grid {x.spatial_shape}); give this layer its own indice_key")
         _check_sites(km, "in", x.indices, indice_key)
-        return km, cache
-    km = build_kernel_map(x, kind, ksize, stride, padding, dilation, output_padding, out_spatial_shape, method)
+        return km, cache, None
+    km, pending = _build_kernel_map(x, kind, ksize, stride, padding, dilation, output_padding, out_spatial_shape,
+                                    method, defer)
     if indice_key is not None:
         _site_checks[km] = _MapSites(km)
         cache = dict(cache)
@@ -351,7 +377,7 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
     elif kind != "subm":  # built again every call, with a host read (its output count)
         for maps in _recorders:
             maps.setdefault(UNKEYED, kind)
-    return km, cache
+    return km, cache, pending
 
 
 # The maps a forward registers, for GraphedSparseNet: one dict holding every layer's map, also where
@@ -610,8 +636,9 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
         out = f.matmul(w[:, 0, :].t())
         out = out + bias if bias is not None else out
         return x.replace_feature(_affine_torch(out, scale, shift, relu) if epilogue else out)
-    km, cache = _kernel_map_for(x, kind, ksize, stride, padding, dilation, output_padding, indice_key,
-                                out_spatial_shape, method)
+    # a new frame's site check is read once the convolution is queued (the host need not wait for the map)
+    km, cache, pending = _kernel_map_for(x, kind, ksize, stride, padding, dilation, output_padding, indice_key,
+                                         out_spatial_shape, method, defer=True)
     grad = torch.is_grad_enabled() and (f.requires_grad or w.requires_grad
                                         or (bias is not None and bias.requires_grad))
     compiling = _compiling()
@@ -634,6 +661,8 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
                 out = torch.ops.lidarops.sparse_conv(f, w, km.neighbors, order, algo)
                 if bias is not None:
                     out = out + bias
+    if pending is not None:
+        _settle(pending)
     return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)
 
 
@@ -663,7 +692,8 @@ def max_pool(x: SparseConvTensor, kernel_size, stride=None, padding=0, dilation=
     if not x.features.is_floating_point():
         raise ValueError(f"features must be floating point, got {describe(x.features)}")
     extension.check_device(x.features, "features")
-    km, cache = _kernel_map_for(x, "subm" if subm else "pool", k, s, padding, dilation, 0, indice_key, None, method)
+    km, cache, _ = _kernel_map_for(x, "subm" if subm else "pool", k, s, padding, dilation, 0, indice_key, None,
+                                   method)
     out, _ = torch.ops.lidarops.sparse_max_pool(x.features, km.neighbors)
     return SparseConvTensor._derived(out, km.out_indices, km.out_spatial_shape, x.batch_size, cache)
 

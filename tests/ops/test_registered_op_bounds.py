@@ -189,6 +189,35 @@ def case_sparse_kernel_map_rows_outside_grid(dev):
            r"indices row 2 = \(0, 7\).*lies outside")
 
 
+def case_sparse_kernel_map_deferred_rows_outside_grid(dev):
+    """The deferred check raises what the map's own check raises, when its ticket is redeemed (CUDA) or at once
+    (CPU, ticket -1); a ticket is redeemed once; bad shapes are refused before any work."""
+    ops = _ops()
+    idx = torch.tensor([[0, 0], [0, 2], [0, 7], [0, 2]], dtype=I32, device=dev)  # row 2 outside, row 3 a duplicate
+    out_idx = torch.tensor([[0, 0], [0, 1], [0, 2]], dtype=I32, device=dev)
+    args = (1, [3], [3], [1], [1], [1], False, 0)
+
+    def deferred(i):
+        nbr, ticket = ops.sparse_kernel_map_deferred(i, out_idx, *args)
+        ops.sparse_site_check(i, ticket, 1, [3])
+        return nbr
+
+    raises(lambda: deferred(idx), r"indices row 2 = \(0, 7\).*lies outside")
+    raises(lambda: deferred(idx[[0, 1, 3]]), r"indices rows 1 and 2 both hold")
+    equal(deferred(idx[:2]), _MAP_1D)
+    nbr, ticket = ops.sparse_kernel_map_deferred(idx[:2], out_idx, *args)
+    assert (ticket == -1) == (dev == "cpu"), ticket
+    ops.sparse_site_check(idx[:2], ticket, 1, [3])
+    if dev != "cpu":
+        raises(lambda: ops.sparse_site_check(idx[:2], ticket, 1, [3]), r"ticket \d+ is unknown or was redeemed")
+        raises(lambda: ops.sparse_site_check(idx[:2], ticket + 10**6, 1, [3]), r"is unknown")
+    else:
+        raises(lambda: ops.sparse_site_check(idx[:2], 3, 1, [3]), r"ticket 3 was not issued for CPU indices")
+    equal(ops.sparse_kernel_map_deferred(idx[:0], out_idx, *args)[0], [[-1, -1, -1]] * 3)
+    raises(lambda: ops.sparse_kernel_map_deferred(idx[:, :1], out_idx, *args), r"indices must be \(N, 2\) for D = 1")
+    raises(lambda: ops.sparse_kernel_map_deferred(idx, out_idx.long(), *args), r"out_indices must be int32")
+
+
 def case_sparse_kernel_map_transpose_out_of_range(dev):
     nbr = torch.tensor([[0, 5], [-7, 1]], dtype=I32, device=dev)
     on_cpu_raises_else(dev, lambda: _ops().sparse_kernel_map_transpose(nbr, 2),

@@ -113,3 +113,49 @@ def test_a_failed_check_registers_no_map_and_marks_nothing(device, kind):
     order = linear_order(ref_i, SHAPE if kind == "subm" else y.spatial_shape)
     assert_same_sites_and_features(y.indices, y.features, ref_i[order.to(ref_i.device)],
                                    ref_f[order.to(ref_f.device)], y.spatial_shape, 1e-10, f"{kind} after")
+
+
+def test_a_new_frames_check_read_after_the_convolution_is_queued_gives_the_checked_result(device):
+    """conv reads a new frame's check after queuing the convolution (CUDA): the map and the output are those of
+    the map built with the check read at once, and the sites are marked checked only once the check is read."""
+    x = random_tensor(2, SHAPE, 30, 3, seed=8, device=device)
+    w = random_weight(4, (3, 3), 3, device=device)
+    for kind, kw in (("subm", {}), ("conv", {"stride": 2, "padding": 1})):
+        fresh = SparseConvTensor(x.features, x.indices.clone(), list(SHAPE), 2)
+        km, pending = Fs._build_kernel_map(fresh, kind, (3, 3), kw.get("stride", 1), kw.get("padding", 0), 1, 0,
+                                           None, "auto", defer=True)
+        assert (pending is not None) == fresh.indices.is_cuda  # the CPU checks at once
+        assert sites_checked(fresh.indices, 2, SHAPE) == (pending is None)
+        if pending is not None:
+            Fs._settle(pending)
+        assert sites_checked(fresh.indices, 2, SHAPE)
+        ref = Fs.build_kernel_map(SparseConvTensor(x.features, x.indices.clone(), list(SHAPE), 2), kind, 3, **kw)
+        assert torch.equal(km.neighbors.cpu(), ref.neighbors.cpu()) and torch.equal(km.out_indices.cpu(),
+                                                                                     ref.out_indices.cpu())
+        y = Fs.conv(SparseConvTensor(x.features, x.indices.clone(), list(SHAPE), 2), w, kind=kind, **kw)
+        ref_i, ref_f = Fs._conv_reference(x, w, None, kind, **kw)
+        order = linear_order(ref_i, y.spatial_shape)
+        assert_same_sites_and_features(y.indices, y.features, ref_i[order.to(ref_i.device)],
+                                       ref_f[order.to(ref_f.device)], y.spatial_shape, 1e-10, kind)
+
+
+def test_deferred_checks_never_read_do_not_disturb_later_ones(device):
+    """A deferred check whose caller raised before reading it (its ticket never redeemed) is dropped when its slot
+    comes round again: more such checks than the ring holds, then good and bad frames are still checked."""
+    if device != "cuda":
+        pytest.skip("the CPU reads its checks at once")
+    x = random_tensor(1, SHAPE, 20, 3, seed=9, device=device)
+    args = (1, list(SHAPE), [3, 3], [1, 1], [1, 1], [1, 1], False, 0)
+    tickets = [ops.sparse_kernel_map_deferred(x.indices.clone(), x.indices, *args)[1] for _ in range(70)]
+    assert tickets == list(range(tickets[0], tickets[0] + 70))
+    with pytest.raises(ValueError, match="is unknown or was redeemed already"):
+        ops.sparse_site_check(x.indices, tickets[0], 1, list(SHAPE))  # its slot was reused
+    ops.sparse_site_check(x.indices, tickets[-1], 1, list(SHAPE))
+    w = random_weight(4, (3, 3), 3, device=device)
+    idx = x.indices.clone()
+    idx[3] = idx[1]
+    with pytest.raises(ValueError, match=r"rows 1 and 3 both hold"):
+        Fs.conv(SparseConvTensor(x.features, idx, list(SHAPE), 1), w, kind="subm")
+    y = Fs.conv(SparseConvTensor(x.features, x.indices.clone(), list(SHAPE), 1), w, kind="subm")
+    ref_i, ref_f = Fs._conv_reference(x, w, None, "subm")
+    assert_same_sites_and_features(y.indices, y.features, ref_i, ref_f, y.spatial_shape, 1e-10, "subm after")
