@@ -28,6 +28,15 @@ constexpr int kThreads = 256;
 
 inline int64_t blocks_for(int64_t n) { return std::max<int64_t>(1, gpu::ceil_div(n, kThreads)); }
 
+// A new tensor with every byte set to `byte` (0, or 0xFF for -1 in any integer width): one cudaMemsetAsync,
+// less host time per map than at::full's fill kernel.
+at::Tensor filled(at::IntArrayRef size, const at::TensorOptions& options, int byte) {
+  auto t = at::empty(size, options);
+  if (t.numel() > 0)
+    C10_CUDA_CHECK(cudaMemsetAsync(t.data_ptr(), byte, t.nbytes(), c10::cuda::getCurrentCUDAStream()));
+  return t;
+}
+
 __device__ __forceinline__ bool row_in_range(const int32_t* r, const ConvGeometry& g) {
   if (r[0] < 0 || r[0] >= g.batch) return false;
   for (int d = 0; d < g.ndim; ++d)
@@ -231,7 +240,7 @@ DeferredChecks& deferred_checks() {
 }
 
 // Both flags start with all bits set: "no bad row" for atomicMin on unsigned, "no duplicate" (one fill).
-at::Tensor new_flags(const at::Tensor& like) { return at::full({2}, -1, like.options().dtype(at::kLong)); }
+at::Tensor new_flags(const at::Tensor& like) { return filled({2}, like.options().dtype(at::kLong), 0xFF); }
 
 unsigned long long* flag_ptr(const at::Tensor& flags) {
   return reinterpret_cast<unsigned long long*>(flags.data_ptr<int64_t>());
@@ -266,7 +275,7 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
   const int64_t cells = grid_cells(g.batch, g.in_shape, g.ndim);
   if (use_dense_table(cells, n, method)) {
     const int64_t at_flags = cells + (cells & 1);  // 8-byte aligned: two int64 slots over four int32 ones
-    t.dense = at::full({validate ? at_flags + 4 : cells}, -1, idx.options().dtype(at::kInt));
+    t.dense = filled({validate ? at_flags + 4 : cells}, idx.options().dtype(at::kInt), 0xFF);
     if (validate) flags = t.dense.narrow(0, at_flags, 4).view(at::kLong);
     insert_dense_kernel<<<blocks_for(n), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
                                                                 t.dense.data_ptr<int32_t>(),
@@ -274,10 +283,10 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
   } else {
     const int64_t cap = hash_capacity(n);
     t.mask = cap - 1;
-    t.keys = at::full({validate ? cap + 2 : cap}, kEmptyKey, idx.options().dtype(at::kLong));
+    t.keys = filled({validate ? cap + 2 : cap}, idx.options().dtype(at::kLong), 0xFF);
     static_assert(kEmptyKey == -1, "the flags' \"none\" is the empty key's fill");
     if (validate) flags = t.keys.narrow(0, cap, 2);
-    t.vals = at::full({cap}, -1, idx.options().dtype(at::kInt));
+    t.vals = filled({cap}, idx.options().dtype(at::kInt), 0xFF);
     insert_hash_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
         idx.data_ptr<int32_t>(), n, g, reinterpret_cast<unsigned long long*>(t.keys.data_ptr<int64_t>()),
         t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), validate ? flag_ptr(flags) : nullptr);
@@ -311,14 +320,14 @@ at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t ba
   const int64_t cells = grid_cells(g.batch, g.out_shape, g.ndim);
   at::Tensor keys;
   if (use_dense_table(cells, n, method)) {
-    auto mark = at::zeros({cells}, idx.options().dtype(at::kByte));
+    auto mark = filled({cells}, idx.options().dtype(at::kByte), 0);
     mark_outputs_kernel<true><<<blocks_for(n * K), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
                                                                           mark.data_ptr<uint8_t>(), nullptr, 0);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
     keys = at::nonzero(mark).view({-1});  // sorted ascending
   } else {
     const int64_t cap = hash_capacity(n * K);
-    auto set = at::full({cap}, kEmptyKey, idx.options().dtype(at::kLong));
+    auto set = filled({cap}, idx.options().dtype(at::kLong), 0xFF);
     mark_outputs_kernel<false><<<blocks_for(n * K), kThreads, 0, stream>>>(
         idx.data_ptr<int32_t>(), n, g, nullptr, reinterpret_cast<unsigned long long*>(set.data_ptr<int64_t>()),
         static_cast<uint64_t>(cap - 1));
@@ -402,7 +411,7 @@ at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_
   const c10::cuda::OptionalCUDAGuard guard(nbr_in.device());
   auto nbr = nbr_in.contiguous();
   const int64_t m = nbr.size(0), K = nbr.size(1);
-  auto out = at::full({n_in, K}, -1, nbr.options());
+  auto out = filled({n_in, K}, nbr.options(), 0xFF);
   if (m == 0 || n_in == 0 || K == 0) return out;
   // entries outside [-1, n_in) are skipped (no host sync to report them)
   transpose_kernel<<<blocks_for(m * K), kThreads, 0, c10::cuda::getCurrentCUDAStream()>>>(
