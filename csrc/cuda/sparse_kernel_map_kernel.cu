@@ -215,7 +215,12 @@ class DeferredChecks {
     TORCH_CHECK_VALUE(ticket >= 0 && ticket < next_ && s.ticket == ticket, "site-check ticket ", ticket,
                       " is unknown or was redeemed already (tickets come from sparse_kernel_map_deferred; each is "
                       "redeemed once, among the last ", kSlots, " issued)");
-    C10_CUDA_CHECK(cudaEventSynchronize(s.event));
+    // polled, not cudaEventSynchronize: the copy has usually landed by now, and under a blocking-sync schedule
+    // (cudaDeviceScheduleBlockingSync or Auto's choice of it) the synchronize would sleep through a wake-up
+    cudaError_t status;
+    while ((status = cudaEventQuery(s.event)) == cudaErrorNotReady) {
+    }
+    C10_CUDA_CHECK(status);
     s.ticket = -1;
     const unsigned long long* f = host_ + 2 * (ticket % kSlots);
     return {f[0], f[1]};
