@@ -73,22 +73,27 @@ __global__ void row_mask_kernel(const int32_t* __restrict__ nbr, int64_t m, int6
 template <typename Key>
 at::Tensor order_by_masks(const at::Tensor& nbr, int64_t m, int64_t K, cudaStream_t stream) {
   const int bits = static_cast<int>(K < 63 ? K : 63);
-  const auto key_dtype = sizeof(Key) == 4 ? at::kInt : at::kLong;
-  auto keys = at::empty({2, m}, nbr.options().dtype(key_dtype));
-  auto rows = at::empty({m}, nbr.options());
-  Key* k_in = reinterpret_cast<Key*>(keys.data_ptr());
-  int32_t* r_in = rows.data_ptr<int32_t>();
-  row_mask_kernel<Key><<<static_cast<unsigned>(ceil_div(m, 256)), 256, 0, stream>>>(nbr.data_ptr<int32_t>(), m, K,
-                                                                                    k_in, r_in);
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  if (bits == 0) return rows;
   auto order = at::empty({m}, nbr.options());
+  // the masks (in, out), the row numbers and cub's scratch in one allocation: host time per map
   size_t temp_bytes = 0;
-  C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, k_in, k_in + m, r_in,
-                                                 order.data_ptr<int32_t>(), static_cast<int>(m), 0, bits, stream));
-  auto temp = at::empty({static_cast<int64_t>(temp_bytes)}, nbr.options().dtype(at::kByte));
-  C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(temp.data_ptr(), temp_bytes, k_in, k_in + m, r_in,
-                                                 order.data_ptr<int32_t>(), static_cast<int>(m), 0, bits, stream));
+  if (bits > 0)
+    C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, static_cast<Key*>(nullptr),
+                                                   static_cast<Key*>(nullptr), static_cast<int32_t*>(nullptr),
+                                                   static_cast<int32_t*>(nullptr), static_cast<int>(m), 0, bits,
+                                                   stream));
+  const int64_t key_bytes = 2 * m * static_cast<int64_t>(sizeof(Key));
+  const int64_t temp_at = (key_bytes + 4 * m + 255) / 256 * 256;  // cub's scratch 256-byte aligned
+  auto scratch = at::empty({temp_at + static_cast<int64_t>(temp_bytes)}, nbr.options().dtype(at::kByte));
+  auto* base = static_cast<uint8_t*>(scratch.data_ptr());
+  Key* k_in = reinterpret_cast<Key*>(base);
+  int32_t* r_in = reinterpret_cast<int32_t*>(base + key_bytes);
+  void* temp = base + temp_at;
+  row_mask_kernel<Key><<<static_cast<unsigned>(ceil_div(m, 256)), 256, 0, stream>>>(
+      nbr.data_ptr<int32_t>(), m, K, k_in, bits == 0 ? order.data_ptr<int32_t>() : r_in);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  if (bits == 0) return order;
+  C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(temp, temp_bytes, k_in, k_in + m, r_in, order.data_ptr<int32_t>(),
+                                                 static_cast<int>(m), 0, bits, stream));
   return order;
 }
 

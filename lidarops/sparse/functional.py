@@ -352,7 +352,7 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
     D = x.ndim
     if indice_key is not None and indice_key in cache:
         km = cache[indice_key]
-        d = _ntuple(dilation, D, "dilation", 1)
+        d = km.dilation if dilation == km.dilation else _ntuple(dilation, D, "dilation", 1)  # (the layers' own tuple)
         fits = (km.kind == kind and km.kernel_size == tuple(ksize) and km.dilation == d
                 and km.indices.shape[0] == x.indices.shape[0] and km.spatial_shape == tuple(x.spatial_shape))
         if fits and kind != "subm":
@@ -368,7 +368,7 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
     km, pending = _build_kernel_map(x, kind, ksize, stride, padding, dilation, output_padding, out_spatial_shape,
                                     method, defer)
     if indice_key is not None:
-        _site_checks[km] = _MapSites(km)
+        km._sites = _MapSites(km)
         cache = dict(cache)
         cache[indice_key] = km
         for maps in _recorders:
@@ -426,9 +426,6 @@ class _MapSites:
         self.sides = {"in": _Sites(km.indices), "out": _Sites(km.out_indices)}
 
 
-_site_checks: "weakref.WeakKeyDictionary[KernelMap, _MapSites]" = weakref.WeakKeyDictionary()
-
-
 def _version(t: Tensor) -> Optional[int]:
     """The in-place version counter of ``t`` (None for an inference tensor, which keeps none)."""
     return None if t.is_inference() else t._version
@@ -442,9 +439,9 @@ def _check_sites(km: KernelMap, side: str, indices: Tensor, indice_key) -> None:
         if indices is not own:
             _compare_sites(indices, own, side, indice_key)  # a data-dependent branch: a graph break
         return
-    state = _site_checks.get(km)
+    state = km._sites
     if state is None:  # a map put into an indice_dict by hand: its sites are what its tensors hold now
-        state = _site_checks[km] = _MapSites(km)
+        state = km._sites = _MapSites(km)
     sites = state.sides[side]
     if _version(own) != sites.version:
         raise ValueError(f"the sites of the kernel map under indice_key {indice_key!r} were changed in place after "

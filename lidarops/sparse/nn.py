@@ -381,10 +381,11 @@ def _fusable(modules: list, i: int, x: SparseConvTensor) -> int:
     if not Fs.fusable_norm(x, bn, _param(conv, "weight"), _param(conv, "bias")):
         return 0
     relu = i + 2 < len(modules) and type(modules[i + 2]) in (nn.ReLU, SparseReLU)
-    hooked = modules[i:i + 3 if relu else i + 2]
-    if any(m._forward_hooks or m._forward_pre_hooks for m in hooked) or _global_hooks():
-        return 0  # the fused path does not call these modules, so their hooks would not run
-    return 3 if relu else 2
+    n = 3 if relu else 2
+    for m in modules[i:i + n]:
+        if m._forward_hooks or m._forward_pre_hooks:
+            return 0  # the fused path does not call these modules, so their hooks would not run
+    return 0 if _global_hooks() else n
 
 
 _MISSING = object()
