@@ -6,16 +6,18 @@
 //     open-addressing hash table (atomicCAS on 64-bit keys, linear probing, capacity >= 2N); one
 //     thread per (output row, kernel offset) looks its input up.
 // Validation (coordinates outside the grid, duplicates) is flagged on the device and costs one host
-// sync per map (or a deferred read: sparse_kernel_map_deferred); when a flag is set, the message is produced by the CPU checks on a host copy, so it
-// names the same rows as on CPU. Without validation (the sparse layers skip it for sites they checked
-// or produced) no flag is kept and bad rows are skipped.
+// sync per map (or a read after the caller's next launches: sparse_kernel_map_deferred); when a flag is
+// set, the message is produced by the CPU checks on a host copy, so it names the same rows as on CPU.
+// Without validation (the sparse layers skip it for sites they checked or produced) no flag is kept and
+// bad rows are skipped.
 #include <ATen/ATen.h>
 #include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+
 #include <array>
 #include <mutex>
 #include <tuple>
-#include <c10/cuda/CUDAGuard.h>
-#include <c10/cuda/CUDAStream.h>
 
 #include "lidarops/cuda_launch.cuh"
 #include "lidarops/sparse.h"
@@ -351,9 +353,9 @@ at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t ba
 }
 
 at::Tensor kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_indices_in, int64_t batch_size,
-                                  at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
-                                  at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
-                                  int64_t method, int64_t* ticket) {
+                           at::IntArrayRef spatial_shape, at::IntArrayRef kernel_size, at::IntArrayRef stride,
+                           at::IntArrayRef padding, at::IntArrayRef dilation, bool transposed, bool validate,
+                           int64_t method, int64_t* ticket) {
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, {}, kernel_size, stride, padding, dilation, transposed);
   check_indices(indices_in, "indices", g.ndim);
   check_indices(out_indices_in, "out_indices", g.ndim);

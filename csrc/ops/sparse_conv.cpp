@@ -27,9 +27,6 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       "sparse_kernel_map(Tensor indices, Tensor out_indices, int batch_size, int[] spatial_shape,"
       " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False,"
       " bool validate=True, int method=0) -> Tensor");
-  // Transposed kernel map: (n_in, K) int32 with [i, k] = o wherever kernel_map[o, k] = i, else -1
-  // (unique: for a fixed offset the pairing is one-to-one; a caller's map that repeats an input in one
-  // column gets one of the writers). Entries outside [-1, n_in): CPU ValueError, CUDA skipped.
   // sparse_kernel_map with validate=True whose check is read later: on CUDA the check's flags are copied to
   // pinned host memory behind the map's kernels and the returned ticket (-1: nothing to check) is redeemed by
   // sparse_site_check, which raises the same ValueError; a caller queues its next work (the convolution on the
@@ -40,6 +37,9 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False,"
       " int method=0) -> (Tensor, int)");
   m.def("sparse_site_check(Tensor indices, int ticket, int batch_size, int[] spatial_shape) -> ()");
+  // Transposed kernel map: (n_in, K) int32 with [i, k] = o wherever kernel_map[o, k] = i, else -1
+  // (unique: for a fixed offset the pairing is one-to-one; a caller's map that repeats an input in one
+  // column gets one of the writers). Entries outside [-1, n_in): CPU ValueError, CUDA skipped.
   m.def("sparse_kernel_map_transpose(Tensor kernel_map, int n_in) -> Tensor");
   // Processing order of the output rows for the fused GPU kernel: a permutation (N_out,) int32 that
   // sorts the rows by the bit mask of their present kernel offsets (stable), so that the rows of one

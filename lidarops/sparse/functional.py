@@ -352,7 +352,8 @@ def _kernel_map_for(x: SparseConvTensor, kind: str, ksize: tuple, stride, paddin
     D = x.ndim
     if indice_key is not None and indice_key in cache:
         km = cache[indice_key]
-        d = km.dilation if dilation == km.dilation else _ntuple(dilation, D, "dilation", 1)  # (the layers' own tuple)
+        # the layers pass their own tuple, which needs no normalising when it is the map's
+        d = km.dilation if type(dilation) is tuple and dilation == km.dilation else _ntuple(dilation, D, "dilation", 1)
         fits = (km.kind == kind and km.kernel_size == tuple(ksize) and km.dilation == d
                 and km.indices.shape[0] == x.indices.shape[0] and km.spatial_shape == tuple(x.spatial_shape))
         if fits and kind != "subm":
