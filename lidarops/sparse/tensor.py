@@ -219,7 +219,8 @@ class SparseConvTensor:
         indices (Tensor[N, 1 + D] int32): ``(batch, c_0, ..., c_{D-1})`` of each row, coordinates in
             the order of ``spatial_shape`` (``(z, y, x)`` for voxels, ``(y, x)`` for pillars). Sites must
             be unique and inside the grid; the first kernel map built on them checks both (once per
-            indices tensor and version: one host synchronisation on CUDA). Other integer
+            indices tensor and version: one host synchronisation on CUDA, which a layer makes once its
+            convolution is queued, raising before it returns). Other integer
             dtypes (int64 coordinates) are checked against ``batch_size`` and ``spatial_shape`` first
             (one value check, skipped under ``lidarops.validation(False)``) and then converted to
             int32, so that no out-of-range value wraps around (``.int()`` would wrap silently).
