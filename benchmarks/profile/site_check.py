@@ -18,8 +18,7 @@ import torch
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
-from benchmarks.bm_sparse import GRIDS, bev_sites, precision  # noqa: E402
-from benchmarks.bm_sparse import _spconv  # noqa: E402
+from benchmarks.bm_sparse import GRIDS, _spconv, bev_sites, precision  # noqa: E402
 from benchmarks.common import _CudaClock, time_cuda_interleaved, time_interleaved  # noqa: E402
 from lidarops.compat import spconv as lspconv  # noqa: E402
 from lidarops.ops.validation import validation  # noqa: E402
@@ -129,16 +128,19 @@ def main() -> int:
             print(f"  {name:45s} {t.median:.4f}" if hasattr(t, "median") else f"  {name:45s} {t!r}")
         sp = _spconv()
         print(f"  CUDA device flags: {_device_flags()}")
-        if sp is not None:  # interleaved with spconv's call, as bm_sparse times them: back to back, and each from an idle GPU
+        # interleaved with spconv's call, as bm_sparse times them: back to back, and each from an idle GPU
+        if sp is not None:
             peer = sp.SubMConv2d(64, 64, 3, padding=1, bias=False, indice_key="k").cuda().to(dtype).eval()
 
             def spconv_subm(f, i):
                 return peer(sp.SparseConvTensor(f, i.clone(), list(shape), 1))
-            trio = [calls["SubM, library (check read after the conv)"], calls["SubM, no check"], (spconv_subm, (feats, idx))]
+            trio = [calls["SubM, library (check read after the conv)"], calls["SubM, no check"],
+                    (spconv_subm, (feats, idx))]
             for how, clock in (("back to back", None), ("each from an idle GPU", _IdleClock())):
                 t = time_cuda_interleaved(trio, clock=clock, budget_s=1.0, max_runs=400)
                 print(f"  interleaved with spconv, {how}: library / no check / spconv = "
-                      + " / ".join(f"{x.median:.4f}" for x in t) + f" ms; spconv / library {t[2].median / t[0].median:.2f}x")
+                      + " / ".join(f"{x.median:.4f}" for x in t)
+                      + f" ms; spconv / library {t[2].median / t[0].median:.2f}x")
                 print(f"  CUDA device flags: {_device_flags()}")
         from torch.profiler import ProfilerActivity, profile
         for name, (fn, args) in calls.items():

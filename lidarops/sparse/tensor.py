@@ -46,7 +46,7 @@ class KernelMap:
     _inverse: Optional["KernelMap"] = field(default=None, repr=False)
     _order: Optional[Tensor] = field(default=None, repr=False)
     _layers: int = field(default=0, repr=False)  # layers that ran on this map (layer_order)
-    _sites: Optional[object] = field(default=None, repr=False)  # what a reuse checks its sites by (functional._MapSites)
+    _sites: Optional[object] = field(default=None, repr=False)  # what a reuse checks its sites by (_MapSites)
 
     @property
     def kernel_volume(self) -> int:
