@@ -1,7 +1,7 @@
 """What a new frame's site check costs an eager SubM call on CUDA, piece by piece. Each call starts from a new copy
 of the indices (a new frame, KITTI grid, 15,000 sites): the copy alone; the copy and the kernel map without a
-check, with the check read at once (one blocking host read), and with the check read later (a pinned copy behind
-the map's fill, redeemed by ticket); then the SubM 3x3 64 -> 64 module with its map built: the library's path
+check, with the check read at once (one blocking host read), and with the check read later (a word the map's
+last kernel writes into pinned host memory, read by ticket as a layer reads it); then the SubM 3x3 64 -> 64 module with its map built: the library's path
 (check read after the convolution is queued), the check read at once, and no check (``validation(False)``).
 Medians per call (CUDA events, calls back to back), then the CUDA runtime calls of each path (torch.profiler).
 
@@ -100,7 +100,7 @@ def main() -> int:
     def map_deferred(i):
         j = i.clone()
         nbr, ticket = ops.sparse_kernel_map_deferred(j, i, *geo, 0)
-        ops.sparse_site_check(j, ticket, 1, list(shape))
+        Fs._settle((j, ticket, 1, shape))
         return nbr
 
     with precision("fp16") as dtype, torch.no_grad():

@@ -298,6 +298,10 @@ void sparse_site_check_cpu(const at::Tensor& indices, int64_t ticket, int64_t, a
                     "once and issues -1)");
 }
 
+at::Tensor sparse_site_check_slots_cpu(const at::Tensor&) {  // no slots: CPU indices are checked at once
+  return at::empty({0}, at::TensorOptions().dtype(at::kLong));
+}
+
 at::Tensor sparse_kernel_map_transpose_cpu(const at::Tensor& nbr_in, int64_t n_in) {
   TORCH_CHECK_VALUE(nbr_in.dim() == 2 && nbr_in.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
                     nbr_in.sizes(), " and dtype ", nbr_in.scalar_type());
@@ -337,6 +341,7 @@ TORCH_LIBRARY_IMPL(lidarops, CPU, m) {
   m.impl("sparse_kernel_map", &sparse_kernel_map_cpu);
   m.impl("sparse_kernel_map_deferred", &sparse_kernel_map_deferred_cpu);
   m.impl("sparse_site_check", &sparse_site_check_cpu);
+  m.impl("sparse_site_check_slots", &sparse_site_check_slots_cpu);
   m.impl("sparse_kernel_map_transpose", &sparse_kernel_map_transpose_cpu);
 }
 

@@ -15,9 +15,9 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
-#include <array>
 #include <mutex>
 #include <tuple>
+#include <utility>
 
 #include "lidarops/cuda_launch.cuh"
 #include "lidarops/sparse.h"
@@ -138,9 +138,21 @@ __global__ void decode_keys_kernel(const int64_t* __restrict__ keys, int64_t m, 
   for (int d = 0; d < g.ndim; ++d) r[d + 1] = static_cast<int32_t>(c[d]);
 }
 
+// A deferred site check's word (DeferredChecks): the table's flags, final once the fill has run, folded into
+// one word of pinned host memory, written whole so that the host never reads half of it.
+struct CheckWord {
+  const unsigned long long* flags = nullptr;
+  unsigned long long* word = nullptr;  // nullptr: no deferred check
+  unsigned long long value = 0;        // ticket << 2
+};
+
 __global__ void lookup_kernel(const int32_t* __restrict__ out_idx, int64_t m, ConvGeometry g, TableView table,
-                              int32_t* __restrict__ nbr) {
+                              int32_t* __restrict__ nbr, CheckWord check) {
   const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (t == 0 && check.word != nullptr) {
+    *reinterpret_cast<volatile unsigned long long*>(check.word) =
+        check.value | (check.flags[0] != ~0ULL ? 1ULL : 0ULL) | (check.flags[1] != ~0ULL ? 2ULL : 0ULL);
+  }
   if (t >= m * g.kvol) return;
   const int64_t o = t / g.kvol, k = t % g.kvol;
   const int32_t* r = out_idx + o * (g.ndim + 1);
@@ -163,9 +175,8 @@ __global__ void transpose_kernel(const int32_t* __restrict__ nbr, int64_t m, int
   if (i >= 0 && i < n_in) out[static_cast<int64_t>(i) * K + t % K] = static_cast<int32_t>(t / K);
 }
 
-// Raise the CPU's message for the rows flagged on the device (f: the two flags, read on the host).
-void raise_for_flags(const unsigned long long* f, const at::Tensor& idx, const ConvGeometry& g, bool check_dups) {
-  const bool bad_range = f[0] != ~0ULL, dup = check_dups && f[1] != ~0ULL;
+// Raise the CPU's message for the rows flagged on the device (a row outside the grid, a duplicate).
+void raise_for_flags(bool bad_range, bool dup, const at::Tensor& idx, const ConvGeometry& g) {
   if (!bad_range && !dup) return;
   const auto cpu = idx.cpu();
   raise_if_out_of_range(cpu, "indices", g.batch, g.in_shape, g.ndim);
@@ -176,67 +187,86 @@ void raise_for_flags(const unsigned long long* f, const at::Tensor& idx, const C
 // ... read now (one host sync).
 void raise_flags(const at::Tensor& flags, const at::Tensor& idx, const ConvGeometry& g, bool check_dups) {
   const auto host = flags.cpu();
-  raise_for_flags(reinterpret_cast<const unsigned long long*>(host.data_ptr<int64_t>()), idx, g, check_dups);
+  const auto* f = reinterpret_cast<const unsigned long long*>(host.data_ptr<int64_t>());
+  raise_for_flags(f[0] != ~0ULL, check_dups && f[1] != ~0ULL, idx, g);
 }
 
-// A map's site check read later: its two flags are copied into pinned host memory behind the table's fill (in
-// stream order) and an event is recorded; the ticket is redeemed (sparse_site_check) once the caller has queued
-// the work that follows, so the host launches it while the GPU builds the map instead of waiting for the flags.
-// A ring of slots: a ticket never redeemed (its caller raised in between) is waited for when its slot comes round.
+// A map's site check read later: the map's last kernel (the lookup) writes one word per check into a ring of
+// pinned, device-mapped host slots, ticket << 2 plus the flags' bits (1: a row outside the grid, 2: a repeated
+// site). The caller reads it once the work that follows is queued, in the slot itself
+// (sparse_site_check_slots) or through sparse_site_check, which waits for the word and raises: the host
+// neither waits for the map nor issues a copy or an event for its check.
 class DeferredChecks {
  public:
-  int64_t issue(const at::Tensor& flags) {
+  static constexpr int64_t kSlots = 64;
+
+  // The next ticket and the device address of its slot.
+  std::pair<int64_t, unsigned long long*> issue(cudaStream_t stream) {
     std::lock_guard<std::mutex> lock(mu_);
-    if (host_ == nullptr) {
-      void* p = nullptr;
-      C10_CUDA_CHECK(cudaHostAlloc(&p, sizeof(unsigned long long) * 2 * kSlots, cudaHostAllocPortable));
-      host_ = static_cast<unsigned long long*>(p);
-    }
+    allocate();
     const int64_t ticket = next_++;
-    Slot& s = slots_[ticket % kSlots];
-    if (s.ticket >= 0) C10_CUDA_CHECK(cudaEventSynchronize(s.event));  // its copy must land before the slot is reused
-    const int device = flags.device().index();
-    if (s.event == nullptr || s.device != device) {
-      if (s.event != nullptr) C10_CUDA_CHECK(cudaEventDestroy(s.event));
-      s.event = nullptr;
-      C10_CUDA_CHECK(cudaEventCreateWithFlags(&s.event, cudaEventDisableTiming));
-      s.device = device;
-    }
-    auto stream = c10::cuda::getCurrentCUDAStream();
-    C10_CUDA_CHECK(cudaMemcpyAsync(host_ + 2 * (ticket % kSlots), flags.data_ptr<int64_t>(),
-                                   sizeof(unsigned long long) * 2, cudaMemcpyDeviceToHost, stream));
-    C10_CUDA_CHECK(cudaEventRecord(s.event, stream));
-    s.ticket = ticket;
-    return ticket;
+    const int64_t i = ticket % kSlots;
+    // the slot's last word must land before the slot is reused (a kernel that never ran writes nothing)
+    if (slots_[i].ticket >= 0) wait(i, /*must_land=*/false);
+    slots_[i] = {ticket, stream};
+    return {ticket, device_ + i};
   }
 
-  // The two flags of ticket (waits for its copy).
-  std::array<unsigned long long, 2> redeem(int64_t ticket) {
+  // The flags' bits of ticket (waits for its word).
+  unsigned long long redeem(int64_t ticket) {
     std::lock_guard<std::mutex> lock(mu_);
-    Slot& s = slots_[ticket % kSlots];
-    TORCH_CHECK_VALUE(ticket >= 0 && ticket < next_ && s.ticket == ticket, "site-check ticket ", ticket,
-                      " is unknown or was redeemed already (tickets come from sparse_kernel_map_deferred; each is "
-                      "redeemed once, among the last ", kSlots, " issued)");
-    // polled, not cudaEventSynchronize: the copy has usually landed by now, and under a blocking-sync schedule
-    // (cudaDeviceScheduleBlockingSync or Auto's choice of it) the synchronize would sleep through a wake-up
-    cudaError_t status;
-    while ((status = cudaEventQuery(s.event)) == cudaErrorNotReady) {
-    }
-    C10_CUDA_CHECK(status);
-    s.ticket = -1;
-    const unsigned long long* f = host_ + 2 * (ticket % kSlots);
-    return {f[0], f[1]};
+    const int64_t i = ticket % kSlots;
+    TORCH_CHECK_VALUE(ticket >= 0 && ticket < next_ && slots_[i].ticket == ticket, "site-check ticket ", ticket,
+                      " is unknown or its slot was reused (tickets come from sparse_kernel_map_deferred; the last ",
+                      kSlots, " issued can be read)");
+    wait(i, /*must_land=*/true);
+    return word(i) & 3ULL;
+  }
+
+  // The ring as a CPU tensor over the pinned slots, for a caller's own read of a word.
+  at::Tensor slots() {
+    std::lock_guard<std::mutex> lock(mu_);
+    allocate();
+    return at::from_blob(host_, {kSlots}, at::TensorOptions().dtype(at::kLong));
   }
 
  private:
-  static constexpr int64_t kSlots = 64;
   struct Slot {
-    cudaEvent_t event = nullptr;
-    int device = -1;
-    int64_t ticket = -1;  // the ticket whose copy the slot holds, -1 when redeemed
+    int64_t ticket = -1;  // the last ticket issued on the slot
+    cudaStream_t stream = nullptr;
   };
+
+  void allocate() {
+    if (host_ != nullptr) return;
+    void* p = nullptr;
+    C10_CUDA_CHECK(cudaHostAlloc(&p, sizeof(unsigned long long) * kSlots, cudaHostAllocPortable | cudaHostAllocMapped));
+    host_ = static_cast<unsigned long long*>(p);
+    for (int64_t i = 0; i < kSlots; ++i) host_[i] = ~0ULL;  // no ticket's word
+    void* d = nullptr;
+    C10_CUDA_CHECK(cudaHostGetDevicePointer(&d, p, 0));
+    device_ = static_cast<unsigned long long*>(d);
+  }
+
+  unsigned long long word(int64_t i) const { return *reinterpret_cast<volatile const unsigned long long*>(host_ + i); }
+  bool landed(int64_t i) const { return (word(i) >> 2) == static_cast<unsigned long long>(slots_[i].ticket); }
+
+  // Polled, not an event's synchronize (the word has usually landed); an idle stream whose word never came
+  // means its kernel did not run: an error for a read, a free slot for a reuse.
+  void wait(int64_t i, bool must_land) const {
+    for (int64_t spins = 1; !landed(i); ++spins) {
+      if (spins % 256 != 0) continue;
+      const cudaError_t status = cudaStreamQuery(slots_[i].stream);
+      if (status == cudaErrorNotReady) continue;
+      C10_CUDA_CHECK(status);
+      if (landed(i) || !must_land) return;
+      TORCH_CHECK(false, "the site check of ticket ", slots_[i].ticket, " was never written: its map's kernel did "
+                  "not run");
+    }
+  }
+
   std::mutex mu_;
-  unsigned long long* host_ = nullptr;  // kSlots pairs of flags; pinned, never freed (process lifetime)
+  unsigned long long* host_ = nullptr;    // kSlots words; pinned, never freed (process lifetime)
+  unsigned long long* device_ = nullptr;  // the same words' device address
   Slot slots_[kSlots];
   int64_t next_ = 0;
 };
@@ -255,6 +285,7 @@ unsigned long long* flag_ptr(const at::Tensor& flags) {
 
 struct DeviceTable {
   at::Tensor dense, keys, vals;
+  at::Tensor flags;  // the site check's two flags (validated tables)
   int64_t mask = 0;
   TableView view() const {
     TableView v;
@@ -271,14 +302,14 @@ struct DeviceTable {
 
 // validate: the rows outside the grid and the duplicates are flagged in two int64 slots kept at the end of the
 // table's own fill (no launch of their own), which the table's -1 fill already sets to "none"; then raised
-// here (one host sync), or, given ticket, copied for a later read (DeferredChecks) and the ticket set.
+// here (one host sync) unless defer (the caller has them read later: DeferredChecks).
 DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64_t method, bool validate,
-                             int64_t* ticket = nullptr) {
+                             bool defer = false) {
   const int64_t n = idx.size(0);
   TORCH_CHECK_VALUE(n < INT32_MAX, "indices has ", n, " rows; at most 2^31 - 2 are supported");
   auto stream = c10::cuda::getCurrentCUDAStream();
-  at::Tensor flags;
   DeviceTable t;
+  at::Tensor& flags = t.flags;
   const int64_t cells = grid_cells(g.batch, g.in_shape, g.ndim);
   if (use_dense_table(cells, n, method)) {
     const int64_t at_flags = cells + (cells & 1);  // 8-byte aligned: two int64 slots over four int32 ones
@@ -299,8 +330,7 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
         t.vals.data_ptr<int32_t>(), static_cast<uint64_t>(t.mask), validate ? flag_ptr(flags) : nullptr);
   }
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  if (validate && ticket != nullptr) *ticket = deferred_checks().issue(flags);
-  else if (validate) raise_flags(flags, idx, g, /*check_dups=*/true);
+  if (validate && !defer) raise_flags(flags, idx, g, /*check_dups=*/true);
   return t;
 }
 
@@ -367,15 +397,22 @@ at::Tensor kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_i
   auto oidx = out_indices_in.contiguous();
   const int64_t m = oidx.size(0), K = g.kvol;
   auto nbr = at::empty({m, K}, idx.options());
-  if (m == 0) {  // nothing to pair, but the sites are still checked (a strided layer may reach no output)
-    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true, ticket);
+  if (m == 0) {  // nothing to pair, but the sites are still checked, at once (a strided layer may reach no output)
+    if (validate && idx.size(0) > 0) build_table_cuda(idx, g, method, true);
     return nbr;
   }
   if (idx.size(0) == 0) return nbr.fill_(-1);
-  const DeviceTable table = build_table_cuda(idx, g, method, validate, ticket);
+  const bool defer = validate && ticket != nullptr;
+  const DeviceTable table = build_table_cuda(idx, g, method, validate, defer);
   auto stream = c10::cuda::getCurrentCUDAStream();
+  CheckWord check;
+  if (defer) {  // the lookup writes the check's word (it runs after the fill that sets the flags)
+    const auto issued = deferred_checks().issue(stream.stream());
+    *ticket = issued.first;
+    check = {flag_ptr(table.flags), issued.second, static_cast<unsigned long long>(issued.first) << 2};
+  }
   lookup_kernel<<<blocks_for(m * K), kThreads, 0, stream>>>(oidx.data_ptr<int32_t>(), m, g, table.view(),
-                                                            nbr.data_ptr<int32_t>());
+                                                            nbr.data_ptr<int32_t>(), check);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return nbr;
 }
@@ -401,15 +438,17 @@ std::tuple<at::Tensor, int64_t> sparse_kernel_map_deferred_cuda(
 void sparse_site_check_cuda(const at::Tensor& indices, int64_t ticket, int64_t batch_size,
                             at::IntArrayRef spatial_shape) {
   if (ticket < 0) return;
-  const auto flags = deferred_checks().redeem(ticket);
+  const unsigned long long bits = deferred_checks().redeem(ticket);
   ConvGeometry g;
   g.ndim = static_cast<int>(spatial_shape.size());
   TORCH_CHECK_VALUE(g.ndim >= 1 && g.ndim <= kMaxDim, "spatial_shape must have 1 to ", kMaxDim, " dimensions, got ",
                     spatial_shape);
   g.batch = batch_size;
   for (int d = 0; d < g.ndim; ++d) g.in_shape[d] = spatial_shape[d];
-  raise_for_flags(flags.data(), indices, g, /*check_dups=*/true);
+  raise_for_flags(bits & 1ULL, bits & 2ULL, indices, g);
 }
+
+at::Tensor sparse_site_check_slots_cuda(const at::Tensor&) { return deferred_checks().slots(); }
 
 at::Tensor sparse_kernel_map_transpose_cuda(const at::Tensor& nbr_in, int64_t n_in) {
   TORCH_CHECK_VALUE(nbr_in.dim() == 2 && nbr_in.scalar_type() == at::kInt, "kernel_map must be (N_out, K) int32, got shape ",
@@ -434,6 +473,7 @@ TORCH_LIBRARY_IMPL(lidarops, CUDA, m) {
   m.impl("sparse_kernel_map", &sparse_kernel_map_cuda);
   m.impl("sparse_kernel_map_deferred", &sparse_kernel_map_deferred_cuda);
   m.impl("sparse_site_check", &sparse_site_check_cuda);
+  m.impl("sparse_site_check_slots", &sparse_site_check_slots_cuda);
   m.impl("sparse_kernel_map_transpose", &sparse_kernel_map_transpose_cuda);
 }
 

@@ -27,16 +27,19 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
       "sparse_kernel_map(Tensor indices, Tensor out_indices, int batch_size, int[] spatial_shape,"
       " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False,"
       " bool validate=True, int method=0) -> Tensor");
-  // sparse_kernel_map with validate=True whose check is read later: on CUDA the check's flags are copied to
-  // pinned host memory behind the map's kernels and the returned ticket (-1: nothing to check) is redeemed by
-  // sparse_site_check, which raises the same ValueError; a caller queues its next work (the convolution on the
-  // map, which skips bad rows as without validation) before redeeming it, so the host does not wait for the map.
-  // The CPU checks at once and returns ticket -1.
+  // sparse_kernel_map with validate=True whose check is read later: on CUDA the map's last kernel writes the
+  // check's word into a pinned host slot and the returned ticket (-1: nothing to check, or checked at once) is
+  // redeemed by sparse_site_check, which waits for the word and raises the same ValueError; a caller queues its
+  // next work (the convolution on the map, which skips bad rows as without validation) before redeeming it, so
+  // the host does not wait for the map. sparse_site_check_slots(like) is the ring of those words as a CPU int64
+  // tensor (CUDA; empty for CPU indices, which are checked at once): slot ticket % len holds ticket << 2 once
+  // the check has passed, so a caller may read it there and call sparse_site_check only when it does not.
   m.def(
       "sparse_kernel_map_deferred(Tensor indices, Tensor out_indices, int batch_size, int[] spatial_shape,"
       " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False,"
       " int method=0) -> (Tensor, int)");
   m.def("sparse_site_check(Tensor indices, int ticket, int batch_size, int[] spatial_shape) -> ()");
+  m.def("sparse_site_check_slots(Tensor like) -> Tensor");
   // Transposed kernel map: (n_in, K) int32 with [i, k] = o wherever kernel_map[o, k] = i, else -1
   // (unique: for a fixed offset the pairing is one-to-one; a caller's map that repeats an input in one
   // column gets one of the writers). Entries outside [-1, n_in): CPU ValueError, CUDA skipped.

@@ -191,7 +191,8 @@ def case_sparse_kernel_map_rows_outside_grid(dev):
 
 def case_sparse_kernel_map_deferred_rows_outside_grid(dev):
     """The deferred check raises what the map's own check raises, when its ticket is redeemed (CUDA) or at once
-    (CPU, ticket -1); a ticket is redeemed once; bad shapes are refused before any work."""
+    (CPU, ticket -1); a passed check's slot holds ticket << 2 (CUDA; the CPU has no slots); an unknown ticket is
+    refused; bad shapes are refused before any work."""
     ops = _ops()
     idx = torch.tensor([[0, 0], [0, 2], [0, 7], [0, 2]], dtype=I32, device=dev)  # row 2 outside, row 3 a duplicate
     out_idx = torch.tensor([[0, 0], [0, 1], [0, 2]], dtype=I32, device=dev)
@@ -208,10 +209,18 @@ def case_sparse_kernel_map_deferred_rows_outside_grid(dev):
     nbr, ticket = ops.sparse_kernel_map_deferred(idx[:2], out_idx, *args)
     assert (ticket == -1) == (dev == "cpu"), ticket
     ops.sparse_site_check(idx[:2], ticket, 1, [3])
+    slots = ops.sparse_site_check_slots(idx)
+    assert slots.device.type == "cpu" and slots.dtype == torch.int64
     if dev != "cpu":
-        raises(lambda: ops.sparse_site_check(idx[:2], ticket, 1, [3]), r"ticket \d+ is unknown or was redeemed")
-        raises(lambda: ops.sparse_site_check(idx[:2], ticket + 10**6, 1, [3]), r"is unknown")
+        ops.sparse_site_check(idx[:2], ticket, 1, [3])  # read again: still passes
+        assert int(slots[ticket % len(slots)]) == ticket << 2
+        _, bad = ops.sparse_kernel_map_deferred(idx[[0, 1, 3]], out_idx, *args)
+        torch.cuda.synchronize()
+        assert int(slots[bad % len(slots)]) == (bad << 2) | 2  # bit 2: a repeated site
+        raises(lambda: ops.sparse_site_check(idx[:2], ticket + 10**6, 1, [3]), r"ticket \d+ is unknown")
+        raises(lambda: ops.sparse_site_check(idx[:2], bad, 1, [3]), r"indices rows 1 and 2 both hold")
     else:
+        assert slots.numel() == 0
         raises(lambda: ops.sparse_site_check(idx[:2], 3, 1, [3]), r"ticket 3 was not issued for CPU indices")
     equal(ops.sparse_kernel_map_deferred(idx[:0], out_idx, *args)[0], [[-1, -1, -1]] * 3)
     raises(lambda: ops.sparse_kernel_map_deferred(idx[:, :1], out_idx, *args), r"indices must be \(N, 2\) for D = 1")

@@ -148,7 +148,7 @@ def test_deferred_checks_never_read_do_not_disturb_later_ones(device):
     args = (1, list(SHAPE), [3, 3], [1, 1], [1, 1], [1, 1], False, 0)
     tickets = [ops.sparse_kernel_map_deferred(x.indices.clone(), x.indices, *args)[1] for _ in range(70)]
     assert tickets == list(range(tickets[0], tickets[0] + 70))
-    with pytest.raises(ValueError, match="is unknown or was redeemed already"):
+    with pytest.raises(ValueError, match="is unknown or its slot was reused"):
         ops.sparse_site_check(x.indices, tickets[0], 1, list(SHAPE))  # its slot was reused
     ops.sparse_site_check(x.indices, tickets[-1], 1, list(SHAPE))
     w = random_weight(4, (3, 3), 3, device=device)
@@ -161,3 +161,44 @@ def test_deferred_checks_never_read_do_not_disturb_later_ones(device):
     order = linear_order(ref_i, SHAPE)
     assert_same_sites_and_features(y.indices, y.features, ref_i[order.to(ref_i.device)],
                                    ref_f[order.to(ref_f.device)], y.spatial_shape, 1e-10, "subm after")
+
+
+@pytest.mark.parametrize("landed", [True, False])
+def test_a_layer_reads_its_check_in_the_slot_or_through_the_op(device, monkeypatch, landed):
+    """A layer reads a passed check in its slot; a slot not yet written (here: every slot shows no ticket) sends
+    it through ``sparse_site_check``, which waits for the word: the same results and errors either way."""
+    if device != "cuda":
+        pytest.skip("the CPU reads its checks at once")
+    calls = []
+
+    def deferred(*a):  # the map's kernels done before the layer reads its slot, so that the count is exact
+        out = ops.sparse_kernel_map_deferred(*a)
+        torch.cuda.synchronize()
+        return out
+
+    class Spy:  # torch.ops namespaces refuse attribute patches: swap the namespace the module reads
+        def __getattr__(self, name):
+            if name == "sparse_site_check":
+                return lambda *a: (calls.append(a[1]), ops.sparse_site_check(*a))[1]
+            return deferred if name == "sparse_kernel_map_deferred" else getattr(ops, name)
+
+    monkeypatch.setattr(Fs.torch.ops, "lidarops", Spy(), raising=False)
+    if not landed:
+        slots = ops.sparse_site_check_slots(torch.zeros(1, device=device)).numpy()
+        monkeypatch.setattr(Fs, "_check_slots", slots * 0 - 1)  # no slot holds a ticket's word
+    x = random_tensor(1, SHAPE, 20, 3, seed=10, device=device)
+    w = random_weight(4, (3, 3), 3, device=device)
+    torch.cuda.synchronize()
+    y = Fs.conv(SparseConvTensor(x.features, x.indices.clone(), list(SHAPE), 1), w, kind="subm")
+    assert sites_checked(y.indices, 1, SHAPE)
+    ref_i, ref_f = Fs._conv_reference(x, w, None, "subm")
+    order = linear_order(ref_i, SHAPE)
+    assert_same_sites_and_features(y.indices, y.features, ref_i[order.to(ref_i.device)],
+                                   ref_f[order.to(ref_f.device)], y.spatial_shape, 1e-10, "subm")
+    idx = x.indices.clone()
+    idx[4] = idx[2]
+    with pytest.raises(ValueError, match=r"rows 2 and 4 both hold"):
+        Fs.conv(SparseConvTensor(x.features, idx, list(SHAPE), 1), w, kind="subm")
+    assert not sites_checked(idx, 1, SHAPE)
+    # the passed frame went through the op only when its slot showed nothing; the failed one always does
+    assert len(calls) == (1 if landed else 2), calls
