@@ -212,6 +212,12 @@ class DeferredChecks {
     return {ticket, device_ + i};
   }
 
+  // A ticket whose kernel was never launched: its slot is free at once.
+  void forget(int64_t ticket) {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (slots_[ticket % kSlots].ticket == ticket) slots_[ticket % kSlots].ticket = -1;
+  }
+
   // The flags' bits of ticket (waits for its word).
   unsigned long long redeem(int64_t ticket) {
     std::lock_guard<std::mutex> lock(mu_);
@@ -413,6 +419,7 @@ at::Tensor kernel_map_cuda(const at::Tensor& indices_in, const at::Tensor& out_i
   }
   lookup_kernel<<<blocks_for(m * K), kThreads, 0, stream>>>(oidx.data_ptr<int32_t>(), m, g, table.view(),
                                                             nbr.data_ptr<int32_t>(), check);
+  if (defer && cudaPeekAtLastError() != cudaSuccess) deferred_checks().forget(*ticket);  // no word will come
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return nbr;
 }
