@@ -218,7 +218,9 @@ def case_sparse_kernel_map_deferred_rows_outside_grid(dev):
         torch.cuda.synchronize()
         assert int(slots[bad % len(slots)]) == (bad << 2) | 2  # bit 2: a repeated site
         raises(lambda: ops.sparse_site_check(idx[:2], ticket + 10**6, 1, [3]), r"ticket \d+ is unknown")
-        raises(lambda: ops.sparse_site_check(idx[:2], bad, 1, [3]), r"indices rows 1 and 2 both hold")
+        raises(lambda: ops.sparse_site_check(idx[[0, 1, 3]], bad, 1, [3]), r"indices rows 1 and 2 both hold")
+        # the word's verdict stands when the indices passed with the ticket are not the map's: a general message
+        raises(lambda: ops.sparse_site_check(idx[:2], bad, 1, [3]), r"indices hold duplicate coordinates")
     else:
         assert slots.numel() == 0
         raises(lambda: ops.sparse_site_check(idx[:2], 3, 1, [3]), r"ticket 3 was not issued for CPU indices")
