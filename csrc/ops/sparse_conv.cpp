@@ -64,6 +64,13 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // mode folded to an affine map, then ReLU). No autograd formula: for use without gradients.
   m.def("sparse_conv_affine(Tensor features, Tensor weight, Tensor kernel_map, Tensor? order, Tensor? scale, "
         "Tensor? shift, bool relu=False, str algo=\"auto\", int splits=0) -> Tensor");
+  // A run of such convolutions on one kernel map (a submanifold map: N_out = N_in), each layer's output the
+  // next one's features: weights[i] (Cout_i, K, Cin_i) with Cin_i = Cout_{i-1}, scales / shifts float32
+  // (Cout_i,), relu one flag per layer. What SparseSequential runs for consecutive fused SubM layers that share
+  // an indice_key: one op call instead of one per layer (host time). Composite: the layers are
+  // sparse_conv_affine calls, so every device and fake tensors follow that op; no autograd formula either.
+  m.def("sparse_conv_affine_chain(Tensor features, Tensor[] weights, Tensor kernel_map, Tensor? order, "
+        "Tensor[] scales, Tensor[] shifts, bool[] relu, str algo=\"auto\") -> Tensor");
   // Gradient of sparse_conv with respect to weight: (Cout, K, Cin), sum over o of
   // grad_out[o] (x) features[kernel_map[o, k]].
   m.def("sparse_conv_weight_grad(Tensor features, Tensor grad_out, Tensor kernel_map) -> Tensor");

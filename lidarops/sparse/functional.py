@@ -551,13 +551,28 @@ def _affine_torch(out: Tensor, scale: Optional[Tensor], shift: Optional[Tensor],
     return torch.relu(out) if relu else out
 
 
+def _autocast_on(f: Tensor) -> bool:
+    """Whether ``torch.autocast`` is on for the device of ``f`` (where :func:`_autocast` casts)."""
+    dev = f.device.type
+    return dev in ("cuda", "cpu") and torch.is_autocast_enabled(dev)
+
+
+def _subm_chain(x: SparseConvTensor, km: KernelMap, weights: list, scales: list, shifts: list, relus: list,
+                algo: str) -> SparseConvTensor:
+    """Consecutive fused submanifold layers on ``km`` (the map of ``x``'s sites) in one op call: what
+    ``SparseSequential`` runs after the first of them (which built or checked the map), without gradients."""
+    with torch._C._AutoDispatchBelowAutograd():
+        out = torch.ops.lidarops.sparse_conv_affine_chain(x.features, weights, km.neighbors, km.layer_order(), scales,
+                                                          shifts, relus, algo)
+    return SparseConvTensor._derived(out, x.indices, x.spatial_shape, x.batch_size, x.indice_dict)
+
+
 def _autocast(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor]) -> tuple:
     """Inside ``torch.autocast`` for the features' device, features, weight and bias in the autocast dtype,
     as ``F.conv2d`` is cast (float64 and non-floating tensors are left alone, so their errors stay)."""
-    dev = x.features.device.type
-    if dev not in ("cuda", "cpu") or not torch.is_autocast_enabled(dev):
+    if not _autocast_on(x.features):
         return x, weight, bias
-    dt = torch.get_autocast_dtype(dev)
+    dt = torch.get_autocast_dtype(x.features.device.type)
 
     def cast(t):
         return t.to(dt) if t is not None and t.is_floating_point() and t.dtype not in (dt, torch.float64) else t

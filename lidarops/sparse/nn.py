@@ -315,6 +315,8 @@ class SparseSequential(SparseModule):
                     scale, shift = Fs.norm_affine(modules[i], _param(module, "bias"))
                     x = module._conv(x, scale, shift, fused == 3, with_bias=False)
                     i += fused - 1
+                    if module.kind == "subm" and module.indice_key is not None:
+                        x, i = _subm_chain(modules, i, x, module)
                     continue
             if isinstance(module, SparseModule):
                 x = module(x)
@@ -386,6 +388,43 @@ def _fusable(modules: list, i: int, x: SparseConvTensor) -> int:
         if m._forward_hooks or m._forward_pre_hooks:
             return 0  # the fused path does not call these modules, so their hooks would not run
     return 0 if _global_hooks() else n
+
+
+def _subm_chain(modules: list, i: int, x: SparseConvTensor, first) -> tuple:
+    """The fused SubM layers from ``modules[i]`` on that follow ``first`` (which has just run) on its kernel map:
+    the same ``indice_key``, kernel, dilation and ``algo``, each fusable with its BatchNorm (:func:`_fusable`),
+    run as one op call (``sparse_conv_affine_chain``): the same kernels as layer by layer, without each layer's
+    Python. Returns ``(x, i)`` past them; any layer that does not qualify (or would raise) is left to the
+    layer-by-layer path."""
+    km = x.indice_dict.get(first.indice_key)
+    f = x.features
+    if (km is None or km.kind != "subm" or km.indices is not x.indices or f.dtype == torch.float64
+            or Fs._autocast_on(f)):
+        return x, i
+    key, ksize, dilation, algo = first.indice_key, first.kernel_size, first.dilation, first.algo
+    K = km.neighbors.shape[1]
+    cin = f.shape[1]
+    weights, scales, shifts, relus = [], [], [], []
+    while i < len(modules):
+        conv = modules[i]
+        if not (isinstance(conv, SparseConvolution) and conv.kind == "subm" and conv.indice_key == key
+                and conv.kernel_size == ksize and conv.dilation == dilation and conv.algo == algo
+                and conv.in_channels == cin):
+            break
+        fused = _fusable(modules, i, x)
+        w = _param(conv, "weight")
+        if not fused or w.dtype != f.dtype or w.device != f.device or w.shape[1:] != (*ksize, cin):
+            break
+        scale, shift = Fs.norm_affine(modules[i + 1], _param(conv, "bias"))
+        weights.append(w.reshape(w.shape[0], K, cin))
+        scales.append(scale)
+        shifts.append(shift)
+        relus.append(fused == 3)
+        cin = w.shape[0]
+        i += fused
+    if weights:
+        x = Fs._subm_chain(x, km, weights, scales, shifts, relus, algo)
+    return x, i
 
 
 _MISSING = object()

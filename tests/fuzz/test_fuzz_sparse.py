@@ -286,10 +286,16 @@ def test_sparse_conv_bn_relu_equals_its_parts_in_float64(device, data):
         norm.bias.uniform_(-1, 1)
     block = spnn.SparseConvBNReLU(conv, norm, relu).to(device).train(train)
     twin = spnn.SparseConvBNReLU(copy.deepcopy(conv), copy.deepcopy(norm), relu).double().to(device).train(train)
-    x = SparseConvTensor(s.features.float().to(device), s.indices.to(device), s.spatial_shape, s.batch_size)
     what = f"SparseConvBNReLU({kind}, bias={bias}, relu={relu}, training={train}) on {tuple(s.indices.shape)} sites"
+    _float32_equals_float64_twin(block, twin, s, device, 2e-4, what)
+
+
+def _float32_equals_float64_twin(net, twin, s: Sites, device: str, atol: float, what: str) -> None:
+    """``net`` on the sites in float32 against ``twin`` (its float64 copy) without gradients: the same error, or the
+    same sites and features within ``atol`` (relative to the largest feature)."""
+    x = SparseConvTensor(s.features.float().to(device), s.indices.to(device), s.spatial_shape, s.batch_size)
     with torch.no_grad():
-        res, err = outcome(block, x)
+        res, err = outcome(net, x)
         want, want_err = outcome(twin, _tensor(s, device))
     if want_err is not None:
         assert type(err) is type(want_err) and str(err) == str(want_err), f"{what}: {err!r} vs {want_err!r}"
@@ -297,4 +303,30 @@ def test_sparse_conv_bn_relu_equals_its_parts_in_float64(device, data):
     assert_no_error(err, what)
     assert_same(res.indices.cpu(), want.indices.cpu(), what + " sites")
     scale = max(1.0, float(want.features.abs().max())) if want.features.numel() else 1.0
-    assert_close(res.features.double().cpu(), want.features.cpu(), rtol=0, atol=2e-4 * scale, what=what + " features")
+    assert_close(res.features.double().cpu(), want.features.cpu(), rtol=0, atol=atol * scale, what=what + " features")
+
+
+@fuzz
+@given(data=st.data())
+def test_subm_layers_sharing_a_map_chained_equal_float64(device, data):
+    """SparseSequential of fused SubM layers sharing an indice_key (one op call after the first, in float32 eval
+    without gradients) against the same modules in float64 (layer by layer); bad sites get the same error."""
+    from lidarops.sparse import nn as spnn
+
+    s = data.draw(sparse_sites(D=2), "sites")
+    chans = [s.features.shape[1]] + data.draw(st.lists(st.integers(1, 9), min_size=2, max_size=4), "channels")
+    relus = data.draw(st.lists(st.booleans(), min_size=len(chans) - 1, max_size=len(chans) - 1), "relus")
+    k = data.draw(st.sampled_from([3, 5]), "kernel")
+    torch.manual_seed(data.draw(st.integers(0, 3), "weights"))
+    layers = []
+    for ci, co, relu in zip(chans, chans[1:], relus):
+        norm = torch.nn.BatchNorm1d(co)
+        with torch.no_grad():
+            norm.running_mean.uniform_(-1, 1)
+            norm.running_var.uniform_(0.5, 2)
+        layers += [spnn.SubMConv2d(ci, co, k, bias=data.draw(st.booleans(), "bias"), indice_key="k"), norm]
+        layers += [torch.nn.ReLU()] if relu else []
+    net = spnn.SparseSequential(*layers).to(device).eval()
+    twin = copy.deepcopy(net).double()
+    what = f"{len(chans) - 1} SubM layers {chans}, kernel {k}, ReLUs {relus} on {tuple(s.indices.shape)} sites"
+    _float32_equals_float64_twin(net, twin, s, device, 5e-4, what)

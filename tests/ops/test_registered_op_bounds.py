@@ -278,6 +278,23 @@ def case_sparse_conv_map_out_of_range(dev):
     raises(lambda: _ops().sparse_conv_weight_grad(xd, go[:2].to(dev), good), r"grad_out has 2 rows but kernel_map has 3")
 
 
+def case_sparse_conv_affine_chain_map_out_of_range(dev):
+    """The chain's layers are sparse_conv_affine calls: a bad map entry raises on the CPU and is no input on CUDA,
+    in every layer; a map whose rows are not the features' is refused before any layer runs."""
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(3, 3, generator=g, dtype=F64)
+    w1, w2 = torch.randn(4, 3, 3, generator=g, dtype=F64), torch.randn(2, 3, 4, generator=g, dtype=F64)
+    bad = torch.tensor([[-1, 0, 2], [0, -5, 1], [-1, 1, INT32_MAX]], dtype=I32)  # -5, 2^31-1 are bad
+    expect = _conv_reference(_conv_reference(x, w1, bad), w2, bad)
+    ones = [torch.ones(c, device=dev) for c in (4, 2)]
+    zeros = [torch.zeros(c, device=dev) for c in (4, 2)]
+    call = lambda m: _ops().sparse_conv_affine_chain(x.to(dev), [w1.to(dev), w2.to(dev)], m, None, ones, zeros,  # noqa: E731
+                                                     [False, False])
+    on_cpu_raises_else(dev, lambda: call(bad.to(dev)), r"kernel_map entries must lie in \[-1, N_in = 3\)",
+                       lambda out: close(out, expect))
+    raises(lambda: call(bad[:2].to(dev)), r"kernel_map must be a submanifold map, \(N, K\) with N = 3")
+
+
 def case_sparse_max_pool_out_of_range(dev):
     x = torch.tensor([[1.0, -2.0], [3.0, -4.0]], dtype=F64, device=dev)
     nbr = torch.tensor([[0, 7], [-1, 1], [9, -3]], dtype=I32, device=dev)

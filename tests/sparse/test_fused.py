@@ -349,3 +349,120 @@ def test_sparse_conv_bn_relu_module_hooks_empty_input_and_arguments(device):
         spnn.SparseConvBNReLU(spnn.SubMConv2d(8, 12, 3), nn.BatchNorm1d(8))
     with pytest.raises(ValueError, match="relu must be True or False"):
         spnn.SparseConvBNReLU(spnn.SubMConv2d(8, 12, 3), nn.BatchNorm1d(12), relu=1)
+
+
+def _chain_net(cin=8):
+    """Fused SubM layers sharing an indice_key (chained after the first), a strided layer, a second run, and a layer
+    with its own key (not chained)."""
+    return spconv.SparseSequential(
+        spconv.SubMConv2d(cin, 16, 3, bias=False, indice_key="a"), nn.BatchNorm1d(16), nn.ReLU(),  # builds "a"
+        spconv.SubMConv2d(16, 24, 3, bias=True, indice_key="a"), nn.BatchNorm1d(24), nn.ReLU(),  # chained ...
+        spconv.SubMConv2d(24, 24, 3, bias=False, indice_key="a"), nn.BatchNorm1d(24),  # ... without a ReLU
+        spconv.SparseConv2d(24, 32, 3, stride=2, padding=1, bias=False, indice_key="d"), nn.BatchNorm1d(32), nn.ReLU(),
+        spconv.SubMConv2d(32, 32, 3, bias=False, indice_key="b"), nn.BatchNorm1d(32), nn.ReLU(),
+        spconv.SubMConv2d(32, 32, 3, bias=True, indice_key="b"), nn.BatchNorm1d(32, affine=False), nn.ReLU(),
+        spconv.SubMConv2d(32, 16, 3, bias=False, indice_key="c"), nn.BatchNorm1d(16), nn.ReLU())
+
+
+def _count_chains(fn):
+    """fn()'s result and the number of layers of each sparse_conv_affine_chain call it made."""
+    calls, orig = [], ops.sparse_conv_affine_chain
+    try:
+        ops.sparse_conv_affine_chain = lambda *a: calls.append(len(a[1])) or orig(*a)  # noqa: E731
+        return fn(), calls
+    finally:
+        ops.sparse_conv_affine_chain = orig
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+def test_sparse_sequential_chains_subm_layers_sharing_a_map(device, dtype):
+    if dtype == torch.float16 and device == "cpu":
+        pytest.skip("float16 networks run on CUDA")
+    torch.manual_seed(1)
+    net = _randomize_norms(_chain_net(), seed=2).to(device=device, dtype=dtype).eval()
+    x = random_tensor(2, (40, 40), 300, 8, seed=9, dtype=dtype, device=device)
+    ref = net(x)  # gradients: every layer as three steps
+    with torch.no_grad():
+        got, calls = _count_chains(lambda: net(x))
+    assert calls == [2, 1]  # "a": layers 2-3 after the first; "b": its second layer; "c" alone
+    assert torch.equal(got.indices, ref.indices)
+    tol = 1e-5 if dtype == torch.float32 else 2e-2
+    torch.testing.assert_close(got.features, ref.features.detach(), rtol=tol, atol=tol)
+    # the chain reads the current parameters: an in-place change of a chained layer's weight and BatchNorm
+    with torch.no_grad():
+        net[3].weight.mul_(-1)
+        net[7].running_mean.add_(0.5)
+        changed = net(x)
+    torch.testing.assert_close(changed.features, net(x).features.detach(), rtol=tol, atol=tol)
+    assert not torch.allclose(changed.features, got.features)
+
+
+def test_subm_chain_stops_where_a_layer_cannot_join(device):
+    torch.manual_seed(3)
+    net = _randomize_norms(_chain_net(), seed=4).to(device).eval()
+    x = random_tensor(1, (30, 30), 200, 8, seed=10, dtype=torch.float32, device=device)
+    ref = net(x).features.detach()
+    seen = []
+    h = net[6].register_forward_hook(lambda m, i, o: seen.append(1))  # the third "a" layer runs as a module
+    with torch.no_grad():
+        got, calls = _count_chains(lambda: net(x))
+    h.remove()
+    assert seen == [1] and calls == [1, 1]
+    torch.testing.assert_close(got.features, ref, rtol=1e-5, atol=1e-5)
+    with torch.no_grad(), torch.autocast(device, dtype=torch.bfloat16):  # autocast: layer by layer
+        _, calls = _count_chains(lambda: net(x))
+    assert calls == []
+    net.train()
+    with torch.no_grad():
+        _, calls = _count_chains(lambda: net(x))
+    assert calls == []
+    # a layer with the wrong input channels is left to the layer path and its error
+    bad = spconv.SparseSequential(spconv.SubMConv2d(8, 16, 3, indice_key="a"), nn.BatchNorm1d(16), nn.ReLU(),
+                                  spconv.SubMConv2d(12, 16, 3, indice_key="a"), nn.BatchNorm1d(16)).to(device).eval()
+    with torch.no_grad(), pytest.raises(ValueError, match="expects 12 input channels"):
+        bad(x)
+    # no sites: the chain's layers give (0, C)
+    empty = SparseConvTensor(torch.zeros(0, 8, device=device), torch.zeros(0, 3, dtype=torch.int32, device=device),
+                             [30, 30], 1)
+    net.eval()
+    with torch.no_grad():
+        out, calls = _count_chains(lambda: spconv.SparseSequential(*list(net)[:8])(empty))
+    assert out.features.shape == (0, 24) and calls == [2]
+
+
+def test_sparse_conv_affine_chain_equals_its_layers(device):
+    x = random_tensor(2, (40, 40), 300, 16, seed=11, dtype=torch.float32, device=device)
+    km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+    g = torch.Generator().manual_seed(5)
+    chans = [16, 24, 32, 8]
+    ws = [(torch.randn(co, 9, ci, generator=g) / 8).to(device) for ci, co in zip(chans, chans[1:])]
+    scales = [(torch.rand(co, generator=g) + 0.5).to(device) for co in chans[1:]]
+    shifts = [torch.randn(co, generator=g).to(device) for co in chans[1:]]
+    relus = [True, False, True]
+    got = ops.sparse_conv_affine_chain(x.features, ws, km.neighbors, km.order, scales, shifts, relus)
+    step, ref = x.features, x.features.double().cpu()
+    for w, s, b, r in zip(ws, scales, shifts, relus):
+        step = ops.sparse_conv_affine(step, w, km.neighbors, km.order, s, b, r)
+        ref = _reference(ref, w, km.neighbors, s, b, r)
+    assert torch.equal(got, step)  # the same kernels in the same order
+    assert (got.double().cpu() - ref).abs().max().item() <= 1e-4 * max(1.0, ref.abs().max().item())
+    torch.library.opcheck(ops.sparse_conv_affine_chain, (x.features, ws, km.neighbors, km.order, scales, shifts, relus))
+
+
+def test_sparse_conv_affine_chain_checks_its_arguments(device):
+    x = random_tensor(1, (8, 8), 20, 4, seed=1, dtype=torch.float32, device=device)
+    km = Fs.build_kernel_map(x, "subm", 3, 1, 1, 1)
+    w1, w2 = torch.randn(6, 9, 4, device=device), torch.randn(5, 9, 6, device=device)
+    s1, s2 = torch.ones(6, device=device), torch.ones(5, device=device)
+    f, nbr = x.features, km.neighbors
+    with pytest.raises(ValueError, match="weights must hold at least one"):
+        ops.sparse_conv_affine_chain(f, [], nbr, None, [], [], [])
+    with pytest.raises(ValueError, match="one entry per layer: weights has 2, scales 1"):
+        ops.sparse_conv_affine_chain(f, [w1, w2], nbr, None, [s1], [s1, s2], [True, True])
+    with pytest.raises(ValueError, match=r"weights\[1\] must be \(Cout, K, Cin = 6\) \(Cin: the channels of the "
+                                         r"previous layer's output\), got shape \[5, 9, 5\]"):
+        ops.sparse_conv_affine_chain(f, [w1, w2[..., :5]], nbr, None, [s1, s2], [s1, s2], [True, True])
+    with pytest.raises(ValueError, match=r"kernel_map must be a submanifold map, \(N, K\) with N = 20"):
+        ops.sparse_conv_affine_chain(f, [w1], nbr[:5], None, [s1], [s1], [False])
+    with pytest.raises(ValueError, match=r"scale must be a float32 \(Cout,\) = \(5,\)"):  # the layer's own check
+        ops.sparse_conv_affine_chain(f, [w1, w2], nbr, None, [s1, s1], [s1, s2], [True, True])
