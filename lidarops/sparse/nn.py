@@ -396,6 +396,8 @@ def _subm_chain(modules: list, i: int, x: SparseConvTensor, first) -> tuple:
     run as one op call (``sparse_conv_affine_chain``): the same kernels as layer by layer, without each layer's
     Python. Returns ``(x, i)`` past them; any layer that does not qualify (or would raise) is left to the
     layer-by-layer path."""
+    if i >= len(modules) or getattr(modules[i], "kind", None) != "subm":  # nothing to chain: the common case
+        return x, i
     km = x.indice_dict.get(first.indice_key)
     f = x.features
     if (km is None or km.kind != "subm" or km.indices is not x.indices or f.dtype == torch.float64
