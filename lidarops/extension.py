@@ -83,23 +83,13 @@ def cuda_available() -> bool:
     return bool(load().with_cuda)
 
 
-_with_cuda = False  # set once a CUDA tensor has passed check_device (the build has CUDA kernels)
-
-
 def check_device(t: torch.Tensor, name: str) -> None:
     """Raise one clear error when a CUDA tensor reaches a build without CUDA kernels."""
-    global _with_cuda
-    dev = t.device.type
-    if dev == "cpu" or (dev == "cuda" and _with_cuda):  # every layer's call: no further lookups
-        return
-    if dev == "cuda":
-        if not cuda_available():
-            info = build_info()
-            raise LidaropsBuildError(
-                f"{name} is a CUDA tensor but lidarops was built without CUDA kernels "
-                f"({info.get('cuda_reason', 'CPU-only build')}). Rebuild on a machine with nvcc and a CUDA build "
-                "of torch, or with FORCE_CUDA=1.")
-        _with_cuda = True
-        return
-    if dev != "meta":
+    if t.device.type == "cuda" and not cuda_available():
+        info = build_info()
+        raise LidaropsBuildError(
+            f"{name} is a CUDA tensor but lidarops was built without CUDA kernels "
+            f"({info.get('cuda_reason', 'CPU-only build')}). Rebuild on a machine with nvcc and a CUDA build "
+            "of torch, or with FORCE_CUDA=1.")
+    if t.device.type not in ("cpu", "cuda", "meta"):
         raise ValueError(f"{name} is on device {t.device}; lidarops ops run on cpu and cuda")
