@@ -2,7 +2,8 @@
 launches when a map is built) pays for itself. Eager calls, each on a new copy of the indices (maps built in
 the call): the SubM 3x3 64 -> 64 module and the 16-layer down path, each layer run with the order ("always", as
 when a map made it at construction), without it ("never"), and with the library's rule (``KernelMap.layer_order``:
-from a map's second layer on, "reused"); and the kernels alone: the
+from a map's ``ORDER_FROM_CALL``-th layer call on, "call 2" and "call 3"; SparseSequential runs the fused SubM
+layers after a block's first as one call); and the kernels alone: the
 whole Sparse-PointPillars backbone with its maps cached, replayed as a CUDA graph, with and without the order.
 
     python benchmarks/profile/sparse_order.py
@@ -24,9 +25,15 @@ from lidarops.compat import spconv as lspconv  # noqa: E402
 from lidarops.sparse import tensor as sparse_tensor  # noqa: E402
 
 LIBRARY = sparse_tensor.KernelMap.layer_order
+LIBRARY_FROM = sparse_tensor.ORDER_FROM_CALL
 # what a layer runs with: the order made for every layer (as when maps made it at construction), never, or the
-# library's own rule (from a map's second layer on)
-POLICIES = {"always": lambda self: self.order, "never": lambda self: self._order, "reused": LIBRARY}
+# library's own rule from a map's second or third layer call on: (layer_order, ORDER_FROM_CALL)
+POLICIES = {"always": (lambda self: self.order, LIBRARY_FROM), "never": (lambda self: self._order, LIBRARY_FROM),
+            "call 2": (LIBRARY, 2), "call 3": (LIBRARY, 3)}
+
+
+def use(policy) -> None:
+    sparse_tensor.KernelMap.layer_order, sparse_tensor.ORDER_FROM_CALL = policy
 
 
 def main() -> int:
@@ -43,10 +50,10 @@ def main() -> int:
                 cells = []
                 for fn in (layer, down):
                     for policy in POLICIES.values():
-                        sparse_tensor.KernelMap.layer_order = policy
+                        use(policy)
                         cells.append(time_call(lambda f: fn(lspconv.SparseConvTensor(f, idx.clone(), list(shape), 1)),
                                                (feats,), "cuda").median)
-                sparse_tensor.KernelMap.layer_order = LIBRARY
+                use((LIBRARY, LIBRARY_FROM))
                 print(f"{gname:6s} {mode:5s} " + " ".join(f"{c:13.3f}" for c in cells))
     print("the whole Sparse-PointPillars backbone (KITTI grid, 15k pillars), maps cached, CUDA graph, ms: "
           "order / no order")
@@ -54,10 +61,10 @@ def main() -> int:
         with precision(mode) as dtype, torch.no_grad():
             cells = []
             for policy in (POLICIES["always"], POLICIES["never"]):
-                sparse_tensor.KernelMap.layer_order = policy
+                use(policy)
                 net, x, cached = pillars_input("cuda", dtype)
                 cells.append(_graphed(net, cached, x.features).median)
-            sparse_tensor.KernelMap.layer_order = LIBRARY
+            use((LIBRARY, LIBRARY_FROM))
             print(f"  {mode:5s} " + " ".join(f"{c:8.3f}" for c in cells))
     return 0
 

@@ -204,8 +204,13 @@ class GraphedSparseNet:
             with torch.inference_mode(False), torch.no_grad(), uncached_autocast(), validation(False):
                 return self.net(x)
 
+        # every map's row order (and its inverse's), which a capture cannot make: in a replay the order costs no
+        # host time and saves kernel time, however few layers run on the map
+        for km in maps.values():
+            km.order
+            if km._inverse is not None:
+                km._inverse.order
         try:
-            # the warm-up also makes the maps' row orders, which a capture cannot
             graph, outputs = record_graph(run, static.device, capture_error_mode="thread_local")
         except (RuntimeError, ValueError) as e:  # a host read in the forward (the network's own): not recordable
             self._eager_from_now("the forward cannot be recorded as a CUDA graph (it reads from the device, which a "

@@ -14,6 +14,10 @@ from lidarops.ops.validation import describe, run_value_checks, value_checks_ena
 __all__ = ["SparseConvTensor", "KernelMap"]
 
 
+#: The layer call on a kernel map from which it runs with its row order (:meth:`KernelMap.layer_order`).
+ORDER_FROM_CALL = 2
+
+
 @dataclass(eq=False)
 class KernelMap:
     """The rulebook of one sparse convolution: which input row feeds which output row through which
@@ -71,12 +75,13 @@ class KernelMap:
         return self._order
 
     def layer_order(self) -> Optional[Tensor]:
-        """The :attr:`order` a layer runs on this map with. The first layer runs without it (unless it was made
-        already): sorting the rows costs about five launches, more host time than it saves one layer. From the
-        second layer on (a map shared through ``indice_key``, or cached and reused) the order is made once and
-        used; never while a CUDA graph is being captured, where it would be made inside the graph."""
+        """The :attr:`order` a layer call runs on this map with. The first :data:`ORDER_FROM_CALL` - 1 calls run
+        without it (unless it was made already): sorting the rows costs about five launches, more host time than
+        it saves a few layers of an eager forward, which waits on the host; from that call on (a map cached and
+        reused, or shared by many layers through ``indice_key``) the order is made once and used; never while a
+        CUDA graph is being captured, where it would be made inside the graph."""
         self._layers += 1
-        if self._order is None and self._layers > 1 and self.neighbors.device.type == "cuda" \
+        if self._order is None and self._layers >= ORDER_FROM_CALL and self.neighbors.device.type == "cuda" \
                 and not torch.cuda.is_current_stream_capturing():
             return self.order
         return self._order

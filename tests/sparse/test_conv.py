@@ -127,25 +127,28 @@ def test_kernel_map_order_groups_rows_by_offset_mask(device, shape, k):
     torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
 
 
-def test_layer_order_from_the_second_layer_on(device):
-    # a map's first layer runs without the row order (on CUDA it would cost more launches than it saves);
-    # a second layer on the same map makes it once and uses it; the layers' results are those with the order
+@pytest.mark.parametrize("from_call", [2, 3])
+def test_layer_order_from_its_call_on(device, from_call, monkeypatch):
+    # a map's first layer calls run without the row order (on CUDA it would cost more launches than it saves an
+    # eager forward); the ORDER_FROM_CALL-th layer call on the same map makes it once and uses it, as every later
+    # call does; the layers' results are those with the order
+    from lidarops.sparse import tensor as sparse_tensor
+    monkeypatch.setattr(sparse_tensor, "ORDER_FROM_CALL", from_call)
     x = random_tensor(2, SHAPES[2], 60, 8, seed=21, dtype=torch.float32, device=device)
-    a = spnn.SubMConv2d(8, 8, 3, bias=False, indice_key="s").to(device)
-    b = spnn.SubMConv2d(8, 8, 3, bias=False, indice_key="s").to(device)
+    layers = [spnn.SubMConv2d(8, 8, 3, bias=False, indice_key="s").to(device) for _ in range(from_call + 1)]
     with torch.no_grad():
-        y1 = a(x)
-        km = y1.indice_dict["s"]
-        assert km._order is None  # not made for the first layer (CPU: never)
-        y2 = b(y1)
-        assert (km._order is not None) == (device == "cuda")
+        ys, y = [], x
+        for i, layer in enumerate(layers, 1):
+            y = layer(y)
+            ys.append(y)
+            km = y.indice_dict["s"]
+            assert (km._order is not None) == (device == "cuda" and i >= from_call), i  # CPU: never
         if device == "cuda":
             assert torch.equal(km._order, ops.sparse_kernel_map_order(km.neighbors))
-        w_a, w_b = a.weight.reshape(8, 9, 8), b.weight.reshape(8, 9, 8)
-        ref1 = ops.sparse_conv(x.features, w_a, km.neighbors, km.order)
-        ref2 = ops.sparse_conv(ref1, w_b, km.neighbors, km.order)
-    torch.testing.assert_close(y1.features, ref1, rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(y2.features, ref2, rtol=1e-5, atol=1e-5)
+        ref = x.features
+        for layer, y in zip(layers, ys):
+            ref = ops.sparse_conv(ref, layer.weight.reshape(8, 9, 8), km.neighbors, km.order)
+            torch.testing.assert_close(y.features, ref, rtol=1e-5, atol=1e-5)
 
 
 @requires_cuda

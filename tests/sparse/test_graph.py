@@ -140,15 +140,22 @@ def test_outputs_are_copies_unless_asked():
                 assert not torch.equal(first["map"], kept)
 
 
+def _graphed_after(net, sites, calls: int) -> GraphedSparseNet:
+    """A GraphedSparseNet of ``net`` after ``calls`` calls on ``sites`` (features seeds 0, 1, ...)."""
+    g = GraphedSparseNet(net)
+    with torch.no_grad():
+        for s in range(calls):
+            g(_x(sites, s))
+    return g
+
+
 @requires_cuda
 def test_changed_parameters_record_again():
     net = _net("cuda")
-    g = GraphedSparseNet(net)
     a = _sites(6, "cuda")
+    g = _graphed_after(net, a, 3)
+    assert g.captures == 1
     with torch.no_grad():
-        for s in range(3):
-            g(_x(a, s))
-        assert g.captures == 1
         bn = net.down[1]
         bn.running_var.mul_(3.0)  # folded into the recorded scale: stale unless recorded again
         x = _x(a, 20)
@@ -287,6 +294,20 @@ def test_the_sparse_pointpillars_backbone(device):
             assert torch.allclose(got, want, rtol=0, atol=TOL[torch.float32] * max(1.0, float(want.abs().max())))
     if device == "cuda":
         assert g.reason is None and g.captures == 1 and g.replays == 2, g
+
+
+@requires_cuda
+def test_a_recorded_graph_runs_every_map_with_its_row_order():
+    # a replay costs no host time, so each map, also one a single layer runs on and an inverse one, carries its
+    # order into the capture, which cannot make it
+    g = _graphed_after(_net("cuda"), _sites(1, "cuda"), 2)
+    assert g.captures == 1, g
+    maps = g._graph[5].indice_dict
+    assert {"s0", "d0", "s1", "b0", "p0", "up"} <= set(maps)
+    for key, km in maps.items():
+        assert km._order is not None, key
+        assert torch.equal(km._order, torch.ops.lidarops.sparse_kernel_map_order(km.neighbors)), key
+    assert maps["d0"]._inverse is not None and maps["d0"]._inverse._order is not None
 
 
 @pytest.mark.parametrize("args,match", [((object(),), "net must be a torch.nn.Module"),
