@@ -52,8 +52,12 @@ _KINDS = ("subm", "conv", "transposed", "inverse")
 
 
 def _ntuple(v, ndim: int, name: str, minimum: int) -> tuple:
-    if type(v) is tuple and len(v) == ndim and all(type(e) is int and e >= minimum for e in v):
-        return v  # what the layers pass on every call: already checked
+    if type(v) is tuple and len(v) == ndim:  # what the layers pass on every call (a loop: host time per layer)
+        for e in v:
+            if type(e) is not int or e < minimum:
+                break
+        else:
+            return v
     if isinstance(v, bool):
         raise ValueError(f"{name} must be an int or a sequence of {ndim} ints, got {v!r}")
     if isinstance(v, int):
@@ -207,6 +211,9 @@ def build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride=1, padd
     Returns:
         KernelMap.
     """
+    if not isinstance(x, SparseConvTensor):
+        raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
+    extension.check_device(x.indices, "indices")
     km, _ = _build_kernel_map(x, kind, kernel_size, stride, padding, dilation, output_padding, out_spatial_shape,
                               method, defer=False)
     return km
@@ -216,10 +223,8 @@ def _build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride, paddi
                       out_spatial_shape, method, defer: bool) -> tuple:
     """:func:`build_kernel_map` and the site check it leaves to the caller (None when none is left): with
     ``defer`` a new frame's check on CUDA is read later (:func:`_settle`, after the caller has queued the
-    convolution on the map), not before the map's last kernel is launched."""
-    if not isinstance(x, SparseConvTensor):
-        raise ValueError(f"x must be a SparseConvTensor, got {type(x).__name__}")
-    extension.check_device(x.indices, "indices")
+    convolution on the map), not before the map's last kernel is launched. The caller has checked ``x`` and
+    its device (its features' device is its indices')."""
     D = x.ndim
     k = _ntuple(kernel_size, D, "kernel_size", 1)
     d = _ntuple(dilation, D, "dilation", 1)
@@ -228,7 +233,7 @@ def _build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride, paddi
     ops = torch.ops.lidarops
     validate = value_checks_enabled() and not sites_checked(x.indices, x.batch_size, shape)  # (the docstring's rule)
     if kind == "subm":
-        s, p = (1,) * D, tuple(d[i] * (k[i] // 2) for i in range(D))
+        s, p = (1,) * D, tuple([d[i] * (k[i] // 2) for i in range(D)])
         out_shape, out_indices, transposed = shape, x.indices, False
     elif kind in ("conv", "pool", "transposed"):
         s, p = _ntuple(stride, D, "stride", 1), _ntuple(padding, D, "padding", 0)
@@ -432,7 +437,8 @@ class _MapSites:
     __slots__ = ("sides",)
 
     def __init__(self, km: KernelMap):
-        self.sides = {"in": _Sites(km.indices), "out": _Sites(km.out_indices)}
+        sites = _Sites(km.indices)  # a submanifold map's two sides are one tensor: one state
+        self.sides = {"in": sites, "out": sites if km.out_indices is km.indices else _Sites(km.out_indices)}
 
 
 def _version(t: Tensor) -> Optional[int]:
@@ -557,21 +563,20 @@ def _autocast_on(f: Tensor) -> bool:
     return dev in ("cuda", "cpu") and torch.is_autocast_enabled(dev)
 
 
-def _subm_chain(x: SparseConvTensor, km: KernelMap, weights: list, scales: list, shifts: list, relus: list,
-                algo: str) -> SparseConvTensor:
-    """Consecutive fused submanifold layers on ``km`` (the map of ``x``'s sites) in one op call: what
-    ``SparseSequential`` runs after the first of them (which built or checked the map), without gradients."""
+def _subm_chain(x: SparseConvTensor, km: KernelMap, indice_dict: dict, weights: list, scales: list, shifts: list,
+                relus: list, algo: str) -> SparseConvTensor:
+    """Consecutive fused submanifold layers on ``km`` (the map of ``x``'s sites, built or checked by the caller) in
+    one op call, without gradients: what ``SparseSequential`` runs; the output carries ``indice_dict``."""
     with torch._C._AutoDispatchBelowAutograd():
         out = torch.ops.lidarops.sparse_conv_affine_chain(x.features, weights, km.neighbors, km.layer_order(), scales,
                                                           shifts, relus, algo)
-    return SparseConvTensor._derived(out, x.indices, x.spatial_shape, x.batch_size, x.indice_dict)
+    return SparseConvTensor._derived(out, x.indices, x.spatial_shape, x.batch_size, indice_dict)
 
 
 def _autocast(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor]) -> tuple:
-    """Inside ``torch.autocast`` for the features' device, features, weight and bias in the autocast dtype,
-    as ``F.conv2d`` is cast (float64 and non-floating tensors are left alone, so their errors stay)."""
-    if not _autocast_on(x.features):
-        return x, weight, bias
+    """Features, weight and bias in the autocast dtype of the features' device, where ``torch.autocast`` is on
+    (:func:`_autocast_on`), as ``F.conv2d`` is cast (float64 and non-floating tensors are left alone, so their
+    errors stay)."""
     dt = torch.get_autocast_dtype(x.features.device.type)
 
     def cast(t):
@@ -631,8 +636,9 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
     if weight.dim() != D + 2 or weight.shape[-1] != cin:
         raise ValueError(f"weight must be (Cout, *kernel ({D} dims), Cin = {cin}) for this {D}D input, "
                          f"got {describe(weight)}")
-    x, weight, bias = _autocast(x, weight, bias)
-    f = x.features
+    if _autocast_on(f):
+        x, weight, bias = _autocast(x, weight, bias)
+        f = x.features
     if weight.dtype != f.dtype or weight.device != f.device:
         raise ValueError(f"weight ({weight.dtype}, {weight.device}) must match the features "
                          f"({f.dtype}, {f.device})")
@@ -641,11 +647,13 @@ def conv(x: SparseConvTensor, weight: Tensor, bias: Optional[Tensor] = None, kin
     cout = weight.shape[0]
     if bias is not None and (bias.shape != (cout,) or bias.dtype != weight.dtype):
         raise ValueError(f"bias must be ({cout},) of dtype {weight.dtype}, got {describe(bias)}")
-    for name, t in (("scale", scale), ("shift", shift)):
-        if t is not None and (not isinstance(t, Tensor) or t.shape != (cout,) or t.dtype != torch.float32
-                              or t.device != weight.device):
-            raise ValueError(f"{name} must be a float32 ({cout},) tensor on {weight.device}, got {describe(t)}")
-    epilogue = scale is not None or shift is not None or bool(relu)
+    epilogue = scale is not None or shift is not None
+    if epilogue:
+        for name, t in (("scale", scale), ("shift", shift)):
+            if t is not None and (not isinstance(t, Tensor) or t.shape != (cout,) or t.dtype != torch.float32
+                                  or t.device != weight.device):
+                raise ValueError(f"{name} must be a float32 ({cout},) tensor on {weight.device}, got {describe(t)}")
+    epilogue = epilogue or bool(relu)
     extension.check_device(f, "features")
     ksize = tuple(weight.shape[1:-1])
     K = math.prod(ksize)
