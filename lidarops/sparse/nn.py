@@ -14,6 +14,7 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
+from lidarops import extension
 from lidarops.sparse import functional as Fs
 from lidarops.sparse.tensor import SparseConvTensor
 
@@ -309,14 +310,17 @@ class SparseSequential(SparseModule):
             module = modules[i]
             i += 1
             if isinstance(module, SparseConvolution) and isinstance(x, SparseConvTensor):
+                if module.kind == "subm" and module.indice_key is not None:
+                    chained = _subm_chain(modules, i - 1, x)
+                    if chained is not None:
+                        x, i = chained
+                        continue
                 fused = _fusable(modules, i - 1, x)
                 if fused:  # conv -> BatchNorm (eval) [-> ReLU] in one kernel
                     # the bias folded into shift (read from the dict, not through nn.Module.__getattr__)
                     scale, shift = Fs.norm_affine(modules[i], _param(module, "bias"))
                     x = module._conv(x, scale, shift, fused == 3, with_bias=False)
                     i += fused - 1
-                    if module.kind == "subm" and module.indice_key is not None:
-                        x, i = _subm_chain(modules, i, x, module)
                     continue
             if isinstance(module, SparseModule):
                 x = module(x)
@@ -390,21 +394,20 @@ def _fusable(modules: list, i: int, x: SparseConvTensor) -> int:
     return 0 if _global_hooks() else n
 
 
-def _subm_chain(modules: list, i: int, x: SparseConvTensor, first) -> tuple:
-    """The fused SubM layers from ``modules[i]`` on that follow ``first`` (which has just run) on its kernel map:
-    the same ``indice_key``, kernel, dilation and ``algo``, each fusable with its BatchNorm (:func:`_fusable`),
-    run as one op call (``sparse_conv_affine_chain``): the same kernels as layer by layer, without each layer's
-    Python. Returns ``(x, i)`` past them; any layer that does not qualify (or would raise) is left to the
-    layer-by-layer path."""
-    if i >= len(modules) or getattr(modules[i], "kind", None) != "subm":  # nothing to chain: the common case
-        return x, i
-    km = x.indice_dict.get(first.indice_key)
+def _subm_chain(modules: list, i: int, x: SparseConvTensor) -> Optional[tuple]:
+    """The fused SubM layers from ``modules[i]`` on that share its ``indice_key``, kernel, dilation and ``algo``, each
+    fusable with its BatchNorm (:func:`_fusable`), run as one op call (``sparse_conv_affine_chain``) on their map,
+    built (and registered) or reused as the first layer's call would: the same kernels as layer by layer, without
+    each layer's Python. Returns ``(x, i)`` past them, or None where ``modules[i]`` cannot start a chain (float64,
+    autocast, a 1 x 1 kernel, a layer that does not fit ``x`` or would raise: the layer path runs it and raises)."""
+    first = modules[i]
     f = x.features
-    if (km is None or km.kind != "subm" or km.indices is not x.indices or f.dtype == torch.float64
-            or Fs._autocast_on(f)):
-        return x, i
     key, ksize, dilation, algo = first.indice_key, first.kernel_size, first.dilation, first.algo
-    K = km.neighbors.shape[1]
+    if f.dtype == torch.float64 or len(ksize) != x.ndim or Fs._autocast_on(f):
+        return None
+    K = math.prod(ksize)
+    if K == 1:  # spconv's 1 x 1 rule: a matrix product, no map
+        return None
     cin = f.shape[1]
     weights, scales, shifts, relus = [], [], [], []
     while i < len(modules):
@@ -424,8 +427,14 @@ def _subm_chain(modules: list, i: int, x: SparseConvTensor, first) -> tuple:
         relus.append(fused == 3)
         cin = w.shape[0]
         i += fused
-    if weights:
-        x = Fs._subm_chain(x, km, weights, scales, shifts, relus, algo)
+    if not weights:
+        return None
+    extension.check_device(f, "features")
+    km, cache, pending = Fs._kernel_map_for(x, "subm", ksize, first.stride, first.padding, dilation, 0, key, None,
+                                            first.method, defer=True)
+    x = Fs._subm_chain(x, km, cache, weights, scales, shifts, relus, algo)
+    if pending is not None:
+        Fs._settle(pending)
     return x, i
 
 

@@ -167,12 +167,12 @@ def test_sparse_sequential_fuses_eval_batchnorm_relu(device, dtype):
     calls = []
     orig = ops.sparse_conv_affine
     with torch.no_grad():
-        try:  # count the fused launches
+        try:  # count the fused launches: single layers, and SubM layers with a key as (one-layer) chains
             ops.sparse_conv_affine = lambda *a: calls.append(1) or orig(*a)  # noqa: E731
-            got = net(x)
+            got, chains = _count_chains(lambda: net(x))
         finally:
             ops.sparse_conv_affine = orig
-    assert len(calls) == 5  # every conv but the kernel-1 shortcut
+    assert len(calls) == 3 and chains == [1, 1]  # every conv but the kernel-1 shortcut
     assert torch.equal(got.indices, ref.indices)
     tol = 1e-5 if dtype == torch.float32 else 2e-2
     torch.testing.assert_close(got.features, ref.features.detach(), rtol=tol, atol=tol)
@@ -384,7 +384,7 @@ def test_sparse_sequential_chains_subm_layers_sharing_a_map(device, dtype):
     ref = net(x)  # gradients: every layer as three steps
     with torch.no_grad():
         got, calls = _count_chains(lambda: net(x))
-    assert calls == [2, 1]  # "a": layers 2-3 after the first; "b": its second layer; "c" alone
+    assert calls == [3, 2, 1]  # "a": its three layers, the map built first; "b": its two; "c" alone
     assert torch.equal(got.indices, ref.indices)
     tol = 1e-5 if dtype == torch.float32 else 2e-2
     torch.testing.assert_close(got.features, ref.features.detach(), rtol=tol, atol=tol)
@@ -407,7 +407,7 @@ def test_subm_chain_stops_where_a_layer_cannot_join(device):
     with torch.no_grad():
         got, calls = _count_chains(lambda: net(x))
     h.remove()
-    assert seen == [1] and calls == [1, 1]
+    assert seen == [1] and calls == [2, 2, 1]  # "a" stops before the hooked layer; "b"; "c"
     torch.testing.assert_close(got.features, ref, rtol=1e-5, atol=1e-5)
     with torch.no_grad(), torch.autocast(device, dtype=torch.bfloat16):  # autocast: layer by layer
         _, calls = _count_chains(lambda: net(x))
@@ -427,7 +427,7 @@ def test_subm_chain_stops_where_a_layer_cannot_join(device):
     net.eval()
     with torch.no_grad():
         out, calls = _count_chains(lambda: spconv.SparseSequential(*list(net)[:8])(empty))
-    assert out.features.shape == (0, 24) and calls == [2]
+    assert out.features.shape == (0, 24) and calls == [3]
 
 
 def test_sparse_conv_affine_chain_equals_its_layers(device):
