@@ -276,16 +276,17 @@ class SparseConvTensor:
         """A tensor from parts that are already valid (those of another SparseConvTensor or of a kernel
         map): only the features are checked. The layers make one per call, so it skips __init__'s checks
         (host time of eager forwards)."""
-        if not isinstance(features, Tensor) or features.dim() != 2 or features.shape[0] != indices.shape[0] \
-                or features.device != indices.device:
-            out = cls.__new__(cls)
-            out.indices = indices
-            out.features = features  # raises the setter's error
         out = cls.__new__(cls)
-        # one dict update instead of ten attribute stores (the features setter's checks are the ones above)
-        out.__dict__.update(indices=indices, spatial_shape=list(spatial_shape), batch_size=batch_size,
-                            _features=features, indice_dict=indice_dict, grid=grid, voxel_num=voxel_num,
-                            benchmark=benchmark, benchmark_record={}, thrust_allocator=None)
+        out.indices = indices
+        out.spatial_shape = list(spatial_shape)
+        out.batch_size = batch_size
+        out.features = features
+        out.indice_dict = indice_dict
+        out.grid = grid
+        out.voxel_num = voxel_num
+        out.benchmark = benchmark
+        out.benchmark_record = {}
+        out.thrust_allocator = None
         return out
 
     # features are checked on every assignment (replace_feature, or ``x.features = ...`` in old code)
