@@ -128,30 +128,12 @@ __global__ void mark_outputs_kernel(const int32_t* __restrict__ idx, int64_t n, 
   else hash_insert(keys, nullptr, mask, key, 0);
 }
 
-// Keys of a transposed convolution whose inputs' output blocks are disjoint (disjoint_blocks): one per input row
-// and kernel offset; a row outside the batch or grid gets -1 for each (sites not checked: the caller's check of
-// them raises before the result is used).
-__global__ void block_keys_kernel(const int32_t* __restrict__ idx, int64_t n, ConvGeometry g, int64_t* keys) {
-  const int64_t t = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
-  if (t >= n * g.kvol) return;
-  const int64_t i = t / g.kvol, k = t % g.kvol;
-  const int32_t* r = idx + i * (g.ndim + 1);
-  int64_t p[kMaxDim], q[kMaxDim], off[kMaxDim];
-  for (int d = 0; d < g.ndim; ++d) p[d] = r[d + 1];
-  kernel_offsets(g, k, off);
-  keys[t] = row_in_range(r, g) && output_of_input(g, p, off, q) ? site_key(r[0], q, g.out_shape, g.ndim) : -1;
-}
-
 __global__ void decode_keys_kernel(const int64_t* __restrict__ keys, int64_t m, ConvGeometry g, int32_t* out) {
   const int64_t j = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
   if (j >= m) return;
-  int32_t* r = out + j * (g.ndim + 1);
-  if (keys[j] < 0) {  // block_keys_kernel's bad rows: outside every grid, so a map gives them no neighbour
-    for (int d = 0; d <= g.ndim; ++d) r[d] = -1;
-    return;
-  }
   int64_t b, c[kMaxDim];
   decode_key(keys[j], g.out_shape, g.ndim, &b, c);
+  int32_t* r = out + j * (g.ndim + 1);
   r[0] = static_cast<int32_t>(b);
   for (int d = 0; d < g.ndim; ++d) r[d + 1] = static_cast<int32_t>(c[d]);
 }
@@ -358,20 +340,10 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
   return t;
 }
 
-// A transposed convolution whose kernel is its stride, without padding or dilation, on an output grid that holds
-// every input's block: distinct input sites reach disjoint blocks of K output sites, so N checked sites reach N K.
-bool disjoint_blocks(const ConvGeometry& g) {
-  if (!g.transposed) return false;
-  for (int d = 0; d < g.ndim; ++d)
-    if (g.kernel[d] != g.stride[d] || g.pad[d] != 0 || g.dil[d] != 1 || g.out_shape[d] < g.in_shape[d] * g.stride[d])
-      return false;
-  return true;
-}
-
 at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t batch_size, at::IntArrayRef spatial_shape,
                                         at::IntArrayRef out_spatial_shape, at::IntArrayRef kernel_size,
                                         at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
-                                        bool transposed, int64_t method, bool validate, bool checked) {
+                                        bool transposed, int64_t method, bool validate) {
   TORCH_CHECK_VALUE(!out_spatial_shape.empty(), "out_spatial_shape must be given");
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, out_spatial_shape, kernel_size, stride, padding,
                                        dilation, transposed);
@@ -390,14 +362,7 @@ at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t ba
   }
   const int64_t cells = grid_cells(g.batch, g.out_shape, g.ndim);
   at::Tensor keys;
-  if (checked && disjoint_blocks(g)) {  // N K outputs, known without reading a count
-    TORCH_CHECK_VALUE(n * K < INT32_MAX, "the convolution has ", n * K, " output sites; at most 2^31 - 2 are supported");
-    keys = at::empty({n * K}, idx.options().dtype(at::kLong));
-    block_keys_kernel<<<blocks_for(n * K), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
-                                                                  keys.data_ptr<int64_t>());
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
-    keys = std::get<0>(at::sort(keys));
-  } else if (use_dense_table(cells, n, method)) {
+  if (use_dense_table(cells, n, method)) {
     auto mark = filled({cells}, idx.options().dtype(at::kByte), 0);
     mark_outputs_kernel<true><<<blocks_for(n * K), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
                                                                           mark.data_ptr<uint8_t>(), nullptr, 0);

@@ -45,7 +45,7 @@ def _geometry(data, D: int, kind: str) -> dict:
     if kind in ("conv", "transposed", "pool"):
         g["stride"] = data.draw(st.integers(1, 3), "stride")
         g["padding"] = data.draw(st.integers(0, 1), "padding")
-    if kind == "transposed" and data.draw(st.booleans(), "kernel = stride"):  # disjoint blocks: no count read
+    if kind == "transposed" and data.draw(st.booleans(), "kernel = stride"):  # upsampling: disjoint blocks
         g.update(kernel=[g["stride"]] * D, dilation=1, padding=0)
     return g
 
