@@ -152,7 +152,7 @@ class KeySet {
 at::Tensor sparse_conv_out_indices_cpu(const at::Tensor& indices_in, int64_t batch_size, at::IntArrayRef spatial_shape,
                                        at::IntArrayRef out_spatial_shape, at::IntArrayRef kernel_size,
                                        at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
-                                       bool transposed, int64_t method, bool validate) {
+                                       bool transposed, int64_t method, bool validate, bool /*checked*/) {
   TORCH_CHECK_VALUE(!out_spatial_shape.empty(), "out_spatial_shape must be given");
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, out_spatial_shape, kernel_size, stride, padding,
                                        dilation, transposed);

@@ -131,9 +131,13 @@ __global__ void mark_outputs_kernel(const int32_t* __restrict__ idx, int64_t n, 
 __global__ void decode_keys_kernel(const int64_t* __restrict__ keys, int64_t m, ConvGeometry g, int32_t* out) {
   const int64_t j = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
   if (j >= m) return;
+  int32_t* r = out + j * (g.ndim + 1);
+  if (keys[j] < 0) {  // nonzero_static's padding (sites that broke the vouch): outside every grid
+    for (int d = 0; d <= g.ndim; ++d) r[d] = -1;
+    return;
+  }
   int64_t b, c[kMaxDim];
   decode_key(keys[j], g.out_shape, g.ndim, &b, c);
-  int32_t* r = out + j * (g.ndim + 1);
   r[0] = static_cast<int32_t>(b);
   for (int d = 0; d < g.ndim; ++d) r[d + 1] = static_cast<int32_t>(c[d]);
 }
@@ -340,10 +344,20 @@ DeviceTable build_table_cuda(const at::Tensor& idx, const ConvGeometry& g, int64
   return t;
 }
 
+// A transposed convolution whose kernel is its stride, without padding or dilation, on an output grid that holds
+// every input's block: distinct input sites reach disjoint blocks of K output sites, so N checked sites reach N K.
+bool disjoint_blocks(const ConvGeometry& g) {
+  if (!g.transposed) return false;
+  for (int d = 0; d < g.ndim; ++d)
+    if (g.kernel[d] != g.stride[d] || g.pad[d] != 0 || g.dil[d] != 1 || g.out_shape[d] < g.in_shape[d] * g.stride[d])
+      return false;
+  return true;
+}
+
 at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t batch_size, at::IntArrayRef spatial_shape,
                                         at::IntArrayRef out_spatial_shape, at::IntArrayRef kernel_size,
                                         at::IntArrayRef stride, at::IntArrayRef padding, at::IntArrayRef dilation,
-                                        bool transposed, int64_t method, bool validate) {
+                                        bool transposed, int64_t method, bool validate, bool checked) {
   TORCH_CHECK_VALUE(!out_spatial_shape.empty(), "out_spatial_shape must be given");
   const ConvGeometry g = make_geometry(batch_size, spatial_shape, out_spatial_shape, kernel_size, stride, padding,
                                        dilation, transposed);
@@ -367,7 +381,12 @@ at::Tensor sparse_conv_out_indices_cuda(const at::Tensor& indices_in, int64_t ba
     mark_outputs_kernel<true><<<blocks_for(n * K), kThreads, 0, stream>>>(idx.data_ptr<int32_t>(), n, g,
                                                                           mark.data_ptr<uint8_t>(), nullptr, 0);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
-    keys = at::nonzero(mark).view({-1});  // sorted ascending
+    if (checked && disjoint_blocks(g)) {  // N K outputs, known without reading a count (-1 rows past those found)
+      TORCH_CHECK_VALUE(n * K < INT32_MAX, "the convolution has ", n * K, " output sites; at most 2^31 - 2 are supported");
+      keys = at::nonzero_static(mark, n * K, -1).view({-1});  // sorted ascending, then the padding
+    } else {
+      keys = at::nonzero(mark).view({-1});  // sorted ascending
+    }
   } else {
     const int64_t cap = hash_capacity(n * K);
     auto set = filled({cap}, idx.options().dtype(at::kLong), 0xFF);

@@ -15,10 +15,14 @@ TORCH_LIBRARY_FRAGMENT(lidarops, m) {
   // (M, 1 + D) int32, sorted by linear key (batch, then row-major coordinates). Data-dependent M.
   // method: 0 auto, 1 dense grid, 2 hash table. validate: rows outside the batch / grid raise ValueError
   // (both devices; one host sync on CUDA); without it they are skipped. Sites need not be unique here.
+  // checked: the caller vouches that the rows lie in the batch and grid and are unique (checked before, or
+  // by the map built on them before the result is used); a transposed convolution whose kernel is its stride
+  // (no padding or dilation, every input's block inside the output grid) then has N K outputs, which CUDA
+  // does not read back. Rows that break the vouch give unspecified rows (CUDA: rows of -1).
   m.def(
       "sparse_conv_out_indices(Tensor indices, int batch_size, int[] spatial_shape, int[] out_spatial_shape,"
       " int[] kernel_size, int[] stride, int[] padding, int[] dilation, bool transposed=False, int method=0,"
-      " bool validate=True) -> Tensor");
+      " bool validate=True, bool checked=False) -> Tensor");
   // Kernel map: (N_out, K) int32, entry [o, k] = input row feeding out_indices[o] through offset k, or -1.
   // validate: raise ValueError for input coordinates outside the grid or duplicated (costs one host
   // sync on CUDA); without it such rows are ignored (never read out of bounds; of duplicates the first

@@ -18,7 +18,7 @@ _ops = torch.ops.lidarops
 
 @torch.library.register_fake("lidarops::sparse_conv_out_indices")
 def _out_indices_fake(indices, batch_size, spatial_shape, out_spatial_shape, kernel_size, stride, padding,
-                      dilation, transposed=False, method=0, validate=True):
+                      dilation, transposed=False, method=0, validate=True, checked=False):
     # The number of output sites depends on the data.
     m = torch.library.get_ctx().new_dynamic_size()
     return indices.new_empty((m, indices.shape[1]))

@@ -244,9 +244,12 @@ def _build_kernel_map(x: SparseConvTensor, kind: str, kernel_size, stride, paddi
             out_shape = conv_transpose_output_shape(shape, k, s, p, d, output_padding)
         else:
             out_shape = conv_output_shape(shape, k, s, p, d)
-        # bad input rows are skipped here and reported by the map's validation below (one sync, not two)
+        # bad input rows are skipped here and reported by the map's validation below (one sync, not two);
+        # sites checked before or by that validation let a transposed map whose kernel is its stride know its
+        # output count without reading it back
+        checked = transposed and (validate or sites_checked(x.indices, x.batch_size, shape))
         out_indices = ops.sparse_conv_out_indices(x.indices, x.batch_size, list(shape), list(out_shape), list(k),
-                                                  list(s), list(p), list(d), transposed, m, False)
+                                                  list(s), list(p), list(d), transposed, m, False, checked)
     else:
         raise ValueError(f"kind must be 'subm', 'conv', 'pool' or 'transposed', got {kind!r}")
     pending = None

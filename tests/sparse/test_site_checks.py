@@ -3,6 +3,8 @@ version, are not checked again (the check is a host synchronisation on CUDA), an
 the check back. Under ``lidarops.validation(False)`` bad rows are skipped, never read out of bounds."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -10,6 +12,7 @@ from lidarops.ops.validation import validation
 from lidarops.sparse import SparseConvTensor
 from lidarops.sparse import functional as Fs
 from lidarops.sparse.tensor import sites_checked
+from helpers.devices import requires_cuda
 from helpers.sparse import assert_same_sites_and_features, linear_order, random_tensor, random_weight
 
 SHAPE = (9, 11)
@@ -203,3 +206,49 @@ def test_a_layer_reads_its_check_in_the_slot_or_through_the_op(device, monkeypat
     assert not sites_checked(idx, 1, SHAPE)
     # the passed frame went through the op only when its slot showed nothing; the failed one always does
     assert len(calls) == (1 if landed else 2), calls
+
+
+@pytest.mark.parametrize("D, kernel, stride, out_extra", [
+    (2, [2, 2], [2, 2], [0, 0]), (2, [1, 1], [1, 1], [0, 0]), (2, [3, 2], [3, 2], [1, 0]), (3, [2, 2, 2], [2, 2, 2], [0, 1, 0]),
+    (2, [3, 3], [2, 2], [0, 0]), (2, [2, 2], [2, 2], [-1, 0])])  # the last two: not disjoint blocks (overlap, cut)
+def test_transposed_out_indices_of_checked_sites_are_the_counted_ones(device, D, kernel, stride, out_extra):
+    """``checked=True`` (sites vouched for) gives the same sorted output sites as counting them, for every
+    geometry: a transposed convolution whose kernel is its stride knows its N K outputs (no read on CUDA), the
+    others count as before; ragged batches and no sites at all."""
+    shape = (5, 6, 4)[:D]
+    for seed, (batch, n) in enumerate([(3, 30), (2, 1), (1, 0), (2, 40)]):
+        x = random_tensor(batch, shape, n, 2, seed=seed, device=device)
+        out_shape = [s * st + e for s, st, e in zip(shape, stride, out_extra)]
+        args = (batch, list(shape), out_shape, kernel, stride, [0] * D, [1] * D, True, 0, False)
+        counted = ops.sparse_conv_out_indices(x.indices, *args)
+        assert torch.equal(ops.sparse_conv_out_indices(x.indices, *args, True).cpu(), counted.cpu())
+        if out_extra[0] >= 0 and kernel == stride:  # each input site's block of K outputs, all inside the grid
+            assert counted.shape[0] == x.indices.shape[0] * math.prod(kernel)
+
+
+@requires_cuda
+def test_a_transposed_layer_whose_kernel_is_its_stride_reads_nothing_back_on_checked_sites():
+    """On sites a layer made (or checked before), an upsampling layer whose kernel is its stride builds its map
+    without waiting for the device, and gives the dense reference's answer; one whose blocks overlap reads its
+    output count (what the sync detector must catch)."""
+    device = "cuda"
+    x = random_tensor(2, SHAPE, 40, 3, seed=11, device=device)
+    w = random_weight(4, (3, 3), 3, device=device)
+    with torch.no_grad():
+        y = Fs.conv(x, w, kind="conv", stride=2, padding=1)  # made sites
+        for ksize, stride, reads in (((2, 2), 2, False), ((1, 1), 1, False), ((3, 3), 2, True)):
+            w_up = random_weight(5, ksize, 4, seed=3, device=device)
+            torch.cuda.synchronize()
+            torch.cuda.set_sync_debug_mode("error")
+            try:
+                if reads:
+                    with pytest.raises(RuntimeError, match="synchroniz"):
+                        Fs.conv(y, w_up, kind="transposed", stride=stride)
+                    continue
+                z = Fs.conv(y, w_up, kind="transposed", stride=stride)
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+            ref_i, ref_f = Fs._conv_reference(y, w_up, None, "transposed", stride=stride)
+            order = linear_order(ref_i, z.spatial_shape)
+            assert_same_sites_and_features(z.indices, z.features, ref_i[order.to(ref_i.device)],
+                                           ref_f[order.to(ref_f.device)], z.spatial_shape, 1e-5, f"{ksize} up")
