@@ -496,7 +496,8 @@ def bench_eager(device, modes, quick, rows_out):
     (its default, which checks a new frame's sites once: one host synchronisation, and under
     ``lidarops.validation(False)``) against spconv (which checks nothing). The copy is in every column. The three
     columns' calls are interleaved (``benchmarks.common.time_interleaved``), so that their ratios compare calls
-    made side by side."""
+    made side by side; on CUDA each from an idle GPU, the order turning each round (none always follows the same
+    other)."""
     sp = _spconv() if torch.device(device).type == "cuda" else None
     grids = {"drone": GRIDS["drone"]} if quick else GRIDS
     table = []
@@ -520,7 +521,8 @@ def bench_eager(device, modes, quick, rows_out):
                             failed[impl], layer, down = _error(e), None, None
                     layers.append(None if layer is None else _on_new_sites(layer, ns, checks, idx, shape, feats))
                     downs.append(None if down is None else _on_new_sites(down, ns, checks, idx, shape, feats))
-                t_layers, t_downs = _try_interleaved(layers, device), _try_interleaved(downs, device)
+                t_layers = _try_interleaved(layers, device, idle=True, rotate=True)
+                t_downs = _try_interleaved(downs, device, idle=True, rotate=True)
                 cells = {impl: (failed.get(impl) or t_layers[j], failed.get(impl) or t_downs[j])
                          for j, (impl, _, _) in enumerate(impls)}
                 (l_ours, d_ours), (l_off, d_off), (l_sp, d_sp) = (cells["lidarops"], cells["lidarops_unchecked"],
@@ -529,7 +531,7 @@ def bench_eager(device, modes, quick, rows_out):
                               _ratio(l_sp, l_ours), _cell(d_ours), _cell(d_off), _cell(d_sp), _ratio(d_sp, d_ours)])
                 rows_out.append({"section": "eager", "op": f"eager/{gname}/{mode}", "grid": gname,
                                  "sites": int(idx.shape[0]), "precision": mode, "channels": 64,
-                                 "indices": "a new copy per call", "timing": "the columns' calls interleaved",
+                                 "indices": "a new copy per call", "timing": "the columns' calls interleaved, order turning each round, each call from an idle GPU",
                                  "subm_with_map": {"lidarops": _row(l_ours), "lidarops_validation_off": _row(l_off),
                                                    "spconv": _row(l_sp)},
                                  "down_path_16_layers": {"lidarops": _row(d_ours),

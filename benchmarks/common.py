@@ -225,13 +225,19 @@ class _CudaClock:
 
 def time_cuda_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]]], *, warmup: int = 3,
                           min_runs: int = 10, max_runs: int = 200, budget_s: float = 0.3, slow_single_s: float = 2.0,
-                          clock: Any = None) -> list[Timing | BaseException]:
+                          clock: Any = None, idle: bool = False, rotate: bool = False) -> list[Timing | BaseException]:
     """:func:`time_cuda` for several implementations of one case, their calls interleaved (A, B, C, A, B, C, ...),
     as :func:`time_cpu_interleaved` on the CPU: a ratio between two columns then compares calls made side by side,
     not two windows of a machine whose speed drifts. Each gets an untimed cold call and ``warmup`` timed warm-up
     calls, whose mean (over the implementations) sets the common run count, ``clamp(budget_s / mean,
     min_runs, max_runs)``; one slower than ``slow_single_s`` counts its warm-up alone. A call that raises gives
-    its exception in place of a Timing. ``clock`` (tests): ``event()`` and ``sync()``, CUDA's by default."""
+    its exception in place of a Timing. ``clock`` (tests): ``event()`` and ``sync()``, CUDA's by default.
+
+    ``idle``: a synchronisation before each timed call, so that every call starts on an idle GPU (a host-bound
+    call's latency; without it a call's start event waits for the work the call before it left queued, and the
+    host time spent meanwhile goes unmeasured). ``rotate``: the order of the implementations turns by one each
+    round (A, B, C, then B, C, A, ...), so that none always follows the same other one (a call that follows
+    another library's pays for the host's caches that one left cold)."""
     clock = clock or _CudaClock(next((a.device for _, args in calls for a in args
                                       if isinstance(a, torch.Tensor) and a.is_cuda), torch.device("cuda")))
     out: list[Timing | BaseException] = [Timing() for _ in calls]
@@ -257,13 +263,16 @@ def time_cuda_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any
         return out
     runs = _run_count(sum(warm.values()) / len(warm), min_runs, max_runs, budget_s)
     marks: dict[int, list] = {i: [] for i in warm}
-    for _ in range(runs):
-        for i in warm:
+    turn = list(warm)
+    for r in range(runs):
+        for i in (turn[r % len(turn):] + turn[:r % len(turn)] if rotate else turn):
             if not isinstance(out[i], Timing):
                 continue
             fn, args = calls[i]
             start, end = clock.event(), clock.event()
             try:
+                if idle:
+                    clock.sync()
                 start.record()
                 fn(*args)
                 end.record()
@@ -284,7 +293,8 @@ def time_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]]], 
     through)."""
     if torch.device(device).type == "cuda":
         return time_cuda_interleaved(calls, **{k: v for k, v in kw.items()
-                                               if k in ("warmup", "min_runs", "max_runs", "budget_s", "slow_single_s")})
+                                               if k in ("warmup", "min_runs", "max_runs", "budget_s", "slow_single_s",
+                                                        "idle", "rotate")})
     return time_cpu_interleaved(calls, **{k: v for k, v in kw.items()
                                           if k in ("min_runs", "max_runs", "budget_s", "slow_single_s")})
 

@@ -540,6 +540,29 @@ def test_time_cuda_interleaved_takes_turns_and_reports_errors():
     assert order[:6] == ["a"] * 3 + ["c"] * 3 and order[6:] == ["a", "c"] * 4, order
 
 
+def test_time_cuda_interleaved_idle_and_rotated():
+    """``idle`` synchronises before every timed call; ``rotate`` turns the order each round, so that each
+    implementation follows each other one. Without them the calls go in one order, back to back."""
+    def logged(**kw):
+        clock, log = _FakeClock(), []
+        clock.sync = lambda: log.append("|")
+
+        def impl(name):
+            def fn():
+                log.append(name)
+                clock.now += 1
+            return fn
+
+        out = common.time_cuda_interleaved([(impl("a"), ()), (impl("b"), ()), (impl("c"), ())], warmup=1,
+                                           min_runs=3, max_runs=3, budget_s=1e-9, clock=clock, **kw)
+        assert [t.times_ms for t in out] == [[1.0] * 3] * 3
+        return "".join(log)
+
+    # after the warm-up (each implementation's cold and warm calls): rounds a b c, b c a, c a b, each after a sync
+    assert logged(idle=True, rotate=True).endswith("|a|b|c|b|c|a|c|a|b|")
+    assert logged().endswith("|c|abcabcabc|")
+
+
 def test_time_cuda_interleaved_fails_mid_run_in_place():
     clock = _FakeClock()
     n = {"calls": 0}
