@@ -189,6 +189,21 @@ def case_sparse_kernel_map_rows_outside_grid(dev):
            r"indices row 2 = \(0, 7\).*lies outside")
 
 
+def case_sparse_conv_out_indices_checked_with_bad_rows(dev):
+    """``checked=True`` is the caller's word that the rows are valid; rows that break it (outside the grid,
+    repeated) are never read out of bounds: an upsampling map whose kernel is its stride gives the valid rows'
+    outputs, sorted, and on CUDA rows of -1 for the N K outputs it had counted on; with ``validate`` the bad row
+    still raises."""
+    ops = _ops()
+    idx = torch.tensor([[0, 0], [0, 2], [0, 7], [0, 2]], dtype=I32, device=dev)  # row 2 outside, row 3 a duplicate
+    args = (1, [3], [6], [2], [2], [0], [1], True, 0)  # transposed, kernel 2 = stride 2: blocks {0, 1} and {4, 5}
+    out = ops.sparse_conv_out_indices(idx, *args, False, True).cpu()
+    equal(out[:4], [[0, 0], [0, 1], [0, 4], [0, 5]])
+    assert bool((out[4:] == -1).all()), out.tolist()
+    assert out.shape[0] == (4 if dev == "cpu" else 8), out.shape  # the CPU counts; CUDA takes N K = 8 rows
+    raises(lambda: ops.sparse_conv_out_indices(idx, *args, True, True), r"indices row 2 = \(0, 7\).*lies outside")
+
+
 def case_sparse_kernel_map_deferred_rows_outside_grid(dev):
     """The deferred check raises what the map's own check raises, when its ticket is redeemed (CUDA) or at once
     (CPU, ticket -1); a passed check's slot holds ticket << 2 (CUDA; the CPU has no slots); an unknown ticket is
