@@ -44,6 +44,7 @@ height and footprint and the share on the road (|y| < 10.5 m), where far false p
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -315,6 +316,90 @@ def detections(model, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[
             [names[k - 1] for k in det["labels"].tolist()])
 
 
+def aspect_deg(box) -> float:
+    """The angle between a box's heading and the ray from the sensor to its centre, folded to [0, 90] degrees: 0
+    for an object moving along the ray (seen from behind or ahead), 90 for one crossing it (seen broadside)."""
+    a = abs((float(box[6]) - math.atan2(float(box[1]), float(box[0])) + math.pi / 2) % math.pi - math.pi / 2)
+    return math.degrees(a)
+
+
+def to_box_frame(points: np.ndarray, box) -> np.ndarray:
+    """Points (N, >= 3) in a box's frame: x along its heading, z up from its bottom centre (other columns kept)."""
+    c, s = math.cos(box[6]), math.sin(box[6])
+    d = points[:, :3] - np.array([box[0], box[1], box[2] - box[5] / 2])
+    return np.c_[d[:, 0] * c + d[:, 1] * s, -d[:, 0] * s + d[:, 1] * c, d[:, 2], points[:, 3:]]
+
+
+def from_box_frame(points: np.ndarray, box) -> np.ndarray:
+    """The inverse of :func:`to_box_frame`."""
+    c, s = math.cos(box[6]), math.sin(box[6])
+    return np.c_[points[:, 0] * c - points[:, 1] * s + box[0], points[:, 0] * s + points[:, 1] * c + box[1],
+                 points[:, 2] + box[2] - box[5] / 2, points[:, 3:]].astype(np.float32)
+
+
+def _in_box(points: np.ndarray, box, grow: float = 0.0) -> np.ndarray:
+    from lidarops import points_in_boxes
+
+    b = np.asarray(box, np.float64).copy()
+    b[3:6] += 2 * grow
+    return points_in_boxes(torch.as_tensor(points[:, :3], dtype=torch.float64), torch.as_tensor(b[None])).numpy() >= 0
+
+
+def taken_as(model, points: np.ndarray, box) -> str:
+    """The class the detector gives an object: of its detections at 3D IoU >= 0.25 with ``box``, a cyclist if there
+    is one, else the highest-scoring one's class; ``"none"`` without any."""
+    from lidarops import box_iou_3d
+
+    db, ds, dn = detections(model, points)
+    if not len(db):
+        return "none"
+    iou = box_iou_3d(torch.as_tensor(db), torch.as_tensor(np.asarray(box, np.float64)[None])).numpy()[:, 0]
+    over = [dn[i] for i in np.argsort(-ds) if iou[i] >= 0.25]
+    return "Cyclist" if "Cyclist" in over else (over[0] if over else "none")
+
+
+ASPECT_PROFILE = "kitti:crossing_cyclists=1.0"  # cyclist_aspects: simulated frames with cyclists riding across too
+BROADSIDE = 45.0  # degrees: a cyclist at this aspect or more is seen broadside (crossing), below it along the road
+ROAD_SPOTS = ((20.0, -3.0), (25.0, 3.0))  # cyclist_aspects: where simulated cyclists are put on each real frame
+
+
+def cyclist_aspects(model, sim: list, real: list) -> dict:
+    """What the detector takes cyclists for, along the road (aspect below :data:`BROADSIDE`) and broadside: the
+    simulated cyclists with 15 or more returns in ``sim`` (frames of :data:`ASPECT_PROFILE`), each in its own frame;
+    and, on each real frame, simulated cyclists put at :data:`ROAD_SPOTS` (skipping a spot with a label within
+    2.5 m) on the local ground, one riding along the road and one across it: for each, the simulated cyclist
+    nearest in range and aspect, its returns moved with it (the sensor sees the same side), the real points in
+    its box removed. Separates what a real cyclist looks like from where it is and which way it rides."""
+    cyclists = [(pts, np.asarray(b, np.float64)) for _, pts, boxes, names in sim for b, n in zip(boxes, names)
+                if n == "Cyclist" and np.hypot(b[0], b[1]) < 45]
+    cyclists = [(pts, b) for pts, b in cyclists if _in_box(pts, b).sum() >= 15]
+    out: dict = {}
+    for pts, b in cyclists:
+        key = f"sim_{'broadside' if aspect_deg(b) >= BROADSIDE else 'along'}"
+        out.setdefault(key, []).append(taken_as(model, pts, b))
+    for fid, points, boxes, names, *_ in real if cyclists else ():
+        labels = np.asarray(boxes, np.float64).reshape(-1, 7)
+        for x, y in ROAD_SPOTS:
+            if len(labels) and np.hypot(labels[:, 0] - x, labels[:, 1] - y).min() < 2.5:
+                continue
+            ring = np.hypot(points[:, 0] - x, points[:, 1] - y)
+            ground = points[(ring > 0.5) & (ring < 2.0), 2]
+            if not len(ground):
+                continue
+            for kind, want in (("along", 10.0), ("broadside", 75.0)):
+                r = math.hypot(x, y)
+                pts, b = min(cyclists, key=lambda c: abs(math.hypot(c[1][0], c[1][1]) - r) / 5
+                             + abs(aspect_deg(c[1]) - want) / 30)
+                obj = to_box_frame(pts[_in_box(pts, b)], b)
+                box = b.copy()
+                box[0], box[1] = x, y
+                box[6] = math.atan2(y, x) + b[6] - math.atan2(b[1], b[0])  # the same aspect from the sensor
+                box[2] = np.percentile(ground, 10) + box[5] / 2
+                placed = np.r_[points[~_in_box(points, box, 0.3)][:, :4], from_box_frame(obj, box)[:, :4]]
+                out.setdefault(f"placed_real_{kind}", []).append(taken_as(model, placed, box))
+    return {k: {c: v.count(c) for c in (*CLASSES, "none")} for k, v in out.items()}
+
+
 def summarize(figs: list[dict]) -> dict:
     row: dict = {"frames": len(figs)}
     for cls in CLASSES:
@@ -568,6 +653,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot", type=Path, default=None)
     p.add_argument("--json", action="store_true")
     p.add_argument("--fp-list", action="store_true", help="print each false positive above 0.5 on the real frames")
+    p.add_argument("--aspects", type=int, default=0, metavar="N",
+                   help="cyclists along the road and broadside: what each checkpoint takes them for, in N simulated "
+                        f"frames of {ASPECT_PROFILE} and put on the real frames' road (0: not measured)")
     p.add_argument("--curve-plot", type=Path, default=None,
                    help="plot each checkpoint's found share against false positives per frame by score threshold")
     args = p.parse_args(argv)
@@ -636,6 +724,17 @@ def main(argv: list[str] | None = None) -> int:
                                   for c in CLASSES)
                       + f"; false positives per frame above 0.3 / 0.5: {row['fp_per_frame_above_0.3']} / "
                       f"{row['fp_per_frame_above_0.5']}", flush=True)
+    if args.aspects > 0:
+        frames = list(sim_frames(args.aspects, ASPECT_PROFILE))
+        table = []
+        for ck, model in models.items():
+            got = cyclist_aspects(model, frames, real)
+            rows.append({"op": "sim2real", "case": f"cyclist_aspects:{Path(str(ck)).name}", "checkpoint": str(ck),
+                         "frames": args.aspects, "realism": ASPECT_PROFILE,
+                         **{f"{k}_as_{c.lower()}": n for k, counts in got.items() for c, n in counts.items()}})
+            table += [[Path(str(ck)).name, k, sum(counts.values()), *counts.values()] for k, counts in got.items()]
+        print_table(f"what cyclists are taken for (best detection at 3D IoU >= 0.25; broadside: aspect >= {BROADSIDE:g} "
+                    "degrees)", ["checkpoint", "cyclists", "n", *CLASSES, "none"], table, right=range(2, 7))
     sims = {}
     stat_rows = []
     if use_real:

@@ -429,6 +429,70 @@ def test_bm_sim2real_cyclist_head_offset_by_hand():
     assert cyclist_head_offset(points, boxes, ["Pedestrian"] * 3, least=5) == []
 
 
+def test_bm_sim2real_aspect_and_box_frame_by_hand():
+    """The aspect folds the heading against the ray to [0, 90] degrees; points go into a box's frame (x along its
+    heading, z from its bottom) and back."""
+    import numpy as np
+
+    from benchmarks.bm_sim2real import aspect_deg, from_box_frame, to_box_frame
+
+    for box, want in (([10, 0, 0, 1, 1, 1, 0.0], 0), ([10, 0, 0, 1, 1, 1, np.pi / 2], 90), ([10, 0, 0, 1, 1, 1, np.pi], 0),
+                      ([0, 10, 0, 1, 1, 1, 0.0], 90), ([10, 10, 0, 1, 1, 1, np.pi / 4], 0),
+                      ([10, 10, 0, 1, 1, 1, -np.pi / 4], 90), ([10, 0, 0, 1, 1, 1, np.radians(-30)], 30),
+                      ([-10, 0, 0, 1, 1, 1, np.radians(150)], 30)):
+        assert abs(aspect_deg(box) - want) < 1e-9, (box, aspect_deg(box))
+    box = [10.0, 5.0, 1.0, 4.0, 2.0, 2.0, np.pi / 2]
+    local = to_box_frame(np.array([[10.0, 6.0, 0.5, 0.3]]), box)
+    np.testing.assert_allclose(local, [[1.0, 0.0, 0.5, 0.3]], atol=1e-12)  # 1 m ahead along +y, 0.5 m up
+    pts = np.random.default_rng(0).normal(size=(20, 4))
+    np.testing.assert_allclose(from_box_frame(to_box_frame(pts, box), box), pts, atol=1e-5)
+
+
+def test_bm_sim2real_cyclist_aspects_counts_and_placement(monkeypatch):
+    """Simulated cyclists are counted by aspect in their own frames (those with fewer than 15 returns or beyond
+    45 m left out); on a real frame each road spot without a label within 2.5 m gets one cyclist riding along the
+    road and one across it, on the local ground, with its returns moved inside its new box."""
+    import numpy as np
+
+    from benchmarks import bm_sim2real as b
+
+    rng = np.random.default_rng(1)
+
+    def cyclist(box, n):  # n returns inside a box (x, y, z centre, l, w, h, yaw)
+        local = np.c_[rng.uniform(-0.8, 0.8, n) * box[3] / 2, rng.uniform(-0.8, 0.8, n) * box[4] / 2,
+                      rng.uniform(0.1, 0.9, n) * box[5], rng.uniform(0, 1, n)]
+        return b.from_box_frame(local, box)
+
+    along = np.array([21.0, -2.0, -0.8, 1.8, 0.6, 1.7, 0.1])       # aspect about 11 degrees
+    across = np.array([24.0, 2.0, -0.8, 1.8, 0.6, 1.7, 1.6])       # about 78 degrees
+    sparse = np.array([15.0, 0.0, -0.8, 1.8, 0.6, 1.7, 0.0])       # 5 returns: left out
+    far = np.array([60.0, 0.0, -0.8, 1.8, 0.6, 1.7, 0.0])          # beyond 45 m: left out
+    sim_pts = np.r_[cyclist(along, 40), cyclist(across, 30), cyclist(sparse, 5), cyclist(far, 40)]
+    sim = [("sim0", sim_pts, np.array([along, across, sparse, far]), ["Cyclist"] * 4)]
+    ground = np.c_[rng.uniform(15, 30, 4000), rng.uniform(-6, 6, 4000), np.full(4000, -1.7), np.zeros(4000)]
+    label = np.array([[25.5, 3.5, -0.9, 4.0, 1.8, 1.6, 0.0]])      # a car within 2.5 m of the second spot
+    real = [("r0", ground, label, ["Car"], np.zeros(1), None, np.zeros((0, 4))),
+            ("r1", ground, np.zeros((0, 7)), [], np.zeros(0), None, np.zeros((0, 4)))]
+    seen = []
+
+    def fake_taken_as(model, points, box):
+        inside = b._in_box(points, box)
+        seen.append((round(b.aspect_deg(box)), int(inside.sum()), float(box[2] - box[5] / 2)))
+        return "Cyclist" if b.aspect_deg(box) < b.BROADSIDE else "Pedestrian"
+
+    monkeypatch.setattr(b, "taken_as", fake_taken_as)
+    got = b.cyclist_aspects(None, sim, real)
+    assert got["sim_along"] == {"Car": 0, "Pedestrian": 0, "Cyclist": 1, "none": 0}
+    assert got["sim_broadside"]["Pedestrian"] == 1 and sum(got["sim_broadside"].values()) == 1
+    # r0: the first spot only (a car near the second); r1: both spots; each an along and a broadside cyclist
+    assert sum(got["placed_real_along"].values()) == 3 and got["placed_real_along"]["Cyclist"] == 3
+    assert sum(got["placed_real_broadside"].values()) == 3 and got["placed_real_broadside"]["Pedestrian"] == 3
+    placed = seen[2:]
+    for aspect, n, bottom in placed:
+        assert n in (40, 30) and abs(bottom - (-1.7)) < 1e-6  # every return moved along, the box on the ground
+    assert [a for a, _, _ in placed] == [round(b.aspect_deg(along)), round(b.aspect_deg(across))] * 3
+
+
 def test_bm_sim2real_object_grades_by_hand():
     """A car 20 m ahead whose label's bottom is 0.5 m above the ground under the sensor (the 5th percentile of the
     returns within 8 m, -1.7 here) stands on a 2.5 % grade, a cyclist 30 m ahead to the side 0.3 m below it on -1 %;
