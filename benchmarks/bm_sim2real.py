@@ -358,7 +358,8 @@ def taken_as(model, points: np.ndarray, box) -> str:
     return "Cyclist" if "Cyclist" in over else (over[0] if over else "none")
 
 
-ASPECT_PROFILE = "kitti:crossing_cyclists=1.0"  # cyclist_aspects: simulated frames with cyclists riding across too
+# cyclist_aspects: simulated frames with cyclists riding across the road and pedestrians crossing it in groups
+ASPECT_PROFILE = "kitti:crossing_cyclists=1.0,crossing_pedestrians=1.0,crossing_groups=1.0"
 BROADSIDE = 45.0  # degrees: a cyclist at this aspect or more is seen broadside (crossing), below it along the road
 ROAD_SPOTS = ((20.0, -3.0), (25.0, 3.0))  # cyclist_aspects: where simulated cyclists are put on each real frame
 
@@ -369,7 +370,10 @@ def cyclist_aspects(model, sim: list, real: list) -> dict:
     and, on each real frame, simulated cyclists put at :data:`ROAD_SPOTS` (skipping a spot with a label within
     2.5 m) on the local ground, one riding along the road and one across it: for each, the simulated cyclist
     nearest in range and aspect, its returns moved with it (the sensor sees the same side), the real points in
-    its box removed. Separates what a real cyclist looks like from where it is and which way it rides."""
+    its box removed. Separates what a real cyclist looks like from where it is and which way it rides. And the
+    other side of the trade a training with cyclists riding across makes: what the simulated pedestrians (10 or
+    more returns) are taken for, those with another within 1.5 m (crossing in groups, as the real ones do) and the
+    others."""
     cyclists = [(pts, np.asarray(b, np.float64)) for _, pts, boxes, names in sim for b, n in zip(boxes, names)
                 if n == "Cyclist" and np.hypot(b[0], b[1]) < 45]
     cyclists = [(pts, b) for pts, b in cyclists if _in_box(pts, b).sum() >= 15]
@@ -377,6 +381,15 @@ def cyclist_aspects(model, sim: list, real: list) -> dict:
     for pts, b in cyclists:
         key = f"sim_{'broadside' if aspect_deg(b) >= BROADSIDE else 'along'}"
         out.setdefault(key, []).append(taken_as(model, pts, b))
+    for _, pts, boxes, names in sim:
+        peds = np.array([b for b, n in zip(boxes, names) if n == "Pedestrian"], np.float64).reshape(-1, 7)
+        for i, b in enumerate(peds):
+            if np.hypot(b[0], b[1]) >= 45 or _in_box(pts, b).sum() < 10:
+                continue
+            near = np.hypot(peds[:, 0] - b[0], peds[:, 1] - b[1])
+            near[i] = np.inf
+            key = "sim_pedestrian_in_group" if near.min(initial=np.inf) < 1.5 else "sim_pedestrian_alone"
+            out.setdefault(key, []).append(taken_as(model, pts, b))
     for fid, points, boxes, names, *_ in real if cyclists else ():
         labels = np.asarray(boxes, np.float64).reshape(-1, 7)
         for x, y in ROAD_SPOTS:
@@ -654,8 +667,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     p.add_argument("--fp-list", action="store_true", help="print each false positive above 0.5 on the real frames")
     p.add_argument("--aspects", type=int, default=0, metavar="N",
-                   help="cyclists along the road and broadside: what each checkpoint takes them for, in N simulated "
-                        f"frames of {ASPECT_PROFILE} and put on the real frames' road (0: not measured)")
+                   help="cyclists along the road and broadside, pedestrians in groups and alone: what each checkpoint "
+                        f"takes them for, in N simulated frames of {ASPECT_PROFILE}, the cyclists also put on the real "
+                        "frames' road (0: not measured)")
     p.add_argument("--curve-plot", type=Path, default=None,
                    help="plot each checkpoint's found share against false positives per frame by score threshold")
     args = p.parse_args(argv)
@@ -733,8 +747,9 @@ def main(argv: list[str] | None = None) -> int:
                          "frames": args.aspects, "realism": ASPECT_PROFILE,
                          **{f"{k}_as_{c.lower()}": n for k, counts in got.items() for c, n in counts.items()}})
             table += [[Path(str(ck)).name, k, sum(counts.values()), *counts.values()] for k, counts in got.items()]
-        print_table(f"what cyclists are taken for (best detection at 3D IoU >= 0.25; broadside: aspect >= {BROADSIDE:g} "
-                    "degrees)", ["checkpoint", "cyclists", "n", *CLASSES, "none"], table, right=range(2, 7))
+        print_table(f"what cyclists and pedestrians are taken for (a cyclist if any detection at 3D IoU >= 0.25 is "
+                    f"one, else the best; broadside: aspect >= {BROADSIDE:g} degrees)",
+                    ["checkpoint", "objects", "n", *CLASSES, "none"], table, right=range(2, 7))
     sims = {}
     stat_rows = []
     if use_real:

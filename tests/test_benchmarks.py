@@ -468,7 +468,11 @@ def test_bm_sim2real_cyclist_aspects_counts_and_placement(monkeypatch):
     sparse = np.array([15.0, 0.0, -0.8, 1.8, 0.6, 1.7, 0.0])       # 5 returns: left out
     far = np.array([60.0, 0.0, -0.8, 1.8, 0.6, 1.7, 0.0])          # beyond 45 m: left out
     sim_pts = np.r_[cyclist(along, 40), cyclist(across, 30), cyclist(sparse, 5), cyclist(far, 40)]
-    sim = [("sim0", sim_pts, np.array([along, across, sparse, far]), ["Cyclist"] * 4)]
+    ped_a, ped_b = np.array([12.0, 5.0, -1.0, 0.6, 0.6, 1.7, 0.0]), np.array([12.0, 6.0, -1.0, 0.6, 0.6, 1.7, 0.0])
+    ped_c = np.array([12.0, -6.0, -1.0, 0.6, 0.6, 1.7, 0.0])       # 1.0 m apart: a group of two; c alone
+    sim_pts = np.r_[sim_pts, cyclist(ped_a, 12), cyclist(ped_b, 12), cyclist(ped_c, 12)]
+    sim = [("sim0", sim_pts, np.array([along, across, sparse, far, ped_a, ped_b, ped_c]),
+            ["Cyclist"] * 4 + ["Pedestrian"] * 3)]
     ground = np.c_[rng.uniform(15, 30, 4000), rng.uniform(-6, 6, 4000), np.full(4000, -1.7), np.zeros(4000)]
     label = np.array([[25.5, 3.5, -0.9, 4.0, 1.8, 1.6, 0.0]])      # a car within 2.5 m of the second spot
     real = [("r0", ground, label, ["Car"], np.zeros(1), None, np.zeros((0, 4))),
@@ -487,7 +491,8 @@ def test_bm_sim2real_cyclist_aspects_counts_and_placement(monkeypatch):
     # r0: the first spot only (a car near the second); r1: both spots; each an along and a broadside cyclist
     assert sum(got["placed_real_along"].values()) == 3 and got["placed_real_along"]["Cyclist"] == 3
     assert sum(got["placed_real_broadside"].values()) == 3 and got["placed_real_broadside"]["Pedestrian"] == 3
-    placed = seen[2:]
+    assert sum(got["sim_pedestrian_in_group"].values()) == 2 and sum(got["sim_pedestrian_alone"].values()) == 1
+    placed = seen[5:]
     for aspect, n, bottom in placed:
         assert n in (40, 30) and abs(bottom - (-1.7)) < 1e-6  # every return moved along, the box on the ground
     assert [a for a, _, _ in placed] == [round(b.aspect_deg(along)), round(b.aspect_deg(across))] * 3
