@@ -39,6 +39,10 @@ height and footprint and the share on the road (|y| < 10.5 m), where far false p
   when only the detections scoring at least 0.1, 0.2, ... 0.8 are kept, what a user picking a threshold sees;
   ``--curve-plot PNG`` draws them.
 
+* **which way the cyclists ride** (``--aspects N``): what each checkpoint takes simulated cyclists for, riding along
+  the road and across it, in their own frames and moved with their returns onto each real frame's road, and what it
+  takes simulated pedestrians crossing in groups for (:func:`cyclist_aspects`).
+
 ``--json`` merges the rows into ``benchmarks/results/<device>.json`` under ``"sim2real"``.
 """
 from __future__ import annotations
