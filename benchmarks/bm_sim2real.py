@@ -368,13 +368,13 @@ BROADSIDE = 45.0  # degrees: a cyclist at this aspect or more is seen broadside 
 ROAD_SPOTS = ((20.0, -3.0), (25.0, 3.0))  # cyclist_aspects: where simulated cyclists are put on each real frame
 
 
-def cyclist_aspects(model, sim: list, real: list) -> dict:
+def cyclist_aspects(model, sim: list, real: list, per_spot: int = 3) -> dict:
     """What the detector takes cyclists for, along the road (aspect below :data:`BROADSIDE`) and broadside: the
     simulated cyclists with 15 or more returns in ``sim`` (frames of :data:`ASPECT_PROFILE`), each in its own frame;
     and, on each real frame, simulated cyclists put at :data:`ROAD_SPOTS` (skipping a spot with a label within
-    2.5 m) on the local ground, one riding along the road and one across it: for each, the simulated cyclist
-    nearest in range and aspect, its returns moved with it (the sensor sees the same side), the real points in
-    its box removed. Separates what a real cyclist looks like from where it is and which way it rides. And the
+    2.5 m) on the local ground, riding along the road and across it: for each, in turn, the ``per_spot``
+    simulated cyclists nearest in range and aspect (one cyclist would make the count hang on which one it is), its
+    returns moved with it (the sensor sees the same side), the real points in its box removed. Separates what a real cyclist looks like from where it is and which way it rides. And the
     other side of the trade a training with cyclists riding across makes: what the simulated pedestrians (10 or
     more returns) are taken for, those with another within 1.5 m (crossing in groups, as the real ones do) and the
     others."""
@@ -405,15 +405,16 @@ def cyclist_aspects(model, sim: list, real: list) -> dict:
                 continue
             for kind, want in (("along", 10.0), ("broadside", 75.0)):
                 r = math.hypot(x, y)
-                pts, b = min(cyclists, key=lambda c: abs(math.hypot(c[1][0], c[1][1]) - r) / 5
-                             + abs(aspect_deg(c[1]) - want) / 30)
-                obj = to_box_frame(pts[_in_box(pts, b)], b)
-                box = b.copy()
-                box[0], box[1] = x, y
-                box[6] = math.atan2(y, x) + b[6] - math.atan2(b[1], b[0])  # the same aspect from the sensor
-                box[2] = np.percentile(ground, 10) + box[5] / 2
-                placed = np.r_[points[~_in_box(points, box, 0.3)][:, :4], from_box_frame(obj, box)[:, :4]]
-                out.setdefault(f"placed_real_{kind}", []).append(taken_as(model, placed, box))
+                nearest = sorted(cyclists, key=lambda c: abs(math.hypot(c[1][0], c[1][1]) - r) / 5
+                                 + abs(aspect_deg(c[1]) - want) / 30)
+                for pts, b in nearest[:per_spot]:
+                    obj = to_box_frame(pts[_in_box(pts, b)], b)
+                    box = b.copy()
+                    box[0], box[1] = x, y
+                    box[6] = math.atan2(y, x) + b[6] - math.atan2(b[1], b[0])  # the same aspect from the sensor
+                    box[2] = np.percentile(ground, 10) + box[5] / 2
+                    placed = np.r_[points[~_in_box(points, box, 0.3)][:, :4], from_box_frame(obj, box)[:, :4]]
+                    out.setdefault(f"placed_real_{kind}", []).append(taken_as(model, placed, box))
     return {k: {c: v.count(c) for c in (*CLASSES, "none")} for k, v in out.items()}
 
 

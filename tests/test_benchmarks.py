@@ -485,7 +485,7 @@ def test_bm_sim2real_cyclist_aspects_counts_and_placement(monkeypatch):
         return "Cyclist" if b.aspect_deg(box) < b.BROADSIDE else "Pedestrian"
 
     monkeypatch.setattr(b, "taken_as", fake_taken_as)
-    got = b.cyclist_aspects(None, sim, real)
+    got = b.cyclist_aspects(None, sim, real, per_spot=1)
     assert got["sim_along"] == {"Car": 0, "Pedestrian": 0, "Cyclist": 1, "none": 0}
     assert got["sim_broadside"]["Pedestrian"] == 1 and sum(got["sim_broadside"].values()) == 1
     # r0: the first spot only (a car near the second); r1: both spots; each an along and a broadside cyclist
@@ -496,6 +496,11 @@ def test_bm_sim2real_cyclist_aspects_counts_and_placement(monkeypatch):
     for aspect, n, bottom in placed:
         assert n in (40, 30) and abs(bottom - (-1.7)) < 1e-6  # every return moved along, the box on the ground
     assert [a for a, _, _ in placed] == [round(b.aspect_deg(along)), round(b.aspect_deg(across))] * 3
+    seen.clear()
+    got = b.cyclist_aspects(None, sim, real, per_spot=2)  # each of the two cyclists at every spot, nearest first
+    assert sum(got["placed_real_along"].values()) == 6 and sum(got["placed_real_broadside"].values()) == 6
+    assert [a for a, _, _ in seen[5:9]] == [round(b.aspect_deg(along)), round(b.aspect_deg(across)),
+                                            round(b.aspect_deg(across)), round(b.aspect_deg(along))]
 
 
 def test_bm_sim2real_object_grades_by_hand():
