@@ -489,7 +489,7 @@ def _on_new_sites(net, ns, checks: bool, idx, shape, feats) -> tuple:
     return call, (feats,)
 
 
-def bench_eager(device, modes, quick, rows_out):
+def bench_eager(device, modes, quick, rows_out, block=1):
     """What users see: every call starts from a new ``SparseConvTensor`` on a new copy of the indices (no
     ``indice_dict``, sites never seen: a new frame), so each call builds and checks its kernel maps. One SubM
     3x3 64 -> 64 layer module, and the 16-layer down path of the Sparse-PointPillars backbone, lidarops
@@ -497,10 +497,14 @@ def bench_eager(device, modes, quick, rows_out):
     ``lidarops.validation(False)``) against spconv (which checks nothing). The copy is in every column. The three
     columns' calls are interleaved (``benchmarks.common.time_interleaved``), so that their ratios compare calls
     made side by side; on CUDA each from an idle GPU, the order turning each round (none always follows the same
-    other)."""
+    other), and with ``block`` > 1 each column's turn ``block`` calls in a row, the first not timed (a user's loop
+    of one library)."""
     sp = _spconv() if torch.device(device).type == "cuda" else None
+    cuda = torch.device(device).type == "cuda"
     timing = "the columns' calls interleaved" + (", order turning each round, each call from an idle GPU"
-                                                 if torch.device(device).type == "cuda" else "")
+                                                 if cuda else "")
+    if cuda and block > 1:
+        timing += f", each column's turn {block} calls in a row, the first not timed"
     grids = {"drone": GRIDS["drone"]} if quick else GRIDS
     table = []
     first = len(rows_out)
@@ -523,8 +527,8 @@ def bench_eager(device, modes, quick, rows_out):
                             failed[impl], layer, down = _error(e), None, None
                     layers.append(None if layer is None else _on_new_sites(layer, ns, checks, idx, shape, feats))
                     downs.append(None if down is None else _on_new_sites(down, ns, checks, idx, shape, feats))
-                t_layers = _try_interleaved(layers, device, idle=True, rotate=True)
-                t_downs = _try_interleaved(downs, device, idle=True, rotate=True)
+                t_layers = _try_interleaved(layers, device, idle=True, rotate=True, block=block)
+                t_downs = _try_interleaved(downs, device, idle=True, rotate=True, block=block)
                 cells = {impl: (failed.get(impl) or t_layers[j], failed.get(impl) or t_downs[j])
                          for j, (impl, _, _) in enumerate(impls)}
                 (l_ours, d_ours), (l_off, d_off), (l_sp, d_sp) = (cells["lidarops"], cells["lidarops_unchecked"],
@@ -581,11 +585,16 @@ def main(argv=None):
     ap.add_argument("--only", default="layer,map,eager,pillars,voxel")
     ap.add_argument("--precisions", default="fp32,tf32,fp16")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--eager-block", type=int, default=1, metavar="K",
+                    help="eager section on CUDA: each column's turn is K calls in a row, the first not timed (1: one "
+                         "call a turn)")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--vs-spconv", action="store_true",
                     help="spconv must be importable (its columns are otherwise left empty); its version goes into "
                          "the results' meta")
     args = ap.parse_args(argv)
+    if args.eager_block < 1:
+        ap.error(f"--eager-block must be >= 1, got {args.eager_block}")
     if args.vs_spconv and _spconv() is None:
         ap.error("--vs-spconv: spconv.pytorch does not import (spconv 2.x wheels: ../shared/tools/spconv-bundle.sh)")
     devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
@@ -599,7 +608,7 @@ def main(argv=None):
         if "map" in only:
             bench_maps(device, args.quick, rows)
         if "eager" in only:
-            bench_eager(device, modes, args.quick, rows)
+            bench_eager(device, modes, args.quick, rows, block=args.eager_block)
         if "pillars" in only:
             bench_pillars(device, modes, args.quick, rows)
         if "voxel" in only:

@@ -225,7 +225,8 @@ class _CudaClock:
 
 def time_cuda_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]]], *, warmup: int = 3,
                           min_runs: int = 10, max_runs: int = 200, budget_s: float = 0.3, slow_single_s: float = 2.0,
-                          clock: Any = None, idle: bool = False, rotate: bool = False) -> list[Timing | BaseException]:
+                          clock: Any = None, idle: bool = False, rotate: bool = False,
+                          block: int = 1) -> list[Timing | BaseException]:
     """:func:`time_cuda` for several implementations of one case, their calls interleaved (A, B, C, A, B, C, ...),
     as :func:`time_cpu_interleaved` on the CPU: a ratio between two columns then compares calls made side by side,
     not two windows of a machine whose speed drifts. Each gets an untimed cold call and ``warmup`` timed warm-up
@@ -237,7 +238,12 @@ def time_cuda_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any
     call's latency; without it a call's start event waits for the work the call before it left queued, and the
     host time spent meanwhile goes unmeasured). ``rotate``: the order of the implementations turns by one each
     round (A, B, C, then B, C, A, ...), so that none always follows the same other one (a call that follows
-    another library's pays for the host's caches that one left cold)."""
+    another library's pays for the host's caches that one left cold). ``block``: each implementation's turn is
+    ``block`` calls in a row, the first not timed (when ``block`` > 1), as in a user's loop that calls one library
+    again and again: the call that pays for the switch from the other library is left out, and each still gets
+    the common run count of timed calls (rounded up to whole turns)."""
+    if not isinstance(block, int) or block < 1:
+        raise ValueError(f"block must be an int >= 1, got {block!r}")
     clock = clock or _CudaClock(next((a.device for _, args in calls for a in args
                                       if isinstance(a, torch.Tensor) and a.is_cuda), torch.device("cuda")))
     out: list[Timing | BaseException] = [Timing() for _ in calls]
@@ -262,6 +268,7 @@ def time_cuda_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any
     if not warm:
         return out
     runs = _run_count(sum(warm.values()) / len(warm), min_runs, max_runs, budget_s)
+    runs = -(-runs // max(block - 1, 1))  # rounds of block - 1 timed calls each
     marks: dict[int, list] = {i: [] for i in warm}
     turn = list(warm)
     for r in range(runs):
@@ -269,17 +276,20 @@ def time_cuda_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any
             if not isinstance(out[i], Timing):
                 continue
             fn, args = calls[i]
-            start, end = clock.event(), clock.event()
             try:
-                if idle:
-                    clock.sync()
-                start.record()
-                fn(*args)
-                end.record()
+                if block > 1:
+                    fn(*args)  # the switch from the other implementation: not timed
+                for _ in range(max(block - 1, 1)):
+                    start, end = clock.event(), clock.event()
+                    if idle:
+                        clock.sync()
+                    start.record()
+                    fn(*args)
+                    end.record()
+                    marks[i].append((start, end))
             except Exception as e:  # noqa: BLE001  (a call that fails later: reported in its place)
                 out[i] = e
                 continue
-            marks[i].append((start, end))
     clock.sync()
     for i, pairs in marks.items():
         if isinstance(out[i], Timing):
@@ -294,7 +304,7 @@ def time_interleaved(calls: Sequence[tuple[Callable[..., Any], Sequence[Any]]], 
     if torch.device(device).type == "cuda":
         return time_cuda_interleaved(calls, **{k: v for k, v in kw.items()
                                                if k in ("warmup", "min_runs", "max_runs", "budget_s", "slow_single_s",
-                                                        "idle", "rotate")})
+                                                        "idle", "rotate", "block")})
     return time_cpu_interleaved(calls, **{k: v for k, v in kw.items()
                                           if k in ("min_runs", "max_runs", "budget_s", "slow_single_s")})
 

@@ -637,6 +637,27 @@ def test_time_cuda_interleaved_idle_and_rotated():
     assert logged().endswith("|c|abcabcabc|")
 
 
+def test_time_cuda_interleaved_in_blocks():
+    """``block``: each implementation's turn is that many calls in a row, the first untimed (it pays for the switch
+    from the other implementation), the rest timed; whole turns until each has at least the common run count."""
+    clock, log = _FakeClock(), []
+    cost = {"a": 1, "b": 2}
+
+    def impl(name):
+        def fn():
+            log.append(name)
+            clock.now += cost[name] + (5 if len(log) > 1 and log[-2] != name else 0)  # a switch costs 5 more
+        return fn
+
+    out = common.time_cuda_interleaved([(impl("a"), ()), (impl("b"), ()), ], warmup=1, min_runs=5, max_runs=5,
+                                       budget_s=1e-9, clock=clock, block=3, rotate=True)
+    # 5 runs in turns of 2 timed calls: 3 turns each, 6 timed calls, none of them a switch
+    assert [t.times_ms for t in out] == [[1.0] * 6, [2.0] * 6]
+    assert "".join(log[4:]) == "aaabbbbbbaaaaaabbb", log  # after the cold and warm-up calls: a, b, b, a, a, b
+    with pytest.raises(ValueError, match="block must be an int >= 1"):
+        common.time_cuda_interleaved([(impl("a"), ())], clock=clock, block=0)
+
+
 def test_time_cuda_interleaved_fails_mid_run_in_place():
     clock = _FakeClock()
     n = {"calls": 0}
@@ -743,3 +764,11 @@ def test_stream_ap_scores_the_windows_as_detect_does(name, cls, box):
     shifted = [{**d, "boxes": d["boxes"] + torch.tensor([0.0, 0.0, 0.6, 0, 0, 0, 0])} for d in exact]  # too high
     ours, _ = stream_ap(frames, shifted, exact, *args)
     assert ours[f"{cls}_3d_moderate_R40"] < 100.0
+
+
+def test_bm_sparse_refuses_an_eager_block_below_one(capsys):
+    from benchmarks import bm_sparse
+
+    with pytest.raises(SystemExit):
+        bm_sparse.main(["--device", "cpu", "--only", "eager", "--eager-block", "0"])
+    assert "--eager-block must be >= 1, got 0" in capsys.readouterr().err
